@@ -1,0 +1,1 @@
+"""Device drivers and the simulated rig.  Knows nothing of ``station``."""

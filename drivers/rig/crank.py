@@ -1,0 +1,150 @@
+"""Crank kinematics: frame displacement as a periodic function of the crank angle, and its time
+derivatives for a crank whose frequency ramps linearly within a block.
+
+x_b(phi) = Re sum_n c_n exp(i n phi).  The ideal sine mechanism (paper Eq. 1) has c_1 = -i r only;
+a slider-crank with a finite rod adds even harmonics (``CrankHarmonics``).
+With phi' = W (rad/s) and phi'' = alpha (rad/s^2, constant within a block):
+    a    = x''(phi) W^2 + x'(phi) alpha                       (paper Eq. 2 when alpha = 0)
+    jerk = x'''(phi) W^3 + 3 x''(phi) W alpha
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.rig.params import CrankHarmonics
+
+_TOL = 1e-12  # harmonics below this fraction of the fundamental are dropped
+
+
+def displacement_coefficients(radius_m: float, harmonics: CrankHarmonics | None) -> np.ndarray:
+    """Complex Fourier coefficients c_1..c_N (m) of x_b(phi), DC removed. Shape (N,)."""
+    if harmonics is None:
+        return np.array([-1j * radius_m])
+    L = harmonics.rod_length_m
+    if L <= radius_m:
+        raise ValueError(f"rod_length_m must exceed the crank radius {radius_m} m, got {L} m")
+    n = 512
+    phi = 2 * np.pi * np.arange(n) / n
+    rc2 = (radius_m * np.cos(phi)) ** 2
+    # sqrt(L^2 - r^2 cos^2) - L written without cancellation
+    x = radius_m * np.sin(phi) - rc2 / (L + np.sqrt(L**2 - rc2))
+    spec = np.fft.fft(x) / n
+    c = 2.0 * spec[1 : n // 2]
+    keep = np.nonzero(np.abs(c) > _TOL * radius_m)[0]
+    return c[: keep[-1] + 1] if keep.size else c[:1]
+
+
+@dataclass(frozen=True)
+class Kinematics:
+    """Displacement (m), acceleration (m/s^2) and jerk (m/s^3) at the sample instants, shape (n,)."""
+
+    displacement: np.ndarray
+    acceleration: np.ndarray
+    jerk: np.ndarray
+
+
+def cos_sin(phi0: float, dphi: float, c: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of phi_k = phi0 + dphi*k + c*k^2, k = 0..n-1.
+
+    For c == 0 (steady crank) the angles are built from a table of rotations by dphi (one complex
+    product per sample instead of two transcendental calls); otherwise np.cos/np.sin are used.
+    """
+    if c != 0.0:
+        k = np.arange(n, dtype=float)
+        phi = phi0 + k * (dphi + c * k)
+        return np.cos(phi), np.sin(phi)
+    m = 256
+    rows = -(-n // m)
+    table = np.exp(1j * dphi * np.arange(m))
+    base = np.exp(1j * (phi0 + dphi * m * np.arange(rows)))
+    e = np.multiply.outer(base, table).ravel()[:n]
+    return e.real.copy(), e.imag.copy()
+
+
+def harmonics(cs: tuple[np.ndarray, np.ndarray], count: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """cos(k phi), sin(k phi) for k = 1..count by the Chebyshev recurrence (real arithmetic only)."""
+    c1, s1 = cs
+    cos_k, sin_k = [c1], [s1]
+    if count > 1:
+        two_c1 = 2.0 * c1
+        cos_k.append(two_c1 * c1 - 1.0)
+        sin_k.append(two_c1 * s1)
+        for _ in range(count - 2):
+            cos_k.append(two_c1 * cos_k[-1] - cos_k[-2])
+            sin_k.append(two_c1 * sin_k[-1] - sin_k[-2])
+    return cos_k, sin_k
+
+
+def _series(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """x(phi) and dx/dphi for x = sum_k a_k cos(k phi) + b_k sin(k phi), c_k = a_k - i b_k."""
+    cos_k, sin_k = harmonics(cs, coeffs.size)
+    a, b = coeffs.real, -coeffs.imag
+    x = np.zeros_like(cs[0])
+    dx = np.zeros_like(cs[0])
+    for k in range(coeffs.size):
+        if a[k] != 0.0:
+            x += a[k] * cos_k[k]
+            dx -= (k + 1) * a[k] * sin_k[k]
+        if b[k] != 0.0:
+            x += b[k] * sin_k[k]
+            dx += (k + 1) * b[k] * cos_k[k]
+    return x, dx
+
+
+def evaluate(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray], omega: np.ndarray | float,
+             alpha: float) -> Kinematics:
+    """Kinematics of x_b(phi(t)); cs = (cos phi, sin phi), each (n,); omega: crank rate in rad/s,
+    (n,) or a scalar for a steady block; alpha: angular acceleration in rad/s^2."""
+    if coeffs.size == 1:
+        a, b = coeffs.real[0], -coeffs.imag[0]
+        c1, s1 = cs
+        x = b * s1 if a == 0.0 else a * c1 + b * s1
+        d1 = b * c1 if a == 0.0 else b * c1 - a * s1
+        w2 = omega * omega
+        if alpha == 0.0:
+            return Kinematics(displacement=x, acceleration=-w2 * x, jerk=-(w2 * omega) * d1)
+        return Kinematics(displacement=x, acceleration=alpha * d1 - w2 * x,
+                          jerk=-(w2 * omega) * d1 - 3.0 * alpha * omega * x)
+    else:
+        cos_k, sin_k = harmonics(cs, coeffs.size)
+        a, b = coeffs.real, -coeffs.imag
+        x = np.zeros_like(cs[0])
+        d1 = np.zeros_like(cs[0])
+        d2 = np.zeros_like(cs[0])
+        d3 = np.zeros_like(cs[0])
+        for i in range(coeffs.size):
+            k = i + 1
+            xk = a[i] * cos_k[i] + b[i] * sin_k[i]
+            dk = k * (b[i] * cos_k[i] - a[i] * sin_k[i])
+            x += xk
+            d1 += dk
+            d2 -= (k * k) * xk
+            d3 -= (k * k) * dk
+    w2 = omega * omega
+    if alpha == 0.0:
+        return Kinematics(displacement=x, acceleration=d2 * w2, jerk=d3 * (w2 * omega))
+    acc = d2 * w2 + d1 * alpha
+    jerk = d3 * (w2 * omega) + 3.0 * alpha * d2 * omega
+    return Kinematics(displacement=x, acceleration=acc, jerk=jerk)
+
+
+def displacement_at(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """x_b(phi) in m for cs = (cos phi, sin phi), each (n,)."""
+    return _series(coeffs, cs)[0]
+
+
+def shift_angle(cs: tuple[np.ndarray, np.ndarray], delta: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of (phi - delta) from cs = (cos phi, sin phi); delta in rad, scalar or (n,)."""
+    if np.ndim(delta) == 0:
+        cd, sd = np.cos(delta), np.sin(delta)
+    elif np.max(np.abs(delta)) < 0.1:  # Taylor to delta^6: error < 2e-12
+        d2 = delta * delta
+        cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 / 720.0))
+        sd = delta * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 / 5040.0)))
+    else:
+        cd, sd = np.cos(delta), np.sin(delta)
+    c, s = cs
+    return c * cd + s * sd, s * cd - c * sd

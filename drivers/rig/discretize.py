@@ -1,0 +1,103 @@
+"""Exact discretisation of x' = A x + B u for an input known with its derivative at the samples.
+
+Between samples the input is the cubic Hermite interpolant of (u_k, u'_k, u_{k+1}, u'_{k+1}); the
+integral of the matrix exponential against it is computed exactly from one augmented matrix
+exponential (Van Loan's method).  The interpolation error of a sine of angular frequency w is
+about (wT)^4/384 relative: 2.5e-9 at 100 Hz and 2.5e-5 at 1 kHz for T = 50 us, far below what a
+first-order hold gives ((wT)^2/12).
+
+The result is written as two IIR filters per output (one for u, one for u') with a common
+denominator, so that a whole block is synthesised by ``scipy.signal.lfilter`` and the filter states
+carry over exactly from block to block.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import linalg, signal
+
+from drivers.rig.model import StateSpace
+
+# Hermite basis polynomials on s in [0, 1], coefficients of s^0..s^3.
+_H00 = np.array([1.0, 0.0, -3.0, 2.0])
+_H10 = np.array([0.0, 1.0, -2.0, 1.0])
+_H01 = np.array([0.0, 0.0, 3.0, -2.0])
+_H11 = np.array([0.0, 0.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class DiscreteFilters:
+    """y_p = lfilter(num_u[p], den, u) + lfilter(num_du[p], den, u'), for each output p.
+
+    num_u, num_du: (p, n+1); den: (n+1,).  ``zi_unit_u`` (p, n) is the filter state of the u-filters
+    in steady state for u = 1 (the u'-filters rest at zero for a constant input).
+    """
+
+    num_u: np.ndarray
+    num_du: np.ndarray
+    den: np.ndarray
+    zi_unit_u: np.ndarray
+
+    @property
+    def n_outputs(self) -> int:
+        return self.num_u.shape[0]
+
+
+def hermite_discretize(ss: StateSpace, T: float) -> DiscreteFilters:
+    """Discretise ``ss`` with sample time T (s) for a cubic-Hermite input; see module docstring."""
+    n = ss.A.shape[0]
+    E = np.zeros((n + 4, n + 4))
+    E[:n, :n] = ss.A
+    E[:n, n] = ss.B[:, 0]
+    for j in range(3):
+        E[n + j, n + j + 1] = 1.0
+    X = linalg.expm(E * T)
+    Phi = X[:n, :n]
+    # I_j = int_0^T e^{A(T-tau)} B tau^j dtau = j! * block(0, 1+j)
+    fact = np.array([1.0, 1.0, 2.0, 6.0])
+    I = np.stack([X[:n, n + j] * fact[j] for j in range(4)], axis=1)  # (n, 4)
+    scale = T ** -np.arange(4.0)
+
+    def g(coeff: np.ndarray) -> np.ndarray:
+        return I @ (coeff * scale)
+
+    G0, G1, G2, G3 = g(_H00), T * g(_H10), g(_H01), T * g(_H11)
+    # xi_k = x_k - G2 u_k - G3 u'_k removes the dependence on u_{k+1} (feed-through form).
+    Bd = np.stack([Phi @ G2 + G0, Phi @ G3 + G1], axis=1)  # (n, 2)
+    C = ss.C
+    D = np.stack([C @ G2, C @ G3], axis=1)  # (p, 2)
+    p = C.shape[0]
+    num_u = np.zeros((p, n + 1))
+    num_du = np.zeros((p, n + 1))
+    den = None
+    for i, target in enumerate((num_u, num_du)):
+        num, den_i = signal.ss2tf(Phi, Bd, C, D, input=i)
+        target[:] = num
+        den = den_i
+    assert den is not None
+    zi = np.stack([signal.lfilter_zi(num_u[k], den) for k in range(p)])
+    return DiscreteFilters(num_u=num_u, num_du=num_du, den=np.asarray(den), zi_unit_u=zi)
+
+
+class FilterBank:
+    """Runs a ``DiscreteFilters`` block by block, carrying the filter states exactly."""
+
+    def __init__(self, filters: DiscreteFilters, u0: float, outputs: int | None = None) -> None:
+        """Start in steady state for a constant input u0 (its derivative zero); compute only the
+        first ``outputs`` outputs (all by default) on every block."""
+        self._f = filters
+        self._count = filters.n_outputs if outputs is None else outputs
+        self._zu = filters.zi_unit_u[: self._count] * u0
+        self._zdu = np.zeros_like(self._zu)
+
+    def run(self, u: np.ndarray, du: np.ndarray) -> list[np.ndarray]:
+        """Filter one block; u, du: (n,) input and its time derivative (same unit per second)."""
+        f = self._f
+        out = []
+        for k in range(self._count):
+            y1, self._zu[k] = signal.lfilter(f.num_u[k], f.den, u, zi=self._zu[k])
+            y2, self._zdu[k] = signal.lfilter(f.num_du[k], f.den, du, zi=self._zdu[k])
+            out.append(y1 + y2)
+        return out

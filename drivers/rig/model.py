@@ -1,0 +1,102 @@
+"""Continuous-time models of the rig: paper Eq. 3 as state space, and analytic frequency responses.
+
+Input of the mechanical stage is the *total* frame acceleration u = x_b'' + g (m/s^2), i.e. the
+paper's X_b'' (Sec. 2.1.1).  Outputs are the transducer spring force F = k_f*Z2 (N) and its rate
+F' = k_f*Z2' (N/s).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+from drivers.rig.params import ConditionerLowpass, CouplingCompliance, RigPhysics, Transducer
+
+
+@dataclass(frozen=True)
+class StateSpace:
+    """x' = A x + B u, y = C x (no feed-through).  A: (n, n), B: (n, 1), C: (p, n)."""
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+
+
+def mechanical_state_space(t: Transducer, coupling: CouplingCompliance | None) -> StateSpace:
+    """State space of the transducer chain with the frame motion prescribed.
+
+    Stiff coupling (Eq. 9), state [Z2, Z2']:  M Z2'' = -k_f Z2 - b_f Z2' - M u,  M = m_e + m_l.
+    Finite coupling (Eq. 8), state [Z1, Z1', Z2, Z2'] with Z1 = x_l - x_e:
+        Z2'' = (k_c Z1 + b_c Z1' - k_f Z2 - b_f Z2')/m_e - u
+        Z1'' = -(k_c Z1 + b_c Z1')(1/m_l + 1/m_e) + (k_f Z2 + b_f Z2')/m_e
+    Outputs: [k_f Z2, k_f Z2'] in N and N/s.
+    """
+    if coupling is None:
+        M = t.total_mass_kg
+        A = np.array([[0.0, 1.0], [-t.k_f / M, -t.b_f / M]])
+        B = np.array([[0.0], [-1.0]])
+        C = np.array([[t.k_f, 0.0], [0.0, t.k_f]])
+        return StateSpace(A, B, C)
+    kc, bc = coupling.k_c, coupling.b_c
+    inv_u1 = 1.0 / t.m_l + 1.0 / t.m_e
+    A = np.array(
+        [
+            [0.0, 1.0, 0.0, 0.0],
+            [-kc * inv_u1, -bc * inv_u1, t.k_f / t.m_e, t.b_f / t.m_e],
+            [0.0, 0.0, 0.0, 1.0],
+            [kc / t.m_e, bc / t.m_e, -t.k_f / t.m_e, -t.b_f / t.m_e],
+        ]
+    )
+    B = np.array([[0.0], [0.0], [0.0], [-1.0]])
+    C = np.array([[0.0, 0.0, t.k_f, 0.0], [0.0, 0.0, 0.0, t.k_f]])
+    return StateSpace(A, B, C)
+
+
+def lowpass_state_space(lp: ConditionerLowpass) -> StateSpace:
+    """Analogue Butterworth low-pass of the conditioner (unit DC gain), as state space."""
+    b, a = signal.butter(lp.order, 2.0 * np.pi * lp.cutoff_hz, btype="low", analog=True)
+    A, B, C, D = signal.tf2ss(b, a)
+    if np.any(np.abs(D) > 0):
+        raise ValueError("a strictly proper low-pass was expected")
+    return StateSpace(np.asarray(A), np.asarray(B).reshape(-1, 1), np.asarray(C))
+
+
+def spring_force_per_acceleration(t: Transducer, coupling: CouplingCompliance | None,
+                                  f_hz: np.ndarray) -> np.ndarray:
+    """Analytic k_f*Z2/(s^2 X_b) in N/(m/s^2) at f_hz (paper Eq. 8, or Eq. 9 when coupling is None)."""
+    s = 2j * np.pi * np.asarray(f_hz, dtype=float)
+    if coupling is None:
+        d1, d2 = t.b_f / t.total_mass_kg, t.k_f / t.total_mass_kg
+        return -t.k_f / (s**2 + d1 * s + d2)
+    me, ml, kf, bf, kc, bc = t.m_e, t.m_l, t.k_f, t.b_f, coupling.k_c, coupling.b_c
+    u1 = ml * me / (ml + me)
+    d1 = bc / u1 + bf / me
+    d2 = kc / u1 + kf / me + bf * bc / (me * ml)
+    d3 = (kf * bc + kc * bf) / (me * ml)
+    d4 = kf * kc / (me * ml)
+    n1, n2 = bc / u1, kc / u1
+    return -kf * (s**2 + n1 * s + n2) / (s**4 + d1 * s**3 + d2 * s**2 + d3 * s + d4)
+
+
+def force_signal_per_displacement(physics: RigPhysics, f_hz: np.ndarray) -> np.ndarray:
+    """Analytic small-signal response of the recorded force voltage to the frame displacement,
+    in V/m, with every *linear* effect that is switched on (coupling, low-pass, channel delay).
+
+    Nonlinear or additive effects (harmonics, nonlinearity, mains, drift) have no single-frequency
+    transfer function and are not included.  The result is what a sine fit of the force-channel
+    voltage divided by the displacement (in m) gives in steady state.
+    """
+    f = np.asarray(f_hz, dtype=float)
+    s = 2j * np.pi * f
+    e = physics.effects
+    h = spring_force_per_acceleration(physics.transducer, e.coupling_compliance, f) * s**2
+    h = h * physics.transducer.sensitivity_V_per_N * physics.conditioner.gain
+    if e.conditioner_lowpass is not None:
+        b, a = signal.butter(e.conditioner_lowpass.order, 2 * np.pi * e.conditioner_lowpass.cutoff_hz,
+                             btype="low", analog=True)
+        h = h * np.polyval(b, s) / np.polyval(a, s)
+    if e.channel_delay is not None:
+        h = h * np.exp(2j * np.pi * f * e.channel_delay.delay_s)
+    return h

@@ -1,0 +1,175 @@
+"""Physical parameters of the simulated sine-mechanism rig (SI units throughout).
+
+These frozen dataclasses are the *only* vocabulary the simulator speaks; the station's
+pydantic configuration is converted into them (``station.config.to_rig_physics``), so the
+``drivers`` layer never imports ``station``.
+
+Model (paper Eq. 3, frame/base motion prescribed by the crank):
+
+    m_l x_l'' = -k_c (x_l - x_e) - b_c (x_l' - x_e') - m_l g
+    m_e x_e'' =  k_c (x_l - x_e) + b_c (x_l' - x_e') - k_f (x_e - x_b) - b_f (x_e' - x_b') - m_e g
+
+with x_b(t) the frame displacement.  The force transducer's signal is proportional to its
+deformation Z2 = x_e - x_b (strain gauges), scaled so that in the static limit it reads the spring
+force ``k_f * Z2`` times the sensitivity: ``U = S * k_f * Z2``.  In the static limit
+``k_f Z2 = -(m_e + m_l)(a + g)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+G_STANDARD = 9.80665  # m/s^2
+
+
+@dataclass(frozen=True)
+class Transducer:
+    """Mechanical model of the force transducer with its load.
+
+    k_f: transducer stiffness in N/m; b_f: transducer damping in N*s/m;
+    m_e: end mass in kg; m_l: load mass (top mass + adaption) in kg;
+    sensitivity_V_per_N: transducer (bridge) output per newton of spring force, in V/N.
+    """
+
+    k_f: float
+    b_f: float
+    m_e: float
+    m_l: float
+    sensitivity_V_per_N: float
+    capacity_N: float = float("inf")
+
+    @property
+    def total_mass_kg(self) -> float:
+        return self.m_e + self.m_l
+
+
+@dataclass(frozen=True)
+class CouplingCompliance:
+    """Finite coupling between load mass and transducer (paper Eq. 8): k_c in N/m, b_c in N*s/m."""
+
+    k_c: float
+    b_c: float
+
+
+@dataclass(frozen=True)
+class ConditionerLowpass:
+    """Analogue Butterworth low-pass in the signal conditioner: order, cut-off (-3 dB) in Hz."""
+
+    order: int
+    cutoff_hz: float
+
+
+@dataclass(frozen=True)
+class ChannelDelay:
+    """Time skew of a multiplexed ADC: the force sample k is taken ``delay_s`` seconds after the
+    displacement sample k (positive delay).  Force/displacement phase changes by +2*pi*f*delay_s."""
+
+    delay_s: float
+
+
+@dataclass(frozen=True)
+class CrankHarmonics:
+    """Non-sinusoidal frame motion of a slider-crank with a connecting rod of ``rod_length_m``.
+
+    x_b(phi) = r sin(phi) + sqrt(L^2 - r^2 cos^2 phi) - mean; second-harmonic amplitude ~ r^2/(4L).
+    """
+
+    rod_length_m: float
+
+
+@dataclass(frozen=True)
+class TransducerNonlinearity:
+    """Sensitivity that depends on the force: U = S*F*(1 + quadratic*(F/C) + cubic*(F/C)^2),
+    F the spring force in N (preload included), C the capacity in N; coefficients dimensionless."""
+
+    quadratic: float
+    cubic: float
+
+
+@dataclass(frozen=True)
+class MainsInterference:
+    """Mains pick-up on the force channel (conditioner output): amplitudes in V of the fundamental
+    and its harmonics (index 0 = mains frequency), phases in rad."""
+
+    frequency_hz: float
+    amplitudes_V: tuple[float, ...]
+    phases_rad: tuple[float, ...] = ()
+
+
+@dataclass(frozen=True)
+class ZeroDrift:
+    """Slow offset drift of the conditioner output: offset(t) = rate_V_per_s * t + quadratic_V_per_s2 * t^2."""
+
+    rate_V_per_s: float
+    quadratic_V_per_s2: float = 0.0
+
+
+@dataclass(frozen=True)
+class Effects:
+    """The catalogue of effects; each is off (None) by default and they compose freely."""
+
+    coupling_compliance: CouplingCompliance | None = None
+    conditioner_lowpass: ConditionerLowpass | None = None
+    channel_delay: ChannelDelay | None = None
+    crank_harmonics: CrankHarmonics | None = None
+    transducer_nonlinearity: TransducerNonlinearity | None = None
+    mains_interference: MainsInterference | None = None
+    zero_drift: ZeroDrift | None = None
+
+    def active(self) -> list[str]:
+        """Names of the effects that are switched on."""
+        return [name for name in EFFECT_NAMES if getattr(self, name) is not None]
+
+
+EFFECT_NAMES: tuple[str, ...] = (
+    "coupling_compliance",
+    "conditioner_lowpass",
+    "channel_delay",
+    "crank_harmonics",
+    "transducer_nonlinearity",
+    "mains_interference",
+    "zero_drift",
+)
+
+
+@dataclass(frozen=True)
+class DisplacementSensor:
+    """Displacement transducer on the frame: gain in V/m, white noise in m RMS (at the sample rate)."""
+
+    gain_V_per_m: float
+    noise_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class Conditioner:
+    """Signal conditioner of the force channel: gain in V/V, output offset in V, white noise in V RMS."""
+
+    gain: float = 1.0
+    offset_V: float = 0.0
+    noise_V: float = 0.0
+
+
+@dataclass(frozen=True)
+class Adc:
+    """Two-channel ADC: resolution in bits, symmetric input ranges in V (+-range), clipping at range."""
+
+    bits: int = 16
+    displacement_range_V: float = 10.0
+    force_range_V: float = 10.0
+
+    def volts_per_count(self, range_V: float) -> float:
+        """Size of one code in V for a symmetric range of +-range_V."""
+        return 2.0 * range_V / 2**self.bits
+
+
+@dataclass(frozen=True)
+class RigPhysics:
+    """Everything the simulator needs to synthesise both channels."""
+
+    transducer: Transducer
+    displacement_sensor: DisplacementSensor
+    conditioner: Conditioner
+    adc: Adc = field(default_factory=Adc)
+    effects: Effects = field(default_factory=Effects)
+    gravity_m_per_s2: float = G_STANDARD
+    sample_rate_hz: float = 20_000.0

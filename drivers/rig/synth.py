@@ -1,0 +1,196 @@
+"""Streaming synthesis of the two DAQ channels from the rig physics.
+
+Signal chain per sample k (t_k = k / fs):
+    crank angle phi(t) (frequency ramping linearly within a block) -> frame displacement x_b,
+    acceleration, jerk (``crank``) -> mechanical chain (paper Eq. 3, exact Hermite discretisation)
+    -> spring force F = k_f Z2 -> transducer output S*F*(1 + q F/C + c (F/C)^2) -> conditioner
+    low-pass -> gain, offset, drift, mains, noise -> force ADC;
+    x_b (sampled ``channel_delay`` earlier) -> displacement sensor gain + noise -> displacement ADC.
+
+Every effect is off unless configured (``params.Effects``).  Blocks may have any length; the
+result does not depend on how a run is cut into blocks except for the noise draws.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.rig import crank
+from drivers.rig.discretize import FilterBank, hermite_discretize
+from drivers.rig.model import lowpass_state_space, mechanical_state_space
+from drivers.rig.params import MainsInterference, RigPhysics
+
+
+@dataclass(frozen=True)
+class SynthBlock:
+    """One block of synthesised samples, all arrays of shape (n,).
+
+    start_sample: index of the first sample since the synthesiser started;
+    displacement_counts, force_counts: ADC codes (int16);
+    displacement_V, force_V: analogue ADC inputs in V (noise included, before quantisation);
+    displacement_m: true frame displacement in m; crank_frequency_hz: crank frequency at each sample;
+    clipped: number of samples (both channels) that hit the ADC range.
+    """
+
+    start_sample: int
+    displacement_counts: np.ndarray
+    force_counts: np.ndarray
+    displacement_V: np.ndarray
+    force_V: np.ndarray
+    displacement_m: np.ndarray
+    crank_frequency_hz: np.ndarray
+    clipped: int
+
+
+class RigSynth:
+    """Synthesises the DAQ channels block by block, carrying every state exactly between blocks."""
+
+    def __init__(self, physics: RigPhysics, *, seed: int, crank_radius_m: float,
+                 phi0_rad: float = 0.0) -> None:
+        """Start at standstill in the gravity equilibrium, crank at ``phi0_rad``."""
+        self.physics = physics
+        self._T = 1.0 / physics.sample_rate_hz
+        self._phi = float(phi0_rad)
+        self._f = 0.0
+        self._k = 0
+        self._radius = 0.0
+        self.set_crank_radius(crank_radius_m)
+        eff = physics.effects
+        g = physics.gravity_m_per_s2
+        self._need_rate = eff.conditioner_lowpass is not None
+        mech = hermite_discretize(mechanical_state_space(physics.transducer, eff.coupling_compliance),
+                                  self._T)
+        self._mech = FilterBank(mech, u0=g, outputs=2 if self._need_rate else 1)
+        self._lowpass: FilterBank | None = None
+        if eff.conditioner_lowpass is not None:
+            F0 = -physics.transducer.total_mass_kg * g
+            lp = hermite_discretize(lowpass_state_space(eff.conditioner_lowpass), self._T)
+            self._lowpass = FilterBank(lp, u0=float(self._transducer_output(np.array([F0]))[0]))
+        disp_seq, force_seq = np.random.SeedSequence(seed).spawn(2)
+        self._rng_disp = np.random.default_rng(disp_seq)
+        self._rng_force = np.random.default_rng(force_seq)
+
+    # -- state -------------------------------------------------------------------------------
+    @property
+    def crank_frequency_hz(self) -> float:
+        """Crank frequency at the next sample, Hz."""
+        return self._f
+
+    @property
+    def crank_angle_rad(self) -> float:
+        """Crank angle at the next sample, rad in [0, 2*pi)."""
+        return self._phi
+
+    @property
+    def crank_radius_m(self) -> float:
+        return self._radius
+
+    @property
+    def sample_index(self) -> int:
+        """Index of the next sample to be synthesised."""
+        return self._k
+
+    def set_crank_radius(self, radius_m: float) -> None:
+        """Change the crank radius (m); only at standstill, as on the real rig."""
+        if self._f != 0.0:
+            raise RuntimeError(f"the crank radius can only change at standstill (crank at {self._f} Hz)")
+        if not radius_m >= 0.0:
+            raise ValueError(f"crank radius must be >= 0 m, got {radius_m}")
+        self._radius = float(radius_m)
+        self._coeffs = crank.displacement_coefficients(self._radius, self.physics.effects.crank_harmonics)
+
+    # -- synthesis -----------------------------------------------------------------------------
+    def _transducer_output(self, F: np.ndarray) -> np.ndarray:
+        """Transducer output in V for spring force F in N (with the nonlinearity if switched on)."""
+        t = self.physics.transducer
+        nl = self.physics.effects.transducer_nonlinearity
+        if nl is None:
+            return t.sensitivity_V_per_N * F
+        x = F / t.capacity_N
+        return t.sensitivity_V_per_N * F * (1.0 + nl.quadratic * x + nl.cubic * x * x)
+
+    def _transducer_output_rate(self, F: np.ndarray, dF: np.ndarray) -> np.ndarray:
+        t = self.physics.transducer
+        nl = self.physics.effects.transducer_nonlinearity
+        if nl is None:
+            return t.sensitivity_V_per_N * dF
+        x = F / t.capacity_N
+        return t.sensitivity_V_per_N * dF * (1.0 + 2.0 * nl.quadratic * x + 3.0 * nl.cubic * x * x)
+
+    def advance(self, n: int, f_end_hz: float) -> SynthBlock:
+        """Synthesise the next n samples while the crank frequency moves linearly to f_end_hz."""
+        if n <= 0:
+            raise ValueError(f"block length must be positive, got {n}")
+        if f_end_hz < 0.0:
+            raise ValueError(f"crank frequency must be >= 0 Hz, got {f_end_hz}")
+        ph, T = self.physics, self._T
+        eff = ph.effects
+        f0 = self._f
+        rate = (f_end_hz - f0) / (n * T)  # Hz/s
+        if rate == 0.0:
+            freq: np.ndarray | float = f0
+        else:
+            freq = f0 + rate * (np.arange(n) * T)
+        omega = 2.0 * np.pi * freq
+        alpha = 2.0 * np.pi * rate
+        # phi_k = phi + 2 pi (f0 k T + rate (k T)^2 / 2)
+        cs = crank.cos_sin(self._phi, 2.0 * np.pi * f0 * T, np.pi * rate * T * T, n)
+        kin = crank.evaluate(self._coeffs, cs, omega, alpha)
+
+        u = kin.acceleration + ph.gravity_m_per_s2
+        mech = self._mech.run(u, kin.jerk)
+        v = self._transducer_output(mech[0])
+        if self._lowpass is not None:
+            v = self._lowpass.run(v, self._transducer_output_rate(mech[0], mech[1]))[0]
+        cond = ph.conditioner
+        force_V = cond.gain * v + cond.offset_V
+        if eff.zero_drift is not None:
+            t_abs = (self._k + np.arange(n)) * T
+            force_V += eff.zero_drift.rate_V_per_s * t_abs + eff.zero_drift.quadratic_V_per_s2 * t_abs**2
+        if eff.mains_interference is not None:
+            force_V += _mains(eff.mains_interference, self._k * T, T, n)
+        if cond.noise_V > 0:
+            force_V += self._rng_force.standard_normal(n) * cond.noise_V
+
+        x = kin.displacement
+        if eff.channel_delay is not None:
+            d = eff.channel_delay.delay_s
+            x = crank.displacement_at(self._coeffs, crank.shift_angle(cs, omega * d - 0.5 * alpha * d * d))
+        sens = ph.displacement_sensor
+        disp_V = sens.gain_V_per_m * x
+        if sens.noise_m > 0:
+            disp_V += self._rng_disp.standard_normal(n) * (sens.noise_m * sens.gain_V_per_m)
+
+        dc, clip_d = _quantise(disp_V, ph.adc.volts_per_count(ph.adc.displacement_range_V), ph.adc.bits)
+        fc, clip_f = _quantise(force_V, ph.adc.volts_per_count(ph.adc.force_range_V), ph.adc.bits)
+        block = SynthBlock(start_sample=self._k, displacement_counts=dc, force_counts=fc,
+                           displacement_V=disp_V, force_V=force_V, displacement_m=kin.displacement,
+                           crank_frequency_hz=np.broadcast_to(freq, (n,)), clipped=clip_d + clip_f)
+        self._phi = float(np.mod(self._phi + 2.0 * np.pi * n * T * (f0 + f_end_hz) / 2.0, 2.0 * np.pi))
+        self._f = float(f_end_hz)
+        self._k += n
+        return block
+
+
+def _mains(m: MainsInterference, t0: float, T: float, n: int) -> np.ndarray:
+    """Mains pick-up in V at the n sample instants t0 + k T (s)."""
+    w = 2.0 * np.pi * m.frequency_hz
+    c1, s1 = crank.cos_sin(w * t0, w * T, 0.0, n)
+    cos_k, sin_k = crank.harmonics((c1, s1), len(m.amplitudes_V))
+    out = np.zeros(n)
+    for h, amp in enumerate(m.amplitudes_V):
+        ph = m.phases_rad[h] if h < len(m.phases_rad) else 0.0
+        # sin(h w t + ph) = sin(h w t) cos ph + cos(h w t) sin ph
+        out += amp * (sin_k[h] * np.cos(ph) + cos_k[h] * np.sin(ph))
+    return out
+
+
+def _quantise(v: np.ndarray, lsb: float, bits: int) -> tuple[np.ndarray, int]:
+    """ADC codes for voltages v with code size lsb (V); returns (int16 codes, clipped count)."""
+    lo, hi = -(2 ** (bits - 1)), 2 ** (bits - 1) - 1
+    codes = np.rint(v / lsb)
+    clipped = int(np.count_nonzero((codes < lo) | (codes > hi)))
+    np.clip(codes, lo, hi, out=codes)
+    return codes.astype(np.int16), clipped

@@ -1,0 +1,9 @@
+"""Sub-commands of the ``station`` console script; each module exposes ``register(subparsers)``.
+
+A command's handler takes the parsed ``argparse.Namespace`` and returns the process exit code.
+"""
+
+COMMAND_MODULES: tuple[str, ...] = (
+    "station.commands.simulate",
+    "station.commands.transfer",
+)

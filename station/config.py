@@ -1,0 +1,300 @@
+"""Station configuration: YAML files in ``config/`` loaded into strict pydantic models.
+
+Unknown keys and out-of-range values are refused with a message naming the key, the value received
+and the allowed range.  All quantities are SI; the unit is part of every field name.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from drivers.rig import params as rp
+from station.errors import ConfigError
+
+_STRICT = ConfigDict(extra="forbid", frozen=True)
+
+Pos = Annotated[float, Field(gt=0)]
+
+
+class _Model(BaseModel):
+    model_config = _STRICT
+
+
+class Range(_Model):
+    """A closed interval [min, max] of a quantity."""
+
+    min: float = Field(ge=0)
+    max: float = Field(gt=0)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Range:
+        if self.min > self.max:
+            raise ValueError(f"min ({self.min}) must not exceed max ({self.max})")
+        return self
+
+    def contains(self, value: float) -> bool:
+        return self.min <= value <= self.max
+
+
+class StationSection(_Model):
+    """Where the station keeps its data."""
+
+    name: str = "sinecal"
+    recordings_dir: str = "recordings"
+
+
+class TransducerConfig(_Model):
+    """The transducer under calibration (nominal data from its data sheet)."""
+
+    id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")
+    capacity_N: float = Field(gt=0, le=1e7)
+    sensitivity_V_per_N: float = Field(gt=0, le=1.0, description="bridge output per N")
+    end_mass_kg: float | None = Field(default=None, gt=0, le=100)
+
+
+class RigConfig(_Model):
+    """The sine-mechanism rig and its limits."""
+
+    top_mass_kg: float = Field(gt=0, le=500)
+    adaption_mass_kg: float = Field(default=0.0, ge=0, le=100)
+    crank_radius_m: Range = Range(min=1e-4, max=0.05)
+    crank_frequency_hz: Range = Range(min=1.0, max=100.0)
+    peak_force_fraction: float = Field(default=0.8, gt=0, le=1.0,
+                                       description="peak force limit as a fraction of capacity")
+    acceleration_hz_per_s: float = Field(default=10.0, gt=0, le=200.0,
+                                         description="crank-frequency ramp rate")
+
+    @property
+    def load_mass_kg(self) -> float:
+        """m_l of paper Eq. 3: top mass plus adaption."""
+        return self.top_mass_kg + self.adaption_mass_kg
+
+
+class ConditionerConfig(_Model):
+    gain: float = Field(default=1000.0, gt=0, le=1e6, description="V/V")
+    offset_V: float = Field(default=0.0, ge=-10, le=10)
+
+
+class DisplacementSensorConfig(_Model):
+    gain_V_per_m: float = Field(default=500.0, gt=0, le=1e6)
+
+
+class DaqConfig(_Model):
+    sample_rate_hz: float = Field(default=20_000.0, ge=1000, le=200_000)
+    adc_bits: int = Field(default=16, ge=8, le=16)
+    displacement_range_V: float = Field(default=10.0, gt=0, le=10)
+    force_range_V: float = Field(default=10.0, gt=0, le=10)
+
+
+class StepConfig(_Model):
+    """One step of a stepped-sine run."""
+
+    crank_frequency_hz: float = Field(gt=0, le=1000)
+    crank_radius_m: float = Field(gt=0, le=1.0)
+    settle_s: float | None = Field(default=None, ge=0, le=600)
+    record_s: float | None = Field(default=None, gt=0, le=3600)
+
+
+class PlanConfig(_Model):
+    """The default run: steps with settle and record times."""
+
+    settle_s: float = Field(default=1.0, ge=0, le=600)
+    record_s: float = Field(default=2.0, gt=0, le=3600)
+    steps: list[StepConfig] = Field(min_length=1, max_length=200)
+
+
+class TruthConfig(_Model):
+    """True mechanical parameters of the simulated transducer."""
+
+    k_f: float = Field(gt=0, le=1e12, description="N/m")
+    b_f: float = Field(ge=0, le=1e8, description="N*s/m")
+    end_mass_kg: float | None = Field(default=None, gt=0, le=100,
+                                      description="true end mass; defaults to the transducer's")
+    sensitivity_V_per_N: float | None = Field(default=None, gt=0, le=1.0,
+                                              description="true sensitivity; defaults to nominal")
+
+
+class CouplingConfig(_Model):
+    k_c: float = Field(gt=0, le=1e13)
+    b_c: float = Field(ge=0, le=1e8)
+
+
+class LowpassConfig(_Model):
+    order: int = Field(ge=1, le=8)
+    cutoff_hz: float = Field(gt=0, le=100_000)
+
+
+class DelayConfig(_Model):
+    delay_s: float = Field(ge=-1e-3, le=1e-3)
+
+
+class HarmonicsConfig(_Model):
+    rod_length_m: float = Field(gt=0, le=10)
+
+
+class NonlinearityConfig(_Model):
+    quadratic: float = Field(ge=-0.5, le=0.5)
+    cubic: float = Field(default=0.0, ge=-0.5, le=0.5)
+
+
+class MainsConfig(_Model):
+    frequency_hz: float = Field(default=50.0, ge=45, le=65)
+    amplitudes_V: list[float] = Field(min_length=1, max_length=10)
+    phases_rad: list[float] = Field(default_factory=list, max_length=10)
+
+
+class DriftConfig(_Model):
+    rate_V_per_s: float = Field(ge=-1, le=1)
+    quadratic_V_per_s2: float = Field(default=0.0, ge=-1, le=1)
+
+
+class EffectsConfig(_Model):
+    """The effect catalogue of the simulator; an absent key means the effect is off."""
+
+    coupling_compliance: CouplingConfig | None = None
+    conditioner_lowpass: LowpassConfig | None = None
+    channel_delay: DelayConfig | None = None
+    crank_harmonics: HarmonicsConfig | None = None
+    transducer_nonlinearity: NonlinearityConfig | None = None
+    mains_interference: MainsConfig | None = None
+    zero_drift: DriftConfig | None = None
+
+
+class SimulationConfig(_Model):
+    """The simulated rig: truth, noise, effects, seed."""
+
+    seed: int = Field(default=1, ge=0)
+    truth: TruthConfig
+    displacement_noise_m: float = Field(default=2e-7, ge=0, le=1e-2)
+    conditioner_noise_V: float = Field(default=5e-4, ge=0, le=1.0)
+    pre_roll_s: float = Field(default=0.5, ge=0, le=60, description="standstill before the first ramp")
+    effects: EffectsConfig = EffectsConfig()
+
+
+class StationConfig(_Model):
+    """A whole station configuration file."""
+
+    station: StationSection = StationSection()
+    transducer: TransducerConfig
+    rig: RigConfig
+    conditioner: ConditionerConfig = ConditionerConfig()
+    displacement_sensor: DisplacementSensorConfig = DisplacementSensorConfig()
+    daq: DaqConfig = DaqConfig()
+    plan: PlanConfig
+    simulation: SimulationConfig | None = None
+
+
+def _field_bounds(loc: tuple[Any, ...]) -> list[str]:
+    """The declared bounds of the field at ``loc`` in StationConfig, e.g. ['> 0', '<= 1.0']."""
+    model: Any = StationConfig
+    info = None
+    for part in loc:
+        if isinstance(part, int):  # list index: stay on the item model
+            continue
+        if not (isinstance(model, type) and issubclass(model, BaseModel)) or part not in model.model_fields:
+            return []
+        info = model.model_fields[part]
+        ann = info.annotation
+        args = [a for a in getattr(ann, "__args__", (ann,)) if isinstance(a, type)]
+        model = next((a for a in args if issubclass(a, BaseModel)), ann)
+    if info is None:
+        return []
+    out = []
+    for meta in info.metadata:
+        for key, sym in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
+            if getattr(meta, key, None) is not None:
+                out.append(f"{sym} {getattr(meta, key)}")
+    return out
+
+
+def _describe_error(err: dict[str, Any]) -> str:
+    loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    bounds = _field_bounds(tuple(err["loc"]))
+    if err["type"] == "extra_forbidden":
+        return f"{loc}: unknown key (received {err['input']!r})"
+    if err["type"] == "missing":
+        return f"{loc}: required key is missing"
+    allowed = f"; allowed: value {' and '.join(bounds)}" if bounds else ""
+    return f"{loc} = {err.get('input')!r}: {err['msg']}{allowed}"
+
+
+def parse_config(data: Any, source: str = "<config>") -> StationConfig:
+    """Validate a parsed YAML mapping; raises ConfigError listing every problem."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
+    try:
+        return StationConfig.model_validate(data)
+    except ValidationError as exc:
+        lines = "\n  ".join(_describe_error(e) for e in exc.errors())
+        raise ConfigError(f"{source}: invalid configuration:\n  {lines}") from None
+
+
+def load_config(path: str | Path) -> StationConfig:
+    """Read and validate a station YAML file."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read configuration: {exc.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: not valid YAML: {exc}") from None
+    return parse_config(data, str(p))
+
+
+def config_to_yaml(cfg: StationConfig) -> str:
+    """The configuration as YAML (the snapshot stored in every recording)."""
+    return yaml.safe_dump(cfg.model_dump(mode="json", exclude_none=True), sort_keys=False)
+
+
+def default_config_path() -> Path:
+    """config/sim-5kN.yaml of the source tree (the station's default)."""
+    return Path(__file__).resolve().parent.parent / "config" / "sim-5kN.yaml"
+
+
+def to_rig_physics(cfg: StationConfig) -> rp.RigPhysics:
+    """The simulator's physics from a configuration with a ``simulation`` section."""
+    sim = cfg.simulation
+    if sim is None:
+        raise ConfigError("the configuration has no 'simulation' section; the simulated rig needs one")
+    t = cfg.transducer
+    m_e = sim.truth.end_mass_kg or t.end_mass_kg
+    if m_e is None:
+        raise ConfigError("simulation needs an end mass: set simulation.truth.end_mass_kg "
+                          "or transducer.end_mass_kg")
+    e = sim.effects
+    effects = rp.Effects(
+        coupling_compliance=rp.CouplingCompliance(**e.coupling_compliance.model_dump())
+        if e.coupling_compliance else None,
+        conditioner_lowpass=rp.ConditionerLowpass(**e.conditioner_lowpass.model_dump())
+        if e.conditioner_lowpass else None,
+        channel_delay=rp.ChannelDelay(**e.channel_delay.model_dump()) if e.channel_delay else None,
+        crank_harmonics=rp.CrankHarmonics(**e.crank_harmonics.model_dump()) if e.crank_harmonics else None,
+        transducer_nonlinearity=rp.TransducerNonlinearity(**e.transducer_nonlinearity.model_dump())
+        if e.transducer_nonlinearity else None,
+        mains_interference=rp.MainsInterference(
+            frequency_hz=e.mains_interference.frequency_hz,
+            amplitudes_V=tuple(e.mains_interference.amplitudes_V),
+            phases_rad=tuple(e.mains_interference.phases_rad),
+        ) if e.mains_interference else None,
+        zero_drift=rp.ZeroDrift(**e.zero_drift.model_dump()) if e.zero_drift else None,
+    )
+    return rp.RigPhysics(
+        transducer=rp.Transducer(
+            k_f=sim.truth.k_f, b_f=sim.truth.b_f, m_e=m_e, m_l=cfg.rig.load_mass_kg,
+            sensitivity_V_per_N=sim.truth.sensitivity_V_per_N or t.sensitivity_V_per_N,
+            capacity_N=t.capacity_N),
+        displacement_sensor=rp.DisplacementSensor(gain_V_per_m=cfg.displacement_sensor.gain_V_per_m,
+                                                  noise_m=sim.displacement_noise_m),
+        conditioner=rp.Conditioner(gain=cfg.conditioner.gain, offset_V=cfg.conditioner.offset_V,
+                                   noise_V=sim.conditioner_noise_V),
+        adc=rp.Adc(bits=cfg.daq.adc_bits, displacement_range_V=cfg.daq.displacement_range_V,
+                   force_range_V=cfg.daq.force_range_V),
+        effects=effects,
+        sample_rate_hz=cfg.daq.sample_rate_hz,
+    )
