@@ -1,0 +1,29 @@
+"""``station import`` and ``station export``: the sinecal-csv interchange format."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from station.interchange import export_run, import_run
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("import", help="turn a run recorded elsewhere (RUN.yaml + CSV) into a recording")
+    p.add_argument("run_yaml", type=Path, metavar="RUN.yaml")
+    p.add_argument("--out", type=Path, default=Path("recordings"), help="output folder")
+    p.set_defaults(handler=_import)
+    e = sub.add_parser("export", help="write a recording's steps as RUN.yaml + CSV")
+    e.add_argument("recording", type=Path, metavar="RECORDING")
+    e.add_argument("--out", type=Path, default=Path("."), help="folder that receives <run_id>/")
+    e.set_defaults(handler=_export)
+
+
+def _import(args: argparse.Namespace) -> int:
+    print(import_run(args.run_yaml, args.out))
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    print(export_run(args.recording, args.out))
+    return 0

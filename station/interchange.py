@@ -1,0 +1,200 @@
+"""The sinecal-csv interchange format (docs/interchange-format.md): runs recorded on other DAQs.
+
+``RUN.yaml`` + one CSV per step (header ``t_s,displacement_m,force_V``).  Import validates every
+file completely before anything is written; a malformed file is refused with the file, the line and
+the reason, and no half-written recording is left behind.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from station.errors import RecordingFormatError, StationError
+from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id, read_recording
+
+log = logging.getLogger(__name__)
+
+HEADER = "t_s,displacement_m,force_V"
+FORMAT = "sinecal-csv"
+RATE_TOLERANCE = 1e-3  # allowed deviation of each time step from 1/fs, as a fraction of 1/fs
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CsvTransducer(_Strict):
+    id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")
+    capacity_N: float = Field(gt=0)
+    sensitivity_V_per_N: float = Field(description="of the recorded force_V signal; either sign")
+
+
+class CsvStep(_Strict):
+    file: str = Field(min_length=1)
+    crank_frequency_hz: float = Field(gt=0, le=1000)
+
+
+class RunFile(_Strict):
+    """RUN.yaml of the interchange format, version 1."""
+
+    format: str
+    format_version: int
+    sample_rate_hz: float = Field(gt=0, le=1e6)
+    crank_radius_m: float = Field(gt=0, le=1.0)
+    top_mass_kg: float = Field(gt=0, le=1000, description="load mass m_l incl. adaption")
+    end_mass_kg: float | None = Field(default=None, gt=0, le=100)
+    transducer: CsvTransducer
+    steps: list[CsvStep] = Field(min_length=1)
+
+
+def _load_run_file(path: Path) -> RunFile:
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise RecordingFormatError(f"{path}: cannot read: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise RecordingFormatError(f"{path}: not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise RecordingFormatError(f"{path}: a mapping was expected, got {type(data).__name__}")
+    if data.get("format") != FORMAT or data.get("format_version") != 1:
+        raise RecordingFormatError(f"{path}: format {FORMAT!r} version 1 expected, got "
+                                   f"{data.get('format')!r} version {data.get('format_version')!r}")
+    try:
+        run = RunFile.model_validate(data)
+    except ValidationError as exc:
+        msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']} (received {e.get('input')!r})"
+                         for e in exc.errors())
+        raise RecordingFormatError(f"{path}: {msgs}") from None
+    if run.transducer.sensitivity_V_per_N == 0:
+        raise RecordingFormatError(f"{path}: transducer.sensitivity_V_per_N must not be 0")
+    return run
+
+
+def _first_bad_line(path: Path, lines: list[str]) -> str:
+    """Locate the first malformed data line (1-based line numbers, header is line 1)."""
+    for i, line in enumerate(lines[1:], start=2):
+        cells = line.split(",")
+        if len(cells) != 3:
+            return f"{path}, line {i}: 3 cells expected, got {len(cells)} ({line!r})"
+        for name, cell in zip(HEADER.split(","), cells, strict=True):
+            try:
+                v = float(cell)
+            except ValueError:
+                return f"{path}, line {i}: column {name}: a number expected, got {cell.strip()!r}"
+            if not np.isfinite(v):
+                return f"{path}, line {i}: column {name}: a finite number expected, got {cell.strip()!r}"
+    return f"{path}: malformed CSV"
+
+
+def read_step_csv(path: Path, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Parse and check one step file; returns (displacement_m, force_V, t0_s)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise RecordingFormatError(f"{path}: cannot read: {exc.strerror}") from None
+    lines = [ln for ln in text.splitlines() if ln.strip()]
+    if not lines or lines[0].strip().replace(" ", "") != HEADER:
+        got = lines[0].strip() if lines else "an empty file"
+        raise RecordingFormatError(f"{path}, line 1: header {HEADER!r} expected, got {got!r}")
+    if len(lines) < 3:
+        raise RecordingFormatError(f"{path}: at least 2 samples expected, got {len(lines) - 1}")
+    try:
+        data = np.loadtxt(lines[1:], delimiter=",", dtype=np.float64, ndmin=2)
+    except ValueError:
+        raise RecordingFormatError(_first_bad_line(path, lines)) from None
+    if data.shape[1] != 3 or not np.all(np.isfinite(data)):
+        raise RecordingFormatError(_first_bad_line(path, lines))
+    t = data[:, 0]
+    dt = np.diff(t)
+    T = 1.0 / sample_rate_hz
+    med = float(np.median(dt))
+    if abs(med - T) > RATE_TOLERANCE * T:
+        raise RecordingFormatError(
+            f"{path}: sample interval {med:.9g} s ({1 / med if med > 0 else float('inf'):.6g} Hz) found, "
+            f"RUN.yaml says sample_rate_hz {sample_rate_hz:g} (interval {T:.9g} s)")
+    bad = np.nonzero(np.abs(dt - T) > RATE_TOLERANCE * T)[0]
+    if bad.size:
+        i = int(bad[0])
+        raise RecordingFormatError(
+            f"{path}, line {i + 3}: non-uniform time: t_s steps by {dt[i]:.9g} s from the line before, "
+            f"{T:.9g} s expected")
+    return data[:, 1].copy(), data[:, 2].copy(), float(t[0])
+
+
+def import_run(run_yaml: str | Path, out_dir: str | Path) -> Path:
+    """Convert a sinecal-csv run into a recording in ``out_dir``; returns its path."""
+    src = Path(run_yaml)
+    run = _load_run_file(src)
+    steps = []
+    for st in run.steps:
+        f = (src.parent / st.file).resolve()
+        if src.parent.resolve() not in f.parents:
+            raise RecordingFormatError(f"{src}: step file {st.file!r} must lie beside RUN.yaml")
+        steps.append((st, *read_step_csv(f, run.sample_rate_hz)))
+    meta = RunMetadata(
+        run_id=new_run_id(run.transducer.id), transducer_id=run.transducer.id, source="import",
+        sample_rate_hz=run.sample_rate_hz, load_mass_kg=run.top_mass_kg, end_mass_kg=run.end_mass_kg,
+        sensitivity_V_per_N=run.transducer.sensitivity_V_per_N, capacity_N=run.transducer.capacity_N,
+        config_yaml=src.read_text(encoding="utf-8"))
+    channels = (ChannelSpec("displacement", "f8", "m", "m", scale=1.0),
+                ChannelSpec("force", "f8", "V", "V", scale=1.0))
+    writer = RecordingWriter(out_dir, meta, channels,
+                             plan={"kind": "import", "source": str(src), "format": FORMAT})
+    try:
+        for st, disp, force, t0 in steps:
+            start = writer.samples_written
+            writer.append(disp, force)
+            writer.add_step(crank_frequency_hz=st.crank_frequency_hz, crank_radius_m=run.crank_radius_m,
+                            start_sample=start, end_sample=start + disp.size,
+                            extra={"file": st.file, "t0_s": t0})
+        return writer.finish("completed")
+    except BaseException:
+        writer.abandon()
+        writer.partial_path.unlink(missing_ok=True)
+        raise
+
+
+def export_run(recording: str | Path, out_dir: str | Path) -> Path:
+    """Write a recording's steps in the interchange format into a new folder
+    ``<out_dir>/<run_id>/``; returns the path of its RUN.yaml.  Existing folders are refused."""
+    rec = read_recording(recording)
+    if not rec.steps:
+        raise StationError(f"{rec.path}: the recording has no steps to export")
+    radii = {s.crank_radius_m for s in rec.steps}
+    if len(radii) != 1:
+        raise StationError(f"{rec.path}: sinecal-csv v1 has one crank radius per run, this run has "
+                           f"{sorted(radii)}; export is refused rather than losing the radii")
+    target = Path(out_dir) / rec.run_id
+    if target.exists():
+        raise StationError(f"{target} exists already; not overwriting it")
+    tmp = target.with_name(target.name + ".exporting")
+    tmp.mkdir(parents=True)
+    try:
+        fs = rec.sample_rate_hz
+        entries = []
+        for s in rec.steps:
+            name = f"step{s.index:02d}.csv"
+            n = np.arange(s.start_sample, s.end_sample)
+            d, fv = rec.step_signals(s)
+            np.savetxt(tmp / name, np.column_stack([n / fs, d, fv]), delimiter=",", fmt="%.17g",
+                       header=HEADER, comments="")
+            entries.append({"file": name, "crank_frequency_hz": s.crank_frequency_hz})
+        doc = {"format": FORMAT, "format_version": 1, "sample_rate_hz": fs,
+               "crank_radius_m": radii.pop(), "top_mass_kg": rec.load_mass_kg,
+               **({"end_mass_kg": rec.end_mass_kg} if rec.end_mass_kg is not None else {}),
+               "transducer": {"id": rec.transducer_id, "capacity_N": rec.capacity_N,
+                              "sensitivity_V_per_N": rec.sensitivity_V_per_N},
+               "steps": entries}
+        (tmp / "RUN.yaml").write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+        os.replace(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target / "RUN.yaml"

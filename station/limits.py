@@ -1,0 +1,58 @@
+"""Rig and transducer limits, checked before anything moves."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from station.config import StationConfig
+from station.errors import LimitError
+
+G = 9.80665
+
+
+@dataclass(frozen=True)
+class StepRequest:
+    """A requested step: crank frequency in Hz, crank radius in m."""
+
+    crank_frequency_hz: float
+    crank_radius_m: float
+
+
+def peak_force_N(cfg: StationConfig, step: StepRequest) -> float:
+    """Peak transducer force in N: M (g + r w^2), M = load mass + end mass (if known).
+
+    The preload of gravity is included: the transducer sees the static weight plus the inertial
+    amplitude m r w^2 on the downward stroke.
+    """
+    m = cfg.rig.load_mass_kg + (cfg.transducer.end_mass_kg or 0.0)
+    w = 2.0 * math.pi * step.crank_frequency_hz
+    return m * (G + step.crank_radius_m * w * w)
+
+
+def force_limit_N(cfg: StationConfig) -> float:
+    """Largest allowed peak force: the configured fraction of the transducer capacity, in N."""
+    return cfg.rig.peak_force_fraction * cfg.transducer.capacity_N
+
+
+def check_steps(cfg: StationConfig, steps: list[StepRequest]) -> None:
+    """Refuse the whole run if any step breaks a limit; the message names the step and the limit."""
+    if not steps:
+        raise LimitError("a run needs at least one step")
+    fr, rr = cfg.rig.crank_frequency_hz, cfg.rig.crank_radius_m
+    limit = force_limit_N(cfg)
+    for i, s in enumerate(steps):
+        where = f"step {i} ({s.crank_frequency_hz:g} Hz, {s.crank_radius_m:g} m)"
+        if not (math.isfinite(s.crank_frequency_hz) and fr.contains(s.crank_frequency_hz)):
+            raise LimitError(f"{where}: crank frequency {s.crank_frequency_hz:g} Hz is outside the rig's "
+                             f"range [{fr.min:g}, {fr.max:g}] Hz")
+        if not (math.isfinite(s.crank_radius_m) and rr.contains(s.crank_radius_m)):
+            raise LimitError(f"{where}: crank radius {s.crank_radius_m:g} m is outside the rig's "
+                             f"range [{rr.min:g}, {rr.max:g}] m")
+        peak = peak_force_N(cfg, s)
+        if peak > limit:
+            r_max = (limit / (cfg.rig.load_mass_kg + (cfg.transducer.end_mass_kg or 0.0)) - G) / (
+                2 * math.pi * s.crank_frequency_hz) ** 2
+            raise LimitError(f"{where}: peak force {peak:.0f} N exceeds the limit {limit:.0f} N "
+                             f"({cfg.rig.peak_force_fraction:g} x capacity {cfg.transducer.capacity_N:g} N); "
+                             f"at this frequency the radius must stay below {max(r_max, 0):.3g} m")
