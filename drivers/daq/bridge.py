@@ -1,0 +1,247 @@
+"""The DAQ-bridge driver (thread-based; an asyncio adapter is provided).
+
+A reader thread owns the link: it decodes the stream (:class:`StreamDecoder`), routes replies to
+the command in flight and queues stream events for the consumer.  Usage::
+
+    daq = DaqBridge()
+    daq.connect(SerialLink("/dev/ttyACM0"))        # or SocketLink(...) in-process
+    daq.configure(rate_hz=20_000, frame_samples=256)
+    daq.start()
+    for ev in daq.events(timeout_s=1.0):           # SampleBlock | SampleGap | StreamStalled
+        ...
+    summary = daq.stop()                           # reports a trailing gap too
+    daq.close()
+
+Events, in stream order: :class:`SampleBlock` (first_index, displacement int16[n], force int16[n]),
+:class:`SampleGap` (first_index, count): samples that will never arrive, and
+:class:`StreamStalled` (no data for ``stall_timeout_s``).  A lost link ends :meth:`events` with
+:class:`DaqLinkError`.  Samples are indexed from 0 at START.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import queue
+import threading
+import time
+from collections.abc import AsyncIterator, Iterator
+from dataclasses import dataclass
+
+from drivers.daq.link import ByteLink, DaqLinkError
+from drivers.daq.protocol import (
+    DecoderStats,
+    FrameError,
+    Reply,
+    SampleBlock,
+    SampleGap,
+    StreamDecoder,
+    encode_command,
+)
+
+log = logging.getLogger(__name__)
+
+
+class DaqCommandError(RuntimeError):
+    """The bridge answered ``ERR ...`` or something unexpected to a command."""
+
+
+class DaqTimeoutError(TimeoutError):
+    """No reply to a command within the reply time-out."""
+
+
+@dataclass(frozen=True)
+class StreamStalled:
+    """No bytes arrived for ``seconds`` while streaming; ``next_sample_index`` is still awaited."""
+
+    next_sample_index: int
+    seconds: float
+
+
+@dataclass(frozen=True)
+class DaqConfig:
+    """Effective bridge configuration: rate in Hz, samples per frame, ADC ranges +-V."""
+
+    rate_hz: float
+    frame_samples: int
+    range_disp_V: float  # noqa: N815 (unit suffix, as in drivers.rig.params)
+    range_force_V: float  # noqa: N815
+
+
+@dataclass(frozen=True)
+class StreamSummary:
+    """At STOP: frames/samples the bridge sent, what arrived intact and what was lost."""
+
+    frames_sent: int
+    samples_sent: int
+    stats: DecoderStats
+
+
+StreamEvent = SampleBlock | SampleGap | StreamStalled
+_LINK_LOST = object()
+
+
+def _parse_kv(text: str) -> dict[str, str]:
+    return dict(w.split("=", 1) for w in text.split() if "=" in w)
+
+
+class DaqBridge:
+    """Driver of the DAQ/signal-conditioner bridge over any :class:`ByteLink`."""
+
+    def __init__(self, *, reply_timeout_s: float = 1.0, stall_timeout_s: float = 0.5,
+                 read_interval_s: float = 0.02) -> None:
+        self.reply_timeout_s = reply_timeout_s
+        self.stall_timeout_s = stall_timeout_s
+        self.read_interval_s = read_interval_s
+        self.decoder = StreamDecoder()
+        self.config: DaqConfig | None = None
+        self.link_error: DaqLinkError | None = None
+        self._link: ByteLink | None = None
+        self._events: queue.Queue[object] = queue.Queue()
+        self._replies: queue.Queue[str] = queue.Queue()
+        self._cmd_lock = threading.Lock()
+        self._streaming = False
+        self._running = False
+        self._thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ link / reader
+    def connect(self, link: ByteLink) -> None:
+        """Attach the backend link and start the reader thread."""
+        self._link = link
+        self._running = True
+        self._thread = threading.Thread(target=self._reader, name="daq-reader", daemon=True)
+        self._thread.start()
+        log.info("DAQ bridge connected via %s", link.description)
+
+    def _reader(self) -> None:
+        assert self._link is not None
+        last_data = time.monotonic()
+        stalled = False
+        while self._running:
+            try:
+                data = self._link.read(1 << 20, self.read_interval_s)
+            except DaqLinkError as exc:
+                if self._running:
+                    log.error("DAQ link lost: %s", exc)
+                    self.link_error = exc
+                    self._events.put(_LINK_LOST)
+                return
+            now = time.monotonic()
+            if not data:
+                if self._streaming and not stalled and now - last_data > self.stall_timeout_s:
+                    stalled = True
+                    log.warning("DAQ stream stalled: no data for %.2f s", now - last_data)
+                    self._events.put(StreamStalled(self.decoder.next_sample_index, now - last_data))
+                continue
+            last_data, stalled = now, False
+            for ev in self.decoder.feed(data):
+                if isinstance(ev, Reply):
+                    self._replies.put(ev.text)
+                elif isinstance(ev, FrameError):
+                    log.warning("DAQ frame rejected (%s) at byte %d, next sample %d: %s",
+                                ev.kind, ev.stream_offset, ev.next_sample_index, ev.detail)
+                else:
+                    self._events.put(ev)
+
+    # ------------------------------------------------------------------ commands
+    def command(self, text: str) -> str:
+        """Send one command, return the ``OK ...`` reply text; DaqCommandError on ``ERR``."""
+        if self._link is None:
+            raise DaqLinkError("DAQ bridge not connected: call connect(link) first")
+        if self.link_error is not None:
+            raise DaqLinkError(f"DAQ link lost earlier: {self.link_error}")
+        with self._cmd_lock:
+            while not self._replies.empty():
+                log.warning("DAQ: discarding unsolicited reply %r", self._replies.get_nowait())
+            self._link.write(encode_command(text))
+            try:
+                reply = self._replies.get(timeout=self.reply_timeout_s)
+            except queue.Empty:
+                if self.link_error is not None:
+                    raise DaqLinkError(f"DAQ link lost during {text!r}: {self.link_error}") from None
+                raise DaqTimeoutError(f"no reply to {text!r} within {self.reply_timeout_s} s") from None
+        if not reply.startswith("OK"):
+            raise DaqCommandError(f"command {text!r} refused: {reply}")
+        return reply
+
+    def identify(self) -> str:
+        """Identity string of the bridge (vendor, model, serial, firmware)."""
+        return self.command("IDN?")[3:]
+
+    def configure(self, *, rate_hz: float = 20_000.0, frame_samples: int = 256, range_disp_V: float = 10.0,
+                  range_force_V: float = 10.0) -> DaqConfig:
+        """Set sample rate (Hz), samples per frame and the +-V ranges; returns the effective config."""
+        kv = _parse_kv(self.command(f"CONF rate={rate_hz:g} frame={frame_samples} "
+                                    f"range_disp={range_disp_V:g} "
+                                    f"range_force={range_force_V:g} channels=disp,force"))
+        try:
+            self.config = DaqConfig(float(kv["rate"]), int(kv["frame"]), float(kv["range_disp"]),
+                                    float(kv["range_force"]))
+        except (KeyError, ValueError) as exc:
+            raise DaqCommandError(
+                f"CONF reply: expected rate=, frame=, range_disp=, range_force=, got {kv}") from exc
+        return self.config
+
+    def status(self) -> dict[str, str]:
+        """Bridge status as key=value pairs (state, frames, overflows, configuration)."""
+        return _parse_kv(self.command("STAT?"))
+
+    def start(self) -> None:
+        """Start streaming; sample index 0 is the first sample of the first frame."""
+        if self.config is None:
+            self.configure()
+        assert self.config is not None
+        self.decoder.reset(self.config.frame_samples)
+        while not self._events.empty():
+            self._events.get_nowait()
+        self._streaming = True
+        try:
+            self.command("START")
+        except Exception:
+            self._streaming = False
+            raise
+
+    def stop(self) -> StreamSummary:
+        """Stop streaming; frames lost at the very end are reported as a final :class:`SampleGap`."""
+        reply = self.command("STOP")
+        self._streaming = False
+        kv = _parse_kv(reply)
+        try:
+            frames = int(kv["frames"])
+        except (KeyError, ValueError) as exc:
+            raise DaqCommandError(f"STOP reply: expected frames=N, got {reply!r}") from exc
+        gap = self.decoder.gap_to(frames)
+        if gap is not None:
+            self._events.put(gap)
+        return StreamSummary(frames, frames * self.decoder.frame_samples, self.decoder.stats)
+
+    # ------------------------------------------------------------------ events
+    def get_event(self, timeout_s: float | None = None) -> StreamEvent | None:
+        """Next stream event, or None after ``timeout_s``; raises DaqLinkError after a lost link."""
+        try:
+            ev = self._events.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+        if ev is _LINK_LOST:
+            self._events.put(_LINK_LOST)
+            raise DaqLinkError(f"DAQ link lost: {self.link_error}")
+        return ev  # type: ignore[return-value]
+
+    def events(self, timeout_s: float = 1.0) -> Iterator[StreamEvent]:
+        """Yield events until none arrives within ``timeout_s``."""
+        while (ev := self.get_event(timeout_s)) is not None:
+            yield ev
+
+    async def aevents(self, timeout_s: float = 1.0) -> AsyncIterator[StreamEvent]:
+        """asyncio adapter of :meth:`events` (each wait runs in the default executor)."""
+        while (ev := await asyncio.to_thread(self.get_event, timeout_s)) is not None:
+            yield ev
+
+    def close(self) -> None:
+        """Stop the reader thread and close the link (does not send STOP)."""
+        self._running = False
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        if self._link is not None:
+            self._link.close()
+            self._link = None

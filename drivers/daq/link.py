@@ -1,0 +1,84 @@
+"""Byte links under the DAQ driver: a serial port (pyserial; also a pty) or an in-process socket."""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+from typing import Protocol
+
+import serial
+
+
+class DaqLinkError(ConnectionError):
+    """The link to the bridge is lost (port closed, device unplugged, read/write failure)."""
+
+
+class ByteLink(Protocol):
+    """A bidirectional byte stream.  ``read`` returns what arrived within ``timeout_s`` (may be b"")."""
+
+    description: str
+
+    def read(self, max_bytes: int, timeout_s: float) -> bytes: ...
+
+    def write(self, data: bytes) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class SerialLink:
+    """pyserial port; ``read`` drains continuously for up to ``timeout_s`` (batched reads)."""
+
+    def __init__(self, port: str, *, baudrate: int = 3_000_000) -> None:
+        try:
+            self._ser = serial.Serial(port, baudrate=baudrate, timeout=0.02, write_timeout=1.0)
+        except (serial.SerialException, OSError) as exc:
+            raise DaqLinkError(f"cannot open DAQ bridge port {port}: {exc}") from exc
+        self.description = f"serial {port} @ {baudrate} Bd"
+
+    def read(self, max_bytes: int, timeout_s: float) -> bytes:
+        try:
+            if self._ser.timeout != timeout_s:
+                self._ser.timeout = timeout_s
+            return self._ser.read(max_bytes)
+        except (serial.SerialException, OSError, TypeError) as exc:
+            raise DaqLinkError(f"{self.description}: read failed: {exc}") from exc
+
+    def write(self, data: bytes) -> None:
+        try:
+            self._ser.write(data)
+        except (serial.SerialException, OSError) as exc:
+            raise DaqLinkError(f"{self.description}: write failed: {exc}") from exc
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self._ser.close()
+
+
+class SocketLink:
+    """One end of ``socket.socketpair()`` (in-process backend for fast unit tests)."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self._sock = sock
+        self.description = "in-process socket"
+
+    def read(self, max_bytes: int, timeout_s: float) -> bytes:
+        self._sock.settimeout(timeout_s)
+        try:
+            data = self._sock.recv(max_bytes)
+        except TimeoutError:
+            return b""
+        except OSError as exc:
+            raise DaqLinkError(f"{self.description}: read failed: {exc}") from exc
+        if not data:
+            raise DaqLinkError(f"{self.description}: closed by the bridge")
+        return data
+
+    def write(self, data: bytes) -> None:
+        try:
+            self._sock.sendall(data)
+        except OSError as exc:
+            raise DaqLinkError(f"{self.description}: write failed: {exc}") from exc
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self._sock.close()

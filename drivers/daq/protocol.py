@@ -1,0 +1,272 @@
+"""Wire protocol of the DAQ/signal-conditioner bridge (see ``docs/daq-protocol.md``).
+
+Packets in both directions are SLIP-framed (RFC 1055: END=0xC0, ESC=0xDB, ESC_END=0xDC,
+ESC_ESC=0xDD), with an END before *and* after each packet so that line garbage is isolated.
+A packet is ``type:u8 | body | crc:u32le`` where the CRC is CRC-32/ISO-HDLC (``zlib.crc32``) of
+``type | body``.  Sample packets (type 0x01) carry ``seq:u32le | count:u16le | count x (disp:i16le,
+force:i16le)``.  Replies (0x02) and commands (0x10) carry ASCII text.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+END = 0xC0
+ESC = 0xDB
+ESC_END = 0xDC
+ESC_ESC = 0xDD
+_END_B = bytes([END])
+_ESC_B = bytes([ESC])
+_ESC_END_PAIR = bytes([ESC, ESC_END])
+_ESC_ESC_PAIR = bytes([ESC, ESC_ESC])
+
+PKT_SAMPLES = 0x01
+PKT_REPLY = 0x02
+PKT_COMMAND = 0x10
+
+SAMPLE_HEADER = struct.Struct("<BIH")  # type, seq, count
+CRC_SIZE = 4
+MAX_FRAME_SAMPLES = 4096
+SAMPLE_DTYPE = np.dtype("<i2")
+
+
+class DaqProtocolError(ValueError):
+    """A packet does not follow the protocol; the message says what was expected and what came."""
+
+
+def crc32(data: bytes | bytearray | memoryview) -> int:
+    """CRC-32/ISO-HDLC (poly 0x04C11DB7 reflected, init/xorout 0xFFFFFFFF); check('123456789')=0xCBF43926."""
+    return zlib.crc32(data) & 0xFFFFFFFF
+
+
+def slip_escape(data: bytes) -> bytes:
+    """Escape ESC first, then END (order matters)."""
+    return data.replace(_ESC_B, _ESC_ESC_PAIR).replace(_END_B, _ESC_END_PAIR)
+
+
+def slip_unescape(data: bytes) -> bytes:
+    """Inverse of :func:`slip_escape`; raises DaqProtocolError on an ESC not followed by 0xDC/0xDD."""
+    if ESC not in data:
+        return data
+    n_esc = data.count(_ESC_B)
+    if n_esc != data.count(_ESC_END_PAIR) + data.count(_ESC_ESC_PAIR):
+        raise DaqProtocolError("SLIP: expected ESC (0xDB) to be followed by 0xDC or 0xDD, found a bare ESC")
+    return data.replace(_ESC_END_PAIR, _END_B).replace(_ESC_ESC_PAIR, _ESC_B)
+
+
+def encode_packet(ptype: int, body: bytes) -> bytes:
+    """``END | slip(type | body | crc32) | END``."""
+    raw = bytes([ptype]) + body
+    return _END_B + slip_escape(raw + crc32(raw).to_bytes(4, "little")) + _END_B
+
+
+def encode_command(text: str) -> bytes:
+    return encode_packet(PKT_COMMAND, text.encode("ascii"))
+
+
+def encode_reply(text: str) -> bytes:
+    return encode_packet(PKT_REPLY, text.encode("ascii"))
+
+
+def sample_packet_raw(seq: int, displacement: np.ndarray, force: np.ndarray) -> bytes:
+    """Unescaped sample packet (with CRC) for frame ``seq``; both arrays int16 of shape (n,)."""
+    n = len(displacement)
+    if len(force) != n or not 0 < n <= MAX_FRAME_SAMPLES:
+        raise ValueError(f"expected two channels of equal length 1..{MAX_FRAME_SAMPLES}, "
+                         f"got {n}/{len(force)}")
+    inter = np.empty((n, 2), SAMPLE_DTYPE)
+    inter[:, 0] = displacement
+    inter[:, 1] = force
+    raw = SAMPLE_HEADER.pack(PKT_SAMPLES, seq & 0xFFFFFFFF, n) + inter.tobytes()
+    return raw + crc32(raw).to_bytes(4, "little")
+
+
+def encode_samples(seq: int, displacement: np.ndarray, force: np.ndarray) -> bytes:
+    """A complete on-wire sample frame (SLIP-framed)."""
+    return _END_B + slip_escape(sample_packet_raw(seq, displacement, force)) + _END_B
+
+
+# ------------------------------------------------------------------------------ decoder events
+@dataclass(frozen=True)
+class SampleBlock:
+    """Contiguous good samples: ``first_index`` of the stream (0 = first sample after START);
+    ``displacement`` and ``force`` are int16 ADC codes of shape (n,)."""
+
+    first_index: int
+    displacement: np.ndarray
+    force: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.displacement)
+
+
+@dataclass(frozen=True)
+class SampleGap:
+    """Samples ``first_index .. first_index+count-1`` are missing (lost or corrupted frames)."""
+
+    first_index: int
+    count: int
+    frames: int
+
+
+@dataclass(frozen=True)
+class FrameError:
+    """A packet was rejected: kind is 'crc', 'slip', 'length', 'type', 'count' or 'sequence';
+    ``stream_offset`` is the byte offset of its end in the received stream; ``next_sample_index``
+    the first sample index not yet delivered when it happened."""
+
+    kind: str
+    stream_offset: int
+    length: int
+    next_sample_index: int
+    detail: str
+
+
+@dataclass(frozen=True)
+class Reply:
+    """A text reply of the bridge ('OK ...' or 'ERR ...')."""
+
+    text: str
+
+
+DecoderEvent = SampleBlock | SampleGap | FrameError | Reply
+
+
+@dataclass
+class DecoderStats:
+    """Counters of one stream (reset at START)."""
+
+    bytes: int = 0
+    frames_ok: int = 0
+    samples_ok: int = 0
+    crc_errors: int = 0
+    framing_errors: int = 0
+    gaps: int = 0
+    frames_lost: int = 0
+    samples_lost: int = 0
+    errors: list[FrameError] = field(default_factory=list)
+
+
+class StreamDecoder:
+    """Bytes in, events out.  Never delivers a sample from a packet that failed any check.
+
+    ``frame_samples`` is the configured samples per frame: frame ``seq`` holds samples
+    ``seq*frame_samples ..``, so a sequence gap maps exactly onto the missing sample indices.
+    """
+
+    def __init__(self, frame_samples: int = 256, *, max_errors_kept: int = 1000) -> None:
+        self._pending = b""
+        self._offset = 0
+        self._max_errors = max_errors_kept
+        self.reset(frame_samples)
+
+    def reset(self, frame_samples: int) -> None:
+        """Start a new stream (sequence 0) with ``frame_samples`` samples per frame."""
+        if not 0 < frame_samples <= MAX_FRAME_SAMPLES:
+            raise ValueError(f"frame_samples: expected 1..{MAX_FRAME_SAMPLES}, got {frame_samples}")
+        self.frame_samples = frame_samples
+        self._packet_len = SAMPLE_HEADER.size + 4 * frame_samples + CRC_SIZE
+        self.next_seq = 0
+        self.stats = DecoderStats()
+
+    @property
+    def next_sample_index(self) -> int:
+        return self.next_seq * self.frame_samples
+
+    def _error(self, out: list[DecoderEvent], kind: str, length: int, detail: str) -> None:
+        err = FrameError(kind, self._offset, length, self.next_sample_index, detail)
+        if kind == "crc":
+            self.stats.crc_errors += 1
+        else:
+            self.stats.framing_errors += 1
+        if len(self.stats.errors) < self._max_errors:
+            self.stats.errors.append(err)
+        out.append(err)
+
+    def gap_to(self, seq: int) -> SampleGap | None:
+        """Account for frames ``next_seq .. seq-1`` as lost (also used for a trailing gap at STOP)."""
+        if seq <= self.next_seq:
+            return None
+        frames = seq - self.next_seq
+        gap = SampleGap(self.next_sample_index, frames * self.frame_samples, frames)
+        self.stats.gaps += 1
+        self.stats.frames_lost += frames
+        self.stats.samples_lost += gap.count
+        self.next_seq = seq
+        return gap
+
+    def feed(self, data: bytes) -> list[DecoderEvent]:
+        """Decode ``data`` (any chunking); returns events in stream order, good samples merged."""
+        out: list[DecoderEvent] = []
+        self.stats.bytes += len(data)
+        chunks = (self._pending + data).split(_END_B)
+        self._pending = chunks.pop()
+        if len(self._pending) > 2 * (SAMPLE_HEADER.size + 4 * MAX_FRAME_SAMPLES + CRC_SIZE):
+            self._offset += len(self._pending)
+            self._error(out, "length", len(self._pending), "no END byte in an over-long run: discarded")
+            self._pending = b""
+        run: list[bytes] = []
+        run_start = -1
+
+        def flush() -> None:
+            nonlocal run, run_start
+            if run:
+                inter = np.frombuffer(b"".join(run), SAMPLE_DTYPE).reshape(-1, 2)
+                out.append(SampleBlock(run_start, inter[:, 0].copy(), inter[:, 1].copy()))
+                run = []
+
+        for chunk in chunks:
+            self._offset += len(chunk) + 1
+            if not chunk:
+                continue
+            try:
+                pkt = slip_unescape(chunk)
+            except DaqProtocolError as exc:
+                flush()
+                self._error(out, "slip", len(chunk), str(exc))
+                continue
+            if len(pkt) < 1 + CRC_SIZE or crc32(pkt[:-CRC_SIZE]) != int.from_bytes(pkt[-CRC_SIZE:], "little"):
+                flush()
+                self._error(out, "crc", len(pkt), f"CRC mismatch in a {len(pkt)}-byte packet")
+                continue
+            ptype = pkt[0]
+            if ptype == PKT_REPLY:
+                flush()
+                out.append(Reply(pkt[1:-CRC_SIZE].decode("ascii", errors="replace")))
+                continue
+            if ptype != PKT_SAMPLES:
+                flush()
+                self._error(out, "type", len(pkt), f"expected packet type 0x01 or 0x02, got 0x{ptype:02X}")
+                continue
+            if len(pkt) != self._packet_len:
+                flush()
+                self._error(out, "length", len(pkt), f"expected a {self._packet_len}-byte sample packet "
+                                                      f"({self.frame_samples} samples), got {len(pkt)} bytes")
+                continue
+            _, seq, count = SAMPLE_HEADER.unpack_from(pkt)
+            if count != self.frame_samples:
+                flush()
+                self._error(out, "count", len(pkt), f"expected {self.frame_samples} samples, got {count}")
+                continue
+            if seq < self.next_seq:
+                flush()
+                self._error(out, "sequence", len(pkt), f"expected sequence >= {self.next_seq}, got {seq}")
+                continue
+            if seq > self.next_seq:
+                flush()
+                gap = self.gap_to(seq)
+                if gap is not None:
+                    out.append(gap)
+            if not run:
+                run_start = self.next_sample_index
+            run.append(pkt[SAMPLE_HEADER.size:-CRC_SIZE])
+            self.next_seq = seq + 1
+            self.stats.frames_ok += 1
+            self.stats.samples_ok += count
+        flush()
+        return out

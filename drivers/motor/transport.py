@@ -1,0 +1,188 @@
+"""Register transports: the backend a :class:`~drivers.motor.controller.MotorController` talks through.
+
+A transport moves 16-bit holding-register words; it knows nothing of names or scaling except
+``what`` (the register name), which it puts into every error it raises.  The Modbus transport
+(TCP or RTU, pymodbus 3.x async client) adds time-outs, retries and reconnect with back-off.
+The in-process backend for fast unit tests lives in :mod:`drivers.sim.motor_inprocess`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+from urllib.parse import parse_qs, urlparse
+
+from pymodbus import FramerType
+from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
+from pymodbus.exceptions import ConnectionException, ModbusException
+
+from drivers.motor.errors import (
+    MotorExceptionReplyError,
+    MotorLinkError,
+    MotorProtocolError,
+    MotorTimeoutError,
+)
+
+log = logging.getLogger(__name__)
+
+ModbusClient = AsyncModbusTcpClient | AsyncModbusSerialClient
+
+
+class RegisterTransport(Protocol):
+    """Word-level access to the controller's holding registers (0-based addresses)."""
+
+    description: str
+
+    async def open(self) -> None: ...
+
+    async def read(self, address: int, count: int, what: str) -> list[int]: ...
+
+    async def write(self, address: int, words: Sequence[int], what: str) -> None: ...
+
+    async def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class LinkPolicy:
+    """Time-out per request (s), retries after a time-out, reconnect back-off (s) and budget."""
+
+    timeout_s: float = 0.5
+    retries: int = 2
+    backoff_initial_s: float = 0.05
+    backoff_max_s: float = 2.0
+    reconnect_attempts: int = 5
+
+
+class ModbusTransport:
+    """pymodbus async client with our own retry/reconnect policy (pymodbus' auto-reconnect is off)."""
+
+    def __init__(self, make_client: Callable[[], ModbusClient], description: str, *, device_id: int = 1,
+                 policy: LinkPolicy | None = None) -> None:
+        self._make_client = make_client
+        self.description = description
+        self.device_id = device_id
+        self.policy = policy or LinkPolicy()
+        self._client: ModbusClient | None = None
+        self.reconnects = 0
+
+    @classmethod
+    def tcp(cls, host: str, port: int, *, device_id: int = 1,
+            policy: LinkPolicy | None = None) -> ModbusTransport:
+        """Modbus TCP (MBAP framing) to ``host:port``."""
+        pol = policy or LinkPolicy()
+
+        def make() -> ModbusClient:
+            return AsyncModbusTcpClient(host, port=port, framer=FramerType.SOCKET, timeout=pol.timeout_s,
+                                        retries=0, reconnect_delay=0)
+
+        return cls(make, f"modbus-tcp://{host}:{port}", device_id=device_id, policy=pol)
+
+    @classmethod
+    def rtu(cls, port: str, *, baudrate: int = 115200, parity: str = "N", stopbits: int = 1,
+            device_id: int = 1, policy: LinkPolicy | None = None) -> ModbusTransport:
+        """Modbus RTU (CRC-16 framing) on serial device ``port``."""
+        pol = policy or LinkPolicy()
+
+        def make() -> ModbusClient:
+            return AsyncModbusSerialClient(port, framer=FramerType.RTU, baudrate=baudrate, parity=parity,
+                                           stopbits=stopbits, bytesize=8, timeout=pol.timeout_s, retries=0,
+                                           reconnect_delay=0)
+
+        return cls(make, f"modbus-rtu://{port}?baudrate={baudrate}", device_id=device_id, policy=pol)
+
+    @property
+    def connected(self) -> bool:
+        return self._client is not None and self._client.connected
+
+    async def open(self) -> None:
+        await self._ensure_connected("<connect>")
+
+    async def _ensure_connected(self, what: str) -> ModbusClient:
+        if self._client is not None and self._client.connected:
+            return self._client
+        delay = self.policy.backoff_initial_s
+        for attempt in range(1, self.policy.reconnect_attempts + 1):
+            if self._client is not None:
+                self._client.close()
+            self._client = self._make_client()
+            try:
+                ok = await self._client.connect()
+            except (OSError, ModbusException) as exc:
+                log.debug("connect to %s failed: %s", self.description, exc)
+                ok = False
+            if ok:
+                if attempt > 1 or self.reconnects:
+                    log.info("reconnected to %s (attempt %d)", self.description, attempt)
+                self.reconnects += 1
+                return self._client
+            log.warning("cannot connect to %s (attempt %d/%d), retrying in %.2f s",
+                        self.description, attempt, self.policy.reconnect_attempts, delay)
+            await asyncio.sleep(delay)
+            delay = min(2 * delay, self.policy.backoff_max_s)
+        raise MotorLinkError(what, f"link to {self.description} lost; "
+                                   f"{self.policy.reconnect_attempts} reconnect attempts failed")
+
+    async def _call(self, what: str, fc: int, request: Callable[[ModbusClient], object]) -> object:
+        last = "no attempt"
+        lost = False
+        for _ in range(self.policy.retries + 1):
+            client = await self._ensure_connected(what)
+            try:
+                reply = await request(client)  # type: ignore[misc]
+            except ConnectionException as exc:
+                last, lost = f"connection lost ({exc})", True
+                client.close()
+                continue
+            except ModbusException as exc:  # pymodbus raises ModbusIOException on time-out
+                last, lost = f"no reply within {self.policy.timeout_s} s ({exc})", False
+                if not client.connected:
+                    lost = True
+                continue
+            if reply.isError():  # type: ignore[attr-defined]
+                code = getattr(reply, "exception_code", 0)
+                raise MotorExceptionReplyError(what, fc, code)
+            return reply
+        if lost:
+            raise MotorLinkError(what, f"{self.description}: {last}")
+        attempts = self.policy.retries + 1
+        raise MotorTimeoutError(what, f"{self.description}: {last} after {attempts} attempt(s)")
+
+    async def read(self, address: int, count: int, what: str) -> list[int]:
+        """FC 03 read of ``count`` words at ``address``."""
+        reply = await self._call(what, 0x03, lambda c: c.read_holding_registers(
+            address, count=count, device_id=self.device_id))
+        regs = list(getattr(reply, "registers", []))
+        if len(regs) != count:
+            raise MotorProtocolError(what, f"expected {count} register(s) in the reply, got {len(regs)}")
+        return regs
+
+    async def write(self, address: int, words: Sequence[int], what: str) -> None:
+        """FC 06 for one word, FC 16 for several."""
+        if len(words) == 1:
+            await self._call(what, 0x06, lambda c: c.write_register(address, int(words[0]),
+                                                                    device_id=self.device_id))
+        else:
+            await self._call(what, 0x10, lambda c: c.write_registers(address, [int(w) for w in words],
+                                                                     device_id=self.device_id))
+
+    async def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+
+def transport_from_url(url: str, *, device_id: int = 1, policy: LinkPolicy | None = None) -> ModbusTransport:
+    """``modbus-tcp://HOST:PORT`` or ``modbus-rtu:///dev/ttyX?baudrate=115200&parity=N``."""
+    u = urlparse(url)
+    if u.scheme == "modbus-tcp":
+        if u.hostname is None or u.port is None:
+            raise ValueError(f"expected modbus-tcp://HOST:PORT, got {url!r}")
+        return ModbusTransport.tcp(u.hostname, u.port, device_id=device_id, policy=policy)
+    if u.scheme == "modbus-rtu":
+        q = parse_qs(u.query)
+        return ModbusTransport.rtu(u.path, baudrate=int(q.get("baudrate", ["115200"])[0]),
+                                   parity=q.get("parity", ["N"])[0], device_id=device_id, policy=policy)
+    raise ValueError(f"expected a modbus-tcp:// or modbus-rtu:// URL, got {url!r}")

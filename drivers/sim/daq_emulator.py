@@ -1,0 +1,287 @@
+"""The DAQ-bridge emulator: speaks ``docs/daq-protocol.md`` on a pty (or any fd), streams in real time.
+
+Samples come from a :class:`~drivers.sim.daq_source.SampleSource` (the rig physics); the crank
+frequency of every block is the motor emulator's actual speed at that moment, so both channels
+move with the motor.  Fault injection (thread-safe): dropped and corrupted frames, garbage
+between frames, a stalled stream and a closed port.  Every sample the emulator does not deliver
+intact is recorded in :attr:`DaqEmulator.lost` as ``(first_sample_index, count)``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import select
+import threading
+import time
+from collections.abc import Callable, Iterable
+
+import numpy as np
+
+from drivers.daq.protocol import (
+    _END_B,
+    PKT_COMMAND,
+    DaqProtocolError,
+    crc32,
+    encode_reply,
+    sample_packet_raw,
+    slip_escape,
+    slip_unescape,
+)
+from drivers.sim.daq_source import SampleSource
+
+log = logging.getLogger(__name__)
+
+IDENTITY = "SINECAL,DAQ-BRIDGE-EMU,SN0001,1.0"
+RATE_LIMITS_HZ = (100.0, 1_000_000.0)
+FRAME_LIMITS = (16, 4096)
+RANGES_V = (0.1, 10.0)
+
+
+class DaqEmulator:
+    """Bridge emulator on file descriptor ``fd`` (pty master or socket), run in a daemon thread."""
+
+    def __init__(self, fd: int, source: SampleSource, speed_hz: Callable[[], float], *,
+                 seed: int = 0, fifo_bytes: int = 1 << 20, tick_s: float = 0.005,
+                 on_close: Callable[[], None] | None = None) -> None:
+        self.fd = fd
+        self.source = source
+        self.speed_hz = speed_hz
+        self.tick_s = tick_s
+        self.fifo_bytes = fifo_bytes
+        self._on_close = on_close
+        self._rng = np.random.default_rng(seed)
+        self.config: dict[str, str] = {"rate": "20000", "frame": "256", "range_disp": "10",
+                                       "range_force": "10", "channels": "disp,force"}
+        self._lock = threading.Lock()
+        self._out = bytearray()
+        self._cmd_buf = b""
+        self.streaming = False
+        self.seq = 0
+        self.overflows = 0
+        self.lost: list[tuple[int, int]] = []
+        self._drop: set[int] = set()
+        self._corrupt: set[int] = set()
+        self._garbage: list[bytes] = []
+        self._stall_until = 0.0
+        self._stop = threading.Event()
+        self._closed = False
+        self._wake_r, self._wake_w = os.pipe()
+        self._thread = threading.Thread(target=self._run, name="daq-emulator", daemon=True)
+
+    # ------------------------------------------------------------------ fault injection
+    def drop_frames(self, seqs: Iterable[int]) -> None:
+        """Frames with these sequence numbers are not sent."""
+        with self._lock:
+            self._drop.update(seqs)
+
+    def corrupt_frames(self, seqs: Iterable[int]) -> None:
+        """Frames with these sequence numbers get one byte flipped after the CRC was computed."""
+        with self._lock:
+            self._corrupt.update(seqs)
+
+    def inject_garbage(self, nbytes: int) -> None:
+        """Random bytes (seeded) are written between the next two frames."""
+        with self._lock:
+            self._garbage.append(self._rng.integers(0, 256, nbytes, dtype=np.uint8).tobytes())
+
+    def stall(self, seconds: float) -> None:
+        """Nothing is sent for ``seconds``; the samples of that period are lost."""
+        with self._lock:
+            self._stall_until = time.monotonic() + seconds
+
+    def close_port(self) -> None:
+        """Close the port as a crashed or unplugged bridge would (the driver sees a lost link)."""
+        self._stop.set()
+        with contextlib.suppress(OSError):
+            os.write(self._wake_w, b"x")
+        if threading.current_thread() is not self._thread and self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        self._close_fd()
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> DaqEmulator:
+        self._configure_source()
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self.close_port()
+        for fd in (self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+    def _close_fd(self) -> None:
+        if not self._closed:
+            self._closed = True
+            with contextlib.suppress(OSError):
+                os.close(self.fd)
+            if self._on_close is not None:
+                self._on_close()
+
+    # ------------------------------------------------------------------ command handling
+    def _handle_command(self, text: str) -> str:
+        words = text.strip().split()
+        if not words:
+            return "ERR 1 empty command"
+        cmd, args = words[0].upper(), words[1:]
+        if cmd == "IDN?":
+            return f"OK {IDENTITY}"
+        if cmd == "STAT?":
+            state = "streaming" if self.streaming else "idle"
+            return f"OK STAT state={state} frames={self.seq} overflows={self.overflows} " + self._conf_text()
+        if cmd == "CONF":
+            if self.streaming:
+                return "ERR 3 busy: expected STOP before CONF"
+            return self._configure(args)
+        if cmd == "START":
+            if self.streaming:
+                return "ERR 3 busy: already streaming"
+            self.seq = 0
+            self.overflows = 0
+            self.lost = []
+            self._produce(time.monotonic())  # idle synthesis up to now
+            self.streaming = True
+            return f"OK START seq=0 {self._conf_text()}"
+        if cmd == "STOP":
+            was = self.streaming
+            self.streaming = False
+            return f"OK STOP frames={self.seq} samples={self.seq * int(self.config['frame'])}" + (
+                "" if was else " (was idle)")
+        return f"ERR 1 unknown command {cmd!r}: expected IDN?, CONF, START, STOP or STAT?"
+
+    def _configure_source(self) -> None:
+        c = self.config
+        key = (float(c["rate"]), float(c["range_disp"]), float(c["range_force"]))
+        if key != getattr(self, "_source_key", None):
+            self.source.configure(*key)
+            self._source_key = key
+            self._t0 = time.monotonic()
+            self._produced = 0
+
+    def _conf_text(self) -> str:
+        return " ".join(f"{k}={v}" for k, v in self.config.items())
+
+    def _configure(self, args: list[str]) -> str:
+        new = dict(self.config)
+        for arg in args:
+            key, sep, value = arg.partition("=")
+            if not sep or key not in new:
+                return f"ERR 2 bad argument {arg!r}: expected key=value with key in {', '.join(new)}"
+            try:
+                if key == "rate":
+                    ok = RATE_LIMITS_HZ[0] <= float(value) <= RATE_LIMITS_HZ[1]
+                    value = f"{float(value):g}"
+                    lim = f"{RATE_LIMITS_HZ[0]:g}..{RATE_LIMITS_HZ[1]:g} Hz"
+                elif key == "frame":
+                    ok = FRAME_LIMITS[0] <= int(value) <= FRAME_LIMITS[1]
+                    lim = f"integer {FRAME_LIMITS[0]}..{FRAME_LIMITS[1]}"
+                elif key in ("range_disp", "range_force"):
+                    ok = RANGES_V[0] <= float(value) <= RANGES_V[1]
+                    value = f"{float(value):g}"
+                    lim = f"{RANGES_V[0]}..{RANGES_V[1]} V"
+                else:
+                    ok, lim = value == "disp,force", "disp,force"
+            except ValueError:
+                ok, lim = False, "a number"
+            if not ok:
+                return f"ERR 2 bad value for {key}: expected {lim}, got {value!r}"
+            new[key] = value
+        self.config = new
+        self._configure_source()
+        return f"OK CONF {self._conf_text()}"
+
+    def _read_commands(self, data: bytes) -> None:
+        chunks = (self._cmd_buf + data).split(_END_B)
+        self._cmd_buf = chunks.pop()[-8192:]
+        for chunk in chunks:
+            if not chunk:
+                continue
+            try:
+                pkt = slip_unescape(chunk)
+            except DaqProtocolError:
+                continue
+            if len(pkt) < 5 or crc32(pkt[:-4]) != int.from_bytes(pkt[-4:], "little") or pkt[0] != PKT_COMMAND:
+                log.warning("DAQ emulator: rejected a malformed command packet (%d bytes)", len(pkt))
+                self._out += encode_reply("ERR 4 malformed command packet (CRC, type or length)")
+                continue
+            text = pkt[1:-4].decode("ascii", errors="replace")
+            reply = self._handle_command(text)
+            log.debug("DAQ emulator: %r -> %r", text, reply)
+            self._out += encode_reply(reply)
+
+    # ------------------------------------------------------------------ streaming
+    def _produce(self, now: float) -> None:
+        frame = int(self.config["frame"])
+        due = int((now - self._t0) * float(self.config["rate"]))
+        if not self.streaming:  # keep the physics running with the motor; samples are discarded
+            if due - self._produced >= frame:
+                n = due - self._produced
+                self.source.advance(n - n % frame, self.speed_hz())
+                self._produced += n - n % frame
+            return
+        n_frames = (due - self._produced) // frame
+        if n_frames <= 0:
+            return
+        disp, force = self.source.advance(n_frames * frame, self.speed_hz())
+        self._produced += n_frames * frame
+        with self._lock:
+            stalled = now < self._stall_until
+            for k in range(n_frames):
+                seq = self.seq
+                self.seq += 1
+                first = seq * frame
+                if stalled or seq in self._drop:
+                    self._lose(first, frame)
+                    continue
+                sl = slice(k * frame, (k + 1) * frame)
+                raw = sample_packet_raw(seq, disp[sl], force[sl])
+                if seq in self._corrupt:
+                    buf = bytearray(raw)
+                    buf[len(buf) // 2] ^= 0x5A
+                    raw = bytes(buf)
+                    self._lose(first, frame)
+                wire = _END_B + slip_escape(raw) + _END_B
+                if len(self._out) + len(wire) > self.fifo_bytes:
+                    self.overflows += 1
+                    if seq not in self._corrupt:
+                        self._lose(first, frame)
+                    continue
+                self._out += wire
+                while self._garbage:
+                    self._out += self._garbage.pop(0)
+
+    def _lose(self, first: int, count: int) -> None:
+        if self.lost and sum(self.lost[-1]) == first:
+            self.lost[-1] = (self.lost[-1][0], self.lost[-1][1] + count)
+        else:
+            self.lost.append((first, count))
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                wlist = [self.fd] if self._out else []
+                r, w, _ = select.select([self.fd, self._wake_r], wlist, [], self.tick_s)
+                if self.fd in r:
+                    try:
+                        data = os.read(self.fd, 65536)
+                    except BlockingIOError:
+                        data = None
+                    if data == b"":
+                        log.info("DAQ emulator: peer closed the link")
+                        return
+                    if data:
+                        self._read_commands(data)
+                self._produce(time.monotonic())
+                if self._out and (w or not wlist):
+                    try:
+                        n = os.write(self.fd, self._out)
+                        del self._out[:n]
+                    except BlockingIOError:
+                        pass
+        except OSError as exc:
+            if not self._stop.is_set():
+                log.warning("DAQ emulator: port error %s", exc)
+        finally:
+            self._stop.set()

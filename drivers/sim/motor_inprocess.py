@@ -1,0 +1,37 @@
+"""In-process backend of the motor driver: calls the emulator's register image directly.
+
+For fast unit tests of code above the driver; it shares the device logic with the Modbus
+emulator but skips the wire.  Exception codes become the same typed errors as over Modbus.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from drivers.motor.errors import MotorExceptionReplyError
+from drivers.sim.motor_image import MotorRegisterImage
+
+
+class InProcessTransport:
+    """A :class:`~drivers.motor.transport.RegisterTransport` over a :class:`MotorRegisterImage`."""
+
+    def __init__(self, image: MotorRegisterImage) -> None:
+        self.image = image
+        self.description = "in-process motor emulator"
+
+    async def open(self) -> None:
+        return None
+
+    async def read(self, address: int, count: int, what: str) -> list[int]:
+        result = self.image.read(address, count)
+        if isinstance(result, int):
+            raise MotorExceptionReplyError(what, 0x03, result)
+        return result
+
+    async def write(self, address: int, words: Sequence[int], what: str) -> None:
+        code = self.image.write(address, list(words))
+        if code is not None:
+            raise MotorExceptionReplyError(what, 0x06 if len(words) == 1 else 0x10, code)
+
+    async def close(self) -> None:
+        return None

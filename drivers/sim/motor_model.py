@@ -1,0 +1,187 @@
+"""Speed-ramp dynamics of the emulated crank motor controller (thread-safe, lazily integrated).
+
+The model is exact for piecewise-constant acceleration: between two queries the speed moves
+linearly towards its target at the ramp rate and the crank angle is the integral of the speed.
+Time comes from an injectable clock (seconds, monotonic) so unit tests can step it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from drivers.motor.registers import DeviceDefaults
+
+log = logging.getLogger(__name__)
+
+FAULT_NONE = 0
+FAULT_WATCHDOG = 1
+FAULT_ESTOP = 2
+
+
+@dataclass(frozen=True)
+class MotorSnapshot:
+    """State at ``time_s``: speeds in Hz (rev/s), ramp in Hz/s, angle in rad (unwrapped)."""
+
+    time_s: float
+    enabled: bool
+    setpoint_hz: float
+    ramp_hz_per_s: float
+    speed_hz: float
+    angle_rad: float
+    target_hz: float
+    fault_code: int
+    estop: bool
+    watchdog_timeout_s: float
+    watchdog_expired: bool
+
+
+class MotorModel:
+    """The shared motor state of the simulated rig (used by the Modbus server and the DAQ emulator)."""
+
+    def __init__(self, device: DeviceDefaults, *, clock: Callable[[], float] = time.monotonic,
+                 initial_angle_rad: float = 0.0) -> None:
+        self.device = device
+        self._clock = clock
+        self._lock = threading.RLock()
+        self._t = clock()
+        self._enabled = False
+        self._setpoint = 0.0
+        self._ramp = device.default_ramp_hz_per_s
+        self._speed = 0.0
+        self._angle = initial_angle_rad
+        self._fault = FAULT_NONE
+        self._estop = False
+        self._wd_timeout = device.default_watchdog_timeout_s
+        self._wd_deadline = math.inf
+        self._wd_expired = False
+
+    # ----------------------------------------------------------------- dynamics
+    def _target_and_accel(self) -> tuple[float, float]:
+        if self._fault != FAULT_NONE:
+            return 0.0, self.device.stop_deceleration_hz_per_s
+        if not self._enabled:
+            return 0.0, self._ramp
+        return self._setpoint, self._ramp
+
+    def _integrate(self, dt: float) -> None:
+        target, accel = self._target_and_accel()
+        v0 = self._speed
+        if v0 == target or accel <= 0.0:
+            self._angle += 2.0 * math.pi * v0 * dt
+            return
+        t_reach = abs(target - v0) / accel
+        if t_reach >= dt:
+            v1 = v0 + math.copysign(accel * dt, target - v0)
+            self._angle += 2.0 * math.pi * 0.5 * (v0 + v1) * dt
+            self._speed = v1
+        else:
+            self._angle += 2.0 * math.pi * (0.5 * (v0 + target) * t_reach + target * (dt - t_reach))
+            self._speed = target
+
+    def _advance(self) -> float:
+        now = self._clock()
+        while self._t < now:
+            seg_end = now
+            wd_armed = self._enabled and self._fault == FAULT_NONE and self._wd_timeout > 0
+            if wd_armed and self._wd_deadline < now:
+                seg_end = max(self._wd_deadline, self._t)
+            self._integrate(seg_end - self._t)
+            self._t = seg_end
+            if wd_armed and seg_end < now:
+                log.warning("motor emulator: watchdog expired (not refreshed for %.3f s): stopping",
+                            self._wd_timeout)
+                self._wd_expired = True
+                self._latch_fault(FAULT_WATCHDOG)
+        return now
+
+    def _latch_fault(self, code: int) -> None:
+        if self._fault == FAULT_NONE:
+            self._fault = code
+        self._enabled = False
+
+    # ----------------------------------------------------------------- queries
+    def snapshot(self) -> MotorSnapshot:
+        """Advance to now and return the state."""
+        with self._lock:
+            now = self._advance()
+            target, _ = self._target_and_accel()
+            return MotorSnapshot(now, self._enabled, self._setpoint, self._ramp, self._speed, self._angle,
+                                 target, self._fault, self._estop, self._wd_timeout, self._wd_expired)
+
+    def speed_hz(self) -> float:
+        """Actual crank frequency now, in Hz."""
+        with self._lock:
+            self._advance()
+            return self._speed
+
+    # ----------------------------------------------------------------- commands
+    def set_enable(self, on: bool) -> None:
+        """Enable/disable; enabling with a latched fault raises ``PermissionError``."""
+        with self._lock:
+            now = self._advance()
+            if on and self._fault != FAULT_NONE:
+                raise PermissionError(f"fault {self._fault} latched: reset it first")
+            if on and not self._enabled:
+                self._wd_deadline = now + self._wd_timeout
+                self._wd_expired = False
+            self._enabled = on
+
+    def set_setpoint(self, hz: float) -> None:
+        """Crank frequency setpoint in Hz; beyond [min, max] raises ``ValueError``."""
+        with self._lock:
+            self._advance()
+            if not self.device.min_frequency_hz <= hz <= self.device.max_frequency_hz:
+                raise ValueError(f"setpoint {hz} Hz outside [{self.device.min_frequency_hz}, "
+                                 f"{self.device.max_frequency_hz}] Hz")
+            self._setpoint = hz
+
+    def set_ramp(self, hz_per_s: float) -> None:
+        """Acceleration ramp in Hz/s; must be in (0, max_ramp] else ``ValueError``."""
+        with self._lock:
+            self._advance()
+            if not 0.0 < hz_per_s <= self.device.max_ramp_hz_per_s:
+                raise ValueError(f"ramp {hz_per_s} Hz/s outside (0, {self.device.max_ramp_hz_per_s}] Hz/s")
+            self._ramp = hz_per_s
+
+    def refresh_watchdog(self) -> None:
+        with self._lock:
+            now = self._advance()
+            self._wd_deadline = now + self._wd_timeout
+
+    def set_watchdog_timeout(self, seconds: float) -> None:
+        """0 disables the watchdog."""
+        with self._lock:
+            now = self._advance()
+            if seconds < 0:
+                raise ValueError(f"watchdog timeout must be >= 0 s, got {seconds}")
+            self._wd_timeout = seconds
+            self._wd_deadline = now + seconds
+
+    def emergency_stop(self) -> None:
+        with self._lock:
+            self._advance()
+            self._estop = True
+            self._latch_fault(FAULT_ESTOP)
+
+    def inject_fault(self, code: int) -> None:
+        """Fault injection: latch ``code`` (non-zero) as if the drive had detected it."""
+        if code == FAULT_NONE:
+            raise ValueError("inject a non-zero fault code")
+        with self._lock:
+            self._advance()
+            self._latch_fault(code)
+
+    def reset_faults(self) -> None:
+        """Clear latched faults; refused (``PermissionError``) while the crank still turns."""
+        with self._lock:
+            self._advance()
+            if self._speed != 0.0:
+                raise PermissionError(f"cannot reset faults while turning at {self._speed:.2f} Hz")
+            self._fault = FAULT_NONE
+            self._estop = False
+            self._wd_expired = False

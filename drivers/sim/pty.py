@@ -1,0 +1,106 @@
+"""Pseudo-terminal helpers for the emulators: raw pty pairs and a two-pty byte bridge.
+
+A pty has a master fd (the emulator's end) and a slave path (``/dev/pts/N``) that a driver opens
+with pyserial exactly as it would open ``/dev/ttyUSB0``.  :class:`PtyBridge` joins two ptys like
+``socat pty pty`` so that two programs that both want a *path* (pymodbus' serial server and a
+serial client) can talk.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import selectors
+import threading
+import time
+import tty
+from dataclasses import dataclass
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Pty:
+    """A raw-mode pty: ``master`` fd for the emulator, ``path`` of the slave for the driver.
+
+    The slave fd is kept open so the master never sees EIO while no driver is attached.
+    """
+
+    master: int
+    slave: int
+    path: str
+
+    def close(self) -> None:
+        for fd in (self.master, self.slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def open_pty() -> Pty:
+    """A new raw (no echo, no line discipline) pty; the master fd is non-blocking."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    tty.setraw(master)
+    os.set_blocking(master, False)
+    return Pty(master, slave, os.ttyname(slave))
+
+
+class PtyBridge:
+    """Copies bytes both ways between the masters of two ptys in a daemon thread."""
+
+    def __init__(self) -> None:
+        self.a = open_pty()
+        self.b = open_pty()
+        self._wake_r, self._wake_w = os.pipe()
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="pty-bridge", daemon=True)
+
+    def start(self) -> PtyBridge:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        sel = selectors.DefaultSelector()
+        sel.register(self.a.master, selectors.EVENT_READ, self.b.master)
+        sel.register(self.b.master, selectors.EVENT_READ, self.a.master)
+        sel.register(self._wake_r, selectors.EVENT_READ, None)
+        try:
+            while not self._stop:
+                for key, _ in sel.select(timeout=0.5):
+                    if key.data is None:
+                        return
+                    try:
+                        data = os.read(key.fd, 65536)
+                    except BlockingIOError:
+                        continue
+                    except OSError as exc:
+                        log.debug("pty bridge: read failed: %s", exc)
+                        return
+                    self._write_all(key.data, data)
+        finally:
+            sel.close()
+
+    @staticmethod
+    def _write_all(fd: int, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            try:
+                n = os.write(fd, view)
+                view = view[n:]
+            except BlockingIOError:
+                time.sleep(0.001)
+            except OSError:
+                return
+
+    def close(self) -> None:
+        self._stop = True
+        with contextlib.suppress(OSError):
+            os.write(self._wake_w, b"x")
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        self.a.close()
+        self.b.close()
+        for fd in (self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)

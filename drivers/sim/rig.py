@@ -1,0 +1,184 @@
+"""``SimRig``: the motor-controller emulator and the DAQ-bridge emulator sharing one motor state.
+
+In-process (tests, ``station sim-rig``)::
+
+    with SimRig(seed=1) as rig:
+        rig.addresses.modbus_tcp        # ("127.0.0.1", port)
+        rig.addresses.modbus_rtu        # /dev/pts/N  (Modbus RTU client side)
+        rig.addresses.daq               # /dev/pts/M  (DAQ bridge serial port)
+        rig.motor.inject_fault(3)       # MotorModel hooks; rig.modbus_faults, rig.daq for the rest
+
+As a subprocess: :class:`SimRigProcess` runs ``python -m drivers.sim`` and reads the addresses it
+prints (no fault injection across the process boundary).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import os
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Coroutine
+from dataclasses import asdict, dataclass
+from typing import Any, TypeVar
+
+from drivers.daq.link import SocketLink
+from drivers.motor.registers import RegisterMap, load_register_map
+from drivers.rig.params import RigPhysics
+from drivers.rig.presets import paper_5kN_physics
+from drivers.sim.daq_emulator import DaqEmulator
+from drivers.sim.daq_source import RigSource, SampleSource
+from drivers.sim.motor_image import MotorRegisterImage
+from drivers.sim.motor_inprocess import InProcessTransport
+from drivers.sim.motor_model import MotorModel
+from drivers.sim.motor_server import ModbusFaults, MotorEmulator
+from drivers.sim.pty import Pty, open_pty
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class SimRigAddresses:
+    """Where the emulators listen: Modbus TCP (host, port), Modbus RTU pty path, DAQ pty path."""
+
+    modbus_tcp: tuple[str, int]
+    modbus_rtu: str | None
+    daq: str
+
+    @property
+    def modbus_tcp_url(self) -> str:
+        return f"modbus-tcp://{self.modbus_tcp[0]}:{self.modbus_tcp[1]}"
+
+
+class SimRig:
+    """Context manager starting both emulators; the Modbus servers run in a private event loop thread."""
+
+    def __init__(self, *, physics: RigPhysics | None = None, seed: int = 0, crank_radius_m: float = 0.01,
+                 regmap: RegisterMap | None = None, modbus_port: int = 0, rtu: bool = True,
+                 source: SampleSource | None = None, fifo_bytes: int = 1 << 20) -> None:
+        self.map = regmap or load_register_map()
+        self.motor = MotorModel(self.map.device)
+        self.image = MotorRegisterImage(self.map, self.motor)
+        self.source = source or RigSource(physics or paper_5kN_physics(), seed=seed,
+                                          crank_radius_m=crank_radius_m)
+        self._modbus = MotorEmulator(self.image, tcp_port=modbus_port, rtu=rtu)
+        self._seed = seed
+        self._fifo = fifo_bytes
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._pty: Pty | None = None
+        self.daq: DaqEmulator
+        self.addresses: SimRigAddresses
+
+    @property
+    def modbus_faults(self) -> ModbusFaults:
+        """Reply drops and exception replies of the Modbus server (see :class:`ModbusFaults`)."""
+        return self._modbus.faults
+
+    def run(self, coro: Coroutine[Any, Any, T], timeout_s: float = 10.0) -> T:
+        """Run a coroutine on the emulator loop (e.g. ``rig.run(rig.modbus.stop_tcp())``)."""
+        assert self._loop is not None
+        return asyncio.run_coroutine_threadsafe(coro, self._loop).result(timeout_s)
+
+    @property
+    def modbus(self) -> MotorEmulator:
+        return self._modbus
+
+    def start(self) -> SimRig:
+        ready = threading.Event()
+
+        def loop_main() -> None:
+            self._loop = asyncio.new_event_loop()
+            asyncio.set_event_loop(self._loop)
+            ready.set()
+            self._loop.run_forever()
+
+        self._thread = threading.Thread(target=loop_main, name="sim-rig-modbus", daemon=True)
+        self._thread.start()
+        ready.wait()
+        self.run(self._modbus.start())
+        self._pty = open_pty()
+        if isinstance(self.source, RigSource):
+            self.source.set_phase(self.motor.snapshot().angle_rad % (2 * math.pi))
+        self.daq = DaqEmulator(self._pty.master, self.source, self.motor.speed_hz, seed=self._seed,
+                               fifo_bytes=self._fifo).start()
+        assert self._modbus.tcp_address is not None
+        self.addresses = SimRigAddresses(self._modbus.tcp_address, self._modbus.rtu_path, self._pty.path)
+        log.info("sim rig: %s", self.addresses)
+        return self
+
+    def motor_transport(self) -> InProcessTransport:
+        """In-process backend of the motor driver on this rig's register image (no wire)."""
+        return InProcessTransport(self.image)
+
+    def inprocess_daq(self) -> tuple[DaqEmulator, SocketLink]:
+        """A second DAQ emulator on a socketpair (no pty) sharing the motor: (emulator, driver link)."""
+        a, b = socket.socketpair()
+        a.setblocking(False)
+        src = self.source
+        if isinstance(src, RigSource):
+            src = RigSource(src.physics, seed=self._seed, crank_radius_m=src.crank_radius_m)
+        emu = DaqEmulator(a.detach(), src, self.motor.speed_hz, seed=self._seed).start()
+        return emu, SocketLink(b)
+
+    def close(self) -> None:
+        if getattr(self, "daq", None) is not None:
+            self.daq.close()
+        if self._pty is not None:
+            self._pty.close()
+            self._pty = None
+        if self._loop is not None:
+            self.run(self._modbus.stop())
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            if self._thread is not None:
+                self._thread.join(timeout=5.0)
+            self._loop.close()
+            self._loop = None
+
+    def __enter__(self) -> SimRig:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SimRigProcess:
+    """``python -m drivers.sim`` in a subprocess; ``addresses`` parsed from its first stdout line."""
+
+    def __init__(self, *, seed: int = 0, modbus_port: int = 0) -> None:
+        self._args = [sys.executable, "-m", "drivers.sim", "--json", "--seed", str(seed),
+                      "--modbus-port", str(modbus_port)]
+        self._proc: subprocess.Popen[str] | None = None
+        self.addresses: SimRigAddresses
+
+    def __enter__(self) -> SimRigProcess:
+        self._proc = subprocess.Popen(self._args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                      env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        assert self._proc.stdout is not None
+        line = self._proc.stdout.readline()
+        if not line:
+            rc = self._proc.wait()
+            raise RuntimeError(f"sim rig subprocess exited with {rc} before printing addresses")
+        d = json.loads(line)
+        self.addresses = SimRigAddresses(tuple(d["modbus_tcp"]), d["modbus_rtu"], d["daq"])  # type: ignore[arg-type]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._proc is not None:
+            assert self._proc.stdin is not None
+            self._proc.stdin.close()  # EOF on stdin ends the subprocess
+            try:
+                self._proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
+
+
+def addresses_json(addr: SimRigAddresses) -> str:
+    return json.dumps(asdict(addr))
