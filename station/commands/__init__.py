@@ -6,4 +6,5 @@ A command's handler takes the parsed ``argparse.Namespace`` and returns the proc
 COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.simulate",
     "station.commands.transfer",
+    "station.commands.simrig",
 )
