@@ -15,7 +15,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from drivers.rig import params as rp
 from station.errors import ConfigError
 
-_STRICT = ConfigDict(extra="forbid", frozen=True)
+# inf and nan are refused everywhere: several fields (e.g. Range.max, mains amplitudes) have no
+# upper bound that would catch them.
+_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 Pos = Annotated[float, Field(gt=0)]
 
