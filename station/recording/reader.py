@@ -16,6 +16,8 @@ import yaml
 from station.errors import RecordingFormatError, StationError
 from station.recording.writer import FORMAT_NAME, STEP_FIELDS, _jsonable, utc_now
 
+RESULT_GROUPS = ("results", "processed")  # the only groups write_results may change
+
 
 @dataclass(frozen=True)
 class Step:
@@ -191,6 +193,8 @@ def write_results(path: str | Path, name: str, payload: dict[str, Any],
         raise StationError(f"{p}: results are written only into complete recordings")
     if not name.replace("_", "").replace("-", "").replace("+", "").isalnum():
         raise ValueError(f"result name must be alphanumeric (with _ - +), got {name!r}")
+    if group not in RESULT_GROUPS:
+        raise ValueError(f"results go into one of the groups {RESULT_GROUPS}, got {group!r}")
     with h5py.File(p, "r+") as f:
         grp = f.require_group(group)
         if name in grp:
