@@ -27,7 +27,7 @@ RATE_TOLERANCE = 1e-3  # allowed deviation of each time step from 1/fs, as a fra
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class CsvTransducer(_Strict):
@@ -77,9 +77,10 @@ def _load_run_file(path: Path) -> RunFile:
     return run
 
 
-def _first_bad_line(path: Path, lines: list[str]) -> str:
-    """Locate the first malformed data line (1-based line numbers, header is line 1)."""
-    for i, line in enumerate(lines[1:], start=2):
+def _first_bad_line(path: Path, lines: list[tuple[int, str]]) -> str:
+    """Locate the first malformed data line; ``lines`` are (1-based line number in the file, text)
+    of the non-blank lines, the header first."""
+    for i, line in lines[1:]:
         cells = line.split(",")
         if len(cells) != 3:
             return f"{path}, line {i}: 3 cells expected, got {len(cells)} ({line!r})"
@@ -90,6 +91,10 @@ def _first_bad_line(path: Path, lines: list[str]) -> str:
                 return f"{path}, line {i}: column {name}: a number expected, got {cell.strip()!r}"
             if not np.isfinite(v):
                 return f"{path}, line {i}: column {name}: a finite number expected, got {cell.strip()!r}"
+        try:  # what float() takes but the CSV parser does not (e.g. '1_0')
+            np.loadtxt([line], delimiter=",", dtype=np.float64, comments=None)
+        except ValueError:
+            return f"{path}, line {i}: three plain numbers expected, got {line!r}"
     return f"{path}: malformed CSV"
 
 
@@ -99,14 +104,17 @@ def read_step_csv(path: Path, sample_rate_hz: float) -> tuple[np.ndarray, np.nda
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise RecordingFormatError(f"{path}: cannot read: {exc.strerror}") from None
-    lines = [ln for ln in text.splitlines() if ln.strip()]
-    if not lines or lines[0].strip().replace(" ", "") != HEADER:
-        got = lines[0].strip() if lines else "an empty file"
-        raise RecordingFormatError(f"{path}, line 1: header {HEADER!r} expected, got {got!r}")
+    # blank lines are skipped; error messages give line numbers in the file as it is
+    lines = [(i, ln) for i, ln in enumerate(text.splitlines(), start=1) if ln.strip()]
+    if not lines or lines[0][1].strip().replace(" ", "") != HEADER:
+        got = lines[0][1].strip() if lines else "an empty file"
+        raise RecordingFormatError(f"{path}, line {lines[0][0] if lines else 1}: header {HEADER!r} "
+                                   f"expected, got {got!r}")
     if len(lines) < 3:
         raise RecordingFormatError(f"{path}: at least 2 samples expected, got {len(lines) - 1}")
     try:
-        data = np.loadtxt(lines[1:], delimiter=",", dtype=np.float64, ndmin=2)
+        data = np.loadtxt([ln for _, ln in lines[1:]], delimiter=",", dtype=np.float64, ndmin=2,
+                          comments=None)
     except ValueError:
         raise RecordingFormatError(_first_bad_line(path, lines)) from None
     if data.shape[1] != 3 or not np.all(np.isfinite(data)):
@@ -123,8 +131,8 @@ def read_step_csv(path: Path, sample_rate_hz: float) -> tuple[np.ndarray, np.nda
     if bad.size:
         i = int(bad[0])
         raise RecordingFormatError(
-            f"{path}, line {i + 3}: non-uniform time: t_s steps by {dt[i]:.9g} s from the line before, "
-            f"{T:.9g} s expected")
+            f"{path}, line {lines[i + 2][0]}: non-uniform time: t_s steps by {dt[i]:.9g} s from the line "
+            f"before, {T:.9g} s expected")
     return data[:, 1].copy(), data[:, 2].copy(), float(t[0])
 
 
