@@ -117,8 +117,8 @@ class SampleGap:
 @dataclass(frozen=True)
 class FrameError:
     """A packet was rejected: kind is 'crc', 'slip', 'length', 'type', 'count' or 'sequence';
-    ``stream_offset`` is the byte offset of its end in the received stream; ``next_sample_index``
-    the first sample index not yet delivered when it happened."""
+    ``stream_offset`` is the byte offset just past its closing END in the received stream;
+    ``next_sample_index`` the first sample index not yet delivered when it happened."""
 
     kind: str
     stream_offset: int
