@@ -118,6 +118,8 @@ class ModbusTransport:
                     log.info("reconnected to %s (attempt %d)", self.description, attempt)
                 self.reconnects += 1
                 return self._client
+            if attempt == self.policy.reconnect_attempts:
+                break
             log.warning("cannot connect to %s (attempt %d/%d), retrying in %.2f s",
                         self.description, attempt, self.policy.reconnect_attempts, delay)
             await asyncio.sleep(delay)

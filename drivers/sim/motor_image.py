@@ -58,7 +58,7 @@ class MotorRegisterImage:
             "emergency_stop": float(s.estop),
             "fault_reset": 0.0,
             "actual_speed": s.speed_hz,
-            "crank_angle": math.degrees(s.angle_rad % (2 * math.pi)) % 360.0,
+            "crank_angle": self._wrapped_angle_deg(s.angle_rad),
             "status_word": float(m.encode_status({k: v for k, v in status.items() if k in m.status_bits})),
             "fault_code": float(s.fault_code),
             "revolution_count": float(math.floor(s.angle_rad / (2 * math.pi)) % (1 << 32)),
@@ -67,6 +67,12 @@ class MotorRegisterImage:
         if "crank_angle" in m.registers and m["crank_angle"].unit == "rad":
             values["crank_angle"] = s.angle_rad % (2 * math.pi)
         return values
+
+    def _wrapped_angle_deg(self, angle_rad: float) -> float:
+        """Angle in [0, 360) deg that never rounds up to 360.00 in the register's resolution."""
+        deg = math.degrees(angle_rad % (2 * math.pi))
+        half_lsb = 0.5 * abs(self.map["crank_angle"].scale)
+        return 0.0 if deg >= 360.0 - half_lsb else deg
 
     def _raw_words(self, reg: Register, value: float) -> list[int]:
         lo, hi = reg.raw_range()
