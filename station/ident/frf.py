@@ -1,0 +1,154 @@
+"""Frequency-domain identification: H(f) per step from sine fits, a linear LS start on 1/H and
+a weighted Levenberg-Marquardt refinement of the physical parameters over all steps.
+
+Per step i: X_i (displacement phasor, m) and U_i (force phasor, V) at the same frequency and time
+origin; acceleration phasor A_i = -(2 pi f_i)^2 X_i; H_i = U_i / A_i in V/(m/s^2), covariance by
+linear propagation (channels independent):  dH = dU / A - H dA / A.
+
+Weighted LS: chi^2(theta) = sum_i r_i^T C_i^-1 r_i, r_i = (Re, Im)(H_model(f_i; theta) - H_i).
+Covariance of theta: (J_w^T J_w)^-1 with J_w the whitened Jacobian (Gauss-Markov; equals the
+Cramér-Rao bound of ``crb.py`` when C_i is the true covariance).  If chi^2/dof is significantly
+above 1 the covariance is inflated by chi^2/dof (Birge ratio) and a note says so.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from station.ident.models import Model, SdofModel
+from station.ident.sinefit import SineFit, fit3, fit4
+
+FloatArray = NDArray[np.float64]
+ComplexArray = NDArray[np.complex128]
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FrequencyResponse:
+    """Measured H at the step frequencies: f_hz (n,), H (n,) complex in V/(m/s^2), cov (n, 2, 2)
+    of (Re H, Im H); force_rms_residual_V (n,) per step; force_offset_V (n,)."""
+
+    f_hz: FloatArray
+    H: ComplexArray
+    cov: FloatArray
+    force_rms_residual_V: FloatArray  # noqa: N815 (unit suffix)
+    force_offset_V: FloatArray  # noqa: N815
+
+
+def _ratio_cov(U: complex, Cu: FloatArray, A: complex, Ca: FloatArray) -> tuple[complex, FloatArray]:
+    """H = U/A and cov(Re H, Im H) by the delta method (U, A independent)."""
+    def cmul(z: complex) -> FloatArray:  # real 2x2 matrix of multiplication by z
+        return np.array([[z.real, -z.imag], [z.imag, z.real]])
+    H = U / A
+    Ju, Ja = cmul(1.0 / A), cmul(-H / A)
+    return H, Ju @ Cu @ Ju.T + Ja @ Ca @ Ja.T
+
+
+def step_response(t: FloatArray, x_m: FloatArray, u_V: FloatArray, f_nominal_hz: float,
+                  *, n_harmonics: int = 3, fit_frequency: bool = True) -> tuple[complex, FloatArray,
+                                                                               SineFit, SineFit]:
+    """H at one step: 4-parameter fit of the displacement (frequency), 3-parameter fit of the force
+    at that frequency, both with harmonics up to n_harmonics as nuisance.  Returns (H, cov, fx, fu)."""
+    fit_x = (fit4 if fit_frequency else fit3)(t, x_m, f_nominal_hz, n_harmonics=n_harmonics)
+    fit_u = fit3(t, u_V, fit_x.frequency_hz, t_center_s=fit_x.t_center_s, n_harmonics=n_harmonics)
+    w2 = (2 * np.pi * fit_x.frequency_hz) ** 2
+    H, C = _ratio_cov(fit_u.phasor, fit_u.phasor_cov, -w2 * fit_x.phasor, w2**2 * fit_x.phasor_cov)
+    return H, C, fit_x, fit_u
+
+
+def assemble(items: list[tuple[complex, FloatArray, SineFit, SineFit]]) -> FrequencyResponse:
+    """Stack step results into a FrequencyResponse (sorted as given)."""
+    return FrequencyResponse(
+        np.array([it[2].frequency_hz for it in items]), np.array([it[0] for it in items]),
+        np.array([it[1] for it in items]), np.array([it[3].residual_rms for it in items]),
+        np.array([it[3].offset for it in items]))
+
+
+def linear_start_sdof(frf: FrequencyResponse, model: SdofModel) -> FloatArray:
+    """Linear LS on 1/H = alpha w^2 - gamma - j w beta (Eq. 9 inverted) with alpha = 1/(S k_f),
+    beta = b_f/(S M k_f), gamma = 1/(S M).  Needs >= 2 distinct frequencies for alpha vs gamma.
+    Returns theta0 = (S, k_f, b_f)."""
+    w = 2 * np.pi * frf.f_hz
+    G = 1.0 / frf.H
+    sd = np.sqrt(np.maximum(np.trace(frf.cov, axis1=1, axis2=2) / 2, 1e-300)) / np.abs(frf.H) ** 2
+    Are = np.column_stack([w**2, -np.ones_like(w)]) / sd[:, None]
+    alpha, gamma = np.linalg.lstsq(Are, G.real / sd, rcond=None)[0]
+    beta = float(np.sum(-w * G.imag / sd**2) / np.sum(w**2 / sd**2))
+    S = 1.0 / (gamma * model.M)
+    k = gamma * model.M / alpha
+    return np.array([S, k, beta * k / gamma])
+
+
+@dataclass(frozen=True)
+class FrfFit:
+    """Weighted LM result: theta (n,), cov (n, n), chi2, dof, whitened Jacobian (2m, n) in
+    parameter-relative units (d r / d ln theta), residual H_model - H (m,) complex."""
+
+    theta: FloatArray
+    cov: FloatArray
+    chi2: float
+    dof: int
+    jac_rel: FloatArray
+    residual: ComplexArray
+    inflated: bool
+
+
+def _whiteners(cov: FloatArray) -> FloatArray:
+    """W_i with W_i C_i W_i^T = I (inverse Cholesky), shape (n, 2, 2)."""
+    return np.array([np.linalg.inv(np.linalg.cholesky(C)) for C in cov])
+
+
+def whitened_jacobian(model: Model, theta: FloatArray, frf: FrequencyResponse,
+                      cov: FloatArray | None = None) -> FloatArray:
+    """d(whitened residual)/d(ln theta), shape (2 n_f, n_theta)."""
+    W = _whiteners(frf.cov if cov is None else cov)
+    Jc = model.jacobian(theta, frf.f_hz) * theta[None, :]
+    Jr = np.stack([Jc.real, Jc.imag], axis=1)  # (n_f, 2, n_theta)
+    return np.einsum("fij,fjk->fik", W, Jr).reshape(-1, theta.size)
+
+
+def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
+            free: NDArray[np.bool_] | None = None) -> FrfFit:
+    """Weighted nonlinear LS (Levenberg-Marquardt) of the free parameters, others held at theta0.
+
+    Parameters are optimised as p = ln(theta/theta0) (all physical parameters are positive except
+    that S may be negative for an inverted channel; its sign is kept)."""
+    theta0 = np.asarray(theta0, float)
+    free = np.ones(theta0.size, bool) if free is None else np.asarray(free, bool)
+    W = _whiteners(frf.cov)
+
+    def theta_of(p: FloatArray) -> FloatArray:
+        th = theta0.copy()
+        th[free] = theta0[free] * np.exp(p)
+        return th
+
+    def resid(p: FloatArray) -> FloatArray:
+        d = model.response(theta_of(p), frf.f_hz) - frf.H
+        return np.einsum("fij,fj->fi", W, np.column_stack([d.real, d.imag])).ravel()
+
+    def jac(p: FloatArray) -> FloatArray:
+        return whitened_jacobian(model, theta_of(p), frf)[:, free]
+
+    n_res = 2 * frf.f_hz.size
+    method = "lm" if n_res >= int(free.sum()) else "trf"
+    sol = least_squares(resid, np.zeros(int(free.sum())), jac=jac, method=method,
+                        xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000)
+    theta = theta_of(sol.x)
+    Jf = jac(sol.x)
+    chi2 = float(sol.fun @ sol.fun)
+    dof = max(n_res - int(free.sum()), 0)
+    cov_rel = np.linalg.pinv(Jf.T @ Jf)
+    inflated = bool(dof > 0 and chi2 / dof > 1 + 3 * np.sqrt(2.0 / dof))
+    if inflated:
+        cov_rel *= chi2 / dof
+        log.info("chi2/dof = %.3g: covariance inflated (model error or underestimated noise)", chi2 / dof)
+    cov = np.zeros((theta.size, theta.size))
+    idx = np.nonzero(free)[0]
+    cov[np.ix_(idx, idx)] = cov_rel * np.outer(theta[idx], theta[idx])
+    return FrfFit(theta, cov, chi2, dof, whitened_jacobian(model, theta, frf),
+                  model.response(theta, frf.f_hz) - frf.H, inflated)

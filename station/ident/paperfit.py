@@ -1,0 +1,97 @@
+"""The paper's estimators on a recording: PSO/PSO+ on Eq. 10/11 and RLS on Eq. 17 (Section 5).
+
+Digital coefficients are mapped to physical parameters with the known masses (models.from_digital,
+as the paper does for Cases III and V).  The swarm gives no uncertainty; we attach the covariance
+and the identifiability decision of what the record carries: gain and phase of H at one sine
+frequency, i.e. at most two real parameters (``identifiability.assess``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.signal import lfilter
+
+from station.ident.frf import FrequencyResponse, _ratio_cov, whitened_jacobian
+from station.ident.identifiability import Policy, assess
+from station.ident.models import DigitalTF, Model
+from station.ident.protocol import PaperData, PaperProtocol, paper_data, testing_mse
+from station.ident.pso import SECTION5_H1, SECTION5_H2, identify_digital
+from station.ident.result import FitSummary, Identifiability, IdentificationResult, ParameterEstimate
+from station.ident.rls import rls_h2
+from station.ident.sinefit import fit3
+from station.recording import Recording
+
+FloatArray = NDArray[np.float64]
+DEFAULT_POLICY = Policy()
+DEFAULT_PROTOCOL = PaperProtocol()
+
+
+def step_frf(data: PaperData) -> FrequencyResponse:
+    """H at the step frequency from three-parameter sine fits of the identification window
+    (input: acceleration phasor, output: force phasor)."""
+    t = np.arange(data.x_id.size) * data.T
+    fa = fit3(t, data.x_id, data.f_hz)
+    fu = fit3(t, data.y_id, data.f_hz, t_center_s=fa.t_center_s)
+    H, C = _ratio_cov(fu.phasor, fu.phasor_cov, fa.phasor, fa.phasor_cov)
+    return FrequencyResponse(np.array([data.f_hz]), np.array([H]), C[None], np.array([fu.residual_rms]),
+                             np.array([fu.offset]))
+
+
+def steady_state_uncertainty(model: Model, theta: FloatArray, data: PaperData,
+                             policy: Policy) -> tuple[FloatArray, Identifiability]:
+    """Covariance and identifiability of theta judged on what the record carries in steady state:
+    gain and phase of H at the one step frequency (the zero-initial-condition transient of Eq. 15
+    is an artefact of the fitting, not information about the transducer)."""
+    frf = step_frf(data)
+    rep, ok = assess(model, theta, frf, policy)
+    cov = np.zeros((theta.size, theta.size))
+    if ok.any():
+        J = whitened_jacobian(model, theta, frf)[:, ok]
+        cov[np.ix_(ok, ok)] = np.linalg.pinv(J.T @ J) * np.outer(theta[ok], theta[ok])
+    reasons = list(rep.reasons)
+    for i in range(theta.size):
+        if not np.isfinite(theta[i]) or theta[i] <= 0:
+            reasons[i] = (reasons[i] + "; " if reasons[i] else "") + (
+                f"the coefficients map to a non-physical value ({theta[i]:.4g})")
+    return cov, replace(rep, identifiable=tuple(r == "" for r in reasons), reasons=tuple(reasons))
+
+
+def identify_paper_method(rec: Recording, method: str, form: str, model: Model, *, seed: int = 0,
+                          protocol: PaperProtocol = DEFAULT_PROTOCOL,
+                          policy: Policy = DEFAULT_POLICY) -> IdentificationResult:
+    """PSO / PSO+ (form 'h2' = Eq. 11 or 'h1' = Eq. 10) or RLS (Eq. 17) on one step of ``rec``."""
+    data = paper_data(rec, protocol)
+    extra: dict = {"step_index": data.step_index, "f_hz": data.f_hz, "T_s": data.T, "form": form}
+    if method == "rls":
+        r = rls_h2(data.x_id, data.y_id)
+        b, a = r.b, r.a
+    else:
+        settings = replace(SECTION5_H2 if form == "h2" else SECTION5_H1, variant=method)
+        b, a, pres = identify_digital(form, data.x_id, data.y_id, settings, seed)
+        extra.update(seed=seed, iterations_to_converge=pres.iterations_to_converge,
+                     n_particles=settings.n_particles, n_iterations=settings.n_iterations,
+                     mse_history=pres.mse_history[:: max(1, settings.n_iterations // 200)].tolist())
+    extra.update(b=b.tolist(), a=a.tolist(), testing_mse_V2=testing_mse(b, a, data))
+    with np.errstate(all="ignore"):
+        theta = model.from_digital(DigitalTF(b, a, data.T))
+        res = lfilter(b, a, data.x_id) - data.y_id
+    mse = float(np.mean(res**2))
+    extra["theta_from_coefficients"] = [float(v) for v in theta]
+    if np.all(np.isfinite(theta)):
+        cov, rep = steady_state_uncertainty(model, theta, data, policy)
+    else:
+        cov = np.full((theta.size, theta.size), np.nan)
+        rep = Identifiability(model.names, float("inf"), (), (False,) * theta.size,
+                              ("coefficients do not map to physical parameters",) * theta.size)
+    std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    params = tuple(ParameterEstimate(nm, u, float(theta[i]) if rep.identifiable[i] else None,
+                                     float(std[i]) if rep.identifiable[i] else None,
+                                     rep.identifiable[i], rep.reasons[i])
+                   for i, (nm, u) in enumerate(zip(model.names, model.units, strict=True)))
+    summary = FitSummary(mse, (float(np.sqrt(mse)),), float("nan"), int(data.x_id.size))
+    notes = (f"paper protocol (Section 5.1) on step {data.step_index} ({data.f_hz:g} Hz): resampled to "
+             f"{1 / data.T:g} Hz, {data.x_id.size} identification and {data.x_test.size} test points",)
+    return IdentificationResult(method, form, params, summary, rep, notes, extra)

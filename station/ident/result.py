@@ -1,0 +1,106 @@
+"""Frozen result types of the identification package and their JSON form.
+
+Every estimate carries its standard uncertainty; a parameter that the data cannot determine is
+``identifiable=False`` with ``value``/``std`` ``None`` and a ``reason`` (never digits).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+
+def _finite_or_none(x: float | None) -> float | None:
+    if x is None or not math.isfinite(x):
+        return None
+    return float(x)
+
+
+@dataclass(frozen=True)
+class ParameterEstimate:
+    """One physical parameter: value and standard uncertainty in ``unit`` (SI)."""
+
+    name: str
+    unit: str
+    value: float | None
+    std: float | None
+    identifiable: bool
+    reason: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        if not self.identifiable:
+            return {"value": None, "std": None, "unit": self.unit, "identifiable": False,
+                    "reason": self.reason}
+        out: dict[str, Any] = {"value": _finite_or_none(self.value), "std": _finite_or_none(self.std),
+                               "unit": self.unit, "identifiable": True}
+        if self.reason:
+            out["reason"] = self.reason
+        return out
+
+
+@dataclass(frozen=True)
+class FitSummary:
+    """Goodness of fit.
+
+    mse: mean square of the force residual in V^2 (paper Eq. 15); residual_rms_V: per step RMS in V,
+    shape (n_steps,); chi2_per_dof: weighted chi^2 / degrees of freedom (1.0 when the noise model
+    is right; NaN when not applicable).
+    """
+
+    mse: float
+    residual_rms_V: tuple[float, ...]  # noqa: N815 (unit suffix)
+    chi2_per_dof: float = float("nan")
+    n_points: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"mse": _finite_or_none(self.mse),
+                "residual_rms_V": [_finite_or_none(v) for v in self.residual_rms_V],
+                "chi2_per_dof": _finite_or_none(self.chi2_per_dof), "n_points": self.n_points}
+
+
+@dataclass(frozen=True)
+class Identifiability:
+    """Conditioning of an estimation problem.
+
+    condition_number: of the parameter-scaled, noise-whitened Jacobian (dimensionless);
+    correlations: parameter correlation matrix as nested tuples (names order);
+    reasons: per non-identifiable parameter, why.
+    """
+
+    names: tuple[str, ...]
+    condition_number: float
+    correlations: tuple[tuple[float, ...], ...]
+    identifiable: tuple[bool, ...]
+    reasons: tuple[str, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"names": list(self.names), "condition_number": _finite_or_none(self.condition_number),
+                "correlations": [[_finite_or_none(c) for c in row] for row in self.correlations],
+                "identifiable": list(self.identifiable), "reasons": list(self.reasons)}
+
+
+@dataclass(frozen=True)
+class IdentificationResult:
+    """What ``identify_recording`` returns: method, model, parameters, fit and conditioning."""
+
+    method: str
+    model: str
+    parameters: tuple[ParameterEstimate, ...]
+    fit: FitSummary
+    identifiability: Identifiability | None = None
+    notes: tuple[str, ...] = ()
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def parameter(self, name: str) -> ParameterEstimate:
+        for p in self.parameters:
+            if p.name == name:
+                return p
+        raise KeyError(name)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"method": self.method, "model": self.model,
+                "parameters": {p.name: p.to_dict() for p in self.parameters},
+                "fit": self.fit.to_dict(),
+                "identifiability": None if self.identifiability is None else self.identifiability.to_dict(),
+                "notes": list(self.notes), "extra": self.extra}

@@ -1,0 +1,54 @@
+"""Recursive least squares in the paper's form (Eq. 17) for the digital model H2 (Eq. 11).
+
+    y(k) = Phi^T theta,  Phi = [-y(k-1), -y(k-2), x(k) + 2 x(k-1) + x(k-2)]^T,
+    theta = [a1'/a0', a2'/a0', b0'/a0']^T
+
+Standard RLS (forgetting factor lambda = 1, P0 = delta I).  This is an equation-error (ARX)
+estimator: noise on y enters the regressor, which biases theta (the classical ARX bias), and at a
+single low frequency the regressors are nearly collinear.  Both explain the paper's poor RLS
+testing MSE (Tables 2 and 3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class RlsResult:
+    """theta (3,) = (a1'/a0', a2'/a0', b0'/a0'); P (3, 3) final RLS matrix (covariance / sigma^2);
+    theta_history (M, 3); b (3,), a (3,) of Eq. 11 with a0' = 1; sigma2: equation-error variance."""
+
+    theta: FloatArray
+    P: FloatArray
+    theta_history: FloatArray
+    b: FloatArray
+    a: FloatArray
+    sigma2: float
+
+
+def rls_h2(x: FloatArray, y: FloatArray, *, delta: float = 1e6, lam: float = 1.0) -> RlsResult:
+    """Eq. 17 by RLS over all samples k = 2..M-1 (x input, y output, shape (M,))."""
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    th = np.zeros(3)
+    P = delta * np.eye(3)
+    hist = np.zeros((x.size, 3))
+    errs = []
+    for k in range(2, x.size):
+        phi = np.array([-y[k - 1], -y[k - 2], x[k] + 2 * x[k - 1] + x[k - 2]])
+        e = y[k] - phi @ th
+        Pphi = P @ phi
+        g = Pphi / (lam + phi @ Pphi)
+        th = th + g * e
+        P = (P - np.outer(g, Pphi)) / lam
+        hist[k] = th
+        errs.append(y[k] - phi @ th)
+    b0 = th[2]
+    return RlsResult(th, P, hist, np.array([b0, 2 * b0, b0]), np.array([1.0, th[0], th[1]]),
+                     float(np.mean(np.square(errs))) if errs else float("nan"))
