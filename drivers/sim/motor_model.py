@@ -176,6 +176,12 @@ class MotorModel:
             self._advance()
             self._latch_fault(code)
 
+    def preset_angle(self, angle_rad: float) -> None:
+        """Test hook: set the unwrapped crank angle (rad), as if the crank had turned that far."""
+        with self._lock:
+            self._advance()
+            self._angle = angle_rad
+
     def reset_faults(self) -> None:
         """Clear latched faults; refused (``PermissionError``) while the crank still turns."""
         with self._lock:

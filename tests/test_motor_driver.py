@@ -1,0 +1,188 @@
+"""Integration: the real motor driver against the emulated controller (Modbus TCP, RTU, in-process)."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from drivers.motor import (
+    LinkPolicy,
+    ModbusTransport,
+    MotorController,
+    MotorExceptionReplyError,
+    MotorLinkError,
+    MotorTimeoutError,
+    MotorValueError,
+    RegisterTransport,
+)
+from drivers.sim import SimRig
+
+FAST = LinkPolicy(timeout_s=0.3, retries=1, backoff_initial_s=0.05, reconnect_attempts=3)
+
+
+@pytest.fixture
+def rig() -> Iterator[SimRig]:
+    with SimRig(seed=2) as r:
+        yield r
+
+
+def transport(rig: SimRig, kind: str) -> RegisterTransport:
+    if kind == "tcp":
+        return ModbusTransport.tcp(*rig.addresses.modbus_tcp, policy=FAST)
+    if kind == "rtu":
+        assert rig.addresses.modbus_rtu is not None
+        return ModbusTransport.rtu(rig.addresses.modbus_rtu, policy=FAST)
+    return rig.motor_transport()
+
+
+async def connected(rig: SimRig, kind: str = "tcp") -> MotorController:
+    motor = MotorController()
+    await motor.connect(transport(rig, kind))
+    return motor
+
+
+@pytest.mark.parametrize("kind", ["tcp", "rtu", "inprocess"])
+def test_ramp_to_setpoint_and_back(rig: SimRig, kind: str) -> None:
+    async def run() -> None:
+        motor = await connected(rig, kind)
+        await motor.start_watchdog(0.1)
+        await motor.set_ramp(40.0)
+        await motor.enable()
+        await motor.set_frequency(10.0)
+        t0 = time.monotonic()
+        mid = await motor.read_status()
+        await asyncio.sleep(0.1)
+        mid2 = await motor.read_status()
+        # ramping at 40 Hz/s: 0.1 s later the speed is 4 Hz higher (the emulator integrates exactly)
+        assert mid2.actual_speed_hz - mid.actual_speed_hz == pytest.approx(40.0 * (mid2.time_s - mid.time_s),
+                                                                           abs=0.3)
+        assert mid2.flags["ramping"] and not mid2.flags["at_setpoint"]
+        st = await motor.wait_for_speed(10.0, timeout_s=3.0)
+        assert 0.2 < time.monotonic() - t0 < 1.0
+        assert st.flags["at_setpoint"] and st.flags["running"] and st.fault_code == 0
+        await motor.stop()
+        down = await motor.wait_for_speed(0.0, timeout_s=3.0)
+        assert not down.flags["running"] and not down.flags["enabled"] and down.fault_code == 0
+        assert rig.motor.snapshot().speed_hz == 0.0
+        await motor.close()
+
+    asyncio.run(run())
+
+
+def test_stopping_the_watchdog_refresh_stops_the_motor(rig: SimRig) -> None:
+    async def run() -> None:
+        motor = await connected(rig)
+        await motor.set_watchdog_timeout(0.4)
+        await motor.set_ramp(50.0)
+        await motor.enable()
+        await motor.set_frequency(20.0)
+        await motor.start_watchdog(0.1)
+        await motor.wait_for_speed(20.0, timeout_s=3.0)
+        await asyncio.sleep(0.6)  # longer than the timeout, but refreshed: still running
+        st = await motor.read_status()
+        assert st.actual_speed_hz == pytest.approx(20.0) and st.fault_code == 0
+        await motor.stop_watchdog()
+        await asyncio.sleep(0.5)
+        st = await motor.read_status()
+        assert st.fault_name == "watchdog_expired" and st.flags["watchdog_expired"] and st.flags["fault"]
+        assert st.actual_speed_hz < 20.0
+        st = await motor.wait_for_speed(0.0, timeout_s=2.0, keep_watchdog=False)
+        assert not st.flags["enabled"]
+        with pytest.raises(MotorExceptionReplyError, match="SERVER DEVICE FAILURE") as info:
+            await motor.enable()  # refused until the fault is reset
+        assert info.value.register == "enable"
+        await motor.reset_faults()
+        assert (await motor.read_status()).fault_code == 0
+        await motor.close()
+
+    asyncio.run(run())
+
+
+def test_exception_replies_and_local_limits_are_typed_errors(rig: SimRig) -> None:
+    async def run() -> None:
+        motor = await connected(rig)
+        with pytest.raises(MotorValueError, match=r"expected 0.0...100.0 Hz, got 150.0 Hz"):
+            await motor.set_frequency(150.0)
+        with pytest.raises(MotorExceptionReplyError) as info:  # the controller refuses it too
+            await motor.write("frequency_setpoint", 150.0)
+        assert (info.value.register, info.value.exception_code) == ("frequency_setpoint", 3)
+        with pytest.raises(MotorValueError, match="read-only"):
+            await motor.write("actual_speed", 1.0)
+        rig.modbus_faults.exception_replies(0x06, n=1)
+        with pytest.raises(MotorExceptionReplyError, match="status block") as info:
+            await motor.read_status()
+        assert info.value.exception_code == 6
+        assert (await motor.read("max_frequency")) == pytest.approx(100.0)
+        await motor.close()
+
+    asyncio.run(run())
+
+
+@pytest.mark.parametrize("kind", ["tcp", "rtu"])
+def test_timeouts_are_retried_then_reported(rig: SimRig, kind: str) -> None:
+    async def run() -> None:
+        motor = await connected(rig, kind)
+        rig.modbus_faults.drop_replies(1)  # one lost reply: the retry succeeds
+        t0 = time.monotonic()
+        assert (await motor.read("max_frequency")) == pytest.approx(100.0)
+        assert time.monotonic() - t0 >= FAST.timeout_s
+        rig.modbus_faults.drop_replies(2)  # every attempt lost
+        with pytest.raises(MotorTimeoutError, match=r"register 'crank_angle'.*2 attempt"):
+            await motor.read("crank_angle")
+        assert rig.modbus_faults.dropped == 3
+        assert (await motor.read("max_frequency")) == pytest.approx(100.0)
+        await motor.close()
+
+    asyncio.run(run())
+
+
+def test_lost_link_is_typed_the_emulator_stops_and_the_driver_reconnects(rig: SimRig) -> None:
+    async def run() -> None:
+        motor = await connected(rig)
+        await motor.set_watchdog_timeout(0.3)
+        await motor.set_ramp(100.0)
+        await motor.enable()
+        await motor.set_frequency(10.0)
+        await motor.wait_for_speed(10.0, timeout_s=2.0)
+        await asyncio.to_thread(rig.run, rig.modbus.stop_tcp())
+        with pytest.raises(MotorLinkError, match=r"register 'watchdog'.*3 reconnect attempts failed"):
+            await motor.refresh_watchdog()
+        await asyncio.sleep(0.5)
+        assert rig.motor.snapshot().fault_code == 1  # the controller's watchdog stopped the motor
+        await asyncio.to_thread(rig.run, rig.modbus.restart_tcp())
+        st = await motor.read_status()  # reconnects with back-off
+        assert st.fault_name == "watchdog_expired"
+        await motor.close()
+
+    asyncio.run(run())
+
+
+def test_injected_motor_fault_and_emergency_stop(rig: SimRig) -> None:
+    async def run() -> None:
+        motor = await connected(rig)
+        await motor.set_watchdog_timeout(0)
+        await motor.set_ramp(100.0)
+        await motor.enable()
+        await motor.set_frequency(30.0)
+        await motor.wait_for_speed(30.0, timeout_s=2.0)
+        rig.motor.inject_fault(3)
+        st = await motor.read_status()
+        assert (st.fault_code, st.fault_name) == (3, "overcurrent") and st.flags["fault"]
+        await motor.wait_for_speed(0.0, timeout_s=2.0)
+        await motor.reset_faults()
+        await motor.enable()
+        await motor.wait_for_speed(30.0, timeout_s=2.0)
+        await motor.emergency_stop()
+        st = await motor.read_status()
+        assert st.flags["estop_active"] and st.fault_name == "emergency_stop"
+        with pytest.raises(MotorExceptionReplyError, match="register 'fault_reset'"):
+            await motor.reset_faults()  # refused while still turning
+        await motor.wait_for_speed(0.0, timeout_s=2.0)
+        await motor.reset_faults()
+        assert (await motor.read("emergency_stop")) == 0
+        await motor.close()
+
+    asyncio.run(run())
