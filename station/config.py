@@ -177,6 +177,30 @@ class SimulationConfig(_Model):
     effects: EffectsConfig = EffectsConfig()
 
 
+class ProcessingConfig(_Model):
+    """Filtering and resampling before the per-step sine fits (the paper filters and resamples too)."""
+
+    lowpass_order: int = Field(default=4, ge=1, le=10, description="Butterworth order (applied forward "
+                               "and backward: zero phase, twice the attenuation)")
+    lowpass_cutoff_hz: float = Field(default=2000.0, gt=0, le=100_000)
+    resample_up: int = Field(default=1, ge=1, le=64)
+    resample_down: int = Field(default=4, ge=1, le=64)
+    harmonics: int = Field(default=5, ge=1, le=20, description="crank harmonics fitted as nuisance terms")
+
+
+class DevicesConfig(_Model):
+    """Where the real rig's devices are (ignored with --sim, which starts the emulators)."""
+
+    motor_url: str = Field(default="modbus-tcp://127.0.0.1:502",
+                           pattern=r"^modbus-(tcp|rtu)://.+", description="modbus-tcp://HOST:PORT or "
+                           "modbus-rtu:///dev/ttyX?baudrate=115200")
+    motor_device_id: int = Field(default=1, ge=1, le=247)
+    daq_port: str = Field(default="/dev/ttyACM0", min_length=1)
+    daq_baudrate: int = Field(default=3_000_000, ge=9600, le=50_000_000)
+    crank_radius_m: float = Field(default=0.01, gt=0, le=1.0,
+                                  description="radius the crank is set to by hand (real rig)")
+
+
 class StationConfig(_Model):
     """A whole station configuration file."""
 
@@ -187,6 +211,8 @@ class StationConfig(_Model):
     displacement_sensor: DisplacementSensorConfig = DisplacementSensorConfig()
     daq: DaqConfig = DaqConfig()
     plan: PlanConfig
+    processing: ProcessingConfig = ProcessingConfig()
+    devices: DevicesConfig = DevicesConfig()
     simulation: SimulationConfig | None = None
 
 

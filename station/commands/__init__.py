@@ -7,4 +7,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.simulate",
     "station.commands.transfer",
     "station.commands.simrig",
+    "station.commands.identify",
+    "station.commands.paper",
+    "station.commands.calibrate",
 )

@@ -1,0 +1,1 @@
+"""Calibration runs: request and limits, procedure, acquisition, processing."""

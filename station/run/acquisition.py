@@ -1,0 +1,227 @@
+"""The acquisition loop: DAQ stream -> ring buffer (for the procedure) and -> HDF5 (via a disk thread).
+
+Three threads, none waiting on another's slow work:
+
+* the DAQ driver's reader thread decodes frames and queues stream events (``drivers.daq``);
+* the **acquisition thread** (here) drains those events into a fixed-size ring buffer and hands
+  each block to the disk queue; it never touches the disk and never blocks on processing;
+* the **disk thread** appends blocks to the run's recording, which flushes at least every second.
+
+Missing samples (a ``SampleGap`` from the driver) keep their positions: the stored raw data is
+filled with zeros there and the gap (first sample, count) is recorded, so sample index k is always
+the k-th sample since START.  The ring buffer and the disk queue are bounded, so memory does not
+grow with run length; a disk too slow to keep up fails the run instead of blocking acquisition.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from station.recording import RecordingWriter
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Block:
+    """Samples [first, first + n) of both channels (ADC codes); lost: True for a filled gap."""
+
+    first: int
+    displacement: np.ndarray
+    force: np.ndarray
+    lost: bool = False
+
+
+class RingBuffer:
+    """Last ``capacity`` samples of both channels, indexed by absolute sample number."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._d = np.zeros(capacity, dtype=np.int16)
+        self._f = np.zeros(capacity, dtype=np.int16)
+        self._end = 0  # absolute index one past the newest sample
+        self._lock = threading.Lock()
+
+    @property
+    def end(self) -> int:
+        return self._end
+
+    def put(self, first: int, d: np.ndarray, f: np.ndarray) -> None:
+        n = d.size
+        if first != self._end:
+            raise ValueError(f"ring buffer expected sample {self._end}, got {first}")
+        if n > self.capacity:
+            d, f, first = d[-self.capacity:], f[-self.capacity:], first + n - self.capacity
+            n = self.capacity
+        with self._lock:
+            i = first % self.capacity
+            k = min(n, self.capacity - i)
+            self._d[i:i + k], self._f[i:i + k] = d[:k], f[:k]
+            if k < n:
+                self._d[: n - k], self._f[: n - k] = d[k:], f[k:]
+            self._end = first + n
+
+    def get(self, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of samples [start, stop); raises if they have left the buffer or not arrived."""
+        with self._lock:
+            if stop > self._end or start < self._end - self.capacity or start > stop:
+                raise IndexError(f"samples [{start}, {stop}) not in the buffer "
+                                 f"[{max(0, self._end - self.capacity)}, {self._end})")
+            idx = np.arange(start, stop) % self.capacity
+            return self._d[idx], self._f[idx]
+
+
+class AcquisitionError(RuntimeError):
+    """Acquisition cannot go on (link lost, stream stalled, disk failed); ``reason`` says why."""
+
+
+class Acquisition:
+    """Runs the acquisition and disk threads for one run.
+
+    ``get_event(timeout_s)`` returns the driver's next stream event or None (objects with
+    ``first_index``, ``displacement``, ``force`` for data, ``first_index``/``count`` for gaps,
+    ``next_sample_index``/``seconds`` for stalls); ``writer`` receives the raw samples.
+    ``stall_limit_s``: a stream silent this long fails the run.
+    """
+
+    def __init__(self, get_event: Callable[[float], object | None], writer: RecordingWriter, *,
+                 ring_seconds: float = 60.0, sample_rate_hz: float = 20_000.0,
+                 disk_queue_seconds: float = 120.0, stall_limit_s: float = 2.0) -> None:
+        self._get_event = get_event
+        self._writer = writer
+        self.ring = RingBuffer(int(ring_seconds * sample_rate_hz))
+        self._fs = sample_rate_hz
+        self._disk_q: queue.Queue[Block | None] = queue.Queue(
+            maxsize=max(8, int(disk_queue_seconds * sample_rate_hz / 256)))
+        self._stall_limit = stall_limit_s
+        self.lost: list[tuple[int, int]] = []
+        self.error: AcquisitionError | None = None
+        self.crc_errors = 0
+        self._stop = threading.Event()
+        self._acq = threading.Thread(target=self._acquire, name="acquisition", daemon=True)
+        self._disk = threading.Thread(target=self._write, name="disk-writer", daemon=True)
+        self.disk_error: BaseException | None = None
+
+    # -- control -------------------------------------------------------------------------------
+    def start(self) -> None:
+        self._disk.start()
+        self._acq.start()
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop acquiring, write out what is queued, and join both threads."""
+        self._stop.set()
+        self._acq.join(timeout_s)
+        self._disk_q.put(None)
+        self._disk.join(timeout_s)
+
+    @property
+    def samples(self) -> int:
+        """Samples acquired so far (including filled gaps)."""
+        return self.ring.end
+
+    def lost_between(self, start: int, stop: int) -> int:
+        """Number of lost samples inside [start, stop)."""
+        return sum(max(0, min(stop, a + n) - max(start, a)) for a, n in list(self.lost))
+
+    def check(self) -> None:
+        """Raise the acquisition's or the disk's error, if any (called by the procedure)."""
+        if self.error is not None:
+            raise self.error
+        if self.disk_error is not None:
+            raise AcquisitionError(f"recording cannot be written: {self.disk_error}")
+
+    def wait_for(self, sample: int, timeout_s: float) -> None:
+        """Block until ``sample`` samples have been acquired; raises on errors or time-out."""
+        deadline = time.monotonic() + timeout_s
+        while self.ring.end < sample:
+            self.check()
+            if time.monotonic() > deadline:
+                raise AcquisitionError(f"DAQ delivered {self.ring.end} samples, {sample} awaited "
+                                       f"within {timeout_s:.1f} s")
+            time.sleep(0.01)
+
+    # -- threads -----------------------------------------------------------------------------------
+    def _enqueue(self, block: Block) -> None:
+        try:
+            self._disk_q.put_nowait(block)
+        except queue.Full:
+            self.error = AcquisitionError("disk writer fell more than the disk queue behind; "
+                                          "run stopped rather than blocking acquisition")
+            self._stop.set()
+
+    def _acquire(self) -> None:
+        quiet_since = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                ev = self._get_event(0.1)
+                if ev is None:
+                    if time.monotonic() - quiet_since >= self._stall_limit:
+                        raise AcquisitionError(f"DAQ stream stalled: no data for {self._stall_limit:.1f} s "
+                                               f"(next sample {self.ring.end})")
+                    continue
+                if not hasattr(ev, "seconds"):  # data or gap: the stream is alive
+                    quiet_since = time.monotonic()
+                if hasattr(ev, "displacement"):
+                    first = ev.first_index
+                    if first > self.ring.end:  # a gap the driver did not report separately
+                        self._gap(self.ring.end, first - self.ring.end)
+                    self.ring.put(first, ev.displacement, ev.force)
+                    self._enqueue(Block(first, ev.displacement, ev.force))
+                elif hasattr(ev, "count"):
+                    self._gap(ev.first_index, ev.count)
+                elif hasattr(ev, "seconds"):
+                    if ev.seconds >= self._stall_limit:
+                        raise AcquisitionError(f"DAQ stream stalled: no data for {ev.seconds:.1f} s "
+                                               f"(next sample {ev.next_sample_index})")
+                    log.warning("DAQ stream quiet for %.2f s", ev.seconds)
+        except AcquisitionError as exc:
+            self.error = exc
+        except Exception as exc:  # the driver's link error and anything else ends the run
+            self.error = AcquisitionError(f"DAQ link lost: {exc}")
+        if self.error is not None:
+            log.error("acquisition stopped: %s", self.error)
+
+    def _gap(self, first: int, count: int) -> None:
+        if first != self.ring.end:
+            if first < self.ring.end:
+                count -= self.ring.end - first
+                first = self.ring.end
+            else:
+                self._gap(self.ring.end, first - self.ring.end)
+        if count <= 0:
+            return
+        self.lost.append((first, count))
+        z = np.zeros(count, dtype=np.int16)
+        self.ring.put(first, z, z)
+        self._enqueue(Block(first, z, z, lost=True))
+
+    def _write(self) -> None:
+        last_flush = time.monotonic()
+        while True:
+            try:
+                block: Block | None = self._disk_q.get(timeout=0.25)
+                idle = False
+            except queue.Empty:
+                idle = True
+            if not idle and block is None:
+                break
+            try:
+                if not idle and block is not None:
+                    self._writer.append(block.displacement, block.force)
+                    if block.lost:
+                        self._writer.add_lost(block.first, block.displacement.size)
+                if time.monotonic() - last_flush >= 0.5:
+                    self._writer.flush()
+                    last_flush = time.monotonic()
+            except BaseException as exc:  # full disk, I/O error: stop writing, keep what is flushed
+                self.disk_error = exc
+                log.error("disk writer failed: %s", exc)
+                self._stop.set()
+                return

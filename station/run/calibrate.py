@@ -1,0 +1,57 @@
+"""A calibration from request to identified parameters: plan, run, process, identify."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from station.config import StationConfig
+from station.ident.api import identify_recording
+from station.ident.result import IdentificationResult
+from station.recording import read_recording, write_results
+from station.run.procedure import Procedure, Progress, RunOutcome
+from station.run.processing import process_recording
+from station.run.request import RunRequest, plan_run
+from station.run.rig import connect
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    outcome: RunOutcome
+    identification: IdentificationResult | None
+
+    def to_json(self) -> dict[str, Any]:
+        """``station identify --json`` plus ``recording``, ``lost_samples``, ``exit_status``, ``reason``."""
+        base: dict[str, Any] = self.identification.to_dict() if self.identification else {}
+        return {**base, "recording": str(self.outcome.path), "lost_samples": self.outcome.lost_samples,
+                "exit_status": self.outcome.exit_status, "reason": self.outcome.reason}
+
+    def header(self) -> str:
+        return "\n".join([f"recording: {self.outcome.path}", f"exit status: {self.outcome.exit_status}"
+                          + (f" ({self.outcome.reason})" if self.outcome.reason else ""),
+                          f"lost samples: {self.outcome.lost_samples}"])
+
+
+def identify_and_store(path: Path, method: str | None = None, model: str | None = None) -> IdentificationResult:
+    """Identify a recording and write the result into its /results group."""
+    res = identify_recording(read_recording(path), method, model)
+    write_results(path, f"identify_{res.method}_{res.model}", res.to_dict())
+    return res
+
+
+async def run_and_identify(cfg: StationConfig, request: RunRequest, out_dir: Path, *, sim: bool,
+                           on_progress: Callable[[Progress], None] | None = None) -> CalibrationResult:
+    """Check the request (before anything moves), run it, then process and identify the recording."""
+    plan = plan_run(cfg, request)
+    async with connect(plan.config, sim=sim, first_radius_m=plan.steps[0].crank_radius_m) as rig:
+        proc = Procedure(plan, rig, out_dir, on_progress=on_progress)
+        outcome = await proc.execute()
+    if outcome.exit_status != "completed":
+        return CalibrationResult(outcome, None)
+    process_recording(outcome.path, plan.config.processing)
+    return CalibrationResult(outcome, identify_and_store(outcome.path))

@@ -1,0 +1,344 @@
+"""The calibration-run procedure: steps, settling, recording, and a safe stop on every path.
+
+Per step: (stop and change the crank radius if the step asks for another) -> ramp to the crank
+frequency -> settle -> wait until both signals are steady -> record -> next.  The motor watchdog is
+refreshed throughout by the driver's keeper task.  An abort, a driver error, a motor fault or a
+lost link first stops the motor (ramp down; emergency stop on a fault; if the link is gone the
+controller's watchdog stops it), then closes the recording with the reason.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from station.config import config_to_yaml
+from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id
+from station.run.acquisition import Acquisition, AcquisitionError
+from station.run.request import Plan, PlannedStep
+
+log = logging.getLogger(__name__)
+
+
+class RadiusActuator(Protocol):
+    """Sets the crank radius (m) at standstill: motorised, simulated or fixed by hand."""
+
+    radius_m: float
+
+    async def set_radius(self, radius_m: float) -> None: ...
+
+
+class FixedRadius:
+    """A rig whose radius is set by hand: refuses to 'change' it to anything else."""
+
+    def __init__(self, radius_m: float) -> None:
+        self.radius_m = radius_m
+
+    async def set_radius(self, radius_m: float) -> None:
+        if not math.isclose(radius_m, self.radius_m, rel_tol=1e-9):
+            raise RunFailure(f"this rig's crank radius is set by hand to {self.radius_m:g} m; "
+                             f"the run asks for {radius_m:g} m")
+
+
+class RunFailure(RuntimeError):
+    """The run cannot go on; the message is the reason stored in the stop record."""
+
+
+class RunAborted(RuntimeError):
+    """An operator (or the emergency stop) aborted the run."""
+
+
+@dataclass
+class Progress:
+    """Live state of a run for status displays."""
+
+    run_id: str
+    state: str = "starting"
+    step: int | None = None
+    n_steps: int = 0
+    step_state: str = ""
+    samples: int = 0
+    lost_samples: int = 0
+    message: str = ""
+    started: float = field(default_factory=time.time)
+
+    @property
+    def fraction(self) -> float:
+        if not self.n_steps or self.step is None:
+            return 0.0
+        order = {"ramping": 0.1, "settling": 0.3, "recording": 0.6, "done": 1.0}
+        return min(1.0, (self.step + order.get(self.step_state, 0.0)) / self.n_steps)
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    run_id: str
+    path: Path
+    exit_status: str
+    reason: str
+    lost_samples: int
+
+
+@dataclass(frozen=True)
+class SteadyCriteria:
+    """Steady state: amplitudes of both channels over consecutive windows agree within
+    ``amplitude_tol`` (relative), the fitted crank frequency is within ``frequency_tol_hz`` of the
+    setpoint (or 0.2 % of it, whichever is larger), for ``windows`` windows of ``window_s`` seconds."""
+
+    amplitude_tol: float = 0.005
+    frequency_tol_hz: float = 0.02
+    window_s: float = 0.25
+    windows: int = 3
+    timeout_s: float = 20.0
+
+
+def _amplitude(y: np.ndarray, f: float, fs: float) -> tuple[float, float]:
+    """(amplitude, fitted frequency) of y by a 3-parameter fit refined by one frequency step."""
+    t = np.arange(y.size) / fs - y.size / (2 * fs)
+    w = 2 * np.pi * f
+    for _ in range(2):
+        c, s = np.cos(w * t), np.sin(w * t)
+        X = np.column_stack([c, s, np.ones_like(t), -t * s, t * c])
+        p = np.linalg.lstsq(X[:, :3], y, rcond=None)[0]
+        J = np.column_stack([X[:, :3], p[0] * X[:, 3] + p[1] * X[:, 4]])
+        step = np.linalg.lstsq(J, y - X[:, :3] @ p, rcond=None)[0]
+        w += step[-1]
+    return float(np.hypot(p[0], p[1])), w / (2 * np.pi)
+
+
+def is_steady(disp: np.ndarray, force: np.ndarray, f_set: float, fs: float, crit: SteadyCriteria) -> bool:
+    """Apply ``crit`` to the newest samples (each channel: windows * window_s seconds)."""
+    n = int(crit.window_s * fs)
+    amps_d, amps_f, freqs = [], [], []
+    for k in range(crit.windows):
+        sl = slice(k * n, (k + 1) * n)
+        a_d, f_d = _amplitude(disp[sl].astype(float), f_set, fs)
+        a_f, _ = _amplitude(force[sl].astype(float), f_set, fs)
+        amps_d.append(a_d)
+        amps_f.append(a_f)
+        freqs.append(f_d)
+    tol_f = max(crit.frequency_tol_hz, 0.002 * f_set)
+    if any(abs(f - f_set) > tol_f for f in freqs) or min(amps_d) <= 0 or min(amps_f) <= 0:
+        return False
+    return (max(amps_d) / min(amps_d) - 1 < crit.amplitude_tol
+            and max(amps_f) / min(amps_f) - 1 < crit.amplitude_tol)
+
+
+class RigLink(Protocol):
+    """What the procedure drives: the motor and DAQ drivers and a radius actuator."""
+
+    motor: object
+    daq: object
+    radius: RadiusActuator
+
+
+def channel_specs(gain_V_per_m: float, lsb_d: float, lsb_f: float) -> tuple[ChannelSpec, ChannelSpec]:
+    """Raw channel storage: ADC codes with their scaling to m (displacement) and V (force)."""
+    return (ChannelSpec("displacement", "i2", "count", "m", scale=lsb_d / gain_V_per_m, volts_per_count=lsb_d),
+            ChannelSpec("force", "i2", "count", "V", scale=lsb_f, volts_per_count=lsb_f))
+
+
+class Procedure:
+    """One calibration run on a connected rig.  ``await execute()`` returns the outcome; it never
+    raises for run failures (they end in the stop record), only for programming errors."""
+
+    def __init__(self, plan: Plan, link: RigLink, out_dir: str | Path, *, run_id: str | None = None,
+                 on_progress: Callable[[Progress], None] | None = None,
+                 steady: SteadyCriteria | None = None) -> None:
+        self.plan = plan
+        self.link = link
+        self.out_dir = Path(out_dir)
+        self.run_id = run_id or new_run_id(plan.config.transducer.id)
+        self.progress = Progress(self.run_id, n_steps=len(plan.steps))
+        self._on_progress = on_progress or (lambda p: None)
+        self.steady = steady or SteadyCriteria()
+        self.abort_event = asyncio.Event()
+        self.abort_reason = ""
+        self.acq: Acquisition | None = None
+
+    def abort(self, reason: str = "aborted by operator") -> None:
+        self.abort_reason = reason
+        self.abort_event.set()
+
+    def _report(self, **kw: object) -> None:
+        for k, v in kw.items():
+            setattr(self.progress, k, v)
+        if self.acq is not None:
+            self.progress.samples = self.acq.samples
+            self.progress.lost_samples = sum(n for _, n in self.acq.lost)
+        self._on_progress(self.progress)
+
+    # ------------------------------------------------------------------------------ main
+    async def execute(self) -> RunOutcome:
+        cfg = self.plan.config
+        motor, daq = self.link.motor, self.link.daq
+        daq_cfg = await asyncio.to_thread(daq.configure, rate_hz=cfg.daq.sample_rate_hz,
+                                          range_disp_V=cfg.daq.displacement_range_V,
+                                          range_force_V=cfg.daq.force_range_V)
+        lsb = 2.0 / 2**cfg.daq.adc_bits
+        meta = RunMetadata(
+            run_id=self.run_id, transducer_id=cfg.transducer.id, source="calibrate",
+            sample_rate_hz=daq_cfg.rate_hz, load_mass_kg=cfg.rig.load_mass_kg,
+            end_mass_kg=cfg.transducer.end_mass_kg,
+            sensitivity_V_per_N=cfg.transducer.sensitivity_V_per_N * cfg.conditioner.gain,
+            capacity_N=cfg.transducer.capacity_N, config_yaml=config_to_yaml(cfg))
+        specs = channel_specs(cfg.displacement_sensor.gain_V_per_m, lsb * daq_cfg.range_disp_V,
+                              lsb * daq_cfg.range_force_V)
+        writer = RecordingWriter(self.out_dir, meta, specs, plan=self.plan.to_dict())
+        status, reason = "completed", ""
+        try:
+            await motor.reset_faults()
+            await motor.set_ramp(cfg.rig.acceleration_hz_per_s)
+            await motor.start_watchdog(0.2)
+            await motor.enable()
+            await asyncio.to_thread(daq.start)
+            self.acq = Acquisition(daq.get_event, writer, sample_rate_hz=daq_cfg.rate_hz)
+            self.acq.start()
+            self._report(state="running")
+            for step in self.plan.steps:
+                await self._step(step, writer)
+            await self._ramp_to(0.0)
+        except RunAborted as exc:
+            status, reason = "aborted", str(exc)
+        except asyncio.CancelledError:
+            status, reason = "interrupted", "the station was stopped during the run"
+        except (RunFailure, AcquisitionError) as exc:
+            status, reason = "failed", str(exc)
+        except Exception as exc:  # driver errors (lost link, Modbus exception, DAQ errors)
+            status, reason = "failed", f"{type(exc).__name__}: {exc}"
+        finally:
+            if status != "completed":
+                log.error("run %s %s: %s", self.run_id, status, reason)
+                await self._stop_motor(hard=status == "failed")
+            else:
+                await self._quiet(motor.stop())
+            await self._quiet(motor.stop_watchdog())
+            await self._quiet(asyncio.to_thread(daq.stop))
+            if self.acq is not None:
+                await asyncio.to_thread(self.acq.stop)
+                if status == "completed" and self.acq.disk_error is not None:
+                    status, reason = "failed", f"recording cannot be written: {self.acq.disk_error}"
+            lost = sum(n for _, n in self.acq.lost) if self.acq else 0
+            try:
+                path = writer.finish(status, reason)
+            except Exception as exc:  # e.g. a full disk: the partial file keeps what was flushed
+                log.error("could not close the recording: %s", exc)
+                writer.abandon()
+                path = writer.partial_path
+                reason = "; ".join(filter(None, [reason, f"recording left partial: {exc}"]))
+            self._report(state=status, message=reason, step_state="done")
+        return RunOutcome(self.run_id, path, status, reason, lost)
+
+    # ------------------------------------------------------------------------------ steps
+    async def _step(self, step: PlannedStep, writer: RecordingWriter) -> None:
+        cfg = self.plan.config
+        fs = cfg.daq.sample_rate_hz
+        assert self.acq is not None
+        if not math.isclose(step.crank_radius_m, self.link.radius.radius_m, rel_tol=1e-9):
+            self._report(step=step.index, step_state="ramping",
+                         message=f"stopping to set the crank radius to {step.crank_radius_m:g} m")
+            await self._ramp_to(0.0)
+            await self.link.radius.set_radius(step.crank_radius_m)
+        self._report(step=step.index, step_state="ramping",
+                     message=f"ramping to {step.crank_frequency_hz:g} Hz")
+        await self._ramp_to(step.crank_frequency_hz)
+        self._report(step_state="settling", message=f"settling {step.settle_s:g} s")
+        await self._wait_samples(self.acq.samples + int(step.settle_s * fs))
+        deadline = time.monotonic() + self.steady.timeout_s
+        need = int(self.steady.window_s * fs) * self.steady.windows
+        while True:
+            end = self.acq.samples
+            if end >= need:
+                d, f = self.acq.ring.get(end - need, end)
+                if await asyncio.to_thread(is_steady, d, f, step.crank_frequency_hz, fs, self.steady):
+                    break
+            if time.monotonic() > deadline:
+                raise RunFailure(f"step {step.index} ({step.crank_frequency_hz:g} Hz): signals not steady "
+                                 f"within {self.steady.timeout_s:g} s")
+            await self._wait_samples(end + int(self.steady.window_s * fs))
+        st = await self.link.motor.read_status()
+        start = self.acq.samples
+        self._report(step_state="recording", message=f"recording {step.record_s:g} s")
+        stop = start + round(step.record_s * fs)
+        await self._wait_samples(stop)
+        lost = self.acq.lost_between(start, stop)
+        if lost:
+            log.warning("step %d: %d samples lost inside the record window", step.index, lost)
+        writer.add_step(crank_frequency_hz=step.crank_frequency_hz, crank_radius_m=step.crank_radius_m,
+                        start_sample=start, end_sample=stop, lost_in_window=lost,
+                        extra={"crank_angle_rad_at_start": st.crank_angle_rad,
+                               "actual_speed_hz_at_start": st.actual_speed_hz,
+                               "settle_s": step.settle_s, "record_s": step.record_s})
+        self._report(step_state="done", message=f"step {step.index} recorded")
+
+    async def _ramp_to(self, hz: float) -> None:
+        motor = self.link.motor
+        await motor.set_frequency(hz)
+        st = await motor.read_status()
+        acc = self.plan.config.rig.acceleration_hz_per_s
+        deadline = time.monotonic() + abs(st.actual_speed_hz - hz) / acc * 1.5 + 5.0
+        while abs(st.actual_speed_hz - hz) > max(0.01, 1e-4 * hz):
+            self._check()
+            if time.monotonic() > deadline:
+                raise RunFailure(f"crank did not reach {hz:g} Hz (actual {st.actual_speed_hz:g} Hz)")
+            await asyncio.sleep(0.05)
+            st = await motor.read_status()
+            self._check_motor(st)
+
+    async def _wait_samples(self, sample: int) -> None:
+        """Wait until ``sample`` samples are acquired, watching abort, acquisition and motor."""
+        assert self.acq is not None
+        fs = self.plan.config.daq.sample_rate_hz
+        deadline = time.monotonic() + (sample - self.acq.samples) / fs + 5.0
+        next_status = 0.0
+        while self.acq.samples < sample:
+            self._check()
+            now = time.monotonic()
+            if now > deadline:
+                raise AcquisitionError(f"DAQ delivered {self.acq.samples} samples, {sample} awaited in time")
+            if now >= next_status:
+                self._check_motor(await self.link.motor.read_status())
+                next_status = now + 0.25
+                self._report()
+            await asyncio.sleep(0.02)
+
+    def _check(self) -> None:
+        if self.abort_event.is_set():
+            raise RunAborted(self.abort_reason or "aborted")
+        if self.acq is not None:
+            self.acq.check()
+        err = getattr(self.link.motor, "watchdog_error", None)
+        if err is not None:
+            raise RunFailure(f"motor link lost (watchdog refresh failed): {err}")
+
+    def _check_motor(self, st: object) -> None:
+        code = getattr(st, "fault_code", 0)
+        if code:
+            raise RunFailure(f"motor fault {code} ({getattr(st, 'fault_name', '?')})")
+
+    async def _stop_motor(self, *, hard: bool) -> None:
+        """Stop the crank before anything else: ramp down, or emergency stop on a failure."""
+        motor = self.link.motor
+        if hard and await self._quiet(motor.emergency_stop()):
+            return
+        if not await self._quiet(motor.stop()):
+            log.error("motor did not answer the stop; its watchdog stops it when refreshes cease")
+            await self._quiet(motor.stop_watchdog())
+
+    @staticmethod
+    async def _quiet(aw: object) -> bool:
+        """Await ``aw``; log and swallow errors (used on the shutdown path). True on success."""
+        try:
+            await asyncio.wait_for(aw, 3.0)  # type: ignore[arg-type]
+            return True
+        except Exception as exc:
+            log.warning("shutdown step failed: %s", exc)
+            return False

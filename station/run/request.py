@@ -1,0 +1,95 @@
+"""A calibration run request and its validation against the rig and transducer limits."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from station.config import StationConfig
+from station.errors import LimitError
+from station.limits import StepRequest, check_steps
+
+
+class StepSpec(BaseModel):
+    """One requested step; settle and record times default to the configured plan's."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    crank_frequency_hz: float = Field(gt=0, le=1000, description="crank frequency in Hz")
+    crank_radius_m: float = Field(gt=0, le=1.0, description="crank radius in m")
+    settle_s: float | None = Field(default=None, ge=0, le=600, description="settling time in s")
+    record_s: float | None = Field(default=None, gt=0, le=3600, description="record time in s")
+
+
+class RunRequest(BaseModel):
+    """What a technician or the nightly batch asks the rig to do."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    transducer_id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")
+    top_mass_kg: float = Field(gt=0, le=500, description="top mass in kg (without the adaption)")
+    steps: list[StepSpec] = Field(min_length=1, max_length=200)
+
+
+@dataclass(frozen=True)
+class PlannedStep:
+    """A validated step with every time filled in (Hz, m, s)."""
+
+    index: int
+    crank_frequency_hz: float
+    crank_radius_m: float
+    settle_s: float
+    record_s: float
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A run that passed every limit check: the effective configuration and its steps."""
+
+    config: StationConfig
+    steps: tuple[PlannedStep, ...]
+
+    def to_dict(self) -> dict[str, object]:
+        return {"kind": "stepped_sine", "transducer_id": self.config.transducer.id,
+                "top_mass_kg": self.config.rig.top_mass_kg,
+                "steps": [s.__dict__ for s in self.steps],
+                "units": {"crank_frequency_hz": "Hz", "crank_radius_m": "m", "settle_s": "s",
+                          "record_s": "s", "top_mass_kg": "kg"}}
+
+
+def plan_run(cfg: StationConfig, request: RunRequest) -> Plan:
+    """Check a request before anything moves; raises LimitError naming the offending step/limit."""
+    if request.transducer_id != cfg.transducer.id:
+        raise LimitError(f"transducer_id {request.transducer_id!r} is not the one mounted on this station "
+                         f"({cfg.transducer.id!r}, from the configuration)")
+    eff = cfg.model_copy(update={"rig": cfg.rig.model_copy(update={"top_mass_kg": request.top_mass_kg})})
+    check_steps(eff, [StepRequest(s.crank_frequency_hz, s.crank_radius_m) for s in request.steps])
+    steps = tuple(
+        PlannedStep(i, s.crank_frequency_hz, s.crank_radius_m,
+                    cfg.plan.settle_s if s.settle_s is None else s.settle_s,
+                    cfg.plan.record_s if s.record_s is None else s.record_s)
+        for i, s in enumerate(request.steps))
+    return Plan(eff, steps)
+
+
+def default_request(cfg: StationConfig, frequencies_hz: list[float] | None = None) -> RunRequest:
+    """The configured plan as a request; with ``frequencies_hz``, the largest radius within the
+    limits (capped by the plan's first radius) is chosen for each frequency."""
+    if not frequencies_hz:
+        return RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg,
+                          steps=[StepSpec(**s.model_dump()) for s in cfg.plan.steps])
+    from station.limits import G, force_limit_N
+
+    m = cfg.rig.load_mass_kg + (cfg.transducer.end_mass_kg or 0.0)
+    r_cap = min(cfg.plan.steps[0].crank_radius_m, cfg.rig.crank_radius_m.max)
+    steps = []
+    for f in frequencies_hz:
+        w2 = (2 * 3.141592653589793 * f) ** 2
+        r_max = 0.9 * (force_limit_N(cfg) / m - G) / w2
+        r = min(r_cap, r_max)
+        if r < cfg.rig.crank_radius_m.min:
+            raise LimitError(f"{f:g} Hz: no crank radius within [{cfg.rig.crank_radius_m.min:g}, "
+                             f"{cfg.rig.crank_radius_m.max:g}] m keeps the peak force within the limit")
+        steps.append(StepSpec(crank_frequency_hz=f, crank_radius_m=float(f"{r:.3g}")))
+    return RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg, steps=steps)
