@@ -1,0 +1,120 @@
+"""The simulated rig as a whole: both emulators share one motor; in-process, subprocess and CLI."""
+
+from __future__ import annotations
+
+import asyncio
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from drivers.daq import DaqBridge, SampleBlock, SerialLink
+from drivers.motor import LinkPolicy, ModbusTransport, MotorController
+from drivers.sim import SimRig, SimRigProcess
+
+
+def samples(daq: DaqBridge, seconds: float) -> tuple[np.ndarray, np.ndarray]:
+    disp, force = [], []
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        ev = daq.get_event(0.2)
+        if isinstance(ev, SampleBlock):
+            disp.append(ev.displacement)
+            force.append(ev.force)
+    return np.concatenate(disp).astype(float), np.concatenate(force).astype(float)
+
+
+def dominant_hz(x: np.ndarray, rate: float) -> float:
+    spec = np.abs(np.fft.rfft((x - x.mean()) * np.hanning(len(x))))
+    return float(np.fft.rfftfreq(len(x), 1 / rate)[np.argmax(spec)])
+
+
+def test_both_channels_move_with_the_emulated_motor() -> None:
+    with SimRig(seed=5, crank_radius_m=0.01) as rig:
+        daq = DaqBridge()
+        daq.connect(SerialLink(rig.addresses.daq))
+        daq.configure(rate_hz=20_000)
+        daq.start()
+        d0, f0 = samples(daq, 0.5)
+        assert np.ptp(d0) < 200 and np.ptp(f0) < 200  # standstill: noise only
+
+        async def spin_up() -> None:
+            motor = MotorController()
+            await motor.connect(ModbusTransport.tcp(*rig.addresses.modbus_tcp, policy=LinkPolicy()))
+            await motor.set_watchdog_timeout(0)
+            await motor.set_ramp(50.0)
+            await motor.enable()
+            await motor.set_frequency(12.0)
+            await motor.wait_for_speed(12.0, timeout_s=3.0)
+            await motor.close()  # the watchdog is off: the crank keeps turning
+
+        asyncio.run(spin_up())
+        d1, f1 = samples(daq, 1.0)
+        daq.stop()
+        daq.close()
+    assert dominant_hz(d1, 20_000) == pytest.approx(12.0, abs=1.0)
+    assert dominant_hz(f1, 20_000) == pytest.approx(12.0, abs=1.0)
+    # 10 mm crank at 500 V/m: +-5 V on +-10 V, 16 bit: about +-16384 codes
+    assert np.ptp(d1) == pytest.approx(2 * 16384, rel=0.03)
+    # m_total * (2 pi f)^2 r * S * gain: ~26.3 kg * 56.8 m/s^2 * 2e-6 V/N * 1000 = 3.0 V = ~9800 codes
+    assert 0.8 * 2 * 9800 < np.ptp(f1) < 1.2 * 2 * 9800
+    # the force (spring, -m a) is in phase with the displacement: sin vs -(-w^2 sin)
+    assert np.corrcoef(d1, f1)[0, 1] > 0.95
+
+
+def test_inprocess_daq_backend_streams_without_loss() -> None:
+    with SimRig(seed=6, rtu=False) as rig:
+        emu, link = rig.inprocess_daq()
+        daq = DaqBridge()
+        daq.connect(link)
+        daq.configure(rate_hz=50_000, frame_samples=500)
+        daq.start()
+        time.sleep(0.5)
+        summary = daq.stop()
+        got = sum(ev.count for ev in daq.events(0.3) if isinstance(ev, SampleBlock))
+        daq.close()
+        emu.close()
+    assert got == summary.samples_sent > 0.4 * 50_000
+    assert summary.stats.samples_lost == 0
+
+
+def test_subprocess_rig_serves_both_devices() -> None:
+    with SimRigProcess(seed=2) as proc:
+        async def read_max() -> float:
+            motor = MotorController()
+            await motor.connect(ModbusTransport.tcp(*proc.addresses.modbus_tcp))
+            value = await motor.read("max_frequency")
+            await motor.close()
+            return value
+
+        assert asyncio.run(read_max()) == pytest.approx(100.0)
+        daq = DaqBridge()
+        daq.connect(SerialLink(proc.addresses.daq))
+        assert daq.identify().startswith("SINECAL,DAQ-BRIDGE-EMU")
+        daq.close()
+
+
+def test_station_sim_rig_prints_where_it_listens_and_stops_on_ctrl_c() -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "station.cli", "sim-rig", "--seed", "3"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        lines = [proc.stdout.readline() for _ in range(3)]
+        tcp = re.search(r"Modbus TCP\s+modbus-tcp://127\.0\.0\.1:(\d+)", lines[0])
+        rtu = re.search(r"Modbus RTU\s+(/dev/pts/\d+)", lines[1])
+        daq_path = re.search(r"serial\s+(/dev/pts/\d+)", lines[2])
+        assert tcp and rtu and daq_path, lines
+        daq = DaqBridge()
+        daq.connect(SerialLink(daq_path.group(1)))
+        assert daq.status()["state"] == "idle"
+        daq.close()
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 130
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
