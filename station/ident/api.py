@@ -21,7 +21,7 @@ from station.ident.models import CoupledModel, Model, SdofModel, make_model
 from station.ident.oe import StepSignal, fit_oe
 from station.ident.paperfit import identify_paper_method
 from station.ident.protocol import PaperProtocol
-from station.ident.result import FitSummary, IdentificationResult, ParameterEstimate
+from station.ident.result import FitSummary, Identifiability, IdentificationResult, ParameterEstimate
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -78,11 +78,19 @@ def _params(model: Model, theta: FloatArray, cov: FloatArray, ident: tuple[bool,
                  for i, (n, u) in enumerate(zip(model.names, model.units, strict=True)))
 
 
-def _fd_fit(frf: frfmod.FrequencyResponse, model: Model, theta0: FloatArray, policy: Policy):
-    rep, ok = assess(model, theta0, frf, policy)
-    fit = frfmod.fit_frf(frf, model, theta0, free=ok)
-    rep, _ = assess(model, fit.theta, frf, policy)
-    return fit, rep
+def _fd_fit(frf: frfmod.FrequencyResponse, model: Model, theta0: FloatArray,
+            policy: Policy) -> tuple[frfmod.FrfFit, Identifiability]:
+    """Fit every parameter (LM, or TRF when underdetermined: it stays near theta0 along the null
+    space), then judge identifiability at the estimate; the covariance is that of the identifiable
+    subset with the others held (conditional), so confounded parameters cannot inflate it."""
+    fit = frfmod.fit_frf(frf, model, theta0)
+    rep, ok = assess(model, fit.theta, frf, policy)
+    cov = np.zeros_like(fit.cov)
+    if ok.any():
+        J = fit.jac_rel[:, ok]
+        scale = fit.chi2 / fit.dof if fit.inflated else 1.0
+        cov[np.ix_(ok, ok)] = scale * np.linalg.pinv(J.T @ J) * np.outer(fit.theta[ok], fit.theta[ok])
+    return replace(fit, cov=cov), rep
 
 
 def _summary_fd(frf: frfmod.FrequencyResponse, fit: frfmod.FrfFit, sigs: list[StepSignal]) -> FitSummary:

@@ -36,8 +36,8 @@ class FrequencyResponse:
     f_hz: FloatArray
     H: ComplexArray
     cov: FloatArray
-    force_rms_residual_V: FloatArray  # noqa: N815 (unit suffix)
-    force_offset_V: FloatArray  # noqa: N815
+    force_rms_residual_V: FloatArray
+    force_offset_V: FloatArray
 
 
 def _ratio_cov(U: complex, Cu: FloatArray, A: complex, Ca: FloatArray) -> tuple[complex, FloatArray]:

@@ -47,8 +47,8 @@ class OeFit:
 
     theta: FloatArray
     cov: FloatArray
-    offsets_V: FloatArray  # noqa: N815 (unit suffix)
-    residual_rms_V: FloatArray  # noqa: N815
+    offsets_V: FloatArray
+    residual_rms_V: FloatArray
     mse: float
     jac_rel: FloatArray
 

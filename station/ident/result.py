@@ -49,7 +49,7 @@ class FitSummary:
     """
 
     mse: float
-    residual_rms_V: tuple[float, ...]  # noqa: N815 (unit suffix)
+    residual_rms_V: tuple[float, ...]
     chi2_per_dof: float = float("nan")
     n_points: int = 0
 

@@ -1,0 +1,56 @@
+"""``station identify RECORDING``: identify the transducer and store the result in the recording."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from station.errors import BadInputError
+from station.ident.api import METHODS, MODELS, identify_recording
+from station.ident.result import IdentificationResult
+from station.recording import read_recording, write_results
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("identify", help="identify stiffness, damping and sensitivity from a recording")
+    p.add_argument("recording", type=Path, help="HDF5 recording of a run")
+    p.add_argument("--method", choices=METHODS, default=None,
+                   help="fd (default: sine fits + weighted LM), oe (time-domain output error), "
+                        "pso, pso+, rls (the paper's, on one step)")
+    p.add_argument("--model", choices=MODELS, default=None,
+                   help="sdof (Eq. 9, default), coupled (Eq. 8), h2/h1 (the paper's digital Eq. 11/10)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the swarm (pso, pso+)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--no-write", action="store_true", help="do not store the result in the recording")
+    p.set_defaults(handler=run)
+
+
+def format_text(res: IdentificationResult) -> str:
+    """Human-readable result: one line per parameter, then the fit and the notes."""
+    lines = [f"method {res.method}, model {res.model}"]
+    for p in res.parameters:
+        if p.identifiable:
+            lines.append(f"  {p.name:4s} = {p.value:.7g} {p.unit}  (std {p.std:.2g})")
+        else:
+            lines.append(f"  {p.name:4s}   not identifiable: {p.reason}")
+    rms = ", ".join(f"{v:.3g}" for v in res.fit.residual_rms_V)
+    lines.append(f"  fit: MSE {res.fit.mse:.4g} V^2, residual RMS per step [{rms}] V")
+    if res.identifiability is not None:
+        lines.append(f"  condition number {res.identifiability.condition_number:.3g}")
+    lines += [f"  note: {n}" for n in res.notes]
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    if not args.recording.exists():
+        raise BadInputError(f"{args.recording}: no such recording")
+    rec = read_recording(args.recording)
+    res = identify_recording(rec, args.method, args.model, seed=args.seed)
+    payload = res.to_dict()
+    if not args.no_write:
+        name = f"identify_{res.method}_{res.model}"
+        write_results(args.recording, name, payload)
+        payload["stored_as"] = f"/results/{name}"
+    print(json.dumps(payload, indent=2) if args.json else format_text(res))
+    return 0
