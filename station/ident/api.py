@@ -60,13 +60,14 @@ def measured_response(rec: Recording, n_harmonics: int = 3) -> tuple[frfmod.Freq
 
 def _start(frf: frfmod.FrequencyResponse, model: SdofModel) -> FloatArray:
     """theta0: linear LS on 1/H with >= 2 frequencies, else |H|/M with a far resonance (the k_f, b_f
-    start values are then arbitrary and reported as not identifiable)."""
+    start values are then arbitrary, held, and reported as not identifiable; S is then the
+    quasi-static sensitivity, low by about M w^2 / k_f relative)."""
     if np.unique(np.round(frf.f_hz, 6)).size >= 2:
         th = frfmod.linear_start_sdof(frf, model)
         if np.all(np.isfinite(th)) and np.all(th > 0):
             return th
     w = 2 * np.pi * float(np.max(frf.f_hz))
-    k0 = 1e3 * model.M * w**2
+    k0 = 1e6 * model.M * w**2  # resonance 1000 x f: S is then the quasi-static |H|/M
     return np.array([float(np.mean(np.abs(frf.H))) / model.M, k0, 0.1 * np.sqrt(k0 * model.M)])
 
 
@@ -80,10 +81,11 @@ def _params(model: Model, theta: FloatArray, cov: FloatArray, ident: tuple[bool,
 
 def _fd_fit(frf: frfmod.FrequencyResponse, model: Model, theta0: FloatArray,
             policy: Policy) -> tuple[frfmod.FrfFit, Identifiability]:
-    """Fit every parameter (LM, or TRF when underdetermined: it stays near theta0 along the null
-    space), then judge identifiability at the estimate; the covariance is that of the identifiable
+    """Fit the structurally identifiable parameters (all, when the data allow), holding the others at
+    theta0; judge identifiability at the estimate.  The covariance is that of the identifiable
     subset with the others held (conditional), so confounded parameters cannot inflate it."""
-    fit = frfmod.fit_frf(frf, model, theta0)
+    _, ok0 = assess(model, theta0, frf, policy)
+    fit = frfmod.fit_frf(frf, model, theta0, free=ok0, inflate=bool(ok0.all()))
     rep, ok = assess(model, fit.theta, frf, policy)
     cov = np.zeros_like(fit.cov)
     if ok.any():
@@ -131,6 +133,10 @@ def identify_fd(rec: Recording, model_key: str = "sdof",
             reasons = (*rep.reasons[:3], crep.reasons[3], crep.reasons[4])
             rep = replace(crep, identifiable=ident, reasons=reasons)
             fit = replace(fit, theta=theta, cov=cov)
+    if not all(rep.identifiable[:3]):
+        notes.append("parameters that are not identifiable were held at start values; the others' "
+                     "uncertainties are conditional on them (S from one frequency is |H|/M, low by "
+                     "about M w^2/k_f relative)")
     if fit.inflated:
         notes.append(f"chi2/dof = {fit.chi2 / fit.dof:.3g}: uncertainties inflated by sqrt(chi2/dof)")
     params = _params(model, fit.theta, fit.cov, rep.identifiable, rep.reasons)

@@ -113,7 +113,7 @@ def whitened_jacobian(model: Model, theta: FloatArray, frf: FrequencyResponse,
 
 
 def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
-            free: NDArray[np.bool_] | None = None) -> FrfFit:
+            free: NDArray[np.bool_] | None = None, inflate: bool = True) -> FrfFit:
     """Weighted nonlinear LS (Levenberg-Marquardt) of the free parameters, others held at theta0.
 
     Parameters are optimised as p = ln(theta/theta0) (all physical parameters are positive except
@@ -143,7 +143,7 @@ def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
     chi2 = float(sol.fun @ sol.fun)
     dof = max(n_res - int(free.sum()), 0)
     cov_rel = np.linalg.pinv(Jf.T @ Jf)
-    inflated = bool(dof > 0 and chi2 / dof > 1 + 3 * np.sqrt(2.0 / dof))
+    inflated = bool(inflate and dof > 0 and chi2 / dof > 1 + 3 * np.sqrt(2.0 / dof))
     if inflated:
         cov_rel *= chi2 / dof
         log.info("chi2/dof = %.3g: covariance inflated (model error or underestimated noise)", chi2 / dof)

@@ -1,0 +1,101 @@
+"""identify_recording and ``station identify`` on simulated recordings (station.simulate)."""
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from station.cli import main
+from station.config import default_config_path, parse_config
+from station.ident.api import identify_recording
+from station.recording import read_recording, read_results
+from station.simulate import simulate_run
+
+TRUTH = {"k_f": 2.91e7, "b_f": 17136.0}
+
+
+def _cfg(steps: list[dict], record_s: float) -> object:
+    data = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
+    data = copy.deepcopy(data)
+    data["plan"].update(settle_s=0.3, record_s=record_s, steps=steps)
+    data["rig"]["acceleration_hz_per_s"] = 200.0
+    data["simulation"]["pre_roll_s"] = 0.1
+    return parse_config(data)
+
+
+@pytest.fixture(scope="module")
+def stepped(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    steps = [{"crank_frequency_hz": f, "crank_radius_m": r}
+             for f, r in ((4.0, 0.01), (20.0, 0.002), (50.0, 6e-4), (100.0, 1.5e-4))]
+    return simulate_run(_cfg(steps, 1.0), tmp_path_factory.mktemp("st"), seed=3)
+
+
+@pytest.fixture(scope="module")
+def single_4hz(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return simulate_run(_cfg([{"crank_frequency_hz": 4.0, "crank_radius_m": 0.01}], 1.5),
+                        tmp_path_factory.mktemp("s4"), seed=4)
+
+
+def test_fd_on_a_stepped_sine_recording_recovers_the_truth(stepped: Path) -> None:
+    res = identify_recording(read_recording(stepped))
+    assert res.method == "fd"
+    k, b = res.parameter("k_f"), res.parameter("b_f")
+    assert k.identifiable and b.identifiable
+    assert abs(k.value / TRUTH["k_f"] - 1) < 1e-3 and abs(k.value - TRUTH["k_f"]) < 5 * k.std
+    assert abs(b.value / TRUTH["b_f"] - 1) < 0.02 and abs(b.value - TRUTH["b_f"]) < 5 * b.std
+    assert res.identifiability is not None and np.isfinite(res.identifiability.condition_number)
+
+
+def test_oe_agrees_with_fd_within_uncertainty(stepped: Path) -> None:
+    rec = read_recording(stepped)
+    fd, oe = identify_recording(rec, "fd"), identify_recording(rec, "oe")
+    for name in ("k_f", "b_f"):
+        a, b = fd.parameter(name), oe.parameter(name)
+        assert abs(a.value - b.value) < 3 * np.hypot(a.std, b.std)
+
+
+def test_coupled_model_on_rigid_coupling_reports_k_c_not_identifiable(stepped: Path) -> None:
+    res = identify_recording(read_recording(stepped), "fd", "coupled")
+    assert not res.parameter("k_c").identifiable and res.parameter("k_c").value is None
+    assert res.parameter("k_c").reason
+    assert res.parameter("k_f").identifiable
+
+
+def test_single_4hz_record_b_f_and_coupled_model_not_identifiable(single_4hz: Path) -> None:
+    rec = read_recording(single_4hz)
+    res = identify_recording(rec)
+    b = res.parameter("b_f")
+    assert not b.identifiable and b.value is None and b.std is None
+    assert "1 sine frequency" in b.reason
+    assert not res.parameter("k_f").identifiable
+    s = res.parameter("S")
+    assert s.identifiable and abs(s.value / 2e-3 - 1) < 1e-3
+    coupled = identify_recording(rec, "fd", "coupled")
+    assert not any(coupled.parameter(n).identifiable for n in ("k_f", "b_f", "k_c", "b_c"))
+    # the paper's PSO+ on the same record gets no digits for k_f, b_f either
+    pso = identify_recording(rec, "pso+", "h2", seed=1)
+    assert not pso.parameter("b_f").identifiable and pso.parameter("b_f").value is None
+
+
+def test_cli_identify_json_and_stored_result(stepped: Path, tmp_path: Path, capsys) -> None:
+    path = tmp_path / "rec.h5"
+    path.write_bytes(stepped.read_bytes())
+    assert main(["identify", str(path), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    for name, unit in (("k_f", "N/m"), ("b_f", "N*s/m")):
+        p = doc["parameters"][name]
+        assert p["unit"] == unit and p["identifiable"] and p["value"] > 0 and p["std"] > 0
+    assert doc["fit"]["mse"] > 0 and len(doc["fit"]["residual_rms_V"]) == 4
+    stored = read_results(path, "identify_fd_sdof")
+    assert stored is not None and stored["parameters"]["k_f"]["value"] == doc["parameters"]["k_f"]["value"]
+    assert main(["identify", str(path), "--model", "coupled", "--json", "--no-write"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert {"k_c", "b_c"} <= set(doc["parameters"])
+    assert doc["parameters"]["k_c"]["value"] is None
+
+
+def test_cli_rejects_missing_recording(tmp_path: Path) -> None:
+    assert main(["identify", str(tmp_path / "nope.h5")]) == 2

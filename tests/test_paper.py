@@ -1,0 +1,66 @@
+"""``station paper --quick``: the report's structure, its measured claims and the figures."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from station.cli import main
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
+    from station.paper import run_paper
+    out = tmp_path_factory.mktemp("paper")
+    return run_paper(out, quick=True, seed=0), out
+
+
+def test_report_has_the_paper_sections_side_by_side(report) -> None:
+    rep, _ = report
+    assert set(rep["table1"]) == {"I", "II"}
+    for case in ("I", "II"):
+        assert {"pso", "pso+"} <= set(rep["table1"][case]["median"])
+        assert rep["table1"][case]["paper"]["pso_mse"] > 0
+    assert [r["snr_db"] for r in rep["noise_study"]] == [10, 20, 30, 40, 50]
+    assert set(rep["section5"]) == {"5kN", "12.5kN"}
+    json.dumps(rep)  # JSON-safe
+
+
+def test_noise_study_mse_is_the_noise_variance(report) -> None:
+    rep, _ = report
+    for r in rep["noise_study"]:
+        if r["snr_db"] >= 30:
+            assert 0.7 < r["mse_over_noise_variance"] < 1.3
+
+
+def test_section5_expert_beats_the_protocol_and_flags_the_4hz_step(report) -> None:
+    rep, _ = report
+    for name in ("5kN", "12.5kN"):
+        r = rep["section5"][name]
+        assert abs(r["expert_rel_err"]["k_f"]) < 1e-3 and abs(r["expert_rel_err"]["b_f"]) < 0.02
+        assert r["expert_single_4Hz"]["b_f"]["identifiable"] is False
+        assert r["expert_single_4Hz"]["b_f"]["value"] is None
+        case = "III" if name == "5kN" else "V"
+        assert r[f"pso+_{case}"]["identifiable"]["b_f"] is False
+
+
+def test_figures_are_written(report) -> None:
+    rep, out = report
+    assert len(rep["figures"]) >= 5
+    for f in rep["figures"]:
+        p = Path(f)
+        assert p.parent == out and p.stat().st_size > 5000 and p.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_explanations_quote_measured_numbers(report) -> None:
+    rep, _ = report
+    text = " ".join(rep["explanations"])
+    first = rep["table1"]["I"]["runs"][0]
+    assert f"iteration {first['first_difference']}" in text
+    assert "1.0" in text and "745" in text
+
+
+def test_cli_paper_quick_json(tmp_path: Path, capsys) -> None:
+    assert main(["paper", "--quick", "--json", "--out", str(tmp_path)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert "table1" in doc and (tmp_path / "noise_study.png").exists()
