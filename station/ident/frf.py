@@ -14,14 +14,14 @@ above 1 the covariance is inflated by chi^2/dof (Birge ratio) and a note says so
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from station.ident.models import Model, SdofModel
-from station.ident.sinefit import SineFit, fit3, fit4
+from station.ident.sinefit import SineFit, estimate_frequency, fit_channels
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
@@ -54,8 +54,12 @@ def step_response(t: FloatArray, x_m: FloatArray, u_V: FloatArray, f_nominal_hz:
                                                                                SineFit, SineFit]:
     """H at one step: 4-parameter fit of the displacement (frequency), 3-parameter fit of the force
     at that frequency, both with harmonics up to n_harmonics as nuisance.  Returns (H, cov, fx, fu)."""
-    fit_x = (fit4 if fit_frequency else fit3)(t, x_m, f_nominal_hz, n_harmonics=n_harmonics)
-    fit_u = fit3(t, u_V, fit_x.frequency_hz, t_center_s=fit_x.t_center_s, n_harmonics=n_harmonics)
+    if fit_frequency:
+        f, f_std, tc = estimate_frequency(t, x_m, f_nominal_hz, n_harmonics=n_harmonics)
+    else:
+        f, f_std, tc = f_nominal_hz, 0.0, float(np.mean(t))
+    fit_x, fit_u = fit_channels(t, np.column_stack([x_m, u_V]), f, t_center_s=tc, n_harmonics=n_harmonics)
+    fit_x = replace(fit_x, frequency_std_hz=f_std)
     w2 = (2 * np.pi * fit_x.frequency_hz) ** 2
     H, C = _ratio_cov(fit_u.phasor, fit_u.phasor_cov, -w2 * fit_x.phasor, w2**2 * fit_x.phasor_cov)
     return H, C, fit_x, fit_u

@@ -45,10 +45,20 @@ class SineFit:
 
 
 def _design(t: FloatArray, w: float, n_harmonics: int) -> FloatArray:
-    cols = [np.cos(w * t), np.sin(w * t), np.ones_like(t)]
+    """Columns cos(w t), sin(w t), 1, then cos/sin of the harmonics 2..n_h; shape (N, 1 + 2 n_h)."""
+    J = np.empty((t.size, 1 + 2 * n_harmonics))
+    e = np.exp(1j * w * t)
+    J[:, 0], J[:, 1], J[:, 2] = e.real, e.imag, 1.0
+    eh = e
     for h in range(2, n_harmonics + 1):
-        cols += [np.cos(h * w * t), np.sin(h * w * t)]
-    return np.column_stack(cols)
+        eh = eh * e
+        J[:, 2 * h - 1], J[:, 2 * h] = eh.real, eh.imag
+    return J
+
+
+def _solve(J: FloatArray, y: FloatArray) -> FloatArray:
+    """Least squares by the normal equations (columns are near-orthogonal sines: well conditioned)."""
+    return np.linalg.solve(J.T @ J, J.T @ y)
 
 
 def _finish(y: FloatArray, J: FloatArray, p: FloatArray, f_hz: float, f_std: float,
@@ -76,42 +86,69 @@ def fit3(t: FloatArray, y: FloatArray, f_hz: float, *, t_center_s: float | None 
     y = np.asarray(y, float)
     tc = float(np.mean(t)) if t_center_s is None else t_center_s
     J = _design(t - tc, 2 * np.pi * f_hz, n_harmonics)
-    p = np.linalg.lstsq(J, y, rcond=None)[0]
+    p = _solve(J, y)
     return _finish(y, J, p, f_hz, 0.0, tc, n_harmonics=n_harmonics)
 
 
-def fit4(t: FloatArray, y: FloatArray, f0_hz: float, *, t_center_s: float | None = None,
-         n_harmonics: int = 1, max_iter: int = 20) -> SineFit:
-    """Four-parameter sine fit (IEEE 1057 4.1.3.3): Gauss-Newton on (A, B, C, [harmonics], w)
-    from a three-parameter fit at the start frequency f0_hz (in Hz)."""
+def _dw(t: FloatArray, J0: FloatArray, p: FloatArray, n_harmonics: int) -> FloatArray:
+    """d(model)/dw for the design J0 and coefficients p (A cos + B sin per harmonic h)."""
+    d = t * (-p[0] * J0[:, 1] + p[1] * J0[:, 0])
+    for h in range(2, n_harmonics + 1):
+        a, b = p[2 * h - 1], p[2 * h]
+        d += h * t * (-a * J0[:, 2 * h] + b * J0[:, 2 * h - 1])
+    return d
+
+
+def estimate_frequency(t: FloatArray, y: FloatArray, f0_hz: float, *, t_center_s: float | None = None,
+                       n_harmonics: int = 1, max_iter: int = 20) -> tuple[float, float, float]:
+    """Frequency by the four-parameter fit (IEEE 1057 4.1.3.3): Gauss-Newton on (A, B, C,
+    [harmonics], w) from a three-parameter fit at f0_hz, first on a subsample (>= 2000 points),
+    then one step on all samples.  Returns (f_hz, f_std_hz, t_center_s)."""
     t = np.asarray(t, float)
     y = np.asarray(y, float)
     tc = float(np.mean(t)) if t_center_s is None else t_center_s
     tt = t - tc
     w = 2 * np.pi * f0_hz
-    J0 = _design(tt, w, n_harmonics)
-    p = np.linalg.lstsq(J0, y, rcond=None)[0]
-    for _ in range(max_iter):
-        J0 = _design(tt, w, n_harmonics)
-        dw = -p[0] * tt * np.sin(w * tt) + p[1] * tt * np.cos(w * tt)
-        for h in range(2, n_harmonics + 1):
-            a, b = p[3 + 2 * (h - 2)], p[4 + 2 * (h - 2)]
-            dw += h * tt * (-a * np.sin(h * w * tt) + b * np.cos(h * w * tt))
-        J = np.column_stack([J0, dw])
-        r = y - J0 @ p
-        step = np.linalg.lstsq(J, r, rcond=None)[0]
-        p = p + step[:-1]
-        w += step[-1]
-        if abs(step[-1]) < 1e-12 * w:
-            break
-    J0 = _design(tt, w, n_harmonics)
-    dw = -p[0] * tt * np.sin(w * tt) + p[1] * tt * np.cos(w * tt)
-    J = np.column_stack([J0, dw])
-    cov = np.linalg.inv(J.T @ J)
-    fit = _finish(y, J, np.append(p, 0.0), w / (2 * np.pi), 0.0, tc, cov_extra=cov,
-                  n_harmonics=n_harmonics)
-    r = y - J0 @ p
-    s2 = float(r @ r) / max(y.size - J.shape[1], 1)
-    f_std = float(np.sqrt(cov[-1, -1] * s2)) / (2 * np.pi)
-    return SineFit(fit.frequency_hz, f_std, fit.phasor, fit.phasor_cov, fit.offset, fit.offset_std,
-                   float(np.sqrt(np.mean(r**2))), fit.n_samples, tc, fit.harmonics)
+    stride = max(1, tt.size // 2000)
+    p = _solve(_design(tt[::stride], w, n_harmonics), y[::stride])
+    f_std = 0.0
+    for sl, n_it in ((slice(None, None, stride), max_iter), (slice(None), 1)):
+        ts, ys = tt[sl], y[sl]
+        for _ in range(n_it):
+            J0 = _design(ts, w, n_harmonics)
+            J = np.column_stack([J0, _dw(ts, J0, p, n_harmonics)])
+            JtJ = J.T @ J
+            r = ys - J0 @ p
+            step = np.linalg.solve(JtJ, J.T @ r)
+            p = p + step[:-1]
+            w += step[-1]
+            s2 = float(r @ r) / max(ys.size - J.shape[1], 1)
+            f_std = float(np.sqrt(np.linalg.inv(JtJ)[-1, -1] * s2)) / (2 * np.pi)
+            if abs(step[-1]) < 1e-12 * w:
+                break
+    return w / (2 * np.pi), f_std, tc
+
+
+def fit_channels(t: FloatArray, Y: FloatArray, f_hz: float, *, t_center_s: float,
+                 n_harmonics: int = 1) -> list[SineFit]:
+    """Three-parameter fits of several channels (columns of Y, shape (N, n_ch)) at one frequency
+    and time origin, sharing the design matrix."""
+    t = np.asarray(t, float)
+    J = _design(t - t_center_s, 2 * np.pi * f_hz, n_harmonics)
+    JtJ = J.T @ J
+    P = np.linalg.solve(JtJ, J.T @ Y)
+    Ji = np.linalg.inv(JtJ)
+    return [_finish(Y[:, c], J, P[:, c], f_hz, 0.0, t_center_s, cov_extra=Ji, n_harmonics=n_harmonics)
+            for c in range(Y.shape[1])]
+
+
+def fit4(t: FloatArray, y: FloatArray, f0_hz: float, *, t_center_s: float | None = None,
+         n_harmonics: int = 1, max_iter: int = 20) -> SineFit:
+    """Four-parameter sine fit (IEEE 1057 4.1.3.3): ``estimate_frequency`` then the three-parameter
+    fit at that frequency (phasor covariance conditional on the frequency; with the time origin at
+    the window centre the two are uncorrelated to first order)."""
+    f, f_std, tc = estimate_frequency(t, y, f0_hz, t_center_s=t_center_s, n_harmonics=n_harmonics,
+                                      max_iter=max_iter)
+    fit = fit3(t, y, f, t_center_s=tc, n_harmonics=n_harmonics)
+    return SineFit(f, f_std, fit.phasor, fit.phasor_cov, fit.offset, fit.offset_std, fit.residual_rms,
+                   fit.n_samples, tc, fit.harmonics)
