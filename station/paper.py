@@ -62,8 +62,10 @@ def compare_pso(case: str, seed: int, n_iter: int | None = None) -> dict[str, An
                            "mse_at_first_difference": float(a[diff[0] - 1]) if diff.size else None}
     for v, r in runs.items():
         below = np.nonzero(r.mse_history < 1e-10)[0]
+        looks_flat = np.nonzero(np.exp(-r.mse_history) > 0.999)[0]
         out[v] = {"mse": r.mse, "iterations_to_converge": r.iterations_to_converge,
                   "iterations_to_mse_1e-10": int(below[0]) if below.size else None,
+                  "iterations_to_exp_fitness_0.999": int(looks_flat[0]) if looks_flat.size else None,
                   "coefficients_normalised": (r.position / r.position[1 if form == "h2" else 5]).tolist(),
                   "tie_decisions": int(r.tie_decisions.sum())}
     out["_runs"] = runs
@@ -142,16 +144,26 @@ def section5(out: Path, seeds: list[int], quick: bool) -> dict[str, Any]:
 def explanations(t1: dict[str, Any], noise: dict[str, Any]) -> list[str]:
     """Why our figures differ from the paper's, with the measured numbers."""
     r = t1["I"]["runs"][0]
+    ii = t1["II"]["runs"]
+    n_it2 = len(ii[0]["_runs"]["pso"].mse_history) - 1
+    best2 = min(min(x["pso"]["mse"], x["pso+"]["mse"]) for x in ii)
     out = [
         f"Case I seed {r['seed']}: PSO and PSO+ follow identical Gbest histories up to iteration "
-        f"{r['first_difference']}; the first PSO+ decision that differs from the MSE's own is at iteration "
-        f"{r['first_tie']} (exp(-MSE) underflows to 0.0 for MSE > 745, so badly unstable particles tie).",
+        f"{r['first_difference']}; PSO+ made its first decision that differs from the MSE's own at iteration "
+        f"{r['first_tie']}: exp(-MSE) underflows to 0.0 for MSE > 745, so wildly unstable particles tie. "
+        "Without such ties (a bounded objective, tests/test_ident_pso.py) the histories are identical "
+        "down to MSE 1e-15.",
         f"PSO+ stops improving at MSE {r['pso+']['mse']:.3g} (iteration {r['pso+']['iterations_to_converge']}) "
         f"while PSO goes on to {r['pso']['mse']:.3g} (iteration {r['pso']['iterations_to_converge']}): "
         "exp(-MSE) rounds to 1.0 for MSE < 1.1e-16, so below that PSO+ sees no improvement. This, not "
-        "faster convergence, is the paper's 1e-17 vs 1e-31; its 'converged' PSO+ curve is exp(-MSE) "
-        "saturating at 1.",
-        "Noise study: the PSO+ MSE equals the added noise variance (ratios "
+        "faster convergence, is the paper's 1e-17 vs 1e-31. Plotted as exp(-MSE), PSO+ looks converged "
+        f"(> 0.999) from iteration {r['pso+']['iterations_to_exp_fitness_0.999']}; PSO's MSE plotted the "
+        f"same way would look flat from iteration {r['pso']['iterations_to_exp_fitness_0.999']}.",
+        f"Case II: over {len(ii)} seeds neither variant gets below MSE {best2:.3g} in {n_it2} iterations"
+        " with our sampling assumption (10 Hz, 100 points); the paper's Case II result "
+        "(-2 z^-1 + ..., a0 = -2) sits exactly on the position limit, where clipping fixes (our reading) "
+        "the scale the 10 coefficients otherwise leave free; we do not reproduce its 2.6e-31.",
+        "Noise study: the PSO+ MSE is close to the added noise variance (ratios "
         + ", ".join(f"{row['mse_over_noise_variance']:.2f}" for row in noise["rows"])
         + " for 10..50 dB): the fitted model is close to the truth and the residual is the noise. The "
         "paper's absolute values imply a different signal power (unstated sampling), but they too fall "
