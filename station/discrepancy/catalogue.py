@@ -1,0 +1,125 @@
+"""The effect catalogue as the fits see it: parameters, units, scales, bounds and start values.
+
+Internal fit variables u are O(1): a linear parameter is value = centre + scale * u, a positive one
+fitted in logarithm is value = centre * exp(u * scale).  Effects are named as in
+``drivers.rig.params.Effects``; the low-pass order is a discrete parameter fitted by enumeration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.rig.params import EFFECT_NAMES
+from station.discrepancy.data import RigData
+
+CATALOGUE: tuple[str, ...] = EFFECT_NAMES
+LOWPASS_ORDERS: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8)
+
+
+@dataclass(frozen=True)
+class Param:
+    """One fit parameter: name, SI unit, log (fitted as log of a positive value), lower/upper bound."""
+
+    name: str
+    unit: str
+    log: bool = False
+    lower: float = -np.inf
+    upper: float = np.inf
+
+
+BASE_PARAMS: tuple[Param, ...] = (
+    Param("S", "V/N"), Param("k_f", "N/m", log=True, lower=1.0, upper=1e13),
+    Param("b_f", "N*s/m", log=True, lower=1e-6, upper=1e9),
+    Param("offset_V", "V"),
+)
+
+
+def effect_params(name: str, data: RigData) -> tuple[Param, ...]:
+    """Parameters an effect adds to the model."""
+    if name == "coupling_compliance":
+        return (Param("k_c", "N/m", log=True, lower=1e2, upper=1e14), Param("b_c", "N*s/m", lower=0.0))
+    if name == "conditioner_lowpass":
+        return (Param("cutoff_hz", "Hz", log=True, lower=0.1, upper=1e7),)
+    if name == "channel_delay":
+        return (Param("delay_s", "s", lower=-5e-3, upper=5e-3),)
+    if name == "crank_harmonics":
+        return (Param("inverse_rod_length_per_m", "1/m"),)
+    if name == "transducer_nonlinearity":
+        return (Param("quadratic", "1", lower=-1.0, upper=1.0), Param("cubic", "1", lower=-1.0, upper=1.0))
+    if name == "mains_interference":
+        out = [Param("frequency_hz", "Hz", lower=40.0, upper=70.0)]
+        for h in range(1, data.n_mains + 1):
+            out += [Param(f"re_{h}", "V"), Param(f"im_{h}", "V")]
+        return tuple(out)
+    if name == "zero_drift":
+        return (Param("rate_V_per_s", "V/s"), Param("quadratic_V_per_s2", "V/s^2"))
+    raise KeyError(f"unknown effect {name!r}; the catalogue is {', '.join(CATALOGUE)}")
+
+
+NEUTRAL: dict[str, float] = {
+    "k_c": np.inf, "b_c": 0.0, "cutoff_hz": np.inf, "delay_s": 0.0, "inverse_rod_length_per_m": 0.0,
+    "quadratic": 0.0, "cubic": 0.0, "rate_V_per_s": 0.0, "quadratic_V_per_s2": 0.0,
+}
+
+
+def scales(p: dict[str, float], data: RigData) -> dict[str, float]:
+    """Typical size of one fit step per parameter (linear: absolute, log: relative)."""
+    sig = float(np.median(data.sigma_f))
+    T = float(data.t_mid_s.max() + data.half_s.max())
+    out = {"S": 1e-3 * abs(p["S"]), "k_f": 1e-3, "b_f": 1e-2, "offset_V": 1e2 * sig, "k_c": 0.1,
+           "b_c": 0.1 * p["b_f"], "cutoff_hz": 0.1, "delay_s": 1e-6, "inverse_rod_length_per_m": 0.1,
+           "quadratic": 1e-3, "cubic": 1e-3, "frequency_hz": 1e-3, "rate_V_per_s": 10 * sig / T,
+           "quadratic_V_per_s2": 10 * sig / T**2}
+    for h in range(1, data.n_mains + 1):
+        out[f"re_{h}"] = out[f"im_{h}"] = 10 * sig
+    return out
+
+
+def start_grid(name: str, data: RigData, p: dict[str, float]) -> list[dict[str, float]]:
+    """Start values of an effect's parameters (several for the nonlinear ones); a grid search on
+    the profiled chi^2 picks one of them before the Levenberg-Marquardt fit."""
+    fmax = float(data.f_hz.max())
+    if name == "coupling_compliance":
+        return [{"k_c": p["k_f"] * r, "b_c": b} for r in np.geomspace(0.3, 3000, 13)
+                for b in (0.0, p["b_f"])]
+    if name == "conditioner_lowpass":
+        return [{"cutoff_hz": fc} for fc in np.geomspace(0.5 * fmax, 300 * fmax, 24)]
+    if name == "channel_delay":
+        return [{"delay_s": d} for d in (0.0, -1e-4, 1e-4, -5e-4, 5e-4)]
+    if name == "crank_harmonics":
+        r = np.abs(data.x1)
+        d2 = np.abs(data.cd[:, 0] - 1j * data.cd[:, 1])
+        ok = data.kmask[:, 1] & (r > 0)
+        kap = float(np.median(4 * d2[ok] / r[ok] ** 2)) if np.any(ok) else 1.0
+        return [{"inverse_rod_length_per_m": s * kap} for s in (1.0, -1.0)]
+    if name == "transducer_nonlinearity":
+        return [{"quadratic": 0.0, "cubic": 0.0}]
+    if name == "mains_interference":
+        return [mains_start(data)]
+    if name == "zero_drift":
+        return [{"rate_V_per_s": 0.0, "quadratic_V_per_s2": 0.0}]
+    raise KeyError(name)
+
+
+def mains_start(data: RigData) -> dict[str, float]:
+    """Coherent start for the mains lines: the measured line phasors W_ih (own slots only) against
+    Q_h exp(j h 2 pi f_m t_i); f_m maximises sum_h |sum_i W_ih exp(-j h 2 pi f_m t_i)|^2 within
+    +-0.15 Hz of the detected frequency, Q_h is then the mean demodulated phasor (V)."""
+    f0 = data.mains.frequency_hz or 50.0
+    K = (data.cf.shape[1] - 3 - 2 * data.n_mains) // 2
+    a = data.cf[:, 2 * K + 3 :: 2]
+    b = data.cf[:, 2 * K + 4 :: 2]
+    W = (a - 1j * b) * (data.merge == 0)
+    hh = np.arange(1, data.n_mains + 1)[None, None, :]
+    grid = f0 + np.linspace(-0.15, 0.15, 1201)
+    ph = np.exp(-1j * hh * 2 * np.pi * grid[:, None, None] * data.t_mid_s[None, :, None])
+    power = np.sum(np.abs(np.sum(W[None] * ph, axis=1)) ** 2, axis=1)
+    j = int(np.argmax(power))
+    cnt = np.maximum(np.sum(data.merge == 0, axis=0), 1)
+    Q = np.sum(W * ph[j], axis=0) / cnt
+    out = {"frequency_hz": float(grid[j])}
+    for h in range(1, data.n_mains + 1):
+        out[f"re_{h}"], out[f"im_{h}"] = float(Q[h - 1].real), float(Q[h - 1].imag)
+    return out

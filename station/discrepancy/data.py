@@ -1,0 +1,135 @@
+"""The decomposed recording in the padded, vectorised form the model fits work on.
+
+Force slots (n_f = 2 K_MAX + 3 + 2 H): [crank harmonics k = 1..K_MAX as (a, b)], [poly 1, tau/h,
+(tau/h)^2], [mains harmonics h = 1..H as (a, b)]; a step's absent columns (k > K, merged mains lines)
+are zero in ``Rf``/``cf``.  Displacement slots: crank harmonics k = 2..K_MAX.  For each step s the
+whitened force residual is  w = Rf[s] (cf[s] - m) / sigma_f[s]  and ||w||^2 sigma_f^2 is the part of
+the time-domain residual energy the model can change (the LS residual energy ``ssr_f`` is the rest).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from station.discrepancy.decompose import (
+    K_MAX,
+    MAINS_H_MAX,
+    MAINS_RANGE_HZ,
+    StepDecomposition,
+    decompose_step,
+    windows_of,
+)
+from station.discrepancy.spectrum import MainsDetection, detect_mains
+from station.errors import StationError
+from station.recording import Recording
+
+FloatArray = NDArray[np.float64]
+ComplexArray = NDArray[np.complex128]
+log = logging.getLogger(__name__)
+G = 9.80665
+
+
+@dataclass(frozen=True)
+class RigData:
+    """Everything the fits need, stacked over the n steps (see module docstring for the slots).
+
+    f_hz (n,), x1 (n,) complex displacement fundamental (m), x1_cov (n, 2, 2), t_mid_s (n,), half_s (n,),
+    kmask (n, K_MAX) bool, Rf (n, n_f, n_f) / cf (n, n_f) / sigma_f (n,) / ssr_f (n,) / n_samples (n,),
+    Rd (n, 2 (K_MAX-1), 2 (K_MAX-1)) / cd / sigma_d (n,) for the displacement harmonics,
+    merge (n, H) int: crank harmonic index a mains line falls on (0 = own slot).
+    Masses in kg, capacity in N, nominal sensitivity in V/N (either sign).
+    """
+
+    steps: tuple[StepDecomposition, ...]
+    f_hz: FloatArray
+    x1: ComplexArray
+    x1_cov: FloatArray
+    t_mid_s: FloatArray
+    half_s: FloatArray
+    kmask: NDArray[np.bool_]
+    Rf: FloatArray
+    cf: FloatArray
+    sigma_f: FloatArray
+    ssr_f: FloatArray
+    n_samples: FloatArray
+    Rd: FloatArray
+    cd: FloatArray
+    sigma_d: FloatArray
+    merge: NDArray[np.int64]
+    mains: MainsDetection
+    load_mass_kg: float
+    end_mass_kg: float
+    capacity_N: float
+    sensitivity_nominal: float
+    sample_rate_hz: float
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.f_hz.size)
+
+    @property
+    def n_mains(self) -> int:
+        return int(self.merge.shape[1])
+
+    @property
+    def total_mass_kg(self) -> float:
+        return self.load_mass_kg + self.end_mass_kg
+
+    def noise_floor_V(self) -> float:
+        """RMS of the force-channel noise over all record windows (V): sqrt(sum N sigma^2 / sum N)."""
+        return float(np.sqrt(np.sum(self.n_samples * self.sigma_f**2) / np.sum(self.n_samples)))
+
+
+def _stack(steps: list[StepDecomposition], n_mains: int) -> dict[str, np.ndarray]:
+    n = len(steps)
+    nf = 2 * K_MAX + 3 + 2 * n_mains
+    nd = 2 * (K_MAX - 1)
+    Rf, cf = np.zeros((n, nf, nf)), np.zeros((n, nf))
+    Rd, cd = np.zeros((n, nd, nd)), np.zeros((n, nd))
+    kmask = np.zeros((n, K_MAX), dtype=bool)
+    merge = np.zeros((n, n_mains), dtype=np.int64)
+    for i, s in enumerate(steps):
+        kmask[i, : s.K] = True
+        slots = list(range(2 * s.K)) + [2 * K_MAX + j for j in range(3)]
+        for h, k in enumerate(s.mains_merge):
+            merge[i, h] = k
+            if k == 0:
+                slots += [2 * K_MAX + 3 + 2 * h, 2 * K_MAX + 4 + 2 * h]
+        sl = np.array(slots)
+        Rf[i][np.ix_(sl, sl)] = s.force.R
+        cf[i, sl] = s.force.coef
+        m = 2 * (s.K - 1)
+        if m:
+            Rd[i, :m, :m] = s.disp.R[-m:, -m:]
+            cd[i, :m] = s.disp.coef[-m:]
+    return {"Rf": Rf, "cf": cf, "Rd": Rd, "cd": cd, "kmask": kmask, "merge": merge}
+
+
+def prepare(rec: Recording) -> RigData:
+    """Decompose every usable step (twice: without mains lines to search them, then with them)."""
+    wins = windows_of(rec)
+    if len(wins) < 2:
+        raise StationError(f"{rec.path}: the workflow needs at least 2 usable steps, found {len(wins)}")
+    fs = rec.sample_rate_hz
+    first = [decompose_step(w, fs, None, 0) for w in wins]
+    det = detect_mains([s.force.residual for s in first], [s.force.sigma for s in first], fs,
+                       MAINS_RANGE_HZ, MAINS_H_MAX)
+    log.info("mains search: %s", det.evidence)
+    steps = first if det.frequency_hz is None else [decompose_step(w, fs, det.frequency_hz, det.harmonics)
+                                                    for w in wins]
+    st = _stack(steps, det.harmonics)
+    if rec.end_mass_kg is None:
+        log.warning("%s: no end mass in the recording; m_e = 0 assumed (M = load mass)", rec.path)
+    return RigData(
+        steps=tuple(steps), f_hz=np.array([s.f_hz for s in steps]), x1=np.array([s.x1 for s in steps]),
+        x1_cov=np.array([s.x1_cov for s in steps]), t_mid_s=np.array([s.t_mid_s for s in steps]),
+        half_s=np.array([s.half_s for s in steps]), kmask=st["kmask"], Rf=st["Rf"], cf=st["cf"],
+        sigma_f=np.array([s.force.sigma for s in steps]), ssr_f=np.array([s.force.ssr for s in steps]),
+        n_samples=np.array([s.n_samples for s in steps], dtype=float), Rd=st["Rd"], cd=st["cd"],
+        sigma_d=np.array([s.disp.sigma for s in steps]), merge=st["merge"], mains=det,
+        load_mass_kg=rec.load_mass_kg, end_mass_kg=rec.end_mass_kg or 0.0, capacity_N=rec.capacity_N,
+        sensitivity_nominal=rec.sensitivity_V_per_N, sample_rate_hz=fs)

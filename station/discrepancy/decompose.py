@@ -1,0 +1,189 @@
+"""Per-step linear least-squares decomposition of both channels (the data side of the workflow).
+
+Each step's record window (N samples, time tau from the window centre t_mid, h = T_window/2) is
+decomposed on the basis
+
+    force:        [fundamental (cos, sin)], [harmonics k = 2..K], [1, tau/h, (tau/h)^2], [mains lines]
+    displacement: [fundamental], [1, tau/h, (tau/h)^2], [mains lines], [harmonics k = 2..K]
+
+with k*f the crank harmonics and mains lines h*f_m (h = 1..H).  A sinusoid a cos(w tau) + b sin(w tau)
+is stored as the phasor P = a - j b (signal = Re(P e^{j w tau})).  The fit is exact (QR), the residual
+is orthogonal to the basis, and with B^T B = R^T R (Cholesky; R plays the role of QR's R):
+
+    || y - B m ||^2 = || y - B c ||^2 + || R (c - m) ||^2     for any model coefficients m,
+
+so every model's time-domain residual is evaluated from the coefficients c (shape (n_b,)) and R.
+The noise standard deviation of each channel is estimated robustly from the residual periodogram
+(median bin / ln 2, insensitive to lines the basis does not hold).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from station.recording import Recording
+
+FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+K_MAX = 6  # crank harmonics per step (fundamental included)
+MAINS_RANGE_HZ = (45.0, 65.0)
+MAINS_H_MAX = 10
+
+
+@dataclass(frozen=True)
+class StepWindow:
+    """One step's record window: time origin t0_s (s, absolute time of its first sample), samples."""
+
+    index: int
+    f_nominal_hz: float
+    t0_s: float
+    displacement_m: FloatArray
+    force_V: FloatArray
+
+
+@dataclass(frozen=True)
+class ChannelFit:
+    """LS fit of one channel of one step on its basis.
+
+    coef: (n_b,) coefficients; R: (n_b, n_b) upper-triangular factor of the basis; ssr: residual
+    sum of squares (unit^2); sigma: robust noise standard deviation (unit); residual: (N,) samples.
+    """
+
+    coef: FloatArray
+    R: FloatArray
+    ssr: float
+    sigma: float
+    residual: FloatArray
+
+
+@dataclass(frozen=True)
+class StepDecomposition:
+    """Both channels of one step decomposed.
+
+    f_hz / f_std_hz: crank frequency fitted to the displacement (Hz); K: number of crank harmonics;
+    t_mid_s: absolute time of the window centre; half_s: half the window length (poly scaling);
+    mains_cols: per mains harmonic h (1..H) the crank harmonic k it coincides with (0 = own column);
+    x1: displacement fundamental phasor (m) and x1_cov its (Re, Im) covariance (2, 2).
+    """
+
+    index: int
+    f_hz: float
+    f_std_hz: float
+    K: int
+    n_samples: int
+    t_mid_s: float
+    half_s: float
+    mains_merge: tuple[int, ...]
+    force: ChannelFit
+    disp: ChannelFit
+    x1: complex
+    x1_cov: FloatArray
+
+
+def robust_sigma(residual: FloatArray) -> float:
+    """Noise standard deviation from the median periodogram bin (white Gaussian noise: the bins
+    are exponential with mean N sigma^2, median N sigma^2 ln 2).  Lines do not bias it."""
+    n = residual.size
+    spec = np.abs(np.fft.rfft(residual))[1:-1] ** 2
+    if spec.size < 8:
+        return float(np.std(residual))
+    return float(math.sqrt(np.median(spec) / (n * math.log(2.0))))
+
+
+def windows_of(rec: Recording) -> list[StepWindow]:
+    """The usable steps' record windows; absolute time from the step document's ``t0_s`` when an
+    import recorded it, else sample index / sample rate."""
+    t0 = {}
+    for doc in rec.documents:
+        if doc.get("kind") == "step" and "t0_s" in doc and "index" in doc:
+            t0[int(doc["index"])] = float(doc["t0_s"])
+    out = []
+    for s in rec.steps:
+        if not s.usable:
+            log.warning("step %d lost samples in its record window; left out", s.index)
+            continue
+        d, u = rec.step_signals(s)
+        out.append(StepWindow(s.index, s.crank_frequency_hz, t0.get(s.index, s.start_sample / rec.sample_rate_hz),
+                              d, u))
+    return out
+
+
+def _harmonic_cols(tau: FloatArray, freqs_hz: list[float]) -> FloatArray:
+    w = 2 * np.pi * np.asarray(freqs_hz)
+    arg = np.multiply.outer(tau, w)
+    out = np.empty((tau.size, 2 * w.size))
+    out[:, 0::2] = np.cos(arg)
+    out[:, 1::2] = np.sin(arg)
+    return out
+
+
+def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, iterations: int = 4
+                  ) -> tuple[float, float]:
+    """Four-parameter sine fit (IEEE 1057) of one channel with harmonics 2..K and a quadratic as
+    nuisance: returns (f, std f) in Hz, Gauss-Newton from f0."""
+    f, std = f0, 0.0
+    h = max(float(np.max(np.abs(tau))), 1e-12)
+    poly = np.column_stack([np.ones_like(tau), tau / h, (tau / h) ** 2])
+    for _ in range(iterations):
+        B = np.hstack([_harmonic_cols(tau, [k * f for k in range(1, K + 1)]), poly])
+        c = np.linalg.solve(B.T @ B, B.T @ x)
+        a, b = c[0], c[1]
+        dcol = tau * (-a * B[:, 1] + b * B[:, 0]) * 2 * np.pi
+        J = np.column_stack([B, dcol])
+        JtJ = J.T @ J
+        p = np.linalg.solve(JtJ, J.T @ x)
+        r = x - J @ p
+        s2 = float(r @ r) / max(x.size - J.shape[1], 1)
+        cov = s2 * np.linalg.inv(JtJ)
+        f, std = f + float(p[-1]), float(math.sqrt(cov[-1, -1]))
+        if abs(p[-1]) < 1e-3 * std:
+            break
+    return f, std
+
+
+def _fit(B: FloatArray, y: FloatArray) -> ChannelFit:
+    """LS by the normal equations: B^T B = R^T R (R upper triangular), c = (B^T B)^-1 B^T y."""
+    R = np.linalg.cholesky(B.T @ B).T
+    c = np.linalg.solve(R, np.linalg.solve(R.T, B.T @ y))
+    r = y - B @ c
+    return ChannelFit(coef=c, R=R, ssr=float(r @ r), sigma=robust_sigma(r), residual=r)
+
+
+def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int) -> StepDecomposition:
+    """Fit both channels of one step (see the module docstring for the basis)."""
+    n = w.force_V.size
+    tau = (np.arange(n) - (n - 1) / 2) / fs
+    half = n / (2 * fs)
+    K = int(max(1, min(K_MAX, math.floor(0.45 * fs / w.f_nominal_hz))))
+    # the crank frequency is common to both channels: inverse-variance mean of the two 4-par fits
+    fd, sd = fit_frequency(tau, w.displacement_m, w.f_nominal_hz, K)
+    fu, su = fit_frequency(tau, w.force_V, fd, K)
+    wd, wu = 1 / max(sd, 1e-300) ** 2, 1 / max(su, 1e-300) ** 2
+    f, f_std = (wd * fd + wu * fu) / (wd + wu), 1 / math.sqrt(wd + wu)
+    poly = np.column_stack([np.ones(n), tau / half, (tau / half) ** 2])
+    harm = _harmonic_cols(tau, [k * f for k in range(1, K + 1)])
+    merge, mains_f = [], []
+    for hh in range(1, n_mains + 1):
+        nu = hh * (f_mains or 0.0)
+        k = round(nu / f)
+        if 1 <= k <= K and abs(nu - k * f) < 0.5 / (2 * half):
+            merge.append(k)
+        else:
+            merge.append(0)
+            mains_f.append(nu)
+    mains = _harmonic_cols(tau, mains_f) if mains_f else np.zeros((n, 0))
+    force = _fit(np.hstack([harm, poly, mains]), w.force_V)
+    disp = _fit(np.hstack([harm[:, :2], poly, mains, harm[:, 2:]]), w.displacement_m)
+    Rinv = np.linalg.inv(disp.R)
+    cov = disp.sigma**2 * (Rinv @ Rinv.T)[:2, :2]
+    T = np.array([[1.0, 0.0], [0.0, -1.0]])  # (a, b) -> (Re, Im) of a - j b
+    return StepDecomposition(
+        index=w.index, f_hz=f, f_std_hz=f_std, K=K, n_samples=n, t_mid_s=w.t0_s + (n - 1) / (2 * fs),
+        half_s=half, mains_merge=tuple(merge), force=force, disp=disp,
+        x1=complex(disp.coef[0], -disp.coef[1]), x1_cov=T @ cov @ T.T)

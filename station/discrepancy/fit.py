@@ -1,0 +1,204 @@
+"""Weighted least-squares fit of the rig model (base + a set of effects) to the decomposed steps.
+
+chi^2(theta) = sum_steps ||W_f (c_f - m_f(theta))||^2 + ||W_d (c_d - m_d(theta))||^2, the whitened force
+coefficients (W_f = R_f / sigma_f, Gauss-Markov for white noise of the measured sigma) and displacement
+harmonics.  The displacement noise enters the force fundamental through the measured X_1
+(errors in variables): its two whitened rows are further whitened by chol(I + A C_X A^T)^-1,
+A = R_f[0:2, 0:2] / sigma_f * d m_1 / d X_1, with V_1/X_1 frozen at the start values of the fit.
+
+The time-domain gap of a model is  gap = sqrt(sum_s (ssr_s + sigma_s^2 ||W_f (c_f - m_f)||^2) / sum_s N_s),
+the RMS of the force signal minus the simulated force signal over all record windows (V).
+
+Covariance of the estimates: (J^T J)^-1 of the whitened Jacobian, inflated by chi^2/dof when that
+exceeds 1 (Birge ratio: a model that does not describe the data gets honest, larger uncertainties).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from station.discrepancy.catalogue import BASE_PARAMS, NEUTRAL, Param, effect_params, scales
+from station.discrepancy.data import RigData
+from station.discrepancy.model import predict
+
+FloatArray = NDArray[np.float64]
+ComplexArray = NDArray[np.complex128]
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ModelFit:
+    """A fitted model.
+
+    effects: effect name -> low-pass order (0 for the others); params: the free parameters in fit
+    order; values / std: physical values and standard uncertainties by name; cov: (p, p) covariance
+    in the order of ``params``; chi2 / n_obs: whitened residual energy and number of coefficients;
+    gap_V: RMS force residual over all windows (V); gap_steps_V: per step (n,); wf / wd: whitened force
+    (n, n_f) and displacement (n, n_d) residuals (EIV correction not applied), m_f: model force coefs.
+    """
+
+    effects: dict[str, int]
+    params: tuple[Param, ...]
+    values: dict[str, float]
+    std: dict[str, float]
+    cov: FloatArray
+    chi2: float
+    n_obs: int
+    gap_V: float
+    gap_steps_V: FloatArray
+    wf: FloatArray
+    wd: FloatArray
+    m_f: FloatArray
+    m_d: FloatArray
+    wf_fund: FloatArray
+    converged: bool
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def n_par(self) -> int:
+        """Free parameters (the low-pass order counts as one)."""
+        return len(self.params) + (1 if "conditioner_lowpass" in self.effects else 0)
+
+    @property
+    def dof(self) -> int:
+        return max(self.n_obs - self.n_par, 1)
+
+    @property
+    def birge(self) -> float:
+        """chi^2 / dof, at least 1."""
+        return max(1.0, self.chi2 / self.dof)
+
+
+class Problem:
+    """The residual function of one model on one data set (internal variables u, see catalogue)."""
+
+    def __init__(self, data: RigData, effects: Mapping[str, int], start: Mapping[str, float]) -> None:
+        self.data = data
+        self.effects = dict(effects)
+        self.params: tuple[Param, ...] = BASE_PARAMS + tuple(
+            q for e in self.effects for q in effect_params(e, data))
+        self.centre = {q.name: float(start[q.name]) for q in self.params}
+        sc = scales(dict(start), data)
+        self.scale = {q.name: sc[q.name] for q in self.params}
+        self.fixed = {**NEUTRAL, **{k: v for k, v in start.items() if k not in self.centre}}
+        self.Wf = data.Rf / data.sigma_f[:, None, None]
+        self.Wd = data.Rd / data.sigma_d[:, None, None]
+        self.valid_f = np.any(data.Rf != 0, axis=1)
+        self.valid_d = np.any(data.Rd != 0, axis=1)
+        _, _, h1 = predict(data, self.values(np.zeros(len(self.params))), self.effects)
+        self.eiv = self._eiv(h1)
+
+    def _eiv(self, h1: ComplexArray) -> FloatArray:
+        """Per step the 2x2 whitening of the fundamental rows for the displacement noise."""
+        J = np.empty((h1.size, 2, 2))
+        J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1] = h1.real, -h1.imag, -h1.imag, -h1.real
+        T = np.diag([1.0, -1.0])
+        Cx = T @ self.data.x1_cov @ T  # covariance of the displacement (a, b) coefficients
+        A = self.Wf[:, 0:2, 0:2] @ J
+        M = np.eye(2)[None] + A @ Cx @ np.swapaxes(A, 1, 2)
+        return np.linalg.inv(np.linalg.cholesky(M))
+
+    def to_value(self, q: Param, u: float) -> float:
+        c, s = self.centre[q.name], self.scale[q.name]
+        return c * math.exp(s * u) if q.log else c + s * u
+
+    def dvalue(self, q: Param, u: float) -> float:
+        return self.to_value(q, u) * self.scale[q.name] if q.log else self.scale[q.name]
+
+    def bounds(self) -> tuple[FloatArray, FloatArray]:
+        lo, hi = [], []
+        for q in self.params:
+            if q.log:
+                c, s = self.centre[q.name], self.scale[q.name]
+                lo.append(math.log(q.lower / c) / s if q.lower > 0 else -np.inf)
+                hi.append(math.log(q.upper / c) / s if np.isfinite(q.upper) else np.inf)
+            else:
+                c, s = self.centre[q.name], self.scale[q.name]
+                lo.append((q.lower - c) / s if np.isfinite(q.lower) else -np.inf)
+                hi.append((q.upper - c) / s if np.isfinite(q.upper) else np.inf)
+        return np.array(lo), np.array(hi)
+
+    def values(self, u: Sequence[float]) -> dict[str, float]:
+        out = dict(self.fixed)
+        for q, x in zip(self.params, u, strict=True):
+            out[q.name] = self.to_value(q, float(x))
+        return out
+
+    def whitened(self, p: Mapping[str, float]) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """(wf raw (n, n_f), wd (n, n_d), m_f, m_d) for physical parameters p."""
+        m, md, _ = predict(self.data, p, self.effects)
+        wf = np.einsum("sij,sj->si", self.Wf, self.data.cf - m)
+        wd = np.einsum("sij,sj->si", self.Wd, self.data.cd - md)
+        return wf, wd, m, md
+
+    def residual(self, u: Sequence[float]) -> FloatArray:
+        wf, wd, _, _ = self.whitened(self.values(u))
+        wf = wf.copy()
+        wf[:, 0:2] = np.einsum("sij,sj->si", self.eiv, wf[:, 0:2])
+        return np.concatenate([wf[self.valid_f], wd[self.valid_d]])
+
+    def n_obs(self) -> int:
+        return int(self.valid_f.sum() + self.valid_d.sum())
+
+
+def gap_of(data: RigData, wf: FloatArray) -> tuple[float, FloatArray]:
+    """(overall, per-step) RMS force residual in V from the raw whitened force residual."""
+    e = data.ssr_f + data.sigma_f**2 * np.sum(wf**2, axis=1)
+    return float(math.sqrt(e.sum() / data.n_samples.sum())), np.sqrt(e / data.n_samples)
+
+
+def fit_model(data: RigData, effects: Mapping[str, int], start: Mapping[str, float],
+              max_nfev: int = 400) -> ModelFit:
+    """Levenberg-Marquardt (trust-region) fit of base + effects from ``start`` (physical values)."""
+    prob = Problem(data, effects, start)
+    lo, hi = prob.bounds()
+    u0 = np.clip(np.zeros(len(prob.params)), lo, hi)
+    res = least_squares(prob.residual, u0, bounds=(lo, hi), method="trf", x_scale=1.0,
+                        xtol=1e-10, ftol=1e-12, gtol=1e-10, max_nfev=max_nfev)
+    return finish(prob, res.x, res.jac, bool(res.success))
+
+
+def finish(prob: Problem, u: FloatArray, jac: FloatArray, converged: bool) -> ModelFit:
+    """Package a solution: values, covariance (Birge-inflated), gap."""
+    vals = prob.values(u)
+    r = prob.residual(u)
+    chi2 = float(r @ r)
+    n_obs = prob.n_obs()
+    D = np.array([prob.dvalue(q, float(x)) for q, x in zip(prob.params, u, strict=True)])
+    JtJ = jac.T @ jac
+    try:
+        cov_u = np.linalg.inv(JtJ)
+    except np.linalg.LinAlgError:
+        cov_u = np.linalg.pinv(JtJ)
+    n_par = len(prob.params) + (1 if "conditioner_lowpass" in prob.effects else 0)
+    birge = max(1.0, chi2 / max(n_obs - n_par, 1))
+    cov = birge * (D[:, None] * cov_u * D[None, :])
+    std = {q.name: float(math.sqrt(max(cov[i, i], 0.0))) for i, q in enumerate(prob.params)}
+    wf, wd, m, md = prob.whitened(vals)
+    gap, gap_steps = gap_of(prob.data, wf)
+    wf_fund = np.einsum("sij,sj->si", prob.eiv, wf[:, 0:2])
+    notes = () if birge <= 1.0 else (f"uncertainties inflated by sqrt(chi2/dof) = {math.sqrt(birge):.3g}",)
+    return ModelFit(effects=dict(prob.effects), params=prob.params, values=vals, std=std, cov=cov,
+                    chi2=chi2, n_obs=n_obs, gap_V=gap, gap_steps_V=gap_steps, wf=wf, wd=wd, m_f=m,
+                    m_d=md, wf_fund=wf_fund, converged=converged, notes=notes)
+
+
+def profiled_chi2(prob: Problem, u: FloatArray, eps: float = 1e-4) -> float:
+    """chi^2 minimised over all free parameters to first order around u: ||(I - P_J) r||^2 with J
+    the numerical Jacobian (forward differences of step eps in u).  Exact for linear parameters."""
+    r0 = prob.residual(u)
+    J = np.empty((r0.size, u.size))
+    for j in range(u.size):
+        du = u.copy()
+        du[j] += eps
+        J[:, j] = (prob.residual(du) - r0) / eps
+    coef, *_ = np.linalg.lstsq(J, r0, rcond=None)
+    r = r0 - J @ coef
+    return float(r @ r)

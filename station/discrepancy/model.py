@@ -1,0 +1,130 @@
+"""The rig as the model describes it, evaluated in the harmonic domain for every step at once.
+
+Per step (crank frequency f, w = 2 pi f, harmonics k = 1..K, Omega_k = k w), from the measured
+displacement fundamental X_1 (phasor, m):
+
+1. displacement channel  D_1 = X_1;  D_k (k >= 2) = 0 (paper Eq. 1), or with ``crank_harmonics``
+   the Fourier coefficients of the slider crank x(phi) = r sin phi - kappa r^2 cos^2 phi /
+   (1 + sqrt(1 - kappa^2 r^2 cos^2 phi)), kappa = 1/L, r = |X_1|, phi = w tau + angle(j X_1);
+2. frame motion at the force sample instants  x_k = D_k exp(j Omega_k Delta)  (``channel_delay``);
+3. spring force  F_k = G(Omega_k) x_k,  G = k_f Z2 / X_b = s^2 * (paper Eq. 9, or Eq. 8 with
+   ``coupling_compliance``) in N/m;  F(t) = -M g + sum Re(F_k e^{j k w tau});
+4. transducer output  v = S F (1 + q F/C + c (F/C)^2)  (``transducer_nonlinearity``; else S F), taken
+   to harmonics on a grid of 64 points per period;
+5. conditioner low-pass  V_k <- V_k B(j Omega_k)  (analogue Butterworth, unit DC gain);
+6. force channel  = V + offset + drift (rho t + beta t^2, ``zero_drift``) + mains lines
+   sum_h Re(Q_h e^{j h w_m t}) (``mains_interference``, t absolute time).
+
+Output: model coefficients in the force slots (n, n_f) and displacement-harmonic slots (n, n_d) of
+``RigData``, and the fundamental ratio V_1 / X_1 (V/m) used for the errors-in-variables weights.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.rig.model import spring_force_per_acceleration
+from drivers.rig.params import CouplingCompliance, Transducer
+from station.discrepancy.data import G, RigData
+from station.discrepancy.decompose import K_MAX
+
+FloatArray = NDArray[np.float64]
+ComplexArray = NDArray[np.complex128]
+N_GRID = 64
+
+
+def crank_displacement_harmonics(x1: ComplexArray, kappa: float, K: int) -> ComplexArray:
+    """Phasors D_k (k = 1..K) of the slider-crank displacement, shape (n, K), m."""
+    r = np.abs(x1)[:, None]
+    phi0 = np.angle(1j * x1)
+    phi = 2 * np.pi * np.arange(N_GRID) / N_GRID
+    rc2 = (r * np.cos(phi)) ** 2
+    x = r * np.sin(phi) - kappa * rc2 / (1.0 + np.sqrt(np.maximum(1.0 - kappa**2 * rc2, 0.0)))
+    c = 2.0 * np.fft.fft(x, axis=1)[:, 1 : K + 1] / N_GRID
+    return c * np.exp(1j * np.arange(1, K + 1)[None, :] * phi0[:, None])
+
+
+def butterworth(order: int, cutoff_hz: float, s: ComplexArray) -> ComplexArray:
+    """Analogue Butterworth low-pass B(s) = prod_k 1 / (1 - s / p_k), poles
+    p_k = w_c exp(j pi (2k + n - 1) / (2n)), k = 1..n (unit DC gain, -3 dB at cutoff_hz)."""
+    k = np.arange(1, order + 1)
+    poles = 2 * np.pi * cutoff_hz * np.exp(1j * np.pi * (2 * k + order - 1) / (2 * order))
+    out = np.ones_like(s)
+    for p in poles:
+        out = out / (1.0 - s / p)
+    return out
+
+
+def _nonlinear_output(F0: float, Fk: ComplexArray, S: float, q: float, c: float, C: float,
+                      K: int) -> tuple[FloatArray, ComplexArray]:
+    """(V_0 (n,), V_k (n, K)) of v = S F (1 + q F/C + c (F/C)^2) for F = F0 + sum Re(F_k e^{j k theta})."""
+    n = Fk.shape[0]
+    spec = np.zeros((n, N_GRID // 2 + 1), dtype=complex)
+    spec[:, 1 : K + 1] = Fk * (N_GRID / 2)
+    spec[:, 0] = F0 * N_GRID
+    F = np.fft.irfft(spec, N_GRID, axis=1)
+    x = F / C
+    v = S * F * (1.0 + q * x + c * x * x)
+    V = np.fft.rfft(v, axis=1)
+    return V[:, 0].real / N_GRID, 2.0 * V[:, 1 : K + 1] / N_GRID
+
+
+def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
+            ) -> tuple[FloatArray, FloatArray, ComplexArray]:
+    """Model coefficients (force (n, n_f), displacement harmonics (n, n_d)) and V_1/X_1 (n,).
+
+    p: physical parameters by name (S V/N, k_f N/m, b_f N s/m, offset_V V, and the effects' own);
+    effects: names of the effects switched on (value: the low-pass order, else ignored)."""
+    n, K = data.n_steps, K_MAX
+    kk = np.arange(1, K + 1)[None, :]
+    Om = 2 * np.pi * data.f_hz[:, None] * kk
+    s = 1j * Om
+    if "crank_harmonics" in effects:
+        D = crank_displacement_harmonics(data.x1, p["inverse_rod_length_per_m"], K)
+        D[:, 0] = data.x1
+    else:
+        D = np.zeros((n, K), dtype=complex)
+        D[:, 0] = data.x1
+    D = D * data.kmask
+    x = D * np.exp(1j * Om * p["delay_s"]) if "channel_delay" in effects else D
+    t = Transducer(k_f=p["k_f"], b_f=p["b_f"], m_e=data.end_mass_kg, m_l=data.load_mass_kg,
+                   sensitivity_V_per_N=p["S"], capacity_N=data.capacity_N)
+    cpl = CouplingCompliance(p["k_c"], p["b_c"]) if "coupling_compliance" in effects else None
+    Gk = spring_force_per_acceleration(t, cpl, Om / (2 * np.pi)) * s**2
+    Fk = Gk * x
+    F0 = -data.total_mass_kg * G
+    if "transducer_nonlinearity" in effects:
+        V0, Vk = _nonlinear_output(F0, Fk, p["S"], p["quadratic"], p["cubic"], data.capacity_N, K)
+    else:
+        V0, Vk = np.full(n, p["S"] * F0), p["S"] * Fk
+    if "conditioner_lowpass" in effects:
+        Vk = Vk * butterworth(int(effects["conditioner_lowpass"]), p["cutoff_hz"], s)
+    Vk = Vk * data.kmask
+    h1 = Vk[:, 0] / data.x1
+    nm = data.n_mains
+    W = np.zeros((n, nm), dtype=complex)
+    if "mains_interference" in effects and nm:
+        hh = np.arange(1, nm + 1)[None, :]
+        Q = np.array([complex(p[f"re_{h}"], p[f"im_{h}"]) for h in range(1, nm + 1)])[None, :]
+        W = Q * np.exp(1j * hh * 2 * np.pi * p["frequency_hz"] * data.t_mid_s[:, None])
+        for i, h in zip(*np.nonzero(data.merge), strict=True):
+            Vk[i, data.merge[i, h] - 1] += W[i, h]
+            W[i, h] = 0.0
+    m = np.zeros((n, 2 * K + 3 + 2 * nm))
+    m[:, 0 : 2 * K : 2], m[:, 1 : 2 * K : 2] = Vk.real, -Vk.imag
+    dc = V0 + p["offset_V"]
+    slope = np.zeros(n)
+    curv = np.zeros(n)
+    if "zero_drift" in effects:
+        rho, beta, tm, h = p["rate_V_per_s"], p["quadratic_V_per_s2"], data.t_mid_s, data.half_s
+        dc = dc + rho * tm + beta * tm**2
+        slope = (rho + 2 * beta * tm) * h
+        curv = beta * h**2
+    m[:, 2 * K], m[:, 2 * K + 1], m[:, 2 * K + 2] = dc, slope, curv
+    m[:, 2 * K + 3 :: 2], m[:, 2 * K + 4 :: 2] = W.real, -W.imag
+    md = np.zeros((n, 2 * (K - 1)))
+    md[:, 0::2], md[:, 1::2] = D[:, 1:].real, -D[:, 1:].imag
+    return m, md, h1

@@ -1,0 +1,75 @@
+"""Fitting one candidate effect on top of the current model, and the base model's start values."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+
+import numpy as np
+
+from station.discrepancy.catalogue import LOWPASS_ORDERS, start_grid
+from station.discrepancy.data import G, RigData
+from station.discrepancy.fit import ModelFit, Problem, fit_model, profiled_chi2
+
+log = logging.getLogger(__name__)
+
+
+def base_start(data: RigData) -> dict[str, float]:
+    """Start values of S, k_f, b_f, offset from the measured H_i = V_1/X_1 (V/m), stiff model:
+    1/H = -(M s^2 + b s + k)/(S M k s^2), i.e. Re(1/H) = -1/(S k) + 1/(S M w^2) and
+    Im(1/H) = b/(S M k w): linear least squares in (1/(S k), 1/(S M)) and b/(S M k)."""
+    V1 = data.cf[:, 0] - 1j * data.cf[:, 1]
+    inv = data.x1 / V1
+    w = 2 * np.pi * data.f_hz
+    M = data.total_mass_kg
+    A = np.column_stack([-np.ones_like(w), 1 / w**2])
+    wt = 1 / np.abs(inv)
+    (alpha, gamma), *_ = np.linalg.lstsq(A * wt[:, None], inv.real * wt, rcond=None)
+    beta = float(np.sum(inv.imag * w * wt**2) / np.sum(wt**2))
+    S = 1.0 / (gamma * M)
+    k = gamma * M / alpha if alpha * gamma > 0 else 1e3 * M * float(w.max()) ** 2
+    b = beta * M / alpha if alpha != 0 else 0.0
+    b = b if b > 0 else 1e-3 * math.sqrt(k * M)
+    offset = float(np.mean(data.cf[:, 2 * ((data.cf.shape[1] - 3 - 2 * data.n_mains) // 2)])) + S * M * G
+    return {"S": float(S), "k_f": float(k), "b_f": float(b), "offset_V": offset}
+
+
+def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | None:
+    """Add effect ``name`` to the current model with its parameters free, start from the best point
+    of its start grid (profiled chi^2, all other parameters free to first order), and fit.  The
+    low-pass order is enumerated; the best order by chi^2 is kept.  None if the effect cannot be
+    fitted on this recording (e.g. mains lines without a mains line found)."""
+    if name == "mains_interference" and data.n_mains == 0:
+        return None
+    if name == "coupling_compliance" and data.end_mass_kg <= 0:
+        return None
+    orders = LOWPASS_ORDERS if name == "conditioner_lowpass" else (0,)
+    best: ModelFit | None = None
+    for order in orders:
+        effects: dict[str, int] = {**current.effects, name: order}
+        grid = start_grid(name, data, current.values)
+        start = _best_start(data, effects, current.values, grid)
+        try:
+            fit = fit_model(data, effects, start)
+        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
+            log.info("candidate %s (order %d) failed: %s", name, order, exc)
+            continue
+        if best is None or fit.chi2 < best.chi2:
+            best = fit
+    return best
+
+
+def _best_start(data: RigData, effects: Mapping[str, int], values: Mapping[str, float],
+                grid: list[dict[str, float]]) -> dict[str, float]:
+    if len(grid) == 1:
+        return {**values, **grid[0]}
+    scores = []
+    for g in grid:
+        start = {**values, **g}
+        prob = Problem(data, effects, start)
+        try:
+            scores.append(profiled_chi2(prob, np.zeros(len(prob.params))))
+        except (ValueError, np.linalg.LinAlgError, FloatingPointError):
+            scores.append(np.inf)
+    return {**values, **grid[int(np.argmin(scores))]}

@@ -1,0 +1,125 @@
+"""Line search in the residual spectra: mains detection and the structure the basis does not hold.
+
+Normalised Hann-windowed periodogram of a residual r (N samples, robust noise sigma, window w):
+P(nu) = |sum w r e^{-j 2 pi nu t}|^2 / (sigma^2 sum w^2), computed with zero padding (``PAD``-fold) so
+that lines between bins are not missed.  For white Gaussian noise P is exponentially distributed with
+mean 1 at each frequency, so a line is significant when P exceeds -ln(alpha / n_bins); a sinusoid of
+amplitude A gives |sum w r e| = A sum(w) / 2, i.e. A = 2 sqrt(P sigma^2 sum w^2) / sum w (V or m).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+FloatArray = NDArray[np.float64]
+PAD = 8
+
+
+@dataclass(frozen=True)
+class Line:
+    """A significant line in one step's residual: frequency (Hz), amplitude (channel unit), P."""
+
+    step: int
+    frequency_hz: float
+    amplitude: float
+    power: float
+
+
+def normalised_periodogram(r: FloatArray, sigma: float, fs: float) -> tuple[FloatArray, FloatArray]:
+    """(frequencies in Hz, P) of residual r with zero padding; P has mean 1 for white noise."""
+    n = r.size
+    w = np.hanning(n)
+    spec = np.abs(np.fft.rfft(r * w, PAD * n)) ** 2 / (float(w @ w) * max(sigma, 1e-300) ** 2)
+    return np.fft.rfftfreq(PAD * n, 1.0 / fs), spec
+
+
+def line_amplitude(P: float, sigma: float, n: int) -> float:
+    """Amplitude of a sinusoid whose normalised Hann periodogram value is P (channel unit)."""
+    w = np.hanning(n)
+    return float(2.0 * math.sqrt(P * sigma**2 * float(w @ w)) / float(w.sum()))
+
+
+def mains_statistic(residuals: list[FloatArray], sigmas: list[float], fs: float,
+                    f_range: tuple[float, float], harmonics: int = 3
+                    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per-step harmonic-sum statistic on a 0.01 Hz grid over ``f_range``: S_i(nu) = sum_h P_i(h nu).
+
+    Returns (grid (G,), summed over steps (G,), per step (n_steps, G))."""
+    grid = np.arange(f_range[0], f_range[1], 0.01)
+    per = np.zeros((len(residuals), grid.size))
+    for i, (r, s) in enumerate(zip(residuals, sigmas, strict=True)):
+        fr, P = normalised_periodogram(r, s, fs)
+        for h in range(1, harmonics + 1):
+            if h * grid[-1] < fr[-1]:
+                per[i] += np.interp(h * grid, fr, P)
+    return grid, per.sum(axis=0), per
+
+
+@dataclass(frozen=True)
+class MainsDetection:
+    """Mains line search: frequency (Hz) or None, number of harmonics to model, evidence text."""
+
+    frequency_hz: float | None
+    harmonics: int
+    evidence: str
+
+
+def detect_mains(residuals: list[FloatArray], sigmas: list[float], fs: float,
+                 f_range: tuple[float, float], h_max: int, alpha: float = 1e-6) -> MainsDetection:
+    """Find a line common to the steps in ``f_range`` (with harmonics); it must stand out in the
+    sum over steps (Gamma test at ``alpha`` after the number of grid cells searched) *and* in at least
+    half of the steps (a line of one step only is not mains).  Harmonics up to ``h_max`` are kept
+    when each is significant (alpha 1e-4) in the summed single-harmonic power."""
+    n = len(residuals)
+    if n == 0:
+        return MainsDetection(None, 0, "no steps")
+    grid, total, per = mains_statistic(residuals, sigmas, fs, f_range)
+    j = int(np.argmax(total))
+    trials = (f_range[1] - f_range[0]) * max(r.size for r in residuals) / fs  # independent cells
+    thresh = stats.gamma.isf(alpha / max(trials, 1.0), 3 * n)
+    per_step = stats.gamma.isf(1e-3, 3)
+    steps_with = int(np.count_nonzero(per[:, j] > per_step))
+    if total[j] < thresh or steps_with < math.ceil(n / 2):
+        return MainsDetection(None, 0, f"no line common to the steps in {f_range[0]:g}-{f_range[1]:g} Hz "
+                                       f"(max statistic {total[j]:.3g} at {grid[j]:.2f} Hz, threshold "
+                                       f"{thresh:.3g}, in {steps_with}/{n} steps)")
+    f_m = float(grid[j])
+    keep = 1
+    t1 = stats.gamma.isf(1e-4, n)
+    for h in range(2, h_max + 1):
+        p = 0.0
+        for r, s in zip(residuals, sigmas, strict=True):
+            fr, P = normalised_periodogram(r, s, fs)
+            if h * f_m < 0.45 * fs:
+                p += float(np.interp(h * f_m, fr, P))
+        if p > t1:
+            keep = h
+    return MainsDetection(f_m, keep, f"line at {f_m:.2f} Hz in {steps_with}/{n} steps "
+                                     f"(statistic {total[j]:.3g} > {thresh:.3g}), harmonics up to {keep}")
+
+
+def significant_lines(r: FloatArray, sigma: float, fs: float, step: int, alpha: float = 1e-4,
+                      f_max: float | None = None) -> list[Line]:
+    """Local maxima of the normalised periodogram above -ln(alpha / n_bins) (bins of 1/T), i.e. lines
+    the basis does not hold.  Returns them sorted by power, strongest first (at most 20)."""
+    fr, P = normalised_periodogram(r, sigma, fs)
+    n_bins = r.size / 2
+    thr = -math.log(alpha / n_bins)
+    top = f_max if f_max is not None else 0.45 * fs
+    idx = np.nonzero((P[1:-1] > thr) & (P[1:-1] >= P[:-2]) & (P[1:-1] >= P[2:]) & (fr[1:-1] <= top))[0] + 1
+    lines = [Line(step, float(fr[i]), line_amplitude(float(P[i]), sigma, r.size), float(P[i])) for i in idx]
+    # side lobes of a strong line are local maxima too: drop weak peaks close to a stronger line
+    lines.sort(key=lambda ln: -ln.power)
+    kept: list[Line] = []
+    res = fs / r.size
+    for ln in lines:
+        if all(abs(ln.frequency_hz - k.frequency_hz) > 4 * res or ln.power > 1e-2 * k.power for k in kept):
+            kept.append(ln)
+        if len(kept) >= 20:
+            break
+    return kept
