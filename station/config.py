@@ -47,6 +47,8 @@ class StationSection(_Model):
 
     name: str = "sinecal"
     recordings_dir: str = "recordings"
+    min_free_mb: float = Field(default=64.0, ge=0, le=1e6, description="free disk space kept in reserve; "
+                               "a run stops before it would be used")
 
 
 class TransducerConfig(_Model):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
@@ -81,12 +82,23 @@ def utc_now() -> str:
     return datetime.now(UTC).isoformat(timespec="milliseconds")
 
 
+class DiskFullError(StationError):
+    """The recordings folder has less free space than the reserve: nothing more is written.
+
+    The writer refuses *before* the disk is full because HDF5 cannot recover from a failed write
+    (the library may crash when the file is closed); what was flushed stays readable."""
+
+
 class RecordingWriter:
-    """Appends raw samples, steps, lost-sample reports and run documents to a partial file."""
+    """Appends raw samples, steps, lost-sample reports and run documents to a partial file.
+
+    ``min_free_bytes``: free space kept in reserve on the recordings' file system; an append that
+    would eat into it raises DiskFullError (checked at least twice a second).
+    """
 
     def __init__(self, out_dir: str | Path, meta: RunMetadata, channels: tuple[ChannelSpec, ChannelSpec],
                  *, plan: dict[str, Any] | None = None, flush_interval_s: float = 0.5,
-                 chunk_samples: int = 20_000) -> None:
+                 chunk_samples: int = 20_000, min_free_bytes: int = 64 * 2**20) -> None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         self.final_path = out / f"{meta.run_id}.h5"
@@ -95,6 +107,11 @@ class RecordingWriter:
             if p.exists():
                 raise StationError(f"refusing to overwrite existing recording {p}")
         self.meta = meta
+        self._min_free = min_free_bytes
+        self._free_checked = 0.0
+        self._free = 0
+        self._dir = out
+        self._check_space(0)
         self._flush_interval = flush_interval_s
         self._last_flush = time.monotonic()
         self._n = 0
@@ -151,11 +168,22 @@ class RecordingWriter:
         if displacement.shape != force.shape or displacement.ndim != 1:
             raise ValueError(f"channels must be equal 1-D blocks, got {displacement.shape} and {force.shape}")
         n0, n = self._n, displacement.size
+        self._check_space(n * (displacement.itemsize + force.itemsize))
         for d, block in zip(self._raw, (displacement, force), strict=True):
             d.resize((n0 + n,))
             d[n0:] = block
         self._n = n0 + n
         self._maybe_flush()
+
+    def _check_space(self, nbytes: int) -> None:
+        now = time.monotonic()
+        if now - self._free_checked > 0.5 or self._free - nbytes < 2 * self._min_free:
+            self._free = shutil.disk_usage(self._dir).free
+            self._free_checked = now
+        if self._free - nbytes < self._min_free:
+            raise DiskFullError(f"disk nearly full: {self._free / 2**20:.1f} MiB free in {self._dir}, "
+                                f"{self._min_free / 2**20:.1f} MiB kept in reserve; recording stopped")
+        self._free -= nbytes
 
     def add_step(self, *, crank_frequency_hz: float, crank_radius_m: float, start_sample: int,
                  end_sample: int, lost_in_window: int = 0, extra: dict[str, Any] | None = None) -> None:

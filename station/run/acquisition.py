@@ -93,7 +93,8 @@ class Acquisition:
 
     def __init__(self, get_event: Callable[[float], object | None], writer: RecordingWriter, *,
                  ring_seconds: float = 60.0, sample_rate_hz: float = 20_000.0,
-                 disk_queue_seconds: float = 120.0, stall_limit_s: float = 2.0) -> None:
+                 disk_queue_seconds: float = 120.0, stall_limit_s: float = 2.0,
+                 storm_fraction: float = 0.5, rejected_frames: Callable[[], int] | None = None) -> None:
         self._get_event = get_event
         self._writer = writer
         self.ring = RingBuffer(int(ring_seconds * sample_rate_hz))
@@ -101,6 +102,8 @@ class Acquisition:
         self._disk_q: queue.Queue[Block | None] = queue.Queue(
             maxsize=max(8, int(disk_queue_seconds * sample_rate_hz / 256)))
         self._stall_limit = stall_limit_s
+        self._storm = storm_fraction
+        self._rejected = rejected_frames or (lambda: 0)
         self.lost: list[tuple[int, int]] = []
         self.error: AcquisitionError | None = None
         self.crc_errors = 0
@@ -127,8 +130,13 @@ class Acquisition:
         return self.ring.end
 
     def lost_between(self, start: int, stop: int) -> int:
-        """Number of lost samples inside [start, stop)."""
-        return sum(max(0, min(stop, a + n) - max(start, a)) for a, n in list(self.lost))
+        """Number of lost samples inside [start, stop) (gaps are kept in order: scan from the newest)."""
+        total = 0
+        for a, n in reversed(list(self.lost)):
+            if a + n <= start:
+                break
+            total += max(0, min(stop, a + n) - max(start, a))
+        return total
 
     def check(self) -> None:
         """Raise the acquisition's or the disk's error, if any (called by the procedure)."""
@@ -158,16 +166,22 @@ class Acquisition:
 
     def _acquire(self) -> None:
         quiet_since = time.monotonic()
+        rejected_at_quiet = self._rejected()
         try:
             while not self._stop.is_set():
                 ev = self._get_event(0.1)
-                if ev is None:
+                if ev is None or hasattr(ev, "seconds"):
                     if time.monotonic() - quiet_since >= self._stall_limit:
+                        bad = self._rejected() - rejected_at_quiet
+                        if bad:
+                            raise AcquisitionError(
+                                f"DAQ stream corrupted: {bad} frames rejected (CRC/framing) and no valid "
+                                f"frame for {self._stall_limit:.1f} s (next sample {self.ring.end})")
                         raise AcquisitionError(f"DAQ stream stalled: no data for {self._stall_limit:.1f} s "
                                                f"(next sample {self.ring.end})")
                     continue
-                if not hasattr(ev, "seconds"):  # data or gap: the stream is alive
-                    quiet_since = time.monotonic()
+                quiet_since = time.monotonic()  # data or gap: the stream is alive
+                rejected_at_quiet = self._rejected()
                 if hasattr(ev, "displacement"):
                     first = ev.first_index
                     if first > self.ring.end:  # a gap the driver did not report separately
@@ -176,11 +190,6 @@ class Acquisition:
                     self._enqueue(Block(first, ev.displacement, ev.force))
                 elif hasattr(ev, "count"):
                     self._gap(ev.first_index, ev.count)
-                elif hasattr(ev, "seconds"):
-                    if ev.seconds >= self._stall_limit:
-                        raise AcquisitionError(f"DAQ stream stalled: no data for {ev.seconds:.1f} s "
-                                               f"(next sample {ev.next_sample_index})")
-                    log.warning("DAQ stream quiet for %.2f s", ev.seconds)
         except AcquisitionError as exc:
             self.error = exc
         except Exception as exc:  # the driver's link error and anything else ends the run
@@ -201,6 +210,11 @@ class Acquisition:
         z = np.zeros(count, dtype=np.int16)
         self.ring.put(first, z, z)
         self._enqueue(Block(first, z, z, lost=True))
+        window = int(self._fs)  # one second
+        end = self.ring.end
+        if end >= window and self.lost_between(end - window, end) > self._storm * window:
+            raise AcquisitionError(f"DAQ stream corrupted: {self.lost_between(end - window, end)} of the "
+                                   f"last {window} samples lost (CRC errors or dropped frames)")
 
     def _write(self) -> None:
         last_flush = time.monotonic()

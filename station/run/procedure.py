@@ -192,7 +192,8 @@ class Procedure:
             capacity_N=cfg.transducer.capacity_N, config_yaml=config_to_yaml(cfg))
         specs = channel_specs(cfg.displacement_sensor.gain_V_per_m, lsb * daq_cfg.range_disp_V,
                               lsb * daq_cfg.range_force_V)
-        writer = RecordingWriter(self.out_dir, meta, specs, plan=self.plan.to_dict())
+        writer = RecordingWriter(self.out_dir, meta, specs, plan=self.plan.to_dict(),
+                                 min_free_bytes=int(cfg.station.min_free_mb * 2**20))
         status, reason = "completed", ""
         try:
             await motor.reset_faults()
@@ -200,7 +201,8 @@ class Procedure:
             await motor.start_watchdog(0.2)
             await motor.enable()
             await asyncio.to_thread(daq.start)
-            self.acq = Acquisition(daq.get_event, writer, sample_rate_hz=daq_cfg.rate_hz)
+            self.acq = Acquisition(daq.get_event, writer, sample_rate_hz=daq_cfg.rate_hz,
+                                   rejected_frames=lambda: daq.decoder.stats.crc_errors + daq.decoder.stats.framing_errors)
             self.acq.start()
             self._report(state="running")
             for step in self.plan.steps:

@@ -1,0 +1,64 @@
+"""End to end: ``station calibrate --sim`` over 4 steps, through emulators, real drivers, HDF5,
+processing and identification; k_f and b_f must match the simulation's truth."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import pytest
+import yaml
+
+from station.recording import read_recording, read_results
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_station_calibrate_sim_identifies_the_truth(tmp_path: Path) -> None:
+    d = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
+    d["plan"].update({"settle_s": 0.3, "record_s": 1.5})
+    d["rig"]["acceleration_hz_per_s"] = 50.0
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(yaml.safe_dump(d))
+    res = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", "--sim", "--config", str(cfg),
+                          "--steps", "8,30,60,95", "--out", str(tmp_path / "rec"), "--json"],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout)
+    assert out["exit_status"] == "completed" and out["lost_samples"] == 0
+    truth = d["simulation"]["truth"]
+    k_f, b_f = out["parameters"]["k_f"], out["parameters"]["b_f"]
+    assert k_f["unit"] == "N/m" and b_f["unit"].replace("·", "*") == "N*s/m"
+    assert k_f["identifiable"] and b_f["identifiable"]
+    assert abs(k_f["value"] / truth["k_f"] - 1) < 1e-3
+    assert abs(b_f["value"] / truth["b_f"] - 1) < 0.02
+    # the stated uncertainties are consistent with the actual errors (within 4 sigma)
+    assert abs(k_f["value"] - truth["k_f"]) < 4 * k_f["std"]
+    assert abs(b_f["value"] - truth["b_f"]) < 4 * b_f["std"]
+
+    rec = read_recording(out["recording"])
+    assert rec.complete and rec.exit_status == "completed" and len(rec.steps) == 4
+    assert [s.crank_frequency_hz for s in rec.steps] == [8.0, 30.0, 60.0, 95.0]
+    assert read_results(out["recording"], "steps", group="processed") is not None
+    with h5py.File(out["recording"], "r") as f:
+        assert any(k.startswith("identify_") for k in f["results"])
+        assert f["raw/force"].attrs["physical_unit"] == "V" and f["raw/displacement"].attrs["physical_unit"] == "m"
+        assert f.attrs["software_version"]
+
+
+def test_unsafe_steps_are_refused_before_anything_moves(tmp_path: Path) -> None:
+    res = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", "--sim", "--steps", "150",
+                          "--out", str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2
+    assert "150 Hz" in res.stderr and "range" in res.stderr
+    assert not any(tmp_path.iterdir())  # no recording: the run never started
+
+
+@pytest.mark.parametrize("bad", ["3,x", ","])
+def test_bad_step_list_is_a_clear_error(bad: str, tmp_path: Path) -> None:
+    res = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", "--sim", "--steps", bad,
+                          "--out", str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and "--steps" in res.stderr

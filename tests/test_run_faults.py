@@ -1,0 +1,258 @@
+"""Calibration runs against the emulators, through the real drivers (Modbus TCP, pseudo-terminal):
+every fault ends with the motor stopped, a clear reason in the stop record and the samples kept."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from drivers.motor.controller import MotorController
+from drivers.motor.transport import ModbusTransport
+from drivers.sim.rig import SimRigProcess
+from station.config import load_config, parse_config
+from station.recording import read_recording
+from station.run.procedure import Procedure, Progress
+from station.run.request import RunRequest, StepSpec, plan_run
+from station.run.rig import ConnectedRig, connect
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def small_config(**plan: object) -> dict:
+    d = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
+    d["plan"].update({"settle_s": 0.2, "record_s": 1.0, **plan})
+    d["rig"]["acceleration_hz_per_s"] = 50.0
+    return d
+
+
+CFG = parse_config(small_config())
+STEPS = [StepSpec(crank_frequency_hz=f, crank_radius_m=0.001) for f in (10.0, 20.0, 30.0)]
+
+
+def run_with(tmp_path: Path, when: Callable[[Progress], bool] | None, act: Callable[[ConnectedRig, Procedure], None],
+             steps: list[StepSpec] = STEPS) -> tuple[object, ConnectedRig, dict[str, float]]:
+    """Run a procedure on the simulated rig; ``act`` fires once when ``when(progress)`` is true.
+    Returns the outcome, the rig (closed) and the motor state seen right after the run."""
+    plan = plan_run(CFG, RunRequest(transducer_id=CFG.transducer.id, top_mass_kg=CFG.rig.top_mass_kg, steps=steps))
+
+    async def go() -> tuple[object, ConnectedRig, dict[str, float]]:
+        async with connect(plan.config, sim=True, first_radius_m=steps[0].crank_radius_m) as rig:
+            fired = False
+            proc: Procedure
+
+            def progress(p: Progress) -> None:
+                nonlocal fired
+                if not fired and when is not None and when(p):
+                    fired = True
+                    act(rig, proc)
+            proc = Procedure(plan, rig, tmp_path, on_progress=progress)
+            outcome = await proc.execute()
+            assert fired or when is None, "the fault was never injected"
+            # the motor after the run, from the emulator's own model (no driver in between)
+            deadline = time.monotonic() + 10
+            while rig.sim.motor.speed_hz() != 0 and time.monotonic() < deadline:
+                await asyncio.sleep(0.05)
+            snap = rig.sim.motor.snapshot()
+            motor = {"speed_hz": rig.sim.motor.speed_hz(), "enabled": float(snap.enabled)}
+            return outcome, rig, motor
+    return asyncio.run(go())
+
+
+def recording_after(outcome: object) -> object:
+    rec = read_recording(outcome.path)  # type: ignore[attr-defined]
+    assert rec.displacement_m.size > 0
+    return rec
+
+
+def test_completed_run_records_every_step(tmp_path: Path) -> None:
+    outcome, _, motor = run_with(tmp_path, None, lambda r, p: None)
+    assert outcome.exit_status == "completed", outcome.reason
+    assert motor["speed_hz"] == 0.0 and not motor["enabled"]
+    rec = recording_after(outcome)
+    assert rec.complete and len(rec.steps) == 3 and rec.lost_samples.size == 0
+    kinds = [d["kind"] for d in rec.documents]
+    assert kinds[0] == "start" and kinds[-1] == "stop" and kinds.count("step") == 3
+    stop = rec.documents[-1]
+    assert stop["exit_status"] == "completed"
+    step_doc = [d for d in rec.documents if d["kind"] == "step"][1]
+    assert step_doc["units"]["crank_frequency_hz"] == "Hz" and "crank_angle_rad_at_start" in step_doc
+    for st in rec.steps:  # each window holds a steady sine at the step's frequency
+        d, _ = rec.step_signals(st)
+        spec = np.abs(np.fft.rfft(d - d.mean()))
+        f_peak = np.argmax(spec) * 20_000 / d.size
+        assert f_peak == pytest.approx(st.crank_frequency_hz, abs=1.0)
+
+
+def test_abort_ramps_down_and_keeps_the_samples(tmp_path: Path) -> None:
+    outcome, _, motor = run_with(tmp_path, lambda p: p.step == 1 and p.step_state == "recording",
+                                 lambda rig, proc: proc.abort("technician pressed abort"))
+    assert outcome.exit_status == "aborted" and "technician pressed abort" in outcome.reason
+    assert motor["speed_hz"] == 0.0
+    rec = recording_after(outcome)
+    assert rec.exit_status == "aborted" and len(rec.steps) == 1
+    assert rec.documents[-1]["reason"] == "technician pressed abort"
+
+
+def test_motor_fault_stops_the_run(tmp_path: Path) -> None:
+    outcome, _, motor = run_with(tmp_path, lambda p: p.step == 1 and p.step_state == "settling",
+                                 lambda rig, proc: rig.sim.motor.inject_fault(3))
+    assert outcome.exit_status == "failed"
+    assert "motor fault 3 (overcurrent)" in outcome.reason
+    assert motor["speed_hz"] == 0.0
+    assert recording_after(outcome).exit_status == "failed"
+
+
+def test_stalled_daq_stops_the_run(tmp_path: Path) -> None:
+    outcome, _, motor = run_with(tmp_path, lambda p: p.step == 0 and p.step_state == "recording",
+                                 lambda rig, proc: rig.sim.daq.stall(4.0))
+    assert outcome.exit_status == "failed" and "stalled" in outcome.reason
+    assert motor["speed_hz"] == 0.0
+    rec = recording_after(outcome)
+    assert rec.displacement_m.size > 0.2 * 20_000
+
+
+def test_crc_storm_stops_the_run_and_keeps_every_valid_sample(tmp_path: Path) -> None:
+    first_bad: list[int] = []
+
+    def storm(rig: ConnectedRig, proc: Procedure) -> None:
+        seq = proc.acq.samples // 256 + 4 if proc.acq else 0
+        first_bad.append(seq * 256)
+        rig.sim.daq.corrupt_frames(range(seq, seq + 2000))
+    outcome, _, motor = run_with(tmp_path, lambda p: p.step == 0 and p.step_state == "recording", storm)
+    assert outcome.exit_status == "failed" and "corrupted" in outcome.reason and "frames rejected" in outcome.reason
+    assert motor["speed_hz"] == 0.0
+    rec = recording_after(outcome)
+    # no sample of a corrupted frame was stored; every valid one before the storm was
+    assert rec.displacement_m.size == first_bad[0]
+    assert rec.lost_samples.size == 0
+
+
+def test_lost_daq_link_stops_the_run(tmp_path: Path) -> None:
+    outcome, _, motor = run_with(tmp_path, lambda p: p.step == 1 and p.step_state == "recording",
+                                 lambda rig, proc: rig.sim.daq.close_port())
+    assert outcome.exit_status == "failed"
+    assert motor["speed_hz"] == 0.0
+    rec = recording_after(outcome)
+    assert len(rec.steps) == 1  # the first step was recorded before the link went
+
+
+def test_a_few_lost_frames_mark_the_step(tmp_path: Path) -> None:
+    seqs: list[int] = []
+
+    def drop(rig: ConnectedRig, proc: Procedure) -> None:
+        seq = proc.acq.samples // 256 if proc.acq else 0
+        seqs.extend([seq + 5, seq + 6, seq + 9])
+        rig.sim.daq.drop_frames(seqs)
+    outcome, _, _ = run_with(tmp_path, lambda p: p.step == 1 and p.step_state == "recording", drop)
+    assert outcome.exit_status == "completed", outcome.reason
+    rec = recording_after(outcome)
+    # exactly the dropped frames, at their sample positions: frames 5-6 together, 9 alone
+    assert rec.lost_samples.tolist() == [[seqs[0] * 256, 512], [seqs[2] * 256, 256]]
+    marked = [s for s in rec.steps if not s.usable]
+    assert [s.index for s in marked] == [1] and marked[0].lost_in_window == 768
+
+
+# ---- the acquiring process killed, and the disk full: separate processes ------------------------
+
+def _external_config(tmp_path: Path, addresses: object, radius: float) -> Path:
+    d = small_config(steps=[{"crank_frequency_hz": f, "crank_radius_m": radius} for f in (10.0, 20.0, 30.0)],
+                     record_s=3.0)
+    d["devices"] = {"motor_url": f"modbus-tcp://{addresses.modbus_tcp[0]}:{addresses.modbus_tcp[1]}",
+                    "daq_port": addresses.daq, "crank_radius_m": radius}
+    p = tmp_path / "station.yaml"
+    p.write_text(yaml.safe_dump(d))
+    load_config(p)
+    return p
+
+
+async def _motor_state(addresses: object) -> tuple[float, int]:
+    m = MotorController()
+    await m.connect(ModbusTransport.tcp(*addresses.modbus_tcp))
+    st = await m.read_status()
+    await m.close()
+    return st.actual_speed_hz, st.fault_code
+
+
+def test_kill_9_leaves_a_readable_interrupted_file_and_the_watchdog_stops_the_motor(tmp_path: Path) -> None:
+    with SimRigProcess(seed=3) as sim:
+        cfg = _external_config(tmp_path, sim.addresses, 0.002)
+        out = tmp_path / "rec"
+        proc = subprocess.Popen([sys.executable, "-m", "station.cli", "calibrate", "--config", str(cfg),
+                                 "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not list(out.glob("*.partial")):
+            time.sleep(0.05)
+        time.sleep(3.0)
+        speed_before, _ = asyncio.run(_motor_state(sim.addresses))
+        t_kill = time.time()
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        assert speed_before > 1.0  # the crank was turning when the process died
+        # a lost link stops the motor: the controller's watchdog expires (1 s) and it ramps down
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            speed, fault = asyncio.run(_motor_state(sim.addresses))
+            if speed == 0.0:
+                break
+            time.sleep(0.2)
+        assert speed == 0.0 and fault == 1  # watchdog_expired
+    partial = list(out.glob("*.h5.partial"))
+    assert len(partial) == 1
+    rec = read_recording(partial[0])
+    assert not rec.complete and rec.exit_status == "interrupted"
+    start = json.loads(json.dumps(rec.documents[0]))
+    assert start["kind"] == "start"
+    from datetime import datetime
+    t_start = datetime.fromisoformat(rec.start_time).timestamp()
+    # everything up to the last flush is there: at most 1 s (plus the stream's start-up) is missing
+    assert rec.displacement_m.size >= (t_kill - t_start - 1.3) * 20_000
+    assert rec.displacement_m.size <= (t_kill - t_start) * 20_000
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path):
+    """A real 3 MiB file system (tmpfs); needs root, as CI has."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def test_full_disk_fails_the_run_keeps_the_samples_and_stops_the_motor(tmp_path: Path, small_disk: Path) -> None:
+    with SimRigProcess(seed=4) as sim:
+        cfg_path = _external_config(tmp_path, sim.addresses, 0.001)
+        d = yaml.safe_load(cfg_path.read_text())
+        d["station"]["min_free_mb"] = 2.0  # 3 MiB disk, 2 MiB reserve: about 1 MiB of room
+        cfg_path.write_text(yaml.safe_dump(d))
+        res = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", "--config", str(cfg_path),
+                              "--out", str(small_disk), "--json"], capture_output=True, text=True, timeout=120)
+        assert res.returncode == 1, res.stderr[-2000:]
+        deadline = time.monotonic() + 10
+        speed, _ = asyncio.run(_motor_state(sim.addresses))
+        while speed != 0.0 and time.monotonic() < deadline:
+            time.sleep(0.2)
+            speed, _ = asyncio.run(_motor_state(sim.addresses))
+        assert speed == 0.0
+    result = json.loads(res.stdout)
+    assert result["exit_status"] == "failed" and "disk nearly full" in result["reason"]
+    files = list(small_disk.glob("*.h5*"))
+    assert len(files) == 1 and files[0].suffix == ".h5"  # closed properly, not left partial
+    rec = read_recording(files[0])
+    assert rec.complete and rec.exit_status == "failed" and "disk nearly full" in rec.reason
+    assert rec.displacement_m.size > 20_000  # what was written before the reserve was reached is there
