@@ -13,6 +13,7 @@ from drivers.motor import (
     ModbusTransport,
     MotorController,
     MotorExceptionReplyError,
+    MotorFaultError,
     MotorLinkError,
     MotorTimeoutError,
     MotorValueError,
@@ -170,9 +171,12 @@ def test_injected_motor_fault_and_emergency_stop(rig: SimRig) -> None:
         await motor.enable()
         await motor.set_frequency(30.0)
         await motor.wait_for_speed(30.0, timeout_s=2.0)
+        assert (await motor.require_no_fault()).fault_code == 0
         rig.motor.inject_fault(3)
         st = await motor.read_status()
         assert (st.fault_code, st.fault_name) == (3, "overcurrent") and st.flags["fault"]
+        with pytest.raises(MotorFaultError, match=r"fault 3 \(overcurrent\)"):
+            await motor.require_no_fault()
         await motor.wait_for_speed(0.0, timeout_s=2.0)
         await motor.reset_faults()
         await motor.enable()

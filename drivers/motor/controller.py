@@ -23,7 +23,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from drivers.motor.errors import MotorError, MotorValueError
+from drivers.motor.errors import MotorError, MotorFaultError, MotorValueError
 from drivers.motor.registers import RegisterMap, load_register_map
 from drivers.motor.transport import RegisterTransport
 
@@ -169,6 +169,13 @@ class MotorController:
             time_s=0.5 * (t0 + t1),
             round_trip_s=t1 - t0,
         )
+
+    async def require_no_fault(self) -> MotorStatus:
+        """Read the status; raise :class:`MotorFaultError` if the controller has a latched fault."""
+        st = await self.read_status()
+        if st.fault_code != 0:
+            raise MotorFaultError(st.fault_code, st.fault_name)
+        return st
 
     async def wait_for_speed(self, hz: float, *, tolerance_hz: float = 0.01, timeout_s: float = 30.0,
                              poll_s: float = 0.05, keep_watchdog: bool = True) -> MotorStatus:
