@@ -17,10 +17,11 @@ from station.simulate import simulate_run
 TRUTH = {"k_f": 2.91e7, "b_f": 17136.0}
 
 
-def _cfg(steps: list[dict], record_s: float) -> object:
+def _cfg(steps: list[dict], record_s: float, effects: dict | None = None) -> object:
     data = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
     data = copy.deepcopy(data)
     data["plan"].update(settle_s=0.3, record_s=record_s, steps=steps)
+    data["simulation"]["effects"] = effects or {}
     data["rig"]["acceleration_hz_per_s"] = 200.0
     data["simulation"]["pre_roll_s"] = 0.1
     return parse_config(data)
@@ -78,6 +79,22 @@ def test_single_4hz_record_b_f_and_coupled_model_not_identifiable(single_4hz: Pa
     # the paper's PSO+ on the same record gets no digits for k_f, b_f either
     pso = identify_recording(rec, "pso+", "h2", seed=1)
     assert not pso.parameter("b_f").identifiable and pso.parameter("b_f").value is None
+
+
+def test_auto_model_picks_eq8_when_the_coupling_is_compliant(tmp_path: Path) -> None:
+    steps = [{"crank_frequency_hz": f, "crank_radius_m": r}
+             for f, r in ((4.0, 0.01), (20.0, 0.002), (50.0, 6e-4), (100.0, 1.5e-4))]
+    eff = {"coupling_compliance": {"k_c": 1e8, "b_c": 200.0}}
+    rec = read_recording(simulate_run(_cfg(steps, 1.0, eff), tmp_path, seed=5))
+    stiff = identify_recording(rec, "fd", "sdof")
+    assert abs(stiff.parameter("k_f").value / TRUTH["k_f"] - 1) > 0.1  # Eq. 9 sees the series stiffness
+    assert stiff.fit.chi2_per_dof > 100
+    res = identify_recording(rec)
+    assert res.model == "coupled"
+    k, kc = res.parameter("k_f"), res.parameter("k_c")
+    assert k.identifiable and abs(k.value - TRUTH["k_f"]) < 5 * k.std and k.std / k.value < 0.01
+    assert kc.identifiable and abs(kc.value - 1e8) < 5 * kc.std
+    assert res.fit.chi2_per_dof < 5
 
 
 def test_cli_identify_json_and_stored_result(stepped: Path, tmp_path: Path, capsys) -> None:

@@ -86,12 +86,13 @@ def _fd_fit(frf: frfmod.FrequencyResponse, model: Model, theta0: FloatArray,
     subset with the others held (conditional), so confounded parameters cannot inflate it."""
     _, ok0 = assess(model, theta0, frf, policy)
     fit = frfmod.fit_frf(frf, model, theta0, free=ok0, inflate=bool(ok0.all()))
-    rep, ok = assess(model, fit.theta, frf, policy)
+    scale = np.maximum(np.abs(fit.theta), 0.1 * np.abs(theta0))  # b_c may sit at 0
+    rep, ok = assess(model, fit.theta, frf, policy, scale)
     cov = np.zeros_like(fit.cov)
     if ok.any():
-        J = fit.jac_rel[:, ok]
-        scale = fit.chi2 / fit.dof if fit.inflated else 1.0
-        cov[np.ix_(ok, ok)] = scale * np.linalg.pinv(J.T @ J) * np.outer(fit.theta[ok], fit.theta[ok])
+        J = frfmod.whitened_jacobian(model, fit.theta, frf, scale=scale)[:, ok]
+        birge = fit.chi2 / fit.dof if fit.inflated else 1.0
+        cov[np.ix_(ok, ok)] = birge * np.linalg.pinv(J.T @ J) * np.outer(scale[ok], scale[ok])
     return replace(fit, cov=cov), rep
 
 
@@ -109,28 +110,39 @@ def _summary_fd(frf: frfmod.FrequencyResponse, fit: frfmod.FrfFit, sigs: list[St
 
 def identify_fd(rec: Recording, model_key: str = "sdof",
                 policy: Policy = DEFAULT_POLICY) -> IdentificationResult:
-    """Frequency-domain estimator (sine fits, 1/H start, weighted LM) with identifiability."""
+    """Frequency-domain estimator (sine fits, 1/H start, weighted LM) with identifiability.
+
+    model_key 'auto': Eq. 9, or Eq. 8 when Eq. 9 misfits (chi2/dof significantly > 1) and the
+    coupled model determines k_c and fits (chi2/dof consistent with the noise)."""
     frf, sigs, notes = measured_response(rec)
     sdof = model_for(rec, "sdof")
     assert isinstance(sdof, SdofModel)
     fit, rep = _fd_fit(frf, sdof, _start(frf, sdof), policy)
     model: Model = sdof
-    if model_key in ("coupled", "h1"):
+    auto = model_key == "auto"
+    if model_key in ("coupled", "h1") or (auto and fit.inflated and rec.end_mass_kg):
         cm = model_for(rec, "coupled")
         assert isinstance(cm, CoupledModel)
         th0 = np.r_[fit.theta, 10 * fit.theta[1], 0.1 * fit.theta[2]]
         cfit, crep = _fd_fit(frf, cm, th0, policy)
-        model = cm
-        if crep.identifiable[3] and crep.identifiable[4]:
-            fit, rep = cfit, crep
+        c2, s2 = cfit.chi2 / max(cfit.dof, 1), fit.chi2 / max(fit.dof, 1)
+        if crep.identifiable[3] and (not auto or (c2 < 0.25 * s2 and not cfit.inflated)):
+            if auto:
+                notes.append(f"model chosen: coupled (Eq. 8), chi2/dof {c2:.3g} against {s2:.3g} for Eq. 9")
+            fit, rep, model = cfit, crep, cm
+        elif auto:
+            notes.append(f"Eq. 9 misfits (chi2/dof {s2:.3g}) but the coupled model does not determine k_c "
+                         "either; unmodelled effects (conditioner filter, channel delay) are likely")
         else:
-            notes.append("k_c, b_c not identifiable: S, k_f, b_f are given in the stiff-coupling "
+            model = cm
+            notes.append("k_c not identifiable: S, k_f, b_f are given in the stiff-coupling "
                          "limit (Eq. 9, k_c -> inf, b_c -> 0)")
             theta = np.r_[fit.theta, cfit.theta[3:]]
             cov = np.zeros((5, 5))
             cov[:3, :3] = fit.cov
             ident = (*rep.identifiable, False, False)
-            reasons = (*rep.reasons[:3], crep.reasons[3], crep.reasons[4])
+            reasons = (*rep.reasons[:3], crep.reasons[3] or "k_c not identifiable", crep.reasons[4]
+                       or "b_c is meaningless without k_c")
             rep = replace(crep, identifiable=ident, reasons=reasons)
             fit = replace(fit, theta=theta, cov=cov)
     if not all(rep.identifiable[:3]):
@@ -159,7 +171,7 @@ def identify_oe(rec: Recording, model_key: str = "sdof",
     th0 = frfmod.fit_frf(frf, sd, _start(frf, sd)).theta
     if model.key == "coupled":
         th0 = np.r_[th0, 10 * th0[1], 0.1 * th0[2]]
-        if not (ok[3] and ok[4]):
+        if not ok[3]:
             model, ok, th0 = sd, ok[:3], th0[:3]
     fit = fit_oe(sigs, model, th0, free=ok)
     rep = fd.identifiability
@@ -179,15 +191,16 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
                        seed: int = 0, protocol: PaperProtocol = DEFAULT_PROTOCOL,
                        policy: Policy = DEFAULT_POLICY) -> IdentificationResult:
     """Identify the transducer from a recording.  Default method: 'fd' (the efficient estimator
-    for stepped-sine data; with a single frequency it reports what is not identifiable); default
-    model: 'sdof' for fd/oe, 'h2' for the paper's methods."""
+    for stepped-sine data, at the Cramér-Rao bound; with a single frequency it reports what is not
+    identifiable); default model: 'auto' for fd (Eq. 9, Eq. 8 when the data demand and determine
+    it), 'sdof' for oe, 'h2' for the paper's methods."""
     method = method or "fd"
     if method not in METHODS:
         raise BadInputError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
     if model is not None and model not in MODELS:
         raise BadInputError(f"unknown model {model!r}; expected one of {', '.join(MODELS)}")
     if method == "fd":
-        return identify_fd(rec, model or "sdof", policy)
+        return identify_fd(rec, model or "auto", policy)
     if method == "oe":
         return identify_oe(rec, model or "sdof", policy)
     form = {"sdof": "h2", "coupled": "h1"}.get(model or "h2", model or "h2")

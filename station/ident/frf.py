@@ -108,10 +108,12 @@ def _whiteners(cov: FloatArray) -> FloatArray:
 
 
 def whitened_jacobian(model: Model, theta: FloatArray, frf: FrequencyResponse,
-                      cov: FloatArray | None = None) -> FloatArray:
-    """d(whitened residual)/d(ln theta), shape (2 n_f, n_theta)."""
+                      cov: FloatArray | None = None, scale: FloatArray | None = None) -> FloatArray:
+    """d(whitened residual)/d(theta/scale), shape (2 n_f, n_theta); scale defaults to theta
+    (then d/d(ln theta)).  A parameter near 0 needs a typical value as scale, or its column
+    vanishes and a covariance computed from it becomes conditional on it."""
     W = _whiteners(frf.cov if cov is None else cov)
-    Jc = model.jacobian(theta, frf.f_hz) * theta[None, :]
+    Jc = model.jacobian(theta, frf.f_hz) * (theta if scale is None else scale)[None, :]
     Jr = np.stack([Jc.real, Jc.imag], axis=1)  # (n_f, 2, n_theta)
     return np.einsum("fij,fjk->fik", W, Jr).reshape(-1, theta.size)
 

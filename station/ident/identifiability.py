@@ -104,14 +104,15 @@ def regularised_cov(J: FloatArray) -> FloatArray:
     return np.linalg.inv(JtJ + 1e-12 * np.trace(JtJ) * np.eye(JtJ.shape[0]))
 
 
-def assess(model: Model, theta: FloatArray, frf: FrequencyResponse,
-           policy: Policy = Policy()) -> tuple[Identifiability, NDArray[np.bool_]]:
+def assess(model: Model, theta: FloatArray, frf: FrequencyResponse, policy: Policy = Policy(),
+           scale: FloatArray | None = None) -> tuple[Identifiability, NDArray[np.bool_]]:
     """Identifiability of every model parameter from a measured frequency response.
 
+    scale: typical parameter values (default |theta|); uncertainties are judged relative to it.
     Returns the report and the mask of structurally identifiable parameters (to fit)."""
     names = model.names
     n_f = int(np.unique(np.round(frf.f_hz, 6)).size)
-    J = whitened_jacobian(model, theta, frf, floor_cov(frf, policy))
+    J = whitened_jacobian(model, theta, frf, floor_cov(frf, policy), scale)
     struct_bad, cond = structural_null(J, policy, 2 * n_f)
     reasons = structural_reasons(names, struct_bad, n_f)
     for i in np.nonzero(struct_bad)[0]:

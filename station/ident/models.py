@@ -126,8 +126,11 @@ class CoupledModel:
         return np.polyval(num, s) / np.polyval(den, s)
 
     def jacobian(self, theta: ArrayLike, f_hz: ArrayLike) -> ComplexArray:
-        """dH/dtheta, shape (n_f, 5), central differences with relative steps 1e-6."""
-        return numeric_jacobian(self.response, theta, f_hz)
+        """dH/dtheta, shape (n_f, 5), central differences with relative steps 1e-6 (k_c, b_c steps
+        at least 1e-9 k_f, 1e-9 b_f so that b_c = 0 still has a derivative)."""
+        th = np.asarray(theta, dtype=float)
+        typical = np.array([abs(th[0]), abs(th[1]), abs(th[2]), 1e-3 * abs(th[1]), 1e-3 * abs(th[2])])
+        return numeric_jacobian(self.response, th, f_hz, typical=typical)
 
     def to_digital(self, theta: ArrayLike, T: float) -> DigitalTF:
         S, kf = float(np.asarray(theta)[0]), float(np.asarray(theta)[1])
@@ -157,12 +160,15 @@ def make_model(key: str, m_e: float, m_l: float) -> Model:
     raise ValueError(f"unknown model {key!r}")
 
 
-def numeric_jacobian(fun, theta: ArrayLike, f_hz: ArrayLike, rel_step: float = 1e-6) -> ComplexArray:
-    """Central-difference Jacobian of a complex model fun(theta, f) -> (n_f,), shape (n_f, n_theta)."""
+def numeric_jacobian(fun, theta: ArrayLike, f_hz: ArrayLike, rel_step: float = 1e-6,
+                     typical: ArrayLike | None = None) -> ComplexArray:
+    """Central-difference Jacobian of a complex model fun(theta, f) -> (n_f,), shape (n_f, n_theta);
+    step rel_step * max(|theta_i|, typical_i)."""
     th = np.asarray(theta, dtype=float)
+    typ = np.zeros(th.size) if typical is None else np.asarray(typical, dtype=float)
     cols = []
     for i in range(th.size):
-        h = rel_step * max(abs(th[i]), 1e-300)
+        h = rel_step * max(abs(th[i]), typ[i], 1e-300)
         tp, tm = th.copy(), th.copy()
         tp[i] += h
         tm[i] -= h
