@@ -72,3 +72,22 @@ def test_four_parameter_fit_finds_the_frequency() -> None:
     assert f4.frequency_hz == pytest.approx(12.013, abs=5 * f4.frequency_std_hz)
     assert 0 < f4.frequency_std_hz < 1e-3
     assert abs(f4.phasor) == pytest.approx(2.0, rel=1e-3)
+
+
+def test_oe_reported_uncertainty_matches_monte_carlo() -> None:
+    from station.ident.frf import step_response
+    from station.ident.oe import StepSignal, fit_oe
+    est, rep = [], []
+    for seed in range(60):
+        steps = stepped_sine(M5, TH5, F, R, fs_hz=FS, duration_s=DUR, sigma_x_m=SX, sigma_u_V=SU, seed=seed)
+        sigs = []
+        for s in steps:
+            it = step_response(s.t, s.x, s.u, s.f_hz)
+            sigs.append(StepSignal(s.t, s.u, it[2], np.array((it[2].phasor, *it[2].harmonics))))
+        fit = fit_oe(sigs, M5, TH5 * 1.01)
+        est.append(fit.theta)
+        rep.append(np.sqrt(np.diag(fit.cov)))
+    est = np.array(est)
+    ratio = np.mean(rep, axis=0) / est.std(axis=0, ddof=1)
+    assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio
+    assert abs(est[:, 1].mean() / TH5[1] - 1) < 1e-3
