@@ -116,7 +116,13 @@ def section5(out: Path, seeds: list[int], quick: bool) -> dict[str, Any]:
         row: dict[str, Any] = {"recording": str(path), "paper": PAPER_SEC5[name],
                                "truth": {"k_f": truth.k_f, "b_f": truth.b_f} if truth else None}
         rls = identify_recording(rec, "rls", "h2")
-        row[f"rls_{cases[0]}"] = {"testing_mse_V2": rls.extra["testing_mse_V2"]}
+        d = paper_data(rec, PaperProtocol())
+        half = d.x_test.size // 2
+        with np.errstate(all="ignore"):
+            e_rls = lfilter(rls.extra["b"], rls.extra["a"], d.x_test) - d.y_test
+        row[f"rls_{cases[0]}"] = {"testing_mse_V2": rls.extra["testing_mse_V2"],
+                                  "testing_mse_second_half_V2": float(np.mean(e_rls[half:] ** 2)),
+                                  "poles_abs": np.abs(np.roots(rls.extra["a"])).tolist()}
         for case, form in zip(cases, ("h2", "h1"), strict=True):
             runs = [identify_recording(rec, "pso+", form, seed=s) for s in seeds]
             row[f"pso+_{case}"] = {
@@ -127,6 +133,8 @@ def section5(out: Path, seeds: list[int], quick: bool) -> dict[str, Any]:
                 "reasons": {p.name: p.reason for p in runs[0].parameters if not p.identifiable}}
             if form == "h2":
                 row["_pso_h2"] = runs[0]
+                e = lfilter(runs[0].extra["b"], runs[0].extra["a"], d.x_test) - d.y_test
+                row[f"pso+_{case}"]["testing_mse_second_half_V2"] = float(np.mean(e[half:] ** 2))
         row["_rls"] = rls
         single = replace(rec, steps=[rec.steps[0]])
         fd1 = identify_fd(single, "sdof")
@@ -136,12 +144,12 @@ def section5(out: Path, seeds: list[int], quick: bool) -> dict[str, Any]:
         if truth:
             row["expert_rel_err"] = {"k_f": fd.parameter("k_f").value / truth.k_f - 1,
                                      "b_f": fd.parameter("b_f").value / truth.b_f - 1}
-        row["_fd"], row["_data"] = fd, paper_data(rec, PaperProtocol())
+        row["_fd"], row["_data"] = fd, d
         res[name] = row
     return res
 
 
-def explanations(t1: dict[str, Any], noise: dict[str, Any]) -> list[str]:
+def explanations(t1: dict[str, Any], noise: dict[str, Any], sec5: dict[str, Any]) -> list[str]:
     """Why our figures differ from the paper's, with the measured numbers."""
     r = t1["I"]["runs"][0]
     ii = t1["II"]["runs"]
@@ -172,9 +180,17 @@ def explanations(t1: dict[str, Any], noise: dict[str, Any]) -> list[str]:
         "III/V are therefore not determined by the data; the values the coefficients map to change from "
         "seed to seed (see theta_from_coefficients), and the expert estimator reports them as not "
         "identifiable on the same record, while the stepped-sine run gives them to < 1e-4.",
-        "RLS (Eq. 17) is an equation-error estimator: the noisy past outputs in its regressor bias the "
-        "poles (ARX bias), which at 4 Hz and 500 Hz sampling is large, hence its poor testing MSE.",
     ]
+    r5 = sec5["5kN"]
+    out.append(
+        "RLS (Eq. 17) is an equation-error estimator (noisy past outputs in its regressor bias the poles). "
+        f"On the 5 kN record its testing MSE is {r5['rls_III']['testing_mse_V2']:.3g} V^2 over the 400 "
+        f"points but {r5['rls_III']['testing_mse_second_half_V2']:.3g} over their second half (PSO+: "
+        f"{np.median(r5['pso+_III']['testing_mse_V2']):.3g} and {r5['pso+_III']['testing_mse_second_half_V2']:.3g}); "
+        f"its poles have |p| = {', '.join(f'{p:.4f}' for p in r5['rls_III']['poles_abs'])}. Its error is the "
+        "start-up transient of the model run from rest; in steady state RLS fits better than PSO+. "
+        "The paper's 1000x (Table 2) is not reproduced; ours is "
+        f"{r5['rls_III']['testing_mse_V2'] / np.median(r5['pso+_III']['testing_mse_V2']):.3g}x.")
     return out
 
 
@@ -194,7 +210,7 @@ def run_paper(out: str | Path = "recordings/paper", *, quick: bool = False, seed
                               "section5_resample_hz": PaperProtocol().resample_hz, "seeds": seeds,
                               "iterations_override": n_iter},
               "table1": t1, "noise_study": noise["rows"], "section5": sec5,
-              "explanations": explanations(t1, noise), "figures": [str(f) for f in figures]}
+              "explanations": explanations(t1, noise, sec5), "figures": [str(f) for f in figures]}
     return _public(report)
 
 

@@ -152,7 +152,7 @@ def identify_fd(rec: Recording, model_key: str = "sdof",
     if fit.inflated:
         notes.append(f"chi2/dof = {fit.chi2 / fit.dof:.3g}: uncertainties inflated by sqrt(chi2/dof)")
     params = _params(model, fit.theta, fit.cov, rep.identifiable, rep.reasons)
-    extra = {"f_hz": frf.f_hz.tolist(), "H_abs": np.abs(frf.H).tolist(),
+    extra = {"m_e_kg": model.m_e, "m_l_kg": model.m_l, "f_hz": frf.f_hz.tolist(), "H_abs": np.abs(frf.H).tolist(),
              "H_phase_rad": np.angle(frf.H).tolist(),
              "H_std": np.sqrt(np.trace(frf.cov, axis1=1, axis2=2) / 2).tolist()}
     return IdentificationResult("fd", model.key, params, _summary_fd(frf, fit, sigs), rep, tuple(notes),

@@ -68,11 +68,10 @@ def _section5(out: Path, sec5: dict[str, Any]) -> list[Path]:
         f = np.array(fd.extra["f_hz"])
         ff = np.linspace(1, max(f) * 1.2, 300)
         th = [fd.parameter(n).value for n in ("S", "k_f", "b_f")]
-        m = SdofModel(0.0, 1.0)
-        # the fitted model, normalised by the static gain so that the masses cancel
-        Hm = SdofModel(0.0, float(abs(fd.extra["H_abs"][0]) / th[0])).response(th, ff) if th[0] else m
-        ax[1].plot(f, np.array(fd.extra["H_abs"]) / fd.extra["H_abs"][0], "o", label="measured |H|/|H(f1)|")
-        ax[1].plot(ff, np.abs(Hm) / abs(Hm[0]), label="FD fit (Eq. 9)")
+        model = SdofModel(fd.extra["m_e_kg"], fd.extra["m_l_kg"])
+        static = abs(model.response(th, np.array([0.0]))[0])  # S M
+        ax[1].plot(f, np.array(fd.extra["H_abs"]) / static, "o", label="measured |H| / (S M)")
+        ax[1].plot(ff, np.abs(model.response(th, ff)) / static, label="FD fit (Eq. 9)")
         ax[1].set(xlabel="f (Hz)", ylabel="relative gain", title=f"{name}: expert FD fit")
         ax[1].legend()
         fig.tight_layout()
