@@ -183,6 +183,9 @@ def export_run(recording: str | Path, out_dir: str | Path) -> Path:
     if target.exists():
         raise StationError(f"{target} exists already; not overwriting it")
     tmp = target.with_name(target.name + ".exporting")
+    if tmp.exists():
+        raise StationError(f"{tmp} exists: an earlier export of this run was cut off; "
+                           f"remove that folder and export again")
     tmp.mkdir(parents=True)
     try:
         fs = rec.sample_rate_hz

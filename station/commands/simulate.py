@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from station.config import default_config_path, load_config
+from station.errors import BadInputError
 from station.simulate import simulate_run
 
 
@@ -18,6 +19,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.seed is not None and args.seed < 0:
+        raise BadInputError(f"--seed: a non-negative integer expected, got {args.seed}")
     cfg = load_config(args.config or default_config_path())
     out = args.out or Path(cfg.station.recordings_dir)
     path = simulate_run(cfg, out, seed=args.seed)
