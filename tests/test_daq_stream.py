@@ -42,7 +42,7 @@ class CounterSource:
 def rig_pty(request: pytest.FixtureRequest) -> Iterator[tuple[DaqEmulator, DaqBridge]]:
     source = getattr(request, "param", None) or CounterSource()
     pty = open_pty()
-    emu = DaqEmulator(pty.master, source, lambda: 20.0, seed=3).start()
+    emu = DaqEmulator(pty.master, source, lambda: 20.0, seed=3, on_close=pty.forget_master).start()
     daq = DaqBridge(stall_timeout_s=0.3)
     daq.connect(SerialLink(pty.path))
     yield emu, daq

@@ -40,7 +40,10 @@ RANGES_V = (0.1, 10.0)
 
 
 class DaqEmulator:
-    """Bridge emulator on file descriptor ``fd`` (pty master or socket), run in a daemon thread."""
+    """Bridge emulator on file descriptor ``fd`` (pty master or socket), run in a daemon thread.
+
+    The emulator owns ``fd`` and closes it (``close``/``close_port``), then calls ``on_close``.
+    """
 
     def __init__(self, fd: int, source: SampleSource, speed_hz: Callable[[], float], *,
                  seed: int = 0, fifo_bytes: int = 1 << 20, tick_s: float = 0.005,

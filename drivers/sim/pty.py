@@ -31,10 +31,16 @@ class Pty:
     slave: int
     path: str
 
+    def forget_master(self) -> None:
+        """The master fd was closed by its owner (e.g. the DAQ emulator): do not close it again."""
+        self.master = -1
+
     def close(self) -> None:
         for fd in (self.master, self.slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self.master = self.slave = -1
 
 
 def open_pty() -> Pty:

@@ -107,7 +107,7 @@ class SimRig:
         if isinstance(self.source, RigSource):
             self.source.set_phase(self.motor.snapshot().angle_rad % (2 * math.pi))
         self.daq = DaqEmulator(self._pty.master, self.source, self.motor.speed_hz, seed=self._seed,
-                               fifo_bytes=self._fifo).start()
+                               fifo_bytes=self._fifo, on_close=self._pty.forget_master).start()
         assert self._modbus.tcp_address is not None
         self.addresses = SimRigAddresses(self._modbus.tcp_address, self._modbus.rtu_path, self._pty.path)
         log.info("sim rig: %s", self.addresses)
