@@ -10,4 +10,5 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.identify",
     "station.commands.paper",
     "station.commands.calibrate",
+    "station.commands.discrepancy",
 )

@@ -84,6 +84,7 @@ class StepDecomposition:
     disp: ChannelFit
     x1: complex
     x1_cov: FloatArray
+    flat_top: int = 0
 
 
 def robust_sigma(residual: FloatArray) -> float:
@@ -123,13 +124,15 @@ def _harmonic_cols(tau: FloatArray, freqs_hz: list[float]) -> FloatArray:
     return out
 
 
-def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, iterations: int = 4
-                  ) -> tuple[float, float]:
-    """Four-parameter sine fit (IEEE 1057) of one channel with harmonics 2..K and a quadratic as
-    nuisance: returns (f, std f) in Hz, Gauss-Newton from f0."""
+def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: FloatArray | None = None,
+                  iterations: int = 4) -> tuple[float, float]:
+    """Four-parameter sine fit (IEEE 1057) of one channel with harmonics 2..K, a quadratic and the
+    ``extra`` columns (N, m) (mains lines) as nuisance: returns (f, std f) in Hz, Gauss-Newton from f0."""
     f, std = f0, 0.0
     h = max(float(np.max(np.abs(tau))), 1e-12)
     poly = np.column_stack([np.ones_like(tau), tau / h, (tau / h) ** 2])
+    if extra is not None:
+        poly = np.hstack([poly, extra])
     for _ in range(iterations):
         B = np.hstack([_harmonic_cols(tau, [k * f for k in range(1, K + 1)]), poly])
         c = np.linalg.solve(B.T @ B, B.T @ x)
@@ -155,29 +158,42 @@ def _fit(B: FloatArray, y: FloatArray) -> ChannelFit:
     return ChannelFit(coef=c, R=R, ssr=float(r @ r), sigma=robust_sigma(r), residual=r)
 
 
+def longest_flat_extreme(y: FloatArray) -> int:
+    """Longest run of identical samples at the window's maximum or minimum (a clipped channel has
+    long flat tops; a noisy unclipped one has runs of one or two)."""
+    best = 0
+    for v in (y.max(), y.min()):
+        at = np.concatenate([[0], (y == v).astype(np.int8), [0]])
+        d = np.diff(at)
+        starts, ends = np.nonzero(d == 1)[0], np.nonzero(d == -1)[0]
+        if starts.size:
+            best = max(best, int(np.max(ends - starts)))
+    return best
+
+
 def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int) -> StepDecomposition:
     """Fit both channels of one step (see the module docstring for the basis)."""
     n = w.force_V.size
     tau = (np.arange(n) - (n - 1) / 2) / fs
     half = n / (2 * fs)
     K = int(max(1, min(K_MAX, math.floor(0.45 * fs / w.f_nominal_hz))))
-    # the crank frequency is common to both channels: inverse-variance mean of the two 4-par fits
-    fd, sd = fit_frequency(tau, w.displacement_m, w.f_nominal_hz, K)
-    fu, su = fit_frequency(tau, w.force_V, fd, K)
-    wd, wu = 1 / max(sd, 1e-300) ** 2, 1 / max(su, 1e-300) ** 2
-    f, f_std = (wd * fd + wu * fu) / (wd + wu), 1 / math.sqrt(wd + wu)
-    poly = np.column_stack([np.ones(n), tau / half, (tau / half) ** 2])
-    harm = _harmonic_cols(tau, [k * f for k in range(1, K + 1)])
     merge, mains_f = [], []
     for hh in range(1, n_mains + 1):
         nu = hh * (f_mains or 0.0)
-        k = round(nu / f)
-        if 1 <= k <= K and abs(nu - k * f) < 0.5 / (2 * half):
+        k = round(nu / w.f_nominal_hz)
+        if 1 <= k <= K and abs(nu - k * w.f_nominal_hz) < 0.5 / (2 * half):
             merge.append(k)
         else:
             merge.append(0)
             mains_f.append(nu)
     mains = _harmonic_cols(tau, mains_f) if mains_f else np.zeros((n, 0))
+    # the crank frequency is common to both channels: inverse-variance mean of the two 4-par fits
+    fd, sd = fit_frequency(tau, w.displacement_m, w.f_nominal_hz, K, mains)
+    fu, su = fit_frequency(tau, w.force_V, fd, K, mains)
+    wd, wu = 1 / max(sd, 1e-300) ** 2, 1 / max(su, 1e-300) ** 2
+    f, f_std = (wd * fd + wu * fu) / (wd + wu), 1 / math.sqrt(wd + wu)
+    poly = np.column_stack([np.ones(n), tau / half, (tau / half) ** 2])
+    harm = _harmonic_cols(tau, [k * f for k in range(1, K + 1)])
     force = _fit(np.hstack([harm, poly, mains]), w.force_V)
     disp = _fit(np.hstack([harm[:, :2], poly, mains, harm[:, 2:]]), w.displacement_m)
     Rinv = np.linalg.inv(disp.R)
@@ -186,4 +202,5 @@ def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int
     return StepDecomposition(
         index=w.index, f_hz=f, f_std_hz=f_std, K=K, n_samples=n, t_mid_s=w.t0_s + (n - 1) / (2 * fs),
         half_s=half, mains_merge=tuple(merge), force=force, disp=disp,
-        x1=complex(disp.coef[0], -disp.coef[1]), x1_cov=T @ cov @ T.T)
+        x1=complex(disp.coef[0], -disp.coef[1]), x1_cov=T @ cov @ T.T,
+        flat_top=longest_flat_extreme(w.force_V))

@@ -60,6 +60,7 @@ class ModelFit:
     wf_fund: FloatArray
     converged: bool
     notes: tuple[str, ...] = field(default_factory=tuple)
+    alternatives: tuple[tuple[int, float, float, float], ...] = ()  # low-pass (order, chi2, k_f, b_f)
 
     @property
     def n_par(self) -> int:

@@ -23,6 +23,7 @@ from station.discrepancy.fit import ModelFit
 from station.discrepancy.spectrum import Line, significant_lines
 
 ALPHA = 1e-6
+FLAT_TOP = 20  # samples: a run this long at the window extreme means clipping
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,12 @@ def out_of_basis(data: RigData, alpha: float = 1e-4) -> list[Finding]:
     lines: list[Line] = []
     fmap = {s.index: s.f_hz for s in data.steps}
     out: list[Finding] = []
+    clipped = [s.index for s in data.steps if s.flat_top >= FLAT_TOP]
+    if clipped:
+        out.append(Finding("force", "clipping", tuple(clipped), float(max(s.flat_top for s in data.steps)),
+                           "samples", float("nan"),
+                           f"force signal clipped (flat tops up to {max(s.flat_top for s in data.steps)} "
+                           f"samples at the window extreme) in {step_span(clipped)}"))
     for s in data.steps:
         ls = significant_lines(s.force.residual, s.force.sigma, fs, s.index, alpha)
         lines += ls

@@ -115,6 +115,7 @@ class DiscrepancyReport:
         return out
 
 
+ORDER_AMBIGUITY = 10.0  # chi^2 units (times the Birge ratio): low-pass orders closer than this tie
 TRANSDUCER = (("S", "V/N"), ("k_f", "N/m"), ("b_f", "N*s/m"))
 
 
@@ -138,8 +139,14 @@ def effect_estimates(fit: ModelFit, name: str) -> dict[str, Estimate]:
     if name == "coupling_compliance":
         return {"k_c": Estimate(v["k_c"], s["k_c"], "N/m"), "b_c": Estimate(v["b_c"], s["b_c"], "N*s/m")}
     if name == "conditioner_lowpass":
-        return {"order": Estimate(float(fit.effects[name]), 0.0, "1"),
-                "cutoff_hz": Estimate(v["cutoff_hz"], s["cutoff_hz"], "Hz")}
+        order = fit.effects[name]
+        close = [a for a in fit.alternatives if a[0] != order and a[1] - fit.chi2 < ORDER_AMBIGUITY * fit.birge]
+        est = {"order": Estimate(float(order), 0.0, "1"), "cutoff_hz": Estimate(v["cutoff_hz"], s["cutoff_hz"], "Hz")}
+        if close:
+            why = (f"orders {', '.join(str(a[0]) for a in close)} fit as well (Delta chi2 < {ORDER_AMBIGUITY:g}); "
+                   f"k_f would be {', '.join(f'{a[2]:.6g}' for a in close)} N/m")
+            est["order"] = Estimate(float(order), math.nan, "1", False, why)
+        return est
     if name == "channel_delay":
         return {"delay_s": Estimate(v["delay_s"], s["delay_s"], "s")}
     if name == "crank_harmonics":

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 
@@ -46,6 +47,7 @@ def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | Non
         return None
     orders = LOWPASS_ORDERS if name == "conditioner_lowpass" else (0,)
     best: ModelFit | None = None
+    alts: list[tuple[int, float, float, float]] = []
     for order in orders:
         effects: dict[str, int] = {**current.effects, name: order}
         grid = start_grid(name, data, current.values)
@@ -55,8 +57,11 @@ def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | Non
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
             log.info("candidate %s (order %d) failed: %s", name, order, exc)
             continue
+        alts.append((order, fit.chi2, fit.values["k_f"], fit.values["b_f"]))
         if best is None or fit.chi2 < best.chi2:
             best = fit
+    if best is not None and name == "conditioner_lowpass":
+        best = replace(best, alternatives=tuple(alts))
     return best
 
 

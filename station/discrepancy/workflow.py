@@ -6,7 +6,9 @@ parameters free and the whole model refitted.  Its evidence is the likelihood-ra
 the measured noise, Delta chi^2 / B with B = max(1, chi^2/dof) of the larger model (the extra-sum-of-
 squares test: structure the catalogue cannot explain inflates B rather than being forced onto a name),
 referred to chi^2 with as many degrees of freedom as parameters were added.  Candidates are ranked by
-Delta BIC = Delta chi^2 / B - k ln(n_obs); the best is named only if p < ``ALPHA`` and Delta BIC > 0.
+Delta BIC = Delta chi^2 / B - k ln(n_obs); the best is named only if p < ``ALPHA``, Delta BIC > 0 and
+it explains at least ``MIN_SHARE`` of the excess chi^2 - dof left by the current model (an effect that
+only nibbles at a much larger misfit is not named: that misfit is reported by where it is instead).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import math
 import time
 from pathlib import Path
 
+import numpy as np
 from scipy import stats
 
 from station.discrepancy.catalogue import CATALOGUE
@@ -35,6 +38,7 @@ from station.recording import Recording, read_recording
 log = logging.getLogger(__name__)
 ALPHA = 1e-6
 AMBIGUOUS_BIC = 10.0
+MIN_SHARE = 0.25
 
 
 def _candidate(current: ModelFit, fit: ModelFit, name: str) -> Candidate:
@@ -44,8 +48,10 @@ def _candidate(current: ModelFit, fit: ModelFit, name: str) -> Candidate:
                      delta_bic=d - k * math.log(fit.n_obs), gap_V=fit.gap_V)
 
 
-def _evidence(best: Candidate, ranked: list[Candidate], before_gap: float) -> str:
-    text = (f"Delta chi2 = {best.delta_chi2:.4g} for {best.added_params} parameter(s), "
+def _evidence(best: Candidate, ranked: list[Candidate], before_gap: float, share: float,
+              fits: dict[str, ModelFit]) -> str:
+    text = (f"Delta chi2 = {best.delta_chi2:.4g} for {best.added_params} parameter(s) "
+            f"({100 * min(share, 1.0):.3g} % of the excess), "
             f"p = {best.p_value:.2g}, Delta BIC = {best.delta_bic:.4g}; gap {before_gap:.4g} V -> "
             f"{best.gap_V:.4g} V")
     others = [c for c in ranked if c.name != best.name]
@@ -53,22 +59,21 @@ def _evidence(best: Candidate, ranked: list[Candidate], before_gap: float) -> st
         r = others[0]
         text += f"; runner-up {r.name} (Delta BIC {r.delta_bic:.4g})"
         if best.delta_bic - r.delta_bic < AMBIGUOUS_BIC and r.p_value < ALPHA:
-            text += " is nearly as good: the data barely distinguish the two"
+            a, b = fits[best.name].values, fits[r.name].values
+            text += (f" is nearly as good: the data barely distinguish the two (k_f {a['k_f']:.6g} vs "
+                     f"{b['k_f']:.6g} N/m, b_f {a['b_f']:.5g} vs {b['b_f']:.5g} N*s/m)")
     return text
 
 
-def analyse(data: RigData, max_effects: int = 4, recording: str = "") -> DiscrepancyReport:
-    """Run the workflow on decomposed data (see module docstring)."""
-    t0 = time.perf_counter()
-    base = fit_model(data, {}, base_start(data))
-    current = base
+def _forward(data: RigData, current: ModelFit, allowed: tuple[str, ...], max_effects: int
+             ) -> tuple[ModelFit, list[AddedEffect], tuple[Candidate, ...]]:
+    """Greedy forward selection from ``current`` over the ``allowed`` effects (module docstring)."""
     added: list[AddedEffect] = []
     rejected: tuple[Candidate, ...] = ()
-    fits: dict[str, ModelFit] = {}
     for _ in range(max_effects):
-        fits = {}
+        fits: dict[str, ModelFit] = {}
         cands: list[Candidate] = []
-        for name in CATALOGUE:
+        for name in allowed:
             if name in current.effects:
                 continue
             fit = fit_candidate(data, current, name)
@@ -80,23 +85,82 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "") -> Discrep
         for c in ranked:
             log.info("candidate %-24s dchi2/B %.4g k %d p %.3g dBIC %.4g gap %.4g V", c.name, c.delta_chi2,
                      c.added_params, c.p_value, c.delta_bic, c.gap_V)
-        ok = [c for c in ranked if c.p_value < ALPHA and c.delta_bic > 0]
+        excess = max(current.chi2 - current.dof, 1e-300)
+        ok = [c for c in ranked if c.p_value < ALPHA and c.delta_bic > 0
+              and (current.chi2 - fits[c.name].chi2) >= MIN_SHARE * excess]
         if not ok:
             rejected = tuple(ranked)
             break
         best = ok[0]
         fit = fits[best.name]
+        share = (current.chi2 - fit.chi2) / excess
         added.append(AddedEffect(name=best.name, params=effect_estimates(fit, best.name), gap_after=fit.gap_V,
                                  gap_steps_after=tuple(float(g) for g in fit.gap_steps_V),
-                                 evidence=_evidence(best, ranked, current.gap_V), candidates=tuple(ranked),
-                                 parameters=transducer_parameters(fit)))
+                                 evidence=_evidence(best, ranked, current.gap_V, share, fits),
+                                 candidates=tuple(ranked), parameters=transducer_parameters(fit)))
         current = fit
+    return current, added, rejected
+
+
+def _bic(fit: ModelFit, birge: float) -> float:
+    return fit.chi2 / birge + fit.n_par * math.log(fit.n_obs)
+
+
+def _swap(data: RigData, current: ModelFit) -> tuple[str, ...] | None:
+    """Greedy selection can name an effect that, together with a later one, mimics a different
+    pair (e.g. low-pass + delay for coupling + delay).  Try replacing each named effect by each
+    other catalogue effect; return the better set if one is clearly better (BIC by more than
+    ``AMBIGUOUS_BIC`` at the larger Birge ratio), else None."""
+    best_set, best_bic = None, math.inf
+    for named in current.effects:
+        rest = {k: v for k, v in current.effects.items() if k != named}
+        try:
+            reduced = fit_model(data, rest, current.values)
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        for other in CATALOGUE:
+            if other in current.effects:
+                continue
+            fit = fit_candidate(data, reduced, other)
+            if fit is None:
+                continue
+            b = max(fit.birge, current.birge)
+            gain = _bic(current, b) - _bic(fit, b)
+            if gain > AMBIGUOUS_BIC and _bic(fit, b) < best_bic:
+                best_set, best_bic = (*rest, other), _bic(fit, b)
+    return best_set
+
+
+def analyse(data: RigData, max_effects: int = 4, recording: str = "",
+            rec_notes: tuple[str, ...] = ()) -> DiscrepancyReport:
+    """Run the workflow on decomposed data (see module docstring)."""
+    t0 = time.perf_counter()
+    base = fit_model(data, {}, base_start(data))
+    current, added, rejected = _forward(data, base, CATALOGUE, max_effects)
+    swapped = _swap(data, current) if len(added) >= 2 else None
+    swap_note = ""
+    if swapped is not None:
+        swap_note = (f"greedy order named {', '.join(current.effects)}; the set {', '.join(swapped)} "
+                     f"fits clearly better and replaces it")
+        log.info(swap_note)
+        current, added, _ = _forward(data, base, tuple(swapped), len(swapped))
+        more, extra, rejected = _forward(data, current, CATALOGUE, max_effects - len(added))
+        current, added = more, added + extra
+    # report every named effect's parameters from the final model (all effects present, so no
+    # missing effect inflates or biases them); gaps stay those after each stage
+    added = [AddedEffect(name=e.name, params=effect_estimates(current, e.name), gap_after=e.gap_after,
+                         gap_steps_after=e.gap_steps_after, evidence=e.evidence, candidates=e.candidates,
+                         parameters=e.parameters) for e in added]
     left = [f.text for f in in_basis(data, current)] + [f.text for f in out_of_basis(data)]
     floor = data.noise_floor_V()
     if current.gap_V > 1.5 * floor and not left:
         left.append(f"gap {current.gap_V:.3g} V is {current.gap_V / floor:.3g} x the noise floor "
                     f"{floor:.3g} V but is not localised")
     notes = list(current.notes)
+    if swap_note:
+        notes.append(swap_note)
+    if rec_notes:
+        notes += rec_notes
     if data.end_mass_kg <= 0:
         notes.append("no end mass in the recording: m_e = 0 assumed, coupling not testable")
     return DiscrepancyReport(
@@ -116,7 +180,8 @@ def analyse_recording(path: str | Path | Recording, max_effects: int = 4) -> Dis
     t0 = time.perf_counter()
     rec = path if isinstance(path, Recording) else read_recording(path)
     data = prepare(rec)
-    rep = analyse(data, max_effects=max_effects, recording=str(rec.path))
+    events = tuple(str(d.get("warning")) for d in rec.documents if d.get("kind") == "event" and d.get("warning"))
+    rep = analyse(data, max_effects=max_effects, recording=str(rec.path), rec_notes=events)
     object.__setattr__(rep, "wall_s", time.perf_counter() - t0)
     return rep
 
