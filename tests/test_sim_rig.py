@@ -118,3 +118,23 @@ def test_station_sim_rig_prints_where_it_listens_and_stops_on_ctrl_c() -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_crank_radius_changes_only_at_standstill() -> None:
+    with SimRig(seed=7, rtu=False, crank_radius_m=0.01) as rig:
+        rig.set_crank_radius(0.005)
+        daq = DaqBridge()
+        daq.connect(SerialLink(rig.addresses.daq))
+        rig.motor.set_watchdog_timeout(0)
+        rig.motor.set_ramp(100.0)
+        rig.motor.set_setpoint(15.0)
+        rig.motor.set_enable(True)
+        with pytest.raises(RuntimeError, match="only change at standstill"):
+            rig.set_crank_radius(0.01)
+        while rig.motor.speed_hz() < 15.0:
+            time.sleep(0.01)
+        daq.start()
+        d, _ = samples(daq, 0.5)
+        daq.stop()
+        daq.close()
+    assert np.ptp(d) == pytest.approx(16384, rel=0.03)  # 5 mm: half the 10 mm amplitude

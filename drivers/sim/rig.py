@@ -113,6 +113,15 @@ class SimRig:
         log.info("sim rig: %s", self.addresses)
         return self
 
+    def set_crank_radius(self, radius_m: float) -> None:
+        """Change the crank radius (m) of the synthesised signals; only at standstill (RuntimeError)."""
+        speed = self.motor.speed_hz()
+        if speed != 0.0:
+            raise RuntimeError(f"the crank radius can only change at standstill (crank at {speed:.2f} Hz)")
+        if not isinstance(self.source, RigSource):
+            raise RuntimeError("the crank radius needs the rig-physics source (RigSource)")
+        self.source.set_crank_radius(radius_m)
+
     def motor_transport(self) -> InProcessTransport:
         """In-process backend of the motor driver on this rig's register image (no wire)."""
         return InProcessTransport(self.image)
