@@ -64,8 +64,8 @@ class DaqConfig:
 
     rate_hz: float
     frame_samples: int
-    range_disp_V: float  # noqa: N815 (unit suffix, as in drivers.rig.params)
-    range_force_V: float  # noqa: N815
+    range_disp_V: float
+    range_force_V: float
 
 
 @dataclass(frozen=True)
