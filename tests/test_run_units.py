@@ -111,7 +111,7 @@ def test_disk_failure_stops_the_run_without_blocking_acquisition(tmp_path: Path)
     def broken(d: np.ndarray, f: np.ndarray) -> None:
         raise OSError(28, "No space left on device")
     w.append = broken  # type: ignore[method-assign]  # the disk, not the class, is under test here
-    q, get = _feed([_Block(0, 100)])
+    _, get = _feed([_Block(0, 100)])
     acq = Acquisition(get, w, sample_rate_hz=1000.0, stall_limit_s=5.0)
     acq.start()
     t0 = time.monotonic()
@@ -132,7 +132,7 @@ def test_unsafe_requests_are_refused_with_the_step_and_limit_named() -> None:
         plan_run(CFG, bad)
     with pytest.raises(LimitError, match=r"crank frequency 150 Hz is outside the rig's range \[1, 100\] Hz"):
         plan_run(CFG, ok.model_copy(update={"steps": [StepSpec(crank_frequency_hz=150, crank_radius_m=1e-4)]}))
-    with pytest.raises(LimitError, match="radius 0.2 m is outside"):
+    with pytest.raises(LimitError, match=r"radius 0\.2 m is outside"):
         plan_run(CFG, ok.model_copy(update={"steps": [StepSpec(crank_frequency_hz=2, crank_radius_m=0.2)]}))
     with pytest.raises(LimitError, match="not the one mounted"):
         plan_run(CFG, RunRequest(transducer_id="OTHER", top_mass_kg=25.7, steps=ok.steps))

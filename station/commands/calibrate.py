@@ -9,8 +9,8 @@ import sys
 import time
 from pathlib import Path
 
-from station.config import default_config_path, load_config
 from station.commands.identify import format_text
+from station.config import default_config_path, load_config
 from station.errors import BadInputError
 from station.run.calibrate import run_and_identify
 from station.run.procedure import Progress

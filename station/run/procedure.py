@@ -202,7 +202,8 @@ class Procedure:
             await motor.enable()
             await asyncio.to_thread(daq.start)
             self.acq = Acquisition(daq.get_event, writer, sample_rate_hz=daq_cfg.rate_hz,
-                                   rejected_frames=lambda: daq.decoder.stats.crc_errors + daq.decoder.stats.framing_errors)
+                                   rejected_frames=lambda: (daq.decoder.stats.crc_errors
+                                                            + daq.decoder.stats.framing_errors))
             self.acq.start()
             self._report(state="running")
             for step in self.plan.steps:
