@@ -21,6 +21,7 @@ from typing import Protocol
 import numpy as np
 
 from station.config import config_to_yaml
+from station.ident.sinefit import fit3, fit4
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id
 from station.run.acquisition import Acquisition, AcquisitionError
 from station.run.request import Plan, PlannedStep
@@ -100,31 +101,18 @@ class SteadyCriteria:
     timeout_s: float = 20.0
 
 
-def _amplitude(y: np.ndarray, f: float, fs: float) -> tuple[float, float]:
-    """(amplitude, fitted frequency) of y by a 3-parameter fit refined by one frequency step."""
-    t = np.arange(y.size) / fs - y.size / (2 * fs)
-    w = 2 * np.pi * f
-    for _ in range(2):
-        c, s = np.cos(w * t), np.sin(w * t)
-        X = np.column_stack([c, s, np.ones_like(t), -t * s, t * c])
-        p = np.linalg.lstsq(X[:, :3], y, rcond=None)[0]
-        J = np.column_stack([X[:, :3], p[0] * X[:, 3] + p[1] * X[:, 4]])
-        step = np.linalg.lstsq(J, y - X[:, :3] @ p, rcond=None)[0]
-        w += step[-1]
-    return float(np.hypot(p[0], p[1])), w / (2 * np.pi)
-
-
 def is_steady(disp: np.ndarray, force: np.ndarray, f_set: float, fs: float, crit: SteadyCriteria) -> bool:
     """Apply ``crit`` to the newest samples (each channel: windows * window_s seconds)."""
     n = int(crit.window_s * fs)
+    t = np.arange(n) / fs
     amps_d, amps_f, freqs = [], [], []
     for k in range(crit.windows):
         sl = slice(k * n, (k + 1) * n)
-        a_d, f_d = _amplitude(disp[sl].astype(float), f_set, fs)
-        a_f, _ = _amplitude(force[sl].astype(float), f_set, fs)
-        amps_d.append(a_d)
-        amps_f.append(a_f)
-        freqs.append(f_d)
+        fd = fit4(t, disp[sl].astype(float), f_set, max_iter=5)
+        ff = fit3(t, force[sl].astype(float), fd.frequency_hz)
+        amps_d.append(abs(fd.phasor))
+        amps_f.append(abs(ff.phasor))
+        freqs.append(fd.frequency_hz)
     tol_f = max(crit.frequency_tol_hz, 0.002 * f_set)
     if any(abs(f - f_set) > tol_f for f in freqs) or min(amps_d) <= 0 or min(amps_f) <= 0:
         return False
