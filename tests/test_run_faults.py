@@ -188,16 +188,24 @@ def test_kill_9_leaves_a_readable_interrupted_file_and_the_watchdog_stops_the_mo
     with SimRigProcess(seed=3) as sim:
         cfg = _external_config(tmp_path, sim.addresses, 0.002)
         out = tmp_path / "rec"
+        log = (tmp_path / "calibrate.log").open("wb")
         proc = subprocess.Popen([sys.executable, "-m", "station.cli", "calibrate", "--config", str(cfg),
-                                 "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and not list(out.glob("*.partial")):
-            time.sleep(0.05)
-        time.sleep(3.0)
-        speed_before, _ = asyncio.run(_motor_state(sim.addresses))
+                                 "--out", str(out)], stdout=log, stderr=log)
+        # wait until the run is recording with the crank turning, then a little longer
+        deadline = time.monotonic() + 60
+        speed_before = 0.0
+        while time.monotonic() < deadline and proc.poll() is None:
+            if list(out.glob("*.partial")):
+                speed_before, _ = asyncio.run(_motor_state(sim.addresses))
+                if speed_before > 1.0:
+                    break
+            time.sleep(0.1)
+        assert proc.poll() is None, (tmp_path / "calibrate.log").read_text()[-2000:]
+        time.sleep(1.5)
         t_kill = time.time()
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
+        log.close()
         assert speed_before > 1.0  # the crank was turning when the process died
         # a lost link stops the motor: the controller's watchdog expires (1 s) and it ramps down
         deadline = time.monotonic() + 10
