@@ -1,0 +1,211 @@
+"""Result plots of a run as PNG bytes (matplotlib's Agg canvas, no pyplot state: safe in threads).
+
+``render_plot(path, name)`` with ``name`` in ``PLOT_NAMES``:
+
+* ``bode``: dynamic sensitivity S_dyn = -H/M (magnitude, V/N, and phase, degrees) of the measured
+  steps with expanded (k = 2) error bars, and the identified model with its k = 2 band;
+* ``timefit``: force signal and the model's prediction over three periods of (up to) four steps;
+* ``residuals``: residual RMS of every step against frequency, and the residual over the whole
+  record window of (up to) four steps;
+* ``convergence``: Gbest MSE per iteration of the stored PSO/PSO+ identifications (paper Eq. 15);
+  else an iteration history if a stored result exposes one (``extra.cost_history``); else a figure
+  saying that no iterative method was run.
+
+Every figure is FIG_SIZE_PX pixels, rendered deterministically (no timestamps in the PNG).
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from station.report.data import PAPER_METHODS, RunData, StepTrace, load_run
+from station.report.quantities import COVERAGE_K, measured_sensitivity, model_sensitivity
+
+log = logging.getLogger(__name__)
+PLOT_NAMES: tuple[str, ...] = ("bode", "timefit", "residuals", "convergence")
+FIG_SIZE_PX = (900, 600)
+DPI = 100
+MAX_TRACES = 4
+
+
+def _figure() -> Figure:
+    fig = Figure(figsize=(FIG_SIZE_PX[0] / DPI, FIG_SIZE_PX[1] / DPI), dpi=DPI)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _png(fig: Figure) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
+    return buf.getvalue()
+
+
+def _title(fig: Figure, d: RunData, what: str) -> None:
+    fig.suptitle(f"{what}: {d.rec.transducer_id}, run {d.rec.run_id}", fontsize=10)
+
+
+def _note(ax: Axes, text: str) -> None:
+    if text:
+        ax.text(0.01, 0.02, text, transform=ax.transAxes, fontsize=7, color="0.3", va="bottom", wrap=True)
+
+
+def _bode(d: RunData, fig: Figure) -> None:
+    ax_m, ax_p = fig.subplots(2, 1, sharex=True)
+    r, M = d.response, d.mass_kg
+    mag, u_mag, ph, u_ph = measured_sensitivity(r.H, r.cov, M)
+    f_lo, f_hi = float(np.min(r.f_hz)), float(np.max(r.f_hz))
+    if d.curve is not None:
+        ff = np.geomspace(0.5 * f_lo, 1.5 * f_hi, 400)
+        m_mag, m_umag, m_ph, m_uph = model_sensitivity(d.curve, ff)
+        ph_at = np.interp(r.f_hz, ff, m_ph)
+        ph = ph_at + np.angle(np.exp(1j * (ph - ph_at)))  # measured phase on the model's branch
+        label = f"model {d.ident.get('model')} ({d.ident.get('method')})"
+        ax_m.plot(ff, 1e3 * m_mag, "C1", label=label)
+        ax_p.plot(ff, np.degrees(m_ph), "C1", label=label)
+        if m_umag is not None and m_uph is not None:
+            ax_m.fill_between(ff, 1e3 * (m_mag - COVERAGE_K * m_umag), 1e3 * (m_mag + COVERAGE_K * m_umag),
+                              color="C1", alpha=0.25, lw=0, label="model, k = 2")
+            ax_p.fill_between(ff, np.degrees(m_ph - COVERAGE_K * m_uph), np.degrees(m_ph + COVERAGE_K * m_uph),
+                              color="C1", alpha=0.25, lw=0)
+    ax_m.errorbar(r.f_hz, 1e3 * mag, yerr=1e3 * COVERAGE_K * u_mag, fmt="o", color="C0", capsize=3,
+                  label="measured, U (k = 2)")
+    ax_p.errorbar(r.f_hz, np.degrees(ph), yerr=np.degrees(COVERAGE_K * u_ph), fmt="o", color="C0", capsize=3)
+    ax_m.set(ylabel="|S_dyn| (mV/N)", xscale="log")
+    ax_p.set(ylabel="phase of S_dyn (°)", xlabel="crank frequency f (Hz)", xscale="log")
+    ax_m.legend(fontsize=8, loc="upper left")
+    for ax in (ax_m, ax_p):
+        ax.grid(True, which="both", alpha=0.3)
+    _note(ax_p, d.curve_note or (d.curve.note if d.curve else ""))
+    _title(fig, d, f"Dynamic sensitivity S_dyn = -H/M (M = {M:.4g} kg)")
+
+
+def _pick(traces: tuple[StepTrace, ...]) -> list[StepTrace]:
+    if len(traces) <= MAX_TRACES:
+        return list(traces)
+    idx = np.unique(np.round(np.linspace(0, len(traces) - 1, MAX_TRACES)).astype(int))
+    return [traces[i] for i in idx]
+
+
+def _grid(fig: Figure, n: int) -> list[Axes]:
+    rows, cols = (n, 1) if n <= 2 else ((n + 1) // 2, 2)
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    for ax in axes[n:]:
+        ax.set_visible(False)
+    return list(axes[:n])
+
+
+def _timefit(d: RunData, fig: Figure) -> None:
+    shown = _pick(d.traces)
+    for ax, tr in zip(_grid(fig, len(shown)), shown, strict=True):
+        keep = np.abs(tr.t_s) <= 1.5 / tr.f_hz  # three periods around the window's centre
+        t_ms = 1e3 * tr.t_s[keep]
+        ax.plot(t_ms, tr.u_V[keep], ".", ms=2, color="C0", label="measured")
+        if tr.model_V is not None:
+            ax.plot(t_ms, tr.model_V[keep], "C1", lw=1.2, label="model")
+        ax.set(title=f"step {tr.index}: {tr.f_hz:.4g} Hz", xlabel="t - t_centre (ms)", ylabel="force signal (V)")
+        ax.title.set_fontsize(9)
+        ax.grid(True, alpha=0.3)
+    fig.axes[0].legend(fontsize=8, loc="upper right")
+    if d.curve is None:
+        _note(fig.axes[0], d.curve_note)
+    _title(fig, d, f"Time-domain fit ({len(shown)} of {len(d.traces)} steps)")
+
+
+def _residuals(d: RunData, fig: Figure) -> None:
+    if d.curve is None:
+        ax = fig.subplots()
+        ax.axis("off")
+        ax.text(0.5, 0.5, f"No residuals: {d.curve_note}", ha="center", va="center", wrap=True)
+        _title(fig, d, "Residuals")
+        return
+    shown = _pick(d.traces)
+    gs = fig.add_gridspec(2, len(shown), height_ratios=(1, 1.3))
+    ax0 = fig.add_subplot(gs[0, :])
+    f = np.array([tr.f_hz for tr in d.traces])
+    rms = np.array([np.sqrt(np.mean((tr.u_V - tr.model_V) ** 2)) for tr in d.traces if tr.model_V is not None])
+    ax0.plot(f, 1e3 * rms, "o-", color="C3")
+    ax0.set(xscale="log", xlabel="crank frequency f (Hz)", ylabel="residual RMS (mV)", ylim=(0, None))
+    ax0.grid(True, which="both", alpha=0.3)
+    for j, tr in enumerate(shown):
+        ax = fig.add_subplot(gs[1, j])
+        assert tr.model_V is not None
+        stride = max(1, tr.t_s.size // 2000)
+        ax.plot(tr.t_s[::stride], 1e3 * (tr.u_V - tr.model_V)[::stride], lw=0.6, color="C3")
+        ax.set_title(f"step {tr.index}: {tr.f_hz:.4g} Hz", fontsize=9)
+        ax.set(xlabel="t - t_centre (s)")
+        if j == 0:
+            ax.set_ylabel("force residual (mV)")
+        ax.grid(True, alpha=0.3)
+    fig.set_layout_engine("tight")
+    _title(fig, d, "Residuals: measured force signal - model")
+
+
+def _placeholder(fig: Figure, d: RunData, text: str) -> None:
+    ax = fig.subplots()
+    ax.axis("off")
+    ax.text(0.5, 0.5, text, ha="center", va="center", fontsize=11, wrap=True)
+    _title(fig, d, "Convergence")
+
+
+def _convergence(d: RunData, fig: Figure) -> None:
+    runs = sorted((r for r in d.results.values() if r.name.startswith("identify_")
+                   and r.payload.get("method") in PAPER_METHODS
+                   and (r.payload.get("extra") or {}).get("mse_history")), key=lambda r: r.name)
+    if runs:
+        ax = fig.subplots()
+        for r in runs:
+            ex = r.payload["extra"]
+            hist = np.maximum(np.asarray(ex["mse_history"], float), 1e-300)
+            stride = max(1, int(ex.get("n_iterations", len(hist) - 1)) // 200)
+            ax.semilogy(np.arange(hist.size) * stride, hist,
+                        label=f"{r.payload['method'].upper()} on {r.payload.get('model')} (seed {ex.get('seed')}), "
+                              f"converged at iteration {ex.get('iterations_to_converge')}")
+        ax.set(xlabel="iteration", ylabel="Gbest MSE (V², paper Eq. 15)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+        _title(fig, d, "Convergence of the particle swarm")
+        return
+    hist_runs = [r for r in d.results.values() if (r.payload.get("extra") or {}).get("cost_history")]
+    if hist_runs:
+        ax = fig.subplots()
+        for r in hist_runs:
+            ax.semilogy(np.asarray(r.payload["extra"]["cost_history"], float), "o-", label=r.name)
+        ax.set(xlabel="iteration", ylabel="cost")
+        ax.legend(fontsize=8)
+        _title(fig, d, "Convergence of the iterative fit")
+        return
+    _placeholder(fig, d, "No iterative method was run on this recording.\n\n"
+                 f"The identification shown ({d.ident.get('method')}, {d.ident.get('model')}) stores no "
+                 "iteration history.\nRun `station identify --method pso+ RECORDING` to see the "
+                 "paper's PSO+ convergence here.")
+
+
+_RENDERERS: dict[str, Callable[[RunData, Figure], None]] = {
+    "bode": _bode, "timefit": _timefit, "residuals": _residuals, "convergence": _convergence}
+
+
+def make_figure(data: RunData, name: str) -> Figure:
+    """The figure ``name`` of loaded run data (used by render_plot and the PDF report)."""
+    if name not in _RENDERERS:
+        raise KeyError(f"unknown plot {name!r}; expected one of {', '.join(PLOT_NAMES)}")
+    fig = _figure()
+    _RENDERERS[name](data, fig)
+    if fig.get_layout_engine() is None:
+        fig.set_layout_engine("tight")
+    return fig
+
+
+def render_plot(recording_path: Path, name: str) -> bytes:
+    """PNG of the plot ``name`` (one of PLOT_NAMES) for a recording.  KeyError for an unknown name;
+    RecordingFormatError when the recording is unreadable or has no results and none can be computed."""
+    if name not in _RENDERERS:
+        raise KeyError(f"unknown plot {name!r}; expected one of {', '.join(PLOT_NAMES)}")
+    return _png(make_figure(load_run(recording_path), name))
