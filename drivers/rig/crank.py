@@ -24,7 +24,7 @@ def displacement_coefficients(radius_m: float, harmonics: CrankHarmonics | None)
     if harmonics is None:
         return np.array([-1j * radius_m])
     L = harmonics.rod_length_m
-    if L <= radius_m:
+    if radius_m >= L:
         raise ValueError(f"rod_length_m must exceed the crank radius {radius_m} m, got {L} m")
     n = 512
     phi = 2 * np.pi * np.arange(n) / n
@@ -64,71 +64,62 @@ def cos_sin(phi0: float, dphi: float, c: float, n: int) -> tuple[np.ndarray, np.
     return e.real.copy(), e.imag.copy()
 
 
-def harmonics(cs: tuple[np.ndarray, np.ndarray], count: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """cos(k phi), sin(k phi) for k = 1..count by the Chebyshev recurrence (real arithmetic only)."""
+def harmonic_stack(cs: tuple[np.ndarray, np.ndarray], count: int) -> np.ndarray:
+    """Rows cos(k phi) for k = 1..count, then sin(k phi) for k = 1..count; shape (2*count, n).
+
+    Chebyshev recurrence: cos((k+1)p) = 2 cos(p) cos(kp) - cos((k-1)p), likewise for sin."""
     c1, s1 = cs
-    cos_k, sin_k = [c1], [s1]
+    out = np.empty((2 * count, c1.size))
+    out[0], out[count] = c1, s1
     if count > 1:
         two_c1 = 2.0 * c1
-        cos_k.append(two_c1 * c1 - 1.0)
-        sin_k.append(two_c1 * s1)
-        for _ in range(count - 2):
-            cos_k.append(two_c1 * cos_k[-1] - cos_k[-2])
-            sin_k.append(two_c1 * sin_k[-1] - sin_k[-2])
-    return cos_k, sin_k
+        np.multiply(two_c1, c1, out=out[1])
+        out[1] -= 1.0
+        np.multiply(two_c1, s1, out=out[count + 1])
+        for k in range(2, count):
+            np.multiply(two_c1, out[k - 1], out=out[k])
+            out[k] -= out[k - 2]
+            np.multiply(two_c1, out[count + k - 1], out=out[count + k])
+            out[count + k] -= out[count + k - 2]
+    return out
+
+
+def _weights(coeffs: np.ndarray) -> np.ndarray:
+    """Rows that give x, dx/dphi, d2x/dphi2, d3x/dphi3 from ``harmonic_stack``; shape (4, 2K).
+
+    With c_k = a_k - i b_k: x = sum a_k cos + b_k sin, x' = sum k (b_k cos - a_k sin),
+    x'' = -sum k^2 (a_k cos + b_k sin), x''' = -sum k^3 (b_k cos - a_k sin)."""
+    k = np.arange(1, coeffs.size + 1, dtype=float)
+    a, b = coeffs.real, -coeffs.imag
+    return np.array([np.concatenate([a, b]), np.concatenate([k * b, -k * a]),
+                     np.concatenate([-(k**2) * a, -(k**2) * b]), np.concatenate([-(k**3) * b, k**3 * a])])
 
 
 def _series(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """x(phi) and dx/dphi for x = sum_k a_k cos(k phi) + b_k sin(k phi), c_k = a_k - i b_k."""
-    cos_k, sin_k = harmonics(cs, coeffs.size)
-    a, b = coeffs.real, -coeffs.imag
-    x = np.zeros_like(cs[0])
-    dx = np.zeros_like(cs[0])
-    for k in range(coeffs.size):
-        if a[k] != 0.0:
-            x += a[k] * cos_k[k]
-            dx -= (k + 1) * a[k] * sin_k[k]
-        if b[k] != 0.0:
-            x += b[k] * sin_k[k]
-            dx += (k + 1) * b[k] * cos_k[k]
-    return x, dx
+    xd = np.einsum("ij,jk->ik", _weights(coeffs)[:2], harmonic_stack(cs, coeffs.size))  # no BLAS threads
+    return xd[0], xd[1]
 
 
 def evaluate(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray], omega: np.ndarray | float,
              alpha: float) -> Kinematics:
     """Kinematics of x_b(phi(t)); cs = (cos phi, sin phi), each (n,); omega: crank rate in rad/s,
     (n,) or a scalar for a steady block; alpha: angular acceleration in rad/s^2."""
+    w2 = omega * omega
     if coeffs.size == 1:
         a, b = coeffs.real[0], -coeffs.imag[0]
         c1, s1 = cs
         x = b * s1 if a == 0.0 else a * c1 + b * s1
         d1 = b * c1 if a == 0.0 else b * c1 - a * s1
-        w2 = omega * omega
         if alpha == 0.0:
             return Kinematics(displacement=x, acceleration=-w2 * x, jerk=-(w2 * omega) * d1)
         return Kinematics(displacement=x, acceleration=alpha * d1 - w2 * x,
                           jerk=-(w2 * omega) * d1 - 3.0 * alpha * omega * x)
-    else:
-        cos_k, sin_k = harmonics(cs, coeffs.size)
-        a, b = coeffs.real, -coeffs.imag
-        x = np.zeros_like(cs[0])
-        d1 = np.zeros_like(cs[0])
-        d2 = np.zeros_like(cs[0])
-        d3 = np.zeros_like(cs[0])
-        for i in range(coeffs.size):
-            k = i + 1
-            xk = a[i] * cos_k[i] + b[i] * sin_k[i]
-            dk = k * (b[i] * cos_k[i] - a[i] * sin_k[i])
-            x += xk
-            d1 += dk
-            d2 -= (k * k) * xk
-            d3 -= (k * k) * dk
-    w2 = omega * omega
+    x, d1, d2, d3 = np.einsum("ij,jk->ik", _weights(coeffs), harmonic_stack(cs, coeffs.size))
     if alpha == 0.0:
         return Kinematics(displacement=x, acceleration=d2 * w2, jerk=d3 * (w2 * omega))
-    acc = d2 * w2 + d1 * alpha
-    jerk = d3 * (w2 * omega) + 3.0 * alpha * d2 * omega
-    return Kinematics(displacement=x, acceleration=acc, jerk=jerk)
+    return Kinematics(displacement=x, acceleration=d2 * w2 + d1 * alpha,
+                      jerk=d3 * (w2 * omega) + 3.0 * alpha * d2 * omega)
 
 
 def displacement_at(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
