@@ -88,13 +88,15 @@ class StepDecomposition:
 
 
 def robust_sigma(residual: FloatArray) -> float:
-    """Noise standard deviation from the median periodogram bin (white Gaussian noise: the bins
-    are exponential with mean N sigma^2, median N sigma^2 ln 2).  Lines do not bias it."""
+    """Noise standard deviation from the median bin of the Hann-windowed periodogram (white Gaussian
+    noise: the bins are exponential with mean sigma^2 sum(w^2), median ln 2 times that).  Lines, whose
+    Hann leakage falls off as 1/k^3, do not bias it."""
     n = residual.size
-    spec = np.abs(np.fft.rfft(residual))[1:-1] ** 2
-    if spec.size < 8:
+    if n < 32:
         return float(np.std(residual))
-    return float(math.sqrt(np.median(spec) / (n * math.log(2.0))))
+    w = np.hanning(n)
+    spec = np.abs(np.fft.rfft(residual * w))[2:-1] ** 2
+    return float(math.sqrt(np.median(spec) / (float(w @ w) * math.log(2.0))))
 
 
 def windows_of(rec: Recording) -> list[StepWindow]:

@@ -76,8 +76,10 @@ def plan_steps(cfg: StationConfig, n_steps: int, f_lo: float = 5.0, f_hi: float 
 
 
 def scenario_config(effects: dict[str, dict[str, Any]], *, transducer: str = "5kN", n_steps: int = 6,
-                    record_s: float = 1.0, settle_s: float = 0.3, seed: int = 1) -> StationConfig:
-    """A simulated-station configuration with the given effects and a short stepped-sine plan."""
+                    record_s: float = 1.0, settle_s: float = 0.3, seed: int = 1,
+                    noise: bool = True) -> StationConfig:
+    """A simulated-station configuration with the given effects and a short stepped-sine plan
+    (``noise=False``: no sensor or conditioner noise, only the ADC's quantisation)."""
     root = Path(__file__).resolve().parents[2] / "config"
     cfg = load_config(root / CONFIGS[transducer])
     d = cfg.model_dump(exclude_none=True)
@@ -85,6 +87,9 @@ def scenario_config(effects: dict[str, dict[str, Any]], *, transducer: str = "5k
     d["plan"] = {"settle_s": settle_s, "record_s": record_s, "steps": plan_steps(cfg, n_steps)}
     d["simulation"]["effects"] = effects
     d["simulation"]["seed"] = seed
+    if not noise:
+        d["simulation"]["conditioner_noise_V"] = 0.0
+        d["simulation"]["displacement_noise_m"] = 0.0
     return parse_config(d)
 
 

@@ -1,0 +1,152 @@
+"""Model-gap workflow end to end (issue 7): every catalogue effect, drawn at random from its plausible
+range with several seeds, is switched on in a simulated recording that the base model lacks; the
+workflow must name it first, estimate its parameters within their stated uncertainty (|error| <= 4
+standard uncertainties), shrink the gap to within 1.5x the noise floor and recover k_f (0.1 %) and b_f
+(2 %).  Also: nothing is named without an effect, two effects are both found, and structure outside
+the catalogue (sidebands, in an imported run) ends in ``unexplained``."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from station.cli import main as station_main
+from station.discrepancy import analyse_recording
+from station.discrepancy.catalogue import CATALOGUE
+from station.discrepancy.report import DiscrepancyReport
+from station.discrepancy.scenarios import draw_scenario, scenario_config, simulate_scenario
+from station.interchange import export_run, import_run
+
+Z_MAX = 4.0
+SEEDS = (101, 202)
+
+
+def _truth_params(name: str, cfg: dict[str, Any]) -> dict[str, float]:
+    """Catalogue configuration -> the names the report uses."""
+    if name == "conditioner_lowpass":
+        return {"cutoff_hz": cfg["cutoff_hz"]}
+    if name == "mains_interference":
+        out = {"frequency_hz": cfg["frequency_hz"]}
+        for h, (a, p) in enumerate(zip(cfg["amplitudes_V"], cfg["phases_rad"], strict=True), start=1):
+            out[f"amplitude_V_{h}"], out[f"phase_rad_{h}"] = a, p
+        return out
+    return {k: float(v) for k, v in cfg.items()}
+
+
+def _check_params(rep: DiscrepancyReport, name: str, cfg: dict[str, Any]) -> None:
+    eff = next(e for e in rep.effects if e.name == name)
+    truth = _truth_params(name, cfg)
+    if name == "conditioner_lowpass" and eff.params["order"].identifiable:
+        assert eff.params["order"].value == cfg["order"]
+    for k, true in truth.items():
+        est = eff.params[k]
+        assert est.identifiable, f"{name}.{k}: {est.reason}"
+        err = est.value - true
+        if k.startswith("phase_rad"):
+            err = (err + math.pi) % (2 * math.pi) - math.pi
+        assert abs(err) <= Z_MAX * est.std, f"{name}.{k} = {est.value:.6g} ± {est.std:.2g}, true {true:.6g}"
+
+
+def _transducer_ok(rep: DiscrepancyReport, coupling: bool) -> None:
+    cfg = scenario_config({})
+    assert cfg.simulation is not None
+    kf, bf = cfg.simulation.truth.k_f, cfg.simulation.truth.b_f
+    p = rep.parameters_after
+    ekf, ebf = abs(p["k_f"].value / kf - 1), abs(p["b_f"].value / bf - 1)
+    if coupling:
+        # k_f and k_c trade off below the resonances: the data determine k_f only to its stated
+        # uncertainty (about 0.3 % with these records), which the report must carry honestly
+        assert ekf * kf <= Z_MAX * p["k_f"].std and ebf * bf <= Z_MAX * p["b_f"].std
+    else:
+        assert ekf <= 1e-3, f"k_f off by {100 * ekf:.3g} %"
+        assert ebf <= 2e-2, f"b_f off by {100 * ebf:.3g} %"
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("name", CATALOGUE)
+def test_each_catalogue_effect_is_named_estimated_and_removed(name: str, seed: int, tmp_path: Path) -> None:
+    eff = draw_scenario([name], seed=seed)
+    rep = analyse_recording(simulate_scenario(eff, tmp_path, seed=seed))
+    assert rep.effects, f"nothing named for {eff}; rejected {rep.rejected}"
+    assert rep.effects[0].name == name, f"{[e.name for e in rep.effects]} for {eff}"
+    assert rep.base_gap > rep.final_gap  # the effect made a gap the workflow removed
+    assert rep.final_gap <= 1.5 * rep.noise_floor_V
+    assert rep.effects[0].gap_after < rep.base_gap
+    _check_params(rep, name, eff[name])
+    _transducer_ok(rep, coupling=name == "coupling_compliance")
+    # the bias of the base model is visible in its parameters when the effect acts on the fundamental
+    if name in ("conditioner_lowpass", "coupling_compliance"):
+        assert rep.parameters_before["k_f"].value != pytest.approx(rep.parameters_after["k_f"].value, rel=1e-3)
+
+
+@pytest.mark.parametrize("seed", (3, 4))
+def test_no_effect_names_nothing(seed: int, tmp_path: Path) -> None:
+    rep = analyse_recording(simulate_scenario({}, tmp_path, seed=seed))
+    assert rep.effects == ()
+    assert rep.final_gap == rep.base_gap <= 1.5 * rep.noise_floor_V
+    _transducer_ok(rep, coupling=False)
+
+
+@pytest.mark.parametrize(("names", "seed"), [(("transducer_nonlinearity", "crank_harmonics"), 5),
+                                             (("mains_interference", "zero_drift"), 6),
+                                             (("channel_delay", "transducer_nonlinearity"), 7)])
+def test_two_effects_are_both_found(names: tuple[str, str], seed: int, tmp_path: Path) -> None:
+    eff = draw_scenario(list(names), seed=seed)
+    rep = analyse_recording(simulate_scenario(eff, tmp_path, seed=seed))
+    assert sorted(e.name for e in rep.effects) == sorted(names), f"{rep.effects} for {eff}"
+    assert rep.final_gap <= 1.5 * rep.noise_floor_V
+    _transducer_ok(rep, coupling=False)
+
+
+def _add_sidebands(run_yaml: Path, steps: range, ratio: float, amp_V: float, seed: int) -> None:
+    """Amplitude-modulation sidebands at f (1 +- ratio) added to the force column of some steps."""
+    rng = np.random.default_rng(seed)
+    doc = yaml.safe_load(run_yaml.read_text())
+    for i, st in enumerate(doc["steps"]):
+        if i not in steps:
+            continue
+        f = run_yaml.parent / st["file"]
+        d = np.loadtxt(f, delimiter=",", skiprows=1)
+        w = 2 * np.pi * st["crank_frequency_hz"]
+        ph = rng.uniform(-np.pi, np.pi, 2)
+        d[:, 2] += amp_V * (np.cos((1 + ratio) * w * d[:, 0] + ph[0]) + np.cos((1 - ratio) * w * d[:, 0] + ph[1]))
+        np.savetxt(f, d, delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
+
+
+def test_effect_outside_the_catalogue_is_unexplained_not_misnamed(tmp_path: Path) -> None:
+    """Sidebands at f +- 0.4 f in steps 3-5 of an imported run: no catalogue name, located instead."""
+    rng = np.random.default_rng(9)
+    ratio, amp = float(rng.uniform(0.25, 0.45)), float(rng.uniform(1e-3, 3e-3))
+    run = export_run(simulate_scenario({}, tmp_path / "sim", seed=9), tmp_path / "exp")
+    _add_sidebands(run, range(3, 6), ratio, amp, seed=9)
+    rep = analyse_recording(import_run(run, tmp_path / "imp"))
+    assert rep.effects == (), [e.name for e in rep.effects]
+    want = f"sidebands at f ± {ratio:.2f} f"
+    hits = [u for u in rep.unexplained if want in u]
+    assert hits and "steps 3–5" in hits[0], rep.unexplained
+    assert rep.final_gap > 1.5 * rep.noise_floor_V  # the gap is left, and said to be left
+
+
+def test_cli_json_contract_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    eff = draw_scenario(["transducer_nonlinearity"], seed=12)
+    rec = simulate_scenario(eff, tmp_path, seed=12)
+    png = tmp_path / "gap.png"
+    assert station_main(["discrepancy", str(rec), "--json", "--plot", str(png), "--max-effects", "2"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) == {"base_gap", "effects", "final_gap", "parameters_before", "parameters_after",
+                        "unexplained"}
+    assert isinstance(out["base_gap"], float) and isinstance(out["final_gap"], float)
+    assert [e["name"] for e in out["effects"]] == ["transducer_nonlinearity"]
+    for e in out["effects"]:
+        assert set(e) == {"name", "params", "gap_after", "evidence"} and isinstance(e["evidence"], str)
+    for key in ("parameters_before", "parameters_after"):
+        for p in ("S", "k_f", "b_f"):
+            assert set(out[key][p]) >= {"value", "std", "unit", "identifiable"}
+    assert out["parameters_after"]["k_f"]["unit"] == "N/m"
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
