@@ -1,0 +1,208 @@
+"""Calibration report and result plots (station.report): PNGs of the stated size that depend on the
+data, stored results preferred over computing, the identified values and uncertainties in the HTML
+exactly as the identification gives them, identifiability, the discrepancy workflow's effects, PDF."""
+
+from __future__ import annotations
+
+import base64
+import copy
+import re
+import shutil
+import struct
+import time
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+
+from station.config import default_config_path, load_config, parse_config
+from station.errors import RecordingFormatError
+from station.ident.api import identify_recording
+from station.recording import read_recording, write_results
+from station.report import PLOT_NAMES, render_plot, render_report, render_report_pdf
+from station.report.data import load_run
+from station.report.plots import FIG_SIZE_PX
+from station.report.quantities import fmt_unc, fmt_value
+from station.run.processing import process_recording
+from station.simulate import simulate_run
+from tests.conftest import make_fast_dict
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def full_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The shipped 5-step plan (its 4 Hz step is long enough for the paper's PSO+ protocol); read-only."""
+    return simulate_run(load_config(default_config_path()), tmp_path_factory.mktemp("full"), seed=3)
+
+
+def _copy(src: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / src.name
+    shutil.copy(src, dst)
+    return dst
+
+
+def _png_size(png: bytes) -> tuple[int, int]:
+    assert png[:8] == PNG_MAGIC, "not a PNG"
+    assert png[12:16] == b"IHDR"
+    return struct.unpack(">II", png[16:24])
+
+
+def _cell(page: str, key: str) -> tuple[str, float | None]:
+    """Displayed text and data-value of the table cell with data-key=key."""
+    m = re.search(rf'<td[^>]*data-key="{re.escape(key)}"[^>]*>([^<]*)</td>', page)
+    assert m, f"no cell {key!r} in the report"
+    v = re.search(r'data-value="([^"]+)"', m.group(0))
+    return m.group(1), (float(v.group(1)) if v else None)
+
+
+# -- plots -------------------------------------------------------------------------------------------
+
+def test_plots_are_pngs_of_the_stated_size_and_deterministic(sim_recording: Path) -> None:
+    for name in PLOT_NAMES:
+        png = render_plot(sim_recording, name)
+        assert _png_size(png) == FIG_SIZE_PX, name
+        assert len(png) > 10_000, f"{name}: suspiciously small PNG"
+    first = {n: render_plot(sim_recording, n) for n in PLOT_NAMES}
+    from station.report import data as data_mod
+    data_mod._load.cache_clear()  # render again from the file: same bytes
+    assert {n: render_plot(sim_recording, n) for n in PLOT_NAMES} == first
+    assert len(set(first.values())) == len(PLOT_NAMES), "two plots gave the same image"
+
+
+def test_plots_differ_between_recordings(sim_recording: Path, sim_recording_one_radius: Path) -> None:
+    for name in ("bode", "timefit", "residuals"):
+        assert render_plot(sim_recording, name) != render_plot(sim_recording_one_radius, name), name
+
+
+def test_plot_time_with_the_recording_loaded(full_recording: Path) -> None:
+    render_plot(full_recording, "bode")  # load and fit once (cached)
+    for name in PLOT_NAMES:
+        t0 = time.perf_counter()
+        render_plot(full_recording, name)
+        assert time.perf_counter() - t0 < 1.5, f"{name} took too long"  # ~0.1-0.3 s unloaded
+
+
+def test_unknown_plot_and_unusable_recordings(sim_recording: Path, tmp_path: Path) -> None:
+    with pytest.raises(KeyError, match="unknown plot 'nyquist'"):
+        render_plot(sim_recording, "nyquist")
+    with pytest.raises(RecordingFormatError, match="no such recording"):
+        render_plot(tmp_path / "missing.h5", "bode")
+    bad = _copy(sim_recording, tmp_path)
+    with h5py.File(bad, "r+") as f:  # every step lost samples: nothing can be identified
+        f["steps/lost_in_window"][...] = 5
+    with pytest.raises(RecordingFormatError, match="no identification results stored"):
+        render_plot(bad, "bode")
+    with pytest.raises(RecordingFormatError, match="no identification results stored"):
+        render_report(bad)
+
+
+def test_convergence_shows_a_stored_pso_history(full_recording: Path, tmp_path: Path) -> None:
+    rec_path = _copy(full_recording, tmp_path)
+    placeholder = render_plot(rec_path, "convergence")
+    res = identify_recording(read_recording(rec_path), "pso+", seed=1)
+    assert len(res.extra["mse_history"]) > 100
+    write_results(rec_path, f"identify_{res.method}_{res.model}", res.to_dict())
+    shown = render_plot(rec_path, "convergence")
+    assert _png_size(shown) == FIG_SIZE_PX
+    assert shown != placeholder
+    page = render_report(rec_path)
+    assert "No iterative method was run" not in page  # the report's fd result is computed; the plot is PSO+
+
+
+# -- HTML report -------------------------------------------------------------------------------------
+
+def test_report_shows_the_stored_identification_with_u_and_U(sim_recording: Path, tmp_path: Path) -> None:
+    rec_path = _copy(sim_recording, tmp_path)
+    res = identify_recording(read_recording(rec_path))
+    write_results(rec_path, f"identify_{res.method}_{res.model}", res.to_dict())
+    page = render_report(rec_path)
+    assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
+    assert f"/results/identify_fd_{res.model}" in page
+    for name in ("S", "k_f", "b_f"):
+        p = res.parameter(name)
+        text, value = _cell(page, f"param.{name}")
+        assert value == p.value and text == fmt_value(p.value, p.std)
+        text, u = _cell(page, f"param.{name}.u")
+        assert u == p.std and text == fmt_unc(p.std)
+        _, big_u = _cell(page, f"param.{name}.U")
+        assert big_u == pytest.approx(2 * p.std, rel=1e-12)
+    assert "N/m" in page and "N*s/m" in page and "V/N" in page and "Hz" in page
+    rec = read_recording(rec_path)
+    for text in (rec.transducer_id, rec.run_id, "completed", "25.717 kg", "0 in 0 gap(s)", rec.software_version):
+        assert text in page
+    # self-contained: every image inline, nothing fetched
+    assert not re.search(r'(src|href)="(?!data:)', page)
+    imgs = re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', page)
+    assert len(imgs) == len(PLOT_NAMES)
+    assert all(base64.b64decode(b)[:8] == PNG_MAGIC for b in imgs)
+
+
+def test_report_prefers_a_stored_result_and_processed_steps(sim_recording: Path, tmp_path: Path) -> None:
+    rec_path = _copy(sim_recording, tmp_path)
+    payload = identify_recording(read_recording(rec_path)).to_dict()
+    payload["parameters"]["k_f"].update(value=1.2345e7, std=3.1e3)  # not what the data give: proves use
+    write_results(rec_path, "identify_fd_sdof", payload)
+    cfg = parse_config(make_fast_dict(), "fast")
+    steps = process_recording(rec_path, cfg.processing)
+    page = render_report(rec_path)
+    assert _cell(page, "param.k_f")[1] == 1.2345e7
+    assert _cell(page, "param.k_f.u")[1] == 3.1e3
+    assert "Measured points from /processed/steps" in page
+    M = load_run(rec_path).mass_kg
+    for i, st in enumerate(steps):
+        assert _cell(page, f"sdyn.{i}")[1] == pytest.approx(abs(st.H) / M, rel=1e-12)
+        assert _cell(page, f"phase.{i}")[1] == pytest.approx(np.degrees(np.angle(-st.H)), abs=1e-9)
+
+
+def test_single_frequency_says_not_identifiable(tmp_path: Path) -> None:
+    d = make_fast_dict()
+    d["plan"]["steps"] = [{"crank_frequency_hz": 20.0, "crank_radius_m": 0.001}]
+    rec_path = simulate_run(parse_config(d, "one-step"), tmp_path)
+    res = identify_recording(read_recording(rec_path))
+    assert not res.parameter("k_f").identifiable
+    page = render_report(rec_path)
+    assert f"not identifiable: {res.parameter('k_f').reason}"[:60] in page
+    text, value = _cell(page, "param.k_f")
+    assert value is None and text.startswith("not identifiable: ")  # a reason, no digits for k_f
+    assert 'data-key="param.k_f.u"' not in page
+    assert "model curve not drawn" in page
+    for name in PLOT_NAMES:
+        assert _png_size(render_plot(rec_path, name)) == FIG_SIZE_PX
+
+
+def _discrepancy_payload() -> dict[str, Any]:
+    est = {"value": 1.0e9, "std": 2.0e7, "unit": "N/m", "identifiable": True}
+    return {"base_gap": 0.0123, "final_gap": 0.00051, "noise_floor_V": 0.0005,
+            "effects": [{"name": "coupling_compliance",
+                         "params": {"k_c": est, "b_c": {"value": None, "std": None, "unit": "N*s/m",
+                                                        "identifiable": False, "reason": "b_c at its bound"}},
+                         "gap_after": 0.0021, "evidence": "Delta chi2 = 5000 <script>alert(1)</script>"},
+                        {"name": "channel_delay", "params": {"delay_s": {"value": 2.5e-5, "std": 1e-6, "unit": "s",
+                                                                         "identifiable": True}},
+                         "gap_after": 0.00051, "evidence": "p = 1e-30"}],
+            "parameters_before": {"k_f": {"value": 2.8e7, "std": 1e3, "unit": "N/m", "identifiable": True}},
+            "parameters_after": {"k_f": {"value": 2.91e7, "std": 1.1e3, "unit": "N/m", "identifiable": True}},
+            "unexplained": ["a line at 137 Hz in step 2"]}
+
+
+def test_report_names_the_discrepancy_effects(sim_recording: Path, tmp_path: Path) -> None:
+    rec_path = _copy(sim_recording, tmp_path)
+    assert "has not been run on this recording" in render_report(rec_path)
+    write_results(rec_path, "discrepancy", copy.deepcopy(_discrepancy_payload()))
+    page = render_report(rec_path)
+    for text in ("coupling_compliance", "channel_delay", "a line at 137 Hz in step 2", "0.012 V", "5.1e-04 V",
+                 "not identifiable: b_c at its bound", "2.50e-05 ± 1.0e-06 s"):
+        assert text in page, text
+    assert "<script>" not in page and "&lt;script&gt;" in page
+    assert _cell(page, "disc.before.k_f")[1] == 2.8e7
+    assert _cell(page, "disc.after.k_f.u")[1] == 1.1e3
+
+
+def test_pdf_report(sim_recording: Path) -> None:
+    pdf = render_report_pdf(sim_recording)
+    assert pdf.startswith(b"%PDF") and pdf.rstrip().endswith(b"%%EOF")
+    assert len(re.findall(rb"/Type /Page\b", pdf)) == 1 + len(PLOT_NAMES)
+    assert render_report_pdf(sim_recording) == pdf
