@@ -203,6 +203,21 @@ class DevicesConfig(_Model):
                                   description="radius the crank is set to by hand (real rig)")
 
 
+class ServiceSection(_Model):
+    """The daemon (``station serve``): where it listens, its API token, its database, its workers.
+
+    The token may also come from the environment variable STATION_TOKEN (which wins)."""
+
+    host: str = Field(default="127.0.0.1", min_length=1, description="listen address (loopback by default)")
+    port: int = Field(default=8080, ge=0, le=65535, description="TCP port (0: any free port)")
+    token: str | None = Field(default=None, min_length=8, max_length=256, pattern=r"^[\x21-\x7e]+$",
+                              description="bearer token for the endpoints that move the rig or change state")
+    database: str = Field(default="station.db", min_length=1,
+                          description="SQLite file of runs and jobs; relative paths are in recordings_dir")
+    workers: int = Field(default=1, ge=0, le=16, description="identification worker processes "
+                         "(0: jobs wait in the queue until a daemon with workers runs)")
+
+
 class StationConfig(_Model):
     """A whole station configuration file."""
 
@@ -216,6 +231,7 @@ class StationConfig(_Model):
     processing: ProcessingConfig = ProcessingConfig()
     devices: DevicesConfig = DevicesConfig()
     simulation: SimulationConfig | None = None
+    service: ServiceSection = ServiceSection()
 
 
 def _field_bounds(loc: tuple[Any, ...]) -> list[str]:
@@ -278,8 +294,9 @@ def load_config(path: str | Path) -> StationConfig:
 
 
 def config_to_yaml(cfg: StationConfig) -> str:
-    """The configuration as YAML (the snapshot stored in every recording)."""
-    return yaml.safe_dump(cfg.model_dump(mode="json", exclude_none=True), sort_keys=False)
+    """The configuration as YAML (the snapshot stored in every recording; never the API token)."""
+    return yaml.safe_dump(cfg.model_dump(mode="json", exclude_none=True, exclude={"service": {"token"}}),
+                          sort_keys=False)
 
 
 def default_config_path() -> Path:

@@ -11,4 +11,5 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.paper",
     "station.commands.calibrate",
     "station.commands.discrepancy",
+    "station.commands.serve",
 )

@@ -1,0 +1,92 @@
+"""The FastAPI application: ``create_app(settings)``.
+
+The app owns one RunManager (rig connection, runs, job queue) for its lifetime: started in the
+lifespan, closed on shutdown (a run on the rig is stopped first).  Service errors are mapped to
+HTTP statuses here; nothing below the API layer knows about HTTP.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+from starlette.middleware.trustedhost import TrustedHostMiddleware
+
+from station import __version__
+from station.api.routes import runs, system
+from station.errors import StationError
+from station.service.manager import (
+    FeatureUnavailableError,
+    RigBusyError,
+    RigUnavailableError,
+    RunManager,
+    RunNotFoundError,
+    RunStateError,
+)
+from station.service.settings import ServiceSettings
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(__file__).resolve().parent / "static"
+
+DESCRIPTION = """Calibration-station daemon: start stepped-sine calibration runs on the sine-mechanism
+rig, follow them live, read the identified transducer parameters, plots, report and recording.
+
+Endpoints that move the rig or change state (`POST /runs`, `POST /runs/{id}/abort`) need the bearer
+token (`service.token` or `STATION_TOKEN`); reading is open on loopback; `POST /stop` (emergency
+stop) is always accepted.  Units are SI and part of every field name."""
+
+
+def _error(status: int, exc: Exception) -> JSONResponse:
+    return JSONResponse({"detail": str(exc)}, status_code=status)
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    statuses: list[tuple[type[Exception], int]] = [
+        (RunNotFoundError, 404), (RunStateError, 409), (RigBusyError, 409), (FeatureUnavailableError, 501),
+        (RigUnavailableError, 503)]
+    for cls, code in statuses:
+        def handler(request: Request, exc: Exception, code: int = code) -> JSONResponse:
+            return _error(code, exc)
+        app.add_exception_handler(cls, handler)
+
+    async def station_error(request: Request, exc: Exception) -> JSONResponse:
+        # a recording that cannot be read or written right now (locked by another process, damaged)
+        log.warning("%s %s: %s", request.method, request.url.path, exc)
+        return _error(503, exc)
+    app.add_exception_handler(StationError, station_error)
+    app.add_exception_handler(OSError, station_error)
+
+
+def create_app(settings: ServiceSettings, *,
+               manager_factory: Callable[[ServiceSettings], RunManager] | None = None) -> FastAPI:
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        manager = (manager_factory or RunManager)(settings)
+        app.state.manager = manager
+        await manager.start()
+        try:
+            yield
+        finally:
+            await manager.close()
+
+    app = FastAPI(title="sinecal station", version=__version__, description=DESCRIPTION, lifespan=lifespan)
+    app.state.settings = settings
+    if settings.loopback_only:  # refuse other Host headers (DNS rebinding against the open reads)
+        app.add_middleware(TrustedHostMiddleware,
+                           allowed_hosts=["127.0.0.1", "localhost", "::1", "[::1]"])
+    install_error_handlers(app)
+    app.include_router(runs.router)
+    app.include_router(system.router)
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    @app.get("/", include_in_schema=False)
+    async def index() -> FileResponse:
+        return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
+
+    return app

@@ -1,0 +1,181 @@
+"""/runs: start, list, follow, abort runs; their results, plots, report, recording, discrepancy."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterable
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Path, Query, Request, Response, status
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import HTMLResponse, StreamingResponse
+from fastapi.sse import EventSourceResponse, ServerSentEvent
+
+from station.api.deps import ManagerDep, Reader, RunDep, Writer
+from station.api.schemas import (
+    AbortOut,
+    DiscrepancyOut,
+    ErrorOut,
+    PlannedStepOut,
+    RunAccepted,
+    RunLinks,
+    RunList,
+    RunResults,
+    RunState,
+    RunStatus,
+    ValidationErrorOut,
+    utc,
+)
+from station.run.request import RunRequest
+from station.service.manager import RequestLimitError, RunStateError
+from station.service.results import load_results
+from station.service.store import FINAL_STATES, RunRow
+
+router = APIRouter(prefix="/runs", tags=["runs"])
+
+E401 = {401: {"model": ErrorOut, "description": "bearer token missing or wrong"}}
+E404 = {404: {"model": ErrorOut, "description": "no such run"}}
+E409 = {409: {"model": ErrorOut, "description": "the run is not in a state that allows this"}}
+E422 = {422: {"model": ValidationErrorOut, "description": "invalid or unsafe parameters; `loc` names the field"}}
+E501 = {501: {"model": ErrorOut, "description": "the module behind this endpoint is not installed"}}
+E503 = {503: {"model": ErrorOut, "description": "the recording or the rig cannot be reached right now"}}
+
+
+def links(run_id: str) -> RunLinks:
+    base = f"/runs/{run_id}"
+    return RunLinks(self=base, events=f"{base}/events", results=f"{base}/results",
+                    recording=f"{base}/recording", abort=f"{base}/abort")
+
+
+def status_of(row: RunRow) -> RunStatus:
+    steps = [PlannedStepOut(**{k: s[k] for k in PlannedStepOut.model_fields}) for s in row.plan.get("steps", [])]
+    return RunStatus(id=row.id, state=row.state, transducer_id=row.transducer_id,  # type: ignore[arg-type]
+                     top_mass_kg=row.top_mass_kg, created=utc(row.created), started=utc(row.started),  # type: ignore[arg-type]
+                     ended=utc(row.ended), current_step=row.step, n_steps=row.n_steps, step_state=row.step_state,
+                     progress=min(1.0, max(0.0, row.fraction)), samples=row.samples,
+                     lost_samples=row.lost_samples, message=row.message, reason=row.reason,
+                     recording=row.recording, steps=steps, links=links(row.id))
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=RunAccepted, dependencies=[Writer],
+             responses={**E401, **E422, 409: {"model": ErrorOut, "description": "another run holds the rig"},
+                        503: {"model": ErrorOut, "description": "the rig is not connected"}},
+             summary="Start a calibration run")
+async def start_run(body: RunRequest, manager: ManagerDep, response: Response) -> RunAccepted:
+    """Check the request against the rig and transducer limits, then queue it on the rig.  Step
+    fields other than frequency and radius default to the configured plan's."""
+    try:
+        row = await manager.submit(body)
+    except RequestLimitError as exc:
+        raise RequestValidationError([{"type": "limit_error", "loc": list(exc.loc), "msg": str(exc),
+                                       "input": exc.value}]) from None
+    response.headers["Location"] = f"/runs/{row.id}"
+    return RunAccepted(id=row.id, state=row.state, links=links(row.id))  # type: ignore[arg-type]
+
+
+@router.get("", response_model=RunList, dependencies=[Reader], responses={**E401, **E422},
+            summary="List runs, newest first")
+async def list_runs(manager: ManagerDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+                    state: Annotated[list[RunState] | None, Query()] = None) -> RunList:
+    rows = manager.list(limit=limit, states=list(state) if state else None)
+    return RunList(count=len(rows), runs=[status_of(r) for r in rows])
+
+
+@router.get("/{run_id}", response_model=RunStatus, dependencies=[Reader], responses={**E401, **E404, **E422},
+            summary="A run's state and progress")
+async def get_run(run: RunDep) -> RunStatus:
+    return status_of(run)
+
+
+@router.get("/{run_id}/events", response_class=EventSourceResponse, dependencies=[Reader],
+            responses={**E401, **E404, **E422}, summary="Live progress (server-sent events)")
+async def run_events(run: RunDep, manager: ManagerDep, request: Request) -> AsyncIterable[ServerSentEvent]:
+    """Event `status` (data: the RunStatus JSON) on every change, at most a few per second; event
+    `end` with the final status once the run is completed, aborted, failed or interrupted."""
+    run_id = run.id
+    version = -1
+    last: dict[str, Any] | None = None
+    while True:
+        cur = manager.version(run_id)
+        st = status_of(manager.get(run_id))
+        data = st.model_dump(mode="json")
+        if data != last:
+            last = data
+            yield ServerSentEvent(data=data, event="status", id=str(cur))
+        if st.state in FINAL_STATES:
+            yield ServerSentEvent(data=data, event="end", id=str(cur))
+            return
+        if manager.closing.is_set() or await request.is_disconnected():
+            return
+        version = cur
+        await manager.wait_change(run_id, version, 10.0)
+
+
+@router.get("/{run_id}/results", response_model=RunResults, dependencies=[Reader],
+            responses={**E401, **E404, **E409, **E422, **E503}, summary="Identified parameters, H(f), fit")
+async def run_results(run: RunDep, manager: ManagerDep) -> RunResults:
+    if run.state != "completed" or not run.result_name:
+        raise RunStateError(f"run {run.id} is {run.state}: results exist once a run is completed"
+                            + (f" ({run.reason})" if run.reason else ""))
+    data = await manager.read_file(run.id, lambda p: load_results(p, run.result_name or ""))
+    caps = await manager.capabilities()
+    base = f"/runs/{run.id}"
+    plots = {n: f"{base}/plots/{n}.png" for n in (caps.get("plots") or [])}
+    return RunResults(id=run.id, state=run.state, recording=run.recording or "",  # type: ignore[arg-type]
+                      plots=plots, report=f"{base}/report" if caps.get("report") else None,
+                      discrepancy=f"{base}/discrepancy", lost_samples=run.lost_samples, **data)
+
+
+@router.get("/{run_id}/plots/{name}.png", response_class=Response, dependencies=[Reader],
+            responses={200: {"content": {"image/png": {}}, "description": "PNG image"},
+                       **E401, **E404, **E409, **E422, **E501, **E503},
+            summary="A plot: bode, timefit, residuals, convergence, ...")
+async def run_plot(run: RunDep, manager: ManagerDep,
+                   name: Annotated[str, Path(pattern=r"^[A-Za-z0-9_\-]{1,64}$")]) -> Response:
+    png = await manager.plot(run.id, name)
+    if png is None:
+        caps = await manager.capabilities()
+        return Response(ErrorOut(detail=f"no plot {name!r}; available: "
+                                        f"{', '.join(caps.get('plots') or [])}").model_dump_json(),
+                        status_code=404, media_type="application/json")
+    return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
+
+
+@router.get("/{run_id}/report", response_class=HTMLResponse, dependencies=[Reader],
+            responses={200: {"content": {"text/html": {}}}, **E401, **E404, **E409, **E422, **E501, **E503},
+            summary="The calibration report (HTML)")
+async def run_report(run: RunDep, manager: ManagerDep) -> HTMLResponse:
+    return HTMLResponse(await manager.report(run.id))
+
+
+@router.get("/{run_id}/recording", response_class=StreamingResponse, dependencies=[Reader],
+            responses={200: {"content": {"application/x-hdf5": {}}, "description": "the HDF5 recording"},
+                       **E401, **E404, **E409, **E422, **E503},
+            summary="Download the HDF5 recording")
+async def run_recording(run: RunDep, manager: ManagerDep) -> StreamingResponse:
+    if run.state not in FINAL_STATES:
+        raise RunStateError(f"run {run.id} is {run.state}: its recording is still being written; "
+                            "download it once the run has ended")
+    path = manager.recording_path(run)
+    return StreamingResponse(manager.stream_file(run.id), media_type="application/x-hdf5",
+                             headers={"Content-Disposition": f'attachment; filename="{path.name}"',
+                                      "Content-Length": str(path.stat().st_size)})
+
+
+@router.get("/{run_id}/discrepancy", response_model=DiscrepancyOut, dependencies=[Reader],
+            responses={**E401, **E404, **E409, **E422, **E501, **E503},
+            summary="Model-gap analysis of the run (issue 7)")
+async def run_discrepancy(run: RunDep, manager: ManagerDep,
+                          max_effects: Annotated[int, Query(ge=0, le=8)] = 4) -> DiscrepancyOut:
+    """Which catalogue effect the measurement shows that the model lacks; computed once in a
+    worker process and cached in the recording's results."""
+    from station.service.results import finite
+
+    return DiscrepancyOut.model_validate(finite(await manager.discrepancy(run.id, max_effects)))
+
+
+@router.post("/{run_id}/abort", status_code=status.HTTP_202_ACCEPTED, response_model=AbortOut,
+             dependencies=[Writer], responses={**E401, **E404, **E409, **E422}, summary="Abort a run")
+async def abort_run(run: RunDep, manager: ManagerDep) -> AbortOut:
+    """The crank ramps down, the recording is closed with the reason; the run ends `aborted`."""
+    row = manager.abort(run.id, "aborted by operator")
+    return AbortOut(id=row.id, state=row.state, detail="abort requested; the crank ramps down")  # type: ignore[arg-type]

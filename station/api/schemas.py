@@ -1,0 +1,242 @@
+"""Request and response schemas of the HTTP API (the OpenAPI document is generated from these).
+
+The request body of ``POST /runs`` is ``station.run.request.RunRequest`` itself (one definition
+for the daemon, the CLI and the nightly batch); everything else here is a response.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+RunState = Literal["queued", "running", "identifying", "completed", "aborted", "failed", "interrupted"]
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+def utc(ts: float | None) -> datetime | None:
+    return None if ts is None else datetime.fromtimestamp(ts, UTC)
+
+
+class ErrorOut(_Out):
+    detail: str = Field(description="what went wrong, for the operator")
+
+
+class FieldError(_Out):
+    loc: list[str | int] = Field(description="where the offending value is, e.g. ['body', 'steps', 1, "
+                                 "'crank_radius_m']")
+    msg: str
+    type: str
+    input: Any = None
+
+
+class ValidationErrorOut(_Out):
+    detail: list[FieldError]
+
+
+class RunLinks(_Out):
+    self: str
+    events: str
+    results: str
+    recording: str
+    abort: str
+
+
+class PlannedStepOut(_Out):
+    index: int
+    crank_frequency_hz: float = Field(description="Hz")
+    crank_radius_m: float = Field(description="m")
+    settle_s: float = Field(description="s")
+    record_s: float = Field(description="s")
+
+
+class RunStatus(_Out):
+    """A run's state and live progress."""
+
+    id: str
+    state: RunState
+    transducer_id: str
+    top_mass_kg: float
+    created: datetime
+    started: datetime | None
+    ended: datetime | None
+    current_step: int | None = Field(description="index of the step on the rig (0-based), None before the first")
+    n_steps: int
+    step_state: str = Field(description="ramping, settling, recording or done")
+    progress: float = Field(ge=0, le=1, description="fraction of the acquisition done")
+    samples: int = Field(description="samples acquired so far")
+    lost_samples: int = Field(description="samples the DAQ link lost in this run (0 expected)")
+    message: str
+    reason: str = Field(description="why the run ended as it did (empty when completed)")
+    recording: str | None = Field(description="file name of the HDF5 recording in the recordings folder")
+    steps: list[PlannedStepOut]
+    links: RunLinks
+
+
+class RunList(_Out):
+    count: int
+    runs: list[RunStatus]
+
+
+class RunAccepted(_Out):
+    id: str
+    state: RunState
+    links: RunLinks
+
+
+class ParameterOut(_Out):
+    name: str
+    value: float | None = Field(description="estimate in `unit`; None when not identifiable")
+    std: float | None = Field(description="standard uncertainty in `unit`")
+    unit: str
+    identifiable: bool
+    reason: str = ""
+
+
+class FitOut(_Out):
+    mse: float | None = Field(description="mean square force residual, V^2")
+    residual_rms_V: list[float | None]
+    chi2_per_dof: float | None
+    n_points: int
+
+
+class IdentifiabilityOut(_Out):
+    names: list[str]
+    condition_number: float | None
+    correlations: list[list[float | None]]
+    identifiable: list[bool]
+    reasons: list[str]
+
+
+class StepResponseOut(_Out):
+    """H(f) = force signal / frame acceleration of one step, V/(m/s^2)."""
+
+    index: int
+    frequency_hz: float | None
+    frequency_std_hz: float | None
+    H_real: float | None
+    H_imag: float | None
+    H_magnitude: float | None
+    H_magnitude_std: float | None
+    H_phase_deg: float | None
+    H_phase_std_deg: float | None
+    displacement_amplitude_m: float | None
+    force_amplitude_V: float | None
+    n_samples: int | None
+
+
+class RunResults(_Out):
+    id: str
+    state: RunState
+    recording: str
+    method: str | None
+    model: str | None
+    parameters: list[ParameterOut]
+    fit: FitOut | None
+    identifiability: IdentifiabilityOut | None
+    notes: list[str]
+    frequency_response: list[StepResponseOut]
+    skipped_steps: list[dict[str, Any]]
+    units: dict[str, str]
+    plots: dict[str, str] = Field(description="plot name -> URL of its PNG (empty while the plots module "
+                                  "is not installed)")
+    report: str | None = Field(description="URL of the calibration report (None while not installed)")
+    discrepancy: str = Field(description="URL of the model-gap analysis")
+    lost_samples: int
+
+
+class DiscrepancyOut(BaseModel):
+    """The issue-7 model-gap analysis (``DiscrepancyReport.to_json``): gaps in V, effects added."""
+
+    model_config = ConfigDict(extra="allow")
+
+    base_gap: float | None = None
+    final_gap: float | None = None
+    effects: list[dict[str, Any]] = []
+    parameters_before: dict[str, Any] = {}
+    parameters_after: dict[str, Any] = {}
+    unexplained: list[str] = []
+
+
+class StopOut(_Out):
+    accepted: bool = True
+    motor_stopped: bool = Field(description="the motor controller took the emergency stop")
+    aborted_runs: list[str]
+    detail: str
+
+
+class AbortOut(_Out):
+    id: str
+    state: RunState
+    detail: str
+
+
+class MotorLink(_Out):
+    connected: bool
+    watchdog_error: str | None
+
+
+class DaqLink(_Out):
+    link_error: str | None
+
+
+class RigHealth(_Out):
+    connected: bool
+    error: str | None
+    description: str
+    motor: MotorLink
+    daq: DaqLink
+    simulated: bool
+
+
+class DatabaseHealth(_Out):
+    ok: bool
+    journal_mode: str | None
+
+
+class WorkerHealth(_Out):
+    processes: int
+    started: bool
+    crashes: int
+    jobs: dict[str, int]
+
+
+class HealthOut(_Out):
+    status: Literal["ok", "degraded"]
+    rig: RigHealth
+    database: DatabaseHealth
+    worker: WorkerHealth
+    active_run: str | None
+    uptime_s: float
+
+
+class RangeOut(_Out):
+    min: float
+    max: float
+
+
+class LimitsOut(_Out):
+    crank_frequency_hz: RangeOut
+    crank_radius_m: RangeOut
+    peak_force_limit_N: float = Field(description="peak |F| = M (g + r w^2) must stay below this")
+    moving_mass_without_top_kg: float = Field(description="adaption mass + end mass; M = this + top mass")
+    top_mass_kg: RangeOut
+    steps: RangeOut
+    acceleration_hz_per_s: float
+
+
+class StationOut(_Out):
+    name: str
+    transducer_id: str
+    capacity_N: float
+    default_top_mass_kg: float
+    simulated: bool
+    limits: LimitsOut
+    default_settle_s: float
+    default_record_s: float
+    default_steps: list[dict[str, float]]
+    token_required: list[str] = Field(description="endpoints that need the bearer token")

@@ -1,0 +1,73 @@
+"""What a completed run's recording holds after identification, as plain JSON-able data
+(read in a thread by the daemon; ``station.api.schemas.RunResults`` types it)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from station.recording import read_results
+
+
+def finite(obj: Any) -> Any:
+    """``obj`` with every non-finite float replaced by None (JSON has no NaN or inf)."""
+    if isinstance(obj, float | np.floating):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [finite(v) for v in obj]
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.ndarray):
+        return finite(obj.tolist())
+    return obj
+
+
+def _h_cov(path: Path) -> np.ndarray | None:
+    with h5py.File(path, "r") as f:
+        key = "processed/steps/H_cov"
+        return f[key][...] if key in f else None
+
+
+def frequency_response(path: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, str]]:
+    """(per-step H(f) with standard uncertainties of magnitude and phase, skipped steps, units)."""
+    doc = read_results(path, "steps", group="processed")
+    if doc is None:
+        return [], [], {}
+    cov = _h_cov(path)
+    out = []
+    for k, st in enumerate(doc.get("steps", [])):
+        re, im = (float(v) for v in st["H"])
+        mag = math.hypot(re, im)
+        mag_std = phase_std = None
+        if cov is not None and k < len(cov) and mag > 0:
+            C = np.asarray(cov[k], dtype=float)
+            g_mag = np.array([re, im]) / mag
+            g_ph = np.array([-im, re]) / mag**2
+            mag_std = float(np.sqrt(max(g_mag @ C @ g_mag, 0.0)))
+            phase_std = float(np.degrees(np.sqrt(max(g_ph @ C @ g_ph, 0.0))))
+        out.append({"index": int(st["index"]), "frequency_hz": st["frequency_hz"],
+                    "frequency_std_hz": st.get("frequency_std_hz"), "H_real": re, "H_imag": im,
+                    "H_magnitude": mag, "H_magnitude_std": mag_std,
+                    "H_phase_deg": math.degrees(math.atan2(im, re)), "H_phase_std_deg": phase_std,
+                    "displacement_amplitude_m": st.get("displacement_amplitude_m"),
+                    "force_amplitude_V": st.get("force_amplitude_V"), "n_samples": st.get("n_samples")})
+    units = {"frequency_hz": "Hz", "H": "V/(m/s^2)", "H_phase_deg": "deg", "displacement_amplitude_m": "m",
+             "force_amplitude_V": "V"}
+    return finite(out), finite(doc.get("skipped", [])), units
+
+
+def load_results(path: Path, result_name: str) -> dict[str, Any]:
+    """The identification stored under /results/<result_name> and the processed H(f)."""
+    ident = read_results(path, result_name) or {}
+    steps, skipped, units = frequency_response(path)
+    params = [{"name": name, **p} for name, p in (ident.get("parameters") or {}).items()]
+    return finite({"method": ident.get("method"), "model": ident.get("model"), "parameters": params,
+                   "fit": ident.get("fit"), "identifiability": ident.get("identifiability"),
+                   "notes": ident.get("notes") or [], "frequency_response": steps, "skipped_steps": skipped,
+                   "units": units})

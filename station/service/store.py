@@ -1,0 +1,258 @@
+"""Runs and identification jobs in SQLite (WAL): what survives a restart of the daemon.
+
+One connection, shared by the event loop and worker threads behind a lock; every statement is
+short (a row or a page of rows), so holding the lock never stalls the loop noticeably.  Writes
+are autocommitted; WAL with ``synchronous=NORMAL`` keeps a committed state change through a kill
+of the process (a power cut may lose the last few, never corrupt the file).
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+SCHEMA_VERSION = 1
+
+RUN_STATES = ("queued", "running", "identifying", "completed", "aborted", "failed", "interrupted")
+ACTIVE_STATES = ("queued", "running")  # the run holds the rig
+FINAL_STATES = ("completed", "aborted", "failed", "interrupted")
+JOB_STATES = ("queued", "running", "done", "failed")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS runs (
+    id TEXT PRIMARY KEY,
+    state TEXT NOT NULL,
+    transducer_id TEXT NOT NULL,
+    top_mass_kg REAL NOT NULL,
+    request_json TEXT NOT NULL,
+    plan_json TEXT NOT NULL,
+    created REAL NOT NULL,
+    started REAL,
+    ended REAL,
+    step INTEGER,
+    n_steps INTEGER NOT NULL,
+    step_state TEXT NOT NULL DEFAULT '',
+    fraction REAL NOT NULL DEFAULT 0,
+    samples INTEGER NOT NULL DEFAULT 0,
+    lost_samples INTEGER NOT NULL DEFAULT 0,
+    message TEXT NOT NULL DEFAULT '',
+    reason TEXT NOT NULL DEFAULT '',
+    recording TEXT,
+    result_name TEXT
+);
+CREATE INDEX IF NOT EXISTS runs_state ON runs(state);
+CREATE INDEX IF NOT EXISTS runs_created ON runs(created);
+CREATE TABLE IF NOT EXISTS jobs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    run_id TEXT NOT NULL REFERENCES runs(id),
+    kind TEXT NOT NULL,
+    state TEXT NOT NULL,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    created REAL NOT NULL,
+    started REAL,
+    finished REAL,
+    error TEXT NOT NULL DEFAULT ''
+);
+CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state, id);
+"""
+
+
+@dataclass
+class RunRow:
+    """A run as stored.  Times are UNIX seconds; ``recording`` is the file name in the recordings
+    folder (never a path outside it); ``fraction`` is the progress in [0, 1]."""
+
+    id: str
+    state: str
+    transducer_id: str
+    top_mass_kg: float
+    request_json: str
+    plan_json: str
+    created: float
+    n_steps: int
+    started: float | None = None
+    ended: float | None = None
+    step: int | None = None
+    step_state: str = ""
+    fraction: float = 0.0
+    samples: int = 0
+    lost_samples: int = 0
+    message: str = ""
+    reason: str = ""
+    recording: str | None = None
+    result_name: str | None = None
+
+    @property
+    def request(self) -> dict[str, Any]:
+        return json.loads(self.request_json)
+
+    @property
+    def plan(self) -> dict[str, Any]:
+        return json.loads(self.plan_json)
+
+
+@dataclass
+class JobRow:
+    id: int
+    run_id: str
+    kind: str
+    state: str
+    attempts: int
+    created: float
+    started: float | None
+    finished: float | None
+    error: str
+
+
+_RUN_COLS = tuple(f.name for f in fields(RunRow))
+_JOB_COLS = tuple(f.name for f in fields(JobRow))
+
+
+class Store:
+    """The daemon's database.  Thread-safe; open it once per process."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.Lock()
+        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=10.0)
+        self._db.row_factory = sqlite3.Row
+        mode = self._db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+        if str(mode).lower() != "wal":
+            raise sqlite3.OperationalError(f"{self.path}: cannot switch the database to WAL (got {mode})")
+        self._db.execute("PRAGMA synchronous=NORMAL")
+        self._db.execute("PRAGMA foreign_keys=ON")
+        self._db.execute("PRAGMA busy_timeout=10000")
+        version = self._db.execute("PRAGMA user_version").fetchone()[0]
+        if version > SCHEMA_VERSION:
+            raise sqlite3.OperationalError(f"{self.path}: database schema {version} is newer than this "
+                                           f"software's ({SCHEMA_VERSION})")
+        with self._lock:
+            self._db.executescript(_SCHEMA)
+            self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def journal_mode(self) -> str:
+        with self._lock:
+            return str(self._db.execute("PRAGMA journal_mode").fetchone()[0])
+
+    def ping(self) -> bool:
+        try:
+            with self._lock:
+                self._db.execute("SELECT 1").fetchone()
+            return True
+        except sqlite3.Error:
+            return False
+
+    # ------------------------------------------------------------------ runs
+    def insert_run(self, run: RunRow) -> None:
+        cols = ", ".join(_RUN_COLS)
+        marks = ", ".join("?" for _ in _RUN_COLS)
+        with self._lock:
+            self._db.execute(f"INSERT INTO runs ({cols}) VALUES ({marks})",
+                             tuple(getattr(run, c) for c in _RUN_COLS))
+
+    def update_run(self, run_id: str, **values: Any) -> None:
+        bad = set(values) - set(_RUN_COLS) - {"id"}
+        if bad or "id" in values:
+            raise KeyError(f"unknown run columns: {sorted(bad | ({'id'} & set(values)))}")
+        if not values:
+            return
+        sets = ", ".join(f"{k} = ?" for k in values)
+        with self._lock:
+            self._db.execute(f"UPDATE runs SET {sets} WHERE id = ?", (*values.values(), run_id))
+
+    def get_run(self, run_id: str) -> RunRow | None:
+        with self._lock:
+            row = self._db.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchone()
+        return None if row is None else RunRow(**dict(row))
+
+    def list_runs(self, *, limit: int = 100, states: Iterable[str] | None = None) -> list[RunRow]:
+        q, args = "SELECT * FROM runs", []
+        st = list(states or ())
+        if st:
+            q += f" WHERE state IN ({', '.join('?' for _ in st)})"
+            args.extend(st)
+        q += " ORDER BY created DESC, id DESC LIMIT ?"
+        args.append(int(limit))
+        with self._lock:
+            rows = self._db.execute(q, args).fetchall()
+        return [RunRow(**dict(r)) for r in rows]
+
+    # ------------------------------------------------------------------ jobs
+    def enqueue_job(self, run_id: str, kind: str = "identify") -> int:
+        with self._lock:
+            cur = self._db.execute("INSERT INTO jobs (run_id, kind, state, created) VALUES (?, ?, 'queued', ?)",
+                                   (run_id, kind, time.time()))
+            return int(cur.lastrowid or 0)
+
+    def claim_job(self) -> JobRow | None:
+        """The oldest queued job, marked running (its attempt counted), or None."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                row = self._db.execute("SELECT * FROM jobs WHERE state = 'queued' ORDER BY id LIMIT 1").fetchone()
+                if row is None:
+                    self._db.execute("COMMIT")
+                    return None
+                now = time.time()
+                self._db.execute("UPDATE jobs SET state = 'running', attempts = attempts + 1, started = ? "
+                                 "WHERE id = ?", (now, row["id"]))
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+        job = JobRow(**dict(row))
+        job.state, job.attempts, job.started = "running", job.attempts + 1, now
+        return job
+
+    def finish_job(self, job_id: int, state: str, error: str = "") -> None:
+        if state not in ("done", "failed", "queued"):
+            raise ValueError(f"job state {state!r}")
+        with self._lock:
+            self._db.execute("UPDATE jobs SET state = ?, finished = ?, error = ? WHERE id = ?",
+                             (state, None if state == "queued" else time.time(), error, job_id))
+
+    def jobs(self, *, run_id: str | None = None, states: Iterable[str] | None = None) -> list[JobRow]:
+        q, args, where = "SELECT * FROM jobs", [], []
+        if run_id is not None:
+            where.append("run_id = ?")
+            args.append(run_id)
+        st = list(states or ())
+        if st:
+            where.append(f"state IN ({', '.join('?' for _ in st)})")
+            args.extend(st)
+        if where:
+            q += " WHERE " + " AND ".join(where)
+        q += " ORDER BY id"
+        with self._lock:
+            return [JobRow(**dict(r)) for r in self._db.execute(q, args).fetchall()]
+
+    def job_counts(self) -> dict[str, int]:
+        with self._lock:
+            rows = self._db.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state").fetchall()
+        out = dict.fromkeys(JOB_STATES, 0)
+        out.update({r[0]: int(r[1]) for r in rows})
+        return out
+
+    def requeue_running_jobs(self, max_attempts: int) -> tuple[list[JobRow], list[JobRow]]:
+        """After a restart: jobs left 'running' go back to the queue, or fail after ``max_attempts``
+        (a job that crashed the worker that often will not be tried again).  Returns (requeued, failed)."""
+        requeued, failed = [], []
+        for job in self.jobs(states=("running",)):
+            if job.attempts >= max_attempts:
+                self.finish_job(job.id, "failed", f"stopped {job.attempts} times while running; not retried")
+                failed.append(job)
+            else:
+                self.finish_job(job.id, "queued")
+                requeued.append(job)
+        return requeued, failed

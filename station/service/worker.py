@@ -1,0 +1,190 @@
+"""Worker processes: identification of finished runs, plots, reports and the discrepancy analysis.
+
+Everything CPU-bound runs here, in spawned processes, never in the daemon's event loop.  The job
+functions are module-level (picklable) and take plain arguments (paths as strings, settings as
+dicts).  A worker whose daemon dies finishes the job it is on (a write into a recording is never
+cut short by us) and then exits.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import functools
+import importlib
+import logging
+import multiprocessing
+import os
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+from typing import Any, TypeVar
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+_busy = threading.Event()
+
+
+class WorkerCrashed(RuntimeError):
+    """The worker process died during a job (killed, out of memory, a crash in a C library)."""
+
+
+class Unavailable(RuntimeError):
+    """A module this job needs is not installed (yet): the API answers 501."""
+
+
+# --------------------------------------------------------------------------- inside the worker
+def _watch_parent(parent_pid: int) -> None:
+    while True:
+        time.sleep(0.5)
+        if os.getppid() != parent_pid and not _busy.is_set():
+            os._exit(0)
+
+
+def _init_worker(parent_pid: int, level: int) -> None:
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s worker[%(process)d] %(name)s: %(message)s")
+    threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True, name="parent-watch").start()
+
+
+def _job(fn: Callable[..., T]) -> Callable[..., T]:
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kw: Any) -> T:
+        _busy.set()
+        try:
+            return fn(*args, **kw)
+        finally:
+            _busy.clear()
+    return wrapper
+
+
+@_job
+def identify_job(path: str, processing: dict[str, Any]) -> dict[str, Any]:
+    """H(f) per step into /processed, then the identification into /results (station.run.calibrate)."""
+    from station.config import ProcessingConfig
+    from station.run.calibrate import identify_and_store
+    from station.run.processing import process_recording
+
+    t0 = time.perf_counter()
+    process_recording(path, ProcessingConfig.model_validate(processing))
+    res = identify_and_store(Path(path))
+    return {"result_name": f"identify_{res.method}_{res.model}", "method": res.method, "model": res.model,
+            "wall_s": time.perf_counter() - t0}
+
+
+def _optional(module: str) -> Any:
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        if exc.name is not None and module.startswith(exc.name):  # the module itself is missing
+            raise Unavailable(f"{module} is not installed in this version of the station") from None
+        raise
+
+
+@_job
+def capabilities_job() -> dict[str, Any]:
+    """What the optional modules offer: plot names, report, discrepancy analysis."""
+    out: dict[str, Any] = {"plots": None, "report": False, "discrepancy": False}
+    with contextlib.suppress(Unavailable):
+        out["plots"] = [str(n) for n in _optional("station.report.plots").PLOT_NAMES]
+    with contextlib.suppress(Unavailable):
+        out["report"] = hasattr(_optional("station.report.html"), "render_report")
+    with contextlib.suppress(Unavailable):
+        out["discrepancy"] = hasattr(_optional("station.discrepancy"), "analyse_recording")
+    return out
+
+
+@_job
+def plot_job(path: str, name: str) -> bytes | None:
+    """PNG bytes of plot ``name``; None for an unknown name."""
+    mod = _optional("station.report.plots")
+    try:
+        return bytes(mod.render_plot(Path(path), name))
+    except KeyError:
+        return None
+
+
+@_job
+def report_job(path: str) -> str:
+    mod = _optional("station.report.html")
+    return str(mod.render_report(Path(path)))
+
+
+@_job
+def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
+    """The issue-7 analysis of a recording, cached in its /results (computed once per max_effects)."""
+    from station.recording import read_results, write_results
+
+    name = f"discrepancy_{max_effects}"
+    cached = read_results(path, name)
+    if cached is not None:
+        return cached
+    mod = _optional("station.discrepancy")
+    if not hasattr(mod, "analyse_recording"):
+        raise Unavailable("station.discrepancy has no analyse_recording")
+    rep = mod.analyse_recording(path, max_effects=max_effects)
+    payload = rep.to_json()
+    write_results(path, name, payload)
+    return read_results(path, name) or payload
+
+
+# --------------------------------------------------------------------------- in the daemon
+class WorkerPool:
+    """A pool of spawned worker processes; rebuilt when a worker dies."""
+
+    def __init__(self, name: str, processes: int) -> None:
+        self.name = name
+        self.processes = processes
+        self._executor: concurrent.futures.ProcessPoolExecutor | None = None
+        self._lock = threading.Lock()
+        self.crashes = 0
+
+    def _get(self) -> concurrent.futures.ProcessPoolExecutor:
+        with self._lock:
+            if self._executor is None:
+                self._executor = concurrent.futures.ProcessPoolExecutor(
+                    max_workers=max(1, self.processes), mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_init_worker, initargs=(os.getpid(), logging.getLogger().getEffectiveLevel()))
+            return self._executor
+
+    @property
+    def started(self) -> bool:
+        return self._executor is not None
+
+    def pids(self) -> list[int]:
+        ex = self._executor
+        procs = getattr(ex, "_processes", None) or {}
+        return [p.pid for p in procs.values() if p.pid is not None]
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        ex = self._get()
+        try:
+            return await asyncio.get_running_loop().run_in_executor(ex, fn, *args)
+        except BrokenProcessPool as exc:
+            self.crashes += 1
+            with self._lock:
+                if self._executor is ex:
+                    self._executor = None
+            with contextlib.suppress(Exception):
+                ex.shutdown(wait=False, cancel_futures=True)
+            raise WorkerCrashed(f"{self.name} worker process died during the job") from exc
+
+    def shutdown(self, timeout_s: float = 30.0) -> None:
+        """Let running jobs finish (up to ``timeout_s``), then stop the processes."""
+        with self._lock:
+            ex, self._executor = self._executor, None
+        if ex is None:
+            return
+        procs = list((getattr(ex, "_processes", None) or {}).values())
+        ex.shutdown(wait=False, cancel_futures=True)
+        deadline = time.monotonic() + timeout_s
+        for p in procs:
+            p.join(max(0.0, deadline - time.monotonic()))
+            if p.is_alive():
+                log.warning("%s worker %s still busy after %.0f s; terminating it", self.name, p.pid, timeout_s)
+                p.terminate()
+                p.join(2.0)
