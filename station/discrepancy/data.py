@@ -20,10 +20,11 @@ from station.discrepancy.decompose import (
     MAINS_H_MAX,
     MAINS_RANGE_HZ,
     StepDecomposition,
+    basis_frequencies,
     decompose_step,
     windows_of,
 )
-from station.discrepancy.spectrum import MainsDetection, detect_mains
+from station.discrepancy.spectrum import MainsDetection, detect_mains, significant_lines
 from station.errors import StationError
 from station.recording import Recording
 
@@ -40,7 +41,9 @@ class RigData:
     f_hz (n,), x1 (n,) complex displacement fundamental (m), x1_cov (n, 2, 2), t_mid_s (n,), half_s (n,),
     kmask (n, K_MAX) bool, Rf (n, n_f, n_f) / cf (n, n_f) / sigma_f (n,) / ssr_f (n,) / n_samples (n,),
     Rd (n, 2 (K_MAX-1), 2 (K_MAX-1)) / cd / sigma_d (n,) for the displacement harmonics,
-    merge (n, H) int: crank harmonic index a mains line falls on (0 = own slot).
+    merge (n, H) int: crank harmonic index a mains line falls on (0 = own slot);
+    Rx (n, n_x, n_f) / bx (n, n_x): the rows of R of the nuisance lines outside the catalogue, so that
+    their part of the gap is ||bx + Rx (cf - m)||^2 (V^2) for model coefficients m.
     Masses in kg, capacity in N, nominal sensitivity in V/N (either sign).
     """
 
@@ -60,6 +63,8 @@ class RigData:
     cd: FloatArray
     sigma_d: FloatArray
     merge: NDArray[np.int64]
+    Rx: FloatArray
+    bx: FloatArray
     mains: MainsDetection
     load_mass_kg: float
     end_mass_kg: float
@@ -92,6 +97,8 @@ def _stack(steps: list[StepDecomposition], n_mains: int) -> dict[str, np.ndarray
     Rd, cd = np.zeros((n, nd, nd)), np.zeros((n, nd))
     kmask = np.zeros((n, K_MAX), dtype=bool)
     merge = np.zeros((n, n_mains), dtype=np.int64)
+    nx = max((s.n_extra for s in steps), default=0)
+    Rx, bx = np.zeros((n, nx, nf)), np.zeros((n, nx))
     for i, s in enumerate(steps):
         kmask[i, : s.K] = True
         slots = list(range(2 * s.K)) + [2 * K_MAX + j for j in range(3)]
@@ -100,13 +107,28 @@ def _stack(steps: list[StepDecomposition], n_mains: int) -> dict[str, np.ndarray
             if k == 0:
                 slots += [2 * K_MAX + 3 + 2 * h, 2 * K_MAX + 4 + 2 * h]
         sl = np.array(slots)
-        Rf[i][np.ix_(sl, sl)] = s.force.R
-        cf[i, sl] = s.force.coef
+        e = s.n_extra
+        Rf[i][np.ix_(sl, sl)] = s.force.R[e:, e:]
+        cf[i, sl] = s.force.coef[e:]
+        if e:
+            Rx[i][np.ix_(np.arange(e), sl)] = s.force.R[:e, e:]
+            bx[i, :e] = s.force.R[:e, :e] @ s.force.coef[:e]
         m = 2 * (s.K - 1)
         if m:
             Rd[i, :m, :m] = s.disp.R[-m:, -m:]
             cd[i, :m] = s.disp.coef[-m:]
-    return {"Rf": Rf, "cf": cf, "Rd": Rd, "cd": cd, "kmask": kmask, "merge": merge}
+    return {"Rf": Rf, "cf": cf, "Rd": Rd, "cd": cd, "kmask": kmask, "merge": merge, "Rx": Rx, "bx": bx}
+
+
+def _outside_lines(s: StepDecomposition, f_mains: float | None, fs: float, max_lines: int = 12
+                   ) -> tuple[float, ...]:
+    """Significant lines (alpha 1e-4 over the bins) of the force residual that are not basis
+    frequencies (further than 1.5 bins from them and from DC)."""
+    res = fs / s.n_samples
+    held = [*basis_frequencies(s, f_mains), 0.0]
+    found = significant_lines(s.force.residual, s.force.sigma, fs, s.index, 1e-4)
+    keep = [ln.frequency_hz for ln in found if min(abs(ln.frequency_hz - f) for f in held) > 1.5 * res]
+    return tuple(keep[:max_lines])
 
 
 def prepare(rec: Recording) -> RigData:
@@ -119,8 +141,11 @@ def prepare(rec: Recording) -> RigData:
     det = detect_mains([s.force.residual for s in first], [s.force.sigma for s in first], fs,
                        MAINS_RANGE_HZ, MAINS_H_MAX)
     log.info("mains search: %s", det.evidence)
-    steps = first if det.frequency_hz is None else [decompose_step(w, fs, det.frequency_hz, det.harmonics)
-                                                    for w in wins]
+    second = first if det.frequency_hz is None else [decompose_step(w, fs, det.frequency_hz, det.harmonics)
+                                                     for w in wins]
+    extra = [_outside_lines(s, det.frequency_hz, fs) for s in second]
+    steps = [decompose_step(w, fs, det.frequency_hz, det.harmonics, x) if x else s
+             for w, s, x in zip(wins, second, extra, strict=True)]
     st = _stack(steps, det.harmonics)
     if rec.end_mass_kg is None:
         log.warning("%s: no end mass in the recording; m_e = 0 assumed (M = load mass)", rec.path)
@@ -130,6 +155,6 @@ def prepare(rec: Recording) -> RigData:
         half_s=np.array([s.half_s for s in steps]), kmask=st["kmask"], Rf=st["Rf"], cf=st["cf"],
         sigma_f=np.array([s.force.sigma for s in steps]), ssr_f=np.array([s.force.ssr for s in steps]),
         n_samples=np.array([s.n_samples for s in steps], dtype=float), Rd=st["Rd"], cd=st["cd"],
-        sigma_d=np.array([s.disp.sigma for s in steps]), merge=st["merge"], mains=det,
+        sigma_d=np.array([s.disp.sigma for s in steps]), merge=st["merge"], Rx=st["Rx"], bx=st["bx"], mains=det,
         load_mass_kg=rec.load_mass_kg, end_mass_kg=rec.end_mass_kg or 0.0, capacity_N=rec.capacity_N,
         sensitivity_nominal=rec.sensitivity_V_per_N, sample_rate_hz=fs)

@@ -3,10 +3,14 @@
 Each step's record window (N samples, time tau from the window centre t_mid, h = T_window/2) is
 decomposed on the basis
 
-    force:        [fundamental (cos, sin)], [harmonics k = 2..K], [1, tau/h, (tau/h)^2], [mains lines]
+    force:        [lines outside the catalogue (nuisance)], [fundamental (cos, sin)], [harmonics
+                  k = 2..K], [1, tau/h, (tau/h)^2], [mains lines]
     displacement: [fundamental], [1, tau/h, (tau/h)^2], [mains lines], [harmonics k = 2..K]
 
-with k*f the crank harmonics and mains lines h*f_m (h = 1..H).  A sinusoid a cos(w tau) + b sin(w tau)
+with k*f the crank harmonics and mains lines h*f_m (h = 1..H).  Lines the first pass finds in the
+force residual outside this basis (``extra_hz``) are fitted too, first, so that the later rows of R
+whiten the modelled coefficients *given* those lines (they do not leak into them); no model explains
+them, so they stay in the gap and are reported as unexplained.  A sinusoid a cos(w tau) + b sin(w tau)
 is stored as the phasor P = a - j b (signal = Re(P e^{j w tau})).  The fit is exact (QR), the residual
 is orthogonal to the basis, and with B^T B = R^T R (Cholesky; R plays the role of QR's R):
 
@@ -85,6 +89,13 @@ class StepDecomposition:
     x1: complex
     x1_cov: FloatArray
     flat_top: int = 0
+    extra_hz: tuple[float, ...] = ()
+    extra_amp: tuple[float, ...] = ()
+
+    @property
+    def n_extra(self) -> int:
+        """Number of force basis columns of the nuisance lines (2 per line)."""
+        return 2 * len(self.extra_hz)
 
 
 def robust_sigma(residual: FloatArray) -> float:
@@ -173,7 +184,8 @@ def longest_flat_extreme(y: FloatArray) -> int:
     return best
 
 
-def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int) -> StepDecomposition:
+def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int,
+                   extra_hz: tuple[float, ...] = ()) -> StepDecomposition:
     """Fit both channels of one step (see the module docstring for the basis)."""
     n = w.force_V.size
     tau = (np.arange(n) - (n - 1) / 2) / fs
@@ -189,14 +201,17 @@ def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int
             merge.append(0)
             mains_f.append(nu)
     mains = _harmonic_cols(tau, mains_f) if mains_f else np.zeros((n, 0))
+    extra = _harmonic_cols(tau, list(extra_hz)) if extra_hz else np.zeros((n, 0))
+    nuisance = np.hstack([mains, extra])
     # the crank frequency is common to both channels: inverse-variance mean of the two 4-par fits
-    fd, sd = fit_frequency(tau, w.displacement_m, w.f_nominal_hz, K, mains)
-    fu, su = fit_frequency(tau, w.force_V, fd, K, mains)
+    fd, sd = fit_frequency(tau, w.displacement_m, w.f_nominal_hz, K, nuisance)
+    fu, su = fit_frequency(tau, w.force_V, fd, K, nuisance)
     wd, wu = 1 / max(sd, 1e-300) ** 2, 1 / max(su, 1e-300) ** 2
     f, f_std = (wd * fd + wu * fu) / (wd + wu), 1 / math.sqrt(wd + wu)
     poly = np.column_stack([np.ones(n), tau / half, (tau / half) ** 2])
     harm = _harmonic_cols(tau, [k * f for k in range(1, K + 1)])
-    force = _fit(np.hstack([harm, poly, mains]), w.force_V)
+    force = _fit(np.hstack([extra, harm, poly, mains]), w.force_V)
+    amp = tuple(float(np.hypot(force.coef[2 * j], force.coef[2 * j + 1])) for j in range(len(extra_hz)))
     disp = _fit(np.hstack([harm[:, :2], poly, mains, harm[:, 2:]]), w.displacement_m)
     Rinv = np.linalg.inv(disp.R)
     cov = disp.sigma**2 * (Rinv @ Rinv.T)[:2, :2]
@@ -205,4 +220,11 @@ def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int
         index=w.index, f_hz=f, f_std_hz=f_std, K=K, n_samples=n, t_mid_s=w.t0_s + (n - 1) / (2 * fs),
         half_s=half, mains_merge=tuple(merge), force=force, disp=disp,
         x1=complex(disp.coef[0], -disp.coef[1]), x1_cov=T @ cov @ T.T,
-        flat_top=longest_flat_extreme(w.force_V))
+        flat_top=longest_flat_extreme(w.force_V), extra_hz=tuple(extra_hz), extra_amp=amp)
+
+
+def basis_frequencies(s: StepDecomposition, f_mains: float | None) -> list[float]:
+    """Frequencies (Hz) the step's basis holds: crank harmonics and mains lines."""
+    out = [k * s.f_hz for k in range(1, s.K + 1)]
+    out += [(h + 1) * (f_mains or 0.0) for h, k in enumerate(s.mains_merge) if k == 0]
+    return out

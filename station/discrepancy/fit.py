@@ -6,7 +6,8 @@ harmonics.  The displacement noise enters the force fundamental through the meas
 (errors in variables): its two whitened rows are further whitened by chol(I + A C_X A^T)^-1,
 A = R_f[0:2, 0:2] / sigma_f * d m_1 / d X_1, with V_1/X_1 frozen at the start values of the fit.
 
-The time-domain gap of a model is  gap = sqrt(sum_s (ssr_s + sigma_s^2 ||W_f (c_f - m_f)||^2) / sum_s N_s),
+The time-domain gap of a model is  gap = sqrt(sum_s (ssr_s + sigma_s^2 ||W_f (c_f - m_f)||^2 + ||b_x +
+R_x (c_f - m_f)||^2) / sum_s N_s) (the last term: lines outside the catalogue, see ``data``),
 the RMS of the force signal minus the simulated force signal over all record windows (V).
 
 Covariance of the estimates: (J^T J)^-1 of the whitened Jacobian, inflated by chi^2/dof when that
@@ -149,9 +150,11 @@ class Problem:
         return int(self.valid_f.sum() + self.valid_d.sum())
 
 
-def gap_of(data: RigData, wf: FloatArray) -> tuple[float, FloatArray]:
-    """(overall, per-step) RMS force residual in V from the raw whitened force residual."""
-    e = data.ssr_f + data.sigma_f**2 * np.sum(wf**2, axis=1)
+def gap_of(data: RigData, wf: FloatArray, m: FloatArray) -> tuple[float, FloatArray]:
+    """(overall, per-step) RMS force residual in V from the raw whitened force residual wf and the
+    model coefficients m (for the rows of the lines outside the catalogue, which no model explains)."""
+    ex = data.bx + np.einsum("sij,sj->si", data.Rx, data.cf - m)
+    e = data.ssr_f + data.sigma_f**2 * np.sum(wf**2, axis=1) + np.sum(ex**2, axis=1)
     return float(math.sqrt(e.sum() / data.n_samples.sum())), np.sqrt(e / data.n_samples)
 
 
@@ -183,7 +186,7 @@ def finish(prob: Problem, u: FloatArray, jac: FloatArray, converged: bool) -> Mo
     cov = birge * (D[:, None] * cov_u * D[None, :])
     std = {q.name: float(math.sqrt(max(cov[i, i], 0.0))) for i, q in enumerate(prob.params)}
     wf, wd, m, md = prob.whitened(vals)
-    gap, gap_steps = gap_of(prob.data, wf)
+    gap, gap_steps = gap_of(prob.data, wf, m)
     wf_fund = np.einsum("sij,sj->si", prob.eiv, wf[:, 0:2])
     notes = () if birge <= 1.0 else (f"uncertainties inflated by sqrt(chi2/dof) = {math.sqrt(birge):.3g}",)
     return ModelFit(effects=dict(prob.effects), params=prob.params, values=vals, std=std, cov=cov,

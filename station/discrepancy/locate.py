@@ -114,7 +114,7 @@ def _fundamental_text(data: RigData, resid: np.ndarray, sel: np.ndarray) -> str:
 
 
 def out_of_basis(data: RigData, alpha: float = 1e-4) -> list[Finding]:
-    """Lines and broadband excess in the steps' LS residuals (force channel)."""
+    """Lines outside the basis (force channel), grouped across steps, broadband excess, clipping."""
     fs = data.sample_rate_hz
     lines: list[Line] = []
     fmap = {s.index: s.f_hz for s in data.steps}
@@ -126,6 +126,8 @@ def out_of_basis(data: RigData, alpha: float = 1e-4) -> list[Finding]:
                            f"force signal clipped (flat tops up to {max(s.flat_top for s in data.steps)} "
                            f"samples at the window extreme) in {step_span(clipped)}"))
     for s in data.steps:
+        # lines fitted as nuisance columns (found in the first pass) and any left in the residual
+        lines += [Line(s.index, f, a, float("nan")) for f, a in zip(s.extra_hz, s.extra_amp, strict=True)]
         ls = significant_lines(s.force.residual, s.force.sigma, fs, s.index, alpha)
         lines += ls
         excess = s.force.ssr / s.n_samples - s.force.sigma**2 - sum(ln.amplitude**2 / 2 for ln in ls)

@@ -112,7 +112,13 @@ def significant_lines(r: FloatArray, sigma: float, fs: float, step: int, alpha: 
     thr = -math.log(alpha / n_bins)
     top = f_max if f_max is not None else 0.45 * fs
     idx = np.nonzero((P[1:-1] > thr) & (P[1:-1] >= P[:-2]) & (P[1:-1] >= P[2:]) & (fr[1:-1] <= top))[0] + 1
-    lines = [Line(step, float(fr[i]), line_amplitude(float(P[i]), sigma, r.size), float(P[i])) for i in idx]
+    lines = []
+    for i in idx:
+        # parabolic interpolation of log P around the peak bin (Hann main lobe is nearly Gaussian)
+        a, b, c = (math.log(max(float(P[j]), 1e-300)) for j in (i - 1, i, i + 1))
+        d = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else 0.0
+        peak = math.exp(b - 0.25 * (a - c) * d)
+        lines.append(Line(step, float(fr[i] + d * (fr[1] - fr[0])), line_amplitude(peak, sigma, r.size), peak))
     # side lobes of a strong line are local maxima too: drop weak peaks close to a stronger line
     lines.sort(key=lambda ln: -ln.power)
     kept: list[Line] = []
