@@ -13,6 +13,8 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.middleware.trustedhost import TrustedHostMiddleware
@@ -28,6 +30,7 @@ from station.service.manager import (
     RunNotFoundError,
     RunStateError,
 )
+from station.service.results import finite
 from station.service.settings import ServiceSettings
 
 log = logging.getLogger(__name__)
@@ -54,6 +57,12 @@ def install_error_handlers(app: FastAPI) -> None:
         def handler(request: Request, exc: Exception, code: int = code) -> JSONResponse:
             return _error(code, exc)
         app.add_exception_handler(cls, handler)
+
+    async def validation_error(request: Request, exc: Exception) -> JSONResponse:
+        # FastAPI's own handler echoes the input, which cannot be JSON when it is NaN or inf (-> 500)
+        errors = exc.errors() if isinstance(exc, RequestValidationError) else []
+        return JSONResponse({"detail": finite(jsonable_encoder(errors))}, status_code=422)
+    app.add_exception_handler(RequestValidationError, validation_error)
 
     async def station_error(request: Request, exc: Exception) -> JSONResponse:
         # a recording that cannot be read or written right now (locked by another process, damaged)

@@ -1,0 +1,312 @@
+"""The HTTP API through a real daemon (``station serve --sim`` on a loopback port): every endpoint,
+every error status, a whole run from POST to results, live events, abort, emergency stop."""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import h5py
+import httpx
+import pytest
+
+from station.recording import read_recording
+from tests.test_service_support import FINAL, TOKEN, Daemon, run_body
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    with Daemon(tmp_path_factory.mktemp("api")) as d:
+        yield d
+
+
+@pytest.fixture(scope="module")
+def completed(daemon: Daemon) -> dict:
+    """A completed, identified 2-step run (shared, read-only), with the SSE events seen live."""
+    rid = daemon.start_run()
+    events = []
+    with httpx.stream("GET", f"{daemon.url}/runs/{rid}/events", timeout=60) as r:
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
+        name = None
+        for line in r.iter_lines():
+            if line.startswith("event:"):
+                name = line.split(":", 1)[1].strip()
+            elif line.startswith("data:"):
+                events.append((name, json.loads(line.split(":", 1)[1])))
+                if name == "end":
+                    break
+    return {"id": rid, "events": events, "status": daemon.c().get(f"/runs/{rid}").json()}
+
+
+def anon(daemon: Daemon) -> httpx.Client:
+    return httpx.Client(base_url=daemon.url, timeout=30)
+
+
+# ---------------------------------------------------------------------------------------- reading
+def test_health_reports_each_device_link(daemon: Daemon) -> None:
+    h = anon(daemon).get("/health").json()
+    assert h["status"] == "ok"
+    assert h["rig"]["connected"] and h["rig"]["simulated"]
+    assert h["rig"]["motor"] == {"connected": True, "watchdog_error": None}
+    assert h["rig"]["daq"] == {"link_error": None}
+    assert h["database"] == {"ok": True, "journal_mode": "wal"}
+    assert h["worker"]["processes"] == 1
+
+
+def test_station_shows_the_limits(daemon: Daemon) -> None:
+    s = anon(daemon).get("/station").json()
+    assert s["transducer_id"] == "TX5K-0001" and s["simulated"]
+    assert s["limits"]["crank_frequency_hz"] == {"min": 1.0, "max": 100.0}
+    assert s["limits"]["peak_force_limit_N"] == pytest.approx(4000.0)
+
+
+def test_openapi_documents_every_endpoint(daemon: Daemon) -> None:
+    spec = anon(daemon).get("/openapi.json").json()
+    paths = spec["paths"]
+    for p, method in [("/runs", "post"), ("/runs", "get"), ("/runs/{run_id}", "get"),
+                      ("/runs/{run_id}/events", "get"), ("/runs/{run_id}/results", "get"),
+                      ("/runs/{run_id}/plots/{name}.png", "get"), ("/runs/{run_id}/report", "get"),
+                      ("/runs/{run_id}/recording", "get"), ("/runs/{run_id}/discrepancy", "get"),
+                      ("/runs/{run_id}/abort", "post"), ("/stop", "post"), ("/health", "get")]:
+        assert method in paths[p], (p, method)
+    post = paths["/runs"]["post"]
+    assert post["requestBody"]["content"]["application/json"]["schema"]["$ref"].endswith("/RunRequest")
+    assert {"202", "401", "409", "422"} <= set(post["responses"])
+    assert "text/event-stream" in paths["/runs/{run_id}/events"]["get"]["responses"]["200"]["content"]
+
+
+def test_web_page_and_assets_are_served(daemon: Daemon) -> None:
+    c = anon(daemon)
+    page = c.get("/")
+    assert page.status_code == 200 and "EMERGENCY STOP" in page.text and "/static/app.js" in page.text
+    assert c.get("/static/app.js").status_code == 200
+    assert c.get("/static/style.css").headers["content-type"].startswith("text/css")
+
+
+# ---------------------------------------------------------------------------------------- a whole run
+def test_run_goes_through_its_states_live(completed: dict) -> None:
+    names = [n for n, _ in completed["events"]]
+    states = [d["state"] for _, d in completed["events"]]
+    assert names[-1] == "end" and states[-1] == "completed"
+    assert "running" in states and "identifying" in states
+    assert states.index("running") < states.index("identifying") < states.index("completed")
+    running = [d for _, d in completed["events"] if d["state"] == "running"]
+    assert {d["current_step"] for d in running} >= {0, 1}
+    assert {"ramping", "settling", "recording"} <= {d["step_state"] for d in running}
+    fractions = [d["progress"] for d in running]
+    assert fractions == sorted(fractions) and max(fractions) > 0.5
+    st = completed["status"]
+    assert st["state"] == "completed" and st["lost_samples"] == 0 and st["samples"] > 20_000
+    assert st["recording"] == f"{st['id']}.h5" and st["n_steps"] == 2 and st["reason"] == ""
+    assert [s["crank_frequency_hz"] for s in st["steps"]] == [10.0, 20.0]
+    assert st["steps"][0]["record_s"] == 0.5  # defaulted from the configured plan
+
+
+def test_runs_list_and_state_filter(daemon: Daemon, completed: dict) -> None:
+    c = anon(daemon)
+    runs = c.get("/runs").json()
+    assert runs["count"] >= 1 and completed["id"] in [r["id"] for r in runs["runs"]]
+    done = c.get("/runs", params={"state": "completed"}).json()
+    assert all(r["state"] == "completed" for r in done["runs"]) and done["count"] >= 1
+    assert c.get("/runs", params={"state": "aborted", "limit": 1}).json()["count"] <= 1
+    assert c.get("/runs", params={"state": "bogus"}).status_code == 422
+    assert c.get("/runs", params={"limit": 0}).status_code == 422
+
+
+def test_results_have_parameters_with_uncertainties_and_frf(daemon: Daemon, completed: dict) -> None:
+    res = anon(daemon).get(f"/runs/{completed['id']}/results").json()
+    params = {p["name"]: p for p in res["parameters"]}
+    assert set(params) >= {"S", "k_f", "b_f"}
+    for p in params.values():
+        assert p["identifiable"] and p["value"] > 0 and 0 < p["std"] < p["value"]
+    assert params["k_f"]["unit"] == "N/m"
+    assert abs(params["k_f"]["value"] - 2.91e7) < 4 * params["k_f"]["std"] + 0.02 * 2.91e7  # the simulated truth
+    assert res["identifiability"]["names"] == ["S", "k_f", "b_f"]
+    frf = res["frequency_response"]
+    assert [round(s["frequency_hz"]) for s in frf] == [10, 20]
+    assert all(s["H_magnitude_std"] > 0 and s["H_phase_std_deg"] > 0 for s in frf)
+    assert res["fit"]["n_points"] > 0 and len(res["fit"]["residual_rms_V"]) == 2
+    assert res["discrepancy"] == f"/runs/{completed['id']}/discrepancy"
+
+
+def test_plots_report_recording_and_discrepancy(daemon: Daemon, completed: dict) -> None:
+    c, rid = anon(daemon), completed["id"]
+    res = c.get(f"/runs/{rid}/results").json()
+    if not res["plots"]:  # the report helper's module is absent: 501, said clearly
+        r = c.get(f"/runs/{rid}/plots/bode.png")
+        assert r.status_code == 501 and "not installed" in r.json()["detail"]
+    else:
+        assert {"bode", "timefit", "residuals", "convergence"} <= set(res["plots"])
+        for url in res["plots"].values():
+            r = c.get(url)
+            assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+            assert r.content[:8] == b"\x89PNG\r\n\x1a\n"
+        r = c.get(f"/runs/{rid}/plots/nosuchplot.png")
+        assert r.status_code == 404 and "bode" in r.json()["detail"]
+    rep = c.get(f"/runs/{rid}/report")
+    if res["report"] is None:
+        assert rep.status_code == 501
+    else:
+        assert rep.status_code == 200 and rep.headers["content-type"].startswith("text/html")
+        assert "TX5K-0001" in rep.text
+    rec = c.get(f"/runs/{rid}/recording")
+    assert rec.status_code == 200 and rec.headers["content-type"] == "application/x-hdf5"
+    assert f'filename="{rid}.h5"' in rec.headers["content-disposition"]
+    with h5py.File(io.BytesIO(rec.content), "r") as f:
+        assert f.attrs["run_id"] == rid and f.attrs["exit_status"] == "completed"
+        assert "results" in f and any(k.startswith("identify_") for k in f["results"])
+    disc = c.get(f"/runs/{rid}/discrepancy")
+    if disc.status_code == 501:
+        assert "not installed" in disc.json()["detail"]
+    else:
+        assert disc.status_code == 200, disc.text
+        d = disc.json()
+        assert {"base_gap", "final_gap", "effects", "unexplained"} <= set(d)
+        assert d["final_gap"] <= d["base_gap"] + 1e-12
+        again = c.get(f"/runs/{rid}/discrepancy")  # cached in the recording's results
+        assert again.json() == d
+        path = daemon.data_dir / f"{rid}.h5"
+        with h5py.File(path, "r") as f:
+            assert "discrepancy_4" in f["results"]
+
+
+# ---------------------------------------------------------------------------------------- errors
+def test_writes_need_the_token(daemon: Daemon, completed: dict) -> None:
+    c = anon(daemon)
+    r = c.post("/runs", json=run_body())
+    assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
+    assert c.post("/runs", json=run_body(), headers={"Authorization": "Bearer wrong-token"}).status_code == 401
+    assert c.post(f"/runs/{completed['id']}/abort").status_code == 401
+    assert c.get(f"/runs/{completed['id']}").status_code == 200  # reading is open on loopback
+
+
+@pytest.mark.parametrize(("body", "loc"), [
+    ({"top_mass_kg": 25.7, "steps": [{"crank_frequency_hz": 10, "crank_radius_m": 0.001}]}, ["body", "transducer_id"]),
+    (run_body(freqs=(-5.0,)), ["body", "steps", 0, "crank_frequency_hz"]),
+    (run_body(radius=0.0), ["body", "steps", 0, "crank_radius_m"]),
+    ({**run_body(), "top_mass_kg": "heavy"}, ["body", "top_mass_kg"]),
+    ({**run_body(), "steps": []}, ["body", "steps"]),
+    ({**run_body(), "colour": "red"}, ["body", "colour"]),
+    (run_body(record_s=0), ["body", "steps", 0, "record_s"]),
+    # unsafe or impossible on this rig: checked against the limits, the field named
+    ({**run_body(), "transducer_id": "OTHER-1"}, ["body", "transducer_id"]),
+    (run_body(freqs=(10.0, 150.0)), ["body", "steps", 1, "crank_frequency_hz"]),
+    (run_body(freqs=(10.0, 20.0, 80.0), radius=0.01), ["body", "steps", 1, "crank_radius_m"]),
+    (run_body(radius=0.2), ["body", "steps", 0, "crank_radius_m"]),
+])
+def test_invalid_or_unsafe_requests_are_422_naming_the_field(daemon: Daemon, body: dict, loc: list) -> None:
+    r = daemon.c().post("/runs", json=body)
+    assert r.status_code == 422, r.text
+    locs = [e["loc"] for e in r.json()["detail"]]
+    assert loc in locs, locs
+
+
+def test_peak_force_message_says_the_limit(daemon: Daemon) -> None:
+    r = daemon.c().post("/runs", json=run_body(freqs=(50.0,), radius=0.01))
+    err = r.json()["detail"][0]
+    assert r.status_code == 422 and err["type"] == "limit_error"
+    assert "peak force" in err["msg"] and "4000 N" in err["msg"] and err["input"] == 0.01
+
+
+def test_malformed_json_is_422_not_500(daemon: Daemon) -> None:
+    r = daemon.c().post("/runs", content=b'{"transducer_id": ', headers={"Content-Type": "application/json"})
+    assert r.status_code == 422
+    r = daemon.c().post("/runs", content=b'{"transducer_id":"TX5K-0001","top_mass_kg":NaN,"steps":[]}',
+                        headers={"Content-Type": "application/json"})
+    assert r.status_code == 422
+
+
+def test_unknown_runs_are_404_and_bad_ids_422(daemon: Daemon) -> None:
+    c = daemon.c()
+    for path in ("", "/events", "/results", "/plots/bode.png", "/report", "/recording", "/discrepancy"):
+        r = c.get(f"/runs/20990101T000000-NOPE-000000{path}")
+        assert r.status_code == 404, (path, r.status_code, r.text)
+        assert "no run" in r.json()["detail"]
+    assert c.post("/runs/20990101T000000-NOPE-000000/abort").status_code == 404
+    assert c.get("/runs/bad id!").status_code == 422
+    for evil in ("..%2F..%2Fetc%2Fpasswd", "..", "%2e%2e"):
+        r = c.get(f"/runs/{evil}/recording")
+        assert r.status_code in (404, 422), (evil, r.status_code)
+
+
+def test_busy_rig_409_abort_and_results_states(daemon: Daemon, completed: dict) -> None:
+    c = daemon.c()
+    rid = daemon.start_run(freqs=(10.0,), record_s=30.0)
+    daemon.wait_state(rid, ("running",), step_state="recording")
+    busy = c.post("/runs", json=run_body())
+    assert busy.status_code == 409 and rid in busy.json()["detail"]
+    assert c.get(f"/runs/{rid}/results").status_code == 409
+    assert c.get(f"/runs/{rid}/recording").status_code == 409  # still being written
+    assert c.get(f"/runs/{rid}/plots/bode.png").status_code == 409
+    st = c.get(f"/runs/{rid}").json()
+    assert st["samples"] > 0 and st["current_step"] == 0
+    r = c.post(f"/runs/{rid}/abort")
+    assert r.status_code == 202 and r.json()["id"] == rid
+    st = daemon.wait_state(rid)
+    assert st["state"] == "aborted" and st["reason"] == "aborted by operator"
+    assert c.post(f"/runs/{rid}/abort").status_code == 409
+    res = c.get(f"/runs/{rid}/results")
+    assert res.status_code == 409 and "aborted" in res.json()["detail"]
+    rec = c.get(f"/runs/{rid}/recording")
+    assert rec.status_code == 200
+    with h5py.File(io.BytesIO(rec.content), "r") as f:
+        assert f.attrs["exit_status"] == "aborted"
+    assert c.get(f"/runs/{rid}/discrepancy").status_code == 409
+    # the rig is free again
+    rid2 = daemon.start_run(freqs=(10.0,), record_s=30.0)
+    daemon.wait_state(rid2, ("running",))
+    c.post(f"/runs/{rid2}/abort")
+    daemon.wait_state(rid2)
+
+
+def test_emergency_stop_is_always_accepted(daemon: Daemon, tmp_path: Path) -> None:
+    c = anon(daemon)  # no token: stopping is never refused
+    r = c.post("/stop")
+    assert r.status_code == 200 and r.json()["motor_stopped"] and r.json()["aborted_runs"] == []
+    rid = daemon.start_run(freqs=(10.0,), record_s=30.0)
+    daemon.wait_state(rid, ("running",), step_state="recording")
+    t0 = time.monotonic()
+    r = c.post("/stop")
+    assert r.status_code == 200 and time.monotonic() - t0 < 2.0
+    body = r.json()
+    assert body["accepted"] and body["motor_stopped"] and body["aborted_runs"] == [rid]
+    st = daemon.wait_state(rid)
+    assert st["state"] == "aborted" and st["reason"] == "emergency stop"
+    path = tmp_path / "estop.h5"
+    path.write_bytes(c.get(f"/runs/{rid}/recording").content)
+    rec = read_recording(path)
+    assert rec.exit_status == "aborted" and rec.reason == "emergency stop"
+    assert c.post("/stop", content=b"garbage").status_code == 200
+    # after an emergency stop the next run starts (the procedure resets the controller's fault)
+    rid2 = daemon.start_run(freqs=(10.0,))
+    assert daemon.wait_state(rid2, ("identifying", *FINAL))["state"] in ("identifying", "completed")
+    daemon.wait_state(rid2)
+    h = c.get("/health").json()
+    assert h["status"] == "ok" and h["active_run"] is None
+
+
+def test_reading_from_another_machine_needs_the_token_and_foreign_hosts_are_refused(daemon: Daemon) -> None:
+    import asyncio
+
+    from station.api import create_app
+    from station.service.settings import load_settings
+
+    settings = load_settings(daemon.cfg_path, sim=True, host="0.0.0.0")
+    app = create_app(settings)
+
+    async def go() -> tuple[int, int, int]:
+        t = httpx.ASGITransport(app=app, client=("192.0.2.7", 5555))
+        async with httpx.AsyncClient(transport=t, base_url="http://192.0.2.1") as c:
+            no = (await c.get("/station")).status_code
+            yes = (await c.get("/station", headers={"Authorization": f"Bearer {settings.token}"})).status_code
+        local = create_app(load_settings(daemon.cfg_path, sim=True))
+        t2 = httpx.ASGITransport(app=local, client=("127.0.0.1", 5555))
+        async with httpx.AsyncClient(transport=t2, base_url="http://evil.example") as c:
+            rebinding = (await c.get("/station")).status_code
+        return no, yes, rebinding
+    no, yes, rebinding = asyncio.run(go())
+    assert (no, yes, rebinding) == (401, 200, 400)
+    assert TOKEN  # the daemon's token came from STATION_TOKEN
