@@ -12,4 +12,5 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.calibrate",
     "station.commands.discrepancy",
     "station.commands.serve",
+    "station.commands.batch",
 )

@@ -1,0 +1,113 @@
+"""``run_batch``: jobs through a ``concurrent.futures``-style executor.
+
+* ``executor="local"``: a ``ProcessPoolExecutor`` of ``workers`` processes started by the
+  multiprocessing *fork server* (spawn where there is none).  The fork server is started once per
+  parent process with ``blas_env`` and ``worker`` preloaded, so every worker is a fork of a process
+  that has numpy, scipy, h5py and the identification imported (no per-worker or per-job import) and
+  runs single-threaded BLAS.  A fork server, unlike a plain fork, is safe from a multi-threaded
+  parent such as the daemon.
+* ``executor="dask://HOST:PORT"``: a ``distributed.Client`` to that scheduler and its
+  ``concurrent.futures`` executor; ``workers`` is then the cluster's business.  Needs the optional
+  dependency ``sinecal[dask]`` and sinecal installed on the cluster's workers.
+
+Jobs are chunks of recordings (one recording per job unless there are many more recordings than
+workers); results come back in the input order.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+from collections.abc import Iterator
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
+from pathlib import Path
+
+from station.batch.items import BatchItem
+from station.batch.progress import ProgressBar
+from station.batch.worker import identify_chunk, warm_up
+from station.errors import BadInputError, StationError
+
+log = logging.getLogger(__name__)
+PRELOAD = ["station.batch.blas_env", "station.batch.worker"]
+DASK_PREFIX = "dask://"
+
+
+def _local(workers: int) -> ProcessPoolExecutor:
+    if "forkserver" in mp.get_all_start_methods():
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload(PRELOAD)  # effective when this starts the fork server
+    else:  # pragma: no cover - Windows
+        ctx = mp.get_context("spawn")
+    return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=warm_up)
+
+
+@contextmanager
+def open_executor(executor: str, workers: int) -> Iterator[Executor]:
+    """The executor named by ``executor`` ("local" or "dask://HOST:PORT"), shut down on exit."""
+    if executor == "local":
+        if workers < 1:
+            raise BadInputError(f"workers: at least 1 expected, got {workers}")
+        with _local(workers) as ex:
+            yield ex
+        return
+    if not executor.startswith(DASK_PREFIX) or len(executor) == len(DASK_PREFIX):
+        raise BadInputError(f"executor: 'local' or 'dask://HOST:PORT' expected, got {executor!r}")
+    try:
+        from distributed import Client
+    except ImportError:
+        raise StationError("the Dask executor needs the optional dependency: pip install 'sinecal[dask]'") from None
+    address = executor[len(DASK_PREFIX):]
+    address = address if "://" in address else f"tcp://{address}"
+    try:
+        client = Client(address, timeout=10, set_as_default=False)
+    except (OSError, TimeoutError) as exc:
+        raise StationError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+    try:
+        yield client.get_executor(pure=False)
+    finally:
+        client.close()
+
+
+def default_chunksize(n: int, workers: int) -> int:
+    """1 (best balance) unless there are more than 16 jobs per worker: then 16 chunks per worker."""
+    return max(1, n // (16 * max(workers, 1)))
+
+
+def run_batch(paths: list[Path], *, workers: int = 2, executor: str = "local", progress: bool = False,
+              method: str | None = None, model: str | None = None, store: bool = False,
+              chunksize: int | None = None) -> list[BatchItem]:
+    """Re-identify ``paths`` (method/model as ``identify_recording``; default fd, auto) in parallel.
+
+    Returns one BatchItem per path, in order; a recording that fails gives a "failed" item.
+    ``store``: also write each result into its recording (``/results/identify_<method>_<model>``).
+    ``progress``: draw a progress bar on stderr.  StationError if the executor breaks down.
+    """
+    paths = [Path(p) for p in paths]
+    if not paths:
+        return []
+    size = chunksize or default_chunksize(len(paths), workers)
+    chunks = [paths[i:i + size] for i in range(0, len(paths), size)]
+    out: list[list[BatchItem] | None] = [None] * len(chunks)
+    bar = ProgressBar(len(paths)) if progress else None
+    try:
+        with open_executor(executor, workers) as ex:
+            futs: dict[Future[list[BatchItem]], int] = {
+                ex.submit(identify_chunk, chunk, method, model, store): i for i, chunk in enumerate(chunks)}
+            for fut in as_completed(futs):
+                i = futs[fut]
+                out[i] = fut.result()
+                if bar:
+                    bar.update(len(chunks[i]))
+    except BrokenProcessPool as exc:
+        raise StationError(f"a batch worker process died: {exc} (a script that calls run_batch must guard its "
+                           "entry point with `if __name__ == '__main__':`, as workers import the main module)"
+                           ) from None
+    finally:
+        if bar:
+            bar.close()
+    items = [it for chunk in out if chunk is not None for it in chunk]
+    failed = sum(not it.ok for it in items)
+    log.info("batch: %d recordings, %d failed (%s, %d workers)", len(items), failed, executor, workers)
+    return items

@@ -1,0 +1,89 @@
+"""``station batch``: re-identify the recordings in scope and write each transducer's parameters over
+time with drift flagged (docs/batch.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from station.batch.runner import run_batch
+from station.batch.scope import parse_when, select_recordings
+from station.batch.summary import K_DEFAULT, MIN_HISTORY, PARAMS, write_summaries
+from station.config import default_config_path, load_config
+from station.errors import BadInputError
+from station.ident.api import METHODS, MODELS
+
+log = logging.getLogger(__name__)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("batch", help="re-identify recordings and track each transducer's parameters (drift)")
+    p.add_argument("--config", type=Path, default=None, help="station YAML (default config/sim-5kN.yaml)")
+    p.add_argument("--recordings", type=Path, default=None,
+                   help="recordings folder (default: the config's station.recordings_dir)")
+    p.add_argument("--since", default=None, help="only runs started at or after this ISO 8601 date/time (UTC)")
+    p.add_argument("--transducer", default=None, metavar="ID", help="only runs of this transducer")
+    p.add_argument("--executor", default="local", metavar="local|dask://HOST:PORT",
+                   help="local process pool (default) or a Dask distributed scheduler")
+    p.add_argument("--workers", type=int, default=2, help="processes of the local pool (default 2)")
+    p.add_argument("--method", choices=METHODS, default=None, help="identification method (default fd)")
+    p.add_argument("--model", choices=MODELS, default=None, help="model (default: auto for fd)")
+    p.add_argument("--summary-dir", type=Path, default=None,
+                   help="where <transducer>.json/.csv go (default: <recordings>/summary)")
+    p.add_argument("--store", action="store_true", help="also store each result in its recording")
+    p.add_argument("--k", type=float, default=K_DEFAULT, help=f"drift threshold in combined standard "
+                   f"uncertainties (default {K_DEFAULT:g})")
+    p.add_argument("--min-history", type=int, default=MIN_HISTORY,
+                   help=f"earlier runs needed before a value is judged (default {MIN_HISTORY})")
+    bar = p.add_mutually_exclusive_group()
+    bar.add_argument("--progress", dest="progress", action="store_true", default=None,
+                     help="progress bar on stderr (default: when stderr is a terminal)")
+    bar.add_argument("--no-progress", dest="progress", action="store_false")
+    p.add_argument("--json", action="store_true", help="print the items and drift flags as JSON")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.workers < 1:
+        raise BadInputError(f"--workers: at least 1 expected, got {args.workers}")
+    if not args.k > 0 or args.min_history < 1:
+        raise BadInputError("--k must be > 0 and --min-history >= 1")
+    since = parse_when(args.since) if args.since else None
+    if args.recordings is None:
+        cfg = load_config(args.config or default_config_path())
+        folder = Path(cfg.station.recordings_dir)
+    else:
+        folder = args.recordings
+    paths, notes = select_recordings(folder, since=since, transducer=args.transducer)
+    progress = sys.stderr.isatty() if args.progress is None else args.progress
+    items = run_batch(paths, workers=args.workers, executor=args.executor, progress=progress,
+                      method=args.method, model=args.model, store=args.store)
+    out = args.summary_dir or folder / "summary"
+    docs = write_summaries(items, out, k=args.k, min_history=args.min_history) if items else {}
+    failed = [it for it in items if not it.ok]
+    if args.json:
+        print(json.dumps({"recordings": len(paths), "skipped": notes, "summary_dir": str(out),
+                          "items": [it.to_dict() for it in items],
+                          "flagged": {tx: d["flagged"] for tx, d in docs.items()}}, indent=2))
+    else:
+        print(f"{len(paths)} recordings in scope in {folder}, {len(notes)} left out, {len(failed)} failed")
+        for n in notes:
+            print(f"  skipped: {n}")
+        for it in failed:
+            print(f"  failed: {it.path.name}: {it.error}")
+        for tx, d in docs.items():
+            last = next((r for r in reversed(d["runs"]) if r["status"] == "ok"), None)
+            vals = "" if last is None else ", ".join(
+                f"{n} {last['parameters'][n]['value']:.6g} {u}" for n, u in PARAMS
+                if (last["parameters"].get(n) or {}).get("value") is not None)
+            print(f"{tx}: {len(d['runs'])} runs; latest {vals}; summary {out / tx}.json/.csv")
+            for f in d["flagged"]:
+                print(f"  DRIFT {f['parameter']} in run {f['run_id']}: {f['value']:.6g}, history mean "
+                      f"{f['history_mean']:.6g}, deviation {f['deviation']:.3g} > {args.k:g} x {f['u_c']:.3g}")
+    for tx, d in docs.items():
+        if d["flagged"]:
+            log.warning("batch: drift flagged for %s (%d value(s))", tx, len(d["flagged"]))
+    return 1 if failed else 0
