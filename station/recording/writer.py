@@ -115,7 +115,8 @@ class RecordingWriter:
         self._flush_interval = flush_interval_s
         self._last_flush = time.monotonic()
         self._n = 0
-        f = h5py.File(self.partial_path, "w-", libver="latest")
+        # a small chunk cache: appends only ever touch the last chunk of each channel
+        f = h5py.File(self.partial_path, "w-", libver="latest", rdcc_nbytes=8 * chunk_samples * 8)
         self._f = f
         f.attrs.update({
             "format": FORMAT_NAME, "format_version": FORMAT_VERSION, "run_id": meta.run_id,
