@@ -37,13 +37,13 @@ def schedule(cfg: StationConfig) -> list[Segment]:
     segs: list[Segment] = []
     f = 0.0
     radius = cfg.plan.steps[0].crank_radius_m
-    pre = int(round((cfg.simulation.pre_roll_s if cfg.simulation else 0.5) * fs))
+    pre = round((cfg.simulation.pre_roll_s if cfg.simulation else 0.5) * fs)
     if pre:
         segs.append(Segment(pre, 0.0, radius))
 
     def ramp(to: float) -> None:
         nonlocal f
-        n = int(round(abs(to - f) / acc * fs))
+        n = round(abs(to - f) / acc * fs)
         if n:
             segs.append(Segment(n, to, radius))
         f = to
@@ -56,10 +56,10 @@ def schedule(cfg: StationConfig) -> list[Segment]:
         settle = st.settle_s if st.settle_s is not None else cfg.plan.settle_s
         record = st.record_s if st.record_s is not None else cfg.plan.record_s
         if settle:
-            segs.append(Segment(int(round(settle * fs)), f, radius))
-        segs.append(Segment(int(round(record * fs)), f, radius, record=i))
+            segs.append(Segment(round(settle * fs), f, radius))
+        segs.append(Segment(round(record * fs), f, radius, record=i))
     ramp(0.0)
-    segs.append(Segment(int(round(0.1 * fs)), 0.0, radius))
+    segs.append(Segment(round(0.1 * fs), 0.0, radius))
     return segs
 
 

@@ -32,7 +32,7 @@ def steady_block(physics: rp.RigPhysics, f: float, radius: float = 1e-4, periods
     s = RigSynth(physics, seed=0, crank_radius_m=radius)
     s.advance(int(FS * 0.5), f)  # ramp
     s.advance(int(FS * settle_s), f)
-    n = int(round(FS / f * periods))
+    n = round(FS / f * periods)
     b = s.advance(n, f)
     return b.displacement_V, b.force_V, b.displacement_m
 
@@ -85,7 +85,7 @@ def test_static_limit_force_is_minus_total_mass_times_acceleration(coupled: bool
     t = ph.transducer
     S = t.sensitivity_V_per_N * ph.conditioner.gain
     f, r = 1.0, 0.02
-    dv, fv, x = steady_block(ph, f, radius=r, periods=2)
+    _dv, fv, x = steady_block(ph, f, radius=r, periods=2)
     a = -(2 * np.pi * f) ** 2 * x
     predicted = -S * (t.m_e + t.m_l) * (a + ph.gravity_m_per_s2)
     fn = np.sqrt(t.k_f / (t.m_e + t.m_l)) / (2 * np.pi)
@@ -168,7 +168,7 @@ def test_conditioner_lowpass_is_a_butterworth() -> None:
 def test_crank_harmonics_of_a_slider_crank() -> None:
     r, L, f = 0.01, 0.15, 5.0
     ph = paper_5kN_physics(rp.Effects(crank_harmonics=rp.CrankHarmonics(L)), noise=False)
-    dv, fv, x = steady_block(ph, f, radius=r, periods=4)
+    _dv, fv, x = steady_block(ph, f, radius=r, periods=4)
     lam = r / L
     # sqrt(L^2 - r^2 cos^2) = L - L (lam^2/4 + lam^4/16 + ...) cos(2 phi) + ...
     a2 = abs(sine_fit(x, 2 * f))

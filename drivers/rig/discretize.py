@@ -57,11 +57,11 @@ def hermite_discretize(ss: StateSpace, T: float) -> DiscreteFilters:
     Phi = X[:n, :n]
     # I_j = int_0^T e^{A(T-tau)} B tau^j dtau = j! * block(0, 1+j)
     fact = np.array([1.0, 1.0, 2.0, 6.0])
-    I = np.stack([X[:n, n + j] * fact[j] for j in range(4)], axis=1)  # (n, 4)
+    Ij = np.stack([X[:n, n + j] * fact[j] for j in range(4)], axis=1)  # (n, 4)
     scale = T ** -np.arange(4.0)
 
     def g(coeff: np.ndarray) -> np.ndarray:
-        return I @ (coeff * scale)
+        return Ij @ (coeff * scale)
 
     G0, G1, G2, G3 = g(_H00), T * g(_H10), g(_H01), T * g(_H11)
     # xi_k = x_k - G2 u_k - G3 u'_k removes the dependence on u_{k+1} (feed-through form).
