@@ -1,0 +1,247 @@
+"""The daemon's service layer: the SQLite store, request checks, recordings kept inside their folder,
+and what survives the end of the daemon (kill -9 mid-run, SIGTERM mid-run, queued jobs)."""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import pytest
+
+from station.config import parse_config
+from station.errors import ConfigError
+from station.recording import read_recording
+from station.run.request import RunRequest, StepSpec
+from station.service.manager import RequestLimitError, RunManager, RunStateError, check_request
+from station.service.settings import build_settings
+from station.service.store import RunRow, Store
+from tests.test_service_support import Daemon, daemon_config
+
+
+def _row(run_id: str, state: str = "queued", created: float | None = None) -> RunRow:
+    return RunRow(id=run_id, state=state, transducer_id="TX", top_mass_kg=1.0, request_json="{}",
+                  plan_json='{"steps": []}', created=created or time.time(), n_steps=1)
+
+
+# ---------------------------------------------------------------------------------------- store
+def test_store_is_wal_and_keeps_runs_and_jobs(tmp_path: Path) -> None:
+    db = tmp_path / "s.db"
+    s = Store(db)
+    assert s.journal_mode() == "wal"
+    s.insert_run(_row("a", created=1.0))
+    s.insert_run(_row("b", "running", created=2.0))
+    s.update_run("a", state="identifying", samples=5, message="x")
+    with pytest.raises(KeyError):
+        s.update_run("a", nonsense=1)
+    assert [r.id for r in s.list_runs()] == ["b", "a"]
+    assert [r.id for r in s.list_runs(states=["identifying"])] == ["a"]
+    j1, j2 = s.enqueue_job("a"), s.enqueue_job("b")
+    first = s.claim_job()
+    assert first is not None and first.id == j1 and first.attempts == 1 and first.state == "running"
+    s.close()
+    # another connection (another process after a restart) sees every committed change
+    s2 = Store(db)
+    assert s2.get_run("a").samples == 5  # type: ignore[union-attr]
+    assert s2.job_counts() == {"queued": 1, "running": 1, "done": 0, "failed": 0}
+    requeued, failed = s2.requeue_running_jobs(max_attempts=3)
+    assert [j.id for j in requeued] == [j1] and failed == []
+    assert s2.claim_job().id == j1  # type: ignore[union-attr]  # oldest first
+    assert s2.claim_job().id == j2  # type: ignore[union-attr]
+    assert s2.claim_job() is None
+    for _ in range(3):
+        s2.requeue_running_jobs(max_attempts=3)
+        s2.claim_job()
+        s2.claim_job()
+    s2.requeue_running_jobs(max_attempts=3)
+    jobs = s2.jobs()
+    assert [(j.state, j.attempts) for j in jobs] == [("failed", 3), ("failed", 3)]  # not tried forever
+    assert "3 times" in jobs[0].error
+    assert sqlite3.connect(db).execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
+# ---------------------------------------------------------------------------------------- checks
+def test_check_request_names_the_offending_field(tmp_path: Path) -> None:
+    cfg = parse_config(daemon_config(tmp_path))
+
+    def req(*steps: tuple[float, float], tid: str = "TX5K-0001", mass: float = 25.717) -> RunRequest:
+        return RunRequest(transducer_id=tid, top_mass_kg=mass,
+                          steps=[StepSpec(crank_frequency_hz=f, crank_radius_m=r) for f, r in steps])
+    assert len(check_request(cfg, req((10, 0.001), (20, 0.001))).steps) == 2
+    cases = [(req((10, 0.001), tid="X-1"), ("body", "transducer_id")),
+             (req((10, 0.001), (0.5, 0.001)), ("body", "steps", 1, "crank_frequency_hz")),
+             (req((10, 0.001), (20, 0.00001)), ("body", "steps", 1, "crank_radius_m")),
+             (req((10, 0.01), (40, 0.01)), ("body", "steps", 1, "crank_radius_m")),
+             # a heavier top mass makes a step unsafe that was fine before
+             (req((20, 0.008), mass=60.0), ("body", "steps", 0, "crank_radius_m"))]
+    for request, loc in cases:
+        with pytest.raises(RequestLimitError) as ei:
+            check_request(cfg, request)
+        assert ei.value.loc == loc, (request, ei.value)
+
+
+def test_settings_refuse_a_real_rig_without_token(tmp_path: Path) -> None:
+    cfg = parse_config(daemon_config(tmp_path))
+    with pytest.raises(ConfigError, match="STATION_TOKEN"):
+        build_settings(cfg, sim=False, env={})
+    with pytest.raises(ConfigError, match="at least 8"):
+        build_settings(cfg, sim=False, env={"STATION_TOKEN": "short"})
+    s = build_settings(cfg, sim=False, env={"STATION_TOKEN": "long-enough-token"})
+    assert s.token == "long-enough-token" and s.token_source == "env" and s.loopback_only
+    assert s.database == tmp_path / "station.db"
+    assert "long-enough-token" not in repr(s)
+    gen = build_settings(cfg, sim=True, env={})
+    assert gen.token_source == "generated" and len(gen.token) >= 16
+    cfg2 = parse_config({**daemon_config(tmp_path), "service": {"token": "from-the-config-file"}})
+    s2 = build_settings(cfg2, sim=True, env={})
+    assert s2.token == "from-the-config-file" and s2.config.service.token is None  # never copied into recordings
+
+
+def test_recording_paths_stay_inside_the_recordings_folder(tmp_path: Path) -> None:
+    cfg = parse_config(daemon_config(tmp_path / "rec"))
+    m = RunManager(build_settings(cfg, sim=True, env={}))
+    try:
+        outside = tmp_path / "secret.h5"
+        outside.write_bytes(b"x")
+        for name in ("../secret.h5", str(outside), "/etc/passwd", "nope.h5"):
+            row = _row("r1", "completed")
+            row.recording = name
+            with pytest.raises(RunStateError):
+                m.recording_path(row)
+        (tmp_path / "rec" / "ok.h5").write_bytes(b"x")
+        row = _row("r2", "completed")
+        row.recording = "ok.h5"
+        assert m.recording_path(row) == (tmp_path / "rec" / "ok.h5").resolve()
+    finally:
+        m.store.close()
+
+
+# ---------------------------------------------------------------------------------------- restarts
+def _alive(pids: list[int]) -> list[int]:
+    """Those of ``pids`` still running (a zombie waiting for its reaper has exited)."""
+    out = []
+    for p in pids:
+        try:
+            status = Path(f"/proc/{p}/status").read_text()
+        except OSError:
+            continue
+        if "zombie" not in status.lower():
+            out.append(p)
+    return out
+
+
+def _children(pid: int) -> list[int]:
+    out = subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True).stdout
+    return [int(p) for p in out.split()]
+
+
+def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume(tmp_path: Path) -> None:
+    data = tmp_path / "recordings"
+    # first daemon without workers: the identification of run A stays queued
+    first = Daemon(tmp_path, workers=0, data_dir=data, name="first").start()
+    try:
+        a = first.start_run()
+        st = first.wait_state(a, ("identifying",))
+        assert st["recording"] == f"{a}.h5"
+        b = first.start_run(freqs=(10.0,), record_s=30.0)
+        first.wait_state(b, ("running",), step_state="recording")
+        time.sleep(1.5)  # past a flush of the recording
+        assert (data / f"{b}.h5.partial").exists()
+    finally:
+        first.kill()
+    assert first.proc is not None and first.proc.returncode == -signal.SIGKILL
+    db = sqlite3.connect(data / "station.db")
+    assert dict(db.execute("SELECT id, state FROM runs").fetchall()) == {a: "identifying", b: "running"}
+    assert db.execute("SELECT run_id, state FROM jobs").fetchall() == [(a, "queued")]
+    db.close()
+
+    with Daemon(tmp_path, workers=1, data_dir=data, name="second") as second:
+        c = second.c()
+        st = c.get(f"/runs/{b}").json()
+        assert st["state"] == "interrupted" and "daemon stopped during the run" in st["reason"]
+        assert st["recording"] == f"{b}.h5" and not (data / f"{b}.h5.partial").exists()
+        rec = c.get(f"/runs/{b}/recording")
+        assert rec.status_code == 200
+        path = tmp_path / "b.h5"
+        path.write_bytes(rec.content)
+        r = read_recording(path)
+        assert r.exit_status == "interrupted" and r.complete and r.displacement_m.size > 20_000
+        # the queued job of run A resumed in the new daemon's worker
+        st = second.wait_state(a, ("completed", "failed"), timeout_s=60)
+        assert st["state"] == "completed", st
+        res = c.get(f"/runs/{a}/results").json()
+        assert {p["name"] for p in res["parameters"] if p["identifiable"]} >= {"S", "k_f", "b_f"}
+        assert c.get("/health").json()["worker"]["jobs"]["done"] == 1
+        # and the rig takes new runs
+        n = second.start_run(freqs=(10.0,))
+        assert second.wait_state(n)["state"] == "completed"
+
+
+def test_sigterm_mid_run_stops_the_run_closes_the_recording_and_the_workers(tmp_path: Path) -> None:
+    d = Daemon(tmp_path).start()
+    try:
+        done = d.start_run(freqs=(10.0,))
+        d.wait_state(done)  # the identification worker process has started
+        assert d.proc is not None
+        workers = _children(d.proc.pid)
+        assert workers
+        rid = d.start_run(freqs=(10.0,), record_s=30.0)
+        d.wait_state(rid, ("running",), step_state="recording")
+        t0 = time.monotonic()
+        assert d.stop(signal.SIGTERM) in (0, -signal.SIGTERM)  # uvicorn re-raises the signal after its shutdown
+        assert time.monotonic() - t0 < 15
+    finally:
+        if d.proc is not None and d.proc.poll() is None:
+            d.kill()
+    assert "stopped during the run" in d.log() or "interrupted" in d.log()
+    path = d.data_dir / f"{rid}.h5"
+    assert path.exists() and not (d.data_dir / f"{rid}.h5.partial").exists()
+    rec = read_recording(path)  # closed properly by the procedure (it stops the motor first)
+    assert rec.complete and rec.exit_status == "interrupted"
+    db = sqlite3.connect(d.data_dir / "station.db")
+    state, reason = db.execute("SELECT state, reason FROM runs WHERE id = ?", (rid,)).fetchone()
+    assert state == "interrupted" and "shut down" in reason
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and _alive(workers):
+        time.sleep(0.1)
+    assert _alive(workers) == []
+    with h5py.File(io.BytesIO(path.read_bytes()), "r") as f:
+        assert f.attrs["exit_status"] == "interrupted"
+
+
+def test_worker_exits_when_the_daemon_is_killed(tmp_path: Path) -> None:
+    """No orphaned worker processes after kill -9 of the daemon."""
+    d = Daemon(tmp_path).start()
+    try:
+        rid = d.start_run(freqs=(10.0,))
+        d.wait_state(rid)
+        assert d.proc is not None
+        workers = _children(d.proc.pid)
+        assert workers
+    finally:
+        d.kill()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and _alive(workers):
+        time.sleep(0.1)
+    assert not _alive(workers), subprocess.run(
+        ["ps", "-o", "pid,ppid,stat,cmd", "-p", ",".join(map(str, workers))], capture_output=True, text=True).stdout
+
+
+def test_serve_refuses_a_bad_configuration_at_start_up(tmp_path: Path) -> None:
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("service: {port: 99999}\n" + (Path(__file__).parent.parent / "config" / "sim-5kN.yaml").read_text())
+    env = {k: v for k, v in os.environ.items() if k != "STATION_TOKEN"}
+    r = subprocess.run([sys.executable, "-m", "station.cli", "serve", "--config", str(cfg)], capture_output=True,
+                       text=True, timeout=60, env=env, cwd=tmp_path)
+    assert r.returncode == 2 and "service.port" in r.stderr
+    ok = tmp_path / "ok.yaml"
+    ok.write_text((Path(__file__).parent.parent / "config" / "sim-5kN.yaml").read_text())
+    r = subprocess.run([sys.executable, "-m", "station.cli", "serve", "--config", str(ok)], capture_output=True,
+                       text=True, timeout=60, env=env, cwd=tmp_path)
+    assert r.returncode == 2 and "STATION_TOKEN" in r.stderr  # a real rig needs a token
