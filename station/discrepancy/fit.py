@@ -4,7 +4,8 @@ chi^2(theta) = sum_steps ||W_f (c_f - m_f(theta))||^2 + ||W_d (c_d - m_d(theta))
 coefficients (W_f = R_f / sigma_f, Gauss-Markov for white noise of the measured sigma) and displacement
 harmonics.  The displacement noise enters the force fundamental through the measured X_1
 (errors in variables): its two whitened rows are further whitened by chol(I + A C_X A^T)^-1,
-A = R_f[0:2, 0:2] / sigma_f * d m_1 / d X_1, with V_1/X_1 frozen at the start values of the fit.
+A = R_f[0:2, 0:2] / sigma_f * d m_1 / d X_1 evaluated at the measured V_1/X_1 (the same weights for every
+model, so that chi^2 of different models can be compared).
 
 The time-domain gap of a model is  gap = sqrt(sum_s (ssr_s + sigma_s^2 ||W_f (c_f - m_f)||^2 + ||b_x +
 R_x (c_f - m_f)||^2) / sum_s N_s) (the last term: lines outside the catalogue, see ``data``),
@@ -94,8 +95,8 @@ class Problem:
         self.Wd = data.Rd / data.sigma_d[:, None, None]
         self.valid_f = np.any(data.Rf != 0, axis=1)
         self.valid_d = np.any(data.Rd != 0, axis=1)
-        _, _, h1 = predict(data, self.values(np.zeros(len(self.params))), self.effects)
-        self.eiv = self._eiv(h1)
+        # measured V_1 / X_1: the same weights for every model, so chi^2 values stay comparable
+        self.eiv = self._eiv((data.cf[:, 0] - 1j * data.cf[:, 1]) / data.x1)
 
     def _eiv(self, h1: ComplexArray) -> FloatArray:
         """Per step the 2x2 whitening of the fundamental rows for the displacement noise."""

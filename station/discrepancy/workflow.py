@@ -3,8 +3,9 @@ at a time, show the gap shrink, say what is left (issue 7).
 
 Selection rule (forward, greedy): every catalogue effect not yet in the model is added with its
 parameters free and the whole model refitted.  Its evidence is the likelihood-ratio statistic against
-the measured noise, Delta chi^2 / B with B = max(1, chi^2/dof) of the larger model (the extra-sum-of-
-squares test: structure the catalogue cannot explain inflates B rather than being forced onto a name),
+the measured noise, Delta chi^2 / B with B = max(1, chi^2/dof) of the best-fitting candidate of the
+round, common to all candidates (the extra-sum-of-squares test: structure the catalogue cannot explain
+inflates B rather than being forced onto a name),
 referred to chi^2 with as many degrees of freedom as parameters were added.  Candidates are ranked by
 Delta BIC = Delta chi^2 / B - k ln(n_obs); the best is named only if p < ``ALPHA``, Delta BIC > 0 and
 it explains at least ``MIN_SHARE`` of the excess chi^2 - dof left by the current model (an effect that
@@ -41,9 +42,9 @@ AMBIGUOUS_BIC = 10.0
 MIN_SHARE = 0.25
 
 
-def _candidate(current: ModelFit, fit: ModelFit, name: str) -> Candidate:
+def _candidate(current: ModelFit, fit: ModelFit, name: str, birge: float) -> Candidate:
     k = fit.n_par - current.n_par
-    d = max(current.chi2 - fit.chi2, 0.0) / fit.birge
+    d = max(current.chi2 - fit.chi2, 0.0) / birge
     return Candidate(name=name, delta_chi2=d, added_params=k, p_value=float(stats.chi2.sf(d, k)),
                      delta_bic=d - k * math.log(fit.n_obs), gap_V=fit.gap_V)
 
@@ -80,7 +81,10 @@ def _forward(data: RigData, current: ModelFit, allowed: tuple[str, ...], max_eff
             if fit is None:
                 continue
             fits[name] = fit
-            cands.append(_candidate(current, fit, name))
+        # one Birge ratio for the whole round (that of the best-fitting candidate), so that the
+        # candidates are ranked on the same scale
+        birge = min((f.birge for f in fits.values()), default=1.0)
+        cands = [_candidate(current, f, n, birge) for n, f in fits.items()]
         ranked = sorted(cands, key=lambda c: -c.delta_bic)
         for c in ranked:
             log.info("candidate %-24s dchi2/B %.4g k %d p %.3g dBIC %.4g gap %.4g V", c.name, c.delta_chi2,
