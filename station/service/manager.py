@@ -347,11 +347,15 @@ class RunManager:
             self.live.pop(run_id, None)
             self._changed(run_id)
         else:
-            reason = outcome.reason
-            if outcome.exit_status == "interrupted" and live.abort_reason:
+            state, reason = outcome.exit_status, outcome.reason
+            if state == "interrupted" and live.abort_reason:
                 reason = live.abort_reason
+            elif state == "failed" and live.abort_reason:
+                # the operator's stop reached the motor before the procedure saw the abort: the
+                # procedure reports the latched e-stop fault; the run was stopped on purpose
+                state, reason = "aborted", f"{live.abort_reason} (recording: {outcome.reason})"
             self._update(live, recording=name, lost_samples=outcome.lost_samples)
-            self._finish(live, outcome.exit_status, reason)
+            self._finish(live, state, reason)
 
     def _finish(self, live: LiveRun, state: str, reason: str) -> None:
         self._update(live, state=state, reason=reason, message=reason, ended=time.time())

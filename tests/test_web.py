@@ -1,0 +1,144 @@
+"""The technicians' page end to end in a real headless Chromium (Debian's, driven by Playwright):
+fill the form, watch a simulated run finish, read the results; refused input; the emergency stop.
+
+Skipped only when /usr/bin/chromium is absent and CI is not set; under CI it must run.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.test_service_support import TOKEN, Daemon
+
+CHROMIUM = Path("/usr/bin/chromium")
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+if not CHROMIUM.exists() and not os.environ.get("CI"):
+    pytest.skip("Debian's chromium is not installed (apt-get install chromium); CI runs this test",
+                allow_module_level=True)
+
+if os.environ.get("CI"):
+    from playwright import sync_api
+else:
+    sync_api = pytest.importorskip("playwright.sync_api")
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    with Daemon(tmp_path_factory.mktemp("web")) as d:
+        yield d
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[object]:
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture
+def page(browser: object, daemon: Daemon) -> Iterator[object]:
+    ctx = browser.new_context()  # type: ignore[attr-defined]
+    pg = ctx.new_page()
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.goto(daemon.url + "/")
+    yield pg
+    ctx.close()
+    assert errors == [], errors  # no JavaScript error on the page
+
+
+def _save_token(page: object) -> None:
+    page.fill("#token", TOKEN)  # type: ignore[attr-defined]
+    page.click("#token-save")  # type: ignore[attr-defined]
+
+
+def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon: Daemon) -> None:
+    pg = page
+    # the limits are shown, the form is prefilled with the station's transducer and plan
+    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+    assert "1–100 Hz" in pg.inner_text("#hint-frequency")
+    assert "0.1–50 mm" in pg.inner_text("#hint-radius")
+    assert "4000 N" in pg.inner_text("#hint-force")
+    assert pg.input_value("#transducer_id") == "TX5K-0001"
+    assert pg.is_visible("#estop")
+    _save_token(pg)
+    pg.fill("#frequencies", "10, 20")
+    pg.fill("#radius_mm", "1")
+    rows = pg.locator("#plan-check tbody tr")
+    assert rows.count() == 2 and "ok" in rows.nth(1).inner_text()
+    pg.click("#start")
+    pg.wait_for_url(re.compile(r".*#/runs/.+"), timeout=10_000)
+    run_id = pg.inner_text("#run-id")
+    # live progress: the state moves through running while the page stays open
+    pg.wait_for_function("document.querySelector('#run-state').textContent === 'running'", timeout=15_000)
+    pg.wait_for_function("document.querySelector('#run-progress').value > 0", timeout=15_000)
+    assert pg.is_visible("#estop") and pg.is_visible("#abort")
+    pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000)
+    pg.wait_for_selector("#results:not([hidden])", timeout=15_000)
+    # the parameters with their uncertainties
+    for name in ("S", "k_f", "b_f"):
+        cell = pg.inner_text(f"#params tr[data-param='{name}'] td.value")
+        assert "±" in cell, (name, cell)
+    assert pg.inner_text("#params tr[data-param='k_f'] td:nth-child(3)") == "N/m"
+    assert pg.locator("#frf tbody tr").count() == 2
+    assert pg.inner_text("#run-lost") == "0"
+    # the plots load (or the page says why there are none); the report and recording are linked
+    imgs = pg.locator("#plots img")
+    if imgs.count():
+        pg.wait_for_function("[...document.querySelectorAll('#plots img')]"
+                             ".every(i => i.complete && i.naturalWidth > 0)", timeout=60_000)
+        assert {imgs.nth(i).get_attribute("data-plot") for i in range(imgs.count())} >= {"bode", "residuals"}
+    else:
+        assert "not available" in pg.inner_text("#plots")
+    assert pg.get_attribute("#recording-link", "href") == f"/runs/{run_id}/recording"
+    pg.wait_for_function("document.querySelector('#discrepancy').dataset.loaded === '1' || "
+                         "document.querySelector('#discrepancy').textContent.startsWith('not available')",
+                         timeout=60_000)
+    assert "residual" in pg.inner_text("#discrepancy") or "not available" in pg.inner_text("#discrepancy")
+    assert daemon.c().get(f"/runs/{run_id}").json()["state"] == "completed"
+    # the run is listed on the start page
+    pg.click("text=start another run")
+    pg.wait_for_selector(f"#runs a:has-text('{run_id}')", timeout=10_000)
+
+
+def test_unsafe_input_is_refused_with_the_field_named(page: object) -> None:
+    pg = page
+    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+    _save_token(pg)
+    pg.fill("#frequencies", "10, 60")
+    pg.fill("#radius_mm", "10")
+    assert "radius too large" in pg.locator("#plan-check tbody tr").nth(1).inner_text()
+    pg.click("#start")
+    err = pg.locator(".err[data-for='crank_radius_m']")
+    err.wait_for(timeout=10_000)
+    pg.wait_for_function("document.querySelector(\".err[data-for='crank_radius_m']\").textContent.length > 0")
+    text = err.inner_text()
+    assert "steps.1.crank_radius_m" in text and "peak force" in text
+    assert "#/runs/" not in pg.url
+
+
+def test_without_token_the_page_asks_for_it_and_emergency_stop_works(page: object, daemon: Daemon) -> None:
+    pg = page
+    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+    pg.evaluate("localStorage.removeItem('sinecal-token')")
+    pg.fill("#frequencies", "10")
+    pg.fill("#radius_mm", "1")
+    pg.click("#start")
+    pg.wait_for_function("document.querySelector('#form-msg').textContent.includes('token')")
+    # a run started elsewhere is stopped from the page
+    rid = daemon.start_run(freqs=(10.0,), record_s=30.0)
+    daemon.wait_state(rid, ("running",))
+    pg.click("#estop")
+    pg.wait_for_selector("#banner:not([hidden])")
+    assert "EMERGENCY STOP" in pg.inner_text("#banner") and rid in pg.inner_text("#banner")
+    assert daemon.wait_state(rid)["state"] == "aborted"
