@@ -59,6 +59,7 @@ def _note(ax: Axes, text: str) -> None:
 
 def _bode(d: RunData, fig: Figure) -> None:
     ax_m, ax_p = fig.subplots(2, 1, sharex=True)
+    fig.subplots_adjust(left=0.09, right=0.98, top=0.92, bottom=0.09, hspace=0.08)
     r, M = d.response, d.mass_kg
     mag, u_mag, ph, u_ph = measured_sensitivity(r.H, r.cov, M)
     f_lo, f_hi = float(np.min(r.f_hz)), float(np.max(r.f_hz))
@@ -76,7 +77,7 @@ def _bode(d: RunData, fig: Figure) -> None:
             ax_p.fill_between(ff, np.degrees(m_ph - COVERAGE_K * m_uph), np.degrees(m_ph + COVERAGE_K * m_uph),
                               color="C1", alpha=0.25, lw=0)
     ax_m.errorbar(r.f_hz, 1e3 * mag, yerr=1e3 * COVERAGE_K * u_mag, fmt="o", color="C0", capsize=3,
-                  label="measured, U (k = 2)")
+                  label=f"measured, U (k = 2) ≤ {100 * COVERAGE_K * np.max(u_mag / mag):.2g} % of |S_dyn|")
     ax_p.errorbar(r.f_hz, np.degrees(ph), yerr=np.degrees(COVERAGE_K * u_ph), fmt="o", color="C0", capsize=3)
     ax_m.set(ylabel="|S_dyn| (mV/N)", xscale="log")
     ax_p.set(ylabel="phase of S_dyn (°)", xlabel="crank frequency f (Hz)", xscale="log")
@@ -97,6 +98,7 @@ def _pick(traces: tuple[StepTrace, ...]) -> list[StepTrace]:
 def _grid(fig: Figure, n: int) -> list[Axes]:
     rows, cols = (n, 1) if n <= 2 else ((n + 1) // 2, 2)
     axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    fig.subplots_adjust(left=0.08, right=0.98, top=0.89, bottom=0.09, hspace=0.45, wspace=0.25)
     for ax in axes[n:]:
         ax.set_visible(False)
     return list(axes[:n])
@@ -105,7 +107,8 @@ def _grid(fig: Figure, n: int) -> list[Axes]:
 def _timefit(d: RunData, fig: Figure) -> None:
     shown = _pick(d.traces)
     for ax, tr in zip(_grid(fig, len(shown)), shown, strict=True):
-        keep = np.abs(tr.t_s) <= 1.5 / tr.f_hz  # three periods around the window's centre
+        keep = np.flatnonzero(np.abs(tr.t_s) <= 1.5 / tr.f_hz)  # three periods around the window's centre
+        keep = keep[:: max(1, keep.size // 900)]  # at most ~900 points per panel (render time)
         t_ms = 1e3 * tr.t_s[keep]
         ax.plot(t_ms, tr.u_V[keep], ".", ms=2, color="C0", label="measured")
         if tr.model_V is not None:
@@ -127,7 +130,8 @@ def _residuals(d: RunData, fig: Figure) -> None:
         _title(fig, d, "Residuals")
         return
     shown = _pick(d.traces)
-    gs = fig.add_gridspec(2, len(shown), height_ratios=(1, 1.3))
+    gs = fig.add_gridspec(2, len(shown), height_ratios=(1, 1.3), left=0.08, right=0.98, top=0.91, bottom=0.09,
+                          hspace=0.45, wspace=0.3)
     ax0 = fig.add_subplot(gs[0, :])
     f = np.array([tr.f_hz for tr in d.traces])
     rms = np.array([np.sqrt(np.mean((tr.u_V - tr.model_V) ** 2)) for tr in d.traces if tr.model_V is not None])
@@ -144,7 +148,6 @@ def _residuals(d: RunData, fig: Figure) -> None:
         if j == 0:
             ax.set_ylabel("force residual (mV)")
         ax.grid(True, alpha=0.3)
-    fig.set_layout_engine("tight")
     _title(fig, d, "Residuals: measured force signal - model")
 
 
@@ -197,9 +200,7 @@ def make_figure(data: RunData, name: str) -> Figure:
     if name not in _RENDERERS:
         raise KeyError(f"unknown plot {name!r}; expected one of {', '.join(PLOT_NAMES)}")
     fig = _figure()
-    _RENDERERS[name](data, fig)
-    if fig.get_layout_engine() is None:
-        fig.set_layout_engine("tight")
+    _RENDERERS[name](data, fig)  # fixed margins: a layout engine would draw every figure twice
     return fig
 
 
