@@ -206,3 +206,13 @@ def test_pdf_report(sim_recording: Path) -> None:
     assert pdf.startswith(b"%PDF") and pdf.rstrip().endswith(b"%%EOF")
     assert len(re.findall(rb"/Type /Page\b", pdf)) == 1 + len(PLOT_NAMES)
     assert render_report_pdf(sim_recording) == pdf
+
+
+def test_report_of_an_imported_run(sim_recording_one_radius: Path, tmp_path: Path) -> None:
+    from station.interchange import export_run, import_run
+
+    rec_path = import_run(export_run(sim_recording_one_radius, tmp_path / "csv"), tmp_path / "imported")
+    page = render_report(rec_path)
+    assert "import" in page and "not recorded separately" in page  # RUN.yaml has no rig section
+    res = identify_recording(read_recording(rec_path))
+    assert _cell(page, "param.k_f")[1] == res.parameter("k_f").value

@@ -64,15 +64,19 @@ def _table(headers: list[str], rows: list[list[str]], cls: str = "") -> str:
 
 
 def _conditions(d: RunData) -> str:
-    rec, cfg = d.rec, d.rec.config or {}
-    rig, tr, cond = cfg.get("rig") or {}, cfg.get("transducer") or {}, cfg.get("conditioner") or {}
+    rec = d.rec
+    cfg = rec.config if isinstance(rec.config, dict) else {}
+    rig, tr, cond = ((v if isinstance(v, dict) else {}) for v in (cfg.get(k) for k in ("rig", "transducer",
+                                                                                       "conditioner")))
+    top = rig.get("top_mass_kg")  # an imported run's RUN.yaml has only top_mass_kg = the load mass
     lost = rec.lost_samples
     rows = [["transducer id", _e(rec.transducer_id)],
             ["capacity", f"{rec.capacity_N:g} N"],
             ["nominal sensitivity of the force signal", f"{rec.sensitivity_V_per_N:.6g} V/N"
              + (f" (bridge {tr['sensitivity_V_per_N']:g} V/N × conditioner gain {cond['gain']:g})"
-                if "sensitivity_V_per_N" in tr and "gain" in cond else "")],
-            ["top mass", f"{rig['top_mass_kg']:g} kg" if "top_mass_kg" in rig else "not recorded"],
+                if isinstance(tr.get("sensitivity_V_per_N"), int | float) and isinstance(cond.get("gain"), int | float)
+                else "")],
+            ["top mass", f"{top:g} kg" if isinstance(top, int | float) else "not recorded separately"],
             ["load mass m_l (top mass + adaption)", f"{rec.load_mass_kg:g} kg"],
             ["end mass m_e", f"{rec.end_mass_kg:g} kg" if rec.end_mass_kg is not None else "unknown (taken as 0)"],
             ["sample rate", f"{rec.sample_rate_hz:g} Hz"],
