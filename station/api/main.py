@@ -14,9 +14,11 @@ from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, JSONResponse
+from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from station import __version__
@@ -63,6 +65,15 @@ def install_error_handlers(app: FastAPI) -> None:
         errors = exc.errors() if isinstance(exc, RequestValidationError) else []
         return JSONResponse({"detail": finite(jsonable_encoder(errors))}, status_code=422)
     app.add_exception_handler(RequestValidationError, validation_error)
+
+    async def http_error(request: Request, exc: Exception) -> Response:
+        assert isinstance(exc, StarletteHTTPException)
+        if exc.status_code == 400 and request.method in ("POST", "PUT", "PATCH"):
+            # a body that is not even text (FastAPI says 400): bad input like any other, 422
+            return JSONResponse({"detail": [{"type": "body_unreadable", "loc": ["body"], "msg": str(exc.detail)}]},
+                                status_code=422)
+        return await http_exception_handler(request, exc)
+    app.add_exception_handler(StarletteHTTPException, http_error)
 
     async def station_error(request: Request, exc: Exception) -> JSONResponse:
         # a recording that cannot be read or written right now (locked by another process, damaged)

@@ -26,7 +26,11 @@ class ErrorOut(_Out):
     detail: str = Field(description="what went wrong, for the operator")
 
 
-class FieldError(_Out):
+class FieldError(BaseModel):
+    """One problem with the request (FastAPI's validation error item; may carry ``ctx``)."""
+
+    model_config = ConfigDict(extra="allow")
+
     loc: list[str | int] = Field(description="where the offending value is, e.g. ['body', 'steps', 1, "
                                  "'crank_radius_m']")
     msg: str

@@ -40,6 +40,19 @@ E501 = {501: {"model": ErrorOut, "description": "the module behind this endpoint
 E503 = {503: {"model": ErrorOut, "description": "the recording or the rig cannot be reached right now"}}
 
 
+def _json(status: int, description: str, schema: str = "ErrorOut") -> dict[int | str, dict[str, Any]]:
+    """An error response documented as JSON on a route whose success is not JSON (SSE, PNG, HTML)."""
+    return {status: {"description": description,
+                     "content": {"application/json": {"schema": {"$ref": f"#/components/schemas/{schema}"}}}}}
+
+
+NON_JSON_ERRORS = {**_json(401, "bearer token missing or wrong"), **_json(404, "no such run"),
+                   **_json(409, "the run is not in a state that allows this"),
+                   **_json(422, "invalid path or query parameter", "ValidationErrorOut"),
+                   **_json(501, "the module behind this endpoint is not installed"),
+                   **_json(503, "the recording cannot be read right now")}
+
+
 def links(run_id: str) -> RunLinks:
     base = f"/runs/{run_id}"
     return RunLinks(self=base, events=f"{base}/events", results=f"{base}/results",
@@ -87,7 +100,7 @@ async def get_run(run: RunDep) -> RunStatus:
 
 
 @router.get("/{run_id}/events", response_class=EventSourceResponse, dependencies=[Reader],
-            responses={**E401, **E404, **E422}, summary="Live progress (server-sent events)")
+            responses=NON_JSON_ERRORS, summary="Live progress (server-sent events)")
 async def run_events(run: RunDep, manager: ManagerDep, request: Request) -> AsyncIterable[ServerSentEvent]:
     """Event `status` (data: the RunStatus JSON) on every change, at most a few per second; event
     `end` with the final status once the run is completed, aborted, failed or interrupted."""
@@ -126,8 +139,7 @@ async def run_results(run: RunDep, manager: ManagerDep) -> RunResults:
 
 
 @router.get("/{run_id}/plots/{name}.png", response_class=Response, dependencies=[Reader],
-            responses={200: {"content": {"image/png": {}}, "description": "PNG image"},
-                       **E401, **E404, **E409, **E422, **E501, **E503},
+            responses={200: {"content": {"image/png": {}}, "description": "PNG image"}, **NON_JSON_ERRORS},
             summary="A plot: bode, timefit, residuals, convergence, ...")
 async def run_plot(run: RunDep, manager: ManagerDep,
                    name: Annotated[str, Path(pattern=r"^[A-Za-z0-9_\-]{1,64}$")]) -> Response:
@@ -141,7 +153,7 @@ async def run_plot(run: RunDep, manager: ManagerDep,
 
 
 @router.get("/{run_id}/report", response_class=HTMLResponse, dependencies=[Reader],
-            responses={200: {"content": {"text/html": {}}}, **E401, **E404, **E409, **E422, **E501, **E503},
+            responses={200: {"content": {"text/html": {}}}, **NON_JSON_ERRORS},
             summary="The calibration report (HTML)")
 async def run_report(run: RunDep, manager: ManagerDep) -> HTMLResponse:
     return HTMLResponse(await manager.report(run.id))
@@ -149,7 +161,7 @@ async def run_report(run: RunDep, manager: ManagerDep) -> HTMLResponse:
 
 @router.get("/{run_id}/recording", response_class=StreamingResponse, dependencies=[Reader],
             responses={200: {"content": {"application/x-hdf5": {}}, "description": "the HDF5 recording"},
-                       **E401, **E404, **E409, **E422, **E503},
+                       **NON_JSON_ERRORS},
             summary="Download the HDF5 recording")
 async def run_recording(run: RunDep, manager: ManagerDep) -> StreamingResponse:
     if run.state not in FINAL_STATES:
