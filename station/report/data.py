@@ -8,15 +8,15 @@
 * the per-step time signals with the model's prediction (for the time-domain plots);
 * the discrepancy workflow's ``/results/discrepancy`` when present.
 
-``load_run`` caches the last few recordings by (path, modification time, size), so the four plots
-and the report of one run read and fit it once.
+``load_run`` caches the last 4 recordings by (path, modification time, size), so the four plots
+and the report of one run read and fit it once (the raw channels are dropped; the record windows kept).
 """
 
 from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -213,7 +213,7 @@ def _traces(frf: Any, sigs: list[Any], usable: list[int], curve: ModelCurve | No
     return tuple(out)
 
 
-@lru_cache(maxsize=8)
+@lru_cache(maxsize=4)
 def _load(path_str: str, _mtime_ns: int, _size: int) -> RunData:
     path = Path(path_str)
     results, proc = read_groups(path)
@@ -236,8 +236,10 @@ def _load(path_str: str, _mtime_ns: int, _size: int) -> RunData:
     response = _response(proc, frf, usable)
     curve, why = model_curve(ident, rec, response)
     disc = results.get("discrepancy")
-    return RunData(rec, ident, source, results, response, curve, why,
-                   _traces(frf, sigs, usable, curve), disc.payload if disc else None)
+    traces = _traces(frf, sigs, usable, curve)
+    empty = np.zeros(0)  # the cache keeps the record windows (traces), not the whole raw channels
+    return RunData(replace(rec, displacement_m=empty, force_V=empty), ident, source, results, response, curve, why,
+                   traces, disc.payload if disc else None)
 
 
 def load_run(path: str | Path) -> RunData:
