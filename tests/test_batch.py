@@ -206,3 +206,14 @@ def test_progress_bar_lines_when_not_a_terminal() -> None:
     bar.close()
     lines = buf.getvalue().splitlines()
     assert len(lines) == 11 and lines[-1].startswith("[" + "#" * 30 + "] 50/50 recordings (100 %")
+
+
+def test_pool_workers_run_single_threaded_blas() -> None:
+    import os
+
+    from station.batch.runner import open_executor
+
+    before = os.environ.get("OPENBLAS_NUM_THREADS")
+    with open_executor("local", 2) as ex:  # the fork server set this before importing numpy
+        assert [f.result() for f in [ex.submit(os.getenv, "OPENBLAS_NUM_THREADS") for _ in range(4)]] == ["1"] * 4
+    assert os.environ.get("OPENBLAS_NUM_THREADS") == before  # the parent's environment is not touched
