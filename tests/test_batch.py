@@ -55,7 +55,7 @@ def history(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     do = make_fast_dict()
     do["transducer"]["id"] = OTHER
     other = simulate_run(parse_config(do, "other"), folder, seed=300)
-    _set_attrs(other, start_time=_day(2))
+    _set_attrs(other, start_time=_day(2).replace("T09", "T08"))  # just before stable[2]
     aborted = simulate_run(parse_config(d, "fast"), folder, seed=400)
     _set_attrs(aborted, start_time=_day(3), exit_status="aborted", reason="operator stop")
     partial = folder / "20250310T090000-TX5K-0001-abcdef.h5.partial"
