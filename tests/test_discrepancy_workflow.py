@@ -150,3 +150,34 @@ def test_cli_json_contract_and_plot(tmp_path: Path, capsys: pytest.CaptureFixtur
             assert set(out[key][p]) >= {"value", "std", "unit", "identifiable"}
     assert out["parameters_after"]["k_f"]["unit"] == "N/m"
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_imported_run_gives_the_same_answer_either_polarity(tmp_path: Path) -> None:
+    """Export + ``station import`` (absolute step times kept), once as is and once with the force
+    polarity inverted (negative sensitivity): same effects, same k_f and b_f, S with the sign."""
+    eff = draw_scenario(["mains_interference", "zero_drift"], seed=13)
+    own = simulate_scenario(eff, tmp_path / "sim", seed=13)
+    ref = analyse_recording(own)
+    run = export_run(own, tmp_path / "exp")
+    same = analyse_recording(import_run(run, tmp_path / "imp"))
+    doc = yaml.safe_load(run.read_text())
+    doc["transducer"]["sensitivity_V_per_N"] *= -1
+    run.write_text(yaml.safe_dump(doc))
+    for st in doc["steps"]:
+        f = run.parent / st["file"]
+        d = np.loadtxt(f, delimiter=",", skiprows=1)
+        d[:, 2] *= -1
+        np.savetxt(f, d, delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
+    inv = analyse_recording(import_run(run, tmp_path / "inv"))
+    names = sorted(eff)
+    for rep in (ref, same, inv):
+        assert sorted(e.name for e in rep.effects) == names
+        assert rep.final_gap <= 1.5 * rep.noise_floor_V
+    for rep in (same, inv):
+        for p in ("k_f", "b_f"):
+            assert rep.parameters_after[p].value == pytest.approx(ref.parameters_after[p].value, rel=1e-6)
+    assert same.parameters_after["S"].value == pytest.approx(ref.parameters_after["S"].value, rel=1e-6)
+    assert inv.parameters_after["S"].value == pytest.approx(-ref.parameters_after["S"].value, rel=1e-6)
+    drift = next(e for e in inv.effects if e.name == "zero_drift").params["rate_V_per_s"].value
+    assert drift == pytest.approx(-eff["zero_drift"]["rate_V_per_s"], abs=4 * next(
+        e for e in inv.effects if e.name == "zero_drift").params["rate_V_per_s"].std)

@@ -82,10 +82,10 @@ def start_grid(name: str, data: RigData, p: dict[str, float]) -> list[dict[str, 
     the profiled chi^2 picks one of them before the Levenberg-Marquardt fit."""
     fmax = float(data.f_hz.max())
     if name == "coupling_compliance":
-        return [{"k_c": p["k_f"] * r, "b_c": b} for r in np.geomspace(0.3, 3000, 13)
+        return [{"k_c": p["k_f"] * r, "b_c": b} for r in np.geomspace(0.3, 3000, 9)
                 for b in (0.0, p["b_f"])]
     if name == "conditioner_lowpass":
-        return [{"cutoff_hz": fc} for fc in np.geomspace(0.5 * fmax, 300 * fmax, 24)]
+        return [{"cutoff_hz": fc} for fc in np.geomspace(0.5 * fmax, 300 * fmax, 13)]
     if name == "channel_delay":
         return [{"delay_s": d} for d in (0.0, -1e-4, 1e-4, -5e-4, 5e-4)]
     if name == "crank_harmonics":

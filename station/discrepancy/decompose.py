@@ -129,11 +129,25 @@ def windows_of(rec: Recording) -> list[StepWindow]:
 
 
 def _harmonic_cols(tau: FloatArray, freqs_hz: list[float]) -> FloatArray:
+    """Columns cos, sin (N, 2 m) of the m frequencies (Hz) at times tau (s)."""
     w = 2 * np.pi * np.asarray(freqs_hz)
     arg = np.multiply.outer(tau, w)
     out = np.empty((tau.size, 2 * w.size))
     out[:, 0::2] = np.cos(arg)
     out[:, 1::2] = np.sin(arg)
+    return out
+
+
+def _harmonics_of(tau: FloatArray, f_hz: float, K: int) -> FloatArray:
+    """Columns cos, sin (N, 2 K) of k f, k = 1..K, by powers of exp(j 2 pi f tau) (one complex
+    exponential instead of K; rounding grows as k eps)."""
+    z1 = np.exp(2j * np.pi * f_hz * tau)
+    out = np.empty((tau.size, 2 * K))
+    z = z1
+    for k in range(K):
+        if k:
+            z = z * z1
+        out[:, 2 * k], out[:, 2 * k + 1] = z.real, z.imag
     return out
 
 
@@ -147,7 +161,7 @@ def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: Floa
     if extra is not None:
         poly = np.hstack([poly, extra])
     for _ in range(iterations):
-        B = np.hstack([_harmonic_cols(tau, [k * f for k in range(1, K + 1)]), poly])
+        B = np.hstack([_harmonics_of(tau, f, K), poly])
         c = np.linalg.solve(B.T @ B, B.T @ x)
         a, b = c[0], c[1]
         dcol = tau * (-a * B[:, 1] + b * B[:, 0]) * 2 * np.pi
@@ -158,7 +172,7 @@ def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: Floa
         s2 = float(r @ r) / max(x.size - J.shape[1], 1)
         cov = s2 * np.linalg.inv(JtJ)
         f, std = f + float(p[-1]), float(math.sqrt(cov[-1, -1]))
-        if abs(p[-1]) < 1e-3 * std:
+        if abs(p[-1]) < 1e-2 * std:
             break
     return f, std
 
@@ -209,7 +223,7 @@ def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int
     wd, wu = 1 / max(sd, 1e-300) ** 2, 1 / max(su, 1e-300) ** 2
     f, f_std = (wd * fd + wu * fu) / (wd + wu), 1 / math.sqrt(wd + wu)
     poly = np.column_stack([np.ones(n), tau / half, (tau / half) ** 2])
-    harm = _harmonic_cols(tau, [k * f for k in range(1, K + 1)])
+    harm = _harmonics_of(tau, f, K)
     force = _fit(np.hstack([extra, harm, poly, mains]), w.force_V)
     amp = tuple(float(np.hypot(force.coef[2 * j], force.coef[2 * j + 1])) for j in range(len(extra_hz)))
     disp = _fit(np.hstack([harm[:, :2], poly, mains, harm[:, 2:]]), w.displacement_m)

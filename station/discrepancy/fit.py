@@ -11,8 +11,9 @@ The time-domain gap of a model is  gap = sqrt(sum_s (ssr_s + sigma_s^2 ||W_f (c_
 R_x (c_f - m_f)||^2) / sum_s N_s) (the last term: lines outside the catalogue, see ``data``),
 the RMS of the force signal minus the simulated force signal over all record windows (V).
 
-Covariance of the estimates: (J^T J)^-1 of the whitened Jacobian, inflated by chi^2/dof when that
-exceeds 1 (Birge ratio: a model that does not describe the data gets honest, larger uncertainties).
+Covariance of the estimates: (J^T J)^-1 of the whitened Jacobian, inflated by chi^2/dof when that is
+significantly above 1 (p < 1 %; Birge ratio: a model that does not describe the data gets honest,
+larger uncertainties).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 from scipy.optimize import least_squares
 
 from station.discrepancy.catalogue import BASE_PARAMS, NEUTRAL, Param, effect_params, scales
@@ -166,7 +168,7 @@ def fit_model(data: RigData, effects: Mapping[str, int], start: Mapping[str, flo
     lo, hi = prob.bounds()
     u0 = np.clip(np.zeros(len(prob.params)), lo, hi)
     res = least_squares(prob.residual, u0, bounds=(lo, hi), method="trf", x_scale=1.0,
-                        xtol=1e-10, ftol=1e-12, gtol=1e-10, max_nfev=max_nfev)
+                        xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev)
     return finish(prob, res.x, res.jac, bool(res.success))
 
 
@@ -183,7 +185,9 @@ def finish(prob: Problem, u: FloatArray, jac: FloatArray, converged: bool) -> Mo
     except np.linalg.LinAlgError:
         cov_u = np.linalg.pinv(JtJ)
     n_par = len(prob.params) + (1 if "conditioner_lowpass" in prob.effects else 0)
-    birge = max(1.0, chi2 / max(n_obs - n_par, 1))
+    dof = max(n_obs - n_par, 1)
+    # inflate only when the misfit is significant (p < 1 %), not for chance chi^2/dof slightly above 1
+    birge = chi2 / dof if stats.chi2.sf(chi2, dof) < 0.01 else 1.0
     cov = birge * (D[:, None] * cov_u * D[None, :])
     std = {q.name: float(math.sqrt(max(cov[i, i], 0.0))) for i, q in enumerate(prob.params)}
     wf, wd, m, md = prob.whitened(vals)

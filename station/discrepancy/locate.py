@@ -99,8 +99,11 @@ def _report(out: list[Finding], channel: str, comp: str, cols: list[int], unit: 
     extra = ""
     if channel == "force" and comp == "fundamental":
         extra = _fundamental_text(data, resid, sig if np.any(sig) else valid)
+    sel = [i for i, s in enumerate(data.steps) if s.index in steps]
+    t0 = float(np.min(data.t_mid_s[sel] - data.half_s[sel]))
+    t1 = float(np.max(data.t_mid_s[sel] + data.half_s[sel]))
     out.append(Finding(channel, comp, steps, size, unit, total,
-                       f"{channel} {what}: up to {size:.3g} {unit} in {step_span(steps)}"
+                       f"{channel} {what}: up to {size:.3g} {unit} in {step_span(steps)} (t = {t0:.3g}–{t1:.3g} s)"
                        f" (chi2 {total:.3g} for {dof * int(valid.sum())} dof){extra}"))
 
 

@@ -1,7 +1,7 @@
 """Simulated recordings with catalogue effects drawn at random from plausible ranges (for the tests
 and the bench).  Every draw is seeded; ranges are those of real rigs, not tuned to the workflow:
 
-* coupling_compliance: k_c in [1, 4] k_f (log-uniform), b_c in [0, 0.5] b_f (a stiffer coupling is, below
+* coupling_compliance: k_c in [1, 3] k_f (log-uniform), b_c in [0, 0.5] b_f (a stiffer coupling is, below
   100 Hz, as well described by a delay or a first-order low-pass: the workflow reports such ties);
 * conditioner_lowpass: order 1-4, cut-off in [150, 500] Hz (log-uniform; far above the top step a
   low-pass is a pure delay to the data, see docs/discrepancy.md);
@@ -37,7 +37,7 @@ def _sign(rng: np.random.Generator) -> float:
 def draw_effect(name: str, rng: np.random.Generator, k_f: float, b_f: float) -> dict[str, Any]:
     """Configuration (``simulation.effects.<name>``) of one effect drawn from its plausible range."""
     if name == "coupling_compliance":
-        return {"k_c": _logu(rng, 1.0, 4.0) * k_f, "b_c": float(rng.uniform(0, 0.5)) * b_f}
+        return {"k_c": _logu(rng, 1.0, 3.0) * k_f, "b_c": float(rng.uniform(0, 0.5)) * b_f}
     if name == "conditioner_lowpass":
         return {"order": int(rng.integers(1, 5)), "cutoff_hz": _logu(rng, 150.0, 500.0)}
     if name == "channel_delay":

@@ -45,7 +45,8 @@ def line_amplitude(P: float, sigma: float, n: int) -> float:
 
 
 def mains_statistic(residuals: list[FloatArray], sigmas: list[float], fs: float,
-                    f_range: tuple[float, float], harmonics: int = 3
+                    f_range: tuple[float, float], harmonics: int = 3,
+                    spectra: list[tuple[FloatArray, FloatArray]] | None = None
                     ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Per-step harmonic-sum statistic on a 0.01 Hz grid over ``f_range``: S_i(nu) = sum_h P_i(h nu).
 
@@ -53,7 +54,7 @@ def mains_statistic(residuals: list[FloatArray], sigmas: list[float], fs: float,
     grid = np.arange(f_range[0], f_range[1], 0.01)
     per = np.zeros((len(residuals), grid.size))
     for i, (r, s) in enumerate(zip(residuals, sigmas, strict=True)):
-        fr, P = normalised_periodogram(r, s, fs)
+        fr, P = spectra[i] if spectra else normalised_periodogram(r, s, fs)
         for h in range(1, harmonics + 1):
             if h * grid[-1] < fr[-1]:
                 per[i] += np.interp(h * grid, fr, P)
@@ -78,7 +79,8 @@ def detect_mains(residuals: list[FloatArray], sigmas: list[float], fs: float,
     n = len(residuals)
     if n == 0:
         return MainsDetection(None, 0, "no steps")
-    grid, total, per = mains_statistic(residuals, sigmas, fs, f_range)
+    spectra = [normalised_periodogram(r, s, fs) for r, s in zip(residuals, sigmas, strict=True)]
+    grid, total, per = mains_statistic(residuals, sigmas, fs, f_range, spectra=spectra)
     j = int(np.argmax(total))
     trials = (f_range[1] - f_range[0]) * max(r.size for r in residuals) / fs  # independent cells
     thresh = stats.gamma.isf(alpha / max(trials, 1.0), 3 * n)
@@ -93,8 +95,7 @@ def detect_mains(residuals: list[FloatArray], sigmas: list[float], fs: float,
     t1 = stats.gamma.isf(1e-4, n)
     for h in range(2, h_max + 1):
         p = 0.0
-        for r, s in zip(residuals, sigmas, strict=True):
-            fr, P = normalised_periodogram(r, s, fs)
+        for fr, P in spectra:
             if h * f_m < 0.45 * fs:
                 p += float(np.interp(h * f_m, fr, P))
         if p > t1:
