@@ -12,8 +12,8 @@ class BatchItem:
     """One recording re-identified (status "ok") or not ("failed", with the error).
 
     parameters: name -> the identification's JSON form ``{"value", "std", "unit", "identifiable"[,
-    "reason"]}`` (SI units, std the standard uncertainty, k = 1); wall_s: time of the job in the
-    worker (s); stored_as: the result's group in the recording when the batch stored it, else "".
+    "reason"]}`` (SI units, std the standard uncertainty, k = 1); wall_s / cpu_s: elapsed and CPU
+    time of the job in the worker (s); stored_as: the result's group in the recording when the batch stored it, else "".
     """
 
     path: Path
@@ -27,6 +27,7 @@ class BatchItem:
     error: str = ""
     wall_s: float = 0.0
     stored_as: str = ""
+    cpu_s: float = 0.0
 
     @property
     def ok(self) -> bool:
@@ -36,4 +37,4 @@ class BatchItem:
         return {"path": str(self.path), "run_id": self.run_id, "transducer_id": self.transducer_id,
                 "start_time": self.start_time, "status": self.status, "method": self.method,
                 "model": self.model, "parameters": self.parameters, "error": self.error,
-                "wall_s": self.wall_s, "stored_as": self.stored_as}
+                "wall_s": self.wall_s, "cpu_s": self.cpu_s, "stored_as": self.stored_as}

@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 def identify_one(path: Path, method: str | None = None, model: str | None = None,
                  store: bool = False) -> BatchItem:
     """Identify one recording; every failure becomes a "failed" item (the batch goes on)."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     rec: Recording | None = None
     try:
         rec = read_recording(path)
@@ -32,14 +32,15 @@ def identify_one(path: Path, method: str | None = None, model: str | None = None
             write_results(path, name, res.to_dict())
             stored = f"/results/{name}"
         return BatchItem(Path(path), rec.run_id, rec.transducer_id, rec.start_time, "ok", res.method, res.model,
-                         {p.name: p.to_dict() for p in res.parameters}, "", time.perf_counter() - t0, stored)
+                         {p.name: p.to_dict() for p in res.parameters}, "", time.perf_counter() - t0, stored,
+                         time.process_time() - c0)
     except Exception as exc:  # one bad recording must not stop the night's batch
         if not isinstance(exc, StationError):
             log.exception("batch: unexpected error on %s", path)
         msg = str(exc) if isinstance(exc, StationError) else f"{type(exc).__name__}: {exc}"
         return BatchItem(Path(path), rec.run_id if rec else Path(path).name.split(".")[0],
                          rec.transducer_id if rec else "", rec.start_time if rec else "", "failed",
-                         error=msg, wall_s=time.perf_counter() - t0)
+                         error=msg, wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0)
 
 
 def identify_chunk(paths: list[Path], method: str | None = None, model: str | None = None,
