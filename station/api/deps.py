@@ -1,4 +1,7 @@
-"""Typed dependencies: settings, the run manager, authorisation, a run looked up by id."""
+"""Typed dependencies: settings, the run manager, authorisation, a run looked up by id.
+
+All are ``async def``: they are cheap, and FastAPI would run plain functions in its thread pool
+(a thread hop per dependency and request, which shows in the status latency under load)."""
 
 from __future__ import annotations
 
@@ -17,11 +20,11 @@ bearer = HTTPBearer(auto_error=False, description="the station token (service.to
 RUN_ID_PATTERN = r"^[A-Za-z0-9_.\-]{1,128}$"
 
 
-def get_settings(request: Request) -> ServiceSettings:
+async def get_settings(request: Request) -> ServiceSettings:
     return request.app.state.settings  # type: ignore[no-any-return]
 
 
-def get_manager(request: Request) -> RunManager:
+async def get_manager(request: Request) -> RunManager:
     return request.app.state.manager  # type: ignore[no-any-return]
 
 
@@ -34,7 +37,7 @@ def _token_ok(creds: HTTPAuthorizationCredentials | None, settings: ServiceSetti
     return creds is not None and secrets.compare_digest(creds.credentials.encode(), settings.token.encode())
 
 
-def require_token(creds: Credentials, settings: SettingsDep) -> None:
+async def require_token(creds: Credentials, settings: SettingsDep) -> None:
     """Endpoints that move the rig or change state: the bearer token, always."""
     if not _token_ok(creds, settings):
         raise HTTPException(status.HTTP_401_UNAUTHORIZED,
@@ -42,7 +45,7 @@ def require_token(creds: Credentials, settings: SettingsDep) -> None:
                             headers={"WWW-Authenticate": "Bearer"})
 
 
-def read_access(request: Request, creds: Credentials, settings: SettingsDep) -> None:
+async def read_access(request: Request, creds: Credentials, settings: SettingsDep) -> None:
     """Reading is open to clients on loopback; others need the token."""
     client = request.client.host if request.client else ""
     if is_loopback(client) or _token_ok(creds, settings):
@@ -54,7 +57,7 @@ def read_access(request: Request, creds: Credentials, settings: SettingsDep) -> 
 RunId = Annotated[str, Path(pattern=RUN_ID_PATTERN, description="run id as returned by POST /runs")]
 
 
-def get_run(run_id: RunId, manager: ManagerDep) -> RunRow:
+async def get_run(run_id: RunId, manager: ManagerDep) -> RunRow:
     try:
         return manager.get(run_id)
     except RunNotFoundError as exc:
