@@ -147,6 +147,7 @@ class RunManager:
         self.identify_pool = worker.WorkerPool("identification", settings.workers)
         self.render_pool = worker.WorkerPool("render", 1)
         self._dispatcher: asyncio.Task[None] | None = None
+        self._warm: asyncio.Task[None] | None = None
         self._job_tasks: set[asyncio.Task[None]] = set()
         self._caps: tuple[float, dict[str, Any]] | None = None
         self._cache: dict[tuple[str, str], bytes | str] = {}
@@ -159,6 +160,15 @@ class RunManager:
         self.recover()
         await self._connect_rig()
         self._dispatcher = asyncio.create_task(self._dispatch(), name="job-dispatcher")
+        self._warm = asyncio.create_task(self._warm_render_pool(), name="render-warm-up")
+
+    async def _warm_render_pool(self) -> None:
+        """Start the render worker and learn the optional modules early (the first results page
+        would otherwise wait for a process start and the plotting imports)."""
+        try:
+            await self.capabilities()
+        except Exception as exc:  # not fatal: retried on the first request
+            log.warning("render worker warm-up failed: %s", exc)
 
     async def close(self) -> None:
         """Shut down: a run on the rig is stopped (motor first) and marked interrupted; running
@@ -172,6 +182,8 @@ class RunManager:
         if self.rig is not None:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self.rig.motor.stop(), 3.0)
+        if self._warm is not None:
+            self._warm.cancel()
         if self._dispatcher is not None:
             self._dispatcher.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -440,7 +452,7 @@ class RunManager:
             raise RunNotFoundError(f"no run {run_id!r}")
         return row
 
-    def list(self, *, limit: int = 100, states: list[str] | None = None) -> list[RunRow]:
+    def list_runs(self, *, limit: int = 100, states: list[str] | None = None) -> list[RunRow]:
         rows = self.store.list_runs(limit=limit, states=states)
         return [self.live[r.id].row if r.id in self.live else r for r in rows]
 
@@ -585,6 +597,8 @@ class RunManager:
         caps = await self.capabilities()
         if caps["plots"] is None:
             raise FeatureUnavailableError("plots are not available: station.report.plots is not installed")
+        if name not in caps["plots"]:
+            return None
 
         async def make() -> bytes | None:
             async with self.file_lock(run_id):

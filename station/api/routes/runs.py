@@ -89,7 +89,7 @@ async def start_run(body: RunRequest, manager: ManagerDep, response: Response) -
             summary="List runs, newest first")
 async def list_runs(manager: ManagerDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
                     state: Annotated[list[RunState] | None, Query()] = None) -> RunList:
-    rows = manager.list(limit=limit, states=list(state) if state else None)
+    rows = manager.list_runs(limit=limit, states=list(state) if state else None)
     return RunList(count=len(rows), runs=[status_of(r) for r in rows])
 
 
