@@ -14,6 +14,7 @@ from station.discrepancy.data import G, RigData
 from station.discrepancy.fit import ModelFit, Problem, fit_model, profiled_chi2
 
 log = logging.getLogger(__name__)
+MULTI_START: dict[str, int] = {"coupling_compliance": 3}  # LM runs from the best grid points
 
 
 def base_start(data: RigData) -> dict[str, float]:
@@ -48,27 +49,34 @@ def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | Non
     orders = LOWPASS_ORDERS if name == "conditioner_lowpass" else (0,)
     best: ModelFit | None = None
     alts: list[tuple[int, float, float, float]] = []
+    n_starts = MULTI_START.get(name, 1)
     for order in orders:
         effects: dict[str, int] = {**current.effects, name: order}
         grid = start_grid(name, data, current.values)
-        start = _best_start(data, effects, current.values, grid)
-        try:
-            fit = fit_model(data, effects, start)
-        except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
-            log.info("candidate %s (order %d) failed: %s", name, order, exc)
+        best_order: ModelFit | None = None
+        for start in _best_starts(data, effects, current.values, grid, n_starts):
+            try:
+                fit = fit_model(data, effects, start)
+            except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
+                log.info("candidate %s (order %d) failed: %s", name, order, exc)
+                continue
+            if best_order is None or fit.chi2 < best_order.chi2:
+                best_order = fit
+        if best_order is None:
             continue
-        alts.append((order, fit.chi2, fit.values["k_f"], fit.values["b_f"]))
-        if best is None or fit.chi2 < best.chi2:
-            best = fit
+        alts.append((order, best_order.chi2, best_order.values["k_f"], best_order.values["b_f"]))
+        if best is None or best_order.chi2 < best.chi2:
+            best = best_order
     if best is not None and name == "conditioner_lowpass":
         best = replace(best, alternatives=tuple(alts))
     return best
 
 
-def _best_start(data: RigData, effects: Mapping[str, int], values: Mapping[str, float],
-                grid: list[dict[str, float]]) -> dict[str, float]:
+def _best_starts(data: RigData, effects: Mapping[str, int], values: Mapping[str, float],
+                 grid: list[dict[str, float]], n: int) -> list[dict[str, float]]:
+    """The n grid points with the lowest profiled chi^2, as full start dictionaries."""
     if len(grid) == 1:
-        return {**values, **grid[0]}
+        return [{**values, **grid[0]}]
     scores = []
     for g in grid:
         start = {**values, **g}
@@ -77,4 +85,4 @@ def _best_start(data: RigData, effects: Mapping[str, int], values: Mapping[str, 
             scores.append(profiled_chi2(prob, np.zeros(len(prob.params))))
         except (ValueError, np.linalg.LinAlgError, FloatingPointError):
             scores.append(np.inf)
-    return {**values, **grid[int(np.argmin(scores))]}
+    return [{**values, **grid[int(i)]} for i in np.argsort(scores)[:n]]
