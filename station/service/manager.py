@@ -189,7 +189,7 @@ class RunManager:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._dispatcher
         await asyncio.to_thread(self.identify_pool.shutdown, 30.0)
-        await asyncio.to_thread(self.render_pool.shutdown, 5.0)
+        await asyncio.to_thread(self.render_pool.shutdown, 30.0)  # it may be writing a discrepancy result
         for t in list(self._job_tasks):  # their jobs were allowed to finish or were stopped above
             t.cancel()
         await self._disconnect_rig()
