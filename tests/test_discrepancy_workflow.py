@@ -17,11 +17,13 @@ import pytest
 import yaml
 
 from station.cli import main as station_main
+from station.config import parse_config
 from station.discrepancy import analyse_recording
 from station.discrepancy.catalogue import CATALOGUE
 from station.discrepancy.report import DiscrepancyReport
 from station.discrepancy.scenarios import draw_scenario, scenario_config, simulate_scenario
 from station.interchange import export_run, import_run
+from station.simulate import simulate_run
 
 Z_MAX = 4.0
 SEEDS = (101, 202)
@@ -181,3 +183,15 @@ def test_imported_run_gives_the_same_answer_either_polarity(tmp_path: Path) -> N
     drift = next(e for e in inv.effects if e.name == "zero_drift").params["rate_V_per_s"].value
     assert drift == pytest.approx(-eff["zero_drift"]["rate_V_per_s"], abs=4 * next(
         e for e in inv.effects if e.name == "zero_drift").params["rate_V_per_s"].std)
+
+
+def test_clipped_step_is_left_out_and_reported_not_named(tmp_path: Path) -> None:
+    """A force range too small for the top step clips it: clipping is not a catalogue effect (nor a
+    model gap): the step is left out and reported; the other steps still fit with nothing named."""
+    rng = np.random.default_rng(14)
+    d = scenario_config({}, seed=14).model_dump(exclude_none=True)
+    d["daq"]["force_range_V"] = float(rng.uniform(2.0, 3.0))
+    rep = analyse_recording(simulate_run(parse_config(d), tmp_path, seed=14))
+    assert rep.effects == ()
+    assert any("clipped" in u and "left out" in u for u in rep.unexplained), rep.unexplained
+    assert 5 not in rep.steps and rep.final_gap <= 1.5 * rep.noise_floor_V

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.discrepancy.decompose import (
+    FLAT_TOP,
     K_MAX,
     MAINS_H_MAX,
     MAINS_RANGE_HZ,
@@ -44,7 +45,8 @@ class RigData:
     merge (n, H) int: crank harmonic index a mains line falls on (0 = own slot);
     Rx (n, n_x, n_f) / bx (n, n_x): the rows of R of the nuisance lines outside the catalogue, so that
     their part of the gap is ||bx + Rx (cf - m)||^2 (V^2) for model coefficients m.
-    Masses in kg, capacity in N, nominal sensitivity in V/N (either sign).
+    Masses in kg, capacity in N, nominal sensitivity in V/N (either sign); excluded: (step index,
+    reason) of windows left out (clipped).
     """
 
     steps: tuple[StepDecomposition, ...]
@@ -71,6 +73,7 @@ class RigData:
     capacity_N: float
     sensitivity_nominal: float
     sample_rate_hz: float
+    excluded: tuple[tuple[int, str], ...] = ()
 
     @property
     def n_steps(self) -> int:
@@ -138,6 +141,16 @@ def prepare(rec: Recording) -> RigData:
         raise StationError(f"{rec.path}: the workflow needs at least 2 usable steps, found {len(wins)}")
     fs = rec.sample_rate_hz
     first = [decompose_step(w, fs, None, 0) for w in wins]
+    # a clipped window is not data about the rig: leave it out (and say so) while 2 steps remain
+    clipped = [s.flat_top >= FLAT_TOP for s in first]
+    excluded: tuple[tuple[int, str], ...] = ()
+    if any(clipped) and len(wins) - sum(clipped) >= 2:
+        excluded = tuple((s.index, f"force signal clipped (flat tops of {s.flat_top} samples at the window "
+                                   f"extreme); step left out") for s, c in zip(first, clipped, strict=True) if c)
+        wins = [w for w, c in zip(wins, clipped, strict=True) if not c]
+        first = [s for s, c in zip(first, clipped, strict=True) if not c]
+        for i, why in excluded:
+            log.warning("step %d: %s", i, why)
     det = detect_mains([s.force.residual for s in first], [s.force.sigma for s in first], fs,
                        MAINS_RANGE_HZ, MAINS_H_MAX)
     log.info("mains search: %s", det.evidence)
@@ -157,4 +170,4 @@ def prepare(rec: Recording) -> RigData:
         n_samples=np.array([s.n_samples for s in steps], dtype=float), Rd=st["Rd"], cd=st["cd"],
         sigma_d=np.array([s.disp.sigma for s in steps]), merge=st["merge"], Rx=st["Rx"], bx=st["bx"], mains=det,
         load_mass_kg=rec.load_mass_kg, end_mass_kg=rec.end_mass_kg or 0.0, capacity_N=rec.capacity_N,
-        sensitivity_nominal=rec.sensitivity_V_per_N, sample_rate_hz=fs)
+        sensitivity_nominal=rec.sensitivity_V_per_N, sample_rate_hz=fs, excluded=excluded)

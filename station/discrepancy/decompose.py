@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 K_MAX = 6  # crank harmonics per step (fundamental included)
 MAINS_RANGE_HZ = (45.0, 65.0)
 MAINS_H_MAX = 10
+FLAT_TOP = 20  # samples: a run this long at the window extreme means a clipped channel
 
 
 @dataclass(frozen=True)

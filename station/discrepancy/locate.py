@@ -18,12 +18,11 @@ import numpy as np
 from scipy import stats
 
 from station.discrepancy.data import RigData
-from station.discrepancy.decompose import K_MAX
+from station.discrepancy.decompose import FLAT_TOP, K_MAX
 from station.discrepancy.fit import ModelFit
 from station.discrepancy.spectrum import Line, significant_lines
 
 ALPHA = 1e-6
-FLAT_TOP = 20  # samples: a run this long at the window extreme means clipping
 
 
 @dataclass(frozen=True)
@@ -122,8 +121,10 @@ def out_of_basis(data: RigData, alpha: float = 1e-4) -> list[Finding]:
     lines: list[Line] = []
     fmap = {s.index: s.f_hz for s in data.steps}
     out: list[Finding] = []
+    for i, why in data.excluded:
+        out.append(Finding("force", "clipping", (i,), float("nan"), "", float("nan"), f"step {i}: {why}"))
     clipped = [s.index for s in data.steps if s.flat_top >= FLAT_TOP]
-    if clipped:
+    if clipped:  # kept because fewer than 2 steps would remain
         out.append(Finding("force", "clipping", tuple(clipped), float(max(s.flat_top for s in data.steps)),
                            "samples", float("nan"),
                            f"force signal clipped (flat tops up to {max(s.flat_top for s in data.steps)} "
@@ -140,13 +141,26 @@ def out_of_basis(data: RigData, alpha: float = 1e-4) -> list[Finding]:
                                f"force broadband residual {rms:.3g} V RMS above the noise floor "
                                f"{s.force.sigma:.3g} V in step {s.index}"))
     used: set[int] = set()
+    # integer crank harmonics above the modelled K (e.g. a distorted or clipped force): one finding
+    high = [j for j, ln in enumerate(lines)
+            if abs(ln.frequency_hz / fmap[ln.step] - round(ln.frequency_hz / fmap[ln.step])) < 0.01
+            and round(ln.frequency_hz / fmap[ln.step]) > K_MAX]
+    if high:
+        ks = sorted({round(lines[j].frequency_hz / fmap[lines[j].step]) for j in high})
+        steps = sorted({lines[j].step for j in high})
+        amp = max(lines[j].amplitude for j in high)
+        used.update(high)
+        out.append(Finding("force", "high harmonics", tuple(steps), amp, "V", float("nan"),
+                           f"force crank harmonics {ks[0]}–{ks[-1]} ({len(ks)} lines, above the modelled "
+                           f"{K_MAX}): up to {amp:.3g} V in {step_span(steps)}"))
     # group by frequency relative to the crank frequency (rounded to 0.02 f)
     rel: dict[float, list[int]] = {}
     for j, ln in enumerate(lines):
         rel.setdefault(round(ln.frequency_hz / fmap[ln.step] / 0.02) * 0.02, []).append(j)
-    for ratio, js in sorted(rel.items(), key=lambda kv: -len(kv[1])):
+    for ratio, members in sorted(rel.items(), key=lambda kv: -len(kv[1])):
+        js = [j for j in members if j not in used]
         steps = sorted({lines[j].step for j in js})
-        if len(steps) < 2 or any(j in used for j in js):
+        if len(steps) < 2 or not js:
             continue
         used.update(js)
         amp = max(lines[j].amplitude for j in js)
