@@ -245,3 +245,61 @@ def test_serve_refuses_a_bad_configuration_at_start_up(tmp_path: Path) -> None:
     r = subprocess.run([sys.executable, "-m", "station.cli", "serve", "--config", str(ok)], capture_output=True,
                        text=True, timeout=60, env=env, cwd=tmp_path)
     assert r.returncode == 2 and "STATION_TOKEN" in r.stderr  # a real rig needs a token
+
+
+def test_worker_pool_survives_a_dying_worker() -> None:
+    import asyncio
+
+    from station.service.worker import WorkerCrashed, WorkerPool
+
+    async def go() -> tuple[int, int]:
+        pool = WorkerPool("test", 1)
+        try:
+            with pytest.raises(WorkerCrashed):
+                await pool.run(os._exit, 3)
+            pid = await pool.run(os.getpid)  # a fresh process takes the next job
+            return pid, pool.crashes
+        finally:
+            pool.shutdown(5.0)
+    pid, crashes = asyncio.run(go())
+    assert pid != os.getpid() and crashes == 1
+
+
+def test_unreachable_rig_health_degraded_runs_503_stop_still_accepted(tmp_path: Path) -> None:
+    import httpx
+    import yaml
+
+    from tests.test_service_support import TOKEN, free_port, run_body
+
+    d = daemon_config(tmp_path / "rec")
+    del d["simulation"]
+    d["devices"] = {"motor_url": f"modbus-tcp://127.0.0.1:{free_port()}", "daq_port": str(tmp_path / "no-such-tty")}
+    cfg = tmp_path / "real.yaml"
+    cfg.write_text(yaml.safe_dump(d))
+    port = free_port()
+    log = (tmp_path / "real.log").open("wb")
+    proc = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--config", str(cfg), "--port", str(port)],
+                            stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "STATION_TOKEN": TOKEN})
+    try:
+        c = httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60)
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                h = c.get("/health")
+                break
+            except httpx.TransportError:
+                assert proc.poll() is None and time.monotonic() < deadline, (tmp_path / "real.log").read_text()
+                time.sleep(0.2)
+        h = h.json()
+        assert h["status"] == "degraded" and not h["rig"]["connected"] and h["rig"]["error"]
+        assert not h["rig"]["simulated"] and h["database"]["ok"]
+        r = c.post("/runs", json=run_body())
+        assert r.status_code == 503 and "not connected" in r.json()["detail"]
+        s = c.post("/stop")
+        assert s.status_code == 200 and s.json()["accepted"] and not s.json()["motor_stopped"]
+        assert "hardware emergency stop" in s.json()["detail"]
+        assert c.get("/runs").json()["count"] == 0
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(30)
+        log.close()
