@@ -1,6 +1,7 @@
 """Model-gap workflow end to end (issue 7): every catalogue effect, drawn at random from its plausible
 range with several seeds, is switched on in a simulated recording that the base model lacks; the
-workflow must name it first, estimate its parameters within their stated uncertainty (|error| <= 4
+workflow (5 kN and 12.5 kN transducers) must name it first, estimate its parameters within their
+stated uncertainty (|error| <= 4
 standard uncertainties), shrink the gap to within 1.5x the noise floor and recover k_f (0.1 %) and b_f
 (2 %).  Also: nothing is named without an effect, two effects are both found, and structure outside
 the catalogue (sidebands, in an imported run) ends in ``unexplained``."""
@@ -26,7 +27,7 @@ from station.interchange import export_run, import_run
 from station.simulate import simulate_run
 
 Z_MAX = 4.0
-SEEDS = (101, 202)
+CASES = ((101, "5kN"), (202, "12k5N"))  # (seed, transducer preset of config/)
 
 
 def _truth_params(name: str, cfg: dict[str, Any]) -> dict[str, float]:
@@ -55,8 +56,8 @@ def _check_params(rep: DiscrepancyReport, name: str, cfg: dict[str, Any]) -> Non
         assert abs(err) <= Z_MAX * est.std, f"{name}.{k} = {est.value:.6g} ± {est.std:.2g}, true {true:.6g}"
 
 
-def _transducer_ok(rep: DiscrepancyReport, coupling: bool) -> None:
-    cfg = scenario_config({})
+def _transducer_ok(rep: DiscrepancyReport, coupling: bool, transducer: str = "5kN") -> None:
+    cfg = scenario_config({}, transducer=transducer)
     assert cfg.simulation is not None
     kf, bf = cfg.simulation.truth.k_f, cfg.simulation.truth.b_f
     p = rep.parameters_after
@@ -70,18 +71,19 @@ def _transducer_ok(rep: DiscrepancyReport, coupling: bool) -> None:
         assert ebf <= 2e-2, f"b_f off by {100 * ebf:.3g} %"
 
 
-@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize(("seed", "transducer"), CASES)
 @pytest.mark.parametrize("name", CATALOGUE)
-def test_each_catalogue_effect_is_named_estimated_and_removed(name: str, seed: int, tmp_path: Path) -> None:
-    eff = draw_scenario([name], seed=seed)
-    rep = analyse_recording(simulate_scenario(eff, tmp_path, seed=seed))
+def test_each_catalogue_effect_is_named_estimated_and_removed(name: str, seed: int, transducer: str,
+                                                              tmp_path: Path) -> None:
+    eff = draw_scenario([name], seed=seed, transducer=transducer)
+    rep = analyse_recording(simulate_scenario(eff, tmp_path, seed=seed, transducer=transducer))
     assert rep.effects, f"nothing named for {eff}; rejected {rep.rejected}"
     assert rep.effects[0].name == name, f"{[e.name for e in rep.effects]} for {eff}"
     assert rep.base_gap > rep.final_gap  # the effect made a gap the workflow removed
     assert rep.final_gap <= 1.5 * rep.noise_floor_V
     assert rep.effects[0].gap_after < rep.base_gap
     _check_params(rep, name, eff[name])
-    _transducer_ok(rep, coupling=name == "coupling_compliance")
+    _transducer_ok(rep, coupling=name == "coupling_compliance", transducer=transducer)
     # the bias of the base model is visible in its parameters when the effect acts on the fundamental
     if name in ("conditioner_lowpass", "coupling_compliance"):
         assert rep.parameters_before["k_f"].value != pytest.approx(rep.parameters_after["k_f"].value, rel=1e-3)

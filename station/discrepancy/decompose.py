@@ -152,6 +152,23 @@ def _harmonics_of(tau: FloatArray, f_hz: float, K: int) -> FloatArray:
     return out
 
 
+def coarse_frequency(x: FloatArray, fs: float, f_nominal: float) -> float:
+    """Peak of the Hann-windowed, 8x zero-padded spectrum of x within +-20 % of f_nominal (Hz), refined
+    by parabolic interpolation; f_nominal if the window holds too few periods to tell."""
+    n = x.size
+    spec = np.abs(np.fft.rfft((x - x.mean()) * np.hanning(n), 8 * n))
+    fr = np.fft.rfftfreq(8 * n, 1.0 / fs)
+    band = np.nonzero((fr >= 0.8 * f_nominal) & (fr <= 1.2 * f_nominal))[0]
+    if band.size < 3:
+        return f_nominal
+    i = int(band[np.argmax(spec[band])])
+    if i in (band[0], band[-1]):
+        return f_nominal
+    a, b, c = np.log(spec[i - 1 : i + 2] + 1e-300)
+    d = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else 0.0
+    return float(fr[i] + d * (fr[1] - fr[0]))
+
+
 def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: FloatArray | None = None,
                   iterations: int = 4) -> tuple[float, float]:
     """Four-parameter sine fit (IEEE 1057) of one channel with harmonics 2..K, a quadratic and the
@@ -218,8 +235,10 @@ def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int
     mains = _harmonic_cols(tau, mains_f) if mains_f else np.zeros((n, 0))
     extra = _harmonic_cols(tau, list(extra_hz)) if extra_hz else np.zeros((n, 0))
     nuisance = np.hstack([mains, extra])
-    # the crank frequency is common to both channels: inverse-variance mean of the two 4-par fits
-    fd, sd = fit_frequency(tau, w.displacement_m, w.f_nominal_hz, K, nuisance)
+    # the crank frequency is common to both channels: inverse-variance mean of the two 4-par fits,
+    # started from the displacement's spectral peak within +-20 % of the nominal frequency
+    fd, sd = fit_frequency(tau, w.displacement_m, coarse_frequency(w.displacement_m, fs, w.f_nominal_hz), K,
+                           nuisance)
     fu, su = fit_frequency(tau, w.force_V, fd, K, nuisance)
     wd, wu = 1 / max(sd, 1e-300) ** 2, 1 / max(su, 1e-300) ** 2
     f, f_std = (wd * fd + wu * fu) / (wd + wu), 1 / math.sqrt(wd + wu)
