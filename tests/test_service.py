@@ -303,3 +303,52 @@ def test_unreachable_rig_health_degraded_runs_503_stop_still_accepted(tmp_path: 
         proc.send_signal(signal.SIGTERM)
         proc.wait(30)
         log.close()
+
+
+def test_start_up_recovery_of_every_kind_of_cut_off_run(tmp_path: Path) -> None:
+    import numpy as np
+
+    from station.recording import ChannelSpec, RecordingWriter, RunMetadata
+    from station.simulate import simulate_run
+
+    rec_dir = tmp_path / "rec"
+    cfg = parse_config(daemon_config(rec_dir))
+    settings = build_settings(cfg, sim=True, env={})
+    store = Store(settings.database)
+    for rid, state in (("r-partial", "running"), ("r-done", "running"), ("r-aborted", "running"),
+                       ("r-queued", "queued"), ("r-ident", "identifying"), ("r-job", "identifying")):
+        row = _row(rid, state)
+        row.recording = f"{rid}.h5" if state == "identifying" else None
+        store.insert_run(row)
+    store.enqueue_job("r-job")
+    assert store.claim_job() is not None  # left running by the dead daemon
+    store.close()
+    meta = RunMetadata(run_id="r-partial", transducer_id="TX5K-0001", source="calibrate", sample_rate_hz=20_000.0,
+                       load_mass_kg=26.0, end_mass_kg=0.12, sensitivity_V_per_N=2e-3, capacity_N=5000.0,
+                       config_yaml="{}")
+    chans = (ChannelSpec("displacement", "i2", "count", "m", scale=1e-6),
+             ChannelSpec("force", "i2", "count", "V", scale=1e-4))
+    w = RecordingWriter(rec_dir, meta, chans, min_free_bytes=0)
+    w.append(np.arange(5000, dtype="i2"), np.arange(5000, dtype="i2"))
+    w.flush()
+    w.abandon()
+    done = simulate_run(cfg, tmp_path / "sim")
+    done.rename(rec_dir / "r-done.h5")
+    ab = RecordingWriter(rec_dir, RunMetadata(**{**meta.__dict__, "run_id": "r-aborted"}), chans, min_free_bytes=0)
+    ab.finish("aborted", "technician pressed abort")
+
+    m = RunManager(settings)
+    try:
+        out = m.recover()
+        runs = {r.id: r for r in m.store.list_runs()}
+        assert runs["r-partial"].state == "interrupted" and runs["r-partial"].recording == "r-partial.h5"
+        rec = read_recording(rec_dir / "r-partial.h5")
+        assert rec.complete and rec.exit_status == "interrupted" and rec.displacement_m.size == 5000
+        assert runs["r-queued"].state == "interrupted" and "no recording" in runs["r-queued"].reason
+        assert runs["r-done"].state == "identifying"  # it had finished: identified now
+        assert (runs["r-aborted"].state, runs["r-aborted"].reason) == ("aborted", "technician pressed abort")
+        jobs = {j.run_id: j for j in m.store.jobs()}
+        assert set(jobs) == {"r-done", "r-ident", "r-job"} and all(j.state == "queued" for j in jobs.values())
+        assert set(out["interrupted"]) == {"r-partial", "r-queued"} and out["ended"] == ["r-aborted"]
+    finally:
+        m.store.close()

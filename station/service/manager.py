@@ -253,9 +253,15 @@ class RunManager:
     def recover(self) -> dict[str, list[str]]:
         """Start-up: runs cut off by the end of the previous daemon become ``interrupted`` (their
         partial recordings recovered), jobs left running go back to the queue."""
-        out: dict[str, list[str]] = {"interrupted": [], "identifying": [], "requeued": [], "failed_jobs": []}
+        out: dict[str, list[str]] = {"interrupted": [], "ended": [], "identifying": [], "requeued": [],
+                                     "failed_jobs": []}
         for row in self.store.list_runs(states=ACTIVE_STATES, limit=1_000_000):
-            name, status = self._recover_recording(row.id)
+            name, status, file_reason = self._recover_recording(row.id)
+            if status in ("aborted", "failed"):  # the run had ended; the daemon died before noting it
+                self.store.update_run(row.id, state=status, recording=name, reason=file_reason, message=file_reason,
+                                      ended=time.time())
+                out["ended"].append(row.id)
+                continue
             if status == "completed":  # the run ended, the daemon died before recording it
                 self.store.update_run(row.id, state="identifying", recording=name,
                                       message="acquisition completed; identification queued after a restart")
@@ -282,8 +288,8 @@ class RunManager:
             log.info("start-up recovery: %s", json.dumps(out))
         return out
 
-    def _recover_recording(self, run_id: str) -> tuple[str | None, str | None]:
-        """(file name, exit status) of a run's recording after recovering a partial file."""
+    def _recover_recording(self, run_id: str) -> tuple[str | None, str | None, str]:
+        """(file name, exit status, reason) of a run's recording, a partial file recovered first."""
         d = self.settings.recordings_dir
         final, partial = d / f"{run_id}.h5", d / f"{run_id}.h5.partial"
         if partial.exists() and not final.exists():
@@ -291,14 +297,15 @@ class RunManager:
                 recover_partial(partial)
             except Exception as exc:
                 log.error("run %s: the partial recording cannot be recovered: %s", run_id, exc)
-                return partial.name, None
+                return partial.name, None, ""
         if final.exists():
             try:
-                return final.name, read_recording(final).exit_status
+                rec = read_recording(final)
+                return final.name, rec.exit_status, rec.reason
             except Exception as exc:
                 log.error("run %s: recording unreadable: %s", run_id, exc)
-                return final.name, None
-        return None, None
+                return final.name, None, ""
+        return None, None, ""
 
     # ------------------------------------------------------------------ runs
     def active(self) -> LiveRun | None:
