@@ -30,6 +30,7 @@ from station.discrepancy.report import (
     AddedEffect,
     Candidate,
     DiscrepancyReport,
+    Estimate,
     effect_estimates,
     transducer_parameters,
 )
@@ -186,8 +187,32 @@ def analyse_recording(path: str | Path | Recording, max_effects: int = 4) -> Dis
     data = prepare(rec)
     events = tuple(str(d.get("warning")) for d in rec.documents if d.get("kind") == "event" and d.get("warning"))
     rep = analyse(data, max_effects=max_effects, recording=str(rec.path), rec_notes=events)
+    before = _identify_before(rec)
+    if before is not None:
+        object.__setattr__(rep, "parameters_before", before)
     object.__setattr__(rep, "wall_s", time.perf_counter() - t0)
     return rep
+
+
+def _identify_before(rec: Recording) -> dict[str, Estimate] | None:
+    """The base model's S, k_f, b_f as ``station identify --json`` reports them (frequency-domain fit
+    of paper Eq. 9, ``station.ident``); None (the workflow's own base fit stays) if that fails.  The
+    values agree with the workflow's base fit; the uncertainties of a misfitting base model differ
+    (identify inflates by the fundamental's chi^2/dof alone, which is the honest figure for k_f)."""
+    try:
+        from station.ident.api import identify_recording
+
+        res = identify_recording(rec, "fd", "sdof")
+        out = {}
+        for q in res.parameters:
+            if q.name in ("S", "k_f", "b_f"):
+                ok = bool(q.identifiable and q.value is not None and q.std is not None)
+                out[q.name] = Estimate(float(q.value) if ok else math.nan, float(q.std) if ok else math.nan,
+                                       q.unit, ok, q.reason)
+        return out if len(out) == 3 else None
+    except Exception as exc:  # identification is another package: never let it break this report
+        log.warning("station.ident failed (%s); parameters_before from the workflow's base fit", exc)
+        return None
 
 
 def gap_table(rep: DiscrepancyReport) -> list[tuple[str, list[float]]]:
