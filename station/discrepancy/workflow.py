@@ -166,6 +166,10 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
         notes.append(swap_note)
     if rec_notes:
         notes += rec_notes
+    if data.n_steps < 4:
+        notes.append(f"only {data.n_steps} steps: the fundamental gives {2 * data.n_steps} numbers for S, k_f, "
+                     "b_f and the offset-free phase; coupling, low-pass and delay act on the fundamental only "
+                     "and are hardly separable from the transducer parameters (more frequencies needed)")
     if data.end_mass_kg <= 0:
         notes.append("no end mass in the recording: m_e = 0 assumed, coupling not testable")
     return DiscrepancyReport(
