@@ -1,5 +1,5 @@
 """PNG of the gap shrinking: per-step gap (V) of the base model and after each added effect, with the
-noise floor; and the overall gap per stage."""
+noise floor; the overall gap per stage; k_f and b_f before and after."""
 
 from __future__ import annotations
 
@@ -34,8 +34,14 @@ def plot_report(rep: DiscrepancyReport, path: str | Path) -> Path:
     ax2.set_yscale("log")
     ax2.set_xticks(range(len(gaps)), names, fontsize=7)
     ax2.set_ylabel("overall gap (V)")
-    fig.suptitle(f"model gap: {rep.base_gap:.3g} V -> {rep.final_gap:.3g} V "
-                 f"(noise floor {rep.noise_floor_V:.3g} V)", fontsize=10)
+    lines = []
+    for name, unit in (("k_f", "N/m"), ("b_f", "N s/m")):
+        b, a = rep.parameters_before.get(name), rep.parameters_after.get(name)
+        if b is not None and a is not None and b.identifiable and a.identifiable:
+            lines.append(f"{name}: {b.value:.6g} ± {b.std:.2g} -> {a.value:.6g} ± {a.std:.2g} {unit}")
+    title = (f"model gap: {rep.base_gap:.3g} V -> {rep.final_gap:.3g} V "
+             f"(noise floor {rep.noise_floor_V:.3g} V)")
+    fig.suptitle("\n".join([title, "; ".join(lines)]) if lines else title, fontsize=9)
     fig.tight_layout()
     fig.savefig(p, dpi=110)
     plt.close(fig)
