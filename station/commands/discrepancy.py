@@ -38,6 +38,10 @@ def text_report(rep: DiscrepancyReport) -> str:
     if rep.base_findings:
         lines.append("where the base model disagrees:")
         lines += [f"  - {t}" for t in rep.base_findings]
+    lines.append("force fundamental, measured vs model (gain %, phase mrad, z), base -> final:")
+    for b, a in zip(rep.base_fundamental, rep.final_fundamental, strict=True):
+        lines.append(f"  {b[0]:8.4g} Hz: {b[1]:+9.4f} % {b[2]:+9.4f} mrad z {b[3]:8.3g}  ->  "
+                     f"{a[1]:+9.4f} % {a[2]:+9.4f} mrad z {a[3]:6.3g}")
     lines.append("gap per step (V): " + "  ".join(f"{f:.4g} Hz" for f in rep.f_hz))
     for stage, g in gap_table(rep):
         lines.append(f"  {stage:<28s}" + "  ".join(f"{x:.3e}" for x in g))

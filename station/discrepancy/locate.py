@@ -1,6 +1,7 @@
 """Where a model and the measurement disagree: significant residual structure, by step and component.
 
-In the basis (from the whitened coefficient residuals of a fit): per step and component group
+In the basis (from the coefficient residuals of a fit and their marginal covariance): per step and
+component group
 (force fundamental, force harmonic k, force offset/drift polynomial, mains line h, displacement harmonic
 k) the chi^2 of its rows; a component counts when its chi^2 summed over steps has p < ``ALPHA`` (2 dof
 per step and sinusoid, 3 for the polynomial), and the steps named are those with p < 1e-3.
@@ -58,23 +59,53 @@ def _groups(n_mains: int) -> list[tuple[str, str, list[int], str]]:
     return g
 
 
+def _marginal_chi2(R: np.ndarray, sigma: float, e: np.ndarray, cols: list[int],
+                   extra: np.ndarray | None = None) -> float:
+    """e_g^T C_gg^-1 e_g for the columns ``cols`` of one step, C = sigma^2 (R^T R)^-1 over the valid
+    slots (+ ``extra`` (2, 2) on the group): the group's own significance, not smeared by the
+    correlation with other columns as the rows of the triangular whitening are."""
+    valid = np.nonzero(np.any(R != 0, axis=0))[0]
+    if not set(cols) <= set(valid.tolist()):
+        return float("nan")
+    Rv = R[np.ix_(valid, valid)]
+    Ci = np.linalg.inv(Rv.T @ Rv)
+    pos = [int(np.nonzero(valid == c)[0][0]) for c in cols]
+    C = sigma**2 * Ci[np.ix_(pos, pos)]
+    if extra is not None:
+        C = C + extra
+    eg = e[cols]
+    return float(eg @ np.linalg.solve(C, eg))
+
+
+def _eiv_cov(data: RigData) -> np.ndarray:
+    """(n, 2, 2) covariance the displacement noise adds to the force fundamental (a, b) coefficients,
+    through the measured V_1/X_1 (errors in variables, as in the fits)."""
+    h1 = (data.cf[:, 0] - 1j * data.cf[:, 1]) / data.x1
+    J = np.empty((h1.size, 2, 2))
+    J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1] = h1.real, -h1.imag, -h1.imag, -h1.real
+    T = np.diag([1.0, -1.0])
+    return J @ (T @ data.x1_cov @ T) @ np.swapaxes(J, 1, 2)
+
+
 def in_basis(data: RigData, fit: ModelFit) -> list[Finding]:
-    """Significant coefficient residuals of ``fit`` (see module docstring)."""
+    """Significant coefficient residuals of ``fit`` (see module docstring), each component tested on
+    its own marginal covariance."""
     out: list[Finding] = []
     idx = [s.index for s in data.steps]
     resid = data.cf - fit.m_f
-    wf = fit.wf.copy()
-    # the fundamental rows carry the displacement noise too (errors in variables)
-    wf[:, 0:2] = fit.wf_fund
+    rd = data.cd - fit.m_d
+    eiv = _eiv_cov(data)
+    n = data.n_steps
     for channel, comp, cols, unit in _groups(data.n_mains):
-        c2 = np.sum(wf[:, cols] ** 2, axis=1)
-        valid = np.any(data.Rf[:, cols, :][:, :, cols] != 0, axis=(1, 2))
-        _report(out, channel, comp, cols, unit, c2, valid, resid, data, idx)
+        c2 = np.array([_marginal_chi2(data.Rf[i], data.sigma_f[i], resid[i], cols,
+                                      eiv[i] if comp == "fundamental" else None) for i in range(n)])
+        valid = np.isfinite(c2)
+        _report(out, channel, comp, cols, unit, np.nan_to_num(c2), valid, resid, data, idx)
     for k in range(2, K_MAX + 1):
         cols = [2 * k - 4, 2 * k - 3]
-        c2 = np.sum(fit.wd[:, cols] ** 2, axis=1)
-        valid = data.kmask[:, k - 1]
-        _report(out, "displacement", f"harmonic {k}", cols, "m", c2, valid, data.cd - fit.m_d, data, idx)
+        c2 = np.array([_marginal_chi2(data.Rd[i], data.sigma_d[i], rd[i], cols) for i in range(n)])
+        valid = np.isfinite(c2)
+        _report(out, "displacement", f"harmonic {k}", cols, "m", np.nan_to_num(c2), valid, rd, data, idx)
     return out
 
 
@@ -104,6 +135,20 @@ def _report(out: list[Finding], channel: str, comp: str, cols: list[int], unit: 
     out.append(Finding(channel, comp, steps, size, unit, total,
                        f"{channel} {what}: up to {size:.3g} {unit} in {step_span(steps)} (t = {t0:.3g}–{t1:.3g} s)"
                        f" (chi2 {total:.3g} for {dof * int(valid.sum())} dof){extra}"))
+
+
+def fundamental_table(data: RigData, fit: ModelFit) -> tuple[tuple[float, float, float, float], ...]:
+    """Per step (f in Hz, gain error in %, phase error in mrad, z): measured force fundamental against
+    the model's, relative to the model's; z = sqrt of its marginal chi^2 (2 dof, displacement noise
+    included)."""
+    V1 = data.cf[:, 0] - 1j * data.cf[:, 1]
+    M1 = fit.m_f[:, 0] - 1j * fit.m_f[:, 1]
+    rel = V1 / np.where(M1 == 0, 1.0, M1) - 1.0
+    eiv = _eiv_cov(data)
+    z = np.sqrt([_marginal_chi2(data.Rf[i], data.sigma_f[i], data.cf[i] - fit.m_f[i], [0, 1], eiv[i])
+                 for i in range(data.n_steps)])
+    return tuple((float(f), float(100 * r.real), float(1e3 * r.imag), float(q))
+                 for f, r, q in zip(data.f_hz, rel, z, strict=True))
 
 
 def _fundamental_text(data: RigData, resid: np.ndarray, sel: np.ndarray) -> str:

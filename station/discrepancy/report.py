@@ -72,7 +72,8 @@ class DiscrepancyReport:
     windows; noise_floor_V: RMS of the force noise measured from the data (the gap cannot go below);
     steps / f_hz / base_gap_steps / final_gap_steps: per step (recording index, Hz, V);
     base_findings: where the base model disagrees; unexplained: what no catalogue effect explains;
-    rejected: the last round's candidates that were not significant.
+    rejected: the last round's candidates that were not significant; base_fundamental /
+    final_fundamental: per step (f Hz, gain error %, phase error mrad, z) of the force fundamental.
     """
 
     recording: str
@@ -89,6 +90,8 @@ class DiscrepancyReport:
     base_gap_steps: tuple[float, ...]
     final_gap_steps: tuple[float, ...]
     rejected: tuple[Candidate, ...] = ()
+    base_fundamental: tuple[tuple[float, float, float, float], ...] = ()
+    final_fundamental: tuple[tuple[float, float, float, float], ...] = ()
     mains_search: str = ""
     notes: tuple[str, ...] = field(default_factory=tuple)
     wall_s: float = 0.0
@@ -110,6 +113,9 @@ class DiscrepancyReport:
             "base_gap_steps": list(self.base_gap_steps), "final_gap_steps": list(self.final_gap_steps),
             "effect_gap_steps": {e.name: list(e.gap_steps_after) for e in self.effects},
             "base_findings": list(self.base_findings), "mains_search": self.mains_search,
+            "fundamental_columns": ["f_hz", "gain_error_percent", "phase_error_mrad", "z"],
+            "base_fundamental": [list(r) for r in self.base_fundamental],
+            "final_fundamental": [list(r) for r in self.final_fundamental],
             "rounds": [[c.__dict__ for c in e.candidates] for e in self.effects],
             "rejected": [c.__dict__ for c in self.rejected], "notes": list(self.notes)})
         return out

@@ -25,7 +25,7 @@ from scipy import stats
 from station.discrepancy.catalogue import CATALOGUE
 from station.discrepancy.data import RigData, prepare
 from station.discrepancy.fit import ModelFit, fit_model
-from station.discrepancy.locate import in_basis, out_of_basis
+from station.discrepancy.locate import fundamental_table, in_basis, out_of_basis
 from station.discrepancy.report import (
     AddedEffect,
     Candidate,
@@ -180,6 +180,7 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
         steps=tuple(s.index for s in data.steps), f_hz=tuple(float(f) for f in data.f_hz),
         base_gap_steps=tuple(float(g) for g in base.gap_steps_V),
         final_gap_steps=tuple(float(g) for g in current.gap_steps_V), rejected=rejected,
+        base_fundamental=fundamental_table(data, base), final_fundamental=fundamental_table(data, current),
         mains_search=data.mains.evidence, notes=tuple(notes), wall_s=time.perf_counter() - t0)
 
 
