@@ -5,8 +5,8 @@
 * ``bode``: dynamic sensitivity S_dyn = -H/M (magnitude, V/N, and phase, degrees) of the measured
   steps with expanded (k = 2) error bars, and the identified model with its k = 2 band;
 * ``timefit``: force signal and the model's prediction over three periods of (up to) four steps;
-* ``residuals``: residual RMS of every step against frequency, and the residual over the whole
-  record window of (up to) four steps;
+* ``residuals``: residual RMS of every step (whole record window) against frequency, and the
+  residual over ten periods around the centre of (up to) four steps;
 * ``convergence``: Gbest MSE per iteration of the stored PSO/PSO+ identifications (paper Eq. 15);
   else an iteration history if a stored result exposes one (``extra.cost_history``); else a figure
   saying that no iterative method was run.
@@ -141,10 +141,11 @@ def _residuals(d: RunData, fig: Figure) -> None:
     for j, tr in enumerate(shown):
         ax = fig.add_subplot(gs[1, j])
         assert tr.model_V is not None
-        stride = max(1, tr.t_s.size // 2000)
-        ax.plot(tr.t_s[::stride], 1e3 * (tr.u_V - tr.model_V)[::stride], lw=0.6, color="C3")
+        keep = np.flatnonzero(np.abs(tr.t_s) <= 5.0 / tr.f_hz)  # ten periods: a misfit shows as a wave
+        keep = keep[:: max(1, keep.size // 2000)]
+        ax.plot(1e3 * tr.t_s[keep], 1e3 * (tr.u_V - tr.model_V)[keep], lw=0.6, color="C3")
         ax.set_title(f"step {tr.index}: {tr.f_hz:.4g} Hz", fontsize=9)
-        ax.set(xlabel="t - t_centre (s)")
+        ax.set(xlabel="t - t_centre (ms)")
         if j == 0:
             ax.set_ylabel("force residual (mV)")
         ax.grid(True, alpha=0.3)
