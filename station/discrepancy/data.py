@@ -154,10 +154,11 @@ def prepare(rec: Recording) -> RigData:
     det = detect_mains([s.force.residual for s in first], [s.force.sigma for s in first], fs,
                        MAINS_RANGE_HZ, MAINS_H_MAX)
     log.info("mains search: %s", det.evidence)
-    second = first if det.frequency_hz is None else [decompose_step(w, fs, det.frequency_hz, det.harmonics)
-                                                     for w in wins]
+    second = first if det.frequency_hz is None else [
+        decompose_step(w, fs, det.frequency_hz, det.harmonics, f_start=s.f_hz)
+        for w, s in zip(wins, first, strict=True)]
     extra = [_outside_lines(s, det.frequency_hz, fs) for s in second]
-    steps = [decompose_step(w, fs, det.frequency_hz, det.harmonics, x) if x else s
+    steps = [decompose_step(w, fs, det.frequency_hz, det.harmonics, x, f_start=s.f_hz) if x else s
              for w, s, x in zip(wins, second, extra, strict=True)]
     st = _stack(steps, det.harmonics)
     if rec.end_mass_kg is None:

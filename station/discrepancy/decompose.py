@@ -178,10 +178,12 @@ def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: Floa
     poly = np.column_stack([np.ones_like(tau), tau / h, (tau / h) ** 2])
     if extra is not None:
         poly = np.hstack([poly, extra])
+    a = b = None
     for _ in range(iterations):
         B = np.hstack([_harmonics_of(tau, f, K), poly])
-        c = np.linalg.solve(B.T @ B, B.T @ x)
-        a, b = c[0], c[1]
+        if a is None or b is None:
+            c = np.linalg.solve(B.T @ B, B.T @ x)
+            a, b = c[0], c[1]
         dcol = tau * (-a * B[:, 1] + b * B[:, 0]) * 2 * np.pi
         J = np.column_stack([B, dcol])
         JtJ = J.T @ J
@@ -190,6 +192,7 @@ def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: Floa
         s2 = float(r @ r) / max(x.size - J.shape[1], 1)
         cov = s2 * np.linalg.inv(JtJ)
         f, std = f + float(p[-1]), float(math.sqrt(cov[-1, -1]))
+        a, b = p[0], p[1]
         if abs(p[-1]) < 1e-2 * std:
             break
     return f, std
@@ -217,8 +220,9 @@ def longest_flat_extreme(y: FloatArray) -> int:
 
 
 def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int,
-                   extra_hz: tuple[float, ...] = ()) -> StepDecomposition:
-    """Fit both channels of one step (see the module docstring for the basis)."""
+                   extra_hz: tuple[float, ...] = (), f_start: float | None = None) -> StepDecomposition:
+    """Fit both channels of one step (see the module docstring for the basis); ``f_start``: the crank
+    frequency of an earlier pass (Hz), refined by two Gauss-Newton steps with the new nuisance columns."""
     n = w.force_V.size
     tau = (np.arange(n) - (n - 1) / 2) / fs
     half = n / (2 * fs)
@@ -237,9 +241,10 @@ def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int
     nuisance = np.hstack([mains, extra])
     # the crank frequency is common to both channels: inverse-variance mean of the two 4-par fits,
     # started from the displacement's spectral peak within +-20 % of the nominal frequency
-    fd, sd = fit_frequency(tau, w.displacement_m, coarse_frequency(w.displacement_m, fs, w.f_nominal_hz), K,
-                           nuisance)
-    fu, su = fit_frequency(tau, w.force_V, fd, K, nuisance)
+    it = 4 if f_start is None else 2
+    f0 = coarse_frequency(w.displacement_m, fs, w.f_nominal_hz) if f_start is None else f_start
+    fd, sd = fit_frequency(tau, w.displacement_m, f0, K, nuisance, it)
+    fu, su = fit_frequency(tau, w.force_V, fd, K, nuisance, it)
     wd, wu = 1 / max(sd, 1e-300) ** 2, 1 / max(su, 1e-300) ** 2
     f, f_std = (wd * fd + wu * fu) / (wd + wu), 1 / math.sqrt(wd + wu)
     poly = np.column_stack([np.ones(n), tau / half, (tau / half) ** 2])

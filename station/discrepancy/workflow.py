@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -193,10 +194,7 @@ def analyse_recording(path: str | Path | Recording, max_effects: int = 4) -> Dis
     events = tuple(str(d.get("warning")) for d in rec.documents if d.get("kind") == "event" and d.get("warning"))
     rep = analyse(data, max_effects=max_effects, recording=str(rec.path), rec_notes=events)
     before = _identify_before(rec)
-    if before is not None:
-        object.__setattr__(rep, "parameters_before", before)
-    object.__setattr__(rep, "wall_s", time.perf_counter() - t0)
-    return rep
+    return replace(rep, parameters_before=before or rep.parameters_before, wall_s=time.perf_counter() - t0)
 
 
 def _identify_before(rec: Recording) -> dict[str, Estimate] | None:
