@@ -184,6 +184,7 @@ class Procedure:
                                  min_free_bytes=int(cfg.station.min_free_mb * 2**20))
         status, reason = "completed", ""
         try:
+            await self._wait_standstill()
             await motor.reset_faults()
             await motor.set_ramp(cfg.rig.acceleration_hz_per_s)
             await motor.start_watchdog(0.2)
@@ -270,6 +271,15 @@ class Procedure:
                                "settle_s": step.settle_s, "record_s": step.record_s})
         self._report(step_state="done", message=f"step {step.index} recorded")
 
+    async def _wait_standstill(self, timeout_s: float = 30.0) -> None:
+        """A run starts only with the crank at rest (e.g. still coasting down after an e-stop)."""
+        deadline = time.monotonic() + timeout_s
+        while (st := await self.link.motor.read_status()).actual_speed_hz != 0.0:
+            if time.monotonic() > deadline:
+                raise RunFailure(f"the crank still turns at {st.actual_speed_hz:g} Hz after {timeout_s:g} s; "
+                                 f"a run starts only at standstill")
+            await asyncio.sleep(0.05)
+
     async def _ramp_to(self, hz: float) -> None:
         motor = self.link.motor
         await motor.set_frequency(hz)
@@ -311,6 +321,8 @@ class Procedure:
             raise RunFailure(f"motor link lost (watchdog refresh failed): {err}")
 
     def _check_motor(self, st: object) -> None:
+        if self.abort_event.is_set():  # an operator's stop latches the e-stop fault: it is an abort
+            raise RunAborted(self.abort_reason or "aborted")
         code = getattr(st, "fault_code", 0)
         if code:
             raise RunFailure(f"motor fault {code} ({getattr(st, 'fault_name', '?')})")
