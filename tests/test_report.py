@@ -168,7 +168,7 @@ def test_single_frequency_says_not_identifiable(tmp_path: Path) -> None:
     text, value = _cell(page, "param.k_f")
     assert value is None and text.startswith("not identifiable: ")  # a reason, no digits for k_f
     assert 'data-key="param.k_f.u"' not in page
-    assert "model curve not drawn" in page
+    assert "Model curve not drawn" in page
     for name in PLOT_NAMES:
         assert _png_size(render_plot(rec_path, name)) == FIG_SIZE_PX
 

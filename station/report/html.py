@@ -168,8 +168,9 @@ def _sensitivity(d: RunData) -> str:
         head += ["model |S_dyn| (V/N)", "model U, k = 2 (V/N)", "model phase (°)", "model U, k = 2 (°)"]
     note = (f"S_dyn(f) = −H(f)/M with M = {d.mass_kg:g} kg: force signal per inertial force of the moving "
             f"masses. Measured points from {r.source}.")
-    if d.curve_note or (d.curve is not None and d.curve.note):
-        note += " " + (d.curve_note or d.curve.note if d.curve else d.curve_note)
+    extra = d.curve.note if d.curve is not None else d.curve_note
+    if extra:
+        note += f" {extra[0].upper()}{extra[1:]}."
     return ("<h2>Dynamic sensitivity and phase versus frequency</h2>" + _table(head, rows, "sdyn")
             + f'<p class="note">{_e(note)}</p>')
 
