@@ -7,7 +7,9 @@ the measured noise, Delta chi^2 / B with B = max(1, chi^2/dof) of the best-fitti
 round, common to all candidates (the extra-sum-of-squares test: structure the catalogue cannot explain
 inflates B rather than being forced onto a name),
 referred to chi^2 with as many degrees of freedom as parameters were added.  Candidates are ranked by
-Delta BIC = Delta chi^2 / B - k ln(n_obs); the best is named only if p < ``ALPHA``, Delta BIC > 0 and
+Delta BIC = Delta chi^2 / B - k ln(n_obs) (in a tie, within ``AMBIGUOUS_BIC``, a candidate that fits only
+with a parameter pinned at its physical bound yields to one that does not); the best is named only if
+p < ``ALPHA``, Delta BIC > 0 and
 it explains at least ``MIN_SHARE`` of the excess chi^2 - dof left by the current model (an effect that
 only nibbles at a much larger misfit is not named: that misfit is reported by where it is instead).
 """
@@ -98,14 +100,34 @@ def _forward(data: RigData, current: ModelFit, allowed: tuple[str, ...], max_eff
             rejected = tuple(ranked)
             break
         best = ok[0]
+        pinned = _at_bound(fits[best.name], current)
+        tie = ""
+        if pinned and len(ok) > 1 and best.delta_bic - ok[1].delta_bic < AMBIGUOUS_BIC \
+                and not _at_bound(fits[ok[1].name], current):
+            tie = f"; named over {best.name}, which fits as well only with {pinned} (at its physical bound)"
+            log.info("tie: %s", tie[2:])
+            best = ok[1]
+            ranked = [best] + [c for c in ranked if c.name != best.name]
         fit = fits[best.name]
         share = (current.chi2 - fit.chi2) / excess
         added.append(AddedEffect(name=best.name, params=effect_estimates(fit, best.name), gap_after=fit.gap_V,
                                  gap_steps_after=tuple(float(g) for g in fit.gap_steps_V),
-                                 evidence=_evidence(best, ranked, current.gap_V, share, fits),
+                                 evidence=_evidence(best, ranked, current.gap_V, share, fits) + tie,
                                  candidates=tuple(ranked), parameters=transducer_parameters(fit)))
         current = fit
     return current, added, rejected
+
+
+def _at_bound(fit: ModelFit, current: ModelFit) -> str:
+    """A parameter the candidate added that the fit holds at a physical bound (e.g. b_c = 0), or ''.
+    In a tie, a model that fits only with a parameter pinned at its bound is the weaker explanation."""
+    old = {q.name for q in current.params}
+    for q in (q for q in fit.params if q.name not in old):
+        v, sd = fit.values[q.name], fit.std.get(q.name, 0.0)
+        for b in (q.lower, q.upper):
+            if math.isfinite(b) and abs(v - b) <= max(1e-3 * sd, 1e-12 * max(abs(b), 1.0)):
+                return f"{q.name} = {b:g}"
+    return ""
 
 
 def _bic(fit: ModelFit, birge: float) -> float:
