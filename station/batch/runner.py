@@ -5,7 +5,9 @@
   parent process with ``blas_env`` and ``worker`` preloaded, so every worker is a fork of a process
   that has numpy, scipy, h5py and the identification imported (no per-worker or per-job import) and
   runs single-threaded BLAS.  A fork server, unlike a plain fork, is safe from a multi-threaded
-  parent such as the daemon.
+  parent such as the daemon.  The fork server is per process: other users of the "forkserver" start
+  method in the same process get these preloads too (single-threaded BLAS), and if one of them started
+  it first, the workers import what they need themselves (slower, multi-threaded BLAS).
 * ``executor="dask://HOST:PORT"``: a ``distributed.Client`` to that scheduler and its
   ``concurrent.futures`` executor; ``workers`` is then the cluster's business.  Needs the optional
   dependency ``sinecal[dask]`` and sinecal installed on the cluster's workers.
