@@ -108,8 +108,8 @@ def test_convergence_shows_a_stored_pso_history(full_recording: Path, tmp_path: 
     shown = render_plot(rec_path, "convergence")
     assert _png_size(shown) == FIG_SIZE_PX
     assert shown != placeholder
-    page = render_report(rec_path)
-    assert "No iterative method was run" not in page  # the report's fd result is computed; the plot is PSO+
+    page = render_report(rec_path)  # the only stored identification is the one shown
+    assert f"/results/identify_pso+_{res.model}" in page and "No iterative method was run" not in page
 
 
 # -- HTML report -------------------------------------------------------------------------------------
