@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from station.config import StationConfig, load_config, parse_config
+from drivers.rig.model import spring_force_per_acceleration
+from station.config import StationConfig, load_config, parse_config, to_rig_physics
 from station.simulate import simulate_run
 
 CONFIGS = {"5kN": "sim-5kN.yaml", "12k5N": "sim-12k5N.yaml"}
@@ -60,20 +61,20 @@ def draw_effect(name: str, rng: np.random.Generator, k_f: float, b_f: float) -> 
 
 def plan_steps(cfg: StationConfig, n_steps: int, f_lo: float = 5.0, f_hi: float = 95.0,
                fill: float = 0.6) -> list[dict[str, float]]:
-    """n steps log-spaced in [f_lo, f_hi] Hz at one crank radius, chosen so that at f_hi the dynamic
-    force, with the stiff transducer's resonance amplification 1/|1 - (f/f_n)^2| (true k_f), uses
-    ``fill`` of the rig's peak-force margin (M (g + r w^2) <= peak_force_fraction * capacity).
+    """n steps log-spaced in [f_lo, f_hi] Hz at one crank radius, chosen so that the dynamic spring
+    force, with the true transducer's (and coupling's, if simulated) resonance amplification
+    |k_f Z2 / (M s^2 X_b)|, uses at most ``fill`` of the rig's peak-force margin
+    (M (g + r w^2) <= peak_force_fraction * capacity).
     (One radius: a radius change stops the crank, which ``station.simulate`` does not always reach
     exactly, see the report of issue 7.)"""
     M = cfg.rig.load_mass_kg + (cfg.transducer.end_mass_kg or 0.0)
     a_max = cfg.rig.peak_force_fraction * cfg.transducer.capacity_N / M - 9.80665
-    assert cfg.simulation is not None
-    f_n = math.sqrt(cfg.simulation.truth.k_f / M) / (2 * math.pi)
-    amp = 1.0 / abs(1.0 - (f_hi / f_n) ** 2)
-    r = fill * a_max / amp / (2 * math.pi * f_hi) ** 2
+    phys = to_rig_physics(cfg)
+    freqs = np.geomspace(f_lo, f_hi, n_steps)
+    amp = np.abs(spring_force_per_acceleration(phys.transducer, phys.effects.coupling_compliance, freqs)) / M
+    r = float(np.min(fill * a_max / amp / (2 * math.pi * freqs) ** 2))
     r = float(f"{min(max(r, cfg.rig.crank_radius_m.min), cfg.rig.crank_radius_m.max):.3g}")
-    return [{"crank_frequency_hz": round(float(f), 3), "crank_radius_m": r}
-            for f in np.geomspace(f_lo, f_hi, n_steps)]
+    return [{"crank_frequency_hz": round(float(f), 3), "crank_radius_m": r} for f in freqs]
 
 
 def scenario_config(effects: dict[str, dict[str, Any]], *, transducer: str = "5kN", n_steps: int = 6,
@@ -85,8 +86,9 @@ def scenario_config(effects: dict[str, dict[str, Any]], *, transducer: str = "5k
     cfg = load_config(root / CONFIGS[transducer])
     d = cfg.model_dump(exclude_none=True)
     d["rig"]["acceleration_hz_per_s"] = 100.0
-    d["plan"] = {"settle_s": settle_s, "record_s": record_s, "steps": plan_steps(cfg, n_steps)}
     d["simulation"]["effects"] = effects
+    with_effects = parse_config(d)
+    d["plan"] = {"settle_s": settle_s, "record_s": record_s, "steps": plan_steps(with_effects, n_steps)}
     d["simulation"]["seed"] = seed
     if not noise:
         d["simulation"]["conditioner_noise_V"] = 0.0
