@@ -99,7 +99,8 @@ def simulate_run(cfg: StationConfig, out_dir: str | Path, seed: int | None = Non
             while left:
                 n = min(block, left)
                 done = seg.n - left + n
-                f_end = f_start + (seg.f_end_hz - f_start) * done / seg.n
+                # exact at the segment's end (a float ramp must land on 0 Hz for a radius change)
+                f_end = seg.f_end_hz if done == seg.n else f_start + (seg.f_end_hz - f_start) * done / seg.n
                 b = synth.advance(n, f_end)
                 clipped += b.clipped
                 writer.append(b.displacement_counts, b.force_counts)

@@ -159,18 +159,17 @@ def test_plots_report_recording_and_discrepancy(daemon: Daemon, completed: dict)
         assert f.attrs["run_id"] == rid and f.attrs["exit_status"] == "completed"
         assert "results" in f and any(k.startswith("identify_") for k in f["results"])
     disc = c.get(f"/runs/{rid}/discrepancy")
-    if disc.status_code == 501:
-        assert "not installed" in disc.json()["detail"]
-    else:
-        assert disc.status_code == 200, disc.text
-        d = disc.json()
-        assert {"base_gap", "final_gap", "effects", "unexplained"} <= set(d)
-        assert d["final_gap"] <= d["base_gap"] + 1e-12
-        again = c.get(f"/runs/{rid}/discrepancy")  # cached in the recording's results
-        assert again.json() == d
-        path = daemon.data_dir / f"{rid}.h5"
-        with h5py.File(path, "r") as f:
-            assert "discrepancy_4" in f["results"]
+    assert disc.status_code == 200, disc.text
+    d = disc.json()
+    assert set(d) == {"base_gap", "effects", "final_gap", "parameters_before", "parameters_after", "unexplained"}
+    assert d["final_gap"] <= d["base_gap"] + 1e-12
+    again = c.get(f"/runs/{rid}/discrepancy")  # cached in the recording's results
+    assert again.json() == d
+    path = daemon.data_dir / f"{rid}.h5"
+    with h5py.File(path, "r") as f:
+        assert "discrepancy" in f["results"]  # where the report and `station discrepancy --save` look
+    report = c.get(f"/runs/{rid}/report").text
+    assert "has not been run" not in report and "Model discrepancy" in report
 
 
 # ---------------------------------------------------------------------------------------- errors

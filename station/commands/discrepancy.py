@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         png = args.plot or args.recording.with_name(args.recording.name + ".discrepancy.png")
         plot_report(rep, png)
     if args.save:
-        write_results(args.recording, "discrepancy", rep.to_dict())
+        write_results(args.recording, "discrepancy", {**rep.to_dict(), "max_effects": args.max_effects})
     if args.json:
         print(json.dumps(rep.to_json(), indent=2))
     else:

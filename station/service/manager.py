@@ -623,7 +623,9 @@ class RunManager:
     async def discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
         path = self._completed_path(run_id)
         async with self.file_lock(run_id):
-            return await self._optional_job(worker.discrepancy_job, str(path), max_effects)
+            out = await self._optional_job(worker.discrepancy_job, str(path), max_effects)
+        self._cache.pop((run_id, "report"), None)  # the report names the effects found
+        return out
 
     async def _optional_job(self, fn: Callable[..., Any], *args: Any) -> Any:
         try:

@@ -116,20 +116,23 @@ def report_job(path: str) -> str:
 
 @_job
 def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
-    """The issue-7 analysis of a recording, cached in its /results (computed once per max_effects)."""
+    """The issue-7 analysis of a recording: the JSON contract (``to_json``).  Stored in the recording
+    as ``/results/discrepancy`` (everything, ``to_dict``, with the ``max_effects`` used: the same place
+    ``station discrepancy --save`` writes and the report reads) and reused for the same max_effects."""
     from station.recording import read_results, write_results
 
-    name = f"discrepancy_{max_effects}"
-    cached = read_results(path, name)
-    if cached is not None:
-        return cached
+    cached = read_results(path, "discrepancy")
+    if cached is not None and cached.get("max_effects") == max_effects:
+        return {k: cached[k] for k in CONTRACT_KEYS}
     mod = _optional("station.discrepancy")
     if not hasattr(mod, "analyse_recording"):
         raise Unavailable("station.discrepancy has no analyse_recording")
     rep = mod.analyse_recording(path, max_effects=max_effects)
-    payload = rep.to_json()
-    write_results(path, name, payload)
-    return read_results(path, name) or payload
+    write_results(path, "discrepancy", {**rep.to_dict(), "max_effects": max_effects})
+    return rep.to_json()
+
+
+CONTRACT_KEYS = ("base_gap", "effects", "final_gap", "parameters_before", "parameters_after", "unexplained")
 
 
 # --------------------------------------------------------------------------- in the daemon
