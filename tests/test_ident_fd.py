@@ -5,6 +5,7 @@ import pytest
 
 from station.ident.crb import crb_stepped_sine
 from station.ident.frf import fit_frf, linear_start_sdof
+from station.ident.identifiability import correlations
 from station.ident.models import SdofModel
 from station.ident.sinefit import fit3, fit4
 from station.ident.synthetic import stepped_sine
@@ -16,16 +17,16 @@ R = np.array([0.01, 0.004, 0.001, 4e-4, 1.5e-4])
 FS, DUR, SX, SU = 5000.0, 0.25, 2e-7, 5e-4
 
 
-def _estimate(seed: int) -> tuple[np.ndarray, np.ndarray, list]:
+def _estimate(seed: int) -> tuple[np.ndarray, np.ndarray, list, np.ndarray]:
     from station.ident.synthetic import response_of
     steps = stepped_sine(M5, TH5, F, R, fs_hz=FS, duration_s=DUR, sigma_x_m=SX, sigma_u_V=SU, seed=seed)
     frf = response_of(steps)
     fit = fit_frf(frf, M5, linear_start_sdof(frf, M5))
-    return fit.theta, np.sqrt(np.diag(fit.cov)), steps
+    return fit.theta, np.sqrt(np.diag(fit.cov)), steps, correlations(fit.cov)
 
 
 def test_fd_recovers_k_f_within_0p1_percent_and_b_f_within_2_percent() -> None:
-    theta, std, _ = _estimate(seed=123)
+    theta, std, _, _ = _estimate(seed=123)
     assert abs(theta[1] / TH5[1] - 1) < 1e-3
     assert abs(theta[2] / TH5[2] - 1) < 0.02
     assert abs(theta[0] / TH5[0] - 1) < 1e-4
@@ -45,6 +46,10 @@ def test_fd_standard_deviations_reach_the_cramer_rao_bound_over_200_draws() -> N
     assert np.all(np.abs(est.mean(axis=0) - TH5) < 4 * crb.std / np.sqrt(200))
     # the covariance each fit reports (Jacobian) agrees with the Monte Carlo scatter
     np.testing.assert_allclose(reported.mean(axis=0) / est.std(axis=0, ddof=1), 1.0, atol=0.2)
+    # ... and so do its correlations (200 draws: a correlation is known to about +-0.07)
+    mc_corr = np.corrcoef(est.T)
+    fit_corr = np.array([d[3] for d in draws]).mean(axis=0)
+    np.testing.assert_allclose(fit_corr, mc_corr, atol=0.2)
 
 
 def test_sine_fit_covariance_matches_monte_carlo() -> None:

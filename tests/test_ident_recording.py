@@ -116,3 +116,18 @@ def test_cli_identify_json_and_stored_result(stepped: Path, tmp_path: Path, caps
 
 def test_cli_rejects_missing_recording(tmp_path: Path) -> None:
     assert main(["identify", str(tmp_path / "nope.h5")]) == 2
+
+
+def test_reported_correlations_are_those_of_the_estimate(stepped: Path) -> None:
+    """identifiability.correlations of identifiable parameters = the estimate's covariance, whose
+    correlations the 200-draw Monte Carlo test checks (tests/test_ident_fd.py)."""
+    from station.ident.api import DEFAULT_POLICY, _fd_fit, _start, measured_response, model_for
+    from station.ident.identifiability import correlations
+
+    rec = read_recording(stepped)
+    frf, _, _ = measured_response(rec)
+    model = model_for(rec, "sdof")
+    fit, rep = _fd_fit(frf, model, _start(frf, model), DEFAULT_POLICY)
+    assert all(rep.identifiable)
+    np.testing.assert_allclose(np.array(rep.correlations), correlations(fit.cov), atol=1e-12)
+    assert identify_recording(rec).identifiability.correlations == rep.correlations

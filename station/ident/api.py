@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from station.errors import BadInputError
 from station.ident import frf as frfmod
-from station.ident.identifiability import Policy, assess
+from station.ident.identifiability import Policy, assess, correlations
 from station.ident.models import CoupledModel, Model, SdofModel, make_model
 from station.ident.oe import StepSignal, fit_oe
 from station.ident.paperfit import identify_paper_method
@@ -93,6 +93,11 @@ def _fd_fit(frf: frfmod.FrequencyResponse, model: Model, theta0: FloatArray,
         J = frfmod.whitened_jacobian(model, fit.theta, frf, scale=scale)[:, ok]
         birge = fit.chi2 / fit.dof if fit.inflated else 1.0
         cov[np.ix_(ok, ok)] = birge * np.linalg.pinv(J.T @ J) * np.outer(scale[ok], scale[ok])
+        # report the correlations of this estimate; the assessment's (with the chain floor and a
+        # regulariser, where +-1 marks confounding) stay only for parameters that are not identifiable
+        corr = np.array(rep.correlations)
+        corr[np.ix_(ok, ok)] = correlations(cov[np.ix_(ok, ok)])
+        rep = replace(rep, correlations=tuple(tuple(float(c) for c in row) for row in corr))
     return replace(fit, cov=cov), rep
 
 

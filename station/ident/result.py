@@ -64,7 +64,9 @@ class Identifiability:
     """Conditioning of an estimation problem.
 
     condition_number: of the parameter-scaled, noise-whitened Jacobian (dimensionless);
-    correlations: parameter correlation matrix as nested tuples (names order);
+    correlations: parameter correlation matrix as nested tuples (names order): that of the estimate
+    for identifiable parameters; for the others, that of the regularised identifiability assessment
+    (chain floor included), where +-1 shows which parameters they are confounded with;
     reasons: per non-identifiable parameter, why.
     """
 
