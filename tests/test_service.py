@@ -265,6 +265,21 @@ def test_worker_pool_survives_a_dying_worker() -> None:
     assert pid != os.getpid() and crashes == 1
 
 
+def test_worker_processes_run_single_threaded_blas() -> None:
+    import asyncio
+
+    from station.service.worker import WorkerPool
+
+    async def go() -> tuple[str | None, str | None]:
+        pool = WorkerPool("test", 1)
+        try:
+            return (await pool.run(os.environ.get, "OPENBLAS_NUM_THREADS"),
+                    await pool.run(os.environ.get, "OMP_NUM_THREADS"))
+        finally:
+            pool.shutdown(5.0)
+    assert asyncio.run(go()) == ("1", "1")
+
+
 def test_unreachable_rig_health_degraded_runs_503_stop_still_accepted(tmp_path: Path) -> None:
     import httpx
     import yaml
