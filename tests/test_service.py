@@ -273,8 +273,8 @@ def test_worker_processes_run_single_threaded_blas() -> None:
     async def go() -> tuple[str | None, str | None]:
         pool = WorkerPool("test", 1)
         try:
-            return (await pool.run(os.environ.get, "OPENBLAS_NUM_THREADS"),
-                    await pool.run(os.environ.get, "OMP_NUM_THREADS"))
+            return (await pool.run(os.getenv, "OPENBLAS_NUM_THREADS"),
+                    await pool.run(os.getenv, "OMP_NUM_THREADS"))
         finally:
             pool.shutdown(5.0)
     assert asyncio.run(go()) == ("1", "1")
