@@ -85,6 +85,16 @@ def _emulator() -> subprocess.Popen[str]:
                             stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
+def _vm_hwm_mb() -> float:
+    """Peak resident memory of this process in MB: VmHWM, which starts afresh at exec (ru_maxrss does
+    not: Linux carries it over from the parent that forked us, which would report the bench's own
+    peak instead of the recording process's)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def memory_run(minutes: float, factor: float) -> int:
     """Subprocess mode: record ``minutes`` of 20 kHz data (at factor x real time); print peak RSS."""
     proc = _emulator()
@@ -96,7 +106,7 @@ def memory_run(minutes: float, factor: float) -> int:
     finally:
         proc.stdin.close()
         proc.wait(timeout=10)
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak_mb = _vm_hwm_mb()
     print(json.dumps({"peak_rss_mb": round(peak_mb, 1), "stored": r["stored"], "lost": r["lost"]}))
     return 0
 
