@@ -218,3 +218,16 @@ def test_pool_workers_run_single_threaded_blas() -> None:
     with open_executor("local", 2) as ex:  # the fork server set this before importing numpy
         assert [f.result() for f in [ex.submit(os.getenv, "OPENBLAS_NUM_THREADS") for _ in range(4)]] == ["1"] * 4
     assert os.environ.get("OPENBLAS_NUM_THREADS") == before  # the parent's environment is not touched
+
+
+def test_jobs_are_split_evenly_over_the_workers() -> None:
+    from station.batch.runner import split_jobs
+
+    paths = [Path(f"r{i}.h5") for i in range(50)]
+    assert [len(c) for c in split_jobs(paths, 2)] == [1] * 50  # up to 16 per worker: one per job
+    many = [Path(f"r{i}.h5") for i in range(70)]
+    chunks = split_jobs(many, 2)
+    assert len(chunks) == 32 and sorted({len(c) for c in chunks}) == [2, 3]
+    assert [p for c in chunks for p in c] == many  # every recording once, in order
+    assert [len(c) for c in split_jobs(paths[:3], 2)] == [1, 1, 1]  # never an empty job
+    assert [len(c) for c in split_jobs(paths, 2, chunksize=20)] == [20, 20, 10]
