@@ -224,10 +224,10 @@ def test_jobs_are_split_evenly_over_the_workers() -> None:
     from station.batch.runner import split_jobs
 
     paths = [Path(f"r{i}.h5") for i in range(50)]
-    assert [len(c) for c in split_jobs(paths, 2)] == [1] * 50  # up to 16 per worker: one per job
-    many = [Path(f"r{i}.h5") for i in range(70)]
-    chunks = split_jobs(many, 2)
-    assert len(chunks) == 32 and sorted({len(c) for c in chunks}) == [2, 3]
+    assert [len(c) for c in split_jobs(paths, 2)] == [1] * 50  # fewer than 32 per worker: one per job
+    many = [Path(f"r{i}.h5") for i in range(75)]
+    chunks = split_jobs(many, 2)  # size 75 // 32 = 2 -> 38 chunks of 1-2, shares even
+    assert len(chunks) == 38 and sorted({len(c) for c in chunks}) == [1, 2]
     assert [p for c in chunks for p in c] == many  # every recording once, in order
     assert [len(c) for c in split_jobs(paths[:3], 2)] == [1, 1, 1]  # never an empty job
     assert [len(c) for c in split_jobs(paths, 2, chunksize=20)] == [20, 20, 10]
