@@ -19,15 +19,25 @@ class StepRequest:
     crank_radius_m: float
 
 
+def moving_mass_kg(cfg: StationConfig) -> float:
+    """M in kg: load mass (top mass + adaption) plus the transducer's end mass, if known."""
+    return cfg.rig.load_mass_kg + (cfg.transducer.end_mass_kg or 0.0)
+
+
 def peak_force_N(cfg: StationConfig, step: StepRequest) -> float:
-    """Peak transducer force in N: M (g + r w^2), M = load mass + end mass (if known).
+    """Peak transducer force in N: M (g + r w^2).
 
     The preload of gravity is included: the transducer sees the static weight plus the inertial
-    amplitude m r w^2 on the downward stroke.
+    amplitude M r w^2 on the downward stroke.
     """
-    m = cfg.rig.load_mass_kg + (cfg.transducer.end_mass_kg or 0.0)
     w = 2.0 * math.pi * step.crank_frequency_hz
-    return m * (G + step.crank_radius_m * w * w)
+    return moving_mass_kg(cfg) * (G + step.crank_radius_m * w * w)
+
+
+def max_radius_m(cfg: StationConfig, crank_frequency_hz: float) -> float:
+    """Largest crank radius in m whose peak force stays within ``force_limit_N`` (0 if none does)."""
+    w = 2.0 * math.pi * crank_frequency_hz
+    return max(0.0, (force_limit_N(cfg) / moving_mass_kg(cfg) - G) / (w * w))
 
 
 def force_limit_N(cfg: StationConfig) -> float:
@@ -51,8 +61,7 @@ def check_steps(cfg: StationConfig, steps: list[StepRequest]) -> None:
                              f"range [{rr.min:g}, {rr.max:g}] m")
         peak = peak_force_N(cfg, s)
         if peak > limit:
-            r_max = (limit / (cfg.rig.load_mass_kg + (cfg.transducer.end_mass_kg or 0.0)) - G) / (
-                2 * math.pi * s.crank_frequency_hz) ** 2
+            r_max = max_radius_m(cfg, s.crank_frequency_hz)
             raise LimitError(f"{where}: peak force {peak:.0f} N exceeds the limit {limit:.0f} N "
                              f"({cfg.rig.peak_force_fraction:g} x capacity {cfg.transducer.capacity_N:g} N); "
-                             f"at this frequency the radius must stay below {max(r_max, 0):.3g} m")
+                             f"at this frequency the radius must stay below {r_max:.3g} m")

@@ -12,8 +12,8 @@ from pathlib import Path
 
 from station.batch.items import BatchItem
 from station.errors import StationError
-from station.ident.api import identify_recording
-from station.recording import Recording, read_recording, write_results
+from station.ident.api import identify_recording, store_result
+from station.recording import Recording, read_recording
 
 log = logging.getLogger(__name__)
 
@@ -26,11 +26,7 @@ def identify_one(path: Path, method: str | None = None, model: str | None = None
     try:
         rec = read_recording(path)
         res = identify_recording(rec, method, model)
-        stored = ""
-        if store:
-            name = f"identify_{res.method}_{res.model}"
-            write_results(path, name, res.to_dict())
-            stored = f"/results/{name}"
+        stored = store_result(path, res) if store else ""
         return BatchItem(Path(path), rec.run_id, rec.transducer_id, rec.start_time, "ok", res.method, res.model,
                          {p.name: p.to_dict() for p in res.parameters}, "", time.perf_counter() - t0, stored,
                          time.process_time() - c0)

@@ -7,9 +7,9 @@ import json
 from pathlib import Path
 
 from station.errors import BadInputError
-from station.ident.api import METHODS, MODELS, identify_recording
+from station.ident.api import METHODS, MODELS, identify_recording, store_result
 from station.ident.result import IdentificationResult
-from station.recording import read_recording, write_results
+from station.recording import read_recording
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -49,8 +49,6 @@ def run(args: argparse.Namespace) -> int:
     res = identify_recording(rec, args.method, args.model, seed=args.seed)
     payload = res.to_dict()
     if not args.no_write:
-        name = f"identify_{res.method}_{res.model}"
-        write_results(args.recording, name, payload)
-        payload["stored_as"] = f"/results/{name}"
+        payload["stored_as"] = store_result(args.recording, res)
     print(json.dumps(payload, indent=2) if args.json else format_text(res))
     return 0

@@ -22,6 +22,7 @@ import numpy as np
 
 from drivers.rig.model import spring_force_per_acceleration
 from station.config import StationConfig, load_config, parse_config, to_rig_physics
+from station.limits import moving_mass_kg
 from station.simulate import simulate_run
 
 CONFIGS = {"5kN": "sim-5kN.yaml", "12k5N": "sim-12k5N.yaml"}
@@ -67,7 +68,7 @@ def plan_steps(cfg: StationConfig, n_steps: int, f_lo: float = 5.0, f_hi: float 
     (M (g + r w^2) <= peak_force_fraction * capacity).
     (One radius: a radius change stops the crank, which ``station.simulate`` does not always reach
     exactly, see the report of issue 7.)"""
-    M = cfg.rig.load_mass_kg + (cfg.transducer.end_mass_kg or 0.0)
+    M = moving_mass_kg(cfg)
     a_max = cfg.rig.peak_force_fraction * cfg.transducer.capacity_N / M - 9.80665
     phys = to_rig_physics(cfg)
     freqs = np.geomspace(f_lo, f_hi, n_steps)

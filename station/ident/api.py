@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,7 +23,7 @@ from station.ident.oe import StepSignal, fit_oe
 from station.ident.paperfit import identify_paper_method
 from station.ident.protocol import PaperProtocol
 from station.ident.result import FitSummary, Identifiability, IdentificationResult, ParameterEstimate
-from station.recording import Recording
+from station.recording import Recording, write_results
 
 FloatArray = NDArray[np.float64]
 METHODS = ("fd", "oe", "pso", "pso+", "rls")
@@ -190,6 +191,12 @@ def identify_oe(rec: Recording, model_key: str = "sdof",
                          int(sum(s.t.size for s in sigs)))
     return IdentificationResult("oe", fd.model, tuple(params), summary, rep, tuple(notes),
                                 {"offsets_V": fit.offsets_V.tolist()})
+
+
+def store_result(path: str | Path, res: IdentificationResult) -> str:
+    """Write ``res`` into the recording's /results (replacing an earlier one); returns its path in the file."""
+    write_results(path, res.result_name, res.to_dict())
+    return f"/results/{res.result_name}"
 
 
 def identify_recording(rec: Recording, method: str | None = None, model: str | None = None, *,

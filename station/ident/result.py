@@ -94,6 +94,11 @@ class IdentificationResult:
     notes: tuple[str, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def result_name(self) -> str:
+        """Where the result is stored in a recording: /results/<result_name>."""
+        return f"identify_{self.method}_{self.model}"
+
     def parameter(self, name: str) -> ParameterEstimate:
         for p in self.parameters:
             if p.name == name:

@@ -9,9 +9,9 @@ from pathlib import Path
 from typing import Any
 
 from station.config import StationConfig
-from station.ident.api import identify_recording
+from station.ident.api import identify_recording, store_result
 from station.ident.result import IdentificationResult
-from station.recording import read_recording, write_results
+from station.recording import read_recording
 from station.run.procedure import Procedure, Progress, RunOutcome
 from station.run.processing import process_recording
 from station.run.request import RunRequest, plan_run
@@ -40,7 +40,7 @@ class CalibrationResult:
 def identify_and_store(path: Path, method: str | None = None, model: str | None = None) -> IdentificationResult:
     """Identify a recording and write the result into its /results group."""
     res = identify_recording(read_recording(path), method, model)
-    write_results(path, f"identify_{res.method}_{res.model}", res.to_dict())
+    store_result(path, res)
     return res
 
 

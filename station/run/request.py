@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from station.config import StationConfig
 from station.errors import LimitError
-from station.limits import StepRequest, check_steps
+from station.limits import StepRequest, check_steps, max_radius_m
 
 
 class StepSpec(BaseModel):
@@ -79,15 +79,10 @@ def default_request(cfg: StationConfig, frequencies_hz: list[float] | None = Non
     if not frequencies_hz:
         return RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg,
                           steps=[StepSpec(**s.model_dump()) for s in cfg.plan.steps])
-    from station.limits import G, force_limit_N
-
-    m = cfg.rig.load_mass_kg + (cfg.transducer.end_mass_kg or 0.0)
     r_cap = min(cfg.plan.steps[0].crank_radius_m, cfg.rig.crank_radius_m.max)
     steps = []
     for f in frequencies_hz:
-        w2 = (2 * 3.141592653589793 * f) ** 2
-        r_max = 0.9 * (force_limit_N(cfg) / m - G) / w2
-        r = min(r_cap, r_max)
+        r = min(r_cap, 0.9 * max_radius_m(cfg, f))  # 10 % margin below the force limit
         if r < cfg.rig.crank_radius_m.min:
             raise LimitError(f"{f:g} Hz: no crank radius within [{cfg.rig.crank_radius_m.min:g}, "
                              f"{cfg.rig.crank_radius_m.max:g}] m keeps the peak force within the limit")

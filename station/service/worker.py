@@ -80,7 +80,7 @@ def identify_job(path: str, processing: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     process_recording(path, ProcessingConfig.model_validate(processing))
     res = identify_and_store(Path(path))
-    return {"result_name": f"identify_{res.method}_{res.model}", "method": res.method, "model": res.model,
+    return {"result_name": res.result_name, "method": res.method, "model": res.model,
             "wall_s": time.perf_counter() - t0}
 
 
