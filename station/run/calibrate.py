@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from station.config import StationConfig
+from station.config import ProcessingConfig, StationConfig
 from station.ident.api import identify_recording, store_result
 from station.ident.result import IdentificationResult
 from station.recording import read_recording
@@ -37,9 +37,12 @@ class CalibrationResult:
                           f"lost samples: {self.outcome.lost_samples}"])
 
 
-def identify_and_store(path: Path, method: str | None = None, model: str | None = None) -> IdentificationResult:
-    """Identify a recording and write the result into its /results group."""
-    res = identify_recording(read_recording(path), method, model)
+def process_and_identify(path: Path, processing: ProcessingConfig) -> IdentificationResult:
+    """After a run: H(f) per step into /processed, then the default identification into /results;
+    the recording is read once for both."""
+    rec = read_recording(path)
+    process_recording(path, processing, rec)
+    res = identify_recording(rec)
     store_result(path, res)
     return res
 
@@ -53,5 +56,4 @@ async def run_and_identify(cfg: StationConfig, request: RunRequest, out_dir: Pat
         outcome = await proc.execute()
     if outcome.exit_status != "completed":
         return CalibrationResult(outcome, None)
-    process_recording(outcome.path, plan.config.processing)
-    return CalibrationResult(outcome, identify_and_store(outcome.path))
+    return CalibrationResult(outcome, process_and_identify(outcome.path, plan.config.processing))

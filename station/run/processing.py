@@ -71,9 +71,10 @@ def step_response(rec: Recording, index: int, p: ProcessingConfig) -> StepRespon
                         abs(fu.phasor), fu.offset, fx.residual_rms, fu.residual_rms, dd.size)
 
 
-def process_recording(path: str | Path, p: ProcessingConfig) -> list[StepResponse]:
-    """Fit every usable step of a complete recording and store the result in /processed/steps."""
-    rec = read_recording(path)
+def process_recording(path: str | Path, p: ProcessingConfig, rec: Recording | None = None) -> list[StepResponse]:
+    """Fit every usable step of a complete recording and store the result in /processed/steps
+    (``rec``: the recording already read from ``path``, to save reading it again)."""
+    rec = rec if rec is not None else read_recording(path)
     if not rec.complete:
         raise StationError(f"{rec.path}: the recording is incomplete ({rec.reason}); recover it first")
     out, skipped = [], []

@@ -74,12 +74,10 @@ def _job(fn: Callable[..., T]) -> Callable[..., T]:
 def identify_job(path: str, processing: dict[str, Any]) -> dict[str, Any]:
     """H(f) per step into /processed, then the identification into /results (station.run.calibrate)."""
     from station.config import ProcessingConfig
-    from station.run.calibrate import identify_and_store
-    from station.run.processing import process_recording
+    from station.run.calibrate import process_and_identify
 
     t0 = time.perf_counter()
-    process_recording(path, ProcessingConfig.model_validate(processing))
-    res = identify_and_store(Path(path))
+    res = process_and_identify(Path(path), ProcessingConfig.model_validate(processing))
     return {"result_name": res.result_name, "method": res.method, "model": res.model,
             "wall_s": time.perf_counter() - t0}
 
