@@ -14,7 +14,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
@@ -69,7 +69,6 @@ class Progress:
     samples: int = 0
     lost_samples: int = 0
     message: str = ""
-    started: float = field(default_factory=time.time)
 
     @property
     def fraction(self) -> float:
