@@ -1,0 +1,141 @@
+"""A run's files and what is made from them: the recording (kept inside the recordings folder,
+one access at a time from the daemon), plots, the report and the discrepancy analysis (rendered in
+the render worker, cached)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections import OrderedDict
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from station.service import worker
+from station.service.errors import FeatureUnavailableError, RunStateError
+from station.service.store import RunRow
+
+CACHE_ENTRIES = 64  # rendered plots and reports kept in memory (a few 100 kB each)
+
+
+@dataclass
+class _Lock:
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    users: int = 0
+
+
+class Artifacts:
+    """Recordings and their renderings; ``get_row`` looks a run up (live or stored)."""
+
+    def __init__(self, recordings_dir: Path, render_pool: worker.WorkerPool,
+                 get_row: Callable[[str], RunRow]) -> None:
+        self.recordings_dir = recordings_dir
+        self.render_pool = render_pool
+        self._get_row = get_row
+        self._file_locks: dict[str, _Lock] = {}
+        self._caps: tuple[float, dict[str, Any]] | None = None
+        self._cache: OrderedDict[tuple[str, str], bytes | str] = OrderedDict()
+
+    def recording_path(self, row: RunRow) -> Path:
+        """The run's recording, always inside the recordings folder."""
+        if not row.recording:
+            raise RunStateError(f"run {row.id} has no recording")
+        base = self.recordings_dir
+        p = (base / Path(row.recording).name).resolve()
+        if p.parent != base:
+            raise RunStateError(f"run {row.id}: recording outside the recordings folder refused")
+        if not p.is_file():
+            raise RunStateError(f"run {row.id}: recording {p.name} is missing from the recordings folder")
+        return p
+
+    @contextlib.asynccontextmanager
+    async def file_lock(self, run_id: str) -> AsyncIterator[None]:
+        """Serialises the daemon's own accesses to one recording (HDF5 locks files).  The lock is
+        forgotten when nobody holds or waits for it (memory stays flat over many runs)."""
+        entry = self._file_locks.setdefault(run_id, _Lock())
+        entry.users += 1
+        try:
+            async with entry.lock:
+                yield
+        finally:
+            entry.users -= 1
+            if entry.users == 0:
+                del self._file_locks[run_id]
+
+    async def read_file(self, run_id: str, fn: Callable[[Path], Any]) -> Any:
+        path = self.recording_path(self._get_row(run_id))
+        async with self.file_lock(run_id):
+            return await asyncio.to_thread(fn, path)
+
+    async def stream_file(self, run_id: str, chunk: int = 1 << 20) -> AsyncIterator[bytes]:
+        path = self.recording_path(self._get_row(run_id))
+        async with self.file_lock(run_id):
+            f = await asyncio.to_thread(open, path, "rb")
+            try:
+                while True:
+                    data = await asyncio.to_thread(f.read, chunk)
+                    if not data:
+                        return
+                    yield data
+            finally:
+                f.close()
+
+    async def capabilities(self) -> dict[str, Any]:
+        """Which optional modules exist (checked in a worker, cached for 30 s)."""
+        now = time.monotonic()
+        if self._caps is None or now - self._caps[0] > 30.0:
+            self._caps = (now, await self.render_pool.run(worker.capabilities_job))
+        return self._caps[1]
+
+    async def _cached(self, key: tuple[str, str], make: Callable[[], Awaitable[Any]]) -> Any:
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        value = await make()
+        if value is None:
+            return None
+        self._cache[key] = value
+        while len(self._cache) > CACHE_ENTRIES:
+            self._cache.popitem(last=False)
+        return value
+
+    def _completed_path(self, run_id: str) -> Path:
+        row = self._get_row(run_id)
+        if row.state != "completed":
+            raise RunStateError(f"run {run_id} is {row.state}: plots, report and analyses exist for "
+                                "completed runs only")
+        return self.recording_path(row)
+
+    async def _locked_job(self, run_id: str, fn: Callable[..., Any], *args: Any) -> Any:
+        async with self.file_lock(run_id):
+            return await self._optional_job(fn, *args)
+
+    async def plot(self, run_id: str, name: str) -> bytes | None:
+        path = self._completed_path(run_id)
+        caps = await self.capabilities()
+        if caps["plots"] is None:
+            raise FeatureUnavailableError("plots are not available: station.report.plots is not installed")
+        if name not in caps["plots"]:
+            return None
+        return await self._cached((run_id, f"plot:{name}"),
+                                  lambda: self._locked_job(run_id, worker.plot_job, str(path), name))
+
+    async def report(self, run_id: str) -> str:
+        path = self._completed_path(run_id)
+        return await self._cached((run_id, "report"),  # type: ignore[no-any-return]
+                                  lambda: self._locked_job(run_id, worker.report_job, str(path)))
+
+    async def discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
+        path = self._completed_path(run_id)
+        out = await self._locked_job(run_id, worker.discrepancy_job, str(path), max_effects)
+        self._cache.pop((run_id, "report"), None)  # the report names the effects found
+        return out  # type: ignore[no-any-return]
+
+    async def _optional_job(self, fn: Callable[..., Any], *args: Any) -> Any:
+        try:
+            return await self.render_pool.run(fn, *args)
+        except worker.Unavailable as exc:
+            self._caps = None
+            raise FeatureUnavailableError(str(exc)) from None

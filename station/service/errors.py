@@ -1,0 +1,39 @@
+"""The service layer's typed errors; ``station.api`` maps each to an HTTP status (nothing below the
+API layer knows about HTTP)."""
+
+from __future__ import annotations
+
+from station.errors import LimitError, StationError
+
+
+class RigBusyError(StationError):
+    """Another run holds the rig (409)."""
+
+    def __init__(self, run_id: str, state: str) -> None:
+        super().__init__(f"run {run_id} holds the rig (state {state}); wait for it or abort it")
+        self.run_id = run_id
+
+
+class RunNotFoundError(StationError):
+    """No run with this id (404)."""
+
+
+class RunStateError(StationError):
+    """The run is not in a state that allows the request, e.g. results of a running run (409)."""
+
+
+class RigUnavailableError(StationError):
+    """No link to the rig (503)."""
+
+
+class FeatureUnavailableError(StationError):
+    """An optional module (plots, report, discrepancy) is not installed (501)."""
+
+
+class RequestLimitError(LimitError):
+    """A LimitError with the request field it is about (``loc``, FastAPI style) and its value (422)."""
+
+    def __init__(self, message: str, loc: tuple[str | int, ...], value: object) -> None:
+        super().__init__(message)
+        self.loc = loc
+        self.value = value

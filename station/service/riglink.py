@@ -1,0 +1,96 @@
+"""The daemon's one connection to the rig: connected at start-up, checked before every run,
+reconnected when a link went bad, and the emergency stop on the motor controller."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable
+
+from station.config import StationConfig
+from station.run.rig import ConnectedRig, connect
+from station.service.errors import RigUnavailableError
+
+log = logging.getLogger(__name__)
+
+RigConnector = Callable[[StationConfig, bool], contextlib.AbstractAsyncContextManager[ConnectedRig]]
+
+
+def default_connector(cfg: StationConfig, sim: bool) -> contextlib.AbstractAsyncContextManager[ConnectedRig]:
+    return connect(cfg, sim=sim)
+
+
+class RigLink:
+    """Holds the connected rig (``rig``, None while not connected; ``error`` says why)."""
+
+    def __init__(self, cfg: StationConfig, sim: bool, connector: RigConnector = default_connector) -> None:
+        self.cfg = cfg
+        self.sim = sim
+        self._connector = connector
+        self.rig: ConnectedRig | None = None
+        self.error: str | None = None
+        self._stack: contextlib.AsyncExitStack | None = None
+        self._lock = asyncio.Lock()
+
+    async def connect(self) -> ConnectedRig | None:
+        async with self._lock:
+            if self.rig is not None:
+                return self.rig
+            stack = contextlib.AsyncExitStack()
+            try:
+                self.rig = await stack.enter_async_context(self._connector(self.cfg, self.sim))
+            except Exception as exc:
+                await stack.aclose()
+                self.error = f"{type(exc).__name__}: {exc}"
+                log.error("cannot connect to the rig: %s", self.error)
+                return None
+            self._stack, self.error = stack, None
+            log.info("connected: %s", self.rig.description)
+            return self.rig
+
+    async def disconnect(self) -> None:
+        async with self._lock:
+            stack, self._stack, self.rig = self._stack, None, None
+            if stack is not None:
+                try:
+                    await stack.aclose()
+                except Exception as exc:
+                    log.warning("closing the rig connection: %s", exc)
+
+    @staticmethod
+    def healthy(rig: ConnectedRig) -> bool:
+        h = rig.health()
+        return bool(h["motor"]["connected"]) and not h["motor"]["watchdog_error"] and not h["daq"]["link_error"]
+
+    async def for_run(self) -> ConnectedRig:
+        """The connected rig with healthy links (reconnected if needed); RigUnavailableError if none."""
+        rig = self.rig
+        if rig is not None and not self.healthy(rig):
+            log.warning("rig link unhealthy (%s); reconnecting", rig.health())
+            await self.disconnect()
+            rig = None
+        if rig is None:
+            rig = await self.connect()
+        if rig is None:
+            raise RigUnavailableError(f"the rig is not connected: {self.error}")
+        return rig
+
+    async def emergency_stop(self) -> tuple[bool, str]:
+        """Command the controller's emergency stop; (taken, what to tell the operator)."""
+        rig = self.rig
+        if rig is None:
+            return False, ("no link to the motor controller; if the crank turns, its watchdog stops it when "
+                           "refreshes cease - use the hardware emergency stop")
+        try:
+            await asyncio.wait_for(rig.motor.emergency_stop(), 2.0)
+            return True, "emergency stop commanded on the motor controller"
+        except Exception as exc:
+            return False, (f"the motor controller did not take the emergency stop ({type(exc).__name__}: {exc}); "
+                           "use the hardware emergency stop")
+
+    async def stop_motor(self) -> None:
+        """Ramp the crank down (shutdown path; errors ignored)."""
+        if self.rig is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self.rig.motor.stop(), 3.0)

@@ -1,0 +1,238 @@
+"""Runs on the rig: check a request against the limits, queue it (one run holds the rig at a
+time), carry it out with the Procedure, follow its progress, abort it, stop everything at once."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from station.config import StationConfig, to_rig_physics
+from station.errors import LimitError
+from station.recording import new_run_id
+from station.run.procedure import Procedure, Progress
+from station.run.request import Plan, RunRequest, plan_run
+from station.run.rig import ConnectedRig
+from station.service.changes import Changes
+from station.service.errors import RequestLimitError, RigBusyError, RigUnavailableError, RunNotFoundError, RunStateError
+from station.service.riglink import RigLink
+from station.service.settings import ServiceSettings
+from station.service.store import RunRow, Store
+
+log = logging.getLogger(__name__)
+
+PERSIST_INTERVAL_S = 1.0
+
+
+def check_request(cfg: StationConfig, request: RunRequest) -> Plan:
+    """plan_run, with the offending field located when a limit is broken."""
+    try:
+        return plan_run(cfg, request)
+    except LimitError as exc:
+        if request.transducer_id != cfg.transducer.id:
+            raise RequestLimitError(str(exc), ("body", "transducer_id"), request.transducer_id) from None
+        fr = cfg.rig.crank_frequency_hz
+        for i, s in enumerate(request.steps):
+            one = request.model_copy(update={"steps": [s]})
+            try:
+                plan_run(cfg, one)
+            except LimitError:
+                if not (math.isfinite(s.crank_frequency_hz) and fr.contains(s.crank_frequency_hz)):
+                    raise RequestLimitError(str(exc), ("body", "steps", i, "crank_frequency_hz"),
+                                            s.crank_frequency_hz) from None
+                raise RequestLimitError(str(exc), ("body", "steps", i, "crank_radius_m"), s.crank_radius_m) from None
+        raise RequestLimitError(str(exc), ("body",), None) from None
+
+
+@dataclass
+class LiveRun:
+    """A run that holds the rig (queued or running), in memory."""
+
+    row: RunRow
+    plan: Plan
+    proc: Procedure | None = None
+    task: asyncio.Task[None] | None = None
+    abort_reason: str | None = None
+    last_persist: float = 0.0
+
+
+@dataclass
+class StopReport:
+    motor_stopped: bool
+    aborted_runs: list[str]
+    detail: str
+
+
+class Runs:
+    """The run on the rig (``live``: at most one) and the stored ones; ``on_acquired(run_id)`` is
+    called when a run's acquisition completed and its identification was queued."""
+
+    def __init__(self, settings: ServiceSettings, store: Store, link: RigLink, changes: Changes,
+                 closing: asyncio.Event, on_acquired: Callable[[str], None]) -> None:
+        self.settings = settings
+        self.cfg = settings.config
+        self.store = store
+        self.link = link
+        self.changes = changes
+        self.closing = closing
+        self._on_acquired = on_acquired
+        self.live: dict[str, LiveRun] = {}
+        self.loop_thread = threading.get_ident()
+
+    def active(self) -> LiveRun | None:
+        return next(iter(self.live.values()), None)
+
+    async def submit(self, request: RunRequest) -> RunRow:
+        """Check and queue a run (202); raises RequestLimitError (422), RigBusyError (409),
+        RigUnavailableError (503)."""
+        if self.closing.is_set():
+            raise RigUnavailableError("the daemon is shutting down")
+        plan = check_request(self.cfg, request)
+        cur = self.active()
+        if cur is not None:
+            raise RigBusyError(cur.row.id, cur.row.state)
+        await self.link.for_run()
+        cur = self.active()  # the connection attempt yielded: check again
+        if cur is not None:
+            raise RigBusyError(cur.row.id, cur.row.state)
+        run_id = new_run_id(request.transducer_id)
+        row = RunRow(id=run_id, state="queued", transducer_id=request.transducer_id,
+                     top_mass_kg=request.top_mass_kg, request_json=request.model_dump_json(),
+                     plan_json=json.dumps(plan.to_dict()), created=time.time(), n_steps=len(plan.steps),
+                     message="waiting for the rig")
+        self.store.insert_run(row)
+        live = LiveRun(row, plan)
+        self.live[run_id] = live
+        live.task = asyncio.create_task(self._execute(live), name=f"run-{run_id}")
+        self.changes.changed(run_id)
+        log.info("run %s queued: %d steps", run_id, len(plan.steps))
+        return row
+
+    async def _execute(self, live: LiveRun) -> None:
+        run_id, plan = live.row.id, live.plan
+        try:
+            rig = await self.link.for_run()
+            if rig.sim is not None:
+                self._simulate_plan_physics(rig, plan.config)
+            proc = Procedure(plan, rig, self.settings.recordings_dir, run_id=run_id,
+                             on_progress=lambda p: self._on_progress(live, p))
+            live.proc = proc
+            if live.abort_reason:
+                proc.abort(live.abort_reason)
+            self._update(live, state="running", started=time.time(), message="starting")
+            outcome = await proc.execute()
+        except asyncio.CancelledError:
+            self._finish(live, "interrupted", live.abort_reason or "the station daemon stopped before the run began")
+            return
+        except Exception as exc:
+            log.exception("run %s could not be carried out", run_id)
+            self._finish(live, "failed", f"{type(exc).__name__}: {exc}")
+            return
+        name = outcome.path.name
+        if outcome.exit_status == "completed":
+            self._update(live, recording=name, lost_samples=outcome.lost_samples, state="identifying",
+                         fraction=1.0, message="acquisition completed; identification queued")
+            self.store.enqueue_job(run_id)
+            self._on_acquired(run_id)
+            self.live.pop(run_id, None)
+            self.changes.changed(run_id)
+        else:
+            state, reason = outcome.exit_status, outcome.reason
+            if state == "interrupted" and live.abort_reason:
+                reason = live.abort_reason
+            elif state == "failed" and live.abort_reason:
+                # the operator's stop reached the motor before the procedure saw the abort: the
+                # procedure reports the latched e-stop fault; the run was stopped on purpose
+                state, reason = "aborted", f"{live.abort_reason} (recording: {outcome.reason})"
+            self._update(live, recording=name, lost_samples=outcome.lost_samples)
+            self._finish(live, state, reason)
+
+    def _finish(self, live: LiveRun, state: str, reason: str) -> None:
+        self._update(live, state=state, reason=reason, message=reason, ended=time.time())
+        self.live.pop(live.row.id, None)
+        self.changes.changed(live.row.id)
+
+    def _simulate_plan_physics(self, rig: ConnectedRig, cfg: StationConfig) -> None:
+        """The simulated rig carries the run's top mass (a real rig has whatever is mounted)."""
+        src = getattr(rig.sim, "source", None)
+        if src is None or not hasattr(src, "physics"):
+            return
+        physics = to_rig_physics(cfg)
+        if physics == src.physics:
+            return
+        synth = getattr(src, "synth", None)
+        src.set_phase(float(synth.crank_angle_rad) if synth is not None else 0.0)
+        src.physics = physics
+
+    def _on_progress(self, live: LiveRun, p: Progress) -> None:
+        if threading.get_ident() != self.loop_thread:  # the procedure reports from the loop; be safe
+            return
+        row = live.row
+        changed_phase = (p.step, p.step_state) != (row.step, row.step_state)
+        values: dict[str, Any] = {"step": p.step, "step_state": p.step_state, "samples": p.samples,
+                                  "lost_samples": p.lost_samples, "fraction": round(p.fraction, 4),
+                                  "message": p.message}
+        for k, v in values.items():
+            setattr(row, k, v)
+        now = time.monotonic()
+        if changed_phase or now - live.last_persist >= PERSIST_INTERVAL_S:
+            live.last_persist = now
+            self.store.update_run(row.id, **values)
+        self.changes.changed(row.id)
+
+    def _update(self, live: LiveRun, **values: Any) -> None:
+        for k, v in values.items():
+            setattr(live.row, k, v)
+        self.store.update_run(live.row.id, **values)
+        self.changes.changed(live.row.id)
+
+    def abort(self, run_id: str, reason: str = "aborted by operator") -> RunRow:
+        live = self.live.get(run_id)
+        if live is None:
+            row = self.get(run_id)
+            raise RunStateError(f"run {run_id} is {row.state}: only a queued or running run can be aborted")
+        live.abort_reason = reason
+        if live.proc is not None:
+            live.proc.abort(reason)
+        self._update(live, message=f"aborting: {reason}")
+        return live.row
+
+    async def emergency_stop(self) -> StopReport:
+        """Abort every run on the rig and command an emergency stop on the motor right away."""
+        aborted = []
+        for live in list(self.live.values()):
+            live.abort_reason = "emergency stop"
+            if live.proc is not None:
+                live.proc.abort("emergency stop")
+            aborted.append(live.row.id)
+        ok, detail = await self.link.emergency_stop()
+        log.warning("EMERGENCY STOP: %s (aborted runs: %s)", detail, aborted or "none")
+        return StopReport(ok, aborted, detail)
+
+    def cancel_all(self, reason: str) -> list[asyncio.Task[None]]:
+        """Shutdown: cancel the run on the rig (its procedure stops the motor, closes the recording)."""
+        tasks = [lv.task for lv in self.live.values() if lv.task is not None]
+        for live in list(self.live.values()):
+            if live.task is not None and not live.task.done() and not live.abort_reason:
+                live.abort_reason = reason
+                live.task.cancel()
+        return tasks
+
+    def get(self, run_id: str) -> RunRow:
+        live = self.live.get(run_id)
+        if live is not None:
+            return live.row
+        row = self.store.get_run(run_id)
+        if row is None:
+            raise RunNotFoundError(f"no run {run_id!r}")
+        return row
+
+    def list_runs(self, *, limit: int = 100, states: list[str] | None = None) -> list[RunRow]:
+        rows = self.store.list_runs(limit=limit, states=states)
+        return [self.live[r.id].row if r.id in self.live else r for r in rows]
