@@ -152,7 +152,9 @@ class Procedure:
         self.acq: Acquisition | None = None
 
     def abort(self, reason: str = "aborted by operator") -> None:
-        self.abort_reason = reason
+        """Stop the run; the first reason given stays (a later abort does not overwrite it)."""
+        if not self.abort_reason:
+            self.abort_reason = reason
         self.abort_event.set()
 
     def _report(self, **kw: object) -> None:

@@ -2,7 +2,8 @@
 it (``runs``), the identification queue (``jobs``), the recordings and their renderings
 (``artifacts``), the start-up recovery (``recovery``) and the health (``health``).
 
-A run's Procedure runs as an asyncio task; processing and identification go to the worker
+A run's Procedure runs on the rig thread's own event loop (``rigthread.py``), apart from the web
+side's; processing and identification go to the worker
 processes (``worker.py``), queued in the database so that a restart resumes them.  Nothing here
 raises HTTP errors: the API layer maps the typed errors (``errors.py``, ``LimitError``) to statuses.
 """
@@ -78,6 +79,7 @@ class RunManager:
     # ------------------------------------------------------------------ life cycle
     async def start(self) -> None:
         self.runs.loop_thread = threading.get_ident()
+        self.runs.web_loop = asyncio.get_running_loop()
         self.recover()
         await self.link.connect()
         self.jobs.start()
@@ -107,7 +109,7 @@ class RunManager:
         await asyncio.to_thread(self.identify_pool.shutdown, 30.0)
         await asyncio.to_thread(self.render_pool.shutdown, 30.0)  # it may be writing a discrepancy result
         self.jobs.cancel_jobs()
-        await self.link.disconnect()
+        await self.link.close()
         self.store.close()
 
     def begin_shutdown(self) -> list[asyncio.Task[None]]:

@@ -1,5 +1,8 @@
 """The daemon's one connection to the rig: connected at start-up, checked before every run,
-reconnected when a link went bad, and the emergency stop on the motor controller."""
+reconnected when a link went bad, and the emergency stop on the motor controller.
+
+The connection lives on the rig thread's loop (``rigthread.py``): the drivers' tasks (the motor
+watchdog keeper) run there, and every method below hands its work over to it."""
 
 from __future__ import annotations
 
@@ -11,6 +14,7 @@ from collections.abc import Callable
 from station.config import StationConfig
 from station.run.rig import ConnectedRig, connect
 from station.service.errors import RigUnavailableError
+from station.service.rigthread import RigThread
 
 log = logging.getLogger(__name__)
 
@@ -24,17 +28,27 @@ def default_connector(cfg: StationConfig, sim: bool) -> contextlib.AbstractAsync
 class RigLink:
     """Holds the connected rig (``rig``, None while not connected; ``error`` says why)."""
 
-    def __init__(self, cfg: StationConfig, sim: bool, connector: RigConnector = default_connector) -> None:
+    def __init__(self, cfg: StationConfig, sim: bool, connector: RigConnector = default_connector,
+                 thread: RigThread | None = None) -> None:
         self.cfg = cfg
         self.sim = sim
         self._connector = connector
+        self.thread = thread or RigThread()
         self.rig: ConnectedRig | None = None
         self.error: str | None = None
         self._stack: contextlib.AsyncExitStack | None = None
-        self._lock = asyncio.Lock()
+        self._lock: asyncio.Lock | None = None  # created on the rig loop
+
+    def _rig_lock(self) -> asyncio.Lock:
+        if self._lock is None:
+            self._lock = asyncio.Lock()
+        return self._lock
 
     async def connect(self) -> ConnectedRig | None:
-        async with self._lock:
+        return await self.thread.start().call(self._connect())
+
+    async def _connect(self) -> ConnectedRig | None:
+        async with self._rig_lock():
             if self.rig is not None:
                 return self.rig
             stack = contextlib.AsyncExitStack()
@@ -50,7 +64,11 @@ class RigLink:
             return self.rig
 
     async def disconnect(self) -> None:
-        async with self._lock:
+        if self.thread.running:
+            await self.thread.call(self._disconnect())
+
+    async def _disconnect(self) -> None:
+        async with self._rig_lock():
             stack, self._stack, self.rig = self._stack, None, None
             if stack is not None:
                 try:
@@ -65,13 +83,16 @@ class RigLink:
 
     async def for_run(self) -> ConnectedRig:
         """The connected rig with healthy links (reconnected if needed); RigUnavailableError if none."""
+        return await self.thread.start().call(self._for_run())
+
+    async def _for_run(self) -> ConnectedRig:
         rig = self.rig
         if rig is not None and not self.healthy(rig):
             log.warning("rig link unhealthy (%s); reconnecting", rig.health())
-            await self.disconnect()
+            await self._disconnect()
             rig = None
         if rig is None:
-            rig = await self.connect()
+            rig = await self._connect()
         if rig is None:
             raise RigUnavailableError(f"the rig is not connected: {self.error}")
         return rig
@@ -83,7 +104,7 @@ class RigLink:
             return False, ("no link to the motor controller; if the crank turns, its watchdog stops it when "
                            "refreshes cease - use the hardware emergency stop")
         try:
-            await asyncio.wait_for(rig.motor.emergency_stop(), 2.0)
+            await self.thread.call(asyncio.wait_for(rig.motor.emergency_stop(), 2.0))
             return True, "emergency stop commanded on the motor controller"
         except Exception as exc:
             return False, (f"the motor controller did not take the emergency stop ({type(exc).__name__}: {exc}); "
@@ -91,6 +112,11 @@ class RigLink:
 
     async def stop_motor(self) -> None:
         """Ramp the crank down (shutdown path; errors ignored)."""
-        if self.rig is not None:
+        if self.rig is not None and self.thread.running:
             with contextlib.suppress(Exception):
-                await asyncio.wait_for(self.rig.motor.stop(), 3.0)
+                await self.thread.call(asyncio.wait_for(self.rig.motor.stop(), 3.0))
+
+    async def close(self) -> None:
+        """Disconnect and end the rig thread."""
+        await self.disconnect()
+        await asyncio.to_thread(self.thread.stop)

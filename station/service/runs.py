@@ -1,9 +1,14 @@
 """Runs on the rig: check a request against the limits, queue it (one run holds the rig at a
-time), carry it out with the Procedure, follow its progress, abort it, stop everything at once."""
+time), carry it out with the Procedure, follow its progress, abort it, stop everything at once.
+
+The bookkeeping (``live``, the database, change notification) belongs to the web side's loop; the
+procedure runs on the rig thread's loop (``_carry_out``) and posts its progress back with
+``call_soon_threadsafe``.  Aborts and cancellations cross over the other way."""
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import logging
 import math
@@ -16,7 +21,7 @@ from typing import Any
 from station.config import StationConfig, to_rig_physics
 from station.errors import LimitError
 from station.recording import new_run_id
-from station.run.procedure import Procedure, Progress
+from station.run.procedure import Procedure, Progress, RunOutcome
 from station.run.request import Plan, RunRequest, plan_run
 from station.run.rig import ConnectedRig
 from station.service.changes import Changes
@@ -57,7 +62,9 @@ class LiveRun:
     row: RunRow
     plan: Plan
     proc: Procedure | None = None
-    task: asyncio.Task[None] | None = None
+    task: asyncio.Task[None] | None = None  # on the web loop: waits for the rig side
+    rig_task: asyncio.Task[RunOutcome] | None = None  # on the rig loop: the procedure
+    cancelled: bool = False
     abort_reason: str | None = None
     last_persist: float = 0.0
 
@@ -84,6 +91,15 @@ class Runs:
         self._on_acquired = on_acquired
         self.live: dict[str, LiveRun] = {}
         self.loop_thread = threading.get_ident()
+        self.web_loop: asyncio.AbstractEventLoop | None = None
+
+    def _post(self, fn: Callable[..., Any], *args: Any) -> None:
+        """Call ``fn(*args)`` on the web side's loop (from the rig thread)."""
+        loop = self.web_loop
+        if loop is None or threading.get_ident() == self.loop_thread:
+            fn(*args)
+        elif not loop.is_closed():
+            loop.call_soon_threadsafe(fn, *args)
 
     def active(self) -> LiveRun | None:
         return next(iter(self.live.values()), None)
@@ -115,18 +131,10 @@ class Runs:
         return row
 
     async def _execute(self, live: LiveRun) -> None:
-        run_id, plan = live.row.id, live.plan
+        run_id = live.row.id
         try:
-            rig = await self.link.for_run()
-            if rig.sim is not None:
-                self._simulate_plan_physics(rig, plan.config)
-            proc = Procedure(plan, rig, self.settings.recordings_dir, run_id=run_id,
-                             on_progress=lambda p: self._on_progress(live, p))
-            live.proc = proc
-            if live.abort_reason:
-                proc.abort(live.abort_reason)
-            self._update(live, state="running", started=time.time(), message="starting")
-            outcome = await proc.execute()
+            fut = self.link.thread.start().submit(self._carry_out(live))
+            outcome = await asyncio.wrap_future(fut)
         except asyncio.CancelledError:
             self._finish(live, "interrupted", live.abort_reason or "the station daemon stopped before the run began")
             return
@@ -152,6 +160,23 @@ class Runs:
                 state, reason = "aborted", f"{live.abort_reason} (recording: {outcome.reason})"
             self._update(live, recording=name, lost_samples=outcome.lost_samples)
             self._finish(live, state, reason)
+
+    async def _carry_out(self, live: LiveRun) -> RunOutcome:
+        """On the rig loop: connect if needed, then the procedure."""
+        live.rig_task = asyncio.current_task()  # type: ignore[assignment]
+        if live.cancelled:
+            raise asyncio.CancelledError
+        plan = live.plan
+        rig = await self.link._for_run()
+        if rig.sim is not None:
+            self._simulate_plan_physics(rig, plan.config)
+        proc = Procedure(plan, rig, self.settings.recordings_dir, run_id=live.row.id,
+                         on_progress=lambda p: self._post(self._on_progress, live, dataclasses.replace(p)))
+        live.proc = proc
+        if live.abort_reason:
+            proc.abort(live.abort_reason)
+        self._post(self._update, live, {"state": "running", "started": time.time(), "message": "starting"})
+        return await proc.execute()
 
     def _finish(self, live: LiveRun, state: str, reason: str) -> None:
         self._update(live, state=state, reason=reason, message=reason, ended=time.time())
@@ -186,7 +211,8 @@ class Runs:
             self.store.update_run(row.id, **values)
         self.changes.changed(row.id)
 
-    def _update(self, live: LiveRun, **values: Any) -> None:
+    def _update(self, live: LiveRun, values: dict[str, Any] | None = None, **kw: Any) -> None:
+        values = {**(values or {}), **kw}
         for k, v in values.items():
             setattr(live.row, k, v)
         self.store.update_run(live.row.id, **values)
@@ -197,19 +223,23 @@ class Runs:
         if live is None:
             row = self.get(run_id)
             raise RunStateError(f"run {run_id} is {row.state}: only a queued or running run can be aborted")
-        live.abort_reason = reason
-        if live.proc is not None:
-            live.proc.abort(reason)
-        self._update(live, message=f"aborting: {reason}")
+        self._abort(live, reason)
+        self._update(live, message=f"aborting: {live.abort_reason}")
         return live.row
+
+    def _abort(self, live: LiveRun, reason: str) -> None:
+        """The first reason stays (a later abort does not overwrite an emergency stop)."""
+        if not live.abort_reason:
+            live.abort_reason = reason
+        proc = live.proc
+        if proc is not None:
+            self.link.thread.call_soon(proc.abort, live.abort_reason)
 
     async def emergency_stop(self) -> StopReport:
         """Abort every run on the rig and command an emergency stop on the motor right away."""
         aborted = []
         for live in list(self.live.values()):
-            live.abort_reason = "emergency stop"
-            if live.proc is not None:
-                live.proc.abort("emergency stop")
+            self._abort(live, "emergency stop")
             aborted.append(live.row.id)
         ok, detail = await self.link.emergency_stop()
         log.warning("EMERGENCY STOP: %s (aborted runs: %s)", detail, aborted or "none")
@@ -219,10 +249,17 @@ class Runs:
         """Shutdown: cancel the run on the rig (its procedure stops the motor, closes the recording)."""
         tasks = [lv.task for lv in self.live.values() if lv.task is not None]
         for live in list(self.live.values()):
-            if live.task is not None and not live.task.done() and not live.abort_reason:
-                live.abort_reason = reason
-                live.task.cancel()
+            if live.task is not None and not live.task.done():
+                if not live.abort_reason:
+                    live.abort_reason = reason
+                self.link.thread.call_soon(self._cancel_on_rig, live)
         return tasks
+
+    @staticmethod
+    def _cancel_on_rig(live: LiveRun) -> None:
+        live.cancelled = True
+        if live.rig_task is not None and not live.rig_task.done():
+            live.rig_task.cancel()
 
     def get(self, run_id: str) -> RunRow:
         live = self.live.get(run_id)
