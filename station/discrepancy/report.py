@@ -95,6 +95,7 @@ class DiscrepancyReport:
     mains_search: str = ""
     notes: tuple[str, ...] = field(default_factory=tuple)
     wall_s: float = 0.0
+    proposal: Any = None  # propose.Proposal: the next run that settles a tie, or None
 
     def to_json(self) -> dict[str, Any]:
         """The stable ``--json`` contract."""
@@ -102,7 +103,8 @@ class DiscrepancyReport:
                 "final_gap": float(self.final_gap),
                 "parameters_before": {k: v.to_dict() for k, v in self.parameters_before.items()},
                 "parameters_after": {k: v.to_dict() for k, v in self.parameters_after.items()},
-                "unexplained": list(self.unexplained)}
+                "unexplained": list(self.unexplained),
+                "proposal": None if self.proposal is None else self.proposal.to_json()}
 
     def to_dict(self) -> dict[str, Any]:
         """Everything (the contract plus details), e.g. to store with the recording's results."""

@@ -29,6 +29,7 @@ from station.discrepancy.catalogue import CATALOGUE
 from station.discrepancy.data import RigData, prepare
 from station.discrepancy.fit import ModelFit, fit_model
 from station.discrepancy.locate import fundamental_table, in_basis, out_of_basis
+from station.discrepancy.propose import RunContext, next_run
 from station.discrepancy.report import (
     AddedEffect,
     Candidate,
@@ -160,8 +161,9 @@ def _swap(data: RigData, current: ModelFit) -> tuple[str, ...] | None:
 
 
 def analyse(data: RigData, max_effects: int = 4, recording: str = "",
-            rec_notes: tuple[str, ...] = ()) -> DiscrepancyReport:
-    """Run the workflow on decomposed data (see module docstring)."""
+            rec_notes: tuple[str, ...] = (), context: RunContext | None = None) -> DiscrepancyReport:
+    """Run the workflow on decomposed data (see module docstring); with the run's ``context``
+    (configuration and steps) the report carries the next run that would settle a tie."""
     t0 = time.perf_counter()
     base = fit_model(data, {}, base_start(data))
     current, added, rejected = _forward(data, base, CATALOGUE, max_effects)
@@ -204,7 +206,8 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
         base_gap_steps=tuple(float(g) for g in base.gap_steps_V),
         final_gap_steps=tuple(float(g) for g in current.gap_steps_V), rejected=rejected,
         base_fundamental=fundamental_table(data, base), final_fundamental=fundamental_table(data, current),
-        mains_search=data.mains.evidence, notes=tuple(notes), wall_s=time.perf_counter() - t0)
+        mains_search=data.mains.evidence, notes=tuple(notes), wall_s=time.perf_counter() - t0,
+        proposal=next_run(data, current, added, context, alpha=ALPHA, margin=AMBIGUOUS_BIC))
 
 
 def analyse_recording(path: str | Path | Recording, max_effects: int = 4) -> DiscrepancyReport:
@@ -214,9 +217,25 @@ def analyse_recording(path: str | Path | Recording, max_effects: int = 4) -> Dis
     rec = path if isinstance(path, Recording) else read_recording(path)
     data = prepare(rec)
     events = tuple(str(d.get("warning")) for d in rec.documents if d.get("kind") == "event" and d.get("warning"))
-    rep = analyse(data, max_effects=max_effects, recording=str(rec.path), rec_notes=events)
+    rep = analyse(data, max_effects=max_effects, recording=str(rec.path), rec_notes=events,
+                  context=run_context(rec))
     before = _identify_before(rec)
     return replace(rep, parameters_before=before or rep.parameters_before, wall_s=time.perf_counter() - t0)
+
+
+def run_context(rec: Recording) -> RunContext | None:
+    """The recording's station configuration and nominal steps, for proposing a follow-up run;
+    None (no proposal, said in the log) when the recording carries no usable configuration."""
+    from station.config import parse_config
+
+    try:
+        cfg = parse_config(rec.config)
+    except Exception as exc:  # an import without the station's configuration: no limits known
+        log.info("%s: no station configuration in the recording (%s); no follow-up run proposed",
+                 rec.path, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        return None
+    return RunContext(cfg, tuple((float(s.crank_frequency_hz), float(s.crank_radius_m))
+                                 for s in rec.steps if s.usable))
 
 
 def _identify_before(rec: Recording) -> dict[str, Estimate] | None:
