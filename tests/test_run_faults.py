@@ -1,5 +1,9 @@
-"""Calibration runs against the emulators, through the real drivers (Modbus TCP, pseudo-terminal):
-every fault ends with the motor stopped, a clear reason in the stop record and the samples kept."""
+"""Calibration runs against the emulators, through the real drivers: every fault ends with the motor
+stopped, a clear reason in the stop record and the samples kept.
+
+The procedure's logic runs on the in-process simulated rig on a virtual clock (a run's seconds take
+milliseconds); one complete run goes over the wire (Modbus TCP, pseudo-terminal) in real time, and
+the killed process and the full disk are separate processes in real time."""
 
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ import yaml
 
 from drivers.motor.controller import MotorController
 from drivers.motor.transport import ModbusTransport
+from drivers.sim.clock import VirtualClock
 from drivers.sim.rig import SimRigProcess
 from station.config import load_config, parse_config
 from station.recording import read_recording
@@ -41,13 +46,15 @@ STEPS = [StepSpec(crank_frequency_hz=f, crank_radius_m=0.001) for f in (10.0, 20
 
 
 def run_with(tmp_path: Path, when: Callable[[Progress], bool] | None, act: Callable[[ConnectedRig, Procedure], None],
-             steps: list[StepSpec] = STEPS) -> tuple[object, ConnectedRig, dict[str, float]]:
+             steps: list[StepSpec] = STEPS, *, wire: bool = False) -> tuple[object, ConnectedRig, dict[str, float]]:
     """Run a procedure on the simulated rig; ``act`` fires once when ``when(progress)`` is true.
-    Returns the outcome, the rig (closed) and the motor state seen right after the run."""
+    Returns the outcome, the rig (closed) and the motor state seen right after the run.
+    ``wire``: over Modbus TCP and a pty in real time; else in-process on a virtual clock."""
     plan = plan_run(CFG, RunRequest(transducer_id=CFG.transducer.id, top_mass_kg=CFG.rig.top_mass_kg, steps=steps))
 
     async def go() -> tuple[object, ConnectedRig, dict[str, float]]:
-        async with connect(plan.config, sim=True, first_radius_m=steps[0].crank_radius_m) as rig:
+        async with connect(plan.config, sim=True, first_radius_m=steps[0].crank_radius_m,
+                           sim_clock=None if wire else VirtualClock()) as rig:
             fired = False
             proc: Procedure
 
@@ -60,9 +67,9 @@ def run_with(tmp_path: Path, when: Callable[[Progress], bool] | None, act: Calla
             outcome = await proc.execute()
             assert fired or when is None, "the fault was never injected"
             # the motor after the run, from the emulator's own model (no driver in between)
-            deadline = time.monotonic() + 10
-            while rig.sim.motor.speed_hz() != 0 and time.monotonic() < deadline:
-                await asyncio.sleep(0.05)
+            deadline = rig.clock.monotonic() + 10
+            while rig.sim.motor.speed_hz() != 0 and rig.clock.monotonic() < deadline:
+                await rig.clock.asleep(0.05)
             snap = rig.sim.motor.snapshot()
             motor = {"speed_hz": rig.sim.motor.speed_hz(), "enabled": float(snap.enabled)}
             return outcome, rig, motor
@@ -75,8 +82,9 @@ def recording_after(outcome: object) -> object:
     return rec
 
 
-def test_completed_run_records_every_step(tmp_path: Path) -> None:
-    outcome, _, motor = run_with(tmp_path, None, lambda r, p: None)
+@pytest.mark.parametrize("wire", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["virtual", "wire"])
+def test_completed_run_records_every_step(tmp_path: Path, wire: bool) -> None:
+    outcome, _, motor = run_with(tmp_path, None, lambda r, p: None, wire=wire)
     assert outcome.exit_status == "completed", outcome.reason
     assert motor["speed_hz"] == 0.0 and not motor["enabled"]
     rec = recording_after(outcome)
@@ -184,6 +192,7 @@ async def _motor_state(addresses: object) -> tuple[float, int]:
     return st.actual_speed_hz, st.fault_code
 
 
+@pytest.mark.slow
 def test_kill_9_leaves_a_readable_interrupted_file_and_the_watchdog_stops_the_motor(tmp_path: Path) -> None:
     with SimRigProcess(seed=3) as sim:
         cfg = _external_config(tmp_path, sim.addresses, 0.002)
@@ -242,6 +251,7 @@ def small_disk(tmp_path: Path):
         subprocess.run(["umount", "-l", str(mnt)], check=False)
 
 
+@pytest.mark.slow
 def test_full_disk_fails_the_run_keeps_the_samples_and_stops_the_motor(tmp_path: Path, small_disk: Path) -> None:
     with SimRigProcess(seed=4) as sim:
         cfg_path = _external_config(tmp_path, sim.addresses, 0.001)

@@ -19,10 +19,10 @@ import asyncio
 import contextlib
 import logging
 import math
-import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from drivers.clock import REAL_CLOCK, Clock
 from drivers.motor.errors import MotorError, MotorFaultError, MotorValueError
 from drivers.motor.registers import RegisterMap, load_register_map
 from drivers.motor.transport import RegisterTransport
@@ -37,8 +37,8 @@ class MotorStatus:
     """One consistent read of the status block.
 
     actual_speed_hz: crank frequency in Hz (rev/s); crank_angle_rad in [0, 2*pi);
-    flags: decoded status word; fault_code 0 = none; time_s: ``time.monotonic()`` at the middle of
-    the request (the angle's timestamp, to within half the round trip ``round_trip_s``).
+    flags: decoded status word; fault_code 0 = none; time_s: the driver's clock (``time.monotonic()`` on
+    a real rig) at the middle of the request (the angle's timestamp, to within half the round trip ``round_trip_s``).
     """
 
     actual_speed_hz: float
@@ -59,8 +59,11 @@ class MotorStatus:
 class MotorController:
     """Driver of the crank motor controller over any :class:`RegisterTransport`."""
 
-    def __init__(self, regmap: RegisterMap | None = None) -> None:
+    def __init__(self, regmap: RegisterMap | None = None, *, clock: Clock = REAL_CLOCK) -> None:
+        """``clock``: time of the status stamps, the watchdog keeper and ``wait_for_speed`` (real time,
+        or the virtual clock of an in-process simulated rig)."""
         self.map = regmap or load_register_map()
+        self.clock = clock
         self._t: RegisterTransport | None = None
         self._wd_counter = 0
         self._wd_task: asyncio.Task[None] | None = None
@@ -145,9 +148,9 @@ class MotorController:
     async def read_status(self) -> MotorStatus:
         """Read speed, angle, status word, fault code and revolution count in one request."""
         start, count = self.map.span(STATUS_BLOCK)
-        t0 = time.monotonic()
+        t0 = self.clock.monotonic()
         words = await self.transport.read(start, count, "status block (" + ", ".join(STATUS_BLOCK) + ")")
-        t1 = time.monotonic()
+        t1 = self.clock.monotonic()
 
         def get(name: str) -> float:
             reg = self.map[name]
@@ -180,17 +183,17 @@ class MotorController:
     async def wait_for_speed(self, hz: float, *, tolerance_hz: float = 0.01, timeout_s: float = 30.0,
                              poll_s: float = 0.05, keep_watchdog: bool = True) -> MotorStatus:
         """Poll until |actual - hz| <= tolerance, refreshing the watchdog; TimeoutError otherwise."""
-        deadline = time.monotonic() + timeout_s
+        deadline = self.clock.monotonic() + timeout_s
         while True:
             if keep_watchdog:
                 await self.refresh_watchdog()
             st = await self.read_status()
             if abs(st.actual_speed_hz - hz) <= tolerance_hz:
                 return st
-            if time.monotonic() > deadline:
+            if self.clock.monotonic() > deadline:
                 raise TimeoutError(f"crank did not reach {hz} Hz within {timeout_s} s "
                                    f"(actual {st.actual_speed_hz} Hz, fault {st.fault_name})")
-            await asyncio.sleep(poll_s)
+            await self.clock.asleep(poll_s)
 
     # --------------------------------------------------------------- watchdog keeper
     async def start_watchdog(self, period_s: float = 0.2) -> None:
@@ -209,7 +212,7 @@ class MotorController:
                 except MotorError as exc:
                     log.error("watchdog refresh failed: %s", exc)
                     self.watchdog_error = exc
-                await asyncio.sleep(period_s)
+                await self.clock.asleep(period_s)
 
         self._wd_task = asyncio.create_task(keeper(), name="motor-watchdog")
 

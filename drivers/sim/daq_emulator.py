@@ -14,11 +14,11 @@ import logging
 import os
 import select
 import threading
-import time
 from collections.abc import Callable, Iterable
 
 import numpy as np
 
+from drivers.clock import REAL_CLOCK, Clock
 from drivers.daq.protocol import (
     _END_B,
     PKT_COMMAND,
@@ -43,12 +43,16 @@ class DaqEmulator:
     """Bridge emulator on file descriptor ``fd`` (pty master or socket), run in a daemon thread.
 
     The emulator owns ``fd`` and closes it (``close``/``close_port``), then calls ``on_close``.
+    Samples are due at ``rate`` per second of ``clock`` (real time unless a virtual clock is given).
+    With ``fd=None`` there is no thread and no wire: a caller drives it with :meth:`feed` and
+    :meth:`pull` (see :class:`~drivers.sim.daq_inprocess.ClockedDaqLink`).
     """
 
-    def __init__(self, fd: int, source: SampleSource, speed_hz: Callable[[], float], *,
+    def __init__(self, fd: int | None, source: SampleSource, speed_hz: Callable[[], float], *,
                  seed: int = 0, fifo_bytes: int = 1 << 20, tick_s: float = 0.005,
-                 on_close: Callable[[], None] | None = None) -> None:
-        self.fd = fd
+                 on_close: Callable[[], None] | None = None, clock: Clock = REAL_CLOCK) -> None:
+        self.fd = -1 if fd is None else fd
+        self.clock = clock
         self.source = source
         self.speed_hz = speed_hz
         self.tick_s = tick_s
@@ -92,7 +96,7 @@ class DaqEmulator:
     def stall(self, seconds: float) -> None:
         """Nothing is sent for ``seconds``; the samples of that period are lost."""
         with self._lock:
-            self._stall_until = time.monotonic() + seconds
+            self._stall_until = self.clock.monotonic() + seconds
 
     def close_port(self) -> None:
         """Close the port as a crashed or unplugged bridge would (the driver sees a lost link)."""
@@ -102,12 +106,35 @@ class DaqEmulator:
         if threading.current_thread() is not self._thread and self._thread.is_alive():
             self._thread.join(timeout=2.0)
         self._close_fd()
+        self.clock.notify()
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> DaqEmulator:
         self._configure_source()
-        self._thread.start()
+        if self.fd >= 0:
+            self._thread.start()
         return self
+
+    # ------------------------------------------------------------------ without a wire
+    @property
+    def port_closed(self) -> bool:
+        return self._closed or self._stop.is_set()
+
+    def has_output(self) -> bool:
+        """Bytes (replies, frames) are waiting to be pulled, or the port was closed."""
+        return bool(self._out) or self.port_closed
+
+    def feed(self, data: bytes) -> None:
+        """Bytes from the driver (commands), as if they had arrived on the port."""
+        self._read_commands(data)
+
+    def pull(self, max_bytes: int) -> bytes:
+        """Produce what is due by now (clock time) and take up to ``max_bytes`` of the output."""
+        self._produce(self.clock.monotonic())
+        with self._lock:
+            out = bytes(self._out[:max_bytes])
+            del self._out[:max_bytes]
+        return out
 
     def close(self) -> None:
         self.close_port()
@@ -118,8 +145,9 @@ class DaqEmulator:
     def _close_fd(self) -> None:
         if not self._closed:
             self._closed = True
-            with contextlib.suppress(OSError):
-                os.close(self.fd)
+            if self.fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(self.fd)
             if self._on_close is not None:
                 self._on_close()
 
@@ -144,7 +172,7 @@ class DaqEmulator:
             self.seq = 0
             self.overflows = 0
             self.lost = []
-            self._produce(time.monotonic())  # idle synthesis up to now
+            self._produce(self.clock.monotonic())  # idle synthesis up to now
             self.streaming = True
             return f"OK START seq=0 {self._conf_text()}"
         if cmd == "STOP":
@@ -160,7 +188,7 @@ class DaqEmulator:
         if key != getattr(self, "_source_key", None):
             self.source.configure(*key)
             self._source_key = key
-            self._t0 = time.monotonic()
+            self._t0 = self.clock.monotonic()
             self._produced = 0
 
     def _conf_text(self) -> str:
@@ -276,7 +304,7 @@ class DaqEmulator:
                         return
                     if data:
                         self._read_commands(data)
-                self._produce(time.monotonic())
+                self._produce(self.clock.monotonic())
                 if self._out and (w or not wlist):
                     try:
                         n = os.write(self.fd, self._out)

@@ -8,6 +8,10 @@ In-process (tests, ``station sim-rig``)::
         rig.addresses.daq               # /dev/pts/M  (DAQ bridge serial port)
         rig.motor.inject_fault(3)       # MotorModel hooks; rig.modbus_faults, rig.daq for the rest
 
+Without a wire (``SimRig(wire=False, clock=VirtualClock())``): no Modbus server and no pty; the
+drivers connect through :meth:`SimRig.motor_transport` and :meth:`SimRig.daq_link`, and the motor
+model and the DAQ emulator keep the given clock's time, so a run takes milliseconds in tests.
+
 As a subprocess: :class:`SimRigProcess` runs ``python -m drivers.sim`` and reads the addresses it
 prints (no fault injection across the process boundary).
 """
@@ -27,11 +31,13 @@ from collections.abc import Coroutine
 from dataclasses import asdict, dataclass
 from typing import Any, TypeVar
 
+from drivers.clock import REAL_CLOCK, Clock
 from drivers.daq.link import SocketLink
 from drivers.motor.registers import RegisterMap, load_register_map
 from drivers.rig.params import RigPhysics
 from drivers.rig.presets import paper_5kN_physics
 from drivers.sim.daq_emulator import DaqEmulator
+from drivers.sim.daq_inprocess import ClockedDaqLink
 from drivers.sim.daq_source import RigSource, SampleSource
 from drivers.sim.motor_image import MotorRegisterImage
 from drivers.sim.motor_inprocess import InProcessTransport
@@ -61,9 +67,12 @@ class SimRig:
 
     def __init__(self, *, physics: RigPhysics | None = None, seed: int = 0, crank_radius_m: float = 0.01,
                  regmap: RegisterMap | None = None, modbus_port: int = 0, rtu: bool = True,
-                 source: SampleSource | None = None, fifo_bytes: int = 1 << 20) -> None:
+                 source: SampleSource | None = None, fifo_bytes: int = 1 << 20, wire: bool = True,
+                 clock: Clock = REAL_CLOCK) -> None:
         self.map = regmap or load_register_map()
-        self.motor = MotorModel(self.map.device)
+        self.clock = clock
+        self.wire = wire
+        self.motor = MotorModel(self.map.device, clock=clock.monotonic)
         self.image = MotorRegisterImage(self.map, self.motor)
         self.source = source or RigSource(physics or paper_5kN_physics(), seed=seed,
                                           crank_radius_m=crank_radius_m)
@@ -91,6 +100,13 @@ class SimRig:
         return self._modbus
 
     def start(self) -> SimRig:
+        if not self.wire:
+            if isinstance(self.source, RigSource):
+                self.source.set_phase(self.motor.snapshot().angle_rad % (2 * math.pi))
+            self.daq = DaqEmulator(None, self.source, self.motor.speed_hz, seed=self._seed,
+                                   fifo_bytes=self._fifo, clock=self.clock).start()
+            log.info("sim rig: in-process (no wire)")
+            return self
         ready = threading.Event()
 
         def loop_main() -> None:
@@ -125,6 +141,12 @@ class SimRig:
     def motor_transport(self) -> InProcessTransport:
         """In-process backend of the motor driver on this rig's register image (no wire)."""
         return InProcessTransport(self.image)
+
+    def daq_link(self) -> ClockedDaqLink:
+        """In-process backend of the DAQ driver on this rig's emulator (``wire=False`` only)."""
+        if self.wire:
+            raise RuntimeError("this rig's DAQ emulator speaks over a pty: open rig.addresses.daq")
+        return ClockedDaqLink(self.daq)
 
     def inprocess_daq(self) -> tuple[DaqEmulator, SocketLink]:
         """A second DAQ emulator on a socketpair (no pty) sharing the motor: (emulator, driver link)."""

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.clock import REAL_CLOCK, Clock
 from station.recording import RecordingWriter
 
 log = logging.getLogger(__name__)
@@ -89,14 +90,19 @@ class Acquisition:
     ``get_event(timeout_s)`` returns the driver's next stream event or None (objects with
     ``first_index``, ``displacement``, ``force`` for data, ``first_index``/``count`` for gaps,
     ``next_sample_index``/``seconds`` for stalls); ``writer`` receives the raw samples.
-    ``stall_limit_s``: a stream silent this long fails the run.
+    ``stall_limit_s``: a stream silent this long (in ``clock`` time: the rig's) fails the run.
+    When no event is waiting the acquisition thread waits ``poll_s`` on ``clock`` (so that on a
+    virtual clock it is one of the participants time waits for).
     """
 
     def __init__(self, get_event: Callable[[float], object | None], writer: RecordingWriter, *,
                  ring_seconds: float = 60.0, sample_rate_hz: float = 20_000.0,
                  disk_queue_seconds: float = 120.0, stall_limit_s: float = 2.0,
-                 storm_fraction: float = 0.5, rejected_frames: Callable[[], int] | None = None) -> None:
+                 storm_fraction: float = 0.5, rejected_frames: Callable[[], int] | None = None,
+                 clock: Clock = REAL_CLOCK, poll_s: float = 0.01) -> None:
         self._get_event = get_event
+        self._clock = clock
+        self._poll_s = poll_s
         self._writer = writer
         self.ring = RingBuffer(int(ring_seconds * sample_rate_hz))
         self._fs = sample_rate_hz
@@ -121,6 +127,7 @@ class Acquisition:
     def stop(self, timeout_s: float = 5.0) -> None:
         """Stop acquiring, write out what is queued, and join both threads."""
         self._stop.set()
+        self._clock.notify()
         self._acq.join(timeout_s)
         self._disk_q.put(None)
         self._disk.join(timeout_s)
@@ -148,13 +155,13 @@ class Acquisition:
 
     def wait_for(self, sample: int, timeout_s: float) -> None:
         """Block until ``sample`` samples have been acquired; raises on errors or time-out."""
-        deadline = time.monotonic() + timeout_s
+        deadline = self._clock.monotonic() + timeout_s
         while self.ring.end < sample:
             self.check()
-            if time.monotonic() > deadline:
+            if self._clock.monotonic() > deadline:
                 raise AcquisitionError(f"DAQ delivered {self.ring.end} samples, {sample} awaited "
                                        f"within {timeout_s:.1f} s")
-            time.sleep(0.01)
+            self._clock.sleep(0.01)
 
     # -- threads -----------------------------------------------------------------------------------
     def _enqueue(self, block: Block) -> None:
@@ -166,13 +173,16 @@ class Acquisition:
             self._stop.set()
 
     def _acquire(self) -> None:
-        quiet_since = time.monotonic()
+        clock = self._clock
+        quiet_since = clock.monotonic()
         rejected_at_quiet = self._rejected()
         try:
             while not self._stop.is_set():
-                ev = self._get_event(0.1)
+                ev = self._get_event(0.0)
+                if ev is None:
+                    clock.wait_for(self._stop.is_set, self._poll_s)
                 if ev is None or hasattr(ev, "seconds"):
-                    if time.monotonic() - quiet_since >= self._stall_limit:
+                    if clock.monotonic() - quiet_since >= self._stall_limit:
                         bad = self._rejected() - rejected_at_quiet
                         if bad:
                             raise AcquisitionError(
@@ -181,7 +191,7 @@ class Acquisition:
                         raise AcquisitionError(f"DAQ stream stalled: no data for {self._stall_limit:.1f} s "
                                                f"(next sample {self.ring.end})")
                     continue
-                quiet_since = time.monotonic()  # data or gap: the stream is alive
+                quiet_since = clock.monotonic()  # data or gap: the stream is alive
                 rejected_at_quiet = self._rejected()
                 if hasattr(ev, "displacement"):
                     first = ev.first_index

@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
+from drivers.clock import Clock
 from station.config import config_to_yaml
 from station.ident.sinefit import fit3, fit4
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id
@@ -120,11 +120,14 @@ def is_steady(disp: np.ndarray, force: np.ndarray, f_set: float, fs: float, crit
 
 
 class RigLink(Protocol):
-    """What the procedure drives: the motor and DAQ drivers and a radius actuator."""
+    """What the procedure drives: the motor and DAQ drivers and a radius actuator, and the clock
+    the rig keeps (real time; a virtual clock on the in-process simulated rig): every wait and
+    time-out of the run is on it."""
 
     motor: object
     daq: object
     radius: RadiusActuator
+    clock: Clock
 
 
 def channel_specs(gain_V_per_m: float, lsb_d: float, lsb_f: float) -> tuple[ChannelSpec, ChannelSpec]:
@@ -142,6 +145,7 @@ class Procedure:
                  steady: SteadyCriteria | None = None) -> None:
         self.plan = plan
         self.link = link
+        self.clock = link.clock
         self.out_dir = Path(out_dir)
         self.run_id = run_id or new_run_id(plan.config.transducer.id)
         self.progress = Progress(self.run_id, n_steps=len(plan.steps))
@@ -193,7 +197,8 @@ class Procedure:
             await asyncio.to_thread(daq.start)
             self.acq = Acquisition(daq.get_event, writer, sample_rate_hz=daq_cfg.rate_hz,
                                    rejected_frames=lambda: (daq.decoder.stats.crc_errors
-                                                            + daq.decoder.stats.framing_errors))
+                                                            + daq.decoder.stats.framing_errors),
+                                   clock=self.clock)
             self.acq.start()
             self._report(state="running")
             for step in self.plan.steps:
@@ -245,7 +250,7 @@ class Procedure:
         await self._ramp_to(step.crank_frequency_hz)
         self._report(step_state="settling", message=f"settling {step.settle_s:g} s")
         await self._wait_samples(self.acq.samples + int(step.settle_s * fs))
-        deadline = time.monotonic() + self.steady.timeout_s
+        deadline = self.clock.monotonic() + self.steady.timeout_s
         need = int(self.steady.window_s * fs) * self.steady.windows
         while True:
             end = self.acq.samples
@@ -253,7 +258,7 @@ class Procedure:
                 d, f = self.acq.ring.get(end - need, end)
                 if await asyncio.to_thread(is_steady, d, f, step.crank_frequency_hz, fs, self.steady):
                     break
-            if time.monotonic() > deadline:
+            if self.clock.monotonic() > deadline:
                 raise RunFailure(f"step {step.index} ({step.crank_frequency_hz:g} Hz): signals not steady "
                                  f"within {self.steady.timeout_s:g} s")
             await self._wait_samples(end + int(self.steady.window_s * fs))
@@ -274,24 +279,24 @@ class Procedure:
 
     async def _wait_standstill(self, timeout_s: float = 30.0) -> None:
         """A run starts only with the crank at rest (e.g. still coasting down after an e-stop)."""
-        deadline = time.monotonic() + timeout_s
+        deadline = self.clock.monotonic() + timeout_s
         while (st := await self.link.motor.read_status()).actual_speed_hz != 0.0:
-            if time.monotonic() > deadline:
+            if self.clock.monotonic() > deadline:
                 raise RunFailure(f"the crank still turns at {st.actual_speed_hz:g} Hz after {timeout_s:g} s; "
                                  f"a run starts only at standstill")
-            await asyncio.sleep(0.05)
+            await self.clock.asleep(0.05)
 
     async def _ramp_to(self, hz: float) -> None:
         motor = self.link.motor
         await motor.set_frequency(hz)
         st = await motor.read_status()
         acc = self.plan.config.rig.acceleration_hz_per_s
-        deadline = time.monotonic() + abs(st.actual_speed_hz - hz) / acc * 1.5 + 5.0
+        deadline = self.clock.monotonic() + abs(st.actual_speed_hz - hz) / acc * 1.5 + 5.0
         while abs(st.actual_speed_hz - hz) > max(0.01, 1e-4 * hz):
             self._check()
-            if time.monotonic() > deadline:
+            if self.clock.monotonic() > deadline:
                 raise RunFailure(f"crank did not reach {hz:g} Hz (actual {st.actual_speed_hz:g} Hz)")
-            await asyncio.sleep(0.05)
+            await self.clock.asleep(0.05)
             st = await motor.read_status()
             self._check_motor(st)
 
@@ -299,18 +304,18 @@ class Procedure:
         """Wait until ``sample`` samples are acquired, watching abort, acquisition and motor."""
         assert self.acq is not None
         fs = self.plan.config.daq.sample_rate_hz
-        deadline = time.monotonic() + (sample - self.acq.samples) / fs + 5.0
+        deadline = self.clock.monotonic() + (sample - self.acq.samples) / fs + 5.0
         next_status = 0.0
         while self.acq.samples < sample:
             self._check()
-            now = time.monotonic()
+            now = self.clock.monotonic()
             if now > deadline:
                 raise AcquisitionError(f"DAQ delivered {self.acq.samples} samples, {sample} awaited in time")
             if now >= next_status:
                 self._check_motor(await self.link.motor.read_status())
                 next_status = now + 0.25
                 self._report()
-            await asyncio.sleep(0.02)
+            await self.clock.asleep(0.02)
 
     def _check(self) -> None:
         if self.abort_event.is_set():

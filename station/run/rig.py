@@ -2,7 +2,9 @@
 
 Both backends give the same three things (motor driver, DAQ driver, radius actuator); the choice is
 made here, at connect time, and the procedure never asks which one it has.  The simulated rig runs
-the emulators in-process and the *real* drivers talk to them over Modbus TCP and a pseudo-terminal.
+the emulators in-process and the *real* drivers talk to them over Modbus TCP and a pseudo-terminal;
+given a clock (``sim_clock``, e.g. a virtual one in tests) it runs without a wire instead: the real
+drivers on in-process backends, everything keeping that clock's time.
 """
 
 from __future__ import annotations
@@ -10,14 +12,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from typing import Any
 
+from drivers.clock import REAL_CLOCK, Clock
 from drivers.daq.bridge import DaqBridge
-from drivers.daq.link import SerialLink
+from drivers.daq.link import ByteLink, SerialLink
 from drivers.motor.controller import MotorController
-from drivers.motor.transport import ModbusTransport, transport_from_url
+from drivers.motor.transport import ModbusTransport, RegisterTransport, transport_from_url
 from drivers.sim.rig import SimRig
 from station.config import StationConfig, to_rig_physics
 from station.run.procedure import FixedRadius, RadiusActuator, RunFailure
@@ -34,6 +37,7 @@ class ConnectedRig:
     radius: RadiusActuator
     sim: SimRig | None = None
     description: str = ""
+    clock: Clock = REAL_CLOCK
 
     def health(self) -> dict[str, Any]:
         """State of each device link, for /health."""
@@ -52,7 +56,8 @@ class SimRadius:
 
     async def set_radius(self, radius_m: float, timeout_s: float = 3.0) -> None:
         """Wait (up to ``timeout_s``) for true standstill of the emulated crank, then change it."""
-        deadline = asyncio.get_running_loop().time() + timeout_s
+        clock = self._rig.clock
+        deadline = clock.monotonic() + timeout_s
         while True:
             try:
                 if abs(self._rig.motor.speed_hz()) > 0:
@@ -60,18 +65,18 @@ class SimRadius:
                 self._rig.source.set_crank_radius(radius_m)  # type: ignore[attr-defined]
                 break
             except RuntimeError as exc:
-                if asyncio.get_running_loop().time() > deadline:
+                if clock.monotonic() > deadline:
                     raise RunFailure(f"crank radius change refused: {exc}") from exc
-                await asyncio.sleep(0.02)
+                await clock.asleep(0.02)
         self.radius_m = radius_m
 
 
-async def _connect_drivers(motor_transport: ModbusTransport, daq_port: str, baudrate: int) -> tuple[
-        MotorController, DaqBridge]:
-    motor = MotorController()
+async def _connect_drivers(motor_transport: RegisterTransport, open_daq: Callable[[], ByteLink],
+                           clock: Clock = REAL_CLOCK) -> tuple[MotorController, DaqBridge]:
+    motor = MotorController(clock=clock)
     await motor.connect(motor_transport)
     daq = DaqBridge()
-    daq.connect(SerialLink(daq_port, baudrate=baudrate))
+    daq.connect(open_daq())
     ident = daq.identify()
     log.info("DAQ bridge: %s", ident)
     return motor, daq
@@ -79,34 +84,58 @@ async def _connect_drivers(motor_transport: ModbusTransport, daq_port: str, baud
 
 @contextlib.asynccontextmanager
 async def connect(cfg: StationConfig, *, sim: bool, seed: int | None = None,
-                  first_radius_m: float | None = None) -> AsyncIterator[ConnectedRig]:
-    """Connect to the rig (``sim``: start the emulators first); closes everything on exit."""
+                  first_radius_m: float | None = None,
+                  sim_clock: Clock | None = None) -> AsyncIterator[ConnectedRig]:
+    """Connect to the rig (``sim``: start the emulators first); closes everything on exit.
+
+    ``sim_clock``: run the simulated rig without a wire (in-process backends of the same drivers)
+    on this clock, e.g. a :class:`drivers.sim.clock.VirtualClock`; without it the drivers talk to
+    the emulators over Modbus TCP and a pseudo-terminal in real time.
+    """
+    if sim_clock is not None and not sim:
+        raise ValueError("sim_clock is for the simulated rig (sim=True); a real rig keeps real time")
     rig: SimRig | None = None
     motor = daq = None
+    clock: Clock = sim_clock or REAL_CLOCK
     try:
         if sim:
             physics = to_rig_physics(cfg)
             radius = first_radius_m or cfg.plan.steps[0].crank_radius_m
             s = cfg.simulation.seed if seed is None and cfg.simulation else (seed or 0)
-            rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, rtu=False).start()
-            host, port = rig.addresses.modbus_tcp
-            motor, daq = await _connect_drivers(ModbusTransport.tcp(host, port), rig.addresses.daq,
-                                                cfg.devices.daq_baudrate)
+            if sim_clock is not None:
+                rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, wire=False, clock=clock).start()
+                motor, daq = await _connect_drivers(rig.motor_transport(), rig.daq_link, clock)
+                desc = "simulated rig (in-process, no wire)"
+            else:
+                rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, rtu=False).start()
+                host, port = rig.addresses.modbus_tcp
+                motor, daq = await _connect_drivers(
+                    ModbusTransport.tcp(host, port),
+                    lambda: SerialLink(rig.addresses.daq, baudrate=cfg.devices.daq_baudrate))
+                desc = f"simulated rig (Modbus TCP {host}:{port}, DAQ {rig.addresses.daq})"
             actuator: RadiusActuator = SimRadius(rig, radius)
-            desc = f"simulated rig (Modbus TCP {host}:{port}, DAQ {rig.addresses.daq})"
         else:
             dev = cfg.devices
             transport = transport_from_url(dev.motor_url, device_id=dev.motor_device_id)
-            motor, daq = await _connect_drivers(transport, dev.daq_port, dev.daq_baudrate)
+            motor, daq = await _connect_drivers(transport, lambda: SerialLink(dev.daq_port, baudrate=dev.daq_baudrate))
             actuator = FixedRadius(dev.crank_radius_m)
             desc = f"rig (motor {dev.motor_url}, DAQ {dev.daq_port})"
-        yield ConnectedRig(motor, daq, actuator, rig, desc)
+        yield ConnectedRig(motor, daq, actuator, rig, desc, clock)
     finally:
         if motor is not None:
             with contextlib.suppress(Exception):
                 await motor.close()
         if daq is not None:
             with contextlib.suppress(Exception):
-                daq.close()
+                await _while_waiting(clock, daq.close)
         if rig is not None:
             rig.close()
+
+
+async def _while_waiting(clock: Clock, fn: Callable[[], object]) -> None:
+    """Run the blocking ``fn`` in a thread while this task waits on ``clock``, so that a virtual
+    clock can move on for the threads ``fn`` waits for (e.g. a reader thread's last read)."""
+    fut = asyncio.ensure_future(asyncio.to_thread(fn))
+    while not fut.done():
+        await clock.asleep(0.02)
+    fut.result()
