@@ -182,3 +182,39 @@ def test_random_corruption_never_delivers_a_wrong_sample() -> None:
     last_delivered = int(idx.max())
     assert {i for i in missing if i < last_delivered} == reported
     assert dec.stats.crc_errors + dec.stats.framing_errors > 0
+
+
+def test_tagged_command_and_reply_bytes_exact() -> None:
+    body = b"\x10#7 STAT?"
+    assert encode_command("STAT?", "#7") == b"\xc0" + body + bitwise_crc32(body).to_bytes(4, "little") + b"\xc0"
+    from drivers.daq.protocol import split_tag
+    assert split_tag("#7 OK STAT state=idle") == ("#7", "OK STAT state=idle")
+    assert split_tag("OK STAT state=idle") == (None, "OK STAT state=idle")
+    for bad in ("7", "#", "#a b", "#" + "9" * 16):
+        with pytest.raises(ValueError, match="command tag: expected"):
+            encode_command("IDN?", bad)
+
+
+def test_a_confirmed_long_jump_is_one_gap_and_an_unconfirmed_one_is_rejected() -> None:
+    dec = StreamDecoder(8, immediate_gap_frames=4)
+    events = dec.feed(b"".join(frames([0, 1, 100])))
+    assert blocks_and_gaps(events)[1] == []  # frame 100 held: not yet believed
+    events = dec.feed(b"".join(frames([101, 102])))
+    idx, gaps = blocks_and_gaps(events)
+    assert gaps == [(16, 98 * 8)] and idx.tolist() == list(range(800, 824))
+    # an unconfirmed jump: the held frame is rejected when the next frame continues the old sequence
+    dec = StreamDecoder(8, immediate_gap_frames=4)
+    events = dec.feed(b"".join(frames([0, 1, 50, 2, 3])))
+    idx, gaps = blocks_and_gaps(events)
+    assert gaps == [] and idx.tolist() == list(range(32))
+    assert [e.kind for e in events if isinstance(e, FrameError)] == ["sequence"]
+    # a held frame at STOP: delivered if the bridge produced it, rejected otherwise
+    dec = StreamDecoder(8, immediate_gap_frames=4)
+    dec.feed(b"".join(frames([0, 10])))
+    idx, gaps = blocks_and_gaps(dec.finish(12))
+    assert gaps == [(8, 72), (88, 8)] and idx.tolist() == list(range(80, 88))
+    dec = StreamDecoder(8, immediate_gap_frames=4)
+    dec.feed(b"".join(frames([0, 10])))
+    events = dec.finish(5)
+    assert [e.kind for e in events if isinstance(e, FrameError)] == ["sequence"]
+    assert blocks_and_gaps(events)[1] == [(8, 32)]

@@ -4,7 +4,7 @@ A reader thread owns the link: it decodes the stream (:class:`StreamDecoder`), r
 the command in flight and queues stream events for the consumer.  Usage::
 
     daq = DaqBridge()
-    daq.connect(SerialLink("/dev/ttyACM0"))        # or SocketLink(...) in-process
+    daq.connect(SerialLink("/dev/ttyACM0"))        # STOP, drain, check idle: a known state
     daq.configure(rate_hz=20_000, frame_samples=256)
     daq.start()
     for ev in daq.events(timeout_s=1.0):           # SampleBlock | SampleGap | StreamStalled
@@ -16,6 +16,9 @@ Events, in stream order: :class:`SampleBlock` (first_index, displacement int16[n
 :class:`SampleGap` (first_index, count): samples that will never arrive, and
 :class:`StreamStalled` (no data for ``stall_timeout_s``).  A lost link ends :meth:`events` with
 :class:`DaqLinkError`.  Samples are indexed from 0 at START.
+
+Every command carries a tag (``#N``) that the bridge echoes in its reply; a reply with another tag
+(a late answer to a command that timed out) is dropped, never taken as the answer to a later one.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from drivers.daq.protocol import (
     SampleGap,
     StreamDecoder,
     encode_command,
+    split_tag,
 )
 
 log = logging.getLogger(__name__)
@@ -103,15 +107,50 @@ class DaqBridge:
         self._streaming = False
         self._running = False
         self._thread: threading.Thread | None = None
+        self._tag = 0
+        self._last_rx = 0.0
+        self.stale_replies = 0
+        self.discarded_frames = 0
 
     # ------------------------------------------------------------------ link / reader
-    def connect(self, link: ByteLink) -> None:
-        """Attach the backend link and start the reader thread."""
+    def connect(self, link: ByteLink, *, reset: bool = True, reset_timeout_s: float = 5.0) -> None:
+        """Attach the backend link, start the reader thread and bring the bridge to a known state.
+
+        With ``reset`` (default) the bridge is sent ``STOP`` (a stream left running by a station that
+        died is stopped), the link is drained until quiet and ``STAT?`` must report ``state=idle``;
+        :class:`DaqCommandError` otherwise.  ``reset_timeout_s`` bounds the STOP reply, which comes
+        after whatever the bridge still had queued.
+        """
         self._link = link
         self._running = True
+        self._last_rx = time.monotonic()
         self._thread = threading.Thread(target=self._reader, name="daq-reader", daemon=True)
         self._thread.start()
         log.info("DAQ bridge connected via %s", link.description)
+        if reset:
+            self.reset(timeout_s=reset_timeout_s)
+
+    def reset(self, *, timeout_s: float = 5.0, quiet_s: float = 0.1) -> dict[str, str]:
+        """STOP, drain and check: returns the idle ``STAT?`` of the bridge (DaqCommandError if not idle)."""
+        reply = self.command("STOP", timeout_s=timeout_s)
+        self._streaming = False
+        if "was idle" not in reply:
+            log.warning("DAQ bridge was still streaming (left running by an earlier session): stopped (%s)",
+                        reply)
+        self._wait_quiet(quiet_s, timeout_s)
+        st = self.status()
+        if st.get("state") != "idle":
+            raise DaqCommandError(f"DAQ bridge after STOP: expected state=idle, got state={st.get('state')!r}")
+        self.config = None
+        return st
+
+    def _wait_quiet(self, quiet_s: float, timeout_s: float) -> None:
+        """Wait until nothing arrived for ``quiet_s`` (bytes still in flight are read and discarded)."""
+        deadline = time.monotonic() + timeout_s
+        while (now := time.monotonic()) - self._last_rx < quiet_s:
+            if now > deadline:
+                raise DaqCommandError(f"DAQ link not quiet {timeout_s} s after STOP: the bridge keeps sending")
+            time.sleep(quiet_s / 4)
 
     def _reader(self) -> None:
         assert self._link is not None
@@ -127,6 +166,8 @@ class DaqBridge:
                     self._events.put(_LINK_LOST)
                 return
             now = time.monotonic()
+            if data:
+                self._last_rx = now
             if not data:
                 if self._streaming and not stalled and now - last_data > self.stall_timeout_s:
                     stalled = True
@@ -137,6 +178,8 @@ class DaqBridge:
             for ev in self.decoder.feed(data):
                 if isinstance(ev, Reply):
                     self._replies.put(ev.text)
+                elif not self._streaming:  # frames of a stream we did not start (or already stopped)
+                    self.discarded_frames += isinstance(ev, SampleBlock)
                 elif isinstance(ev, FrameError):
                     log.warning("DAQ frame rejected (%s) at byte %d, next sample %d: %s",
                                 ev.kind, ev.stream_offset, ev.next_sample_index, ev.detail)
@@ -144,22 +187,33 @@ class DaqBridge:
                     self._events.put(ev)
 
     # ------------------------------------------------------------------ commands
-    def command(self, text: str) -> str:
-        """Send one command, return the ``OK ...`` reply text; DaqCommandError on ``ERR``."""
+    def command(self, text: str, *, timeout_s: float | None = None) -> str:
+        """Send one command, return the ``OK ...`` reply text (tag removed); DaqCommandError on ``ERR``.
+
+        The command is tagged; replies carrying another tag (or none) are stale and dropped.
+        ``timeout_s`` defaults to ``reply_timeout_s``.
+        """
         if self._link is None:
             raise DaqLinkError("DAQ bridge not connected: call connect(link) first")
         if self.link_error is not None:
             raise DaqLinkError(f"DAQ link lost earlier: {self.link_error}")
+        wait = self.reply_timeout_s if timeout_s is None else timeout_s
         with self._cmd_lock:
-            while not self._replies.empty():
-                log.warning("DAQ: discarding unsolicited reply %r", self._replies.get_nowait())
-            self._link.write(encode_command(text))
-            try:
-                reply = self._replies.get(timeout=self.reply_timeout_s)
-            except queue.Empty:
-                if self.link_error is not None:
-                    raise DaqLinkError(f"DAQ link lost during {text!r}: {self.link_error}") from None
-                raise DaqTimeoutError(f"no reply to {text!r} within {self.reply_timeout_s} s") from None
+            self._tag = self._tag % 65535 + 1
+            tag = f"#{self._tag}"
+            self._link.write(encode_command(text, tag))
+            deadline = time.monotonic() + wait
+            while True:
+                try:
+                    got_tag, reply = split_tag(self._replies.get(timeout=max(0.0, deadline - time.monotonic())))
+                except queue.Empty:
+                    if self.link_error is not None:
+                        raise DaqLinkError(f"DAQ link lost during {text!r}: {self.link_error}") from None
+                    raise DaqTimeoutError(f"no reply to {text!r} ({tag}) within {wait} s") from None
+                if got_tag == tag:
+                    break
+                self.stale_replies += 1
+                log.warning("DAQ: dropped a stale reply (tag %s, waiting for %s): %r", got_tag, tag, reply)
         if not reply.startswith("OK"):
             raise DaqCommandError(f"command {text!r} refused: {reply}")
         return reply
@@ -194,6 +248,7 @@ class DaqBridge:
         self.decoder.reset(self.config.frame_samples)
         while not self._events.empty():
             self._events.get_nowait()
+        self.discarded_frames = 0
         self._streaming = True
         try:
             self.command("START")
@@ -210,9 +265,11 @@ class DaqBridge:
             frames = int(kv["frames"])
         except (KeyError, ValueError) as exc:
             raise DaqCommandError(f"STOP reply: expected frames=N, got {reply!r}") from exc
-        gap = self.decoder.gap_to(frames)
-        if gap is not None:
-            self._events.put(gap)
+        for ev in self.decoder.finish(frames):
+            if isinstance(ev, FrameError):
+                log.warning("DAQ frame rejected at STOP (%s): %s", ev.kind, ev.detail)
+            else:
+                self._events.put(ev)
         return StreamSummary(frames, frames * self.decoder.frame_samples, self.decoder.stats)
 
     # ------------------------------------------------------------------ events

@@ -32,6 +32,12 @@ SAMPLE_HEADER = struct.Struct("<BIH")  # type, seq, count
 CRC_SIZE = 4
 MAX_FRAME_SAMPLES = 4096
 SAMPLE_DTYPE = np.dtype("<i2")
+SEQ_MODULUS = 1 << 32  # the u32 sequence number wraps 0xFFFFFFFF -> 0 (docs/daq-protocol.md, section 3)
+# a forward jump of up to this many frames is a gap at once; a longer one must be confirmed by the
+# next frame (seq + 1) before it is believed: one valid frame far ahead cannot derail the stream
+IMMEDIATE_GAP_FRAMES = 16
+TAG_PREFIX = "#"
+MAX_TAG_CHARS = 16
 
 
 class DaqProtocolError(ValueError):
@@ -64,8 +70,28 @@ def encode_packet(ptype: int, body: bytes) -> bytes:
     return _END_B + slip_escape(raw + crc32(raw).to_bytes(4, "little")) + _END_B
 
 
-def encode_command(text: str) -> bytes:
+def encode_command(text: str, tag: str | None = None) -> bytes:
+    """A command packet; with ``tag`` (e.g. ``"#12"``) the bridge starts its reply with the same tag."""
+    if tag is not None:
+        check_tag(tag)
+        text = f"{tag} {text}"
     return encode_packet(PKT_COMMAND, text.encode("ascii"))
+
+
+def check_tag(tag: str) -> None:
+    """A tag is ``#`` plus 1..15 printable ASCII characters (no space); ValueError otherwise."""
+    if not (tag.startswith(TAG_PREFIX) and 2 <= len(tag) <= MAX_TAG_CHARS and tag.isascii()
+            and tag.isprintable() and " " not in tag):
+        raise ValueError(f"command tag: expected '#' and 1..{MAX_TAG_CHARS - 1} printable ASCII "
+                         f"characters without spaces, got {tag!r}")
+
+
+def split_tag(text: str) -> tuple[str | None, str]:
+    """``"#12 OK STAT ..."`` -> ``("#12", "OK STAT ...")``; untagged text -> ``(None, text)``."""
+    if text.startswith(TAG_PREFIX):
+        tag, _, rest = text.partition(" ")
+        return tag, rest
+    return None, text
 
 
 def encode_reply(text: str) -> bytes:
@@ -157,12 +183,18 @@ class StreamDecoder:
 
     ``frame_samples`` is the configured samples per frame: frame ``seq`` holds samples
     ``seq*frame_samples ..``, so a sequence gap maps exactly onto the missing sample indices.
+    Frame numbers are counted without bound here (``next_seq``); the wire carries them modulo 2**32,
+    so a wrap 0xFFFFFFFF -> 0 is continuity, and a frame "2**32 - 1 ahead" is one frame *behind*.
+    A forward jump of more than ``immediate_gap_frames`` is held until the next frame confirms it
+    (its seq follows the held one): otherwise the held frame is rejected as ``sequence``.
     """
 
-    def __init__(self, frame_samples: int = 256, *, max_errors_kept: int = 1000) -> None:
+    def __init__(self, frame_samples: int = 256, *, max_errors_kept: int = 1000,
+                 immediate_gap_frames: int = IMMEDIATE_GAP_FRAMES) -> None:
         self._pending = b""
         self._offset = 0
         self._max_errors = max_errors_kept
+        self.immediate_gap_frames = immediate_gap_frames
         self.reset(frame_samples)
 
     def reset(self, frame_samples: int) -> None:
@@ -173,6 +205,7 @@ class StreamDecoder:
         self._packet_len = SAMPLE_HEADER.size + 4 * frame_samples + CRC_SIZE
         self.next_seq = 0
         self.stats = DecoderStats()
+        self._held: tuple[int, bytes] | None = None  # (frame index, payload) of an unconfirmed jump
 
     @property
     def next_sample_index(self) -> int:
@@ -188,8 +221,41 @@ class StreamDecoder:
             self.stats.errors.append(err)
         out.append(err)
 
+    def finish(self, frames_sent: int) -> list[DecoderEvent]:
+        """At STOP (the bridge produced ``frames_sent`` frames): settle a held jump, then the trailing gap.
+
+        A held frame is delivered if its index is below ``frames_sent`` (the bridge did produce it),
+        and rejected as ``sequence`` otherwise.
+        """
+        out: list[DecoderEvent] = []
+        if self._held is not None:
+            index, payload = self._held
+            self._held = None
+            if index < frames_sent:
+                gap = self.gap_to(index)
+                if gap is not None:
+                    out.append(gap)
+                out.append(self._block(payload))
+            else:
+                self._error(out, "sequence", len(payload), f"frame {index % SEQ_MODULUS} is beyond the "
+                            f"{frames_sent} frames the bridge reports at STOP: rejected")
+        gap = self.gap_to(frames_sent)
+        if gap is not None:
+            out.append(gap)
+        return out
+
+    def _block(self, payload: bytes) -> SampleBlock:
+        inter = np.frombuffer(payload, SAMPLE_DTYPE).reshape(-1, 2)
+        block = SampleBlock(self.next_sample_index, inter[:, 0].copy(), inter[:, 1].copy())
+        self.next_seq += 1
+        self.stats.frames_ok += 1
+        self.stats.samples_ok += block.count
+        return block
+
     def gap_to(self, seq: int) -> SampleGap | None:
-        """Account for frames ``next_seq .. seq-1`` as lost (also used for a trailing gap at STOP)."""
+        """Account for frames ``next_seq .. seq-1`` as lost (also used for a trailing gap at STOP).
+
+        ``seq`` is an unbounded frame index (not reduced modulo 2**32)."""
         if seq <= self.next_seq:
             return None
         frames = seq - self.next_seq
@@ -253,19 +319,42 @@ class StreamDecoder:
                 flush()
                 self._error(out, "count", len(pkt), f"expected {self.frame_samples} samples, got {count}")
                 continue
-            if seq < self.next_seq:
+            payload = pkt[SAMPLE_HEADER.size:-CRC_SIZE]
+            if self._held is not None:
+                held_index, held_payload = self._held
+                self._held = None
+                if seq == (held_index + 1) % SEQ_MODULUS:  # the jump is confirmed
+                    gap = self.gap_to(held_index)
+                    if gap is not None:
+                        out.append(gap)
+                    run_start = self.next_sample_index
+                    run.append(held_payload)
+                    self.next_seq += 1
+                    self.stats.frames_ok += 1
+                    self.stats.samples_ok += self.frame_samples
+                else:
+                    self._error(out, "sequence", len(pkt), f"a jump to frame {held_index % SEQ_MODULUS} "
+                                f"(expected {self.next_seq % SEQ_MODULUS}) was not confirmed by the next "
+                                f"frame (got {seq}): rejected")
+            ahead = (seq - self.next_seq) % SEQ_MODULUS
+            if ahead >= SEQ_MODULUS // 2:
                 flush()
-                self._error(out, "sequence", len(pkt), f"expected sequence >= {self.next_seq}, got {seq}")
+                self._error(out, "sequence", len(pkt), f"expected sequence {self.next_seq % SEQ_MODULUS}, "
+                            f"got {seq} ({SEQ_MODULUS - ahead} frame(s) behind: duplicate or replay)")
                 continue
-            if seq > self.next_seq:
+            if ahead > self.immediate_gap_frames:
                 flush()
-                gap = self.gap_to(seq)
+                self._held = (self.next_seq + ahead, payload)
+                continue
+            if ahead > 0:
+                flush()
+                gap = self.gap_to(self.next_seq + ahead)
                 if gap is not None:
                     out.append(gap)
             if not run:
                 run_start = self.next_sample_index
-            run.append(pkt[SAMPLE_HEADER.size:-CRC_SIZE])
-            self.next_seq = seq + 1
+            run.append(payload)
+            self.next_seq += 1
             self.stats.frames_ok += 1
             self.stats.samples_ok += count
         flush()

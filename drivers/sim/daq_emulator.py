@@ -23,11 +23,13 @@ from drivers.daq.protocol import (
     _END_B,
     PKT_COMMAND,
     DaqProtocolError,
+    check_tag,
     crc32,
     encode_reply,
     sample_packet_raw,
     slip_escape,
     slip_unescape,
+    split_tag,
 )
 from drivers.sim.daq_source import SampleSource
 
@@ -72,6 +74,8 @@ class DaqEmulator:
         self._corrupt: set[int] = set()
         self._garbage: list[bytes] = []
         self._stall_until = 0.0
+        self._reply_delay: list[float] = []
+        self._delayed: list[tuple[float, bytes]] = []  # (due time, reply packet)
         self._stop = threading.Event()
         self._closed = False
         self._wake_r, self._wake_w = os.pipe()
@@ -97,6 +101,11 @@ class DaqEmulator:
         """Nothing is sent for ``seconds``; the samples of that period are lost."""
         with self._lock:
             self._stall_until = self.clock.monotonic() + seconds
+
+    def delay_replies(self, seconds: float, n: int = 1) -> None:
+        """The next ``n`` replies are sent ``seconds`` late (a slow or busy bridge)."""
+        with self._lock:
+            self._reply_delay.extend([seconds] * n)
 
     def close_port(self) -> None:
         """Close the port as a crashed or unplugged bridge would (the driver sees a lost link)."""
@@ -238,9 +247,24 @@ class DaqEmulator:
                 self._out += encode_reply("ERR 4 malformed command packet (CRC, type or length)")
                 continue
             text = pkt[1:-4].decode("ascii", errors="replace")
-            reply = self._handle_command(text)
+            tag, body = split_tag(text)
+            if tag is not None:
+                try:
+                    check_tag(tag)
+                except ValueError as exc:
+                    tag, reply = None, f"ERR 2 bad tag: {exc}"
+                else:
+                    reply = self._handle_command(body)
+            else:
+                reply = self._handle_command(body)
             log.debug("DAQ emulator: %r -> %r", text, reply)
-            self._out += encode_reply(reply)
+            packet = encode_reply(reply if tag is None else f"{tag} {reply}")
+            with self._lock:
+                delay = self._reply_delay.pop(0) if self._reply_delay else 0.0
+            if delay > 0:
+                self._delayed.append((self.clock.monotonic() + delay, packet))
+            else:
+                self._out += packet
 
     # ------------------------------------------------------------------ streaming
     def _produce(self, now: float) -> None:
@@ -304,7 +328,10 @@ class DaqEmulator:
                         return
                     if data:
                         self._read_commands(data)
-                self._produce(self.clock.monotonic())
+                now = self.clock.monotonic()
+                while self._delayed and self._delayed[0][0] <= now:
+                    self._out += self._delayed.pop(0)[1]
+                self._produce(now)
                 if self._out and (w or not wlist):
                     try:
                         n = os.write(self.fd, self._out)
