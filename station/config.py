@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from drivers.rig import params as rp
 from station.errors import ConfigError
+from station.ident.inputs import MeasurementChain
 
 # inf and nan are refused everywhere: several fields (e.g. Range.max, mains amplitudes) have no
 # upper bound that would catch them.
@@ -58,6 +59,8 @@ class TransducerConfig(_Model):
     capacity_N: float = Field(gt=0, le=1e7)
     sensitivity_V_per_N: float = Field(gt=0, le=1.0, description="bridge output per N")
     end_mass_kg: float | None = Field(default=None, gt=0, le=100)
+    end_mass_std_kg: float | None = Field(default=None, ge=0, le=100, description="standard uncertainty "
+                                          "of end_mass_kg (default: 5 % of it, station.ident.inputs)")
 
 
 class RigConfig(_Model):
@@ -65,6 +68,8 @@ class RigConfig(_Model):
 
     top_mass_kg: float = Field(gt=0, le=500)
     adaption_mass_kg: float = Field(default=0.0, ge=0, le=100)
+    load_mass_std_kg: float | None = Field(default=None, ge=0, le=100, description="standard uncertainty "
+                                           "of top + adaption mass (default: 1e-4 of it)")
     crank_radius_m: Range = Range(min=1e-4, max=0.05)
     crank_frequency_hz: Range = Range(min=1.0, max=100.0)
     peak_force_fraction: float = Field(default=0.8, gt=0, le=1.0,
@@ -218,6 +223,12 @@ class ServiceSection(_Model):
                          "(0: jobs wait in the queue until a daemon with workers runs)")
 
 
+class IdentificationConfig(_Model):
+    """Identification: the measurement chain's own uncertainty (``station.ident.inputs``)."""
+
+    chain: MeasurementChain = MeasurementChain()
+
+
 class StationConfig(_Model):
     """A whole station configuration file."""
 
@@ -229,6 +240,7 @@ class StationConfig(_Model):
     daq: DaqConfig = DaqConfig()
     plan: PlanConfig
     processing: ProcessingConfig = ProcessingConfig()
+    identification: IdentificationConfig = IdentificationConfig()
     devices: DevicesConfig = DevicesConfig()
     simulation: SimulationConfig | None = None
     service: ServiceSection = ServiceSection()

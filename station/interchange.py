@@ -17,6 +17,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from station.errors import RecordingFormatError, StationError
+from station.ident.inputs import MeasurementChain
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id, read_recording
 
 log = logging.getLogger(__name__)
@@ -50,6 +51,9 @@ class RunFile(_Strict):
     crank_radius_m: float = Field(gt=0, le=1.0)
     top_mass_kg: float = Field(gt=0, le=1000, description="load mass m_l incl. adaption")
     end_mass_kg: float | None = Field(default=None, gt=0, le=100)
+    end_mass_std_kg: float | None = Field(default=None, ge=0, le=100, description="default 5 % of end_mass_kg")
+    top_mass_std_kg: float | None = Field(default=None, ge=0, le=100, description="default 1e-4 of top_mass_kg")
+    measurement_chain: MeasurementChain | None = None
     transducer: CsvTransducer
     steps: list[CsvStep] = Field(min_length=1)
 

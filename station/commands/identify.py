@@ -8,6 +8,7 @@ from pathlib import Path
 
 from station.errors import BadInputError
 from station.ident.api import METHODS, MODELS, identify_recording, store_result
+from station.ident.checks import IdentificationRefused
 from station.ident.result import IdentificationResult
 from station.recording import read_recording
 
@@ -27,13 +28,28 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def format_text(res: IdentificationResult) -> str:
-    """Human-readable result: one line per parameter, then the fit and the notes."""
+    """Human-readable result: checks, one line per parameter with its budget, the assumptions,
+    what the data determine, then the fit and the notes."""
     lines = [f"method {res.method}, model {res.model}"]
+    lines += [f"  check {c.severity}: {c.name}: {c.message}" for c in res.checks]
     for p in res.parameters:
         if p.identifiable:
-            lines.append(f"  {p.name:4s} = {p.value:.7g} {p.unit}  (std {p.std:.2g})")
+            lines.append(f"  {p.name:4s} = {p.value:.7g} {p.unit}  (std {p.std:.2g})"
+                         + (f"  [{p.flag}: {p.reason}]" if p.flag else ""))
+            b = res.budget.get(p.name)
+            if b:
+                lines.append("       budget: " + ", ".join(
+                    f"{k} {v:.2g}" if v is not None else f"{k} (conditional)"
+                    for k, v in b["contributions"].items()) + f"; combined {b['combined']:.2g}")
         else:
             lines.append(f"  {p.name:4s}   not identifiable: {p.reason}")
+    em = (res.assumptions or {}).get("end_mass_kg")
+    if em:
+        lines.append(f"  end mass m_e = {em['value']:g} kg ({em['source']}"
+                     + (f", std {em['std']:.2g} kg)" if em.get("std") is not None else ", no uncertainty: "
+                        "S, k_f, b_f are conditional on it)"))
+    for k, d in (res.determined or {}).items():
+        lines.append(f"  determined: {k} = {d['value']:.7g} {d['unit']} (std {d['combined']:.2g})")
     rms = ", ".join(f"{v:.3g}" for v in res.fit.residual_rms_V)
     lines.append(f"  fit: MSE {res.fit.mse:.4g} V^2, residual RMS per step [{rms}] V")
     if res.identifiability is not None:
@@ -46,7 +62,14 @@ def run(args: argparse.Namespace) -> int:
     if not args.recording.exists():
         raise BadInputError(f"{args.recording}: no such recording")
     rec = read_recording(args.recording)
-    res = identify_recording(rec, args.method, args.model, seed=args.seed)
+    try:
+        res = identify_recording(rec, args.method, args.model, seed=args.seed)
+    except IdentificationRefused as exc:
+        if not args.json:
+            raise
+        print(json.dumps({"refused": True, "message": str(exc), "checks": [c.to_dict() for c in exc.checks]},
+                         indent=2))
+        return exc.exit_code
     payload = res.to_dict()
     if not args.no_write:
         payload["stored_as"] = store_result(args.recording, res)

@@ -27,6 +27,8 @@ class ParameterEstimate:
     std: float | None
     identifiable: bool
     reason: str = ""
+    flag: str = ""  # '', 'poorly_determined' (relative uncertainty above the policy's), 'conditional'
+    #                 (on an assumed input, see the result's assumptions)
 
     def to_dict(self) -> dict[str, Any]:
         if not self.identifiable:
@@ -36,7 +38,26 @@ class ParameterEstimate:
                                "unit": self.unit, "identifiable": True}
         if self.reason:
             out["reason"] = self.reason
+        if self.flag:
+            out["flag"] = self.flag
         return out
+
+
+@dataclass(frozen=True)
+class Check:
+    """One finding of the input checks: name (e.g. 'dead_channel'), severity 'info' | 'warning' |
+    'refused', step index or None for the run, message for the operator, the numbers behind it."""
+
+    name: str
+    severity: str
+    step: int | None
+    message: str
+    values: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        vals = {k: (_finite_or_none(v) if isinstance(v, float) else v) for k, v in self.values.items()}
+        return {"name": self.name, "severity": self.severity, "step": self.step, "message": self.message,
+                "values": vals}
 
 
 @dataclass(frozen=True)
@@ -93,6 +114,10 @@ class IdentificationResult:
     identifiability: Identifiability | None = None
     notes: tuple[str, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict)
+    checks: tuple[Check, ...] = ()
+    budget: dict[str, Any] = field(default_factory=dict)
+    assumptions: dict[str, Any] = field(default_factory=dict)
+    determined: dict[str, Any] = field(default_factory=dict)
 
     @property
     def result_name(self) -> str:
@@ -110,4 +135,6 @@ class IdentificationResult:
                 "parameters": {p.name: p.to_dict() for p in self.parameters},
                 "fit": self.fit.to_dict(),
                 "identifiability": None if self.identifiability is None else self.identifiability.to_dict(),
-                "notes": list(self.notes), "extra": self.extra}
+                "notes": list(self.notes), "extra": self.extra,
+                "checks": [c.to_dict() for c in self.checks], "budget": self.budget,
+                "assumptions": self.assumptions, "determined": self.determined}

@@ -1,0 +1,178 @@
+"""``identify_fd``: the frequency-domain estimator on a recording, with its inputs checked, its
+assumptions stated and a GUM budget per parameter.
+
+Flow: inputs (masses, chain: ``inputs``) -> plausibility gate and H(f) (``steps``, ``checks``) ->
+start on 1/H -> weighted LM of the structurally identifiable parameters (Eq. 9, Eq. 8 when the
+data demand and determine it) -> budget (``budget``) -> per parameter: value with its combined
+standard uncertainty; flag 'poorly_determined' when that is above ``Policy.max_rel_std`` of the
+value; null only when the data cannot determine it (structurally, or relative uncertainty > 1);
+flag 'conditional' when the end mass is assumed.  Reasons are computed at the estimate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from station.ident import frf as frfmod
+from station.ident.budget import Budget, uncertainty_budget
+from station.ident.checks import sensitivity_check
+from station.ident.fdcore import fd_fit, start_values, summary_fd
+from station.ident.identifiability import Policy, effect_text
+from station.ident.inputs import IdentInputs, inputs_for
+from station.ident.models import CoupledModel, Model, SdofModel, make_model
+from station.ident.result import Check, IdentificationResult, ParameterEstimate
+from station.ident.steps import checked_response
+from station.recording import Recording
+
+FloatArray = NDArray[np.float64]
+
+
+def _single_frequency_reasons(model: Model, fit: frfmod.FrfFit, frf: frfmod.FrequencyResponse,
+                              budget: Budget) -> dict[int, str]:
+    """Reasons for S, k_f (and b_f) from one frequency, with the numbers at the estimate: b_f and S
+    fitted to gain and phase with k_f held (the phase lag is b_f's effect whatever k_f is)."""
+    th = frfmod.fit_frf(frf, model, fit.theta, free=np.array([True, False, True]), inflate=False).theta
+    f = float(frf.f_hz[0])
+    M = model.M
+    q = float(np.abs(frf.H[0])) / M
+    uq = q * float(budget.combined[0] / abs(fit.theta[0])) if np.isfinite(budget.combined[0]) else float("nan")
+    ex = ", ".join(f"+{100 / (r * r - 1):.2g} % for a resonance at {r:g} f" for r in (10, 3))
+    s_reason = (f"not identifiable from one frequency: {f:g} Hz determines |H|/M = {q:.6g} V/N (std {uq:.2g}), "
+                f"which is HIGH against S by (f/f_0)^2 / (1 - (f/f_0)^2) below the resonance f_0 ({ex}); "
+                "one frequency cannot tell that bias from S")
+    struct = (f"structurally not identifiable: 1 sine frequency gives 2 real numbers (gain and phase) for "
+              f"{len(model.names)} parameters")
+    return {0: s_reason,
+            1: struct + "; k_f is confounded with S: its effect on |H| is (f/f_0)^2 / (1 - (f/f_0)^2), "
+                        "which one frequency cannot tell from S",
+            2: struct + "; b_f is confounded with k_f (the phase lag fixes b_f / k_f only); "
+                        + effect_text(model, th, frf.f_hz, 2)}
+
+
+def _determined(model: Model, theta: FloatArray, budget: Budget) -> dict[str, Any]:
+    """What the data determine whatever the end mass: S M, the loaded natural frequency and the
+    damping ratio (Eq. 9 depends on S M, k_f / M and b_f / M only)."""
+    if not isinstance(model, SdofModel) or not budget.free[:2].all():
+        return {}
+    S, k, b = theta
+    M = model.M
+    out: dict[str, Any] = {}
+    inv = ("end_mass", "load_mass")  # exactly invariant: H depends on S M, k_f / M, b_f / M only
+    out["S_times_M"] = {"value": S * M, **budget.std_of(np.array([M, 0.0, 0.0]), inv), "unit": "V*s^2/m"}
+    f0 = np.sqrt(k / M) / (2 * np.pi)
+    out["natural_frequency_hz"] = {"value": f0, **budget.std_of(np.array([0.0, f0 / (2 * k), 0.0]), inv),
+                                   "unit": "Hz"}
+    if budget.free[2]:
+        # zeta = b / (2 sqrt(k M)) = (b/M) / (2 sqrt(k/M)): invariant too
+        z = b / (2 * np.sqrt(k * M))
+        out["damping_ratio"] = {"value": z, **budget.std_of(np.array([0.0, -z / (2 * k), z / b]), inv),
+                                "unit": "1"}
+    return out
+
+
+def _param_list(model: Model, theta: FloatArray, budget: Budget, rep_ok: tuple[bool, ...],
+                reasons: list[str], inputs: IdentInputs, policy: Policy,
+                frf: frfmod.FrequencyResponse) -> list[ParameterEstimate]:
+    out = []
+    comb = budget.combined
+    for i, (n, u) in enumerate(zip(model.names, model.units, strict=True)):
+        if not budget.free[i] or not np.isfinite(comb[i]) or reasons[i].startswith("not identifiable from one"):
+            out.append(ParameterEstimate(n, u, None, None, False, reasons[i] or "held: not determined"))
+            continue
+        rel = float(comb[i] / max(abs(theta[i]), 1e-300))
+        parts = ", ".join(f"{s} {np.sqrt(c[i, i]) / abs(theta[i]):.2g}" for s, c in budget.covs.items()
+                          if c is not None and c[i, i] > (0.01 * comb[i]) ** 2)
+        if rel > 1:
+            out.append(ParameterEstimate(n, u, None, None, False, f"not determined by the data: relative "
+                                         f"uncertainty {rel:.2g} ({parts}); "
+                                         + effect_text(model, theta, frf.f_hz, i)))
+            continue
+        flag, reason = "", ""
+        if rel > policy.max_rel_std or not rep_ok[i]:
+            flag = "poorly_determined"
+            reason = (f"poorly determined: relative uncertainty {rel:.2g} (> {policy.max_rel_std}; {parts}); "
+                      + effect_text(model, theta, frf.f_hz, i))
+        if not inputs.end_mass_given and i < 3:
+            flag = flag or "conditional"
+            reason = (reason + "; " if reason else "") + (
+                f"conditional on the assumed end mass m_e = {inputs.m_e:g} kg (not given): "
+                f"{'S' if i == 0 else n} scales as {'1/' if i == 0 else ''}(m_l + m_e)")
+        out.append(ParameterEstimate(n, u, float(theta[i]), float(comb[i]), True, reason, flag))
+    return out
+
+
+def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None = None, *,
+                inputs: IdentInputs | None = None) -> IdentificationResult:
+    """Frequency-domain estimator with input checks, assumptions and budget (module docstring).
+
+    model_key 'auto': Eq. 9, or Eq. 8 when Eq. 9 misfits (chi2/dof significantly > 1) and the
+    coupled model determines k_c and fits (chi2/dof consistent with the noise)."""
+    inputs = inputs or inputs_for(rec)
+    policy = replace(policy or Policy(), phase_floor_rad=inputs.chain.floor_phase_rad,
+                     gain_floor=inputs.chain.floor_gain)
+    cr = checked_response(rec, inputs)
+    frf, checks, notes = cr.frf, list(cr.checks), []
+    sdof = make_model("sdof", inputs.m_e, inputs.m_l)
+    assert isinstance(sdof, SdofModel)
+    fit, rep = fd_fit(frf, sdof, start_values(frf, sdof, cr.sign), policy)
+    model: Model = sdof
+    auto = model_key == "auto"
+    if model_key in ("coupled", "h1") or (auto and fit.inflated and inputs.end_mass_given):
+        cm = make_model("coupled", inputs.m_e, inputs.m_l)
+        assert isinstance(cm, CoupledModel)
+        th0 = np.r_[fit.theta, 10 * fit.theta[1], 0.1 * fit.theta[2]]
+        cfit, crep = fd_fit(frf, cm, th0, policy)
+        c2, s2 = cfit.chi2 / max(cfit.dof, 1), fit.chi2 / max(fit.dof, 1)
+        if crep.identifiable[3] and (not auto or (c2 < 0.25 * s2 and not cfit.inflated)):
+            if auto:
+                notes.append(f"model chosen: coupled (Eq. 8), chi2/dof {c2:.3g} against {s2:.3g} for Eq. 9")
+            fit, rep, model = cfit, crep, cm
+        elif auto:
+            notes.append(f"Eq. 9 misfits (chi2/dof {s2:.3g}) but the coupled model does not determine k_c "
+                         "either; unmodelled effects (conditioner filter, channel delay) are likely")
+        else:
+            notes.append("k_c not identifiable: S, k_f, b_f are given in the stiff-coupling "
+                         "limit (Eq. 9, k_c -> inf, b_c -> 0)")
+            model = cm
+            cov = np.zeros((5, 5))
+            cov[:3, :3] = fit.cov
+            fit = replace(fit, theta=np.r_[fit.theta, cfit.theta[3:]], cov=cov)
+            rep = replace(crep, identifiable=(*rep.identifiable, False, False),
+                          reasons=(*rep.reasons[:3], crep.reasons[3] or "k_c not identifiable",
+                                   crep.reasons[4] or "b_c is meaningless without k_c"))
+    free = np.diag(fit.cov) > 0
+    free[3:] &= np.array(rep.identifiable[3:], bool)
+    budget = uncertainty_budget(model, fit.theta, fit.cov, frf, free, inputs)
+    reasons = list(rep.reasons)
+    n_f = int(np.unique(np.round(frf.f_hz, 6)).size)
+    if n_f == 1 and isinstance(model, SdofModel):
+        reasons = [_single_frequency_reasons(model, fit, frf, budget)[i] for i in range(3)]
+    if fit.inflated:
+        notes.append(f"chi2/dof = {fit.chi2 / fit.dof:.3g}: uncertainties inflated by sqrt(chi2/dof)")
+        checks.append(Check("model_misfit", "warning", None, f"the model misfits the measured H(f): chi2/dof "
+                            f"{fit.chi2 / fit.dof:.3g}; noise uncertainties inflated by its square root",
+                            {"chi2_per_dof": fit.chi2 / fit.dof}))
+    params = _param_list(model, fit.theta, budget, rep.identifiable, reasons, inputs, policy, frf)
+    c = sensitivity_check(params[0].value, rec.sensitivity_V_per_N, not inputs.end_mass_given)
+    checks += [c] if c else []
+    determined = _determined(model, fit.theta, budget)
+    if n_f == 1 and budget.free[0]:
+        determined["quasi_static_sensitivity"] = {
+            "value": float(cr.sign * np.abs(frf.H[0]) / model.M), **budget.std_of(np.eye(len(fit.theta))[0]),
+            "unit": "V/N", "note": "|H|/M at the one frequency: S only far below the resonance, HIGH by "
+                                   "(f/f_0)^2 / (1 - (f/f_0)^2) otherwise"}
+    if not inputs.end_mass_given:
+        checks.append(Check("end_mass_not_given", "warning", None, "the end mass is not given: S, k_f, b_f are "
+                            f"conditional on an assumed m_e = {inputs.m_e:g} kg; the data determine S (m_l + m_e), "
+                            "the loaded natural frequency and the damping ratio (see 'determined')",
+                            {"assumed_end_mass_kg": inputs.m_e}))
+    extra = {"m_e_kg": model.m_e, "m_l_kg": model.m_l, "f_hz": frf.f_hz.tolist(), "H_abs": np.abs(frf.H).tolist(),
+             "H_phase_rad": np.angle(frf.H).tolist(),
+             "H_std": np.sqrt(np.trace(frf.cov, axis1=1, axis2=2) / 2).tolist(), "steps_used": cr.used}
+    return IdentificationResult("fd", model.key, tuple(params), summary_fd(frf, fit, cr.sigs), rep,
+                                tuple(notes), extra, tuple(checks), budget.to_dict(), inputs.to_dict(),
+                                determined)

@@ -1,0 +1,132 @@
+"""What an identification takes from outside the data: the masses and the measurement chain.
+
+* **End mass m_e** (kg): from the station configuration (``transducer.end_mass_kg``, source
+  ``config``) or an imported run's RUN.yaml (``end_mass_kg``, source ``recording``), each with its
+  standard uncertainty (``end_mass_std_kg``; default ``DEFAULT_END_MASS_REL_STD`` of the value, a
+  data-sheet figure).  Not given: the data determine only S (m_l + m_e), k_f / (m_l + m_e) and
+  b_f / (m_l + m_e); S, k_f, b_f are then *conditional* on an assumed end mass (0 kg unless the
+  caller assumes another value), source ``assumed``, and every output says so.
+* **Load mass m_l** (kg, top mass + adaption): weighed; standard uncertainty ``load_mass_std_kg``
+  (station configuration ``rig.load_mass_std_kg``, RUN.yaml ``top_mass_std_kg``), default
+  ``DEFAULT_LOAD_MASS_REL_STD`` of the value.
+* **Measurement chain** (``MeasurementChain``): what the conditioner, the DAQ and the displacement
+  sensor get wrong, as standard uncertainties of H(f).  Station configuration
+  ``identification.chain``, RUN.yaml ``measurement_chain``; defaults documented per field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from station.errors import BadInputError
+
+DEFAULT_END_MASS_REL_STD = 0.05
+DEFAULT_LOAD_MASS_REL_STD = 1e-4
+
+
+class MeasurementChain(BaseModel):
+    """Standard uncertainties of the measured H(f) that the noise does not show.
+
+    gain_rel_std: ratio of the force chain's to the displacement chain's gain (conditioner, ADC,
+    displacement sensor), the same at every frequency (correlated), relative;
+    flatness_rel_std: gain error independent from one frequency to the next, relative;
+    phase_offset_std_deg: constant phase offset between the channels (correlated), deg;
+    phase_std_deg: phase error independent from one frequency to the next, deg;
+    delay_std_s: time skew between the channels (phase 2 pi f tau, correlated across frequencies), s.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    gain_rel_std: float = Field(default=1e-4, ge=0, le=0.5)
+    flatness_rel_std: float = Field(default=5e-5, ge=0, le=0.5)
+    phase_offset_std_deg: float = Field(default=0.005, ge=0, le=10)
+    phase_std_deg: float = Field(default=0.005, ge=0, le=10)
+    delay_std_s: float = Field(default=1e-7, ge=0, le=1e-2)
+
+    @property
+    def floor_gain(self) -> float:
+        """Per-frequency relative gain floor (correlated and independent parts together)."""
+        return float(np.hypot(self.gain_rel_std, self.flatness_rel_std))
+
+    @property
+    def floor_phase_rad(self) -> float:
+        """Per-frequency phase floor without the delay, rad."""
+        return float(np.deg2rad(np.hypot(self.phase_offset_std_deg, self.phase_std_deg)))
+
+
+@dataclass(frozen=True)
+class MassInput:
+    """A mass in kg with its standard uncertainty; value None = not given.  source: config,
+    recording or assumed."""
+
+    value: float | None
+    std: float | None
+    source: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"value": self.value, "std": self.std, "source": self.source}
+
+
+@dataclass(frozen=True)
+class IdentInputs:
+    """Masses and chain for one identification.  end_mass.source == 'assumed' with std None means
+    S, k_f, b_f are conditional on end_mass.value (no uncertainty is propagated for it)."""
+
+    end_mass: MassInput
+    load_mass: MassInput
+    chain: MeasurementChain
+    end_mass_given: bool
+
+    @property
+    def m_e(self) -> float:
+        return float(self.end_mass.value or 0.0)
+
+    @property
+    def m_l(self) -> float:
+        return float(self.load_mass.value or 0.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``assumptions`` of the result JSON."""
+        return {"end_mass_kg": self.end_mass.to_dict(), "load_mass_kg": self.load_mass.to_dict(),
+                "measurement_chain": self.chain.model_dump()}
+
+
+def _num(d: Any, *keys: str) -> float | None:
+    for k in keys:
+        if not isinstance(d, dict):
+            return None
+        d = d.get(k)
+    return float(d) if isinstance(d, int | float) and not isinstance(d, bool) else None
+
+
+def inputs_for(rec: Any, *, assumed_end_mass_kg: float | None = None,
+               chain: MeasurementChain | None = None) -> IdentInputs:
+    """Masses and chain of a recording (``station.recording.Recording``).
+
+    assumed_end_mass_kg: used only when the recording gives no end mass (then conditional)."""
+    cfg = rec.config if isinstance(rec.config, dict) else {}
+    imported = cfg.get("format") == "sinecal-csv"
+    src = "recording" if imported else "config"
+    m_l = float(rec.load_mass_kg)
+    u_l = _num(cfg, "top_mass_std_kg") if imported else _num(cfg, "rig", "load_mass_std_kg")
+    load = MassInput(m_l, u_l if u_l is not None else DEFAULT_LOAD_MASS_REL_STD * m_l, src)
+    if rec.end_mass_kg is not None:
+        u_e = _num(cfg, "end_mass_std_kg") if imported else _num(cfg, "transducer", "end_mass_std_kg")
+        end = MassInput(float(rec.end_mass_kg), u_e if u_e is not None
+                        else DEFAULT_END_MASS_REL_STD * float(rec.end_mass_kg), src)
+        given = True
+    else:
+        end = MassInput(float(assumed_end_mass_kg or 0.0), None, "assumed")
+        given = False
+    if chain is None:
+        raw = cfg.get("measurement_chain") if imported else (cfg.get("identification") or {}).get("chain")
+        try:
+            chain = MeasurementChain.model_validate(raw or {})
+        except ValidationError as exc:
+            raise BadInputError(f"{rec.path}: measurement chain: {exc.errors()[0]['msg']} "
+                                f"(received {raw!r})") from None
+    return IdentInputs(end, load, chain, given)

@@ -1,0 +1,67 @@
+"""The measured frequency response of a recording, step by step, through the plausibility gate."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from station.ident import frf as frfmod
+from station.ident.checks import run_checks, screen_step
+from station.ident.inputs import IdentInputs, inputs_for
+from station.ident.oe import StepSignal
+from station.ident.result import Check
+from station.recording import Recording
+
+
+@dataclass(frozen=True)
+class CheckedResponse:
+    """H(f) of the steps that passed (frf), their signals for OE, the step indices used, every
+    check, and the polarity sign of S (+1 / -1)."""
+
+    frf: frfmod.FrequencyResponse
+    sigs: list[StepSignal]
+    used: list[int]
+    checks: list[Check] = field(default_factory=list)
+    sign: float = 1.0
+
+    @property
+    def notes(self) -> list[str]:
+        return [c.message for c in self.checks if c.severity != "info"]
+
+
+def checked_response(rec: Recording, inputs: IdentInputs | None = None,
+                     n_harmonics: int = 3) -> CheckedResponse:
+    """Screen every step (``checks.screen_step``), then the run (``checks.run_checks``; raises
+    ``IdentificationRefused``), and assemble H(f) of the steps left."""
+    inputs = inputs or inputs_for(rec)
+    fs = rec.sample_rate_hz
+    items: dict[int, tuple] = {}
+    sigs: dict[int, StepSignal] = {}
+    checks: list[Check] = []
+    radii = {}
+    for st in rec.steps:
+        if not st.usable:
+            checks.append(Check("samples_lost", "warning", st.index, f"step {st.index} skipped: "
+                                f"{st.lost_in_window} samples lost in its window", {"lost": st.lost_in_window}))
+            continue
+        x, u = rec.step_signals(st)
+        t = np.arange(st.start_sample, st.end_sample) / fs
+        item, found = screen_step(st.index, t, np.asarray(x, float), np.asarray(u, float),
+                                  st.crank_frequency_hz, st.crank_radius_m, fs, n_harmonics)
+        checks += found
+        radii[st.index] = st.crank_radius_m
+        if item is not None:
+            items[st.index] = item
+            sigs[st.index] = StepSignal(t, u, item[2], np.array((item[2].phasor, *item[2].harmonics)))
+    more, used, sign = run_checks(items, checks, radii, rec.sensitivity_V_per_N, inputs.m_e + inputs.m_l)
+    checks += more
+    return CheckedResponse(frfmod.assemble([items[i] for i in used]), [sigs[i] for i in used], used,
+                           checks, sign)
+
+
+def measured_response(rec: Recording, n_harmonics: int = 3) -> tuple[frfmod.FrequencyResponse,
+                                                                     list[StepSignal], list[str]]:
+    """H(f) from every usable step, the per-step signals for OE, and notes on what was left out."""
+    cr = checked_response(rec, n_harmonics=n_harmonics)
+    return cr.frf, cr.sigs, cr.notes

@@ -1,0 +1,254 @@
+"""The identification's input checks, stated assumptions and budget, on runs made by the project's
+simulator (station.simulate) and, where the case is about runs recorded elsewhere, written out and
+read back through the sinecal-csv import path (export -> edit -> import).  Truth: the simulator's
+configuration (k_f 2.91e7 N/m, b_f 17136 N*s/m, S 2e-3 V/N, m_e 0.12 kg, m_l 26.167 kg)."""
+
+from __future__ import annotations
+
+import copy
+import json
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from station.cli import main
+from station.config import default_config_path, parse_config
+from station.ident.api import identify_recording
+from station.ident.checks import IdentificationRefused
+from station.interchange import export_run, import_run
+from station.recording import read_recording
+from station.simulate import simulate_run
+
+K, B, S, ME, ML = 2.91e7, 17136.0, 2e-3, 0.12, 26.167
+R = 2.5e-4  # sinecal-csv has one crank radius per run: the largest the 100 Hz step allows
+PLAN = tuple((f, R) for f in (4.0, 12.0, 30.0, 60.0, 100.0))
+
+
+def sim(folder: Path, steps: tuple[tuple[float, float], ...] = PLAN, *, seed: int = 3, record_s: float = 1.0,
+        edit: Callable[[dict[str, Any]], None] | None = None) -> Path:
+    data = copy.deepcopy(yaml.safe_load(default_config_path().read_text(encoding="utf-8")))
+    data["plan"].update(settle_s=0.3, record_s=record_s,
+                        steps=[{"crank_frequency_hz": f, "crank_radius_m": r} for f, r in steps])
+    data["rig"]["acceleration_hz_per_s"] = 200.0
+    data["simulation"]["pre_roll_s"] = 0.1
+    if edit:
+        edit(data)
+    return simulate_run(parse_config(data), folder, seed=seed)
+
+
+def via_csv(rec: Path, folder: Path, *, doc: Callable[[dict[str, Any]], None] | None = None,
+            step: dict[int, Callable[[np.ndarray], np.ndarray]] | None = None) -> Path:
+    """Export a simulated recording as sinecal-csv, edit RUN.yaml and step files, import it back."""
+    run = export_run(rec, folder / "csv")
+    d = yaml.safe_load(run.read_text(encoding="utf-8"))
+    if doc:
+        doc(d)
+    run.write_text(yaml.safe_dump(d, sort_keys=False), encoding="utf-8")
+    for i, fn in (step or {}).items():
+        f = run.parent / d["steps"][i]["file"]
+        a = np.loadtxt(f, delimiter=",", skiprows=1)
+        np.savetxt(f, fn(a), delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
+    return import_run(run, folder / "imported")
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return sim(tmp_path_factory.mktemp("base"))
+
+
+def each_step(n: int, fn: Callable[[np.ndarray], np.ndarray]) -> dict[int, Callable[[np.ndarray], np.ndarray]]:
+    return dict.fromkeys(range(n), fn)
+
+
+def names(res: Any, severity: str | None = None) -> set[str]:
+    return {c.name for c in res.checks if severity is None or c.severity == severity}
+
+
+def within(p: Any, truth: float, k: float = 3.0) -> bool:
+    return p.value is not None and abs(p.value - truth) < k * p.std
+
+
+def test_clean_run_no_findings_and_the_budget_adds_up(base: Path) -> None:
+    res = identify_recording(read_recording(base))
+    assert not [c for c in res.checks if c.severity != "info"]
+    for name, truth in (("S", S), ("k_f", K), ("b_f", B)):
+        p = res.parameter(name)
+        assert within(p, truth) and not p.flag
+        b = res.budget[name]
+        assert set(b["contributions"]) == {"noise", "chain_gain", "chain_phase", "chain_delay", "end_mass",
+                                           "load_mass", "radius"}
+        total = np.sqrt(sum(v**2 for v in b["contributions"].values()))
+        assert b["combined"] == pytest.approx(total, rel=1e-9) and p.std == pytest.approx(b["combined"])
+    # S is proportional to 1/M: its end-mass term is S u(m_e)/M exactly (u(m_e) = 5 % by default)
+    assert res.budget["S"]["contributions"]["end_mass"] == pytest.approx(S * 0.05 * ME / (ME + ML), rel=1e-3)
+    assert res.assumptions["end_mass_kg"] == {"value": ME, "std": pytest.approx(0.006), "source": "config"}
+
+
+def test_missing_end_mass_is_conditional_and_the_data_still_give_S_M_and_f0(base: Path, tmp_path: Path) -> None:
+    rec = via_csv(base, tmp_path, doc=lambda d: d.pop("end_mass_kg"))
+    res = identify_recording(read_recording(rec))
+    assert "end_mass_not_given" in names(res, "warning")
+    assert res.assumptions["end_mass_kg"] == {"value": 0.0, "std": None, "source": "assumed"}
+    for name in ("S", "k_f", "b_f"):
+        p = res.parameter(name)
+        assert p.flag == "conditional" and "assumed end mass" in p.reason
+        assert res.budget[name]["contributions"]["end_mass"] is None
+    # what the data determine does not depend on the end mass: right within its uncertainty
+    sm, f0 = res.determined["S_times_M"], res.determined["natural_frequency_hz"]
+    assert abs(sm["value"] - S * (ME + ML)) < 3 * sm["combined"]
+    assert abs(f0["value"] - np.sqrt(K / (ME + ML)) / (2 * np.pi)) < 3 * f0["combined"]
+    # the conditional S is off by exactly the missing m_e / M (1 + 0.46 %), and says so
+    assert res.parameter("S").value / S - 1 == pytest.approx(ME / ML, rel=0.02)
+
+
+def test_end_mass_with_its_uncertainty_from_run_yaml(base: Path, tmp_path: Path) -> None:
+    rec = via_csv(base, tmp_path, doc=lambda d: d.update(end_mass_std_kg=0.03))
+    res = identify_recording(read_recording(rec))
+    assert res.assumptions["end_mass_kg"] == {"value": ME, "std": 0.03, "source": "recording"}
+    u = res.budget["k_f"]["contributions"]["end_mass"]
+    assert u == pytest.approx(K * 0.03 / (ME + ML), rel=0.02)  # k_f scales with M
+    assert within(res.parameter("k_f"), K)
+
+
+def test_inverted_polarity_gives_a_negative_S_and_the_right_k_f(base: Path, tmp_path: Path) -> None:
+    def neg(a: np.ndarray) -> np.ndarray:
+        a[:, 2] *= -1
+        return a
+    rec = via_csv(base, tmp_path, doc=lambda d: d["transducer"].update(sensitivity_V_per_N=-2e-3),
+                  step=each_step(len(PLAN), neg))
+    res = identify_recording(read_recording(rec))
+    assert within(res.parameter("S"), -S) and within(res.parameter("k_f"), K) and within(res.parameter("b_f"), B)
+    pol = [c for c in res.checks if c.name == "polarity"]
+    assert pol and pol[0].severity == "info" and pol[0].values["sign"] == -1
+
+
+def test_polarity_against_the_nominal_sign_is_a_warning(base: Path, tmp_path: Path) -> None:
+    rec = via_csv(base, tmp_path, doc=lambda d: d["transducer"].update(sensitivity_V_per_N=-2e-3))
+    res = identify_recording(read_recording(rec))
+    assert "polarity" in names(res, "warning") and within(res.parameter("S"), S)
+
+
+@pytest.mark.parametrize(("case", "fn", "check"), [
+    ("zeros", lambda a: np.column_stack([a[:, :2], 0 * a[:, 2]]), "dead_channel"),
+    ("constant", lambda a: np.column_stack([a[:, :2], 0 * a[:, 2] + 0.37]), "constant_channel"),
+    ("noise only", lambda a: np.column_stack([a[:, :2], np.random.default_rng(1).normal(0, 1e-3, len(a))]),
+     "no_signal"),
+])
+def test_a_bad_force_channel_leaves_its_step_out(base: Path, tmp_path: Path, case: str, fn: Callable,
+                                                 check: str) -> None:
+    rec = via_csv(base, tmp_path, step={2: fn})
+    res = identify_recording(read_recording(rec))
+    found = [c for c in res.checks if c.name == check]
+    assert found and found[0].step == 2 and found[0].severity == "warning", case
+    assert res.extra["steps_used"] == [0, 1, 3, 4]
+    assert within(res.parameter("k_f"), K) and within(res.parameter("b_f"), B)
+
+
+def test_clipped_channels_leave_their_step_out(tmp_path: Path) -> None:
+    def hot(d: dict[str, Any]) -> None:
+        d["conditioner"]["gain"] = 2000.0  # twice the gain: the 100 Hz step's force clips at 10 V
+        d["plan"]["steps"][0]["crank_radius_m"] = 0.05  # 25 V of displacement signal: clips too
+    res = identify_recording(read_recording(sim(tmp_path, edit=hot)))
+    assert {(c.step, c.values["channel"]) for c in res.checks if c.name == "clipped_channel"} == {
+        (0, "displacement"), (4, "force")}
+    assert res.extra["steps_used"] == [1, 2, 3]
+    assert within(res.parameter("k_f"), K) and within(res.parameter("b_f"), B)
+
+
+def test_displacement_in_mm_is_refused(base: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    def mm(a: np.ndarray) -> np.ndarray:
+        a[:, 1] *= 1000
+        return a
+    rec = via_csv(base, tmp_path, step=each_step(len(PLAN), mm))
+    with pytest.raises(IdentificationRefused, match="mm"):
+        identify_recording(read_recording(rec))
+    assert main(["identify", str(rec), "--json", "--no-write"]) == 2
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["refused"] and "displacement_units" in {c["name"] for c in doc["checks"]}
+
+
+def test_swapped_columns_are_refused(base: Path, tmp_path: Path) -> None:
+    rec = via_csv(base, tmp_path, step=each_step(len(PLAN), lambda a: a[:, [0, 2, 1]]))
+    with pytest.raises(IdentificationRefused, match="swapped") as exc:
+        identify_recording(read_recording(rec))
+    assert "channels_swapped" in {c.name for c in exc.value.checks if c.severity == "refused"}
+
+
+def test_top_mass_ten_times_too_small_is_refused(base: Path, tmp_path: Path) -> None:
+    rec = via_csv(base, tmp_path, doc=lambda d: d.update(top_mass_kg=d["top_mass_kg"] / 10))
+    with pytest.raises(IdentificationRefused, match="top mass") as exc:
+        identify_recording(read_recording(rec))
+    c = next(c for c in exc.value.checks if c.name == "low_frequency_gain")
+    assert c.severity == "refused" and c.values["gain_ratio"] == pytest.approx(10 * (ME + ML) / (ML + 10 * ME),
+                                                                            rel=0.01)
+
+
+def test_a_slipping_crank_is_fitted_at_its_real_frequency(tmp_path: Path) -> None:
+    slow = tuple((0.98 * f, r) for f, r in PLAN)
+    rec = via_csv(sim(tmp_path, slow), tmp_path,
+                  doc=lambda d: [s.update(crank_frequency_hz=f) for s, (f, _) in zip(d["steps"], PLAN, strict=True)])
+    res = identify_recording(read_recording(rec))
+    mis = [c for c in res.checks if c.name == "frequency_mismatch"]
+    assert len(mis) == 5 and all(abs(c.values["relative"] + 0.02) < 1e-4 for c in mis)
+    np.testing.assert_allclose(res.extra["f_hz"], [f for f, _ in slow], rtol=1e-5)
+    assert within(res.parameter("k_f"), K) and within(res.parameter("b_f"), B)
+
+
+def test_a_step_labelled_9_hz_that_ran_at_8_is_named_and_fitted_at_8(tmp_path: Path) -> None:
+    plan = tuple((f, R) for f in (4.0, 8.0, 30.0, 60.0, 100.0))
+    rec = via_csv(sim(tmp_path, plan), tmp_path, doc=lambda d: d["steps"][1].update(crank_frequency_hz=9.0))
+    res = identify_recording(read_recording(rec))
+    mis = [c for c in res.checks if c.name == "frequency_mismatch"]
+    assert [c.step for c in mis] == [1] and mis[0].values["measured_hz"] == pytest.approx(8.0, rel=1e-5)
+    assert max(res.extra["f_hz"]) < 101
+    assert within(res.parameter("k_f"), K)
+
+
+def test_single_step_at_100_hz_does_not_call_S_identifiable(tmp_path: Path) -> None:
+    res = identify_recording(read_recording(sim(tmp_path, ((100.0, 1.5e-4),))))
+    s = res.parameter("S")
+    assert not s.identifiable and "HIGH" in s.reason
+    q = res.determined["quasi_static_sensitivity"]
+    bias = 1 / abs(1 - (ME + ML) * (2 * np.pi * 100) ** 2 / K + 2j * np.pi * 100 * B / K)
+    assert q["value"] / S == pytest.approx(bias, rel=1e-3) and q["value"] > 1.3 * S
+
+
+def test_4_hz_reason_numbers_come_from_the_estimate(tmp_path: Path) -> None:
+    res = identify_recording(read_recording(sim(tmp_path, ((4.0, 0.01),), record_s=1.5)))
+    b = res.parameter("b_f")
+    assert not b.identifiable and b.value is None
+    deg = float(re.search(r"the phase by at most ([0-9.eE+-]+) deg", b.reason).group(1))
+    w = 2 * np.pi * 4.0
+    truth = np.degrees(np.arctan2(B * w, K - (ME + ML) * w**2))  # b_f's whole effect on the phase
+    assert deg == pytest.approx(truth, rel=0.05)
+
+
+def test_3_to_40_hz_plan_gives_b_f_with_value_and_uncertainty(tmp_path: Path) -> None:
+    plan = tuple((f, 1.5e-3) for f in (3.0, 10.0, 20.0, 40.0))
+    path = sim(tmp_path, plan)
+    res = identify_recording(read_recording(path))
+    b = res.parameter("b_f")
+    assert b.identifiable and not b.flag and within(b, B) and b.std / B < 0.1
+    # a worse chain (3 deg phase per frequency) leaves b_f determined but poorly: value, std and a flag
+    rec = via_csv(path, tmp_path, doc=lambda d: d.update(measurement_chain={"phase_std_deg": 3.0}))
+    res = identify_recording(read_recording(rec))
+    b = res.parameter("b_f")
+    assert b.identifiable and b.flag == "poorly_determined" and b.value is not None and within(b, B)
+    assert "poorly determined" in b.reason and res.budget["b_f"]["contributions"]["chain_phase"] > 0.1 * B
+
+
+def test_a_channel_delay_is_covered_by_the_correlated_delay_term(tmp_path: Path) -> None:
+    """A 20 us skew biases k_f and b_f; stated as the chain's delay uncertainty, the budget covers it."""
+    def skew(d: dict[str, Any]) -> None:
+        d["simulation"]["effects"] = {"channel_delay": {"delay_s": 20e-6}}
+        d["identification"] = {"chain": {"delay_std_s": 20e-6}}
+    res = identify_recording(read_recording(sim(tmp_path, edit=skew)), "fd", "sdof")
+    for name, truth in (("k_f", K), ("b_f", B)):
+        p = res.parameter(name)
+        assert abs(p.value / truth - 1) > 3 * res.budget[name]["contributions"]["noise"] / truth  # biased
+        assert within(p, truth, 2.0)  # ... and covered
