@@ -16,6 +16,9 @@ from station.recording import read_recording
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("identify", help="identify stiffness, damping and sensitivity from a recording")
     p.add_argument("recording", type=Path, help="HDF5 recording of a run")
+    p.add_argument("more", type=Path, nargs="*", metavar="RECORDING",
+                   help="further recordings of the same transducer with other top masses: all are identified "
+                        "jointly (multi-mass campaign: S, m_e, k_f, b_f; method fd, model sdof)")
     p.add_argument("--method", choices=METHODS, default=None,
                    help="fd (default: sine fits + weighted LM), oe (time-domain output error), "
                         "pso, pso+, rls (the paper's, on one step)")
@@ -59,6 +62,12 @@ def format_text(res: IdentificationResult) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.more:
+        from station.commands.campaign import run_campaign
+
+        if args.method not in (None, "fd") or args.model not in (None, "sdof", "h2"):
+            raise BadInputError("a campaign of several recordings is identified with --method fd, --model sdof")
+        return run_campaign([args.recording, *args.more], as_json=args.json, write=not args.no_write)
     if not args.recording.exists():
         raise BadInputError(f"{args.recording}: no such recording")
     rec = read_recording(args.recording)

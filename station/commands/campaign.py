@@ -1,0 +1,60 @@
+"""``station identify REC1 REC2 ...``: several recordings of one transducer with different top masses,
+identified jointly (S, m_e, k_f, b_f; ``station.ident.campaign``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from station.errors import BadInputError
+from station.ident.campaign import CampaignRefused, identify_campaign
+from station.ident.campaignresult import CampaignResult
+from station.recording import read_recording, write_results
+
+RESULT_NAME = "campaign"  # stored as /results/campaign in every recording of the campaign
+
+
+def format_text(res: CampaignResult) -> str:
+    """Human-readable campaign result: status, checks, parameters with budget, recordings, fit."""
+    lines = [f"campaign of {len(res.recordings)} recordings of {res.transducer_id}: {res.status}"]
+    lines += [f"  check {c.severity}: {c.name}: {c.message}" for c in res.checks]
+    for p in res.parameters:
+        if p.identifiable:
+            flag = getattr(p, "flag", "")
+            lines.append(f"  {p.name:4s} = {p.value:.7g} {p.unit}  (std {p.std:.2g})" + (f"  [{flag}]" if flag else ""))
+            b = res.budget.get(p.name)
+            if b:
+                lines.append("       budget: " + ", ".join(f"{k} {v:.2g}" for k, v in b["contributions"].items()
+                                                           if v is not None) + f"; combined {b['combined']:.2g}")
+        else:
+            lines.append(f"  {p.name:4s}   not given: {p.reason}")
+    for r in res.recordings:
+        lines.append(f"  {Path(r.path).name}: m_l {r.load_mass_kg:.6g} kg (std {r.load_mass_std_kg:.2g}), "
+                     f"{len(r.steps_used)} steps {r.f_range_hz[0]:.4g}-{r.f_range_hz[1]:.4g} Hz, "
+                     f"chi2 {r.chi2:.3g} on {2 * len(r.steps_used)}")
+    lines.append(f"  fit: chi2/dof {res.chi2_per_dof:.3g} ({res.chi2:.4g} on {res.dof})")
+    lines += [f"  note: {n}" for n in res.notes]
+    return "\n".join(lines)
+
+
+def run_campaign(paths: list[Path], *, as_json: bool, write: bool) -> int:
+    """Identify the recordings jointly, print the result, store it in each of them unless told not to."""
+    for p in paths:
+        if not p.exists():
+            raise BadInputError(f"{p}: no such recording")
+    recs = [read_recording(p) for p in paths]
+    try:
+        res = identify_campaign(recs)
+    except CampaignRefused as exc:
+        if not as_json:
+            raise
+        print(json.dumps({"refused": True, "message": str(exc), "checks": [c.to_dict() for c in exc.checks]},
+                         indent=2))
+        return exc.exit_code
+    payload = res.to_dict()
+    if write:
+        for p in paths:
+            write_results(p, RESULT_NAME, payload)
+        payload["stored_as"] = f"/results/{RESULT_NAME}"
+    print(json.dumps(payload, indent=2) if as_json else format_text(res))
+    return 0

@@ -1,0 +1,258 @@
+"""``identify_campaign(recordings)``: one transducer, several top masses, identified jointly.
+
+A single recording determines S (m_e + m_l), k_f / (m_e + m_l) and b_f / (m_e + m_l) only (Eq. 9);
+national institutes separate the end mass m_e from the sensitivity S with several top masses.  Flow:
+
+1. Inputs: every recording of the same transducer (``transducer_id``) and the same nominal
+   sensitivity of the force signal (one S for all), each run once; otherwise refused.
+2. H(f) per recording (the single-recording sine fits), its load mass with its standard uncertainty.
+3. Joint weighted LM of (S, m_e, k_f, b_f) and the load masses (``jointfit``).
+4. ``end_mass_separation``: from the Fisher information with the measurement-chain floor of
+   ``identifiability`` added and the load masses eliminated, the standard uncertainty of m_e and
+   the relative one of S.  Fewer than two distinct load masses (apart by more than
+   ``distinct_sigma`` standard uncertainties), or a relative uncertainty of S above
+   ``max_S_rel_std``: S and m_e are not separated; S, k_f, b_f are then given conditional on the
+   stated end mass (with its uncertainty), or refused when none is stated.
+5. ``same_transducer_model``: each recording's own Eq. 9 fit with m_e held at the campaign's value;
+   S and k_f must agree across the masses (chi^2 homogeneity tests).
+6. Budget (GUM): noise, load masses, chain floor; the combined standard uncertainty is that of the
+   reported covariance.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from station.errors import BadInputError
+from station.ident import jointfit as jf
+from station.ident.api import measured_response
+from station.ident.campaigncheck import (
+    campaign_budget,
+    consistency,
+    end_mass_plausibility,
+    odd_one_out,
+    own_fits,
+    separation,
+)
+from station.ident.campaignresult import CampaignRecording, CampaignResult, Finding
+from station.ident.frf import FrequencyResponse
+from station.ident.identifiability import Policy
+from station.ident.result import ParameterEstimate
+from station.recording import Recording
+
+FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
+LOAD_MASS_REL_STD = 1e-4  # default standard uncertainty of a weighed load mass, relative
+END_MASS_REL_STD = 0.05  # default standard uncertainty of a stated end mass (data sheet), relative
+
+
+@dataclass(frozen=True)
+class CampaignPolicy:
+    """Decision thresholds.  distinct_sigma: load masses closer than this many combined standard
+    uncertainties count as one; max_S_rel_std, poor_S_rel_std: relative standard uncertainty of S
+    (chain floor included) above which S and m_e are refused / flagged as poorly separated;
+    consistency_p_warn, consistency_p_refuse: p-values of the consistency tests (warning / refusal);
+    ident: the single-recording policy (its chain floor is used)."""
+
+    distinct_sigma: float = 3.0
+    max_S_rel_std: float = 0.01
+    poor_S_rel_std: float = 1e-3
+    consistency_p_warn: float = 1e-3
+    consistency_p_refuse: float = 1e-6
+    ident: Policy = field(default_factory=Policy)
+
+
+class CampaignRefused(BadInputError):
+    """The recordings cannot be identified jointly; ``checks`` say why."""
+
+    def __init__(self, message: str, checks: tuple[Finding, ...] = ()) -> None:
+        super().__init__(message)
+        self.checks = checks
+
+
+def _param(name: str, unit: str, value: float | None, std: float | None, reason: str = "",
+           flag: str = "") -> ParameterEstimate:
+    """ParameterEstimate with a flag ('poorly_determined', 'conditional') where the type has one."""
+    ok = value is not None
+    if "flag" in {f.name for f in fields(ParameterEstimate)}:
+        return ParameterEstimate(name, unit, value, std, ok, reason, flag)  # type: ignore[call-arg]
+    return ParameterEstimate(name, unit, value, std, ok, f"{flag}: {reason}" if flag else reason)
+
+
+def _load_mass(rec: Recording) -> jf.MassPrior:
+    cfg = rec.config if isinstance(rec.config, dict) else {}
+    rig = cfg.get("rig")
+    u = (rig if isinstance(rig, dict) else {}).get("load_mass_std_kg", cfg.get("top_mass_std_kg"))
+    m = float(rec.load_mass_kg)
+    return jf.MassPrior(m, float(u) if isinstance(u, int | float) else LOAD_MASS_REL_STD * m)
+
+
+def check_inputs(recs: list[Recording]) -> None:
+    """Refuse recordings that cannot be one transducer's campaign (different transducer ids or
+    nominal sensitivities, one run given twice)."""
+    if not recs:
+        raise BadInputError("a campaign needs at least one recording")
+    ids = {r.transducer_id for r in recs}
+    if len(ids) > 1:
+        per = ", ".join(f"{r.path.name}: {r.transducer_id!r}" for r in recs)
+        raise CampaignRefused(f"recordings of different transducers cannot be identified jointly: {per}",
+                              (Finding("same_transducer", "refused", "different transducer ids",
+                                       {"transducer_ids": sorted(ids)}),))
+    sens = np.array([r.sensitivity_V_per_N for r in recs])
+    if np.ptp(sens) > 1e-9 * np.max(np.abs(sens)):
+        per = ", ".join(f"{r.path.name}: {r.sensitivity_V_per_N:.6g} V/N" for r in recs)
+        raise CampaignRefused("the nominal sensitivity of the force signal (bridge x conditioner gain) "
+                              f"differs between the recordings, so one S cannot hold for all: {per}",
+                              (Finding("same_chain", "refused", "different nominal sensitivities",
+                                       {"sensitivity_V_per_N": sens.tolist()}),))
+    runs = [r.run_id for r in recs]
+    dup = sorted({x for x in runs if runs.count(x) > 1})
+    if dup:
+        raise CampaignRefused(f"run {', '.join(dup)} given more than once (it would count twice)")
+
+
+def _stated_end_mass(recs: list[Recording], checks: list[Finding]) -> jf.MassPrior | None:
+    vals = [r.end_mass_kg for r in recs if r.end_mass_kg is not None]
+    if not vals:
+        return None
+    if len(vals) < len(recs) or np.ptp(vals) > 1e-9 * max(map(abs, vals)):
+        checks.append(Finding("end_mass_stated", "warning", "the recordings state different end masses "
+                              f"({', '.join(f'{v:g}' for v in vals)} kg); their mean is used where one is "
+                              "assumed", {"end_mass_kg": [float(v) for v in vals]}))
+    m = float(np.mean(vals))
+    return jf.MassPrior(m, END_MASS_REL_STD * abs(m))
+
+
+def _distinct(priors: list[jf.MassPrior], k: float) -> int:
+    """Number of groups of load masses that differ by more than k combined standard uncertainties."""
+    ms = sorted(priors, key=lambda p: p.value)
+    groups = 1
+    for a, b in itertools.pairwise(ms):
+        if abs(b.value - a.value) > k * np.hypot(a.std, b.std) + 1e-12 * b.value:
+            groups += 1
+    return groups
+
+
+
+
+def _sign_of_S(frf: FrequencyResponse) -> float:
+    """Sign of S from the lowest step (well below the resonance H ~ -S M)."""
+    return float(np.sign(-frf.H[int(np.argmin(frf.f_hz))].real))
+
+
+def _determined(recs: list[Recording], priors: list[jf.MassPrior], own: list[FloatArray],
+                m_e: float) -> dict[str, Any]:
+    """What each recording determines whatever the end mass: S M (V/(m/s^2)) and the loaded natural
+    frequency f_0 = sqrt(k_f / M) / (2 pi) (Hz), from its own fit (invariant to the m_e held)."""
+    out: dict[str, Any] = {"S_M": [], "f_0": []}
+    for r, pr, o in zip(recs, priors, own, strict=True):
+        M = m_e + pr.value
+        out["S_M"].append({"run_id": r.run_id, "value": float(o[0] * M), "std": float(o[3] * M),
+                           "unit": "V/(m/s^2)"})
+        ok = o[1] > 0 and M > 0  # a fit gone wrong (e.g. a mistyped mass) has no natural frequency
+        f0 = float(np.sqrt(o[1] / M) / (2 * np.pi)) if ok else None
+        out["f_0"].append({"run_id": r.run_id, "value": f0, "std": float(f0 * o[4] / (2 * o[1])) if f0 else None,
+                           "unit": "Hz"})
+    return out
+
+
+def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = None) -> CampaignResult:
+    """Identify S, m_e, k_f, b_f jointly from recordings of one transducer with different top masses
+    (module docstring).  Raises CampaignRefused for recordings that cannot be one campaign."""
+    policy = policy or CampaignPolicy()
+    check_inputs(recs)
+    checks: list[Finding] = []
+    frfs, used = [], []
+    for r in recs:
+        frf, _sigs, skipped = measured_response(r)
+        checks += [Finding("step_left_out", "warning", n, recording=str(r.path)) for n in skipped]
+        frfs.append(frf)
+        used.append(tuple(st.index for st in r.steps if st.usable))
+    signs = {_sign_of_S(f) for f in frfs}
+    if len(signs) > 1:
+        raise CampaignRefused("the polarity of the force signal differs between the recordings (S changes "
+                              "sign): check the wiring or the conditioner setting before a joint fit")
+    priors = [_load_mass(r) for r in recs]
+    stated = _stated_end_mass(recs, checks)
+    n_distinct = _distinct(priors, policy.distinct_sigma)
+    th0 = jf.start_values(frfs, priors, stated.value if stated else 0.0)
+    sep: Finding
+    if n_distinct >= 2:
+        fit = jf.fit_joint(frfs, priors, th0)
+        sep = separation(frfs, priors, fit, policy)
+    else:
+        sep = Finding("end_mass_separation", "refused",
+                      f"{len(recs)} recording(s) with {n_distinct} distinct top mass: the data determine "
+                      "S (m_e + m_l) and the loaded natural frequency only, not S and m_e separately; "
+                      "record the transducer with at least two different top masses",
+                      {"load_masses_kg": [p.value for p in priors], "distinct": n_distinct})
+    checks.append(sep)
+    separated = sep.severity != "refused"
+    if not separated:
+        th0[1] = stated.value if stated else 0.0
+        fit = jf.fit_joint(frfs, priors, th0, free_m_e=False, m_e_prior=stated)
+    own = own_fits(frfs, priors, fit.theta)
+    cons = consistency(recs, own, policy)
+    if cons is not None and cons.severity != "info":
+        odd = odd_one_out(frfs, priors, recs, fit.theta)
+        if odd is not None:
+            cons = replace(cons, message=f"{cons.message}; without {odd[0]} the others fit with chi2/dof "
+                           f"{odd[1]:.3g}", values={**cons.values, "odd_one_out": odd[0],
+                                                     "chi2_per_dof_without": odd[1]})
+    if cons is not None:
+        checks.append(cons)
+    cov, budget = campaign_budget(frfs, priors, fit, separated, policy.ident, stated)
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    if separated:
+        checks += end_mass_plausibility(fit, float(sd[1]), stated, n_distinct)
+    notes: list[str] = []
+    if fit.inflated:
+        notes.append(f"chi2/dof = {fit.chi2_per_dof:.3g}: uncertainties inflated by sqrt(chi2/dof)")
+    refused_model = cons is not None and cons.severity == "refused"
+    if refused_model:
+        status = "refused"
+        params = tuple(_param(n, u, None, None, cons.message if cons else "") for n, u in zip(jf.NAMES, jf.UNITS,
+                                                                                            strict=True))
+    elif separated:
+        status = "separated"
+        flag = "poorly_determined" if sep.severity == "warning" else ""
+        params = tuple(_param(n, u, float(fit.theta[i]), float(sd[i]), sep.message if flag and i < 2 else "",
+                              flag if i < 2 else "") for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
+    elif stated is not None:
+        status = "conditional"
+        why = (f"given on the stated end mass m_e = {stated.value:g} kg (std {stated.std:.2g} kg, "
+               "propagated): the top masses do not separate S from m_e")
+        params = tuple(_param(n, u, None, None, sep.message) if i == 1 else
+                       _param(n, u, float(fit.theta[i]), float(sd[i]), why, "conditional")
+                       for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
+    else:
+        status = "refused"
+        why = sep.message + "; no end mass is stated, so S, k_f and b_f are not given (see determined)"
+        params = tuple(_param(n, u, None, None, why) for n, u in zip(jf.NAMES, jf.UNITS, strict=True))
+    if status == "refused":
+        cov = np.zeros((4, 4))
+        budget = {}
+    rows = tuple(CampaignRecording(str(r.path), r.run_id, pr.value, pr.std, float(fit.load_mass[k]),
+                                   float(fit.load_mass_std[k]), used[k],
+                                   (float(frfs[k].f_hz.min()), float(frfs[k].f_hz.max())),
+                                   float(fit.chi2_by_recording[k]), (float(own[k][0]), float(own[k][3])),
+                                   (float(own[k][1]), float(own[k][4])))
+                 for k, (r, pr) in enumerate(zip(recs, priors, strict=True)))
+    me = ({"value": float(fit.theta[1]), "std": float(sd[1]), "source": "campaign"} if status == "separated"
+          else {"value": stated.value, "std": stated.std, "source": "recording"} if stated else None)
+    assumptions = {"model": "Eq. 9 (stiff coupling), one S, m_e, k_f, b_f for every recording",
+                   "end_mass_kg": me,
+                   "load_mass_kg": [{"run_id": r.run_id, "value": p.value, "std": p.std} for r, p in zip(recs, priors,
+                                                                                                        strict=True)],
+                   "chain_floor": {"gain_rel": policy.ident.gain_floor,
+                                   "phase_deg": float(np.rad2deg(policy.ident.phase_floor_rad))}}
+    log.info("campaign of %d recordings: %s", len(recs), status)
+    return CampaignResult(status, recs[0].transducer_id, params, cov, rows, fit.chi2, fit.dof, fit.inflated,
+                          tuple(checks), budget, assumptions, _determined(recs, priors, own, float(fit.theta[1])),
+                          tuple(notes))

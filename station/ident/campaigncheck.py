@@ -1,0 +1,192 @@
+"""The named checks and the uncertainty budget of a multi-mass campaign (``campaign``).
+
+* ``end_mass_separation``: can the load masses separate S from m_e?  From the Fisher information of
+  (S, m_e, k_f, b_f) (``jointfit.fisher_relative``: load masses eliminated, the chain floor of
+  ``identifiability.floor_cov`` added to the covariance of H), the relative standard uncertainty of
+  S and the standard uncertainty of m_e at the estimate (they go together: S (m_e + m_l) is what one
+  mass fixes, so u(S)/S ~ u(m_e)/M).
+* ``same_transducer_model``: S and k_f of each recording's own Eq. 9 fit, m_e held at the campaign's,
+  must agree (chi^2 about the weighted mean, chi^2 distribution's p-value).
+* ``campaign_budget``: noise, load masses, end mass (conditional case), chain floor.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+from station.ident import jointfit as jf
+from station.ident.campaignresult import Finding
+from station.ident.frf import FrequencyResponse, fit_frf
+from station.ident.identifiability import Policy, floor_cov
+from station.ident.models import SdofModel
+from station.recording import Recording
+
+if TYPE_CHECKING:
+    from station.ident.campaign import CampaignPolicy
+
+FloatArray = NDArray[np.float64]
+
+
+def own_fits(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], theta: FloatArray) -> list[FloatArray]:
+    """Per recording (S, k_f, b_f, std S, std k_f) of its own Eq. 9 fit with m_e held at theta[1]; the
+    standard uncertainties include the recording's load-mass uncertainty (S, k_f scale with 1/M, M)."""
+    out = []
+    for frf, pr in zip(frfs, priors, strict=True):
+        model = SdofModel(float(theta[1]), pr.value)
+        th0 = np.array([theta[0], theta[2], theta[3]])
+        fit = fit_frf(frf, model, th0, inflate=False)
+        sd = np.sqrt(np.clip(np.diag(fit.cov), 0, None))
+        rel_m = pr.std / model.M  # a load-mass error scales this recording's S and k_f (not the others')
+        out.append(np.r_[fit.theta, np.hypot(sd[:2], rel_m * np.abs(fit.theta[:2]))])
+    return out
+
+
+def _homogeneity(vals: FloatArray, sds: FloatArray) -> tuple[float, int, float]:
+    """chi^2 of values about their weighted mean, dof, p-value."""
+    w = 1.0 / sds**2
+    mean = float(np.sum(w * vals) / np.sum(w))
+    chi2 = float(np.sum(w * (vals - mean) ** 2))
+    dof = vals.size - 1
+    return chi2, dof, float(stats.chi2.sf(chi2, dof)) if dof else 1.0
+
+
+def consistency(recs: list[Recording], own: list[FloatArray], policy: CampaignPolicy) -> Finding | None:
+    if len(own) < 2:
+        return None
+    o = np.array(own)
+    res = {}
+    for name, i, j in (("S", 0, 3), ("k_f", 1, 4)):
+        res[name] = _homogeneity(o[:, i], np.maximum(o[:, j], 1e-300))
+    p = min(r[2] for r in res.values())
+    vals: dict[str, Any] = {f"{n}_chi2": r[0] for n, r in res.items()} | {f"{n}_p": r[2] for n, r in res.items()}
+    vals |= {"dof": res["S"][1], "S_per_recording": o[:, 0].tolist(), "k_f_per_recording": o[:, 1].tolist()}
+    txt = "; ".join(f"{n} chi2 {r[0]:.3g} on {r[1]} dof (p {r[2]:.2g})" for n, r in res.items())
+    if p >= policy.consistency_p_warn:
+        return Finding("same_transducer_model", "info", f"one Eq. 9 transducer explains every top mass: {txt}",
+                       vals)
+    sev = "refused" if p < policy.consistency_p_refuse else "warning"
+    return Finding("same_transducer_model", sev,
+                   f"S and k_f of the recordings' own fits disagree beyond their uncertainties ({txt}); the "
+                   "recordings are not one Eq. 9 transducer with these top masses (a mistyped top mass, a "
+                   "changed set-up?)", vals)
+
+
+def campaign_budget(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], fit: jf.JointFit, separated: bool,
+            policy: Policy, m_e_prior: jf.MassPrior | None) -> tuple[FloatArray, dict[str, Any]]:
+    """Covariance (4, 4) of (S, m_e, k_f, b_f) and the GUM budget per parameter: the Fisher information
+    built up term by term (noise of H; + load-mass priors; + end-mass prior when conditional; + the
+    chain floor of ``identifiability.floor_cov``), each contribution the square root of the variance
+    it adds.  Scaled by the Birge ratio when the fit was inflated."""
+    scale = np.r_[fit.scale, [max(p.value, 1e-3) for p in priors]]
+    p = np.r_[fit.theta, fit.load_mass]
+    exact = [jf.MassPrior(pr.value, 0.0) for pr in priors]
+    floors = [floor_cov(f, policy) for f in frfs]
+    birge = fit.chi2_per_dof if fit.inflated else 1.0
+    stages: list[tuple[str, list[jf.MassPrior], list[FloatArray] | None, bool]] = [
+        ("noise", exact, None, False), ("top_mass", priors, None, False)]
+    if not separated and m_e_prior is not None:
+        stages.append(("end_mass", priors, None, True))
+    stages.append(("chain_floor", priors, floors, True))
+    var, cov = [], np.zeros((4, 4))
+    for _name, prs, cv, with_me in stages:
+        F = jf.fisher_relative(frfs, prs, p, scale, cv)
+        free = np.ones(4, bool)
+        if not separated:
+            if with_me and m_e_prior is not None and m_e_prior.std > 0:
+                F[1, 1] += (scale[1] / m_e_prior.std) ** 2
+            else:
+                free[1] = False
+        cov = np.zeros((4, 4))
+        cov[np.ix_(free, free)] = np.linalg.pinv(F[np.ix_(free, free)]) * birge
+        cov *= np.outer(fit.scale, fit.scale)
+        var.append(np.diag(cov).copy())
+    budget: dict[str, Any] = {}
+    for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)):
+        if i == 1 and not separated:
+            continue
+        contrib = {st[0]: float(np.sqrt(max(var[k][i] - (var[k - 1][i] if k else 0.0), 0.0)))
+                   for k, st in enumerate(stages)}
+        budget[n] = {"contributions": contrib, "combined": float(np.sqrt(max(var[-1][i], 0.0))), "unit": u}
+    if not separated:
+        cov[1, :] = cov[:, 1] = 0.0
+    return cov, budget
+
+
+def separation(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], fit: jf.JointFit,
+               policy: CampaignPolicy) -> Finding:
+    """``end_mass_separation`` at the estimate of a joint fit with m_e free (module docstring)."""
+    scale = np.r_[fit.scale, [max(p.value, 1e-3) for p in priors]]
+    p = np.r_[fit.theta, fit.load_mass]
+    F = jf.fisher_relative(frfs, priors, p, scale, [floor_cov(f, policy.ident) for f in frfs])
+    birge = fit.chi2_per_dof if fit.inflated else 1.0
+    C = np.linalg.pinv(F) * birge
+    sd = np.sqrt(np.clip(np.diag(C), 0, None))
+    ev = np.linalg.eigvalsh(F)
+    cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
+    rel_S, u_me = float(sd[0]), float(sd[1] * scale[1])
+    corr = float(C[0, 1] / (sd[0] * sd[1])) if sd[0] * sd[1] > 0 else float("nan")
+    ms = [pr.value for pr in priors]
+    spread = float(np.ptp(ms))
+    needed = spread * rel_S / policy.poor_S_rel_std  # u(S) scales as 1 / (mass spread)
+    vals = {"load_masses_kg": ms, "mass_spread_kg": spread, "S_rel_std": rel_S, "m_e_std_kg": u_me,
+            "S_m_e_correlation": corr, "condition_number": cond, "max_S_rel_std": policy.max_S_rel_std,
+            "poor_S_rel_std": policy.poor_S_rel_std, "spread_needed_kg": needed}
+    txt = (f"load masses {', '.join(f'{m:.6g}' for m in ms)} kg (spread {spread:.3g} kg) determine S to "
+           f"{rel_S:.2g} (relative) and m_e to {u_me:.2g} kg, chain floor included (S-m_e correlation "
+           f"{corr:.4f}, condition number {cond:.3g})")
+    if rel_S > policy.max_S_rel_std:
+        return Finding("end_mass_separation", "refused",
+                       f"the top masses are too alike to separate S from m_e: {txt}; a spread of about "
+                       f"{needed:.3g} kg would give S to {policy.poor_S_rel_std:g}", vals)
+    if rel_S > policy.poor_S_rel_std:
+        return Finding("end_mass_separation", "warning",
+                       f"S and m_e are separated, but poorly: {txt}; a spread of about {needed:.3g} kg would "
+                       f"give S to {policy.poor_S_rel_std:g}", vals)
+    return Finding("end_mass_separation", "info", f"S and m_e separated: {txt}", vals)
+
+
+def odd_one_out(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], recs: list[Recording],
+                theta: FloatArray) -> tuple[str, float] | None:
+    """The recording whose removal lowers the joint chi^2/dof most (leave one out), and that chi^2/dof;
+    None with fewer than four recordings: G_r = S M_r and w_r^2 = k_f / M_r fix the M_r up to one
+    scale, so two recordings fit any two stated masses and a mistyped mass shows only from three on,
+    and which one it is only from four on."""
+    if len(frfs) < 4:
+        return None
+    best: tuple[str, float] | None = None
+    for k in range(len(frfs)):
+        fk = [f for i, f in enumerate(frfs) if i != k]
+        pk = [p for i, p in enumerate(priors) if i != k]
+        if np.ptp([p.value for p in pk]) <= 0:
+            continue
+        fit = jf.fit_joint(fk, pk, jf.start_values(fk, pk, float(theta[1])))
+        if best is None or fit.chi2_per_dof < best[1]:
+            best = (recs[k].path.name, fit.chi2_per_dof)
+    return best
+
+
+def end_mass_plausibility(fit: jf.JointFit, std_m_e: float, stated: jf.MassPrior | None,
+                          n_distinct: int) -> list[Finding]:
+    """Checks of a separated m_e: not negative, consistent with a stated end mass, and whether the
+    masses check each other (with two distinct masses any error of theirs goes into m_e)."""
+    out = []
+    m_e = float(fit.theta[1])
+    if m_e < -3 * std_m_e:
+        out.append(Finding("end_mass_negative", "warning", f"the campaign's end mass {m_e:.4g} kg (std "
+                           f"{std_m_e:.2g}) is negative: a stated top mass is likely wrong",
+                           {"m_e_kg": m_e, "std_kg": std_m_e}))
+    if stated is not None:
+        z = (m_e - stated.value) / float(np.hypot(std_m_e, stated.std))
+        sev = "warning" if abs(z) > 3 else "info"
+        out.append(Finding("end_mass_stated", sev, f"the campaign's end mass {m_e:.4g} kg (std {std_m_e:.2g}) "
+                           f"{'differs from' if sev == 'warning' else 'agrees with'} the stated {stated.value:g} kg "
+                           f"(std {stated.std:.2g}): z = {z:.2f}", {"z": float(z), "stated_kg": stated.value}))
+    if n_distinct == 2:
+        out.append(Finding("mass_redundancy", "info", "two distinct top masses: they fix S and m_e exactly, so an "
+                           "error of a stated top mass goes into m_e unseen; a third mass would check them",
+                           {"distinct": n_distinct}))
+    return out

@@ -1,0 +1,166 @@
+"""Multi-mass campaign (station.ident.campaign) on recordings made by the project's simulator
+(station.simulate): the truth is the configuration, not the code under test."""
+
+from __future__ import annotations
+
+import copy
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from station.cli import main
+from station.config import default_config_path, parse_config
+from station.ident.campaign import CampaignRefused, identify_campaign
+from station.recording import read_recording, read_results
+from station.simulate import simulate_run
+
+END_MASS = 0.12
+TRUTH = {"S": 2.0e-6 * 1000.0, "m_e": END_MASS, "k_f": 2.91e7, "b_f": 17136.0}  # bridge x conditioner gain
+
+
+def _cfg(top_mass_kg: float, transducer_id: str = "TX5K-0001") -> object:
+    d = copy.deepcopy(yaml.safe_load(default_config_path().read_text(encoding="utf-8")))
+    d["plan"].update(settle_s=0.2, record_s=0.5, steps=[
+        {"crank_frequency_hz": f, "crank_radius_m": r} for f, r in ((4.0, 0.01), (20.0, 0.002), (50.0, 6e-4),
+                                                                    (100.0, 1.5e-4))])
+    d["rig"].update(acceleration_hz_per_s=200.0, top_mass_kg=top_mass_kg)
+    d["transducer"].update(end_mass_kg=END_MASS, id=transducer_id)
+    d["simulation"].update(pre_roll_s=0.1, effects={})
+    return parse_config(d)
+
+
+def _sim(tmp: Path, top_masses: tuple[float, ...], seed: int) -> list[Path]:
+    return [simulate_run(_cfg(m), tmp, seed=seed + i) for i, m in enumerate(top_masses)]
+
+
+@pytest.fixture(scope="module")
+def three(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    return _sim(tmp_path_factory.mktemp("three"), (5.0, 15.0, 25.717), seed=21)
+
+
+@pytest.fixture(scope="module")
+def alike(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    return _sim(tmp_path_factory.mktemp("alike"), (25.717, 25.9), seed=31)
+
+
+def test_three_top_masses_recover_the_end_mass_within_its_uncertainty(three: list[Path]) -> None:
+    res = identify_campaign([read_recording(p) for p in three])
+    assert res.status == "separated"
+    sep = next(c for c in res.checks if c.name == "end_mass_separation")
+    assert sep.severity == "info"
+    for name, truth in TRUTH.items():
+        p = res.parameter(name)
+        assert p.identifiable and p.value is not None and p.std is not None and p.std > 0
+        z = (p.value - truth) / p.std
+        assert abs(z) < 3, (name, p.value, p.std, z)
+    # the uncertainty is small enough for the end mass to mean something (not a vacuous pass)
+    assert res.parameter("m_e").std < 0.01 * END_MASS * 10
+    assert res.cov.shape == (4, 4) and np.allclose(res.cov, res.cov.T)
+    assert np.allclose(np.sqrt(np.diag(res.cov)), [res.parameter(n).std for n in TRUTH])
+    for n in TRUTH:  # the budget's combined value is the reported uncertainty
+        assert res.budget[n]["combined"] == pytest.approx(res.parameter(n).std)
+    cons = next(c for c in res.checks if c.name == "same_transducer_model")
+    assert cons.severity == "info"
+    assert 0.2 < res.chi2_per_dof < 3
+
+
+def test_nearly_equal_top_masses_are_too_alike(alike: list[Path]) -> None:
+    res = identify_campaign([read_recording(p) for p in alike])
+    sep = next(c for c in res.checks if c.name == "end_mass_separation")
+    assert sep.severity == "refused" and "too alike" in sep.message
+    assert res.status == "conditional"
+    assert res.parameter("m_e").value is None
+    S = res.parameter("S")  # conditional on the stated (here true) end mass, with its 5 % propagated
+    assert S.value is not None and S.std is not None and abs(S.value - TRUTH["S"]) < 3 * S.std
+    assert "end_mass" in res.budget["S"]["contributions"]
+
+
+def test_too_alike_without_a_stated_end_mass_is_refused(alike: list[Path]) -> None:
+    recs = [replace(read_recording(p), end_mass_kg=None) for p in alike]
+    res = identify_campaign(recs)
+    assert res.status == "refused"
+    assert all(p.value is None and p.reason for p in res.parameters)
+    sm = res.determined["S_M"]  # what the data do determine: S (m_e + m_l) per recording
+    for r, d in zip(recs, sm, strict=True):
+        truth = TRUTH["S"] * (END_MASS + r.load_mass_kg)
+        assert abs(d["value"] - truth) < 4 * d["std"] + 2e-4 * truth
+
+
+def test_one_recording_is_conditional_or_refused(three: list[Path]) -> None:
+    rec = read_recording(three[2])
+    res = identify_campaign([rec])
+    assert res.status == "conditional" and res.parameter("m_e").value is None
+    assert "distinct" in next(c for c in res.checks if c.name == "end_mass_separation").message
+    assert identify_campaign([replace(rec, end_mass_kg=None)]).status == "refused"
+
+
+def test_recordings_of_different_transducers_are_refused(three: list[Path]) -> None:
+    recs = [read_recording(p) for p in three]
+    recs[1] = replace(recs[1], transducer_id="TX5K-0002")
+    with pytest.raises(CampaignRefused, match="different transducers"):
+        identify_campaign(recs)
+    recs[1] = replace(recs[1], transducer_id=recs[0].transducer_id, sensitivity_V_per_N=1e-3)
+    with pytest.raises(CampaignRefused, match="nominal sensitivity"):
+        identify_campaign(recs)
+
+
+def test_a_mistyped_top_mass_is_not_a_confident_number(three: list[Path]) -> None:
+    recs = [read_recording(p) for p in three]
+    recs[0] = replace(recs[0], load_mass_kg=recs[0].load_mass_kg * 1.02)  # 2 % typo
+    res = identify_campaign(recs)
+    cons = next(c for c in res.checks if c.name == "same_transducer_model")
+    assert cons.severity == "refused"
+    assert res.status == "refused" and all(p.value is None for p in res.parameters)
+
+
+def test_with_four_masses_the_mistyped_one_is_named(three: list[Path], tmp_path: Path) -> None:
+    recs = [read_recording(p) for p in [*three, *_sim(tmp_path, (10.0,), seed=41)]]
+    recs[2] = replace(recs[2], load_mass_kg=recs[2].load_mass_kg * 1.01)
+    cons = next(c for c in identify_campaign(recs).checks if c.name == "same_transducer_model")
+    assert cons.severity == "refused" and cons.values["odd_one_out"] == recs[2].path.name
+    assert cons.values["chi2_per_dof_without"] < 3
+
+
+def test_two_masses_fit_any_stated_masses_but_the_stated_end_mass_catches_a_typo(three: list[Path]) -> None:
+    recs = [read_recording(p) for p in three[1:]]
+    recs[0] = replace(recs[0], load_mass_kg=recs[0].load_mass_kg + 0.5)  # 15.45 typed as 15.95 kg
+    res = identify_campaign(recs)
+    names = {c.name: c for c in res.checks}
+    assert names["mass_redundancy"].severity == "info"
+    assert names["end_mass_stated"].severity == "warning"  # the stated 0.12 kg against about -0.75 kg
+    assert "end_mass_negative" in names
+
+
+def test_polarity_is_kept_and_a_mixed_polarity_refused(three: list[Path]) -> None:
+    recs = [read_recording(p) for p in three]
+    flipped = [replace(r, force_V=-r.force_V) for r in recs]
+    res = identify_campaign(flipped)
+    S = res.parameter("S")
+    assert res.status == "separated" and S.value is not None and S.std is not None
+    assert abs(S.value + TRUTH["S"]) < 3 * S.std
+    with pytest.raises(CampaignRefused, match="polarity"):
+        identify_campaign([flipped[0], *recs[1:]])
+
+
+@pytest.mark.slow
+def test_cli_identifies_jointly_and_stores_in_every_recording(three: list[Path], tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    copies = []
+    for p in three:
+        q = tmp_path / p.name
+        q.write_bytes(p.read_bytes())
+        copies.append(q)
+    assert main(["identify", *map(str, copies), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["kind"] == "campaign" and out["status"] == "separated"
+    assert out["covariance"]["names"] == ["S", "m_e", "k_f", "b_f"]
+    assert {c["name"] for c in out["checks"]} >= {"end_mass_separation", "same_transducer_model"}
+    for q in copies:
+        stored = read_results(q, "campaign")
+        assert stored["parameters"]["m_e"]["value"] == out["parameters"]["m_e"]["value"]
+    assert main(["identify", str(copies[0]), str(copies[0]), "--no-write"]) == 2
+    assert "more than once" in capsys.readouterr().err
