@@ -11,6 +11,7 @@ from typing import Annotated, Any
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from sinecal_config import config_file
 
 from drivers.rig import params as rp
 from station.errors import ConfigError
@@ -312,8 +313,8 @@ def config_to_yaml(cfg: StationConfig) -> str:
 
 
 def default_config_path() -> Path:
-    """config/sim-5kN.yaml of the source tree (the station's default)."""
-    return Path(__file__).resolve().parent.parent / "config" / "sim-5kN.yaml"
+    """The shipped ``config/sim-5kN.yaml`` (the station's default)."""
+    return config_file("sim-5kN.yaml")
 
 
 def to_rig_physics(cfg: StationConfig) -> rp.RigPhysics:

@@ -102,14 +102,15 @@ def noise_study(seed: int, n_iter: int | None) -> dict[str, Any]:
 
 def section5(out: Path, seeds: list[int], quick: bool) -> dict[str, Any]:
     """Section 5 protocol on simulated 5 kN and 12.5 kN transducers, plus our estimators."""
+    from sinecal_config import config_file
+
     from station.config import load_config
     from station.simulate import simulate_run
 
-    root = Path(__file__).resolve().parents[1] / "config"
     res: dict[str, Any] = {}
     for name, cfgfile, cases in (("5kN", "sim-5kN.yaml", ("III", "IV")),
                                  ("12.5kN", "sim-12k5N.yaml", ("V", "VI"))):
-        cfg = load_config(root / cfgfile)
+        cfg = load_config(config_file(cfgfile))
         path = simulate_run(cfg, out / "sim", seed=seeds[0])
         rec = read_recording(path)
         truth = cfg.simulation.truth if cfg.simulation else None

@@ -66,8 +66,18 @@ def test_shipped_station_configs_load_with_their_values(path: Path) -> None:
 
 
 def test_default_config_path_is_the_5kN_simulation() -> None:
-    assert default_config_path() == CONFIG_DIR / "sim-5kN.yaml"
+    # found through the installed data package (in a worktree run that may be another checkout's config/)
+    assert default_config_path().name == "sim-5kN.yaml"
     assert load_config(default_config_path()).transducer.capacity_N == 5000
+
+
+def test_every_config_file_is_shipped() -> None:
+    from sinecal_config import config_file
+
+    for p in CONFIG_DIR.glob("*.yaml"):
+        assert config_file(p.name).is_file()
+    with pytest.raises(FileNotFoundError, match=r"'nope.yaml' is not among .*sim-5kN.yaml"):
+        config_file("nope.yaml")
 
 
 def test_defaults_fill_optional_sections(base_config_dict: dict[str, Any]) -> None:

@@ -1,4 +1,5 @@
-"""The motor-controller register map: loaded once from ``config/motor_registers.yaml``.
+"""The motor-controller register map: loaded once from ``config/motor_registers.yaml``
+(shipped as ``sinecal_config``).
 
 Both the driver and the emulator use :class:`RegisterMap`; nothing else declares an address,
 a type or a scaling.  Physical value = raw * scale + offset, in the register's ``unit``.
@@ -13,10 +14,11 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from sinecal_config import config_file
 
 from drivers.motor.errors import MotorValueError, RegisterMapError
 
-DEFAULT_REGISTER_MAP_PATH = Path(__file__).resolve().parents[2] / "config" / "motor_registers.yaml"
+DEFAULT_REGISTER_MAP_PATH = config_file("motor_registers.yaml")
 
 # type name -> (number of 16-bit words, signed)
 _TYPES: dict[str, tuple[int, bool]] = {

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from sinecal_config import config_file
 
 from drivers.rig.model import spring_force_per_acceleration
 from station.config import StationConfig, load_config, parse_config, to_rig_physics
@@ -83,8 +84,7 @@ def scenario_config(effects: dict[str, dict[str, Any]], *, transducer: str = "5k
                     noise: bool = True) -> StationConfig:
     """A simulated-station configuration with the given effects and a short stepped-sine plan
     (``noise=False``: no sensor or conditioner noise, only the ADC's quantisation)."""
-    root = Path(__file__).resolve().parents[2] / "config"
-    cfg = load_config(root / CONFIGS[transducer])
+    cfg = load_config(config_file(CONFIGS[transducer]))
     d = cfg.model_dump(exclude_none=True)
     d["rig"]["acceleration_hz_per_s"] = 100.0
     d["simulation"]["effects"] = effects
