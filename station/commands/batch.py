@@ -9,12 +9,9 @@ import logging
 import sys
 from pathlib import Path
 
-from station.batch.runner import run_batch
-from station.batch.scope import parse_when, select_recordings
 from station.batch.summary import K_DEFAULT, MIN_HISTORY, PARAMS, write_summaries
-from station.config import default_config_path, load_config
 from station.errors import BadInputError
-from station.ident.api import METHODS, MODELS
+from station.ident.names import METHODS, MODELS
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +44,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from station.batch.runner import run_batch
+    from station.batch.scope import parse_when, select_recordings
+    from station.config import default_config_path, load_config
+
     if args.workers < 1:
         raise BadInputError(f"--workers: at least 1 expected, got {args.workers}")
     if not args.k > 0 or args.min_history < 1:

@@ -8,13 +8,12 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from station.commands.identify import format_text
-from station.config import default_config_path, load_config
 from station.errors import BadInputError
-from station.run.calibrate import run_and_identify
-from station.run.procedure import Progress
-from station.run.request import default_request
+
+if TYPE_CHECKING:
+    from station.run.procedure import Progress
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -64,6 +63,11 @@ class _Bar:
 
 
 def run(args: argparse.Namespace) -> int:
+    from station.commands.identify import format_text
+    from station.config import default_config_path, load_config
+    from station.run.calibrate import run_and_identify
+    from station.run.request import default_request
+
     cfg = load_config(args.config or default_config_path())
     if not args.sim and cfg.simulation is not None:
         print("note: the configuration has a simulation section but --sim was not given; "

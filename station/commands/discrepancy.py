@@ -5,12 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from station.discrepancy import analyse_recording
-from station.discrepancy.plot import plot_report
-from station.discrepancy.report import DiscrepancyReport, Estimate
-from station.discrepancy.workflow import gap_table
-from station.recording import write_results
+if TYPE_CHECKING:
+    from station.discrepancy.report import DiscrepancyReport, Estimate
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,6 +31,8 @@ def _est(e: Estimate) -> str:
 
 def text_report(rep: DiscrepancyReport) -> str:
     """Human-readable summary: gaps, named effects with parameters, before/after, what is left."""
+    from station.discrepancy.workflow import gap_table
+
     lines = [f"recording {rep.recording}",
              f"noise floor {rep.noise_floor_V:.4g} V; gap {rep.base_gap:.4g} V -> {rep.final_gap:.4g} V"]
     if rep.base_findings:
@@ -64,6 +64,10 @@ def text_report(rep: DiscrepancyReport) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from station.discrepancy import analyse_recording
+    from station.discrepancy.plot import plot_report
+    from station.recording import write_results
+
     rep = analyse_recording(args.recording, max_effects=args.max_effects)
     if not args.no_plot:
         png = args.plot or args.recording.with_name(args.recording.name + ".discrepancy.png")

@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from station.errors import BadInputError
-from station.ident.api import METHODS, MODELS, identify_recording, store_result
-from station.ident.checks import IdentificationRefused
-from station.ident.result import IdentificationResult
-from station.recording import read_recording
+from station.ident.names import METHODS, MODELS
+
+if TYPE_CHECKING:
+    from station.ident.result import IdentificationResult
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -62,12 +63,17 @@ def format_text(res: IdentificationResult) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from station.ident.api import identify_recording, store_result
+    from station.ident.checks import IdentificationRefused
+    from station.recording import read_recording
+
     if args.more:
         from station.commands.campaign import run_campaign
 
         if args.method not in (None, "fd") or args.model not in (None, "sdof", "h2"):
             raise BadInputError("a campaign of several recordings is identified with --method fd, --model sdof")
         return run_campaign([args.recording, *args.more], as_json=args.json, write=not args.no_write)
+
     if not args.recording.exists():
         raise BadInputError(f"{args.recording}: no such recording")
     rec = read_recording(args.recording)

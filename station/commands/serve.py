@@ -6,12 +6,6 @@ import argparse
 import asyncio
 import logging
 from pathlib import Path
-from types import FrameType
-
-import uvicorn
-
-from station.api import create_app
-from station.service.settings import TOKEN_ENV, ServiceSettings, is_loopback, load_settings
 
 log = logging.getLogger("station.serve")
 
@@ -28,31 +22,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run)
 
 
-class _Server(uvicorn.Server):
-    """uvicorn, plus: a shutdown signal stops the run on the rig at once (before open connections
-    drain), and the address is logged once the socket is bound."""
-
-    def __init__(self, config: uvicorn.Config, settings: ServiceSettings) -> None:
-        super().__init__(config)
-        self.settings = settings
-
-    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
-        manager = getattr(self.config.app.state, "manager", None) if hasattr(self.config.app, "state") else None
-        if manager is not None:
-            manager.begin_shutdown()
-        super().handle_exit(sig, frame)
-
-    async def startup(self, sockets: list | None = None) -> None:  # type: ignore[type-arg]
-        await super().startup(sockets)
-        for server in self.servers:
-            for sock in server.sockets:
-                host, port = sock.getsockname()[:2]
-                shown = f"[{host}]" if ":" in host else host
-                log.info("station daemon ready: open http://%s:%d/ (API docs: /docs); rig: %s", shown, port,
-                         "simulated" if self.settings.sim else "real devices")
-
-
 def run(args: argparse.Namespace) -> int:
+    import uvicorn  # here, not at the top: ``station --help`` needs none of the daemon's imports
+
+    from station.api import create_app
+    from station.commands.server import StationServer
+    from station.service.settings import TOKEN_ENV, is_loopback, load_settings
+
     settings = load_settings(args.config, sim=args.sim, host=args.host, port=args.port, workers=args.workers)
     if settings.token_source == "generated":
         log.warning("no token configured (%s or service.token): this session's token is %s", TOKEN_ENV,
@@ -65,5 +41,5 @@ def run(args: argparse.Namespace) -> int:
     app = create_app(settings)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_config=None,
                             access_log=args.access_log, timeout_graceful_shutdown=5, lifespan="on")
-    asyncio.run(_Server(config, settings).serve())
+    asyncio.run(StationServer(config, settings).serve())
     return 0

@@ -6,9 +6,6 @@ import argparse
 import threading
 from pathlib import Path
 
-from drivers.rig.presets import paper_5kN_physics
-from drivers.sim.rig import SimRig
-
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sim-rig", help="run the simulated rig: Modbus motor controller + DAQ bridge on ptys")
@@ -22,6 +19,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from drivers.rig.presets import paper_5kN_physics
+    from drivers.sim.rig import SimRig
+
     physics = paper_5kN_physics()
     radius = 0.01
     if args.config is not None:

@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from station.config import default_config_path, load_config
 from station.errors import BadInputError
-from station.simulate import simulate_run
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,6 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from station.config import default_config_path, load_config
+    from station.simulate import simulate_run
+
     if args.seed is not None and args.seed < 0:
         raise BadInputError(f"--seed: a non-negative integer expected, got {args.seed}")
     cfg = load_config(args.config or default_config_path())

@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from station.interchange import export_run, import_run
-
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("import", help="turn a run recorded elsewhere (RUN.yaml + CSV) into a recording")
@@ -20,10 +18,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _import(args: argparse.Namespace) -> int:
+    from station.interchange import import_run
+
     print(import_run(args.run_yaml, args.out))
     return 0
 
 
 def _export(args: argparse.Namespace) -> int:
+    from station.interchange import export_run
+
     print(export_run(args.recording, args.out))
     return 0

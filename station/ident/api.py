@@ -24,8 +24,8 @@ from station.ident.fdident import identify_fd
 from station.ident.identifiability import Policy
 from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.models import Model, SdofModel, make_model
+from station.ident.names import METHODS, MODELS
 from station.ident.oe import fit_oe
-from station.ident.paperfit import identify_paper_method
 from station.ident.protocol import PaperProtocol
 from station.ident.result import FitSummary, IdentificationResult, ParameterEstimate
 from station.ident.steps import checked_response, measured_response
@@ -45,8 +45,6 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
-METHODS = ("fd", "oe", "pso", "pso+", "rls")
-MODELS = ("sdof", "coupled", "h1", "h2")
 log = logging.getLogger(__name__)
 DEFAULT_POLICY = Policy()
 DEFAULT_PROTOCOL = PaperProtocol()
@@ -136,6 +134,8 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     if method == "rls" and form != "h2":
         raise BadInputError("RLS (Eq. 17) is defined for H2 (Eq. 11) only")
     inputs = inputs_for(rec)
+    from station.ident.paperfit import identify_paper_method  # scipy.signal: only for the paper's methods
+
     res = identify_paper_method(rec, method, form, model_for(rec, form, inputs), seed=seed, protocol=protocol,
                                 policy=policy)
     return replace(res, assumptions=inputs.to_dict())

@@ -15,7 +15,6 @@ from fractions import Fraction
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import lfilter, resample_poly
 
 from station.errors import BadInputError
 from station.recording import Recording, Step
@@ -64,6 +63,8 @@ def pick_step(rec: Recording, index: int | None) -> Step:
 
 def paper_data(rec: Recording, protocol: PaperProtocol = PaperProtocol()) -> PaperData:
     """Filter, resample and cut one step as in Section 5.1."""
+    from scipy.signal import resample_poly  # here: the default identification needs no scipy.signal
+
     st = pick_step(rec, protocol.step_index)
     x, u = rec.step_signals(st)
     ratio = Fraction(protocol.resample_hz / rec.sample_rate_hz).limit_denominator(1000)
@@ -84,6 +85,8 @@ def paper_data(rec: Recording, protocol: PaperProtocol = PaperProtocol()) -> Pap
 
 def testing_mse(b: FloatArray, a: FloatArray, data: PaperData) -> float:
     """Testing MSE (Tables 2, 3): the identified model run on the test input from rest."""
+    from scipy.signal import lfilter
+
     with np.errstate(all="ignore"):
         e = lfilter(b, a, data.x_test) - data.y_test
         v = float(np.mean(e**2))
