@@ -87,6 +87,7 @@ def test_web_page_and_assets_are_served(daemon: Daemon) -> None:
 
 
 # ---------------------------------------------------------------------------------------- a whole run
+@pytest.mark.slow
 def test_run_goes_through_its_states_live(completed: dict) -> None:
     names = [n for n, _ in completed["events"]]
     states = [d["state"] for _, d in completed["events"]]
@@ -105,6 +106,7 @@ def test_run_goes_through_its_states_live(completed: dict) -> None:
     assert st["steps"][0]["record_s"] == 0.5  # defaulted from the configured plan
 
 
+@pytest.mark.slow
 def test_runs_list_and_state_filter(daemon: Daemon, completed: dict) -> None:
     c = anon(daemon)
     runs = c.get("/runs").json()
@@ -116,6 +118,7 @@ def test_runs_list_and_state_filter(daemon: Daemon, completed: dict) -> None:
     assert c.get("/runs", params={"limit": 0}).status_code == 422
 
 
+@pytest.mark.slow
 def test_results_have_parameters_with_uncertainties_and_frf(daemon: Daemon, completed: dict) -> None:
     res = anon(daemon).get(f"/runs/{completed['id']}/results").json()
     params = {p["name"]: p for p in res["parameters"]}
@@ -132,6 +135,7 @@ def test_results_have_parameters_with_uncertainties_and_frf(daemon: Daemon, comp
     assert res["discrepancy"] == f"/runs/{completed['id']}/discrepancy"
 
 
+@pytest.mark.slow
 def test_plots_report_recording_and_discrepancy(daemon: Daemon, completed: dict) -> None:
     c, rid = anon(daemon), completed["id"]
     res = c.get(f"/runs/{rid}/results").json()
@@ -173,6 +177,7 @@ def test_plots_report_recording_and_discrepancy(daemon: Daemon, completed: dict)
 
 
 # ---------------------------------------------------------------------------------------- errors
+@pytest.mark.slow
 def test_writes_need_the_token(daemon: Daemon, completed: dict) -> None:
     c = anon(daemon)
     r = c.post("/runs", json=run_body())
@@ -231,6 +236,7 @@ def test_unknown_runs_are_404_and_bad_ids_422(daemon: Daemon) -> None:
         assert r.status_code in (404, 422), (evil, r.status_code)
 
 
+@pytest.mark.slow
 def test_busy_rig_409_abort_and_results_states(daemon: Daemon, completed: dict) -> None:
     c = daemon.c()
     rid = daemon.start_run(freqs=(10.0,), record_s=30.0)
@@ -261,6 +267,7 @@ def test_busy_rig_409_abort_and_results_states(daemon: Daemon, completed: dict) 
     daemon.wait_state(rid2)
 
 
+@pytest.mark.slow
 def test_emergency_stop_is_always_accepted(daemon: Daemon, tmp_path: Path) -> None:
     c = anon(daemon)  # no token: stopping is never refused
     r = c.post("/stop")

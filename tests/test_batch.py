@@ -127,6 +127,7 @@ def test_run_batch_stores_results_when_asked(history: dict, tmp_path: Path) -> N
     assert stored is not None and stored["parameters"] == it.parameters
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_gives_the_local_pool_results(history: dict) -> None:
     distributed = pytest.importorskip("distributed")
     paths = [*history["stable"][:4], history["drifted"]]

@@ -1,35 +1,42 @@
-"""End to end: ``station calibrate --sim`` over 4 steps, through emulators, real drivers, HDF5,
-processing and identification; k_f and b_f must match the simulation's truth."""
+"""End to end: a calibration over 4 steps through emulators, real drivers, HDF5, processing and
+identification; k_f and b_f must match the simulation's truth.
+
+Once in-process on the virtual clock (the run's logic, in about a second), once as an operator
+types it, ``station calibrate --sim`` in a subprocess over Modbus TCP and a pty in real time."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import h5py
 import pytest
 import yaml
 
+from drivers.sim.clock import VirtualClock
+from station.cli import main
+from station.config import parse_config
 from station.recording import read_recording, read_results
+from station.run.calibrate import run_and_identify
+from station.run.request import default_request
 
 ROOT = Path(__file__).resolve().parent.parent
+STEPS = [8.0, 30.0, 60.0, 95.0]
 
 
-def test_station_calibrate_sim_identifies_the_truth(tmp_path: Path) -> None:
+def _config() -> dict[str, Any]:
     d = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
     d["plan"].update({"settle_s": 0.3, "record_s": 1.5})
     d["rig"]["acceleration_hz_per_s"] = 50.0
-    cfg = tmp_path / "cfg.yaml"
-    cfg.write_text(yaml.safe_dump(d))
-    res = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", "--sim", "--config", str(cfg),
-                          "--steps", "8,30,60,95", "--out", str(tmp_path / "rec"), "--json"],
-                         capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr[-3000:]
-    out = json.loads(res.stdout)
-    assert out["exit_status"] == "completed" and out["lost_samples"] == 0
-    truth = d["simulation"]["truth"]
+    return d
+
+
+def _check_against_the_truth(out: dict[str, Any], truth: dict[str, float]) -> None:
+    assert out["exit_status"] == "completed" and out["lost_samples"] == 0, out.get("reason")
     k_f, b_f = out["parameters"]["k_f"], out["parameters"]["b_f"]
     assert k_f["unit"] == "N/m" and b_f["unit"].replace("·", "*") == "N*s/m"
     assert k_f["identifiable"] and b_f["identifiable"]
@@ -41,7 +48,7 @@ def test_station_calibrate_sim_identifies_the_truth(tmp_path: Path) -> None:
 
     rec = read_recording(out["recording"])
     assert rec.complete and rec.exit_status == "completed" and len(rec.steps) == 4
-    assert [s.crank_frequency_hz for s in rec.steps] == [8.0, 30.0, 60.0, 95.0]
+    assert [s.crank_frequency_hz for s in rec.steps] == STEPS
     assert read_results(out["recording"], "steps", group="processed") is not None
     with h5py.File(out["recording"], "r") as f:
         assert any(k.startswith("identify_") for k in f["results"])
@@ -49,16 +56,38 @@ def test_station_calibrate_sim_identifies_the_truth(tmp_path: Path) -> None:
         assert f.attrs["software_version"]
 
 
-def test_unsafe_steps_are_refused_before_anything_moves(tmp_path: Path) -> None:
-    res = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", "--sim", "--steps", "150",
-                          "--out", str(tmp_path)], capture_output=True, text=True, timeout=60)
-    assert res.returncode == 2
-    assert "150 Hz" in res.stderr and "range" in res.stderr
+def test_calibration_on_the_virtual_clock_identifies_the_truth(tmp_path: Path) -> None:
+    d = _config()
+    cfg = parse_config(d, "e2e")
+    clock = VirtualClock()
+    t0 = clock.monotonic()
+    result = asyncio.run(run_and_identify(cfg, default_request(cfg, STEPS), tmp_path / "rec", sim=True,
+                                          sim_clock=clock))
+    _check_against_the_truth(json.loads(json.dumps(result.to_json())), d["simulation"]["truth"])
+    assert clock.monotonic() - t0 > 4 * (0.3 + 1.5)  # the run's time passed on the rig's clock
+
+
+@pytest.mark.slow
+def test_station_calibrate_sim_identifies_the_truth(tmp_path: Path) -> None:
+    d = _config()
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(yaml.safe_dump(d))
+    res = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", "--sim", "--config", str(cfg),
+                          "--steps", ",".join(f"{f:g}" for f in STEPS), "--out", str(tmp_path / "rec"), "--json"],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    _check_against_the_truth(json.loads(res.stdout), d["simulation"]["truth"])
+
+
+def test_unsafe_steps_are_refused_before_anything_moves(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["calibrate", "--sim", "--steps", "150", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "150 Hz" in err and "range" in err
     assert not any(tmp_path.iterdir())  # no recording: the run never started
 
 
 @pytest.mark.parametrize("bad", ["3,x", ","])
-def test_bad_step_list_is_a_clear_error(bad: str, tmp_path: Path) -> None:
-    res = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", "--sim", "--steps", bad,
-                          "--out", str(tmp_path)], capture_output=True, text=True, timeout=60)
-    assert res.returncode == 2 and "--steps" in res.stderr
+def test_bad_step_list_is_a_clear_error(bad: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["calibrate", "--sim", "--steps", bad, "--out", str(tmp_path)]) == 2
+    assert "--steps" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())

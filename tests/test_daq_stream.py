@@ -102,6 +102,7 @@ def test_ten_seconds_of_20khz_rig_data_through_a_pty_without_loss(rig_pty) -> No
     assert 15_000 < np.percentile(np.abs(disp), 99.9) < 17_500
 
 
+@pytest.mark.slow
 def test_injected_faults_are_reported_exactly(rig_pty) -> None:
     emu, daq = rig_pty
     daq.configure(rate_hz=20_000, frame_samples=256)

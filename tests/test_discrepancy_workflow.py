@@ -72,6 +72,7 @@ def _transducer_ok(rep: DiscrepancyReport, coupling: bool, transducer: str = "5k
         assert ebf <= 2e-2, f"b_f off by {100 * ebf:.3g} %"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("seed", "transducer"), CASES)
 @pytest.mark.parametrize("name", CATALOGUE)
 def test_each_catalogue_effect_is_named_estimated_and_removed(name: str, seed: int, transducer: str,
@@ -98,6 +99,7 @@ def test_no_effect_names_nothing(seed: int, tmp_path: Path) -> None:
     _transducer_ok(rep, coupling=False)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("names", "seed"), [(("transducer_nonlinearity", "crank_harmonics"), 5),
                                              (("mains_interference", "zero_drift"), 6),
                                              (("channel_delay", "transducer_nonlinearity"), 7)])
@@ -138,6 +140,7 @@ def test_effect_outside_the_catalogue_is_unexplained_not_misnamed(tmp_path: Path
     assert rep.final_gap > 1.5 * rep.noise_floor_V  # the gap is left, and said to be left
 
 
+@pytest.mark.slow
 def test_cli_json_contract_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     eff = draw_scenario(["transducer_nonlinearity"], seed=12)
     rec = simulate_scenario(eff, tmp_path, seed=12)
@@ -157,6 +160,7 @@ def test_cli_json_contract_and_plot(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.slow
 def test_imported_run_gives_the_same_answer_either_polarity(tmp_path: Path) -> None:
     """Export + ``station import`` (absolute step times kept), once as is and once with the force
     polarity inverted (negative sensitivity): same effects, same k_f and b_f, S with the sign."""

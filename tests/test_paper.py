@@ -7,6 +7,8 @@ import pytest
 
 from station.cli import main
 
+pytestmark = pytest.mark.slow  # the quick paper reproduction alone takes ~7 s
+
 
 @pytest.fixture(scope="module")
 def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:

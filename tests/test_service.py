@@ -141,6 +141,7 @@ def _children(pid: int) -> list[int]:
     return [int(p) for p in out.split()]
 
 
+@pytest.mark.slow
 def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume(tmp_path: Path) -> None:
     data = tmp_path / "recordings"
     # first daemon without workers: the identification of run A stays queued
@@ -183,6 +184,7 @@ def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume
         assert second.wait_state(n)["state"] == "completed"
 
 
+@pytest.mark.slow
 def test_sigterm_mid_run_stops_the_run_closes_the_recording_and_the_workers(tmp_path: Path) -> None:
     d = Daemon(tmp_path).start()
     try:
@@ -215,6 +217,7 @@ def test_sigterm_mid_run_stops_the_run_closes_the_recording_and_the_workers(tmp_
         assert f.attrs["exit_status"] == "interrupted"
 
 
+@pytest.mark.slow
 def test_worker_exits_when_the_daemon_is_killed(tmp_path: Path) -> None:
     """No orphaned worker processes after kill -9 of the daemon."""
     d = Daemon(tmp_path).start()
@@ -233,6 +236,7 @@ def test_worker_exits_when_the_daemon_is_killed(tmp_path: Path) -> None:
         ["ps", "-o", "pid,ppid,stat,cmd", "-p", ",".join(map(str, workers))], capture_output=True, text=True).stdout
 
 
+@pytest.mark.slow
 def test_serve_refuses_a_bad_configuration_at_start_up(tmp_path: Path) -> None:
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("service: {port: 99999}\n" + (Path(__file__).parent.parent / "config" / "sim-5kN.yaml").read_text())
@@ -280,6 +284,7 @@ def test_worker_processes_run_single_threaded_blas() -> None:
     assert asyncio.run(go()) == ("1", "1")
 
 
+@pytest.mark.slow
 def test_unreachable_rig_health_degraded_runs_503_stop_still_accepted(tmp_path: Path) -> None:
     import httpx
     import yaml

@@ -98,6 +98,7 @@ def test_subprocess_rig_serves_both_devices() -> None:
         daq.close()
 
 
+@pytest.mark.slow
 def test_station_sim_rig_prints_where_it_listens_and_stops_on_ctrl_c() -> None:
     proc = subprocess.Popen([sys.executable, "-m", "station.cli", "sim-rig", "--seed", "3"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -15,6 +15,8 @@ import pytest
 
 from tests.test_service_support import TOKEN, Daemon
 
+pytestmark = pytest.mark.slow  # a real daemon, a real run and a real browser: the end-to-end layer
+
 CHROMIUM = Path("/usr/bin/chromium")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync"]

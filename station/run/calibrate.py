@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from drivers.clock import Clock
 from station.config import ProcessingConfig, StationConfig
 from station.ident.api import identify_recording, store_result
 from station.ident.result import IdentificationResult
@@ -48,10 +49,13 @@ def process_and_identify(path: Path, processing: ProcessingConfig) -> Identifica
 
 
 async def run_and_identify(cfg: StationConfig, request: RunRequest, out_dir: Path, *, sim: bool,
-                           on_progress: Callable[[Progress], None] | None = None) -> CalibrationResult:
-    """Check the request (before anything moves), run it, then process and identify the recording."""
+                           on_progress: Callable[[Progress], None] | None = None,
+                           sim_clock: Clock | None = None) -> CalibrationResult:
+    """Check the request (before anything moves), run it, then process and identify the recording.
+    ``sim_clock``: the simulated rig in-process on this clock (see :func:`station.run.rig.connect`)."""
     plan = plan_run(cfg, request)
-    async with connect(plan.config, sim=sim, first_radius_m=plan.steps[0].crank_radius_m) as rig:
+    async with connect(plan.config, sim=sim, first_radius_m=plan.steps[0].crank_radius_m,
+                       sim_clock=sim_clock) as rig:
         proc = Procedure(plan, rig, out_dir, on_progress=on_progress)
         outcome = await proc.execute()
     if outcome.exit_status != "completed":
