@@ -55,6 +55,7 @@ def test_console_script_version(tmp_path: Path) -> None:
     assert res.stdout.strip() == f"sinecal {station.__version__}"
 
 
+@pytest.mark.slow
 def test_station_simulate_prints_the_recording_path_last(tmp_path: Path, fast_config_file: Path) -> None:
     out = tmp_path / "recs"
     res = _run(["simulate", "--config", str(fast_config_file), "--out", str(out), "--seed", "5"], tmp_path)
@@ -69,6 +70,7 @@ def test_station_simulate_prints_the_recording_path_last(tmp_path: Path, fast_co
     assert [s.crank_frequency_hz for s in rec.steps] == [4.0, 30.0, 100.0]
 
 
+@pytest.mark.slow
 def test_station_export_then_import_round_trip(tmp_path: Path, sim_recording_one_radius: Path) -> None:
     res = _run(["export", str(sim_recording_one_radius), "--out", str(tmp_path / "x")], tmp_path)
     assert res.returncode == 0, res.stderr
@@ -87,6 +89,7 @@ def test_station_export_then_import_round_trip(tmp_path: Path, sim_recording_one
             np.testing.assert_array_equal(y, x)
 
 
+@pytest.mark.slow
 def test_station_import_refusal(tmp_path: Path, sim_recording_one_radius: Path) -> None:
     run_yaml = export_run(sim_recording_one_radius, tmp_path / "x")
     csv = run_yaml.parent / "step01.csv"

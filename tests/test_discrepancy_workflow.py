@@ -192,6 +192,7 @@ def test_imported_run_gives_the_same_answer_either_polarity(tmp_path: Path) -> N
         e for e in inv.effects if e.name == "zero_drift").params["rate_V_per_s"].std)
 
 
+@pytest.mark.slow
 def test_clipped_step_is_left_out_and_reported_not_named(tmp_path: Path) -> None:
     """A force range too small for the top step clips it: clipping is not a catalogue effect (nor a
     model gap): the step is left out and reported; the other steps still fit with nothing named."""

@@ -121,6 +121,26 @@ def test_motor_fault_stops_the_run(tmp_path: Path) -> None:
     assert recording_after(outcome).exit_status == "failed"
 
 
+def test_emergency_stop_mid_step_is_an_abort_and_the_crank_stops(tmp_path: Path) -> None:
+    def estop(rig: ConnectedRig, proc: Procedure) -> None:
+        proc.abort("emergency stop")
+        rig.sim.motor.emergency_stop()
+    outcome, _, motor = run_with(tmp_path, lambda p: p.step == 1 and p.step_state == "settling", estop)
+    assert outcome.exit_status == "aborted" and outcome.reason == "emergency stop"
+    assert motor["speed_hz"] == 0.0 and not motor["enabled"]
+    rec = recording_after(outcome)
+    assert rec.exit_status == "aborted" and len(rec.steps) == 1
+
+
+def test_lost_motor_link_fails_the_run_and_the_controllers_watchdog_stops_the_crank(tmp_path: Path) -> None:
+    outcome, rig, motor = run_with(tmp_path, lambda p: p.step == 1 and p.step_state == "recording",
+                                   lambda rig, proc: rig.motor.transport.cut())
+    assert outcome.exit_status == "failed" and "MotorLinkError" in outcome.reason
+    assert motor["speed_hz"] == 0.0  # nobody could stop it over the link: the watchdog did
+    assert rig.sim.motor.snapshot().fault_code == 1  # watchdog_expired
+    assert recording_after(outcome).exit_status == "failed"
+
+
 def test_stalled_daq_stops_the_run(tmp_path: Path) -> None:
     outcome, _, motor = run_with(tmp_path, lambda p: p.step == 0 and p.step_state == "recording",
                                  lambda rig, proc: rig.sim.daq.stall(4.0))

@@ -1,14 +1,16 @@
 """In-process backend of the motor driver: calls the emulator's register image directly.
 
 For fast unit tests of code above the driver; it shares the device logic with the Modbus
-emulator but skips the wire.  Exception codes become the same typed errors as over Modbus.
+emulator but skips the wire.  Exception codes become the same typed errors as over Modbus;
+:meth:`InProcessTransport.cut` makes every access fail with ``MotorLinkError`` as a lost link would
+(the emulated controller keeps running: its watchdog stops the motor).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
-from drivers.motor.errors import MotorExceptionReplyError
+from drivers.motor.errors import MotorExceptionReplyError, MotorLinkError
 from drivers.sim.motor_image import MotorRegisterImage
 
 
@@ -18,17 +20,28 @@ class InProcessTransport:
     def __init__(self, image: MotorRegisterImage) -> None:
         self.image = image
         self.description = "in-process motor emulator"
+        self.link_up = True
+
+    def cut(self) -> None:
+        """Fault injection: the link is gone (every read and write raises ``MotorLinkError``)."""
+        self.link_up = False
+
+    def _check_link(self, what: str) -> None:
+        if not self.link_up:
+            raise MotorLinkError(what, "in-process link cut (fault injection)")
 
     async def open(self) -> None:
         return None
 
     async def read(self, address: int, count: int, what: str) -> list[int]:
+        self._check_link(what)
         result = self.image.read(address, count)
         if isinstance(result, int):
             raise MotorExceptionReplyError(what, 0x03, result)
         return result
 
     async def write(self, address: int, words: Sequence[int], what: str) -> None:
+        self._check_link(what)
         code = self.image.write(address, list(words))
         if code is not None:
             raise MotorExceptionReplyError(what, 0x06 if len(words) == 1 else 0x10, code)
