@@ -23,12 +23,11 @@ Every command carries a tag (``#N``) that the bridge echoes in its reply; a repl
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import queue
 import threading
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 from drivers.daq.link import ByteLink, DaqLinkError
@@ -287,11 +286,6 @@ class DaqBridge:
     def events(self, timeout_s: float = 1.0) -> Iterator[StreamEvent]:
         """Yield events until none arrives within ``timeout_s``."""
         while (ev := self.get_event(timeout_s)) is not None:
-            yield ev
-
-    async def aevents(self, timeout_s: float = 1.0) -> AsyncIterator[StreamEvent]:
-        """asyncio adapter of :meth:`events` (each wait runs in the default executor)."""
-        while (ev := await asyncio.to_thread(self.get_event, timeout_s)) is not None:
             yield ev
 
     def close(self) -> None:

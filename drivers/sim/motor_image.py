@@ -33,10 +33,6 @@ class MotorRegisterImage:
                 self._by_addr[reg.address + i] = (reg, i)
         self._stored: dict[str, float] = {"watchdog": 0.0}
 
-    def register_at(self, address: int) -> Register | None:
-        entry = self._by_addr.get(address)
-        return entry[0] if entry else None
-
     def _values(self) -> dict[str, float]:
         s = self.model.snapshot()
         m = self.map

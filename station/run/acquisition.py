@@ -113,7 +113,6 @@ class Acquisition:
         self._rejected = rejected_frames or (lambda: 0)
         self.lost: list[tuple[int, int]] = []
         self.error: AcquisitionError | None = None
-        self.crc_errors = 0
         self._stop = threading.Event()
         self._acq = threading.Thread(target=self._acquire, name="acquisition", daemon=True)
         self._disk = threading.Thread(target=self._write, name="disk-writer", daemon=True)
