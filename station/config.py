@@ -23,6 +23,10 @@ _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 Pos = Annotated[float, Field(gt=0)]
 
+# Bounds of every configuration, run request and the limits the daemon publishes (GET /station).
+MAX_TOP_MASS_KG = 500.0
+MAX_STEPS = 200
+
 
 class _Model(BaseModel):
     model_config = _STRICT
@@ -67,7 +71,7 @@ class TransducerConfig(_Model):
 class RigConfig(_Model):
     """The sine-mechanism rig and its limits."""
 
-    top_mass_kg: float = Field(gt=0, le=500)
+    top_mass_kg: float = Field(gt=0, le=MAX_TOP_MASS_KG)
     adaption_mass_kg: float = Field(default=0.0, ge=0, le=100)
     load_mass_std_kg: float | None = Field(default=None, ge=0, le=100, description="standard uncertainty "
                                            "of top + adaption mass (default: 1e-4 of it)")
@@ -114,7 +118,7 @@ class PlanConfig(_Model):
 
     settle_s: float = Field(default=1.0, ge=0, le=600)
     record_s: float = Field(default=2.0, gt=0, le=3600)
-    steps: list[StepConfig] = Field(min_length=1, max_length=200)
+    steps: list[StepConfig] = Field(min_length=1, max_length=MAX_STEPS)
 
 
 class TruthConfig(_Model):

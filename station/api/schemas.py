@@ -11,7 +11,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-RunState = Literal["queued", "running", "identifying", "completed", "aborted", "failed", "interrupted"]
+from station.service.store import RunState
 
 
 class _Out(BaseModel):

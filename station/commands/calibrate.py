@@ -41,9 +41,10 @@ def _freqs(text: str | None) -> list[float] | None:
 
 
 class _Bar:
-    """One progress line per step on stderr."""
+    """One progress line per step on stderr (``sample_rate_hz``: the DAQ's, to show samples as seconds)."""
 
-    def __init__(self) -> None:
+    def __init__(self, sample_rate_hz: float) -> None:
+        self._fs = sample_rate_hz
         self._last = 0.0
         self._step: int | None = None
 
@@ -58,7 +59,7 @@ class _Bar:
         fill = int(width * p.fraction)
         step = "-" if p.step is None else f"{p.step + 1}/{p.n_steps}"
         sys.stderr.write(f"\r[{'#' * fill}{'.' * (width - fill)}] step {step} {p.step_state:<9} "
-                         f"{p.samples / 20000:7.1f} s  lost {p.lost_samples}  {p.message[:40]:<40}")
+                         f"{p.samples / self._fs:7.1f} s  lost {p.lost_samples}  {p.message[:40]:<40}")
         sys.stderr.flush()
 
 
@@ -74,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
               "connecting to the real devices of cfg.devices", file=sys.stderr)
     request = default_request(cfg, _freqs(args.steps))
     out = args.out or Path(cfg.station.recordings_dir)
-    result = asyncio.run(run_and_identify(cfg, request, out, sim=args.sim, on_progress=_Bar()))
+    result = asyncio.run(run_and_identify(cfg, request, out, sim=args.sim, on_progress=_Bar(cfg.daq.sample_rate_hz)))
     sys.stderr.write("\n")
     if args.json:
         print(json.dumps(result.to_json(), indent=2))

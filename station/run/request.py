@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from station.config import StationConfig
+from station.config import MAX_STEPS, MAX_TOP_MASS_KG, StationConfig
 from station.errors import LimitError
 from station.limits import StepRequest, check_steps, max_radius_m
 
@@ -28,8 +28,8 @@ class RunRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     transducer_id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")
-    top_mass_kg: float = Field(gt=0, le=500, description="top mass in kg (without the adaption)")
-    steps: list[StepSpec] = Field(min_length=1, max_length=200)
+    top_mass_kg: float = Field(gt=0, le=MAX_TOP_MASS_KG, description="top mass in kg (without the adaption)")
+    steps: list[StepSpec] = Field(min_length=1, max_length=MAX_STEPS)
 
 
 @dataclass(frozen=True)

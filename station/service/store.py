@@ -15,11 +15,12 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args
 
 SCHEMA_VERSION = 1
 
-RUN_STATES = ("queued", "running", "identifying", "completed", "aborted", "failed", "interrupted")
+RunState = Literal["queued", "running", "identifying", "completed", "aborted", "failed", "interrupted"]
+RUN_STATES: tuple[RunState, ...] = get_args(RunState)
 ACTIVE_STATES = ("queued", "running")  # the run holds the rig
 FINAL_STATES = ("completed", "aborted", "failed", "interrupted")
 JOB_STATES = ("queued", "running", "done", "failed")

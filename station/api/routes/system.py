@@ -6,6 +6,7 @@ from fastapi import APIRouter
 
 from station.api.deps import ManagerDep, Reader, SettingsDep
 from station.api.schemas import ErrorOut, HealthOut, LimitsOut, RangeOut, StationOut, StopOut
+from station.config import MAX_STEPS, MAX_TOP_MASS_KG
 from station.limits import force_limit_N
 
 router = APIRouter(tags=["station"])
@@ -38,7 +39,7 @@ async def station_info(settings: SettingsDep) -> StationOut:
                          crank_radius_m=RangeOut(**rig.crank_radius_m.model_dump()),
                          peak_force_limit_N=force_limit_N(cfg),
                          moving_mass_without_top_kg=rig.adaption_mass_kg + (cfg.transducer.end_mass_kg or 0.0),
-                         top_mass_kg=RangeOut(min=0.0, max=500.0), steps=RangeOut(min=1, max=200),
+                         top_mass_kg=RangeOut(min=0.0, max=MAX_TOP_MASS_KG), steps=RangeOut(min=1, max=MAX_STEPS),
                          acceleration_hz_per_s=rig.acceleration_hz_per_s),
         default_settle_s=cfg.plan.settle_s, default_record_s=cfg.plan.record_s,
         default_steps=[{"crank_frequency_hz": s.crank_frequency_hz, "crank_radius_m": s.crank_radius_m}
