@@ -139,23 +139,17 @@ def test_results_have_parameters_with_uncertainties_and_frf(daemon: Daemon, comp
 def test_plots_report_recording_and_discrepancy(daemon: Daemon, completed: dict) -> None:
     c, rid = anon(daemon), completed["id"]
     res = c.get(f"/runs/{rid}/results").json()
-    if not res["plots"]:  # the report helper's module is absent: 501, said clearly
-        r = c.get(f"/runs/{rid}/plots/bode.png")
-        assert r.status_code == 501 and "not installed" in r.json()["detail"]
-    else:
-        assert {"bode", "timefit", "residuals", "convergence"} <= set(res["plots"])
-        for url in res["plots"].values():
-            r = c.get(url)
-            assert r.status_code == 200 and r.headers["content-type"] == "image/png"
-            assert r.content[:8] == b"\x89PNG\r\n\x1a\n"
-        r = c.get(f"/runs/{rid}/plots/nosuchplot.png")
-        assert r.status_code == 404 and "bode" in r.json()["detail"]
-    rep = c.get(f"/runs/{rid}/report")
-    if res["report"] is None:
-        assert rep.status_code == 501
-    else:
-        assert rep.status_code == 200 and rep.headers["content-type"].startswith("text/html")
-        assert "TX5K-0001" in rep.text
+    assert res["plots"] == {n: f"/runs/{rid}/plots/{n}.png" for n in ("bode", "timefit", "residuals", "convergence")}
+    for url in res["plots"].values():
+        r = c.get(url)
+        assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+        assert r.content[:8] == b"\x89PNG\r\n\x1a\n"
+    r = c.get(f"/runs/{rid}/plots/nosuchplot.png")
+    assert r.status_code == 404 and "bode" in r.json()["detail"]
+    assert res["report"] == f"/runs/{rid}/report"
+    rep = c.get(res["report"])
+    assert rep.status_code == 200 and rep.headers["content-type"].startswith("text/html")
+    assert "TX5K-0001" in rep.text
     rec = c.get(f"/runs/{rid}/recording")
     assert rec.status_code == 200 and rec.headers["content-type"] == "application/x-hdf5"
     assert f'filename="{rid}.h5"' in rec.headers["content-disposition"]

@@ -25,7 +25,6 @@ from station import __version__
 from station.api.routes import runs, system
 from station.errors import StationError
 from station.service.manager import (
-    FeatureUnavailableError,
     RigBusyError,
     RigUnavailableError,
     RunManager,
@@ -53,7 +52,7 @@ def _error(status: int, exc: Exception) -> JSONResponse:
 
 def install_error_handlers(app: FastAPI) -> None:
     statuses: list[tuple[type[Exception], int]] = [
-        (RunNotFoundError, 404), (RunStateError, 409), (RigBusyError, 409), (FeatureUnavailableError, 501),
+        (RunNotFoundError, 404), (RunStateError, 409), (RigBusyError, 409),
         (RigUnavailableError, 503)]
     for cls, code in statuses:
         def handler(request: Request, exc: Exception, code: int = code) -> JSONResponse:

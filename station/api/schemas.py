@@ -146,9 +146,8 @@ class RunResults(_Out):
     frequency_response: list[StepResponseOut]
     skipped_steps: list[dict[str, Any]]
     units: dict[str, str]
-    plots: dict[str, str] = Field(description="plot name -> URL of its PNG (empty while the plots module "
-                                  "is not installed)")
-    report: str | None = Field(description="URL of the calibration report (None while not installed)")
+    plots: dict[str, str] = Field(description="plot name -> URL of its PNG")
+    report: str = Field(description="URL of the calibration report (HTML)")
     discrepancy: str = Field(description="URL of the model-gap analysis")
     lost_samples: int
 

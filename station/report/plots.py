@@ -27,10 +27,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from station.report.data import PAPER_METHODS, RunData, StepTrace, load_run
+from station.report.names import PLOT_NAMES
 from station.report.quantities import COVERAGE_K, measured_sensitivity, model_sensitivity
 
 log = logging.getLogger(__name__)
-PLOT_NAMES: tuple[str, ...] = ("bode", "timefit", "residuals", "convergence")
 FIG_SIZE_PX = (900, 600)
 DPI = 100
 MAX_TRACES = 4

@@ -6,15 +6,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
 from collections import OrderedDict
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from station.report.names import PLOT_NAMES
 from station.service import worker
-from station.service.errors import FeatureUnavailableError, RunStateError
+from station.service.errors import RunStateError
 from station.service.store import RunRow
 
 CACHE_ENTRIES = 64  # rendered plots and reports kept in memory (a few 100 kB each)
@@ -35,7 +35,6 @@ class Artifacts:
         self.render_pool = render_pool
         self._get_row = get_row
         self._file_locks: dict[str, _Lock] = {}
-        self._caps: tuple[float, dict[str, Any]] | None = None
         self._cache: OrderedDict[tuple[str, str], bytes | str] = OrderedDict()
 
     def recording_path(self, row: RunRow) -> Path:
@@ -82,13 +81,6 @@ class Artifacts:
             finally:
                 f.close()
 
-    async def capabilities(self) -> dict[str, Any]:
-        """Which optional modules exist (checked in a worker, cached for 30 s)."""
-        now = time.monotonic()
-        if self._caps is None or now - self._caps[0] > 30.0:
-            self._caps = (now, await self.render_pool.run(worker.capabilities_job))
-        return self._caps[1]
-
     async def _cached(self, key: tuple[str, str], make: Callable[[], Awaitable[Any]]) -> Any:
         if key in self._cache:
             self._cache.move_to_end(key)
@@ -110,14 +102,11 @@ class Artifacts:
 
     async def _locked_job(self, run_id: str, fn: Callable[..., Any], *args: Any) -> Any:
         async with self.file_lock(run_id):
-            return await self._optional_job(fn, *args)
+            return await self.render_pool.run(fn, *args)
 
     async def plot(self, run_id: str, name: str) -> bytes | None:
         path = self._completed_path(run_id)
-        caps = await self.capabilities()
-        if caps["plots"] is None:
-            raise FeatureUnavailableError("plots are not available: station.report.plots is not installed")
-        if name not in caps["plots"]:
+        if name not in PLOT_NAMES:
             return None
         return await self._cached((run_id, f"plot:{name}"),
                                   lambda: self._locked_job(run_id, worker.plot_job, str(path), name))
@@ -133,9 +122,3 @@ class Artifacts:
         self._cache.pop((run_id, "report"), None)  # the report names the effects found
         return out  # type: ignore[no-any-return]
 
-    async def _optional_job(self, fn: Callable[..., Any], *args: Any) -> Any:
-        try:
-            return await self.render_pool.run(fn, *args)
-        except worker.Unavailable as exc:
-            self._caps = None
-            raise FeatureUnavailableError(str(exc)) from None

@@ -26,10 +26,6 @@ class RigUnavailableError(StationError):
     """No link to the rig (503)."""
 
 
-class FeatureUnavailableError(StationError):
-    """An optional module (plots, report, discrepancy) is not installed (501)."""
-
-
 class RequestLimitError(LimitError):
     """A LimitError with the request field it is about (``loc``, FastAPI style) and its value (422)."""
 

@@ -24,7 +24,6 @@ from station.service import worker
 from station.service.artifacts import Artifacts
 from station.service.changes import Changes
 from station.service.errors import (
-    FeatureUnavailableError,
     RequestLimitError,
     RigBusyError,
     RigUnavailableError,
@@ -41,7 +40,6 @@ from station.service.store import FINAL_STATES, RunRow, Store
 
 __all__ = [
     "MAX_JOB_ATTEMPTS",
-    "FeatureUnavailableError",
     "LiveRun",
     "RequestLimitError",
     "RigBusyError",
@@ -86,10 +84,10 @@ class RunManager:
         self._warm = asyncio.create_task(self._warm_render_pool(), name="render-warm-up")
 
     async def _warm_render_pool(self) -> None:
-        """Start the render worker and learn the optional modules early (the first results page
+        """Start the render worker and load the plotting modules early (the first results page
         would otherwise wait for a process start and the plotting imports)."""
         try:
-            await self.capabilities()
+            await self.artifacts.render_pool.run(worker.warm_up_job)
         except Exception as exc:  # not fatal: retried on the first request
             log.warning("render worker warm-up failed: %s", exc)
 
@@ -177,9 +175,6 @@ class RunManager:
 
     def stream_file(self, run_id: str, chunk: int = 1 << 20) -> AsyncIterator[bytes]:
         return self.artifacts.stream_file(run_id, chunk)
-
-    async def capabilities(self) -> dict[str, Any]:
-        return await self.artifacts.capabilities()
 
     async def plot(self, run_id: str, name: str) -> bytes | None:
         return await self.artifacts.plot(run_id, name)

@@ -12,7 +12,6 @@ import asyncio
 import concurrent.futures
 import contextlib
 import functools
-import importlib
 import logging
 import multiprocessing
 import os
@@ -33,10 +32,6 @@ _busy = threading.Event()
 
 class WorkerCrashed(RuntimeError):
     """The worker process died during a job (killed, out of memory, a crash in a C library)."""
-
-
-class Unavailable(RuntimeError):
-    """A module this job needs is not installed (yet): the API answers 501."""
 
 
 # --------------------------------------------------------------------------- inside the worker
@@ -82,42 +77,29 @@ def identify_job(path: str, processing: dict[str, Any]) -> dict[str, Any]:
             "wall_s": time.perf_counter() - t0}
 
 
-def _optional(module: str) -> Any:
-    try:
-        return importlib.import_module(module)
-    except ImportError as exc:
-        if exc.name is not None and module.startswith(exc.name):  # the module itself is missing
-            raise Unavailable(f"{module} is not installed in this version of the station") from None
-        raise
-
-
 @_job
-def capabilities_job() -> dict[str, Any]:
-    """What the optional modules offer: plot names, report, discrepancy analysis."""
-    out: dict[str, Any] = {"plots": None, "report": False, "discrepancy": False}
-    with contextlib.suppress(Unavailable):
-        out["plots"] = [str(n) for n in _optional("station.report.plots").PLOT_NAMES]
-    with contextlib.suppress(Unavailable):
-        out["report"] = hasattr(_optional("station.report.html"), "render_report")
-    with contextlib.suppress(Unavailable):
-        out["discrepancy"] = hasattr(_optional("station.discrepancy"), "analyse_recording")
-    return out
+def warm_up_job() -> None:
+    """Load the plotting and report modules (the first results page would otherwise wait for them)."""
+    import station.report.html
+    import station.report.plots  # noqa: F401
 
 
 @_job
 def plot_job(path: str, name: str) -> bytes | None:
     """PNG bytes of plot ``name``; None for an unknown name."""
-    mod = _optional("station.report.plots")
+    from station.report.plots import render_plot
+
     try:
-        return bytes(mod.render_plot(Path(path), name))
+        return bytes(render_plot(Path(path), name))
     except KeyError:
         return None
 
 
 @_job
 def report_job(path: str) -> str:
-    mod = _optional("station.report.html")
-    return str(mod.render_report(Path(path)))
+    from station.report.html import render_report
+
+    return str(render_report(Path(path)))
 
 
 @_job
@@ -130,10 +112,9 @@ def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
     cached = read_results(path, "discrepancy")
     if cached is not None and cached.get("max_effects") == max_effects:
         return {k: cached[k] for k in CONTRACT_KEYS}
-    mod = _optional("station.discrepancy")
-    if not hasattr(mod, "analyse_recording"):
-        raise Unavailable("station.discrepancy has no analyse_recording")
-    rep = mod.analyse_recording(path, max_effects=max_effects)
+    from station.discrepancy import analyse_recording
+
+    rep = analyse_recording(path, max_effects=max_effects)
     write_results(path, "discrepancy", {**rep.to_dict(), "max_effects": max_effects})
     return rep.to_json()
 

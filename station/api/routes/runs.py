@@ -25,6 +25,7 @@ from station.api.schemas import (
     ValidationErrorOut,
     utc,
 )
+from station.report.names import PLOT_NAMES
 from station.run.request import RunRequest
 from station.service.manager import RequestLimitError, RunStateError
 from station.service.results import load_results
@@ -36,7 +37,6 @@ E401 = {401: {"model": ErrorOut, "description": "bearer token missing or wrong"}
 E404 = {404: {"model": ErrorOut, "description": "no such run"}}
 E409 = {409: {"model": ErrorOut, "description": "the run is not in a state that allows this"}}
 E422 = {422: {"model": ValidationErrorOut, "description": "invalid or unsafe parameters; `loc` names the field"}}
-E501 = {501: {"model": ErrorOut, "description": "the module behind this endpoint is not installed"}}
 E503 = {503: {"model": ErrorOut, "description": "the recording or the rig cannot be reached right now"}}
 
 
@@ -49,7 +49,6 @@ def _json(status: int, description: str, schema: str = "ErrorOut") -> dict[int |
 NON_JSON_ERRORS = {**_json(401, "bearer token missing or wrong"), **_json(404, "no such run"),
                    **_json(409, "the run is not in a state that allows this"),
                    **_json(422, "invalid path or query parameter", "ValidationErrorOut"),
-                   **_json(501, "the module behind this endpoint is not installed"),
                    **_json(503, "the recording cannot be read right now")}
 
 
@@ -130,11 +129,10 @@ async def run_results(run: RunDep, manager: ManagerDep) -> RunResults:
         raise RunStateError(f"run {run.id} is {run.state}: results exist once a run is completed"
                             + (f" ({run.reason})" if run.reason else ""))
     data = await manager.read_file(run.id, lambda p: load_results(p, run.result_name or ""))
-    caps = await manager.capabilities()
     base = f"/runs/{run.id}"
-    plots = {n: f"{base}/plots/{n}.png" for n in (caps.get("plots") or [])}
+    plots = {n: f"{base}/plots/{n}.png" for n in PLOT_NAMES}
     return RunResults(id=run.id, state=run.state, recording=run.recording or "",  # type: ignore[arg-type]
-                      plots=plots, report=f"{base}/report" if caps.get("report") else None,
+                      plots=plots, report=f"{base}/report",
                       discrepancy=f"{base}/discrepancy", lost_samples=run.lost_samples, **data)
 
 
@@ -145,9 +143,7 @@ async def run_plot(run: RunDep, manager: ManagerDep,
                    name: Annotated[str, Path(pattern=r"^[A-Za-z0-9_\-]{1,64}$")]) -> Response:
     png = await manager.plot(run.id, name)
     if png is None:
-        caps = await manager.capabilities()
-        return Response(ErrorOut(detail=f"no plot {name!r}; available: "
-                                        f"{', '.join(caps.get('plots') or [])}").model_dump_json(),
+        return Response(ErrorOut(detail=f"no plot {name!r}; available: {', '.join(PLOT_NAMES)}").model_dump_json(),
                         status_code=404, media_type="application/json")
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
 
@@ -174,7 +170,7 @@ async def run_recording(run: RunDep, manager: ManagerDep) -> StreamingResponse:
 
 
 @router.get("/{run_id}/discrepancy", response_model=DiscrepancyOut, dependencies=[Reader],
-            responses={**E401, **E404, **E409, **E422, **E501, **E503},
+            responses={**E401, **E404, **E409, **E422, **E503},
             summary="Model-gap analysis of the run (issue 7)")
 async def run_discrepancy(run: RunDep, manager: ManagerDep,
                           max_effects: Annotated[int, Query(ge=0, le=8)] = 4) -> DiscrepancyOut:
