@@ -117,7 +117,7 @@ def test_inprocess_daq_streams_on_the_virtual_clock_without_loss() -> None:
     """Ten virtual seconds at 20 kHz through the real DAQ driver on the in-process link."""
     clock = VirtualClock()
     with SimRig(seed=6, wire=False, clock=clock, source=SineSource()) as rig:
-        rig.motor.set_watchdog_timeout(0)
+        rig.motor.set_watchdog_timeout(60.0)  # 0 (off) is refused with the drive enabled
         rig.motor.set_ramp(100.0)
         rig.motor.set_setpoint(20.0)
         rig.motor.set_enable(True)

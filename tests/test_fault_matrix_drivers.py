@@ -6,8 +6,11 @@ the simulated rig (real ptys, a real pymodbus server, the DAQ-bridge emulator).
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -18,6 +21,15 @@ import pytest
 
 from drivers.daq import DaqBridge, DaqTimeoutError, FrameError, SampleBlock, SampleGap, SerialLink
 from drivers.daq.protocol import SEQ_MODULUS, StreamDecoder, encode_samples
+from drivers.motor import (
+    LinkPolicy,
+    ModbusTransport,
+    MotorCommunicationError,
+    MotorController,
+    MotorStateError,
+    MotorValueError,
+    transport_from_url,
+)
 from drivers.sim import SimRig
 from drivers.sim.daq_emulator import DaqEmulator
 from drivers.sim.pty import open_pty
@@ -157,3 +169,165 @@ def test_sequence_numbers_far_ahead_frame_and_wrap() -> None:
     assert dec.stats.samples_lost == 0 and dec.stats.gaps == 0 and dec.next_sample_index == 512
     assert "expected sequence 0, got 4294967295 (1 frame(s) behind" in events[0].detail
     assert "expected sequence 1, got 4294967295 (2 frame(s) behind" in events[2].detail
+
+
+# ---------------------------------------------------------------------------------------------- Modbus
+@pytest.fixture(scope="module")
+def modbus_rig() -> Iterator[SimRig]:
+    with SimRig(seed=5, rtu_local_echo=True) as rig:
+        yield rig
+
+
+def tcp_exchange(addr: tuple[str, int], request_hex: str, timeout_s: float = 1.0) -> str | None:
+    """One raw Modbus TCP request; the reply as spaced upper-case hex, or None if none came."""
+    with socket.create_connection(addr, timeout=timeout_s) as s:
+        s.sendall(bytes.fromhex(request_hex.replace(" ", "")))
+        data = b""
+        try:
+            while len(data) < 6 or len(data) < 6 + int.from_bytes(data[4:6], "big"):
+                chunk = s.recv(256)
+                if not chunk:
+                    break
+                data += chunk
+        except TimeoutError:
+            return None
+    return data.hex(" ").upper()
+
+
+def test_modbus_rtu_character_format_defaults_to_8e1() -> None:
+    """Modbus RTU | 8N1 default where the Modbus serial spec asks 8E1 (or 8N2); no RS-485 local-echo
+    option (4 time-outs in 20 reads with an echoing adapter); the emulator applies half of a refused
+    FC16 write, answers other unit ids and undocumented function codes; `watchdog_timeout = 0`
+    disables the watchdog
+
+    Part: the character format.
+    """
+    def line(t: ModbusTransport) -> tuple[str, int, int]:
+        async def make() -> tuple[str, int, int]:
+            p = t._make_client().comm_params  # the pymodbus client the transport would open
+            return p.parity, p.stopbits, p.bytesize
+        return asyncio.run(make())
+
+    assert line(ModbusTransport.rtu("/dev/ttyUSB0")) == ("E", 1, 8)
+    assert line(ModbusTransport.rtu("/dev/ttyUSB0", parity="N")) == ("N", 2, 8)
+    assert line(ModbusTransport.rtu("/dev/ttyUSB0", parity="O")) == ("O", 1, 8)
+    assert line(transport_from_url("modbus-rtu:///dev/ttyUSB0")) == ("E", 1, 8)
+    assert line(transport_from_url("modbus-rtu:///dev/ttyUSB0?parity=N&stopbits=1")) == ("N", 1, 8)
+    with pytest.raises(ValueError, match=r"parity: expected 'E' .*, 'O' or 'N', got 'X'"):
+        ModbusTransport.rtu("/dev/ttyUSB0", parity="X")
+    with pytest.raises(ValueError, match="stop bits: expected 1 or 2, got 3"):
+        transport_from_url("modbus-rtu:///dev/ttyUSB0?stopbits=3")
+    with pytest.raises(ValueError, match=r"expected query keys among .* got \['bauds'\]"):
+        transport_from_url("modbus-rtu:///dev/ttyUSB0?bauds=9600")
+
+
+def test_modbus_rtu_local_echo_is_read_back_and_discarded(modbus_rig: SimRig) -> None:
+    """Modbus RTU | 8N1 default where the Modbus serial spec asks 8E1 (or 8N2); no RS-485 local-echo
+    option (4 time-outs in 20 reads with an echoing adapter); the emulator applies half of a refused
+    FC16 write, answers other unit ids and undocumented function codes; `watchdog_timeout = 0`
+    disables the watchdog
+
+    Part: RS-485 local echo (the rig's RTU line echoes every byte we send).
+    """
+    url = modbus_rig.addresses.modbus_rtu_url
+    assert url is not None
+    policy = LinkPolicy(timeout_s=0.3, retries=0, reconnect_attempts=2)
+
+    async def reads(echo: bool, n: int) -> int:
+        motor = MotorController()
+        await motor.connect(transport_from_url(url + ("&echo=1" if echo else ""), policy=policy))
+        ok = 0
+        for _ in range(n):
+            with contextlib.suppress(MotorCommunicationError):
+                ok += await motor.read("max_frequency") == pytest.approx(100.0)
+        await motor.close()
+        return ok
+
+    assert asyncio.run(reads(True, 20)) == 20
+    assert asyncio.run(reads(False, 2)) == 0  # without echo handling the own request is taken as reply
+
+
+def test_modbus_emulator_fc16_is_all_or_nothing(modbus_rig: SimRig) -> None:
+    """Modbus RTU | 8N1 default where the Modbus serial spec asks 8E1 (or 8N2); no RS-485 local-echo
+    option (4 time-outs in 20 reads with an echoing adapter); the emulator applies half of a refused
+    FC16 write, answers other unit ids and undocumented function codes; `watchdog_timeout = 0`
+    disables the watchdog
+
+    Part: a refused FC16 write changes nothing.
+    """
+    addr = modbus_rig.addresses.modbus_tcp
+    img = modbus_rig.image
+    before = img.read(0, 5)
+    # setpoint 20.00 Hz (valid) + ramp 0 (outside 0.01..100 Hz/s): exception 03, setpoint unchanged
+    assert tcp_exchange(addr, "0001 0000 000B 01 10 0001 0002 04 07D0 0000") == "00 01 00 00 00 03 01 90 03"
+    assert img.read(0, 5) == before
+    # enabled: setpoint 30 Hz, ramp 50 Hz/s, watchdog, timeout 0 -> the last is refused (04): none applied
+    modbus_rig.motor.set_watchdog_timeout(60.0)
+    modbus_rig.motor.set_enable(True)
+    try:
+        before = img.read(0, 5)
+        assert tcp_exchange(addr, "0002 0000 000F 01 10 0001 0004 08 0BB8 1388 0001 0000") == \
+            "00 02 00 00 00 03 01 90 04"
+        assert img.read(0, 5) == before
+    finally:
+        modbus_rig.motor.set_enable(False)
+
+
+@pytest.mark.parametrize(("request_hex", "reply_hex"), [
+    ("0003 0000 0006 01 04 006A 0001", "00 03 00 00 00 03 01 84 01"),  # FC04 input registers: 01
+    ("0004 0000 0006 01 05 0000 FF00", "00 04 00 00 00 03 01 85 01"),  # FC05 write coil: 01
+    ("0005 0000 0006 01 01 0000 0001", "00 05 00 00 00 03 01 81 01"),  # FC01 read coils: 01
+    ("0006 0000 0002 01 41", "00 06 00 00 00 03 01 C1 01"),            # a code pymodbus does not know
+    ("0007 0000 0006 01 03 0064 0000", "00 07 00 00 00 03 01 83 03"),  # FC03 quantity 0: 03
+    ("0008 0000 0006 01 03 0064 007E", "00 08 00 00 00 03 01 83 03"),  # FC03 quantity 126 > 125: 03
+    ("0009 0000 000B 01 10 0002 0002 03 01F4 0001", "00 09 00 00 00 03 01 90 03"),  # byte count 3 != 4
+    ("000A 0000 0006 02 03 006A 0001", None),                          # unit 2: silent
+    ("000B 0000 0006 00 06 0001 07D0", None),                          # broadcast 0: silent, not applied
+    ("000C 0000 0006 01 03 006A 0001", "00 0C 00 00 00 05 01 03 02 27 10"),  # unit 1 still answers
+])
+def test_modbus_emulator_unit_ids_and_exception_codes(modbus_rig: SimRig, request_hex: str,
+                                                      reply_hex: str | None) -> None:
+    """Modbus RTU | 8N1 default where the Modbus serial spec asks 8E1 (or 8N2); no RS-485 local-echo
+    option (4 time-outs in 20 reads with an echoing adapter); the emulator applies half of a refused
+    FC16 write, answers other unit ids and undocumented function codes; `watchdog_timeout = 0`
+    disables the watchdog
+
+    Part: other unit ids, undocumented function codes, bad quantities.
+    """
+    setpoint = modbus_rig.image.read(1, 1)
+    assert tcp_exchange(modbus_rig.addresses.modbus_tcp, request_hex, timeout_s=0.4) == reply_hex
+    assert modbus_rig.image.read(1, 1) == setpoint
+
+
+def test_modbus_watchdog_cannot_be_switched_off_while_enabled(modbus_rig: SimRig) -> None:
+    """Modbus RTU | 8N1 default where the Modbus serial spec asks 8E1 (or 8N2); no RS-485 local-echo
+    option (4 time-outs in 20 reads with an echoing adapter); the emulator applies half of a refused
+    FC16 write, answers other unit ids and undocumented function codes; `watchdog_timeout = 0`
+    disables the watchdog
+
+    Part: `watchdog_timeout = 0` while the drive is enabled.
+    """
+    addr = modbus_rig.addresses.modbus_tcp
+
+    async def run() -> None:
+        motor = MotorController()
+        await motor.connect(ModbusTransport.tcp(*addr, policy=LinkPolicy(timeout_s=0.5, retries=0)))
+        await motor.set_watchdog_timeout(1.0)
+        await motor.enable()
+        try:
+            with pytest.raises(MotorStateError, match="expected a timeout > 0 s while the drive is enabled"):
+                await motor.set_watchdog_timeout(0)
+            with pytest.raises(MotorValueError, match=r"expected 0..60 s, got 120"):
+                await motor.set_watchdog_timeout(120)  # refused before sending: outside the map's range
+            # the controller refuses it as well (a master that bypasses the driver's check): 04
+            assert tcp_exchange(addr, "0010 0000 0006 01 06 0004 0000") == "00 10 00 00 00 03 01 86 04"
+            assert await motor.read("watchdog_timeout") == pytest.approx(1.0)
+        finally:
+            await motor.disable()
+        await motor.set_watchdog_timeout(0)  # allowed while disabled ...
+        assert tcp_exchange(addr, "0011 0000 0006 01 06 0000 0001") == "00 11 00 00 00 03 01 86 04"
+        assert not modbus_rig.motor.snapshot().enabled  # ... but then the drive cannot be enabled
+        await motor.set_watchdog_timeout(1.0)
+        await motor.close()
+
+    asyncio.run(run())

@@ -15,6 +15,7 @@ from drivers.motor import (
     MotorExceptionReplyError,
     MotorFaultError,
     MotorLinkError,
+    MotorStateError,
     MotorTimeoutError,
     MotorValueError,
     RegisterTransport,
@@ -35,7 +36,7 @@ def transport(rig: SimRig, kind: str) -> RegisterTransport:
         return ModbusTransport.tcp(*rig.addresses.modbus_tcp, policy=FAST)
     if kind == "rtu":
         assert rig.addresses.modbus_rtu is not None
-        return ModbusTransport.rtu(rig.addresses.modbus_rtu, policy=FAST)
+        return ModbusTransport.rtu(rig.addresses.modbus_rtu, parity="N", policy=FAST)  # 8N2: a pty refuses even parity
     return rig.motor_transport()
 
 
@@ -107,10 +108,13 @@ def test_stopping_the_watchdog_refresh_stops_the_motor(rig: SimRig) -> None:
 def test_exception_replies_and_local_limits_are_typed_errors(rig: SimRig) -> None:
     async def run() -> None:
         motor = await connected(rig)
-        with pytest.raises(MotorValueError, match=r"expected 0.0...100.0 Hz, got 150.0 Hz"):
+        with pytest.raises(MotorValueError, match=r"expected 0..100 Hz, got 150.0 Hz"):
             await motor.set_frequency(150.0)
+        with pytest.raises(MotorValueError, match=r"expected 0..100 Hz, got 150.0 Hz"):
+            await motor.write("frequency_setpoint", 150.0)  # refused before sending
+        reg = motor.map["frequency_setpoint"]
         with pytest.raises(MotorExceptionReplyError) as info:  # the controller refuses it too
-            await motor.write("frequency_setpoint", 150.0)
+            await motor.transport.write(reg.address, reg.encode(150.0), reg.name)
         assert (info.value.register, info.value.exception_code) == ("frequency_setpoint", 3)
         with pytest.raises(MotorValueError, match="read-only"):
             await motor.write("actual_speed", 1.0)
@@ -166,7 +170,7 @@ def test_lost_link_is_typed_the_emulator_stops_and_the_driver_reconnects(rig: Si
 def test_injected_motor_fault_and_emergency_stop(rig: SimRig) -> None:
     async def run() -> None:
         motor = await connected(rig)
-        await motor.set_watchdog_timeout(0)
+        await motor.set_watchdog_timeout(60.0)  # 0 (off) is refused with the drive enabled
         await motor.set_ramp(100.0)
         await motor.enable()
         await motor.set_frequency(30.0)
@@ -189,6 +193,35 @@ def test_injected_motor_fault_and_emergency_stop(rig: SimRig) -> None:
         await motor.wait_for_speed(0.0, timeout_s=2.0)
         await motor.reset_faults()
         assert (await motor.read("emergency_stop")) == 0
+        await motor.close()
+
+    asyncio.run(run())
+
+
+def test_state_check_reports_faults_without_clearing_them(rig: SimRig) -> None:
+    async def run() -> None:
+        motor = await connected(rig)
+        st = await motor.check_standstill()
+        assert st.standstill and st.fault_code == 0 and st.describe() == "standstill, disabled, no fault"
+        await motor.emergency_stop()
+        with pytest.raises(MotorFaultError, match=r"fault 2 \(emergency_stop\)"):
+            await motor.check_standstill()
+        st = await motor.read_state()
+        assert st.estop_latched and st.fault_code == 2  # still latched: reported, not cleared
+        assert "fault 2 (emergency_stop), emergency stop latched" in st.describe()
+        await motor.reset_faults()  # the operator's decision
+        await motor.set_watchdog_timeout(60.0)
+        await motor.set_ramp(100.0)
+        await motor.enable()
+        with pytest.raises(MotorStateError, match="expected standstill and disabled, found standstill, enabled"):
+            await motor.check_standstill()
+        await motor.set_frequency(10.0)
+        await motor.wait_for_speed(10.0, timeout_s=2.0)
+        with pytest.raises(MotorStateError, match="found turning at 10 Hz, enabled"):
+            await motor.check_standstill()
+        await motor.stop()
+        await motor.wait_for_speed(0.0, timeout_s=2.0)
+        assert (await motor.check_standstill()).fault_code == 0
         await motor.close()
 
     asyncio.run(run())

@@ -9,7 +9,13 @@ from collections.abc import Iterator
 import pytest
 import serial
 
-from drivers.motor import LinkPolicy, ModbusTransport, MotorController, MotorExceptionReplyError
+from drivers.motor import (
+    LinkPolicy,
+    ModbusTransport,
+    MotorController,
+    MotorExceptionReplyError,
+    MotorValueError,
+)
 from drivers.sim import SimRig
 
 
@@ -142,3 +148,21 @@ def test_driver_requests_and_reply_decoding_are_byte_exact() -> None:
         "00 02 00 00 00 06 01 03 00 64 00 06",  # FC03 status block, 6 words from 100
         "00 03 00 00 00 06 01 06 00 02 01 F4",  # FC06 acceleration_ramp = 500 (5.00 Hz/s)
     ]
+
+
+def test_driver_refuses_out_of_range_values_before_sending() -> None:
+    fake = FakeModbusServer([bytes.fromhex("0001 0000 0006 01 06 0002 01F4".replace(" ", ""))])
+
+    async def run() -> None:
+        async with fake as (host, port):
+            motor = MotorController()
+            await motor.connect(ModbusTransport.tcp(host, port, policy=LinkPolicy(timeout_s=1.0)))
+            for name, value in (("acceleration_ramp", 0.0), ("acceleration_ramp", 100.5), ("enable", 2),
+                                ("frequency_setpoint", -1.0), ("watchdog_timeout", 61.0)):
+                with pytest.raises(MotorValueError, match=f"register '{name}': expected"):
+                    await motor.write(name, value)
+            await motor.set_ramp(5.0)  # in range: sent
+            await motor.close()
+
+    asyncio.run(run())
+    assert [r.hex(" ").upper() for r in fake.requests] == ["00 01 00 00 00 06 01 06 00 02 01 F4"]

@@ -46,7 +46,7 @@ def tcp(rig: SimRig, *args: str, write: tuple[str, ...] = ()) -> subprocess.Comp
 
 def test_mbpoll_reads_the_status_block_over_tcp(rig: SimRig) -> None:
     m = rig.motor
-    m.set_watchdog_timeout(0)
+    m.set_watchdog_timeout(60.0)  # 0 (off) is refused with the drive enabled
     m.set_ramp(100.0)
     m.set_setpoint(12.5)
     m.set_enable(True)

@@ -30,7 +30,7 @@ def model(clock: Clock) -> MotorModel:
 
 
 def test_ramp_to_setpoint_and_exact_angle(model: MotorModel, clock: Clock) -> None:
-    model.set_watchdog_timeout(0)
+    model.set_watchdog_timeout(60.0)  # 0 (off) is refused with the drive enabled
     model.set_ramp(5.0)
     model.set_setpoint(10.0)
     model.set_enable(True)
@@ -69,7 +69,7 @@ def test_limits_estop_and_fault_reset(model: MotorModel, clock: Clock) -> None:
         model.set_setpoint(100.01)
     with pytest.raises(ValueError, match="outside"):
         model.set_ramp(0.0)
-    model.set_watchdog_timeout(0)
+    model.set_watchdog_timeout(60.0)  # 0 (off) is refused with the drive enabled
     model.set_ramp(50.0)
     model.set_setpoint(10.0)
     model.set_enable(True)
@@ -98,7 +98,9 @@ def test_register_image_words_and_exception_codes(model: MotorModel, clock: Cloc
     assert img.write(100, [1]) == ILLEGAL_ADDRESS  # read-only
     assert img.write(105, [1]) == ILLEGAL_ADDRESS  # second word of a uint32
     assert img.write(0, [2]) == ILLEGAL_VALUE
-    assert img.write(4, [0]) is None  # watchdog off
+    assert img.write(4, [0]) is None  # watchdog off: allowed while disabled ...
+    assert img.write(0, [1]) == DEVICE_FAILURE  # ... but then the drive cannot be enabled
+    assert img.write(4, [60000]) is None  # 60 s
     assert img.write(2, [5000, 1]) is None  # ramp 50 Hz/s + watchdog in one FC16 write
     assert img.write(1, [2000]) is None and img.write(0, [1]) is None
     clock.t += 1.0

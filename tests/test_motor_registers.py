@@ -60,6 +60,13 @@ def test_status_word_round_trip() -> None:
     (lambda d: d["registers"]["fault_code"].update(address=105), r"address 105 not used twice"),
     (lambda d: d["registers"].pop("watchdog"), r"missing \['watchdog'\]"),
     (lambda d: d["device"].update(max_speed=1), r"device: expected only keys"),
+    (lambda d: d["device"].update(max_frequency_hz=50.0), r"limits are the min/max of registers .*"
+                                                          r"got \['max_frequency_hz'\]"),
+    (lambda d: d["registers"]["enable"].update(max="one"), r"registers.enable.max: expected a finite number"),
+    (lambda d: d["registers"]["enable"].update(min=2, max=1), r"expected min <= max .*got \(2.0, 1.0\)"),
+    (lambda d: d["registers"]["frequency_setpoint"].update(max=700.0),
+     r"within what uint16 x 0.01 holds \[0, 655.35\], got \(0.0, 700.0\)"),
+    (lambda d: d["registers"]["acceleration_ramp"].pop("max"), r"acceleration_ramp.max: expected a declared limit"),
 ])
 def test_malformed_map_names_what_was_expected_and_received(doc: dict, mutate, message: str) -> None:
     bad = copy.deepcopy(doc)
@@ -73,3 +80,19 @@ def test_not_yaml_is_a_register_map_error(tmp_path) -> None:
     p.write_text("registers: [unclosed")
     with pytest.raises(RegisterMapError, match="not valid YAML"):
         load_register_map(p)
+
+
+def test_value_ranges_are_declared_next_to_each_register_and_give_the_device_limits() -> None:
+    m = load_register_map()
+    assert m["frequency_setpoint"].valid_range() == (0.0, 100.0)
+    assert (m.device.min_frequency_hz, m.device.max_frequency_hz) == (0.0, 100.0)
+    assert m["acceleration_ramp"].valid_range() == (0.01, 100.0) and m.device.max_ramp_hz_per_s == 100.0
+    assert m["enable"].valid_range() == (0.0, 1.0)
+    assert m["watchdog"].valid_range() == (0.0, 65535.0)  # no declared range: the type's
+    m["watchdog_timeout"].check(60.0)
+    with pytest.raises(MotorValueError, match=r"register 'watchdog_timeout': expected 0..60 s, got 60.5 s"):
+        m["watchdog_timeout"].check(60.5)
+    with pytest.raises(MotorValueError, match=r"expected 0.01..100 Hz/s, got 0.0 Hz/s"):
+        m["acceleration_ramp"].check(0.0)
+    with pytest.raises(MotorValueError, match="got nan"):
+        m["enable"].check(float("nan"))

@@ -45,12 +45,12 @@ def test_both_channels_move_with_the_emulated_motor() -> None:
         async def spin_up() -> None:
             motor = MotorController()
             await motor.connect(ModbusTransport.tcp(*rig.addresses.modbus_tcp, policy=LinkPolicy()))
-            await motor.set_watchdog_timeout(0)
+            await motor.set_watchdog_timeout(60.0)  # 0 (off) is refused with the drive enabled
             await motor.set_ramp(50.0)
             await motor.enable()
             await motor.set_frequency(12.0)
             await motor.wait_for_speed(12.0, timeout_s=3.0)
-            await motor.close()  # the watchdog is off: the crank keeps turning
+            await motor.close()  # no refresh needed for 60 s: the crank keeps turning
 
         asyncio.run(spin_up())
         d1, f1 = samples(daq, 1.0)
@@ -126,7 +126,7 @@ def test_crank_radius_changes_only_at_standstill() -> None:
         rig.set_crank_radius(0.005)
         daq = DaqBridge()
         daq.connect(SerialLink(rig.addresses.daq))
-        rig.motor.set_watchdog_timeout(0)
+        rig.motor.set_watchdog_timeout(60.0)  # 0 (off) is refused with the drive enabled
         rig.motor.set_ramp(100.0)
         rig.motor.set_setpoint(15.0)
         rig.motor.set_enable(True)

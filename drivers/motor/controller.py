@@ -23,7 +23,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from drivers.clock import REAL_CLOCK, Clock
-from drivers.motor.errors import MotorError, MotorFaultError, MotorValueError
+from drivers.motor.errors import MotorError, MotorFaultError, MotorStateError, MotorValueError
 from drivers.motor.registers import RegisterMap, load_register_map
 from drivers.motor.transport import RegisterTransport
 
@@ -54,6 +54,24 @@ class MotorStatus:
     @property
     def crank_angle_deg(self) -> float:
         return math.degrees(self.crank_angle_rad)
+
+    @property
+    def standstill(self) -> bool:
+        """The crank does not turn (speed 0, status bit ``running`` clear)."""
+        return self.actual_speed_hz == 0.0 and not self.flags.get("running", False)
+
+    @property
+    def estop_latched(self) -> bool:
+        return bool(self.flags.get("estop_active", False))
+
+    def describe(self) -> str:
+        """One line for logs and error messages, e.g. ``standstill, disabled, fault 2 (emergency_stop)``."""
+        parts = ["standstill" if self.standstill else f"turning at {self.actual_speed_hz:g} Hz",
+                 "enabled" if self.flags.get("enabled") else "disabled",
+                 f"fault {self.fault_code} ({self.fault_name})" if self.fault_code else "no fault"]
+        if self.estop_latched:
+            parts.append("emergency stop latched")
+        return ", ".join(parts)
 
 
 class MotorController:
@@ -94,10 +112,14 @@ class MotorController:
         return reg.decode(await self.transport.read(reg.address, reg.words, name))
 
     async def write(self, name: str, value: float) -> None:
-        """Write one register (physical value in its unit); no device-limit checks here."""
+        """Write one register (physical value in its unit).
+
+        A value outside the register's declared range (config/motor_registers.yaml ``min``/``max``)
+        is refused here, before anything is sent (:class:`MotorValueError`)."""
         reg = self.map[name]
         if not reg.writable:
             raise MotorValueError(f"register {name!r} is read-only")
+        reg.check(value)
         await self.transport.write(reg.address, reg.encode(value), name)
 
     # --------------------------------------------------------------- commands
@@ -109,22 +131,20 @@ class MotorController:
         await self.write("enable", 0)
 
     async def set_frequency(self, hz: float) -> None:
-        """Crank-frequency setpoint in Hz; checked against the configured limits before sending."""
-        dev = self.map.device
-        if not dev.min_frequency_hz <= hz <= dev.max_frequency_hz:
-            raise MotorValueError(f"crank frequency setpoint: expected {dev.min_frequency_hz}..."
-                                  f"{dev.max_frequency_hz} Hz, got {hz} Hz")
+        """Crank-frequency setpoint in Hz; checked against the register's range before sending."""
         await self.write("frequency_setpoint", hz)
 
     async def set_ramp(self, hz_per_s: float) -> None:
-        """Acceleration ramp in Hz/s (magnitude), 0 < ramp <= max_ramp."""
-        dev = self.map.device
-        if not 0 < hz_per_s <= dev.max_ramp_hz_per_s:
-            raise MotorValueError(f"acceleration ramp: expected 0 < ramp <= {dev.max_ramp_hz_per_s} Hz/s, "
-                                  f"got {hz_per_s} Hz/s")
+        """Acceleration ramp in Hz/s (magnitude), within the register's range (0 < ramp <= max)."""
         await self.write("acceleration_ramp", hz_per_s)
 
     async def set_watchdog_timeout(self, seconds: float) -> None:
+        """Watchdog timeout in s; 0 (off) is refused while the drive is enabled (checked here first,
+        :class:`MotorStateError`; the controller refuses it too, exception 04)."""
+        self.map["watchdog_timeout"].check(seconds)
+        if seconds == 0 and await self.read("enable") != 0:
+            raise MotorStateError("watchdog_timeout: expected a timeout > 0 s while the drive is enabled, "
+                                  "got 0 (the watchdog cannot be switched off while enabled)")
         await self.write("watchdog_timeout", seconds)
 
     async def refresh_watchdog(self) -> None:
@@ -172,6 +192,28 @@ class MotorController:
             time_s=0.5 * (t0 + t1),
             round_trip_s=t1 - t0,
         )
+
+    async def read_state(self) -> MotorStatus:
+        """The controller's state as it is (standstill, enable, fault code, e-stop latch), logged.
+
+        Reports only: nothing is written, a latched fault stays latched (clearing it is the
+        operator's decision, :meth:`reset_faults`)."""
+        st = await self.read_status()
+        level = logging.WARNING if (st.fault_code or not st.standstill) else logging.INFO
+        log.log(level, "motor controller state: %s", st.describe())
+        return st
+
+    async def check_standstill(self) -> MotorStatus:
+        """Require a known, safe state before a run: standstill, disabled and no latched fault.
+
+        Raises :class:`MotorFaultError` (fault latched, not cleared) or :class:`MotorStateError`
+        (turning or enabled), each naming what was expected and what was found."""
+        st = await self.read_state()
+        if st.fault_code != 0:
+            raise MotorFaultError(st.fault_code, st.fault_name)
+        if not st.standstill or st.flags.get("enabled"):
+            raise MotorStateError(f"motor controller: expected standstill and disabled, found {st.describe()}")
+        return st
 
     async def require_no_fault(self) -> MotorStatus:
         """Read the status; raise :class:`MotorFaultError` if the controller has a latched fault."""

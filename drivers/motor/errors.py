@@ -68,3 +68,7 @@ class MotorFaultError(MotorError):
         super().__init__(f"motor controller fault {fault_code} ({fault_name})")
         self.fault_code = fault_code
         self.fault_name = fault_name
+
+
+class MotorStateError(MotorError):
+    """The controller is not in the state a command needs (e.g. turning when standstill is required)."""

@@ -2,7 +2,9 @@
 (shipped as ``sinecal_config``).
 
 Both the driver and the emulator use :class:`RegisterMap`; nothing else declares an address,
-a type or a scaling.  Physical value = raw * scale + offset, in the register's ``unit``.
+a type, a scaling or a valid range.  Physical value = raw * scale + offset, in the register's ``unit``.
+A writable register may declare ``min``/``max`` (physical units): the driver refuses a value outside
+them before sending, the emulator answers exception 03 ILLEGAL DATA VALUE.
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ class Register:
     unit: str = ""
     access: str = "rw"
     description: str = ""
+    min: float | None = None
+    max: float | None = None
 
     @property
     def words(self) -> int:
@@ -56,6 +60,25 @@ class Register:
         words, signed = _TYPES[self.type]
         bits = 16 * words
         return (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0, (1 << bits) - 1)
+
+    def valid_range(self) -> tuple[float, float]:
+        """[min, max] in ``unit``: the declared range, else what the type can hold."""
+        lo, hi = self.raw_range()
+        lo_v, hi_v = sorted((lo * self.scale + self.offset, hi * self.scale + self.offset))
+        return (lo_v if self.min is None else self.min, hi_v if self.max is None else self.max)
+
+    def in_range(self, value: float) -> bool:
+        """``value`` (in ``unit``) is finite and within :meth:`valid_range` (to half a raw step)."""
+        lo, hi = self.valid_range()
+        tol = 0.5 * abs(self.scale) * 1e-6
+        return math.isfinite(value) and lo - tol <= value <= hi + tol
+
+    def check(self, value: float) -> None:
+        """Raise :class:`MotorValueError` (expected range, received value) unless :meth:`in_range`."""
+        if not self.in_range(value):
+            lo, hi = self.valid_range()
+            unit = f" {self.unit}" if self.unit else ""
+            raise MotorValueError(f"register {self.name!r}: expected {lo:g}..{hi:g}{unit}, got {value!r}{unit}")
 
     def encode(self, value: float) -> list[int]:
         """Physical value (in ``unit``) -> list of 16-bit words (high word first)."""
@@ -100,6 +123,12 @@ class DeviceDefaults:
     max_ramp_hz_per_s: float = 100.0
     stop_deceleration_hz_per_s: float = 50.0
     default_watchdog_timeout_s: float = 1.0
+
+
+# DeviceDefaults fields that come from a register's declared range (declared there, once)
+_FROM_RANGES = {"min_frequency_hz": ("frequency_setpoint", "min"),
+                "max_frequency_hz": ("frequency_setpoint", "max"),
+                "max_ramp_hz_per_s": ("acceleration_ramp", "max")}
 
 
 @dataclass(frozen=True)
@@ -156,7 +185,7 @@ def _expect(cond: bool, where: str, expected: str, got: Any) -> None:
 def _parse_register(name: str, spec: Any) -> Register:
     where = f"registers.{name}"
     _expect(isinstance(spec, dict), where, "a mapping", spec)
-    allowed = {"address", "type", "scale", "offset", "unit", "access", "description"}
+    allowed = {"address", "type", "scale", "offset", "unit", "access", "description", "min", "max"}
     unknown = set(spec) - allowed
     _expect(not unknown, where, f"only keys {sorted(allowed)}", sorted(unknown))
     addr = spec.get("address")
@@ -174,7 +203,19 @@ def _parse_register(name: str, spec: Any) -> Register:
     unit = spec.get("unit", "")
     _expect(isinstance(unit, str), f"{where}.unit", "a string", unit)
     desc = str(spec.get("description", ""))
-    return Register(name, addr, typ, float(scale), float(offset), unit, access, desc)
+    bounds: dict[str, float | None] = {}
+    for key in ("min", "max"):
+        v = spec.get(key)
+        _expect(v is None or (isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)),
+                f"{where}.{key}", "a finite number (in the register's unit)", v)
+        bounds[key] = None if v is None else float(v)
+    reg = Register(name, addr, typ, float(scale), float(offset), unit, access, desc, bounds["min"],
+                   bounds["max"])
+    type_lo, type_hi = Register(name, addr, typ, float(scale), float(offset)).valid_range()
+    lo, hi = reg.valid_range()
+    _expect(type_lo <= lo <= hi <= type_hi, f"{where}.min/max",
+            f"min <= max within what {typ} x {scale:g} holds [{type_lo:g}, {type_hi:g}]", (lo, hi))
+    return reg
 
 
 def parse_register_map(doc: Any, source: str = "<register map>") -> RegisterMap:
@@ -200,14 +241,20 @@ def parse_register_map(doc: Any, source: str = "<register map>") -> RegisterMap:
                 code)
     dev_doc = doc.get("device", {})
     _expect(isinstance(dev_doc, dict), f"{source}: device", "a mapping", dev_doc)
-    known = set(DeviceDefaults.__dataclass_fields__)
+    known = set(DeviceDefaults.__dataclass_fields__) - set(_FROM_RANGES)
     extra = sorted(set(dev_doc) - known)
-    _expect(not extra, f"{source}: device", f"only keys {sorted(known)}", extra)
-    device = DeviceDefaults(**dev_doc)
+    _expect(not extra, f"{source}: device", f"only keys {sorted(known)} (the frequency and ramp limits "
+            "are the min/max of registers frequency_setpoint and acceleration_ramp)", extra)
     required = ("enable", "frequency_setpoint", "acceleration_ramp", "actual_speed", "crank_angle",
                 "status_word", "fault_code", "watchdog", "emergency_stop")
     missing = [r for r in required if r not in regs]
     _expect(not missing, f"{source}: registers", f"all of {list(required)}", f"missing {missing}")
+    from_ranges = {}
+    for fname, (rname, key) in _FROM_RANGES.items():
+        value = getattr(regs[rname], key)
+        _expect(value is not None, f"{source}: registers.{rname}.{key}", "a declared limit", value)
+        from_ranges[fname] = value
+    device = DeviceDefaults(**dev_doc, **from_ranges)
     return RegisterMap(regs, dict(bits), {int(k): str(v) for k, v in faults.items()}, device)
 
 

@@ -81,17 +81,27 @@ class ModbusTransport:
         return cls(make, f"modbus-tcp://{host}:{port}", device_id=device_id, policy=pol)
 
     @classmethod
-    def rtu(cls, port: str, *, baudrate: int = 115200, parity: str = "N", stopbits: int = 1,
-            device_id: int = 1, policy: LinkPolicy | None = None) -> ModbusTransport:
-        """Modbus RTU (CRC-16 framing) on serial device ``port``."""
+    def rtu(cls, port: str, *, baudrate: int = 115200, parity: str = "E", stopbits: int | None = None,
+            local_echo: bool = False, device_id: int = 1, policy: LinkPolicy | None = None) -> ModbusTransport:
+        """Modbus RTU (CRC-16 framing) on serial device ``port``.
+
+        Character format as the Modbus serial-line spec asks: 8 data bits, ``parity`` "E" (default),
+        "O" or "N"; ``stopbits`` defaults to 1 with parity and 2 without (8E1, 8O1, 8N2).
+        ``local_echo``: the adapter (RS-485 half duplex) echoes what we send; read it back and discard it.
+        """
+        parity, stopbits = rtu_line_settings(parity, stopbits)
+        if not isinstance(baudrate, int) or isinstance(baudrate, bool) or baudrate <= 0:
+            raise ValueError(f"Modbus RTU baudrate: expected a positive integer, got {baudrate!r}")
         pol = policy or LinkPolicy()
 
         def make() -> ModbusClient:
             return AsyncModbusSerialClient(port, framer=FramerType.RTU, baudrate=baudrate, parity=parity,
                                            stopbits=stopbits, bytesize=8, timeout=pol.timeout_s, retries=0,
-                                           reconnect_delay=0)
+                                           reconnect_delay=0, handle_local_echo=local_echo)
 
-        return cls(make, f"modbus-rtu://{port}?baudrate={baudrate}", device_id=device_id, policy=pol)
+        desc = f"modbus-rtu://{port}?baudrate={baudrate}&parity={parity}&stopbits={stopbits}" + (
+            "&echo=1" if local_echo else "")
+        return cls(make, desc, device_id=device_id, policy=pol)
 
     @property
     def connected(self) -> bool:
@@ -176,15 +186,42 @@ class ModbusTransport:
             self._client = None
 
 
+def rtu_line_settings(parity: str = "E", stopbits: int | None = None) -> tuple[str, int]:
+    """(parity, stop bits) of an RTU line, defaults as the Modbus serial-line spec asks: 8E1, or 8N2
+    without parity.  ValueError naming what was expected and what was received."""
+    if parity not in ("E", "O", "N"):
+        raise ValueError(f"Modbus RTU parity: expected 'E' (even, the default), 'O' or 'N', got {parity!r}")
+    if stopbits is None:
+        stopbits = 2 if parity == "N" else 1
+    if stopbits not in (1, 2):
+        raise ValueError(f"Modbus RTU stop bits: expected 1 or 2, got {stopbits!r}")
+    return parity, stopbits
+
+
+_RTU_QUERY_KEYS = ("baudrate", "parity", "stopbits", "echo")
+
+
 def transport_from_url(url: str, *, device_id: int = 1, policy: LinkPolicy | None = None) -> ModbusTransport:
-    """``modbus-tcp://HOST:PORT`` or ``modbus-rtu:///dev/ttyX?baudrate=115200&parity=N``."""
+    """``modbus-tcp://HOST:PORT`` or ``modbus-rtu:///dev/ttyX?baudrate=115200&parity=E&stopbits=1&echo=0``
+    (RTU defaults: 115200 Bd, 8E1; 8N2 with ``parity=N``; ``echo=1`` discards the adapter's local echo)."""
     u = urlparse(url)
     if u.scheme == "modbus-tcp":
         if u.hostname is None or u.port is None:
             raise ValueError(f"expected modbus-tcp://HOST:PORT, got {url!r}")
         return ModbusTransport.tcp(u.hostname, u.port, device_id=device_id, policy=policy)
     if u.scheme == "modbus-rtu":
-        q = parse_qs(u.query)
-        return ModbusTransport.rtu(u.path, baudrate=int(q.get("baudrate", ["115200"])[0]),
-                                   parity=q.get("parity", ["N"])[0], device_id=device_id, policy=policy)
+        q = {k: v[-1] for k, v in parse_qs(u.query, keep_blank_values=True).items()}
+        unknown = sorted(set(q) - set(_RTU_QUERY_KEYS))
+        if unknown:
+            raise ValueError(f"modbus-rtu URL: expected query keys among {list(_RTU_QUERY_KEYS)}, got {unknown}")
+        try:
+            baud = int(q.get("baudrate", "115200"))
+            stop = int(q["stopbits"]) if "stopbits" in q else None
+        except ValueError:
+            raise ValueError(f"modbus-rtu URL: expected integer baudrate and stopbits, got {u.query!r}") from None
+        echo = q.get("echo", "0")
+        if echo not in ("0", "1"):
+            raise ValueError(f"modbus-rtu URL: expected echo=0 or echo=1, got echo={echo!r}")
+        return ModbusTransport.rtu(u.path, baudrate=baud, parity=q.get("parity", "E").upper(), stopbits=stop,
+                                   local_echo=echo == "1", device_id=device_id, policy=policy)
     raise ValueError(f"expected a modbus-tcp:// or modbus-rtu:// URL, got {url!r}")

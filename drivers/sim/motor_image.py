@@ -21,6 +21,12 @@ ILLEGAL_VALUE = 0x03
 DEVICE_FAILURE = 0x04
 
 
+class _Refused(Exception):
+    def __init__(self, code: int) -> None:
+        super().__init__(code)
+        self.code = code
+
+
 class MotorRegisterImage:
     """Reads produce the live state; writes command the model.  Thread-safe through the model."""
 
@@ -87,7 +93,12 @@ class MotorRegisterImage:
         return out
 
     def write(self, address: int, words: Sequence[int]) -> int | None:
-        """Apply a write of whole registers; returns a Modbus exception code or None."""
+        """Apply a write of whole registers, all or nothing; returns a Modbus exception code or None.
+
+        Every value is checked against its register's declared range first (exception 03); then the
+        registers are applied in address order inside one model transaction, so a write refused part
+        way (e.g. exception 04) changes nothing.
+        """
         end = address + len(words)
         regs: list[Register] = []
         a = address
@@ -97,12 +108,24 @@ class MotorRegisterImage:
                 return ILLEGAL_ADDRESS
             regs.append(entry[0])
             a += entry[0].words
-        for reg in regs:
-            value = reg.decode(words[reg.address - address: reg.address - address + reg.words])
-            code = self._apply(reg.name, value)
-            if code is not None:
-                log.info("motor emulator: write %s=%s refused with exception %d", reg.name, value, code)
-                return code
+        values = [(reg, reg.decode(words[reg.address - address: reg.address - address + reg.words]))
+                  for reg in regs]
+        for reg, value in values:
+            if not reg.in_range(value):
+                lo, hi = reg.valid_range()
+                log.info("motor emulator: write %s=%s outside [%g, %g]: exception 3", reg.name, value, lo, hi)
+                return ILLEGAL_VALUE
+        stored = dict(self._stored)
+        try:
+            with self.model.atomic():
+                for reg, value in values:
+                    code = self._apply(reg.name, value)
+                    if code is not None:
+                        log.info("motor emulator: write %s=%s refused with exception %d", reg.name, value, code)
+                        raise _Refused(code)
+        except _Refused as refused:
+            self._stored = stored
+            return refused.code
         return None
 
     def _apply(self, name: str, value: float) -> int | None:

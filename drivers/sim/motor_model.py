@@ -7,11 +7,12 @@ Time comes from an injectable clock (seconds, monotonic) so unit tests can step 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from drivers.motor.registers import DeviceDefaults
@@ -120,12 +121,27 @@ class MotorModel:
             return self._speed
 
     # ----------------------------------------------------------------- commands
+    @contextlib.contextmanager
+    def atomic(self) -> Iterator[None]:
+        """All commands inside happen together or not at all (a multi-register write): on an
+        exception the state is restored, as if nothing had been commanded."""
+        with self._lock:
+            saved = {k: v for k, v in vars(self).items() if k.startswith("_") and k not in ("_lock", "_clock")}
+            try:
+                yield
+            except BaseException:
+                vars(self).update(saved)
+                raise
+
     def set_enable(self, on: bool) -> None:
-        """Enable/disable; enabling with a latched fault raises ``PermissionError``."""
+        """Enable/disable; enabling with a latched fault or with the watchdog off (timeout 0) raises
+        ``PermissionError``."""
         with self._lock:
             now = self._advance()
             if on and self._fault != FAULT_NONE:
                 raise PermissionError(f"fault {self._fault} latched: reset it first")
+            if on and self._wd_timeout <= 0:
+                raise PermissionError("the watchdog is off (timeout 0): set a timeout before enabling")
             if on and not self._enabled:
                 self._wd_deadline = now + self._wd_timeout
                 self._wd_expired = False
@@ -154,11 +170,13 @@ class MotorModel:
             self._wd_deadline = now + self._wd_timeout
 
     def set_watchdog_timeout(self, seconds: float) -> None:
-        """0 disables the watchdog."""
+        """0 disables the watchdog: refused (``PermissionError``) while the drive is enabled."""
         with self._lock:
             now = self._advance()
             if seconds < 0:
                 raise ValueError(f"watchdog timeout must be >= 0 s, got {seconds}")
+            if seconds == 0 and self._enabled:
+                raise PermissionError("the watchdog cannot be switched off while the drive is enabled")
             self._wd_timeout = seconds
             self._wd_deadline = now + seconds
 

@@ -1,8 +1,11 @@
 """The motor-controller emulator: a real pymodbus server (TCP on loopback, RTU over a pty).
 
 Every request goes through pymodbus' own framing and PDU code; the device logic is the
-:class:`MotorRegisterImage` hooked in as the ``SimDevice`` action.  Fault injection
-(:class:`ModbusFaults`) drops replies (the client times out) or answers with exception codes.
+:class:`MotorRegisterImage` hooked in as the ``SimDevice`` action.  Before pymodbus sees a request,
+:func:`screen_request` applies the controller's documented behaviour: no reply to another unit id,
+exception 01 ILLEGAL FUNCTION for every function but 03/06/16, exception 03 ILLEGAL DATA VALUE for a
+bad quantity or byte count.  Fault injection (:class:`ModbusFaults`) drops replies (the client times
+out) or answers with exception codes.
 """
 
 from __future__ import annotations
@@ -12,10 +15,13 @@ import contextlib
 import logging
 import threading
 from dataclasses import dataclass, field
+from typing import Any
 
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
+from pymodbus.pdu import ExceptionResponse
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.motor.registers import RegisterMap
@@ -25,6 +31,63 @@ from drivers.sim.pty import PtyBridge
 log = logging.getLogger(__name__)
 
 LOOPBACK = "127.0.0.1"
+DOCUMENTED_FUNCTIONS = (0x03, 0x06, 0x10)
+SILENT = -1  # screen_request verdict: no reply at all
+# RTU character format of the emulator's pty: a pty carries bytes, not characters, so parity is not
+# emulated; and Linux refuses even parity (PARENB without PARODD) on a pty with EINVAL.  The emulator
+# therefore opens its pty 8N2 (the spec's format without parity); a client on the pty must use
+# parity="N" (8N2), see SimRigAddresses.modbus_rtu_url.  Real controllers: 8E1 (the driver's default).
+RTU_PARITY = "N"
+RTU_STOPBITS = 2
+
+
+def screen_request(device_id: int, unit: int, pdu: bytes) -> int | None:
+    """The controller's answer before any register is touched: ``SILENT`` (another unit id, including
+    broadcast 0: not supported), an exception code (01 undocumented function; 03 quantity, byte count
+    or length wrong for 03/06/16), or None (a well-formed request of a documented function)."""
+    if unit != device_id:
+        return SILENT
+    fc = pdu[0]
+    if fc not in DOCUMENTED_FUNCTIONS:
+        return int(ExcCodes.ILLEGAL_FUNCTION)
+    if fc == 0x03:
+        ok = len(pdu) == 5 and 1 <= int.from_bytes(pdu[3:5], "big") <= 125
+    elif fc == 0x06:
+        ok = len(pdu) == 5
+    else:
+        qty = int.from_bytes(pdu[3:5], "big") if len(pdu) >= 6 else 0
+        ok = 1 <= qty <= 123 and pdu[5] == 2 * qty and len(pdu) == 6 + 2 * qty
+    return None if ok else int(ExcCodes.ILLEGAL_VALUE)
+
+
+class _ScreeningHandler(ServerRequestHandler):
+    """pymodbus' request handler with :func:`screen_request` in front."""
+
+    device_id = 1
+
+    def callback_data(self, data: bytes, addr: tuple[Any, ...] | None = None) -> int:
+        used, unit, tid, pdu = self.framer.decode(data)
+        if used and pdu:
+            verdict = screen_request(self.device_id, unit, pdu)
+            if verdict == SILENT:
+                log.info("motor emulator: request for unit %d ignored (this is unit %d)", unit, self.device_id)
+                return used
+            if verdict is not None:
+                log.info("motor emulator: function 0x%02X answered with exception %d", pdu[0], verdict)
+                self.server_send(ExceptionResponse(pdu[0], verdict, device_id=unit, transaction=tid), addr)
+                return used
+        return int(super().callback_data(data, addr))
+
+
+def _screening(server_cls: type[Any], device_id: int) -> type[Any]:
+    handler = type("ScreeningHandler", (_ScreeningHandler,), {"device_id": device_id})
+
+    class Screened(server_cls):  # type: ignore[misc, valid-type]
+        def callback_new_connection(self) -> ServerRequestHandler:
+            return handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+    Screened.__name__ = f"Screened{server_cls.__name__}"
+    return Screened
 
 
 @dataclass
@@ -77,13 +140,19 @@ class MotorEmulator:
     """pymodbus servers around one :class:`MotorRegisterImage`; start/stop inside a running loop."""
 
     def __init__(self, image: MotorRegisterImage, *, tcp_port: int = 0, rtu: bool = True,
-                 rtu_baudrate: int = 115200) -> None:
+                 rtu_baudrate: int = 115200, rtu_local_echo: bool = False) -> None:
+        """``rtu_local_echo``: the RTU line echoes every byte the client sends back to it, as an
+        RS-485 adapter without echo suppression does."""
         self.image = image
         self.map: RegisterMap = image.map
         self.faults = ModbusFaults()
         self._tcp_port = tcp_port
         self._rtu = rtu
         self._baud = rtu_baudrate
+        self._echo = rtu_local_echo
+        dev = self.map.device.device_id
+        self._tcp_cls = _screening(ModbusTcpServer, dev)
+        self._serial_cls = _screening(ModbusSerialServer, dev)
         self._tcp: ModbusTcpServer | None = None
         self._serial: ModbusSerialServer | None = None
         self._bridge: PtyBridge | None = None
@@ -121,16 +190,16 @@ class MotorEmulator:
 
     async def start(self) -> None:
         """Start listening: TCP on 127.0.0.1 (port 0 = any free port) and RTU on a pty."""
-        self._tcp = ModbusTcpServer(self._device(), address=(LOOPBACK, self._tcp_port),
-                                    trace_packet=self._trace_packet)
+        self._tcp = self._tcp_cls(self._device(), address=(LOOPBACK, self._tcp_port),
+                                  trace_packet=self._trace_packet)
         await self._tcp.serve_forever(background=True)
         sock = self._tcp.transport.sockets[0]  # type: ignore[union-attr]
         self.tcp_address = sock.getsockname()[:2]
         if self._rtu:
-            self._bridge = PtyBridge().start()
-            self._serial = ModbusSerialServer(
+            self._bridge = PtyBridge(echo_b=self._echo).start()
+            self._serial = self._serial_cls(
                 self._device(), framer=FramerType.RTU, port=self._bridge.a.path, baudrate=self._baud,
-                trace_packet=self._trace_packet)
+                parity=RTU_PARITY, stopbits=RTU_STOPBITS, bytesize=8, trace_packet=self._trace_packet)
             await self._serial.serve_forever(background=True)
             self.rtu_path = self._bridge.b.path
         log.info("motor emulator: Modbus TCP on %s:%d, RTU on %s", *self.tcp_address, self.rtu_path)
@@ -144,8 +213,8 @@ class MotorEmulator:
     async def restart_tcp(self) -> None:
         """Listen again on the same TCP port after :meth:`stop_tcp`."""
         if self._tcp is None and self.tcp_address is not None:
-            self._tcp = ModbusTcpServer(self._device(), address=self.tcp_address,
-                                        trace_packet=self._trace_packet)
+            self._tcp = self._tcp_cls(self._device(), address=self.tcp_address,
+                                      trace_packet=self._trace_packet)
             await self._tcp.serve_forever(background=True)
 
     async def stop(self) -> None:

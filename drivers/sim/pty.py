@@ -53,11 +53,21 @@ def open_pty() -> Pty:
 
 
 class PtyBridge:
-    """Copies bytes both ways between the masters of two ptys in a daemon thread."""
+    """Copies bytes both ways between the masters of two ptys in a daemon thread.
 
-    def __init__(self) -> None:
+    ``echo_b``: whatever the program on ``b`` writes is also sent back to it (the local echo of an
+    RS-485 half-duplex adapter that hears its own transmitter).  Like a USB adapter that packs what
+    it received into one USB transfer, the echo is held until the answer from ``a`` comes (then both
+    go in one write) or for at most ``echo_hold_s``.
+    """
+
+    def __init__(self, *, echo_b: bool = False, echo_hold_s: float = 0.05) -> None:
         self.a = open_pty()
         self.b = open_pty()
+        self.echo_b = echo_b
+        self.echo_hold_s = echo_hold_s
+        self._echo = b""
+        self._echo_since = 0.0
         self._wake_r, self._wake_w = os.pipe()
         self._stop = False
         self._thread = threading.Thread(target=self._run, name="pty-bridge", daemon=True)
@@ -73,7 +83,11 @@ class PtyBridge:
         sel.register(self._wake_r, selectors.EVENT_READ, None)
         try:
             while not self._stop:
-                for key, _ in sel.select(timeout=0.5):
+                events = sel.select(timeout=0.01 if self._echo else 0.5)
+                if self._echo and time.monotonic() - self._echo_since > self.echo_hold_s:
+                    self._write_all(self.b.master, self._echo)
+                    self._echo = b""
+                for key, _ in events:
                     if key.data is None:
                         return
                     try:
@@ -83,6 +97,12 @@ class PtyBridge:
                     except OSError as exc:
                         log.debug("pty bridge: read failed: %s", exc)
                         return
+                    if self.echo_b and key.fd == self.b.master:
+                        if not self._echo:
+                            self._echo_since = time.monotonic()
+                        self._echo += data
+                    elif self._echo and key.fd == self.a.master:
+                        data, self._echo = self._echo + data, b""
                     self._write_all(key.data, data)
         finally:
             sel.close()

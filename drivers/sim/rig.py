@@ -61,6 +61,11 @@ class SimRigAddresses:
     def modbus_tcp_url(self) -> str:
         return f"modbus-tcp://{self.modbus_tcp[0]}:{self.modbus_tcp[1]}"
 
+    @property
+    def modbus_rtu_url(self) -> str | None:
+        """The RTU pty as a URL; 8N2, since a pty refuses even parity (see drivers.sim.motor_server)."""
+        return None if self.modbus_rtu is None else f"modbus-rtu://{self.modbus_rtu}?parity=N"
+
 
 class SimRig:
     """Context manager starting both emulators; the Modbus servers run in a private event loop thread."""
@@ -68,7 +73,7 @@ class SimRig:
     def __init__(self, *, physics: RigPhysics | None = None, seed: int = 0, crank_radius_m: float = 0.01,
                  regmap: RegisterMap | None = None, modbus_port: int = 0, rtu: bool = True,
                  source: SampleSource | None = None, fifo_bytes: int = 1 << 20, wire: bool = True,
-                 clock: Clock = REAL_CLOCK) -> None:
+                 clock: Clock = REAL_CLOCK, rtu_local_echo: bool = False) -> None:
         self.map = regmap or load_register_map()
         self.clock = clock
         self.wire = wire
@@ -76,7 +81,7 @@ class SimRig:
         self.image = MotorRegisterImage(self.map, self.motor)
         self.source = source or RigSource(physics or paper_5kN_physics(), seed=seed,
                                           crank_radius_m=crank_radius_m)
-        self._modbus = MotorEmulator(self.image, tcp_port=modbus_port, rtu=rtu)
+        self._modbus = MotorEmulator(self.image, tcp_port=modbus_port, rtu=rtu, rtu_local_echo=rtu_local_echo)
         self._seed = seed
         self._fifo = fifo_bytes
         self._loop: asyncio.AbstractEventLoop | None = None

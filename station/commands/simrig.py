@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
         a = rig.addresses
         print(f"motor controller  Modbus TCP  {a.modbus_tcp_url}", flush=True)
         unit = rig.map.device.device_id
-        print(f"motor controller  Modbus RTU  {a.modbus_rtu}  (115200 Bd 8N1, unit {unit})", flush=True)
+        print(f"motor controller  Modbus RTU  {a.modbus_rtu}  (115200 Bd 8N2 on the pty, unit {unit})", flush=True)
         print(f"DAQ bridge        serial      {a.daq}", flush=True)
         print("Ctrl-C to stop", flush=True)
         threading.Event().wait()
