@@ -173,6 +173,19 @@ def import_run(run_yaml: str | Path, out_dir: str | Path) -> Path:
         raise
 
 
+def _stated_uncertainties(cfg: dict) -> dict:
+    """The mass uncertainties and measurement chain a recording's configuration states explicitly,
+    as RUN.yaml keys (defaults are not written)."""
+    if cfg.get("format") == FORMAT:
+        return {k: cfg[k] for k in ("end_mass_std_kg", "top_mass_std_kg", "measurement_chain") if k in cfg}
+    out = {"end_mass_std_kg": (cfg.get("transducer") or {}).get("end_mass_std_kg"),
+           "top_mass_std_kg": (cfg.get("rig") or {}).get("load_mass_std_kg"),
+           "measurement_chain": (cfg.get("identification") or {}).get("chain")}
+    if out["measurement_chain"] == MeasurementChain().model_dump():  # the configuration's defaults
+        out["measurement_chain"] = None
+    return {k: v for k, v in out.items() if v is not None}
+
+
 def export_run(recording: str | Path, out_dir: str | Path) -> Path:
     """Write a recording's steps in the interchange format into a new folder
     ``<out_dir>/<run_id>/``; returns the path of its RUN.yaml.  Existing folders are refused."""
@@ -204,6 +217,7 @@ def export_run(recording: str | Path, out_dir: str | Path) -> Path:
         doc = {"format": FORMAT, "format_version": 1, "sample_rate_hz": fs,
                "crank_radius_m": radii.pop(), "top_mass_kg": rec.load_mass_kg,
                **({"end_mass_kg": rec.end_mass_kg} if rec.end_mass_kg is not None else {}),
+               **_stated_uncertainties(rec.config),
                "transducer": {"id": rec.transducer_id, "capacity_N": rec.capacity_N,
                               "sensitivity_V_per_N": rec.sensitivity_V_per_N},
                "steps": entries}

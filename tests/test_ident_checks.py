@@ -252,3 +252,30 @@ def test_a_channel_delay_is_covered_by_the_correlated_delay_term(tmp_path: Path)
         p = res.parameter(name)
         assert abs(p.value / truth - 1) > 3 * res.budget[name]["contributions"]["noise"] / truth  # biased
         assert within(p, truth, 2.0)  # ... and covered
+
+
+def test_report_and_results_show_checks_assumptions_and_budget(base: Path, tmp_path: Path) -> None:
+    from station.ident.api import store_result
+    from station.report.html import render_report
+    from station.service.results import load_results
+
+    rec = via_csv(base, tmp_path, doc=lambda d: d.pop("end_mass_kg"))
+    res = identify_recording(read_recording(rec))
+    store_result(rec, res)
+    html = render_report(rec)
+    assert 'data-check="end_mass_not_given"' in html and "conditional" in html
+    assert "Uncertainty budget" in html and 'data-key="budget.k_f"' in html and "S_times_M" in html
+    page = load_results(rec, res.result_name)
+    assert {c["name"] for c in page["checks"]} == {"end_mass_not_given"}
+    assert page["assumptions"]["end_mass_kg"]["source"] == "assumed"
+    assert {p["name"]: p.get("flag") for p in page["parameters"]} == dict.fromkeys(("S", "k_f", "b_f"), "conditional")
+    assert set(page["budget"]) == {"S", "k_f", "b_f"}
+
+
+def test_stated_uncertainties_survive_export_and_import(base: Path, tmp_path: Path) -> None:
+    chain = {"phase_std_deg": 0.02, "delay_std_s": 1e-6}
+    rec = via_csv(base, tmp_path, doc=lambda d: d.update(end_mass_std_kg=0.01, measurement_chain=chain))
+    again = via_csv(rec, tmp_path / "again")
+    res = identify_recording(read_recording(again))
+    assert res.assumptions["end_mass_kg"]["std"] == 0.01
+    assert res.assumptions["measurement_chain"]["delay_std_s"] == 1e-6

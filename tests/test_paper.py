@@ -28,6 +28,26 @@ def test_report_has_the_paper_sections_side_by_side(report) -> None:
     json.dumps(rep)  # JSON-safe
 
 
+def test_noise_study_paper_figures_are_called_unexplained_with_the_numbers(report) -> None:
+    """The Case I filter's output power cannot reach what the paper's MSEs imply (independent check:
+    the filter's gain on a dense grid, and the output power of a long sine at its worst frequency)."""
+    import numpy as np
+    from scipy.signal import lfilter
+
+    from station.paper import CASES, PAPER_NOISE
+    rep, _ = report
+    b, a, _, _ = CASES["I"]
+    w = np.linspace(0, np.pi, 4001)
+    z = np.exp(-1j * w)
+    gain = np.abs((b[0] + b[1] * z + b[2] * z**2) / (a[0] + a[1] * z + a[2] * z**2))
+    y = lfilter(b, a, 5 * np.sin(w[np.argmax(gain)] * np.arange(20000)))
+    assert np.mean(y[1000:] ** 2) < 16.7 < min(m * 10 ** (s / 10) for s, m in PAPER_NOISE.items()) / 40
+    p = rep["noise_output_power"]
+    assert p["max_gain"] == pytest.approx(gain.max(), rel=1e-4) and p["bound"] == pytest.approx(16.61, abs=0.01)
+    text = next(e for e in rep["explanations"] if e.startswith("Noise study"))
+    assert "unexplained" in text and "16.6" in text and "790-923" in text
+
+
 def test_noise_study_mse_is_the_noise_variance(report) -> None:
     rep, _ = report
     for r in rep["noise_study"]:

@@ -99,6 +99,17 @@ class ParameterOut(_Out):
     unit: str
     identifiable: bool
     reason: str = ""
+    flag: str = Field(default="", description="'', 'poorly_determined' or 'conditional' (on an assumption)")
+
+
+class CheckOut(_Out):
+    """A finding of the identification's input checks."""
+
+    name: str
+    severity: str = Field(description="info, warning or refused")
+    step: int | None
+    message: str
+    values: dict[str, Any]
 
 
 class FitOut(_Out):
@@ -143,6 +154,13 @@ class RunResults(_Out):
     fit: FitOut | None
     identifiability: IdentifiabilityOut | None
     notes: list[str]
+    checks: list[CheckOut] = []
+    budget: dict[str, Any] = Field(default={}, description="per parameter: contributions (source -> "
+                                   "standard uncertainty), combined, unit")
+    assumptions: dict[str, Any] = Field(default={}, description="end and load mass (value, std, source), "
+                                        "measurement chain")
+    determined: dict[str, Any] = Field(default={}, description="what the data determine whatever the end "
+                                       "mass (S M, natural frequency, damping ratio)")
     frequency_response: list[StepResponseOut]
     skipped_steps: list[dict[str, Any]]
     units: dict[str, str]

@@ -78,7 +78,8 @@ def _conditions(d: RunData) -> str:
                 else "")],
             ["top mass", f"{top:g} kg" if isinstance(top, int | float) else "not recorded separately"],
             ["load mass m_l (top mass + adaption)", f"{rec.load_mass_kg:g} kg"],
-            ["end mass m_e", f"{rec.end_mass_kg:g} kg" if rec.end_mass_kg is not None else "unknown (taken as 0)"],
+            ["end mass m_e", f"{rec.end_mass_kg:g} kg" if rec.end_mass_kg is not None else
+             "not given: S, k_f, b_f are conditional on the assumed value (see the identification)"],
             ["sample rate", f"{rec.sample_rate_hz:g} Hz"],
             ["source", _e(rec.source)],
             ["run id", _e(rec.run_id)],
@@ -108,8 +109,21 @@ def _model(d: RunData) -> str:
             ["fit", f"MSE {fmt_unc(fit.get('mse'))} V², residual RMS per step [{rms}] V, "
                     f"χ²/dof {fmt_unc(fit.get('chi2_per_dof'))}, {fit.get('n_points', '?')} points"],
             ["condition number", fmt_unc(rep.get("condition_number"))]]
+    for name, a in (ident.get("assumptions") or {}).items():
+        if isinstance(a, dict) and "source" in a:
+            rows.append([_e(name), f"{a.get('value')} ({_e(a['source'])}"
+                         + (f", u = {fmt_unc(a['std'])})" if a.get("std") is not None
+                            else "; no uncertainty: the results are conditional on it)")])
     notes = "".join(f"<li>{_e(n)}</li>" for n in ident.get("notes") or [])
+    checks = "".join(f'<li data-check="{_e(c.get("name"))}">{_e(c.get("severity"))}: {_e(c.get("name"))}'
+                     f'{"" if c.get("step") is None else " (step " + str(c["step"]) + ")"}: {_e(c.get("message"))}</li>'
+                     for c in ident.get("checks") or [])
+    det = [[_e(k), _num(fmt_value(v.get("value"), v.get("combined")), v.get("value")), _num(fmt_unc(v.get("combined"))),
+            _e(v.get("unit", ""))] for k, v in (ident.get("determined") or {}).items()]
     return ("<h2>Model and identification</h2>" + _table(["", ""], rows)
+            + (f'<h3>Input checks</h3><ul class="note">{checks}</ul>' if checks else "")
+            + (("<h3>What the data determine whatever the end mass</h3>"
+                + _table(["quantity", "value", "u (k = 1)", "unit"], det)) if det else "")
             + (f'<ul class="note">{notes}</ul>' if notes else ""))
 
 
@@ -125,7 +139,9 @@ def _param_rows(params: dict[str, Any], prefix: str) -> list[list[str]]:
             continue
         v, u = float(p["value"]), p.get("std")
         u = float(u) if u is not None else None
-        rows.append([_e(name), _e(MEANING.get(name, "")), _num(fmt_value(v, u), v, f"{prefix}{name}"),
+        meaning = _e(MEANING.get(name, "")) + (f' <span class="na">({_e(p["flag"])}: {_e(p.get("reason", ""))})</span>'
+                                               if p.get("flag") else "")
+        rows.append([_e(name), meaning, _num(fmt_value(v, u), v, f"{prefix}{name}"),
                      _num(fmt_unc(u), u, f"{prefix}{name}.u"),
                      _num(fmt_unc(COVERAGE_K * u) if u is not None else "n/a",
                           COVERAGE_K * u if u is not None else None, f"{prefix}{name}.U"),
@@ -138,9 +154,24 @@ PARAM_HEADERS = ["parameter", "meaning", "value", "u (k = 1)", "U (k = 2)", "U r
                  "unit"]
 
 
+def _budget(d: RunData) -> str:
+    """GUM budget: standard uncertainty of each parameter per source (k = 1), and combined."""
+    budget = d.ident.get("budget") or {}
+    if not budget:
+        return ""
+    sources = list(next(iter(budget.values()))["contributions"])
+    rows = [[_e(n)] + [_num(fmt_unc(b["contributions"].get(s)) if b["contributions"].get(s) is not None
+                            else "conditional") for s in sources]
+            + [_num(fmt_unc(b["combined"]), b["combined"], f"budget.{n}"), _e(b.get("unit", ""))]
+            for n, b in budget.items()]
+    return ("<h3>Uncertainty budget (standard uncertainties, k = 1)</h3>"
+            + _table(["parameter", *[_e(s) for s in sources], "combined", "unit"], rows))
+
+
 def _parameters(d: RunData) -> str:
     return ("<h2>Identified parameters</h2>" + _table(PARAM_HEADERS, _param_rows(d.ident.get("parameters") or {},
-                                                                                 "param."), "params"))
+                                                                                 "param."), "params")
+            + _budget(d))
 
 
 def _sensitivity(d: RunData) -> str:

@@ -59,6 +59,16 @@ def summary_lines(d: RunData) -> list[str]:
                       + (", ".join(str(e.get("name")) for e in d.discrepancy.get("effects") or []) or "none")]
         lines += [f"  unexplained: {u}" for u in d.discrepancy.get("unexplained") or []]
     lines += [f"note: {n}" for n in ident.get("notes") or []]
+    lines += [f"check {c.get('severity')}: {c.get('name')}: {c.get('message')}" for c in ident.get("checks") or []]
+    em = (ident.get("assumptions") or {}).get("end_mass_kg")
+    if em:
+        lines.append(f"end mass {em.get('value')} kg ({em.get('source')}"
+                     + (f", u = {fmt_unc(em['std'])} kg)" if em.get("std") is not None
+                        else "; results conditional on it)"))
+    for n, b in (ident.get("budget") or {}).items():
+        lines.append(f"budget {n}: " + ", ".join(f"{k} {fmt_unc(v) if v is not None else 'conditional'}"
+                                                 for k, v in b["contributions"].items())
+                     + f"; combined {fmt_unc(b['combined'])} {b.get('unit', '')}")
     return lines
 
 

@@ -69,5 +69,7 @@ def load_results(path: Path, result_name: str) -> dict[str, Any]:
     params = [{"name": name, **p} for name, p in (ident.get("parameters") or {}).items()]
     return finite({"method": ident.get("method"), "model": ident.get("model"), "parameters": params,
                    "fit": ident.get("fit"), "identifiability": ident.get("identifiability"),
-                   "notes": ident.get("notes") or [], "frequency_response": steps, "skipped_steps": skipped,
+                   "notes": ident.get("notes") or [], "checks": ident.get("checks") or [],
+                   "budget": ident.get("budget") or {}, "assumptions": ident.get("assumptions") or {},
+                   "determined": ident.get("determined") or {}, "frequency_response": steps, "skipped_steps": skipped,
                    "units": units})

@@ -217,13 +217,24 @@ async function loadResults(id) {
   const d = res.data;
   $("#results").dataset.run = id;
   $("#res-model").textContent = `method ${d.method}, model ${d.model}` + (d.notes.length ? ` — ${d.notes.join("; ")}` : "");
+  const cl = $("#res-checks");
+  cl.innerHTML = "";
+  for (const c of d.checks || []) {
+    const li = document.createElement("li");
+    li.dataset.check = c.name;
+    li.textContent = `${c.severity}: ${c.name}: ${c.message}`;
+    cl.appendChild(li);
+  }
+  const em = (d.assumptions || {}).end_mass_kg;
+  $("#res-assumptions").textContent = em ? `end mass m_e = ${em.value} kg (${em.source}` +
+    (em.std === null ? ": assumed, no uncertainty; S, k_f, b_f are conditional on it)" : `, u = ${em.std} kg)`) : "";
   const tb = $("#params tbody");
   tb.innerHTML = "";
   for (const p of d.parameters) {
     const tr = document.createElement("tr");
     tr.dataset.param = p.name;
     tr.innerHTML = `<td>${esc(p.name)}</td><td class="value">${p.identifiable ? fmtU(p.value, p.std) : "not identifiable"}</td>` +
-      `<td>${esc(p.unit)}</td><td>${p.identifiable ? "yes" : "no: " + esc(p.reason)}</td>`;
+      `<td>${esc(p.unit)}</td><td>${p.identifiable ? (p.flag ? esc(p.flag) + ": " + esc(p.reason) : "yes") : "no: " + esc(p.reason)}</td>`;
     tb.appendChild(tr);
   }
   if (d.fit) {
