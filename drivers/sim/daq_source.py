@@ -49,14 +49,18 @@ class RigSource:
         with self._lock:
             if self.synth is not None and key == self._key:
                 return
-            phys = replace(self.physics, sample_rate_hz=rate_hz,
-                           adc=replace(self.physics.adc, displacement_range_V=range_disp_V,
-                                       force_range_V=range_force_V))
-            phi0 = self.synth.crank_angle_rad if self.synth is not None else self._phi0
-            self.synth = RigSynth(phys, seed=self.seed + self._runs, crank_radius_m=self.crank_radius_m,
-                                  phi0_rad=phi0)
-            self._key = key
-            self._runs += 1
+            self._new_synth(key)
+
+    def _new_synth(self, key: tuple[float, float, float]) -> None:
+        rate_hz, range_disp_V, range_force_V = key
+        phys = replace(self.physics, sample_rate_hz=rate_hz,
+                       adc=replace(self.physics.adc, displacement_range_V=range_disp_V,
+                                   force_range_V=range_force_V))
+        phi0 = self.synth.crank_angle_rad if self.synth is not None else self._phi0
+        self.synth = RigSynth(phys, seed=self.seed + self._runs, crank_radius_m=self.crank_radius_m,
+                              phi0_rad=phi0)
+        self._key = key
+        self._runs += 1
 
     def set_phase(self, phi0_rad: float) -> None:
         """Crank angle (rad) for the next :meth:`configure` (from the motor emulator's angle)."""
@@ -73,6 +77,10 @@ class RigSource:
 
     def advance(self, n: int, f_end_hz: float) -> tuple[np.ndarray, np.ndarray]:
         with self._lock:
+            if self.synth is None and self._key is not None:
+                # the physics or phase changed (set_phase) while the emulator keeps producing between
+                # records: carry on with the last configuration, as its next CONF would
+                self._new_synth(self._key)
             if self.synth is None:
                 raise RuntimeError("RigSource.advance before configure")
             block = self.synth.advance(n, max(0.0, f_end_hz))

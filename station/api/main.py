@@ -22,7 +22,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from station import __version__
-from station.api.routes import runs, system
+from station.api.routes import campaign, runs, system
 from station.errors import StationError
 from station.service.manager import (
     RigBusyError,
@@ -101,6 +101,7 @@ def create_app(settings: ServiceSettings, *,
                            allowed_hosts=["127.0.0.1", "localhost", "::1", "[::1]"])
     install_error_handlers(app)
     app.include_router(runs.router)
+    app.include_router(campaign.router)
     app.include_router(system.router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
 

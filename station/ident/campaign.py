@@ -171,7 +171,7 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
     frfs, used = [], []
     for r in recs:
         frf, _sigs, skipped = measured_response(r)
-        checks += [Finding("step_left_out", "warning", n, recording=str(r.path)) for n in skipped]
+        checks += [Finding("step_left_out", "warning", n, recording=r.path.name) for n in skipped]
         frfs.append(frf)
         used.append(tuple(st.index for st in r.steps if st.usable))
     signs = {_sign_of_S(f) for f in frfs}

@@ -28,7 +28,7 @@ def _f(x: float | None) -> float | None:
 
 @dataclass(frozen=True)
 class Finding:
-    """One named check: severity 'info' | 'warning' | 'refused'; ``recording`` the path it concerns
+    """One named check: severity 'info' | 'warning' | 'refused'; ``recording`` the file it concerns
     (None for the campaign); message for the operator; the numbers behind it."""
 
     name: str

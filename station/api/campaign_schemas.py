@@ -1,0 +1,114 @@
+"""Request and response schemas of ``POST /campaigns`` (multi-mass joint identification).
+
+The response mirrors ``station.ident.campaignresult.CampaignResult.to_dict`` (the CLI's JSON)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+
+from station.api.deps import RUN_ID_PATTERN
+
+RunIdStr = Annotated[str, StringConstraints(pattern=RUN_ID_PATTERN)]
+
+
+class CampaignRequest(BaseModel):
+    """Completed runs of one transducer with different top masses, to be identified jointly."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    runs: list[RunIdStr] = Field(min_length=1, max_length=32,
+                                 description="run ids (each once); at least two distinct top masses separate "
+                                             "S from the end mass m_e")
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class CampaignParameterOut(_Out):
+    value: float | None = Field(description="estimate in `unit`; None when refused")
+    std: float | None = Field(description="combined standard uncertainty in `unit` (the budget's)")
+    unit: str
+    identifiable: bool
+    reason: str = ""
+    flag: str = Field(default="", description="'', 'poorly_determined' or 'conditional' (on the stated end mass)")
+
+
+class CovarianceOut(_Out):
+    names: list[str]
+    units: list[str]
+    matrix: list[list[float | None]] = Field(description="covariance in the parameters' units (products)")
+
+
+class MassOut(_Out):
+    value: float | None = Field(description="kg")
+    std: float | None = Field(description="kg")
+
+
+class OwnValueOut(_Out):
+    value: float | None
+    std: float | None
+    unit: str
+
+
+class OwnFitOut(_Out):
+    S: OwnValueOut
+    k_f: OwnValueOut
+
+
+class CampaignRecordingOut(_Out):
+    run_id: str
+    path: str = Field(description="recording file name")
+    load_mass_kg: MassOut = Field(description="top mass + adaption as weighed")
+    load_mass_fitted_kg: MassOut = Field(description="as fitted (the weighed value is its prior)")
+    steps_used: list[int]
+    f_range_hz: list[float]
+    chi2: float | None = Field(description="this recording's share of the joint chi^2")
+    n_real: int = Field(description="real numbers it contributes (2 per step)")
+    own_fit: OwnFitOut = Field(description="its own Eq. 9 fit with m_e held at the campaign's (consistency check)")
+
+
+class CampaignFitOut(_Out):
+    chi2: float | None
+    dof: int
+    chi2_per_dof: float | None
+    inflated: bool = Field(description="uncertainties scaled by sqrt(chi2/dof)")
+
+
+class CheckOut(_Out):
+    name: str
+    severity: Literal["info", "warning", "refused"]
+    step: int | None
+    message: str
+    values: dict[str, Any]
+    recording: str | None = None
+
+
+class BudgetOut(_Out):
+    contributions: dict[str, float | None] = Field(description="standard uncertainty per source, in `unit`")
+    combined: float
+    unit: str
+
+
+class CampaignOut(_Out):
+    """Joint identification of S, m_e, k_f, b_f (Eq. 9) from runs with different top masses."""
+
+    kind: Literal["campaign"]
+    method: str
+    model: str
+    status: Literal["separated", "conditional", "refused"] = Field(
+        description="separated: S and m_e determined by the data; conditional: the top masses are too alike, "
+                    "S, k_f, b_f given on the stated end mass; refused: see checks and determined")
+    transducer_id: str
+    runs: list[str]
+    parameters: dict[str, CampaignParameterOut]
+    covariance: CovarianceOut
+    recordings: list[CampaignRecordingOut]
+    fit: CampaignFitOut
+    checks: list[CheckOut]
+    budget: dict[str, BudgetOut]
+    assumptions: dict[str, Any]
+    determined: dict[str, Any]
+    notes: list[str]

@@ -1,0 +1,54 @@
+"""/campaigns: several completed runs of one transducer with different top masses, identified
+jointly (S, m_e, k_f, b_f; ``station.ident.campaign``)."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter
+from fastapi.exceptions import RequestValidationError
+
+from station.api.campaign_schemas import CampaignOut, CampaignRequest
+from station.api.deps import ManagerDep, Reader
+from station.api.schemas import ErrorOut, ValidationErrorOut
+from station.errors import BadInputError
+from station.recording import read_recording
+from station.service.manager import RunStateError
+from station.service.results import finite
+
+router = APIRouter(prefix="/campaigns", tags=["campaigns"])
+
+
+@router.post("", response_model=CampaignOut, dependencies=[Reader],
+             responses={401: {"model": ErrorOut, "description": "bearer token missing or wrong (off loopback)"},
+                        404: {"model": ErrorOut, "description": "no such run"},
+                        409: {"model": ErrorOut, "description": "a run is not completed"},
+                        422: {"model": ValidationErrorOut,
+                              "description": "invalid request, or runs that cannot be one campaign (different "
+                                             "transducers or nominal sensitivities, a run twice, mixed polarity)"},
+                        503: {"model": ErrorOut, "description": "a recording cannot be read right now"}},
+             summary="Identify runs with different top masses jointly (S, end mass m_e, k_f, b_f)")
+async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep) -> CampaignOut:
+    """Reads each run's recording and fits Eq. 9 to all of them at once, the end mass m_e a
+    parameter.  Nothing is stored (``station identify REC1 REC2 ...`` stores the result in the
+    recordings).  Top masses too alike to separate S from m_e give status `conditional` or
+    `refused` with the named check `end_mass_separation`, not an error."""
+    from station.ident.campaign import identify_campaign
+
+    recs = []
+    for run_id in body.runs:
+        row = manager.get(run_id)
+        if row.state != "completed":
+            raise RunStateError(f"run {run_id} is {row.state}: only completed runs take part in a campaign")
+        recs.append(await manager.read_file(run_id, read_recording))
+    try:
+        res = await asyncio.to_thread(identify_campaign, recs)
+    except BadInputError as exc:
+        raise RequestValidationError([{"type": "campaign_refused", "loc": ["body", "runs"], "msg": str(exc),
+                                       "input": list(body.runs)}]) from None
+    data: dict[str, Any] = finite(res.to_dict())
+    for r in data["recordings"]:
+        r["path"] = Path(r["path"]).name  # never a server path
+    return CampaignOut.model_validate({**data, "runs": list(body.runs)})

@@ -1,0 +1,58 @@
+"""POST /campaigns through a real daemon (``station serve --sim``): two runs of the simulated
+transducer with different top masses identified jointly; the refusals and error statuses."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.test_service_support import Daemon, run_body
+
+pytestmark = pytest.mark.slow
+END_MASS = 0.12  # the simulated transducer's (config/sim-5kN.yaml)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Daemon, list[str]]]:
+    with Daemon(tmp_path_factory.mktemp("campaign")) as d:
+        ids = []
+        for top in (5.0, 25.717):
+            body = run_body((10.0, 40.0, 80.0), 2e-4, settle_s=0.2, record_s=0.5)
+            body["top_mass_kg"] = top
+            r = d.c().post("/runs", json=body)
+            assert r.status_code == 202, r.text
+            ids.append(r.json()["id"])
+            st = d.wait_state(ids[-1], timeout_s=120)
+            assert st["state"] == "completed", d.log()[-6000:]
+        yield d, ids
+
+
+def test_two_runs_separate_the_end_mass(runs: tuple[Daemon, list[str]]) -> None:
+    d, ids = runs
+    r = d.c().post("/campaigns", json={"runs": ids})
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["status"] == "separated" and out["runs"] == ids
+    me = out["parameters"]["m_e"]
+    assert abs(me["value"] - END_MASS) < 3 * me["std"]
+    assert all("/" not in rec["path"] for rec in out["recordings"])  # no server paths
+    assert [rec["load_mass_kg"]["value"] for rec in out["recordings"]] == pytest.approx([5.45, 26.167])
+
+
+def test_one_run_is_conditional_on_the_stated_end_mass(runs: tuple[Daemon, list[str]]) -> None:
+    d, ids = runs
+    out = d.c().post("/campaigns", json={"runs": ids[:1]}).json()
+    assert out["status"] == "conditional" and out["parameters"]["m_e"]["value"] is None
+    assert next(c for c in out["checks"] if c["name"] == "end_mass_separation")["severity"] == "refused"
+
+
+def test_errors(runs: tuple[Daemon, list[str]], tmp_path: Path) -> None:
+    d, ids = runs
+    c = d.c()
+    r = c.post("/campaigns", json={"runs": [ids[0], ids[0]]})
+    assert r.status_code == 422 and "more than once" in r.json()["detail"][0]["msg"]
+    assert c.post("/campaigns", json={"runs": ["no-such-run"]}).status_code == 404
+    assert c.post("/campaigns", json={"runs": []}).status_code == 422
+    assert c.post("/campaigns", json={"runs": ["../etc"]}).status_code == 422
