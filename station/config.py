@@ -189,17 +189,6 @@ class SimulationConfig(_Model):
     effects: EffectsConfig = EffectsConfig()
 
 
-class ProcessingConfig(_Model):
-    """Filtering and resampling before the per-step sine fits (the paper filters and resamples too)."""
-
-    lowpass_order: int = Field(default=4, ge=1, le=10, description="Butterworth order (applied forward "
-                               "and backward: zero phase, twice the attenuation)")
-    lowpass_cutoff_hz: float = Field(default=2000.0, gt=0, le=100_000)
-    resample_up: int = Field(default=1, ge=1, le=64)
-    resample_down: int = Field(default=4, ge=1, le=64)
-    harmonics: int = Field(default=5, ge=1, le=20, description="crank harmonics fitted as nuisance terms")
-
-
 class DevicesConfig(_Model):
     """Where the real rig's devices are (ignored with --sim, which starts the emulators)."""
 
@@ -244,7 +233,6 @@ class StationConfig(_Model):
     displacement_sensor: DisplacementSensorConfig = DisplacementSensorConfig()
     daq: DaqConfig = DaqConfig()
     plan: PlanConfig
-    processing: ProcessingConfig = ProcessingConfig()
     identification: IdentificationConfig = IdentificationConfig()
     devices: DevicesConfig = DevicesConfig()
     simulation: SimulationConfig | None = None

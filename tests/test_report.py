@@ -152,8 +152,7 @@ def test_report_prefers_a_stored_result_and_processed_steps(sim_recording: Path,
     payload = identify_recording(read_recording(rec_path)).to_dict()
     payload["parameters"]["k_f"].update(value=1.2345e7, std=3.1e3)  # not what the data give: proves use
     write_results(rec_path, "identify_fd_sdof", payload)
-    cfg = parse_config(make_fast_dict(), "fast")
-    steps = process_recording(rec_path, cfg.processing)
+    steps = process_recording(rec_path)
     page = render_report(rec_path)
     assert _cell(page, "param.k_f")[1] == 1.2345e7
     assert _cell(page, "param.k_f.u")[1] == 3.1e3

@@ -28,7 +28,7 @@ from station.ident.names import METHODS, MODELS
 from station.ident.oe import fit_oe
 from station.ident.protocol import PaperProtocol
 from station.ident.result import FitSummary, IdentificationResult, ParameterEstimate
-from station.ident.steps import checked_response, measured_response
+from station.ident.steps import CheckedResponse, checked_response, measured_response
 from station.recording import Recording, write_results
 
 __all__ = [
@@ -116,8 +116,10 @@ def store_result(path: str | Path, res: IdentificationResult) -> str:
 
 def identify_recording(rec: Recording, method: str | None = None, model: str | None = None, *,
                        seed: int = 0, protocol: PaperProtocol = DEFAULT_PROTOCOL,
-                       policy: Policy = DEFAULT_POLICY) -> IdentificationResult:
-    """Identify the transducer from a recording.  Default method: 'fd' (the efficient estimator
+                       policy: Policy = DEFAULT_POLICY, response: CheckedResponse | None = None,
+                       ) -> IdentificationResult:
+    """Identify the transducer from a recording (``response``: its checked H(f) if already computed,
+    used by 'fd').  Default method: 'fd' (the efficient estimator
     for stepped-sine data, at the Cramér-Rao bound; with a single frequency it reports what is not
     identifiable); default model: 'auto' for fd (Eq. 9, Eq. 8 when the data demand and determine
     it), 'sdof' for oe, 'h2' for the paper's methods."""
@@ -127,7 +129,7 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     if model is not None and model not in MODELS:
         raise BadInputError(f"unknown model {model!r}; expected one of {', '.join(MODELS)}")
     if method == "fd":
-        return identify_fd(rec, model or "auto", policy)
+        return identify_fd(rec, model or "auto", policy, response=response)
     if method == "oe":
         return identify_oe(rec, model or "sdof", policy)
     form = {"sdof": "h2", "coupled": "h1"}.get(model or "h2", model or "h2")

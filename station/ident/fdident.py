@@ -25,7 +25,7 @@ from station.ident.identifiability import Policy, effect_text
 from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.models import CoupledModel, Model, SdofModel, make_model
 from station.ident.result import Check, IdentificationResult, ParameterEstimate
-from station.ident.steps import checked_response
+from station.ident.steps import CheckedResponse, checked_response
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -106,7 +106,7 @@ def _param_list(model: Model, theta: FloatArray, budget: Budget, rep_ok: tuple[b
 
 
 def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None = None, *,
-                inputs: IdentInputs | None = None) -> IdentificationResult:
+                inputs: IdentInputs | None = None, response: CheckedResponse | None = None) -> IdentificationResult:
     """Frequency-domain estimator with input checks, assumptions and budget (module docstring).
 
     model_key 'auto': Eq. 9, or Eq. 8 when Eq. 9 misfits (chi2/dof significantly > 1) and the
@@ -114,7 +114,7 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
     inputs = inputs or inputs_for(rec)
     policy = replace(policy or Policy(), phase_floor_rad=inputs.chain.floor_phase_rad,
                      gain_floor=inputs.chain.floor_gain)
-    cr = checked_response(rec, inputs)
+    cr = response if response is not None else checked_response(rec, inputs)
     frf, checks, notes = cr.frf, list(cr.checks), []
     sdof = make_model("sdof", inputs.m_e, inputs.m_l)
     assert isinstance(sdof, SdofModel)

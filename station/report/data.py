@@ -14,14 +14,12 @@ and the report of one run read and fit it once (the raw channels are dropped; th
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 from numpy.typing import NDArray
 
@@ -30,6 +28,7 @@ from station.ident.api import identify_recording, measured_response
 from station.ident.frf import FrequencyResponse, whitened_jacobian
 from station.ident.models import Model, SdofModel, make_model
 from station.recording import Recording, read_recording
+from station.recording.stored import read_processed, read_stored
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -103,31 +102,13 @@ class RunData:
             extra.get("m_l_kg", self.rec.load_mass_kg))
 
 
-def _open(path: Path) -> h5py.File:
-    try:
-        return h5py.File(path, "r")
-    except OSError:
-        try:
-            return h5py.File(path, "r", swmr=True)
-        except OSError as exc:
-            raise RecordingFormatError(f"{path}: not a readable HDF5 recording ({exc})") from None
-
-
 def read_groups(path: Path) -> tuple[dict[str, StoredResult], dict[str, Any] | None]:
     """All ``/results`` documents, and ``/processed/steps`` (its JSON plus arrays) or None."""
-    if not path.exists():
-        raise RecordingFormatError(f"{path}: no such recording")
-    with _open(path) as f:
-        results = {}
-        for name, g in (f["results"].items() if "results" in f else []):
-            if "json" in g.attrs:
-                results[name] = StoredResult(name, str(g.attrs.get("written", "")), json.loads(g.attrs["json"]))
-        proc = None
-        if "processed/steps" in f:
-            g = f["processed/steps"]
-            if all(k in g for k in ("frequency_hz", "H", "H_cov")):
-                proc = {"json": json.loads(g.attrs["json"]) if "json" in g.attrs else {},
-                        **{k: g[k][...] for k in ("frequency_hz", "H", "H_cov")}}
+    results = {n: StoredResult(n, s.written, s.doc) for n, s in read_stored(path).items()}
+    stored = read_processed(path)
+    proc = None
+    if stored is not None and all(k in stored.arrays for k in ("frequency_hz", "H", "H_cov")):
+        proc = {"json": stored.doc, **{k: stored.arrays[k] for k in ("frequency_hz", "H", "H_cov")}}
     return results, proc
 
 

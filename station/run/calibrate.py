@@ -9,9 +9,10 @@ from pathlib import Path
 from typing import Any
 
 from drivers.clock import Clock
-from station.config import ProcessingConfig, StationConfig
+from station.config import StationConfig
 from station.ident.api import identify_recording, store_result
 from station.ident.result import IdentificationResult
+from station.ident.steps import checked_response
 from station.recording import read_recording
 from station.run.procedure import Procedure, Progress, RunOutcome
 from station.run.processing import process_recording
@@ -38,12 +39,13 @@ class CalibrationResult:
                           f"lost samples: {self.outcome.lost_samples}"])
 
 
-def process_and_identify(path: Path, processing: ProcessingConfig) -> IdentificationResult:
+def process_and_identify(path: Path) -> IdentificationResult:
     """After a run: H(f) per step into /processed, then the default identification into /results;
-    the recording is read once for both."""
+    the recording is read once and H(f) computed once (the identification fits what /processed holds)."""
     rec = read_recording(path)
-    process_recording(path, processing, rec)
-    res = identify_recording(rec)
+    response = checked_response(rec)
+    process_recording(path, rec, response)
+    res = identify_recording(rec, response=response)
     store_result(path, res)
     return res
 
@@ -60,4 +62,4 @@ async def run_and_identify(cfg: StationConfig, request: RunRequest, out_dir: Pat
         outcome = await proc.execute()
     if outcome.exit_status != "completed":
         return CalibrationResult(outcome, None)
-    return CalibrationResult(outcome, process_and_identify(outcome.path, plan.config.processing))
+    return CalibrationResult(outcome, process_and_identify(outcome.path))

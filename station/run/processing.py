@@ -1,26 +1,28 @@
-"""Processing of a recording before identification: zero-phase low-pass filter, polyphase
-resampling, and the per-step sine fit giving the frequency response H(f) = U_force / x with its
-covariance.  Results go to the recording's ``/processed/steps`` with the settings used.
+"""H(f) per step into the recording's ``/processed/steps``: the identification's own frequency response.
 
-H(f) per step (V/(m/s^2)): the force-signal phasor divided by the frame-acceleration phasor, both
-from the identification's sine fits (``station.ident.frf.step_response``: IEEE 1057 fits at the crank
-frequency found by a four-parameter fit of the displacement, harmonics as nuisance terms), with the
-2x2 covariance of its real and imaginary parts.  Zero-phase filtering acts identically on both channels,
-so it cannot bias H; it only removes out-of-band noise before resampling.
+There is one producer of H(f): ``station.ident.steps.checked_response``, the sine fits of the raw
+record windows (IEEE 1057 fits at the crank frequency found by a four-parameter fit of the
+displacement, harmonics as nuisance terms) behind the identification's plausibility checks.  What
+``/processed`` stores, what the daemon's results and the report show, and what the parameters were
+fitted to are therefore the same numbers.  (A zero-phase low-pass and resampling before the fits,
+as this module once did, cannot change H at the fundamental: the sine fit is itself the narrowest
+band-pass, and the filter's edge transients only cost samples.)
+
+H(f) per step in V/(m/s^2): the force-signal phasor divided by the frame-acceleration phasor, with
+the 2x2 covariance of its real and imaginary parts.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy import signal
 
-from station.config import ProcessingConfig
 from station.errors import StationError
-from station.ident.frf import step_response as frf_step_response
+from station.ident.steps import CheckedResponse, checked_response
 from station.recording import Recording, read_recording, write_results
 
 log = logging.getLogger(__name__)
@@ -45,45 +47,36 @@ class StepResponse:
     n_samples: int
 
 
-def condition(x: np.ndarray, fs: float, p: ProcessingConfig) -> tuple[np.ndarray, float]:
-    """Zero-phase low-pass and polyphase resampling of one channel; returns (signal, new rate)."""
-    y = x
-    if p.lowpass_cutoff_hz < fs / 2:
-        sos = signal.butter(p.lowpass_order, p.lowpass_cutoff_hz, fs=fs, output="sos")
-        y = signal.sosfiltfilt(sos, y)
-    if p.resample_up != p.resample_down:
-        y = signal.resample_poly(y, p.resample_up, p.resample_down)
-    return y, fs * p.resample_up / p.resample_down
+def step_responses(cr: CheckedResponse) -> list[StepResponse]:
+    """The steps of a checked response (the ones the identification uses), one StepResponse each."""
+    out = []
+    for k, (index, sig) in enumerate(zip(cr.used, cr.sigs, strict=True)):
+        fx = sig.fit_x
+        H = complex(cr.frf.H[k])
+        accel = (2 * math.pi * fx.frequency_hz) ** 2 * abs(fx.phasor)
+        out.append(StepResponse(index, fx.frequency_hz, fx.frequency_std_hz, H, np.asarray(cr.frf.cov[k]),
+                                abs(fx.phasor), abs(H) * accel, float(cr.frf.force_offset_V[k]),
+                                fx.residual_rms, float(cr.frf.force_rms_residual_V[k]), int(sig.t.size)))
+    return out
 
 
-def step_response(rec: Recording, index: int, p: ProcessingConfig) -> StepResponse:
-    """Condition both channels of one step, then the identification's sine fits (frf.step_response)."""
-    step = rec.steps[index]
-    d, f = rec.step_signals(step)
-    dd, fs2 = condition(d, rec.sample_rate_hz, p)
-    ff, _ = condition(f, rec.sample_rate_hz, p)
-    edge = int(0.02 * fs2)  # filter/resampler edge transients
-    dd, ff = dd[edge:-edge or None], ff[edge:-edge or None]
-    t = np.arange(dd.size) / fs2
-    n_h = max(1, min(p.harmonics, int(0.45 * fs2 / step.crank_frequency_hz)))
-    H, C, fx, fu = frf_step_response(t, dd, ff, step.crank_frequency_hz, n_harmonics=n_h)
-    return StepResponse(index, fx.frequency_hz, fx.frequency_std_hz, complex(H), C, abs(fx.phasor),
-                        abs(fu.phasor), fu.offset, fx.residual_rms, fu.residual_rms, dd.size)
-
-
-def process_recording(path: str | Path, p: ProcessingConfig, rec: Recording | None = None) -> list[StepResponse]:
-    """Fit every usable step of a complete recording and store the result in /processed/steps
-    (``rec``: the recording already read from ``path``, to save reading it again)."""
+def process_recording(path: str | Path, rec: Recording | None = None,
+                      response: CheckedResponse | None = None) -> list[StepResponse]:
+    """Store H(f) of a complete recording in /processed/steps (``rec``: the recording already read
+    from ``path``; ``response``: its checked response if already computed, to save doing it twice).
+    Steps left out are listed with the check that left them out."""
     rec = rec if rec is not None else read_recording(path)
     if not rec.complete:
         raise StationError(f"{rec.path}: the recording is incomplete ({rec.reason}); recover it first")
-    out, skipped = [], []
-    for i, st in enumerate(rec.steps):
-        if not st.usable:
-            skipped.append({"step": i, "reason": f"{st.lost_in_window} samples lost in the record window"})
-            continue
-        out.append(step_response(rec, i, p))
-    payload = {"settings": p.model_dump(), "skipped": skipped,
+    cr = response if response is not None else checked_response(rec)
+    out = step_responses(cr)
+    why: dict[int, str] = {}
+    for c in cr.checks:
+        if c.step is not None and c.step not in cr.used and c.severity != "info":
+            why.setdefault(c.step, c.message)
+    skipped = [{"step": i, "reason": r} for i, r in sorted(why.items())]
+    payload = {"producer": "station.ident.steps.checked_response (sine fits of the raw record windows)",
+               "skipped": skipped,
                "units": {"frequency_hz": "Hz", "H": "V/(m/s^2)", "H_cov": "(V/(m/s^2))^2",
                          "displacement_amplitude_m": "m", "force_amplitude_V": "V"},
                "steps": [{k: (v if not isinstance(v, complex) else [v.real, v.imag])

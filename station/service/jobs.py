@@ -9,7 +9,6 @@ import logging
 import time
 from typing import Any
 
-from station.config import ProcessingConfig
 from station.service import worker
 from station.service.artifacts import Artifacts
 from station.service.changes import Changes
@@ -23,12 +22,11 @@ MAX_JOB_ATTEMPTS = 3
 class JobQueue:
     """Runs identification jobs on ``pool`` (``workers`` at a time; 0: jobs wait in the queue)."""
 
-    def __init__(self, store: Store, pool: worker.WorkerPool, workers: int, processing: ProcessingConfig,
+    def __init__(self, store: Store, pool: worker.WorkerPool, workers: int,
                  artifacts: Artifacts, changes: Changes, closing: asyncio.Event) -> None:
         self.store = store
         self.pool = pool
         self.workers = workers
-        self.processing = processing
         self.artifacts = artifacts
         self.changes = changes
         self.closing = closing
@@ -79,7 +77,7 @@ class JobQueue:
         self._set_row(run_id, message=f"identifying (attempt {attempts})")
         try:
             async with self.artifacts.file_lock(run_id):
-                out = await self.pool.run(worker.identify_job, str(path), self.processing.model_dump())
+                out = await self.pool.run(worker.identify_job, str(path))
         except asyncio.CancelledError:
             raise
         except (worker.WorkerCrashed, OSError) as exc:

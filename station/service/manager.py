@@ -69,7 +69,7 @@ class RunManager:
         self.render_pool = worker.WorkerPool("render", 1)
         self.runs = Runs(settings, self.store, self.link, self.changes, self.closing, self._on_acquired)
         self.artifacts = Artifacts(settings.recordings_dir, self.render_pool, self.get)
-        self.jobs = JobQueue(self.store, self.identify_pool, settings.workers, self.cfg.processing,
+        self.jobs = JobQueue(self.store, self.identify_pool, settings.workers,
                              self.artifacts, self.changes, self.closing)
         self._warm: asyncio.Task[None] | None = None
         self.started_at = time.time()

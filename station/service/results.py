@@ -7,10 +7,10 @@ import math
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 
 from station.recording import read_results
+from station.recording.stored import read_processed
 
 
 def finite(obj: Any) -> Any:
@@ -28,18 +28,12 @@ def finite(obj: Any) -> Any:
     return obj
 
 
-def _h_cov(path: Path) -> np.ndarray | None:
-    with h5py.File(path, "r") as f:
-        key = "processed/steps/H_cov"
-        return f[key][...] if key in f else None
-
-
 def frequency_response(path: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, str]]:
     """(per-step H(f) with standard uncertainties of magnitude and phase, skipped steps, units)."""
-    doc = read_results(path, "steps", group="processed")
-    if doc is None:
+    stored = read_processed(path)
+    if stored is None:
         return [], [], {}
-    cov = _h_cov(path)
+    doc, cov = stored.doc, stored.arrays.get("H_cov")
     out = []
     for k, st in enumerate(doc.get("steps", [])):
         re, im = (float(v) for v in st["H"])

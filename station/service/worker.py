@@ -66,13 +66,12 @@ def _job(fn: Callable[..., T]) -> Callable[..., T]:
 
 
 @_job
-def identify_job(path: str, processing: dict[str, Any]) -> dict[str, Any]:
+def identify_job(path: str) -> dict[str, Any]:
     """H(f) per step into /processed, then the identification into /results (station.run.calibrate)."""
-    from station.config import ProcessingConfig
     from station.run.calibrate import process_and_identify
 
     t0 = time.perf_counter()
-    res = process_and_identify(Path(path), ProcessingConfig.model_validate(processing))
+    res = process_and_identify(Path(path))
     return {"result_name": res.result_name, "method": res.method, "model": res.model,
             "wall_s": time.perf_counter() - t0}
 
