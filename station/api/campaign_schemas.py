@@ -82,8 +82,8 @@ class CheckOut(_Out):
     severity: Literal["info", "warning", "refused"]
     step: int | None
     message: str
-    values: dict[str, Any]
-    recording: str | None = None
+    values: dict[str, Any] = Field(description="the numbers behind it; `recording`: the file a recording's own "
+                                   "check concerns")
 
 
 class BudgetOut(_Out):

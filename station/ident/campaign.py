@@ -5,25 +5,27 @@ national institutes separate the end mass m_e from the sensitivity S with severa
 
 1. Inputs: every recording of the same transducer (``transducer_id``) and the same nominal
    sensitivity of the force signal (one S for all), each run once; otherwise refused.
-2. H(f) per recording (the single-recording sine fits), its load mass with its standard uncertainty.
+2. H(f) per recording through the single-recording plausibility gate (``steps.checked_response``:
+   steps left out, polarity), its load mass with its standard uncertainty and the measurement
+   chain (``inputs.inputs_for``).
 3. Joint weighted LM of (S, m_e, k_f, b_f) and the load masses (``jointfit``).
-4. ``end_mass_separation``: from the Fisher information with the measurement-chain floor of
-   ``identifiability`` added and the load masses eliminated, the standard uncertainty of m_e and
-   the relative one of S.  Fewer than two distinct load masses (apart by more than
+4. ``end_mass_separation``: from the combined covariance (noise, load masses, measurement chain),
+   the standard uncertainty of m_e and the relative one of S.  Fewer than two distinct load masses (apart by more than
    ``distinct_sigma`` standard uncertainties), or a relative uncertainty of S above
    ``max_S_rel_std``: S and m_e are not separated; S, k_f, b_f are then given conditional on the
    stated end mass (with its uncertainty), or refused when none is stated.
 5. ``same_transducer_model``: each recording's own Eq. 9 fit with m_e held at the campaign's value;
    S and k_f must agree across the masses (chi^2 homogeneity tests).
-6. Budget (GUM): noise, load masses, chain floor; the combined standard uncertainty is that of the
-   reported covariance.
+6. Budget (GUM, sources as the single-recording budget): noise, load_mass, end_mass (conditional
+   case), chain_gain, chain_phase, chain_delay, radius; the combined standard uncertainty is that
+   of the reported covariance.
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -31,7 +33,6 @@ from numpy.typing import NDArray
 
 from station.errors import BadInputError
 from station.ident import jointfit as jf
-from station.ident.api import measured_response
 from station.ident.campaigncheck import (
     campaign_budget,
     consistency,
@@ -40,57 +41,42 @@ from station.ident.campaigncheck import (
     own_fits,
     separation,
 )
-from station.ident.campaignresult import CampaignRecording, CampaignResult, Finding
-from station.ident.frf import FrequencyResponse
-from station.ident.identifiability import Policy
-from station.ident.result import ParameterEstimate
+from station.ident.campaignresult import CampaignRecording, CampaignResult
+from station.ident.checks import IdentificationRefused
+from station.ident.inputs import IdentInputs, inputs_for
+from station.ident.result import Check, ParameterEstimate
+from station.ident.steps import checked_response
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
-LOAD_MASS_REL_STD = 1e-4  # default standard uncertainty of a weighed load mass, relative
-END_MASS_REL_STD = 0.05  # default standard uncertainty of a stated end mass (data sheet), relative
 
 
 @dataclass(frozen=True)
 class CampaignPolicy:
     """Decision thresholds.  distinct_sigma: load masses closer than this many combined standard
     uncertainties count as one; max_S_rel_std, poor_S_rel_std: relative standard uncertainty of S
-    (chain floor included) above which S and m_e are refused / flagged as poorly separated;
-    consistency_p_warn, consistency_p_refuse: p-values of the consistency tests (warning / refusal);
-    ident: the single-recording policy (its chain floor is used)."""
+    (measurement chain included) above which S and m_e are refused / flagged as poorly separated;
+    consistency_p_warn, consistency_p_refuse: p-values of the consistency tests (warning / refusal)."""
 
     distinct_sigma: float = 3.0
     max_S_rel_std: float = 0.01
     poor_S_rel_std: float = 1e-3
     consistency_p_warn: float = 1e-3
     consistency_p_refuse: float = 1e-6
-    ident: Policy = field(default_factory=Policy)
 
 
-class CampaignRefused(BadInputError):
+class CampaignRefused(IdentificationRefused):
     """The recordings cannot be identified jointly; ``checks`` say why."""
-
-    def __init__(self, message: str, checks: tuple[Finding, ...] = ()) -> None:
-        super().__init__(message)
-        self.checks = checks
 
 
 def _param(name: str, unit: str, value: float | None, std: float | None, reason: str = "",
            flag: str = "") -> ParameterEstimate:
-    """ParameterEstimate with a flag ('poorly_determined', 'conditional') where the type has one."""
-    ok = value is not None
-    if "flag" in {f.name for f in fields(ParameterEstimate)}:
-        return ParameterEstimate(name, unit, value, std, ok, reason, flag)  # type: ignore[call-arg]
-    return ParameterEstimate(name, unit, value, std, ok, f"{flag}: {reason}" if flag else reason)
+    return ParameterEstimate(name, unit, value, std, value is not None, reason, flag)
 
 
-def _load_mass(rec: Recording) -> jf.MassPrior:
-    cfg = rec.config if isinstance(rec.config, dict) else {}
-    rig = cfg.get("rig")
-    u = (rig if isinstance(rig, dict) else {}).get("load_mass_std_kg", cfg.get("top_mass_std_kg"))
-    m = float(rec.load_mass_kg)
-    return jf.MassPrior(m, float(u) if isinstance(u, int | float) else LOAD_MASS_REL_STD * m)
+def _load_mass(inp: IdentInputs) -> jf.MassPrior:
+    return jf.MassPrior(inp.m_l, float(inp.load_mass.std or 0.0))
 
 
 def check_inputs(recs: list[Recording]) -> None:
@@ -102,31 +88,32 @@ def check_inputs(recs: list[Recording]) -> None:
     if len(ids) > 1:
         per = ", ".join(f"{r.path.name}: {r.transducer_id!r}" for r in recs)
         raise CampaignRefused(f"recordings of different transducers cannot be identified jointly: {per}",
-                              (Finding("same_transducer", "refused", "different transducer ids",
-                                       {"transducer_ids": sorted(ids)}),))
+                              [Check("same_transducer", "refused", None, "different transducer ids",
+                                     {"transducer_ids": sorted(ids)})])
     sens = np.array([r.sensitivity_V_per_N for r in recs])
     if np.ptp(sens) > 1e-9 * np.max(np.abs(sens)):
         per = ", ".join(f"{r.path.name}: {r.sensitivity_V_per_N:.6g} V/N" for r in recs)
         raise CampaignRefused("the nominal sensitivity of the force signal (bridge x conditioner gain) "
                               f"differs between the recordings, so one S cannot hold for all: {per}",
-                              (Finding("same_chain", "refused", "different nominal sensitivities",
-                                       {"sensitivity_V_per_N": sens.tolist()}),))
+                              [Check("same_chain", "refused", None, "different nominal sensitivities",
+                                     {"sensitivity_V_per_N": sens.tolist()})])
     runs = [r.run_id for r in recs]
     dup = sorted({x for x in runs if runs.count(x) > 1})
     if dup:
-        raise CampaignRefused(f"run {', '.join(dup)} given more than once (it would count twice)")
+        raise CampaignRefused(f"run {', '.join(dup)} given more than once (it would count twice)", [])
 
 
-def _stated_end_mass(recs: list[Recording], checks: list[Finding]) -> jf.MassPrior | None:
-    vals = [r.end_mass_kg for r in recs if r.end_mass_kg is not None]
-    if not vals:
+def _stated_end_mass(inputs: list[IdentInputs], checks: list[Check]) -> jf.MassPrior | None:
+    """The end mass the recordings state (with its standard uncertainty), None when none does."""
+    given = [i.end_mass for i in inputs if i.end_mass_given]
+    if not given:
         return None
-    if len(vals) < len(recs) or np.ptp(vals) > 1e-9 * max(map(abs, vals)):
-        checks.append(Finding("end_mass_stated", "warning", "the recordings state different end masses "
-                              f"({', '.join(f'{v:g}' for v in vals)} kg); their mean is used where one is "
-                              "assumed", {"end_mass_kg": [float(v) for v in vals]}))
-    m = float(np.mean(vals))
-    return jf.MassPrior(m, END_MASS_REL_STD * abs(m))
+    vals = [float(m.value or 0.0) for m in given]
+    if len(given) < len(inputs) or np.ptp(vals) > 1e-9 * max(map(abs, vals)):
+        checks.append(Check("end_mass_stated", "warning", None, "the recordings state different end masses "
+                            f"({', '.join(f'{v:g}' for v in vals)} kg); their mean is used where one is assumed",
+                            {"end_mass_kg": vals}))
+    return jf.MassPrior(float(np.mean(vals)), float(max(m.std or 0.0 for m in given)))
 
 
 def _distinct(priors: list[jf.MassPrior], k: float) -> int:
@@ -139,11 +126,6 @@ def _distinct(priors: list[jf.MassPrior], k: float) -> int:
     return groups
 
 
-
-
-def _sign_of_S(frf: FrequencyResponse) -> float:
-    """Sign of S from the lowest step (well below the resonance H ~ -S M)."""
-    return float(np.sign(-frf.H[int(np.argmin(frf.f_hz))].real))
 
 
 def _determined(recs: list[Recording], priors: list[jf.MassPrior], own: list[FloatArray],
@@ -167,27 +149,37 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
     (module docstring).  Raises CampaignRefused for recordings that cannot be one campaign."""
     policy = policy or CampaignPolicy()
     check_inputs(recs)
-    checks: list[Finding] = []
-    frfs, used = [], []
+    checks: list[Check] = []
+    frfs, used, inputs, signs = [], [], [], set()
     for r in recs:
-        frf, _sigs, skipped = measured_response(r)
-        checks += [Finding("step_left_out", "warning", n, recording=r.path.name) for n in skipped]
-        frfs.append(frf)
-        used.append(tuple(st.index for st in r.steps if st.usable))
-    signs = {_sign_of_S(f) for f in frfs}
+        inp = inputs_for(r)
+        try:
+            cr = checked_response(r, inp)
+        except IdentificationRefused as exc:
+            raise CampaignRefused(f"{r.path.name}: {exc}", [_tagged(c, r) for c in exc.checks]) from None
+        checks += [_tagged(c, r) for c in cr.checks if c.severity != "info"]
+        frfs.append(cr.frf)
+        used.append(tuple(cr.used))
+        inputs.append(inp)
+        signs.add(cr.sign)
     if len(signs) > 1:
         raise CampaignRefused("the polarity of the force signal differs between the recordings (S changes "
-                              "sign): check the wiring or the conditioner setting before a joint fit")
-    priors = [_load_mass(r) for r in recs]
-    stated = _stated_end_mass(recs, checks)
+                              "sign): check the wiring or the conditioner setting before a joint fit", checks)
+    chain = inputs[0].chain
+    if any(i.chain != chain for i in inputs):
+        checks.append(Check("same_chain", "warning", None, "the recordings state different measurement chains; "
+                            f"the first one's ({recs[0].path.name}) is used for the budget", {}))
+    priors = [_load_mass(i) for i in inputs]
+    stated = _stated_end_mass(inputs, checks)
     n_distinct = _distinct(priors, policy.distinct_sigma)
     th0 = jf.start_values(frfs, priors, stated.value if stated else 0.0)
-    sep: Finding
+    sep: Check
     if n_distinct >= 2:
         fit = jf.fit_joint(frfs, priors, th0)
-        sep = separation(frfs, priors, fit, policy)
+        cov, budget = campaign_budget(frfs, priors, fit, True, chain, None)
+        sep = separation(fit, cov, priors, policy)
     else:
-        sep = Finding("end_mass_separation", "refused",
+        sep = Check("end_mass_separation", "refused", None,
                       f"{len(recs)} recording(s) with {n_distinct} distinct top mass: the data determine "
                       "S (m_e + m_l) and the loaded natural frequency only, not S and m_e separately; "
                       "record the transducer with at least two different top masses",
@@ -197,6 +189,7 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
     if not separated:
         th0[1] = stated.value if stated else 0.0
         fit = jf.fit_joint(frfs, priors, th0, free_m_e=False, m_e_prior=stated)
+        cov, budget = campaign_budget(frfs, priors, fit, False, chain, stated)
     own = own_fits(frfs, priors, fit.theta)
     cons = consistency(recs, own, policy)
     if cons is not None and cons.severity != "info":
@@ -207,7 +200,6 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
                                                      "chi2_per_dof_without": odd[1]})
     if cons is not None:
         checks.append(cons)
-    cov, budget = campaign_budget(frfs, priors, fit, separated, policy.ident, stated)
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     if separated:
         checks += end_mass_plausibility(fit, float(sd[1]), stated, n_distinct)
@@ -245,14 +237,19 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
                                    (float(own[k][1]), float(own[k][4])))
                  for k, (r, pr) in enumerate(zip(recs, priors, strict=True)))
     me = ({"value": float(fit.theta[1]), "std": float(sd[1]), "source": "campaign"} if status == "separated"
-          else {"value": stated.value, "std": stated.std, "source": "recording"} if stated else None)
+          else {"value": stated.value, "std": stated.std, "source": inputs[0].end_mass.source} if stated
+          else None)
     assumptions = {"model": "Eq. 9 (stiff coupling), one S, m_e, k_f, b_f for every recording",
                    "end_mass_kg": me,
                    "load_mass_kg": [{"run_id": r.run_id, "value": p.value, "std": p.std} for r, p in zip(recs, priors,
                                                                                                         strict=True)],
-                   "chain_floor": {"gain_rel": policy.ident.gain_floor,
-                                   "phase_deg": float(np.rad2deg(policy.ident.phase_floor_rad))}}
+                   "measurement_chain": chain.model_dump()}
     log.info("campaign of %d recordings: %s", len(recs), status)
     return CampaignResult(status, recs[0].transducer_id, params, cov, rows, fit.chi2, fit.dof, fit.inflated,
                           tuple(checks), budget, assumptions, _determined(recs, priors, own, float(fit.theta[1])),
                           tuple(notes))
+
+
+def _tagged(c: Check, rec: Recording) -> Check:
+    """A recording's own check, its file name added to the values."""
+    return replace(c, values={**c.values, "recording": rec.path.name})

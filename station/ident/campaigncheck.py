@@ -1,13 +1,12 @@
 """The named checks and the uncertainty budget of a multi-mass campaign (``campaign``).
 
-* ``end_mass_separation``: can the load masses separate S from m_e?  From the Fisher information of
-  (S, m_e, k_f, b_f) (``jointfit.fisher_relative``: load masses eliminated, the chain floor of
-  ``identifiability.floor_cov`` added to the covariance of H), the relative standard uncertainty of
-  S and the standard uncertainty of m_e at the estimate (they go together: S (m_e + m_l) is what one
-  mass fixes, so u(S)/S ~ u(m_e)/M).
+* ``end_mass_separation``: can the load masses separate S from m_e?  From the combined covariance
+  of (S, m_e, k_f, b_f) (noise, load masses, measurement chain: ``campaign_budget``), the relative
+  standard uncertainty of S and the standard uncertainty of m_e at the estimate (they go together:
+  S (m_e + m_l) is what one mass fixes, so u(S)/S ~ u(m_e)/M).
 * ``same_transducer_model``: S and k_f of each recording's own Eq. 9 fit, m_e held at the campaign's,
   must agree (chi^2 about the weighted mean, chi^2 distribution's p-value).
-* ``campaign_budget``: noise, load masses, end mass (conditional case), chain floor.
+* ``campaign_budget``: noise, load masses, end mass (conditional case), measurement chain.
 """
 
 from __future__ import annotations
@@ -19,10 +18,10 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from station.ident import jointfit as jf
-from station.ident.campaignresult import Finding
 from station.ident.frf import FrequencyResponse, fit_frf
-from station.ident.identifiability import Policy, floor_cov
+from station.ident.inputs import MeasurementChain
 from station.ident.models import SdofModel
+from station.ident.result import Check
 from station.recording import Recording
 
 if TYPE_CHECKING:
@@ -54,7 +53,7 @@ def _homogeneity(vals: FloatArray, sds: FloatArray) -> tuple[float, int, float]:
     return chi2, dof, float(stats.chi2.sf(chi2, dof)) if dof else 1.0
 
 
-def consistency(recs: list[Recording], own: list[FloatArray], policy: CampaignPolicy) -> Finding | None:
+def consistency(recs: list[Recording], own: list[FloatArray], policy: CampaignPolicy) -> Check | None:
     if len(own) < 2:
         return None
     o = np.array(own)
@@ -66,69 +65,90 @@ def consistency(recs: list[Recording], own: list[FloatArray], policy: CampaignPo
     vals |= {"dof": res["S"][1], "S_per_recording": o[:, 0].tolist(), "k_f_per_recording": o[:, 1].tolist()}
     txt = "; ".join(f"{n} chi2 {r[0]:.3g} on {r[1]} dof (p {r[2]:.2g})" for n, r in res.items())
     if p >= policy.consistency_p_warn:
-        return Finding("same_transducer_model", "info", f"one Eq. 9 transducer explains every top mass: {txt}",
+        return Check("same_transducer_model", "info", None, f"one Eq. 9 transducer explains every top mass: {txt}",
                        vals)
     sev = "refused" if p < policy.consistency_p_refuse else "warning"
-    return Finding("same_transducer_model", sev,
+    return Check("same_transducer_model", sev, None,
                    f"S and k_f of the recordings' own fits disagree beyond their uncertainties ({txt}); the "
                    "recordings are not one Eq. 9 transducer with these top masses (a mistyped top mass, a "
                    "changed set-up?)", vals)
 
 
 def campaign_budget(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], fit: jf.JointFit, separated: bool,
-            policy: Policy, m_e_prior: jf.MassPrior | None) -> tuple[FloatArray, dict[str, Any]]:
-    """Covariance (4, 4) of (S, m_e, k_f, b_f) and the GUM budget per parameter: the Fisher information
-    built up term by term (noise of H; + load-mass priors; + end-mass prior when conditional; + the
-    chain floor of ``identifiability.floor_cov``), each contribution the square root of the variance
-    it adds.  Scaled by the Birge ratio when the fit was inflated."""
+                    chain: MeasurementChain, m_e_prior: jf.MassPrior | None) -> tuple[FloatArray, dict[str, Any]]:
+    """Covariance (4, 4) of (S, m_e, k_f, b_f) and the GUM budget per parameter (sources as the
+    single-recording ``budget``).  noise, load_mass and (conditional case) end_mass: the Fisher
+    information built up term by term (each contribution the covariance it adds; Birge-scaled when
+    the fit was inflated).  chain_gain, chain_phase, chain_delay: sensitivity coefficients
+    (``jointfit.data_sensitivity``), the recordings sharing one measurement chain: the gain ratio,
+    phase offset and delay are common to every step of every recording, flatness and per-frequency
+    phase independent from step to step.  radius: 0 (the measured displacement is the input)."""
     scale = np.r_[fit.scale, [max(p.value, 1e-3) for p in priors]]
     p = np.r_[fit.theta, fit.load_mass]
     exact = [jf.MassPrior(pr.value, 0.0) for pr in priors]
-    floors = [floor_cov(f, policy) for f in frfs]
     birge = fit.chi2_per_dof if fit.inflated else 1.0
-    stages: list[tuple[str, list[jf.MassPrior], list[FloatArray] | None, bool]] = [
-        ("noise", exact, None, False), ("top_mass", priors, None, False)]
-    if not separated and m_e_prior is not None:
-        stages.append(("end_mass", priors, None, True))
-    stages.append(("chain_floor", priors, floors, True))
-    var, cov = [], np.zeros((4, 4))
-    for _name, prs, cv, with_me in stages:
-        F = jf.fisher_relative(frfs, prs, p, scale, cv)
+    cond_me = not separated and m_e_prior is not None and m_e_prior.std > 0
+    stages: list[tuple[str, list[jf.MassPrior], bool]] = [("noise", exact, False), ("load_mass", priors, False)]
+    if cond_me:
+        stages.append(("end_mass", priors, True))
+    covs: dict[str, FloatArray] = {}
+    prev = np.zeros((4, 4))
+    for name, prs, with_me in stages:
+        F = jf.fisher_relative(frfs, prs, p, scale, None)
         free = np.ones(4, bool)
         if not separated:
-            if with_me and m_e_prior is not None and m_e_prior.std > 0:
+            if with_me and m_e_prior is not None:
                 F[1, 1] += (scale[1] / m_e_prior.std) ** 2
             else:
                 free[1] = False
         cov = np.zeros((4, 4))
         cov[np.ix_(free, free)] = np.linalg.pinv(F[np.ix_(free, free)]) * birge
         cov *= np.outer(fit.scale, fit.scale)
-        var.append(np.diag(cov).copy())
+        covs[name] = cov - prev
+        prev = cov
+    free4 = np.array([True, separated, True, True])
+    sens = jf.data_sensitivity(frfs, priors, p, scale, free4, m_e_prior.std if cond_me and m_e_prior else None)
+    Hs = [f.H for f in frfs]
+
+    def spread(vectors: list[tuple[list[NDArray[np.complex128]], float]]) -> FloatArray:
+        out = np.zeros((4, 4))
+        for v, sd in vectors:
+            d = sens(v) * sd
+            out += np.outer(d, d)
+        return out
+
+    def points(fn: Any) -> list[list[NDArray[np.complex128]]]:
+        res = []
+        for r, H in enumerate(Hs):
+            for k in range(H.size):
+                v = [np.zeros_like(h) for h in Hs]
+                v[r][k] = fn(H)[k]
+                res.append(v)
+        return res
+
+    covs["chain_gain"] = spread([(Hs, chain.gain_rel_std)] + [(v, chain.flatness_rel_std) for v in points(lambda H: H)])
+    covs["chain_phase"] = spread([([1j * H for H in Hs], np.deg2rad(chain.phase_offset_std_deg))]
+                                 + [(v, np.deg2rad(chain.phase_std_deg)) for v in points(lambda H: 1j * H)])
+    covs["chain_delay"] = spread([([2j * np.pi * f.f_hz * f.H for f in frfs], chain.delay_std_s)])
+    covs["radius"] = np.zeros((4, 4))
+    total = np.asarray(sum(covs.values()))
     budget: dict[str, Any] = {}
     for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)):
-        if i == 1 and not separated:
+        if not free4[i]:
             continue
-        contrib = {st[0]: float(np.sqrt(max(var[k][i] - (var[k - 1][i] if k else 0.0), 0.0)))
-                   for k, st in enumerate(stages)}
-        budget[n] = {"contributions": contrib, "combined": float(np.sqrt(max(var[-1][i], 0.0))), "unit": u}
-    if not separated:
-        cov[1, :] = cov[:, 1] = 0.0
-    return cov, budget
+        budget[n] = {"contributions": {k: float(np.sqrt(max(c[i, i], 0.0))) for k, c in covs.items()},
+                     "combined": float(np.sqrt(max(total[i, i], 0.0))), "unit": u}
+    return total, budget
 
 
-def separation(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], fit: jf.JointFit,
-               policy: CampaignPolicy) -> Finding:
-    """``end_mass_separation`` at the estimate of a joint fit with m_e free (module docstring)."""
-    scale = np.r_[fit.scale, [max(p.value, 1e-3) for p in priors]]
-    p = np.r_[fit.theta, fit.load_mass]
-    F = jf.fisher_relative(frfs, priors, p, scale, [floor_cov(f, policy.ident) for f in frfs])
-    birge = fit.chi2_per_dof if fit.inflated else 1.0
-    C = np.linalg.pinv(F) * birge
-    sd = np.sqrt(np.clip(np.diag(C), 0, None))
-    ev = np.linalg.eigvalsh(F)
+def separation(fit: jf.JointFit, cov: FloatArray, priors: list[jf.MassPrior], policy: CampaignPolicy) -> Check:
+    """``end_mass_separation`` from the combined covariance (noise, load masses, chain) of a joint fit
+    with m_e free; condition number of the Fisher information in relative units."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    ev = np.linalg.eigvalsh(fit.fisher_rel)
     cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
-    rel_S, u_me = float(sd[0]), float(sd[1] * scale[1])
-    corr = float(C[0, 1] / (sd[0] * sd[1])) if sd[0] * sd[1] > 0 else float("nan")
+    rel_S, u_me = float(sd[0] / abs(fit.theta[0])), float(sd[1])
+    corr = float(cov[0, 1] / (sd[0] * sd[1])) if sd[0] * sd[1] > 0 else float("nan")
     ms = [pr.value for pr in priors]
     spread = float(np.ptp(ms))
     needed = spread * rel_S / policy.poor_S_rel_std  # u(S) scales as 1 / (mass spread)
@@ -136,17 +156,17 @@ def separation(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], fit: j
             "S_m_e_correlation": corr, "condition_number": cond, "max_S_rel_std": policy.max_S_rel_std,
             "poor_S_rel_std": policy.poor_S_rel_std, "spread_needed_kg": needed}
     txt = (f"load masses {', '.join(f'{m:.6g}' for m in ms)} kg (spread {spread:.3g} kg) determine S to "
-           f"{rel_S:.2g} (relative) and m_e to {u_me:.2g} kg, chain floor included (S-m_e correlation "
+           f"{rel_S:.2g} (relative) and m_e to {u_me:.2g} kg, measurement chain included (S-m_e correlation "
            f"{corr:.4f}, condition number {cond:.3g})")
     if rel_S > policy.max_S_rel_std:
-        return Finding("end_mass_separation", "refused",
-                       f"the top masses are too alike to separate S from m_e: {txt}; a spread of about "
-                       f"{needed:.3g} kg would give S to {policy.poor_S_rel_std:g}", vals)
+        return Check("end_mass_separation", "refused", None,
+                     f"the top masses are too alike to separate S from m_e: {txt}; a spread of about "
+                     f"{needed:.3g} kg would give S to {policy.poor_S_rel_std:g}", vals)
     if rel_S > policy.poor_S_rel_std:
-        return Finding("end_mass_separation", "warning",
-                       f"S and m_e are separated, but poorly: {txt}; a spread of about {needed:.3g} kg would "
-                       f"give S to {policy.poor_S_rel_std:g}", vals)
-    return Finding("end_mass_separation", "info", f"S and m_e separated: {txt}", vals)
+        return Check("end_mass_separation", "warning", None,
+                     f"S and m_e are separated, but poorly: {txt}; a spread of about {needed:.3g} kg would "
+                     f"give S to {policy.poor_S_rel_std:g}", vals)
+    return Check("end_mass_separation", "info", None, f"S and m_e separated: {txt}", vals)
 
 
 def odd_one_out(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], recs: list[Recording],
@@ -170,23 +190,23 @@ def odd_one_out(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], recs:
 
 
 def end_mass_plausibility(fit: jf.JointFit, std_m_e: float, stated: jf.MassPrior | None,
-                          n_distinct: int) -> list[Finding]:
+                          n_distinct: int) -> list[Check]:
     """Checks of a separated m_e: not negative, consistent with a stated end mass, and whether the
     masses check each other (with two distinct masses any error of theirs goes into m_e)."""
     out = []
     m_e = float(fit.theta[1])
     if m_e < -3 * std_m_e:
-        out.append(Finding("end_mass_negative", "warning", f"the campaign's end mass {m_e:.4g} kg (std "
+        out.append(Check("end_mass_negative", "warning", None, f"the campaign's end mass {m_e:.4g} kg (std "
                            f"{std_m_e:.2g}) is negative: a stated top mass is likely wrong",
                            {"m_e_kg": m_e, "std_kg": std_m_e}))
     if stated is not None:
         z = (m_e - stated.value) / float(np.hypot(std_m_e, stated.std))
         sev = "warning" if abs(z) > 3 else "info"
-        out.append(Finding("end_mass_stated", sev, f"the campaign's end mass {m_e:.4g} kg (std {std_m_e:.2g}) "
+        out.append(Check("end_mass_stated", sev, None, f"the campaign's end mass {m_e:.4g} kg (std {std_m_e:.2g}) "
                            f"{'differs from' if sev == 'warning' else 'agrees with'} the stated {stated.value:g} kg "
                            f"(std {stated.std:.2g}): z = {z:.2f}", {"z": float(z), "stated_kg": stated.value}))
     if n_distinct == 2:
-        out.append(Finding("mass_redundancy", "info", "two distinct top masses: they fix S and m_e exactly, so an "
+        out.append(Check("mass_redundancy", "info", None, "two distinct top masses: they fix S and m_e exactly, so an "
                            "error of a stated top mass goes into m_e unseen; a third mass would check them",
                            {"distinct": n_distinct}))
     return out

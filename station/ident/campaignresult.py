@@ -11,40 +11,19 @@ as weighed and as fitted, the steps used, its chi^2 share, S and k_f of its own 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from station.ident.result import ParameterEstimate
+from station.ident.result import Check, ParameterEstimate
 
 FloatArray = NDArray[np.float64]
 
 
 def _f(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
-
-
-@dataclass(frozen=True)
-class Finding:
-    """One named check: severity 'info' | 'warning' | 'refused'; ``recording`` the file it concerns
-    (None for the campaign); message for the operator; the numbers behind it."""
-
-    name: str
-    severity: str
-    message: str
-    values: dict[str, Any] = field(default_factory=dict)
-    recording: str | None = None
-    step: int | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        vals = {k: (_f(v) if isinstance(v, float) else v) for k, v in self.values.items()}
-        out = {"name": self.name, "severity": self.severity, "step": self.step, "message": self.message,
-               "values": vals}
-        if self.recording is not None:
-            out["recording"] = self.recording
-        return out
 
 
 @dataclass(frozen=True)
@@ -95,7 +74,7 @@ class CampaignResult:
     chi2: float
     dof: int
     inflated: bool
-    checks: tuple[Finding, ...]
+    checks: tuple[Check, ...]
     budget: dict[str, Any]
     assumptions: dict[str, Any]
     determined: dict[str, Any]

@@ -22,6 +22,7 @@ Gaussian H), scaled by chi^2/dof when that is significantly above 1 (Birge ratio
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -204,3 +205,39 @@ def fisher_relative(frfs: list[FrequencyResponse], priors: list[MassPrior], p: F
     F = J[:, keep].T @ J[:, keep]
     A, B, C = F[:4, :4], F[:4, 4:], F[4:, 4:]
     return A - B @ np.linalg.pinv(C) @ B.T if C.size else A
+
+
+def data_sensitivity(frfs: list[FrequencyResponse], priors: list[MassPrior], p: FloatArray,
+                     scale: FloatArray, free4: NDArray[np.bool_],
+                     m_e_std: float | None = None) -> Callable[[list[NDArray[np.complex128]]], FloatArray]:
+    """First-order response of (S, m_e, k_f, b_f) to a systematic change dH_r of the measured H of
+    every recording (GUM sensitivity coefficients, as ``budget``): d theta = -(J^T J)^-1 J^T [W dH; 0]
+    with J the whitened Jacobian of ``fit_joint``'s problem at p (load-mass priors, and an end-mass
+    prior of std m_e_std when m_e is free but not in free4's sense of separated).  free4: which of
+    the four are estimated.  Returns a function of the list of dH_r (each (n_f,) complex)."""
+    R = len(frfs)
+    resid_jac, held = _system(frfs, priors)
+    _, J = resid_jac(p)
+    free = np.r_[free4, ~np.array(held)]
+    if m_e_std is not None and m_e_std > 0:
+        row = np.zeros(4 + R)
+        row[1] = 1.0 / m_e_std
+        J = np.vstack([J, row])
+        free[1] = True
+    Js = J[:, free] * scale[free][None, :]
+    pinv = np.linalg.pinv(Js)
+    W = [_whiteners(f.cov) for f in frfs]
+    n_data = sum(2 * f.f_hz.size for f in frfs)
+
+    def apply(dH: list[NDArray[np.complex128]]) -> FloatArray:
+        v = np.zeros(Js.shape[0])
+        v[:n_data] = np.concatenate([np.einsum("fij,fj->fi", W[r], np.column_stack([d.real, d.imag])).ravel()
+                                     for r, d in enumerate(dH)])
+        dx = np.zeros(4 + R)
+        dx[free] = -(pinv @ v) * scale[free]
+        out = dx[:4].copy()
+        if not free4[1]:
+            out[1] = 0.0
+        return out
+
+    return apply
