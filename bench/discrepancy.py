@@ -1,4 +1,4 @@
-"""Bench of the model-gap workflow (issue 7); prints JSON.
+"""Bench of the model-gap workflow; prints JSON.
 
 wall_s_8_steps: median wall time (s) of ``analyse_recording`` (reading included) on an 8-step recording
 (2 s per step, 5-95 Hz, with mains interference and transducer nonlinearity switched on), 3 repeats.

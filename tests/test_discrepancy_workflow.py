@@ -1,4 +1,4 @@
-"""Model-gap workflow end to end (issue 7): every catalogue effect, drawn at random from its plausible
+"""Model-gap workflow end to end: every catalogue effect, drawn at random from its plausible
 range with several seeds, is switched on in a simulated recording that the base model lacks; the
 workflow (5 kN and 12.5 kN transducers) must name it first, estimate its parameters within their
 stated uncertainty (|error| <= 4 standard uncertainties), shrink the gap to within 1.5x the noise floor

@@ -171,7 +171,7 @@ class RunResults(_Out):
 
 
 class DiscrepancyOut(BaseModel):
-    """The issue-7 model-gap analysis (``DiscrepancyReport.to_json``): gaps in V, effects added."""
+    """The model-gap analysis (``DiscrepancyReport.to_json``): gaps in V, effects added."""
 
     model_config = ConfigDict(extra="allow")
 

@@ -1,6 +1,6 @@
 """Nightly batch: re-identify the recordings in scope through a ``concurrent.futures``-style executor
 (a local process pool, or a Dask distributed cluster), then write each transducer's parameters over
-time with drift flagged against its history (issue 6; docs/batch.md).
+time with drift flagged against its history (docs/batch.md).
 
 Modules: ``items`` (BatchItem), ``worker`` (the job run in a worker process), ``runner``
 (``run_batch``, executors), ``scope`` (which recordings), ``summary`` (history, drift, JSON/CSV),

@@ -1,4 +1,4 @@
-"""``station discrepancy RECORDING``: the model-gap workflow (issue 7) on a recording."""
+"""``station discrepancy RECORDING``: the model-gap workflow on a recording."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Model-gap (discrepancy) workflow (issue 7): where simulation and measurement disagree, which
+"""Model-gap (discrepancy) workflow: where simulation and measurement disagree, which
 catalogue effect is missing, how much the gap shrinks when it is added, and what is left.
 
 Modules: ``decompose`` (per-step LS decomposition, noise floor), ``spectrum`` (line searches),

@@ -68,7 +68,7 @@ def plan_steps(cfg: StationConfig, n_steps: int, f_lo: float = 5.0, f_hi: float 
     |k_f Z2 / (M s^2 X_b)|, uses at most ``fill`` of the rig's peak-force margin
     (M (g + r w^2) <= peak_force_fraction * capacity).
     (One radius: a radius change stops the crank, which ``station.simulate`` does not always reach
-    exactly, see the report of issue 7.)"""
+    exactly.)"""
     M = moving_mass_kg(cfg)
     a_max = cfg.rig.peak_force_fraction * cfg.transducer.capacity_N / M - 9.80665
     phys = to_rig_physics(cfg)

@@ -1,5 +1,5 @@
 """The model-gap workflow: fit the base model, find where it disagrees, name the missing effects one
-at a time, show the gap shrink, say what is left (issue 7).
+at a time, show the gap shrink, say what is left.
 
 Selection rule (forward, greedy): every catalogue effect not yet in the model is added with its
 parameters free and the whole model refitted.  Its evidence is the likelihood-ratio statistic against

@@ -103,7 +103,7 @@ def report_job(path: str) -> str:
 
 @_job
 def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
-    """The issue-7 analysis of a recording: the JSON contract (``to_json``).  Stored in the recording
+    """The model-gap analysis of a recording: the JSON contract (``to_json``).  Stored in the recording
     as ``/results/discrepancy`` (everything, ``to_dict``, with the ``max_effects`` used: the same place
     ``station discrepancy --save`` writes and the report reads) and reused for the same max_effects."""
     from station.recording import read_results, write_results

@@ -171,7 +171,7 @@ async def run_recording(run: RunDep, manager: ManagerDep) -> StreamingResponse:
 
 @router.get("/{run_id}/discrepancy", response_model=DiscrepancyOut, dependencies=[Reader],
             responses={**E401, **E404, **E409, **E422, **E503},
-            summary="Model-gap analysis of the run (issue 7)")
+            summary="Model-gap analysis of the run")
 async def run_discrepancy(run: RunDep, manager: ManagerDep,
                           max_effects: Annotated[int, Query(ge=0, le=8)] = 4) -> DiscrepancyOut:
     """Which catalogue effect the measurement shows that the model lacks; computed once in a
