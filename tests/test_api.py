@@ -159,7 +159,8 @@ def test_plots_report_recording_and_discrepancy(daemon: Daemon, completed: dict)
     disc = c.get(f"/runs/{rid}/discrepancy")
     assert disc.status_code == 200, disc.text
     d = disc.json()
-    assert set(d) == {"base_gap", "effects", "final_gap", "parameters_before", "parameters_after", "unexplained"}
+    assert set(d) == {"base_gap", "effects", "final_gap", "parameters_before", "parameters_after", "unexplained",
+                      "proposal"}
     assert d["final_gap"] <= d["base_gap"] + 1e-12
     again = c.get(f"/runs/{rid}/discrepancy")  # cached in the recording's results
     assert again.json() == d
@@ -219,7 +220,7 @@ def test_malformed_json_is_422_not_500(daemon: Daemon) -> None:
 
 def test_unknown_runs_are_404_and_bad_ids_422(daemon: Daemon) -> None:
     c = daemon.c()
-    for path in ("", "/events", "/results", "/plots/bode.png", "/report", "/recording", "/discrepancy"):
+    for path in ("", "/events", "/results", "/plots/bode.png", "/report", "/recording", "/discrepancy", "/proposal"):
         r = c.get(f"/runs/20990101T000000-NOPE-000000{path}")
         assert r.status_code == 404, (path, r.status_code, r.text)
         assert "no run" in r.json()["detail"]
@@ -254,6 +255,7 @@ def test_busy_rig_409_abort_and_results_states(daemon: Daemon, completed: dict) 
     with h5py.File(io.BytesIO(rec.content), "r") as f:
         assert f.attrs["exit_status"] == "aborted"
     assert c.get(f"/runs/{rid}/discrepancy").status_code == 409
+    assert c.get(f"/runs/{rid}/proposal").status_code == 409
     # the rig is free again
     rid2 = daemon.start_run(freqs=(10.0,), record_s=30.0)
     daemon.wait_state(rid2, ("running",))

@@ -22,7 +22,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from station import __version__
-from station.api.routes import campaign, runs, system
+from station.api.routes import campaign, proposal, runs, system
 from station.errors import StationError
 from station.service.manager import (
     RigBusyError,
@@ -102,6 +102,7 @@ def create_app(settings: ServiceSettings, *,
     install_error_handlers(app)
     app.include_router(runs.router)
     app.include_router(campaign.router)
+    app.include_router(proposal.router)
     app.include_router(system.router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
 

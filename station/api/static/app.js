@@ -277,8 +277,39 @@ async function loadDiscrepancy(url) {
   html += d.effects.length ? "<ul>" + d.effects.map((e) => `<li>${esc(e.name)} (gap after: ${mV(e.gap_after)})</li>`).join("") + "</ul>"
     : "<p>no catalogue effect needed: the model explains the measurement</p>";
   if (d.unexplained.length) html += "<p>unexplained: " + d.unexplained.map(esc).join("; ") + "</p>";
+  html += proposalHtml(d.proposal);
   box.innerHTML = html;
+  const btn = $("#run-proposal");
+  if (btn) btn.addEventListener("click", () => runProposal(shownRun));
   box.dataset.loaded = "1";
+}
+
+// the follow-up run that would settle a tie (or pin down k_f): its added steps and one button
+function proposalHtml(p) {
+  if (!p || !p.steps || !p.steps.length) return "";
+  const gain = p.measure === "bits" ? `${Number(p.expected_information_gain).toPrecision(3)} bits`
+    : `expected Δχ² between the explanations ${Number(p.current).toPrecision(3)} → ${Number(p.expected_information_gain).toPrecision(3)}`;
+  const rows = p.steps.map((s) => `<tr><td>${Number(s.crank_frequency_hz)}</td><td>${(s.crank_radius_m * 1000).toPrecision(3)}</td></tr>`).join("");
+  return `<div id="proposal"><h3>Next run that settles it</h3><p class="small">${esc(p.reason)}; ${esc(gain)}</p>` +
+    `<table><thead><tr><th>added step f / Hz</th><th>radius / mm</th></tr></thead><tbody>${rows}</tbody></table>` +
+    `<p class="small">the run repeats this run's ${p.run_steps.length - p.steps.length} steps and adds these ${p.steps.length}</p>` +
+    `<button type="button" id="run-proposal">run the proposed steps</button> <span id="proposal-msg"></span></div>`;
+}
+
+async function runProposal(id) {
+  const msg = $("#proposal-msg");
+  $("#run-proposal").disabled = true;
+  try {
+    const p = await api("GET", `/runs/${encodeURIComponent(id)}/proposal`);
+    if (!p.ok || !p.data.request) { msg.textContent = p.ok ? "nothing to run" : detailText(p.data); return; }
+    const res = await api("POST", "/runs", p.data.request);
+    if (res.status === 202) { location.hash = `#/runs/${res.data.id}`; return; }
+    msg.textContent = res.status === 401 ? "enter the station token (top of the page) to start runs"
+      : `${res.status}: ${detailText(res.data)}`;
+  } finally {
+    const b = $("#run-proposal");
+    if (b) b.disabled = false;
+  }
 }
 
 $("#abort").addEventListener("click", async () => {
