@@ -25,7 +25,7 @@ from drivers.motor.controller import MotorController
 from drivers.motor.transport import ModbusTransport
 from drivers.sim.clock import VirtualClock
 from drivers.sim.rig import SimRigProcess
-from station.config import load_config, parse_config
+from station.config import StationConfig, load_config, parse_config
 from station.recording import read_recording
 from station.run.procedure import Procedure, Progress
 from station.run.request import RunRequest, StepSpec, plan_run
@@ -46,11 +46,12 @@ STEPS = [StepSpec(crank_frequency_hz=f, crank_radius_m=0.001) for f in (10.0, 20
 
 
 def run_with(tmp_path: Path, when: Callable[[Progress], bool] | None, act: Callable[[ConnectedRig, Procedure], None],
-             steps: list[StepSpec] = STEPS, *, wire: bool = False) -> tuple[object, ConnectedRig, dict[str, float]]:
+             steps: list[StepSpec] = STEPS, *, wire: bool = False,
+             cfg: StationConfig = CFG) -> tuple[object, ConnectedRig, dict[str, float]]:
     """Run a procedure on the simulated rig; ``act`` fires once when ``when(progress)`` is true.
     Returns the outcome, the rig (closed) and the motor state seen right after the run.
     ``wire``: over Modbus TCP and a pty in real time; else in-process on a virtual clock."""
-    plan = plan_run(CFG, RunRequest(transducer_id=CFG.transducer.id, top_mass_kg=CFG.rig.top_mass_kg, steps=steps))
+    plan = plan_run(cfg, RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg, steps=steps))
 
     async def go() -> tuple[object, ConnectedRig, dict[str, float]]:
         async with connect(plan.config, sim=True, first_radius_m=steps[0].crank_radius_m,
@@ -271,24 +272,12 @@ def small_disk(tmp_path: Path):
         subprocess.run(["umount", "-l", str(mnt)], check=False)
 
 
-@pytest.mark.slow
 def test_full_disk_fails_the_run_keeps_the_samples_and_stops_the_motor(tmp_path: Path, small_disk: Path) -> None:
-    with SimRigProcess(seed=4) as sim:
-        cfg_path = _external_config(tmp_path, sim.addresses, 0.001)
-        d = yaml.safe_load(cfg_path.read_text())
-        d["station"]["min_free_mb"] = 2.0  # 3 MiB disk, 2 MiB reserve: about 1 MiB of room
-        cfg_path.write_text(yaml.safe_dump(d))
-        res = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", "--config", str(cfg_path),
-                              "--out", str(small_disk), "--json"], capture_output=True, text=True, timeout=120)
-        assert res.returncode == 1, res.stderr[-2000:]
-        deadline = time.monotonic() + 10
-        speed, _ = asyncio.run(_motor_state(sim.addresses))
-        while speed != 0.0 and time.monotonic() < deadline:
-            time.sleep(0.2)
-            speed, _ = asyncio.run(_motor_state(sim.addresses))
-        assert speed == 0.0
-    result = json.loads(res.stdout)
-    assert result["exit_status"] == "failed" and "disk nearly full" in result["reason"]
+    d = small_config(record_s=3.0)
+    d["station"]["min_free_mb"] = 2.5  # 3 MiB disk, 2.5 MiB reserve: about 0.5 MiB of room
+    outcome, _, motor = run_with(small_disk, None, lambda r, p: None, cfg=parse_config(d, "small-disk"))
+    assert outcome.exit_status == "failed" and "disk nearly full" in outcome.reason
+    assert motor["speed_hz"] == 0.0
     files = list(small_disk.glob("*.h5*"))
     assert len(files) == 1 and files[0].suffix == ".h5"  # closed properly, not left partial
     rec = read_recording(files[0])
