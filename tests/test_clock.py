@@ -146,3 +146,34 @@ def test_inprocess_daq_streams_on_the_virtual_clock_without_loss() -> None:
     assert summary.stats.crc_errors == 0 and rig.daq.lost == []
     assert samples == summary.samples_sent
     assert samples == pytest.approx(10.0 * 20_000, abs=2 * 256 + 0.05 * 20_000)
+
+
+def test_a_participant_out_of_sight_slows_time_to_real_time_without_deadlock() -> None:
+    """One thread holds the clock and then works without waiting on it (longer than ``hold_s``):
+    time goes on, but no faster than real time, so its deadlines are no tighter than for real."""
+    clock = VirtualClock(start_s=0.0, hold_s=0.1)
+    held = threading.Event()
+    seen: list[tuple[float, float]] = []
+
+    def blind() -> None:
+        clock.hold()
+        held.set()
+        t_real = time.monotonic()
+        time.sleep(0.5)  # work the clock does not see
+        seen.append((clock.monotonic(), time.monotonic() - t_real))
+
+    def ticker() -> None:
+        for _ in range(100):
+            clock.sleep(0.1)
+
+    a = threading.Thread(target=blind)
+    a.start()
+    held.wait(5)
+    b = threading.Thread(target=ticker)
+    b.start()
+    a.join(10)
+    b.join(20)
+    virtual, real = seen[0]
+    assert virtual <= real + 0.1 + 1e-9  # at most one tick ahead of real time
+    assert clock.monotonic() == pytest.approx(10.0)  # and no deadlock: the ticker finished
+    assert clock.released >= 1

@@ -10,7 +10,9 @@ settling and records then takes milliseconds to a second.
 
 A participant awake longer than ``hold_s`` of *real* time (blocked on something the clock does not
 see, or starved of CPU) stops holding the clock until its next wait, so a forgotten participant
-slows a test but never deadlocks it; :attr:`VirtualClock.released` counts those events.
+slows a test but never deadlocks it; :attr:`VirtualClock.released` counts those events.  While such
+a participant is out, time moves no faster than real time, so it cannot miss its deadlines by more
+than it would on the real clock.
 
 Only in-process backends can run on it (the motor model through the in-process register image, the
 DAQ emulator through :class:`~drivers.sim.daq_inprocess.ClockedDaqLink`); wire protocols (pymodbus
@@ -58,6 +60,7 @@ class VirtualClock:
         self._pacer: threading.Thread | None = None
         self.advances = 0
         self.released = 0
+        self._last_advance_real = time.monotonic()
 
     # ------------------------------------------------------------------ Clock protocol
     def monotonic(self) -> float:
@@ -198,9 +201,16 @@ class VirtualClock:
                     self._cond.wait(0.05)
                     continue
                 t = min(waiting)
+                if t > self._now and any(p.wake is None for p in self._parts.values()):
+                    # someone is awake but released: no faster than real time until it waits again
+                    ahead = (t - self._now) - (now_real - self._last_advance_real)
+                    if ahead > 0:
+                        self._cond.wait(min(0.05, ahead))
+                        continue
                 if t > self._now:
                     self._now = t
                     self.advances += 1
+                    self._last_advance_real = now_real
                 self._wake_due()
 
 
