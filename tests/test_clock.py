@@ -27,7 +27,7 @@ def test_sleeps_take_virtual_time_not_real_time() -> None:
 
 
 def test_threads_and_tasks_wake_in_virtual_time_order() -> None:
-    clock = VirtualClock(start_s=0.0)
+    clock = VirtualClock(start_s=0.0, hold_s=10.0)  # the main thread's hold outlasts a loaded machine
     woke: list[tuple[str, float]] = []
     lock = threading.Lock()
 
@@ -86,7 +86,7 @@ def test_an_awake_participant_holds_the_clock() -> None:
 
 
 def test_wait_for_returns_on_notify_without_time_passing() -> None:
-    clock = VirtualClock(start_s=0.0)
+    clock = VirtualClock(start_s=0.0, hold_s=10.0)
     flag = threading.Event()
     result: list[tuple[bool, float]] = []
 
@@ -151,6 +151,7 @@ def test_inprocess_daq_streams_on_the_virtual_clock_without_loss() -> None:
 def test_a_participant_out_of_sight_slows_time_to_real_time_without_deadlock() -> None:
     """One thread holds the clock and then works without waiting on it (longer than ``hold_s``):
     time goes on, but no faster than real time, so its deadlines are no tighter than for real."""
+    t_real = time.monotonic()
     clock = VirtualClock(start_s=0.0, hold_s=0.1)
     held = threading.Event()
     seen: list[tuple[float, float]] = []
@@ -158,7 +159,6 @@ def test_a_participant_out_of_sight_slows_time_to_real_time_without_deadlock() -
     def blind() -> None:
         clock.hold()
         held.set()
-        t_real = time.monotonic()
         time.sleep(0.5)  # work the clock does not see
         seen.append((clock.monotonic(), time.monotonic() - t_real))
 
