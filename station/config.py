@@ -215,6 +215,8 @@ class ServiceSection(_Model):
                           description="SQLite file of runs and jobs; relative paths are in recordings_dir")
     workers: int = Field(default=1, ge=0, le=16, description="identification worker processes "
                          "(0: jobs wait in the queue until a daemon with workers runs)")
+    max_body_bytes: int = Field(default=1_048_576, ge=1024, le=64 * 2**20,
+                                description="largest request body accepted, bytes (larger: 413, unread)")
 
 
 class IdentificationConfig(_Model):

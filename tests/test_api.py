@@ -268,6 +268,7 @@ def test_emergency_stop_is_always_accepted(daemon: Daemon, tmp_path: Path) -> No
     c = anon(daemon)  # no token: stopping is never refused
     r = c.post("/stop")
     assert r.status_code == 200 and r.json()["motor_stopped"] and r.json()["aborted_runs"] == []
+    assert daemon.c().post("/stop/acknowledge", json={"operator": "tester"}).status_code == 200
     rid = daemon.start_run(freqs=(10.0,), record_s=30.0)
     daemon.wait_state(rid, ("running",), step_state="recording")
     t0 = time.monotonic()
@@ -283,12 +284,21 @@ def test_emergency_stop_is_always_accepted(daemon: Daemon, tmp_path: Path) -> No
     # an operator's stop is an abort in the file too, even though it latches the e-stop fault
     assert (rec.exit_status, rec.reason) == ("aborted", "emergency stop"), (rec.exit_status, rec.reason)
     assert c.post("/stop", content=b"garbage").status_code == 200
-    # after an emergency stop the next run starts (the procedure resets the controller's fault)
+    # the stop latches: no run until an operator acknowledges it (with the token)
+    h = c.get("/health").json()
+    assert h["status"] == "degraded" and h["estop"]["latched"] and h["estop"]["source"] == "api"
+    r = daemon.c().post("/runs", json=run_body(freqs=(10.0,)))
+    assert r.status_code == 409 and "emergency stop latched" in r.json()["detail"]
+    assert c.post("/stop/acknowledge", json={"operator": "tester"}).status_code == 401
+    ack = daemon.c().post("/stop/acknowledge", json={"operator": "tester", "note": "rig checked"})
+    assert ack.status_code == 200 and ack.json()["acknowledged"] and not ack.json()["latched"], ack.text
+    assert "reset" in ack.json()["detail"]
     rid2 = daemon.start_run(freqs=(10.0,))
     assert daemon.wait_state(rid2, ("identifying", *FINAL))["state"] in ("identifying", "completed")
     daemon.wait_state(rid2)
     h = c.get("/health").json()
-    assert h["status"] == "ok" and h["active_run"] is None
+    assert h["status"] == "ok" and h["active_run"] is None and not h["estop"]["latched"]
+    assert h["estop"]["last_acknowledged_by"] == "tester"
 
 
 def test_reading_from_another_machine_needs_the_token_and_foreign_hosts_are_refused(daemon: Daemon) -> None:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_service_support import TOKEN, Daemon
+from tests.test_service_support import TOKEN, Daemon, run_body
 
 pytestmark = pytest.mark.slow  # a real daemon, a real run and a real browser: the end-to-end layer
 
@@ -144,3 +144,15 @@ def test_without_token_the_page_asks_for_it_and_emergency_stop_works(page: objec
     pg.wait_for_selector("#banner:not([hidden])")
     assert "EMERGENCY STOP" in pg.inner_text("#banner") and rid in pg.inner_text("#banner")
     assert daemon.wait_state(rid)["state"] == "aborted"
+    # the stop latches: the page shows it, and an operator with the token acknowledges it there
+    pg.wait_for_selector("#latch:not([hidden])", timeout=15_000)
+    assert "page" in pg.inner_text("#latch") and pg.is_disabled("#start")
+    r = daemon.c().post("/runs", json=run_body(freqs=(10.0,)))
+    assert r.status_code == 409 and "latched" in r.json()["detail"]
+    pg.evaluate(f"localStorage.setItem('sinecal-token', '{TOKEN}')")
+    pg.fill("#ack-operator", "web tester")
+    pg.click("#ack")
+    pg.wait_for_selector("#latch", state="hidden", timeout=15_000)
+    assert "acknowledged by web tester" in pg.inner_text("#banner")
+    h = daemon.c().get("/health").json()
+    assert not h["estop"]["latched"] and h["estop"]["last_acknowledged_by"] == "web tester"

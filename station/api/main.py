@@ -8,6 +8,7 @@ HTTP statuses here; nothing below the API layer knows about HTTP.
 from __future__ import annotations
 
 import logging
+import sqlite3
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -22,9 +23,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from station import __version__
+from station.api.guard import BodyGuard
 from station.api.routes import campaign, proposal, runs, system
 from station.errors import StationError
 from station.service.manager import (
+    EStopLatchedError,
     RigBusyError,
     RigUnavailableError,
     RunManager,
@@ -41,9 +44,10 @@ STATIC = Path(__file__).resolve().parent / "static"
 DESCRIPTION = """Calibration-station daemon: start stepped-sine calibration runs on the sine-mechanism
 rig, follow them live, read the identified transducer parameters, plots, report and recording.
 
-Endpoints that move the rig or change state (`POST /runs`, `POST /runs/{id}/abort`) need the bearer
-token (`service.token` or `STATION_TOKEN`); reading is open on loopback; `POST /stop` (emergency
-stop) is always accepted.  Units are SI and part of every field name."""
+Endpoints that move the rig or change state (`POST /runs`, `POST /runs/{id}/abort`,
+`POST /stop/acknowledge`) need the bearer token (`service.token` or `STATION_TOKEN`); reading is open
+on loopback; `POST /stop` (emergency stop) is always accepted, except from another web site.  After
+an emergency stop no run starts until an operator acknowledges it.  Units are SI and part of every field name."""
 
 
 def _error(status: int, exc: Exception) -> JSONResponse:
@@ -52,7 +56,7 @@ def _error(status: int, exc: Exception) -> JSONResponse:
 
 def install_error_handlers(app: FastAPI) -> None:
     statuses: list[tuple[type[Exception], int]] = [
-        (RunNotFoundError, 404), (RunStateError, 409), (RigBusyError, 409),
+        (RunNotFoundError, 404), (RunStateError, 409), (RigBusyError, 409), (EStopLatchedError, 409),
         (RigUnavailableError, 503)]
     for cls, code in statuses:
         def handler(request: Request, exc: Exception, code: int = code) -> JSONResponse:
@@ -80,6 +84,7 @@ def install_error_handlers(app: FastAPI) -> None:
         return _error(503, exc)
     app.add_exception_handler(StationError, station_error)
     app.add_exception_handler(OSError, station_error)
+    app.add_exception_handler(sqlite3.Error, station_error)  # e.g. the database's disk is full
 
 
 def create_app(settings: ServiceSettings, *,
@@ -100,6 +105,8 @@ def create_app(settings: ServiceSettings, *,
         app.add_middleware(TrustedHostMiddleware,
                            allowed_hosts=["127.0.0.1", "localhost", "::1", "[::1]"])
     install_error_handlers(app)
+    # outermost: authenticate and bound a request body before anything reads it
+    app.add_middleware(BodyGuard, token=settings.token, max_body_bytes=settings.config.service.max_body_bytes)
     app.include_router(runs.router)
     app.include_router(campaign.router)
     app.include_router(proposal.router)

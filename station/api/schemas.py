@@ -190,6 +190,34 @@ class StopOut(_Out):
     detail: str
 
 
+class AcknowledgeIn(BaseModel):
+    """Who acknowledges the emergency stop (recorded with the time), and an optional note."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    operator: str = Field(min_length=1, max_length=64, description="the operator's name or initials")
+    note: str = Field(default="", max_length=500, description="e.g. what was checked before the restart")
+
+
+class AcknowledgeOut(_Out):
+    acknowledged: list[int] = Field(description="ids of the emergency stops acknowledged (empty: none latched)")
+    by: str
+    at: datetime
+    detail: str = Field(description="what the motor controller reports after its fault reset")
+    latched: bool
+
+
+class EStopState(_Out):
+    latched: bool | None = Field(description="an emergency stop waits for an operator's acknowledgement "
+                                 "(None: the database cannot be read)")
+    since: str | None = None
+    source: str | None = Field(default=None, description="page, api or controller")
+    detail: str | None = None
+    count: int = 0
+    last_acknowledged: str | None = None
+    last_acknowledged_by: str | None = None
+
+
 class AbortOut(_Out):
     id: str
     state: RunState
@@ -226,8 +254,19 @@ class WorkerHealth(_Out):
     jobs: dict[str, int]
 
 
+class DiskHealth(_Out):
+    ok: bool
+    free_bytes: int = Field(description="free space on the recordings disk, bytes")
+    reserve_bytes: int = Field(description="kept free (station.min_free_mb), bytes")
+    reserve_file: bool = Field(description="the reserve file that lets a recording close on a full disk is in place")
+    reserve_used: int = Field(description="times a full disk used the reserve file since the start")
+    detail: str | None
+
+
 class HealthOut(_Out):
     status: Literal["ok", "degraded"]
+    estop: EStopState
+    disk: DiskHealth
     rig: RigHealth
     database: DatabaseHealth
     worker: WorkerHealth

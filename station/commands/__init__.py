@@ -12,5 +12,6 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.calibrate",
     "station.commands.discrepancy",
     "station.commands.serve",
+    "station.commands.ack",
     "station.commands.batch",
 )

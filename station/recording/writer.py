@@ -9,6 +9,7 @@ name is refused.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -240,10 +241,32 @@ class RecordingWriter:
         return self.final_path
 
     def abandon(self) -> None:
-        """Close without a stop document (the file stays *.partial and reads as interrupted)."""
-        if not self._closed:
+        """Close without a stop document (the file stays *.partial and reads as interrupted).  Never
+        raises: a file HDF5 cannot close (e.g. after a full disk) is closed at the descriptor."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
             self._f.close()
-            self._closed = True
+        except Exception as exc:
+            log.error("closing %s failed: %s", self.partial_path, exc)
+            try:
+                self._f.id.close()
+            except Exception as exc2:
+                log.error("closing the HDF5 file id of %s failed: %s", self.partial_path, exc2)
+
+
+def is_disk_full(exc: BaseException | None) -> bool:
+    """A write failed for lack of space: OSError ENOSPC/EDQUOT, or HDF5's RuntimeError quoting it
+    (h5py does not keep the errno), also as the cause of another error."""
+    seen = 0
+    while exc is not None and seen < 8:
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if "No space left on device" in str(exc) or "Disk quota exceeded" in str(exc):
+            return True
+        exc, seen = exc.__cause__ or exc.__context__, seen + 1
+    return False
 
 
 def _jsonable(obj: Any) -> Any:

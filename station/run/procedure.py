@@ -15,7 +15,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -23,8 +23,12 @@ from drivers.clock import Clock
 from station.config import config_to_yaml
 from station.ident.sinefit import fit3, fit4
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id
+from station.recording.writer import is_disk_full
 from station.run.acquisition import Acquisition, AcquisitionError
 from station.run.request import Plan, PlannedStep
+
+if TYPE_CHECKING:
+    from drivers.motor.controller import MotorStatus
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +79,9 @@ class Progress:
         if not self.n_steps or self.step is None:
             return 0.0
         order = {"ramping": 0.1, "settling": 0.3, "recording": 0.6, "done": 1.0}
-        return min(1.0, (self.step + order.get(self.step_state, 0.0)) / self.n_steps)
+        if self.step_state not in order:  # stopped early (aborted, failed): the steps recorded before
+            return min(1.0, self.step / self.n_steps)
+        return min(1.0, (self.step + order[self.step_state]) / self.n_steps)
 
 
 @dataclass(frozen=True)
@@ -142,7 +148,8 @@ class Procedure:
 
     def __init__(self, plan: Plan, link: RigLink, out_dir: str | Path, *, run_id: str | None = None,
                  on_progress: Callable[[Progress], None] | None = None,
-                 steady: SteadyCriteria | None = None) -> None:
+                 steady: SteadyCriteria | None = None, reset_faults: bool = False,
+                 on_disk_full: Callable[[], int] | None = None) -> None:
         self.plan = plan
         self.link = link
         self.clock = link.clock
@@ -154,6 +161,19 @@ class Procedure:
         self.abort_event = asyncio.Event()
         self.abort_reason = ""
         self.acq: Acquisition | None = None
+        self.reset_faults = reset_faults  # an operator acknowledged a latched controller fault
+        self.motor_fault: tuple[int, str] | None = None  # a controller fault seen at the start or during the run
+        self._moving = False
+        self._on_disk_full = on_disk_full  # frees reserved space (bytes) so the recording can be closed
+
+    def _release_reserve(self) -> int:
+        if self._on_disk_full is None:
+            return 0
+        try:
+            return self._on_disk_full()
+        except Exception as exc:
+            log.error("releasing the disk reserve failed: %s", exc)
+            return 0
 
     def abort(self, reason: str = "aborted by operator") -> None:
         """Stop the run; the first reason given stays (a later abort does not overwrite it)."""
@@ -188,9 +208,20 @@ class Procedure:
         writer = RecordingWriter(self.out_dir, meta, specs, plan=self.plan.to_dict(),
                                  min_free_bytes=int(cfg.station.min_free_mb * 2**20))
         status, reason = "completed", ""
+        error: BaseException | None = None
         try:
-            await self._wait_standstill()
-            await motor.reset_faults()
+            st = await self._wait_standstill()
+            if st.fault_code and self.reset_faults:
+                log.warning("run %s: controller fault %d (%s) reset as the operator asked", self.run_id,
+                            st.fault_code, st.fault_name)
+                await motor.reset_faults()
+                st = await motor.read_status()
+            if st.fault_code:  # never cleared behind the operator's back
+                self.motor_fault = (st.fault_code, st.fault_name)
+                raise RunFailure(f"the motor controller reports fault {st.fault_code} ({st.fault_name}) before "
+                                 "the start; it is not cleared automatically: an operator acknowledges it "
+                                 "(station daemon: POST /stop/acknowledge or `station ack`)")
+            self._moving = True
             await motor.set_ramp(cfg.rig.acceleration_hz_per_s)
             await motor.start_watchdog(0.2)
             await motor.enable()
@@ -209,13 +240,13 @@ class Procedure:
         except asyncio.CancelledError:
             status, reason = "interrupted", "the station was stopped during the run"
         except (RunFailure, AcquisitionError) as exc:
-            status, reason = "failed", str(exc)
-        except Exception as exc:  # driver errors (lost link, Modbus exception, DAQ errors)
-            status, reason = "failed", f"{type(exc).__name__}: {exc}"
+            status, reason, error = "failed", str(exc), exc
+        except Exception as exc:  # driver errors (lost link, Modbus exception, DAQ errors), a full disk
+            status, reason, error = "failed", f"{type(exc).__name__}: {exc}", exc
         finally:
             if status != "completed":
                 log.error("run %s %s: %s", self.run_id, status, reason)
-                await self._stop_motor(hard=status == "failed")
+                await self._stop_motor(hard=status == "failed" and self._moving)
             else:
                 await self._quiet(motor.stop())
             await self._quiet(motor.stop_watchdog())
@@ -225,14 +256,26 @@ class Procedure:
                 if status == "completed" and self.acq.disk_error is not None:
                     status, reason = "failed", f"recording cannot be written: {self.acq.disk_error}"
             lost = sum(n for _, n in self.acq.lost) if self.acq else 0
+            disk_full = is_disk_full(error) or (self.acq is not None and is_disk_full(self.acq.disk_error))
+            if disk_full:  # room to close the file and note the end: the daemon's reserve goes first
+                status, reason = "failed", ("recording cannot be written: disk full (no space left on device "
+                                            f"in {self.out_dir})")
+                self._release_reserve()
             try:
                 path = writer.finish(status, reason)
             except Exception as exc:  # e.g. a full disk: the partial file keeps what was flushed
                 log.error("could not close the recording: %s", exc)
-                writer.abandon()
                 path = writer.partial_path
-                reason = "; ".join(filter(None, [reason, f"recording left partial: {exc}"]))
-            self._report(state=status, message=reason, step_state="done")
+                if is_disk_full(exc) and not disk_full and self._release_reserve():
+                    try:
+                        path = writer.finish("failed", reason := f"{reason}; disk full while closing")
+                    except Exception as exc2:
+                        exc = exc2
+                if path == writer.partial_path:
+                    writer.abandon()
+                    reason = "; ".join(filter(None, [reason, f"recording left partial: {exc}"]))
+            # a run that ended early is not "done": its progress stays at the steps it recorded
+            self._report(state=status, message=reason, step_state="done" if status == "completed" else status)
         return RunOutcome(self.run_id, path, status, reason, lost)
 
     # ------------------------------------------------------------------------------ steps
@@ -277,7 +320,7 @@ class Procedure:
                                "settle_s": step.settle_s, "record_s": step.record_s})
         self._report(step_state="done", message=f"step {step.index} recorded")
 
-    async def _wait_standstill(self, timeout_s: float = 30.0) -> None:
+    async def _wait_standstill(self, timeout_s: float = 30.0) -> MotorStatus:
         """A run starts only with the crank at rest (e.g. still coasting down after an e-stop)."""
         deadline = self.clock.monotonic() + timeout_s
         while (st := await self.link.motor.read_status()).actual_speed_hz != 0.0:
@@ -285,6 +328,7 @@ class Procedure:
                 raise RunFailure(f"the crank still turns at {st.actual_speed_hz:g} Hz after {timeout_s:g} s; "
                                  f"a run starts only at standstill")
             await self.clock.asleep(0.05)
+        return st
 
     async def _ramp_to(self, hz: float) -> None:
         motor = self.link.motor
@@ -331,6 +375,7 @@ class Procedure:
             raise RunAborted(self.abort_reason or "aborted")
         code = getattr(st, "fault_code", 0)
         if code:
+            self.motor_fault = (code, str(getattr(st, "fault_name", "?")))
             raise RunFailure(f"motor fault {code} ({getattr(st, 'fault_name', '?')})")
 
     async def _stop_motor(self, *, hard: bool) -> None:

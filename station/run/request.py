@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from station.config import MAX_STEPS, MAX_TOP_MASS_KG, StationConfig
 from station.errors import LimitError
@@ -21,6 +21,11 @@ class StepSpec(BaseModel):
     settle_s: float | None = Field(default=None, ge=0, le=600, description="settling time in s")
     record_s: float | None = Field(default=None, gt=0, le=3600, description="record time in s")
 
+    @field_validator("crank_frequency_hz", "crank_radius_m", "settle_s", "record_s", mode="before")
+    @classmethod
+    def _a_number(cls, v: object) -> object:
+        return _number_only(v)
+
 
 class RunRequest(BaseModel):
     """What a technician or the nightly batch asks the rig to do."""
@@ -30,6 +35,18 @@ class RunRequest(BaseModel):
     transducer_id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")
     top_mass_kg: float = Field(gt=0, le=MAX_TOP_MASS_KG, description="top mass in kg (without the adaption)")
     steps: list[StepSpec] = Field(min_length=1, max_length=MAX_STEPS)
+
+    @field_validator("top_mass_kg", mode="before")
+    @classmethod
+    def _a_number(cls, v: object) -> object:
+        return _number_only(v)
+
+
+def _number_only(v: object) -> object:
+    """Numbers only: ``true`` or ``"10"`` are not a frequency (pydantic would convert them)."""
+    if isinstance(v, bool | str | bytes):
+        raise ValueError(f"a number expected, got {type(v).__name__} {v!r}")
+    return v
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,11 @@ class RigUnavailableError(StationError):
     """No link to the rig (503)."""
 
 
+class EStopLatchedError(StationError):
+    """An emergency stop (or a controller fault) is latched: no run starts until an operator
+    acknowledges it (409)."""
+
+
 class RequestLimitError(LimitError):
     """A LimitError with the request field it is about (``loc``, FastAPI style) and its value (422)."""
 

@@ -6,13 +6,16 @@ import time
 from typing import Any
 
 from station.service import worker
+from station.service.disk import RecordingsDisk
+from station.service.latch import EStopLatch
 from station.service.riglink import RigLink
 from station.service.store import Store
 
 
-def health(link: RigLink, store: Store, pool: worker.WorkerPool, *, workers: int, sim: bool,
-           active_run: str | None, started_at: float) -> dict[str, Any]:
-    """``status`` is ``ok`` only with the rig connected over healthy links and the database answering."""
+def health(link: RigLink, store: Store, pool: worker.WorkerPool, latch: EStopLatch, disk: RecordingsDisk, *,
+           workers: int, sim: bool, active_run: str | None, started_at: float) -> dict[str, Any]:
+    """``status`` is ``ok`` only with the rig connected over healthy links, the database answering
+    no emergency stop latched and room on the recordings disk."""
     rig = link.rig
     links = rig.health() if rig is not None else {
         "motor": {"connected": False, "watchdog_error": None},
@@ -20,7 +23,10 @@ def health(link: RigLink, store: Store, pool: worker.WorkerPool, *, workers: int
     counts = store.job_counts()
     db_ok = store.ping()
     rig_ok = rig is not None and link.healthy(rig)
-    return {"status": "ok" if rig_ok and db_ok else "degraded",
+    estop = latch.state() if db_ok else {"latched": None}
+    space = disk.state()
+    return {"status": "ok" if rig_ok and db_ok and not estop["latched"] and space["ok"] else "degraded",
+            "estop": estop, "disk": space,
             "rig": {"connected": rig is not None, "error": link.error,
                     "description": rig.description if rig is not None else "", **links},
             "database": {"ok": db_ok, "journal_mode": store.journal_mode() if db_ok else None},

@@ -23,7 +23,9 @@ from station.run.rig import ConnectedRig
 from station.service import worker
 from station.service.artifacts import Artifacts
 from station.service.changes import Changes
+from station.service.disk import RecordingsDisk
 from station.service.errors import (
+    EStopLatchedError,
     RequestLimitError,
     RigBusyError,
     RigUnavailableError,
@@ -32,14 +34,17 @@ from station.service.errors import (
 )
 from station.service.health import health
 from station.service.jobs import MAX_JOB_ATTEMPTS, JobQueue
+from station.service.latch import EStopLatch
 from station.service.recovery import recover
 from station.service.riglink import RigConnector, RigLink, default_connector
-from station.service.runs import LiveRun, Runs, StopReport, check_request
+from station.service.runs import AckReport, LiveRun, Runs, StopReport, check_request
 from station.service.settings import ServiceSettings
 from station.service.store import FINAL_STATES, RunRow, Store
 
 __all__ = [
     "MAX_JOB_ATTEMPTS",
+    "AckReport",
+    "EStopLatchedError",
     "LiveRun",
     "RequestLimitError",
     "RigBusyError",
@@ -67,7 +72,10 @@ class RunManager:
         self.link = RigLink(self.cfg, settings.sim, connector)
         self.identify_pool = worker.WorkerPool("identification", settings.workers)
         self.render_pool = worker.WorkerPool("render", 1)
-        self.runs = Runs(settings, self.store, self.link, self.changes, self.closing, self._on_acquired)
+        self.latch = EStopLatch(self.store)
+        self.disk = RecordingsDisk(settings.recordings_dir, int(self.cfg.station.min_free_mb * 2**20))
+        self.runs = Runs(settings, self.store, self.link, self.changes, self.closing, self._on_acquired, self.latch,
+                         self.disk)
         self.artifacts = Artifacts(settings.recordings_dir, self.render_pool, self.get)
         self.jobs = JobQueue(self.store, self.identify_pool, settings.workers,
                              self.artifacts, self.changes, self.closing)
@@ -79,6 +87,7 @@ class RunManager:
         self.runs.loop_thread = threading.get_ident()
         self.runs.web_loop = asyncio.get_running_loop()
         self.recover()
+        await asyncio.to_thread(self.disk.ensure_reserve)
         await self.link.connect()
         self.jobs.start()
         self._warm = asyncio.create_task(self._warm_render_pool(), name="render-warm-up")
@@ -148,8 +157,11 @@ class RunManager:
     def abort(self, run_id: str, reason: str = "aborted by operator") -> RunRow:
         return self.runs.abort(run_id, reason)
 
-    async def emergency_stop(self) -> StopReport:
-        return await self.runs.emergency_stop()
+    async def emergency_stop(self, source: str = "api") -> StopReport:
+        return await self.runs.emergency_stop(source)
+
+    async def acknowledge(self, by: str, note: str = "") -> AckReport:
+        return await self.runs.acknowledge(by, note)
 
     def get(self, run_id: str) -> RunRow:
         return self.runs.get(run_id)
@@ -188,7 +200,8 @@ class RunManager:
     # ------------------------------------------------------------------ health
     def health(self) -> dict[str, Any]:
         act = self.active()
-        return health(self.link, self.store, self.identify_pool, workers=self.settings.workers,
+        self.runs.flush_unsaved()
+        return health(self.link, self.store, self.identify_pool, self.latch, self.disk, workers=self.settings.workers,
                       sim=self.settings.sim, active_run=act.row.id if act else None, started_at=self.started_at)
 
 

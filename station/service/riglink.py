@@ -110,6 +110,45 @@ class RigLink:
             return False, (f"the motor controller did not take the emergency stop ({type(exc).__name__}: {exc}); "
                            "use the hardware emergency stop")
 
+    async def motor_fault(self) -> tuple[int, str] | None:
+        """The controller's latched fault (code, name), read without clearing it; None when there is
+        none or the controller cannot be reached."""
+        rig = self.rig
+        if rig is None:
+            return None
+        try:
+            st = await self.thread.call(asyncio.wait_for(rig.motor.read_status(), 2.0))
+        except Exception as exc:
+            log.warning("cannot read the motor status: %s", exc)
+            return None
+        return (st.fault_code, st.fault_name) if st.fault_code else None
+
+    async def reset_faults(self) -> tuple[bool, str]:
+        """An operator's acknowledgement: clear the controller's latched faults, then read back.
+        (True, detail) when the controller reports no fault afterwards (or there is no link)."""
+        rig = self.rig
+        if rig is None:
+            return True, "no link to the motor controller: its faults are checked at the next connect"
+
+        async def go() -> tuple[bool, str]:
+            st = await rig.motor.read_status()
+            if not st.fault_code:
+                return True, "the motor controller reports no fault"
+            before = f"{st.fault_code} ({st.fault_name})"
+            try:
+                await rig.motor.reset_faults()
+            except Exception as exc:
+                return False, f"the motor controller refused to reset fault {before}: {exc}"
+            st = await rig.motor.read_status()
+            if st.fault_code:
+                return False, (f"the motor controller still reports fault {st.fault_code} ({st.fault_name}) "
+                               f"after the reset (crank still turning at {st.actual_speed_hz:g} Hz?)")
+            return True, f"motor controller fault {before} reset"
+        try:
+            return await self.thread.call(asyncio.wait_for(go(), 5.0))
+        except Exception as exc:
+            return False, f"the motor controller cannot be reached ({type(exc).__name__}: {exc})"
+
     async def stop_motor(self) -> None:
         """Ramp the crank down (shutdown path; errors ignored)."""
         if self.rig is not None and self.thread.running:

@@ -12,6 +12,7 @@ import dataclasses
 import json
 import logging
 import math
+import sqlite3
 import threading
 import time
 from collections.abc import Callable
@@ -25,7 +26,16 @@ from station.run.procedure import Procedure, Progress, RunOutcome
 from station.run.request import Plan, RunRequest, plan_run
 from station.run.rig import ConnectedRig
 from station.service.changes import Changes
-from station.service.errors import RequestLimitError, RigBusyError, RigUnavailableError, RunNotFoundError, RunStateError
+from station.service.disk import RecordingsDisk
+from station.service.errors import (
+    EStopLatchedError,
+    RequestLimitError,
+    RigBusyError,
+    RigUnavailableError,
+    RunNotFoundError,
+    RunStateError,
+)
+from station.service.latch import EStopLatch
 from station.service.riglink import RigLink
 from station.service.settings import ServiceSettings
 from station.service.store import RunRow, Store
@@ -76,13 +86,24 @@ class StopReport:
     detail: str
 
 
+@dataclass
+class AckReport:
+    acknowledged: list[int]  # ids of the emergency stops acknowledged
+    by: str
+    detail: str
+
+
 class Runs:
     """The run on the rig (``live``: at most one) and the stored ones; ``on_acquired(run_id)`` is
     called when a run's acquisition completed and its identification was queued."""
 
     def __init__(self, settings: ServiceSettings, store: Store, link: RigLink, changes: Changes,
-                 closing: asyncio.Event, on_acquired: Callable[[str], None]) -> None:
+                 closing: asyncio.Event, on_acquired: Callable[[str], None], latch: EStopLatch,
+                 disk: RecordingsDisk) -> None:
         self.settings = settings
+        self.latch = latch
+        self.disk = disk
+        self._unsaved: dict[str, dict[str, Any]] = {}  # run changes the database did not take (full disk)
         self.cfg = settings.config
         self.store = store
         self.link = link
@@ -113,10 +134,17 @@ class Runs:
         cur = self.active()
         if cur is not None:
             raise RigBusyError(cur.row.id, cur.row.state)
+        self._refuse_if_latched()
+        self.flush_unsaved()
+        self.disk.check_for_run()
         await self.link.for_run()
+        fault = await self.link.motor_fault()  # read, never cleared here
+        if fault is not None:
+            self.latch.trip("controller", f"motor controller fault {fault[0]} ({fault[1]}) before a run")
         cur = self.active()  # the connection attempt yielded: check again
         if cur is not None:
             raise RigBusyError(cur.row.id, cur.row.state)
+        self._refuse_if_latched()
         run_id = new_run_id(request.transducer_id)
         row = RunRow(id=run_id, state="queued", transducer_id=request.transducer_id,
                      top_mass_kg=request.top_mass_kg, request_json=request.model_dump_json(),
@@ -129,6 +157,11 @@ class Runs:
         self.changes.changed(run_id)
         log.info("run %s queued: %d steps", run_id, len(plan.steps))
         return row
+
+    def _refuse_if_latched(self) -> None:
+        why = self.latch.refusal()
+        if why is not None:
+            raise EStopLatchedError(why)
 
     async def _execute(self, live: LiveRun) -> None:
         run_id = live.row.id
@@ -158,6 +191,9 @@ class Runs:
                 # the operator's stop reached the motor before the procedure saw the abort: the
                 # procedure reports the latched e-stop fault; the run was stopped on purpose
                 state, reason = "aborted", f"{live.abort_reason} (recording: {outcome.reason})"
+            fault = live.proc.motor_fault if live.proc is not None else None
+            if fault is not None and not live.abort_reason and not self.latch.latched:
+                self.latch.trip("controller", f"motor controller fault {fault[0]} ({fault[1]}) in run {run_id}")
             self._update(live, recording=name, lost_samples=outcome.lost_samples)
             self._finish(live, state, reason)
 
@@ -171,7 +207,8 @@ class Runs:
         if rig.sim is not None:
             self._simulate_plan_physics(rig, plan.config)
         proc = Procedure(plan, rig, self.settings.recordings_dir, run_id=live.row.id,
-                         on_progress=lambda p: self._post(self._on_progress, live, dataclasses.replace(p)))
+                         on_progress=lambda p: self._post(self._on_progress, live, dataclasses.replace(p)),
+                         on_disk_full=self.disk.release_reserve)
         live.proc = proc
         if live.abort_reason:
             proc.abort(live.abort_reason)
@@ -179,9 +216,11 @@ class Runs:
         return await proc.execute()
 
     def _finish(self, live: LiveRun, state: str, reason: str) -> None:
-        self._update(live, state=state, reason=reason, message=reason, ended=time.time())
-        self.live.pop(live.row.id, None)
-        self.changes.changed(live.row.id)
+        try:
+            self._update(live, state=state, reason=reason, message=reason, ended=time.time())
+        finally:  # the rig is released whatever happens to the bookkeeping
+            self.live.pop(live.row.id, None)
+            self.changes.changed(live.row.id)
 
     def _simulate_plan_physics(self, rig: ConnectedRig, cfg: StationConfig) -> None:
         """The simulated rig carries the run's top mass (a real rig has whatever is mounted)."""
@@ -208,15 +247,28 @@ class Runs:
         now = time.monotonic()
         if changed_phase or now - live.last_persist >= PERSIST_INTERVAL_S:
             live.last_persist = now
-            self.store.update_run(row.id, **values)
+            self._save(row.id, values)
         self.changes.changed(row.id)
 
     def _update(self, live: LiveRun, values: dict[str, Any] | None = None, **kw: Any) -> None:
         values = {**(values or {}), **kw}
         for k, v in values.items():
             setattr(live.row, k, v)
-        self.store.update_run(live.row.id, **values)
+        self._save(live.row.id, values)
         self.changes.changed(live.row.id)
+
+    def _save(self, run_id: str, values: dict[str, Any]) -> None:
+        """Into the database; a change it cannot take now (disk full) is kept and written later."""
+        pending = {**self._unsaved.pop(run_id, {}), **values}
+        try:
+            self.store.update_run(run_id, **pending)
+        except sqlite3.Error as exc:
+            log.error("run %s: the database did not take %s: %s; kept to write later", run_id, sorted(pending), exc)
+            self._unsaved[run_id] = pending
+
+    def flush_unsaved(self) -> None:
+        for run_id in list(self._unsaved):
+            self._save(run_id, {})
 
     def abort(self, run_id: str, reason: str = "aborted by operator") -> RunRow:
         live = self.live.get(run_id)
@@ -235,15 +287,26 @@ class Runs:
         if proc is not None:
             self.link.thread.call_soon(proc.abort, live.abort_reason)
 
-    async def emergency_stop(self) -> StopReport:
-        """Abort every run on the rig and command an emergency stop on the motor right away."""
+    async def emergency_stop(self, source: str = "api") -> StopReport:
+        """Abort every run on the rig, command an emergency stop on the motor right away, and latch:
+        no run starts until an operator acknowledges it."""
         aborted = []
         for live in list(self.live.values()):
             self._abort(live, "emergency stop")
             aborted.append(live.row.id)
         ok, detail = await self.link.emergency_stop()
-        log.warning("EMERGENCY STOP: %s (aborted runs: %s)", detail, aborted or "none")
+        log.warning("EMERGENCY STOP (%s): %s (aborted runs: %s)", source, detail, aborted or "none")
+        self.latch.trip(source, detail + (f"; aborted runs: {', '.join(aborted)}" if aborted else ""))
         return StopReport(ok, aborted, detail)
+
+    async def acknowledge(self, by: str, note: str = "") -> AckReport:
+        """An operator acknowledges the emergency stop: the controller's latched fault is reset (and
+        read back) and the latch released; refused while the controller still reports a fault."""
+        ok, detail = await self.link.reset_faults()
+        if not ok:
+            raise EStopLatchedError(f"not acknowledged: {detail}")
+        rows = self.latch.acknowledge(by, note)
+        return AckReport([r.id for r in rows], by, detail)
 
     def cancel_all(self, reason: str) -> list[asyncio.Task[None]]:
         """Shutdown: cancel the run on the rig (its procedure stops the motor, closes the recording)."""

@@ -17,7 +17,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Literal, get_args
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: the emergency-stop latch (estops)
 
 RunState = Literal["queued", "running", "identifying", "completed", "aborted", "failed", "interrupted"]
 RUN_STATES: tuple[RunState, ...] = get_args(RunState)
@@ -61,6 +61,15 @@ CREATE TABLE IF NOT EXISTS jobs (
     error TEXT NOT NULL DEFAULT ''
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state, id);
+CREATE TABLE IF NOT EXISTS estops (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    raised REAL NOT NULL,
+    source TEXT NOT NULL,
+    detail TEXT NOT NULL DEFAULT '',
+    acknowledged REAL,
+    acknowledged_by TEXT,
+    note TEXT NOT NULL DEFAULT ''
+);
 """
 
 
@@ -109,6 +118,19 @@ class JobRow:
     started: float | None
     finished: float | None
     error: str
+
+
+@dataclass
+class EStopRow:
+    """One emergency stop: when (UNIX s) and from where it was raised, and who acknowledged it when."""
+
+    id: int
+    raised: float
+    source: str
+    detail: str
+    acknowledged: float | None
+    acknowledged_by: str | None
+    note: str
 
 
 _RUN_COLS = tuple(f.name for f in fields(RunRow))
@@ -257,3 +279,31 @@ class Store:
                 self.finish_job(job.id, "queued")
                 requeued.append(job)
         return requeued, failed
+
+    # ------------------------------------------------------------------ emergency stops
+    def raise_estop(self, source: str, detail: str, raised: float | None = None) -> EStopRow:
+        with self._lock:
+            cur = self._db.execute("INSERT INTO estops (raised, source, detail) VALUES (?, ?, ?)",
+                                   (raised or time.time(), source, detail))
+            row = self._db.execute("SELECT * FROM estops WHERE id = ?", (cur.lastrowid,)).fetchone()
+        return EStopRow(**dict(row))
+
+    def open_estops(self) -> list[EStopRow]:
+        """Emergency stops not yet acknowledged, oldest first."""
+        with self._lock:
+            rows = self._db.execute("SELECT * FROM estops WHERE acknowledged IS NULL ORDER BY id").fetchall()
+        return [EStopRow(**dict(r)) for r in rows]
+
+    def acknowledge_estops(self, by: str, note: str = "") -> list[EStopRow]:
+        """Mark every open emergency stop acknowledged by ``by`` now; returns them."""
+        now = time.time()
+        with self._lock:
+            self._db.execute("UPDATE estops SET acknowledged = ?, acknowledged_by = ?, note = ? "
+                             "WHERE acknowledged IS NULL", (now, by, note))
+            rows = self._db.execute("SELECT * FROM estops WHERE acknowledged = ? ORDER BY id", (now,)).fetchall()
+        return [EStopRow(**dict(r)) for r in rows]
+
+    def last_estop(self) -> EStopRow | None:
+        with self._lock:
+            row = self._db.execute("SELECT * FROM estops ORDER BY id DESC LIMIT 1").fetchone()
+        return None if row is None else EStopRow(**dict(row))

@@ -2,23 +2,71 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from datetime import UTC, datetime
+from typing import Annotated
 
-from station.api.deps import ManagerDep, Reader, SettingsDep
-from station.api.schemas import ErrorOut, HealthOut, LimitsOut, RangeOut, StationOut, StopOut
+from fastapi import APIRouter, Body, Depends, HTTPException, Request, status
+
+from station.api.deps import ManagerDep, Reader, SettingsDep, Writer
+from station.api.schemas import (
+    AcknowledgeIn,
+    AcknowledgeOut,
+    ErrorOut,
+    HealthOut,
+    LimitsOut,
+    RangeOut,
+    StationOut,
+    StopOut,
+)
 from station.config import MAX_STEPS, MAX_TOP_MASS_KG
 from station.limits import force_limit_N
 
 router = APIRouter(tags=["station"])
 
 
-@router.post("/stop", response_model=StopOut, summary="Emergency stop (always accepted)")
-async def emergency_stop(manager: ManagerDep) -> StopOut:
+async def not_cross_site(request: Request) -> None:
+    """A request another web site's page makes the browser send is refused: browsers mark it with
+    ``Sec-Fetch-Site: cross-site``/``same-site`` and an ``Origin`` that is not this station's.
+    The station's own page (same origin), API clients and curl (neither header) pass."""
+    site = request.headers.get("sec-fetch-site")
+    origin = request.headers.get("origin")
+    host = request.headers.get("host", "")
+    if site is not None and site not in ("same-origin", "none"):
+        raise HTTPException(status.HTTP_403_FORBIDDEN, f"cross-site request refused (Sec-Fetch-Site: {site}); "
+                            "use the station's own page, an API client or the hardware emergency stop")
+    if origin is not None and origin.split("://", 1)[-1] != host:
+        raise HTTPException(status.HTTP_403_FORBIDDEN, f"cross-site request refused: Origin {origin} is not "
+                            f"this station ({host})")
+
+
+SameSite = Depends(not_cross_site)
+
+
+@router.post("/stop", response_model=StopOut, dependencies=[SameSite],
+             responses={403: {"model": ErrorOut, "description": "sent by another web site's page"}},
+             summary="Emergency stop (always accepted, except from another web site)")
+async def emergency_stop(manager: ManagerDep, request: Request) -> StopOut:
     """Aborts every run on the rig and commands an emergency stop on the motor controller at once.
-    Always accepted, with or without a token or a run: stopping is never unsafe.  `motor_stopped`
-    says whether the controller took the command."""
-    rep = await manager.emergency_stop()
+    Accepted with or without a token or a run: stopping is never unsafe (only a request another web
+    site's page makes the browser send is refused).  `motor_stopped` says whether the controller
+    took the command.  The stop latches: no run starts until an operator acknowledges it
+    (`POST /stop/acknowledge`)."""
+    source = "page" if request.headers.get("x-station-client") == "page" else "api"
+    rep = await manager.emergency_stop(source)
     return StopOut(motor_stopped=rep.motor_stopped, aborted_runs=rep.aborted_runs, detail=rep.detail)
+
+
+@router.post("/stop/acknowledge", response_model=AcknowledgeOut, dependencies=[Writer, SameSite],
+             responses={401: {"model": ErrorOut}, 403: {"model": ErrorOut},
+                        409: {"model": ErrorOut, "description": "the motor controller still reports a fault"}},
+             summary="Acknowledge the emergency stop (runs may start again)")
+async def acknowledge_stop(manager: ManagerDep, body: Annotated[AcknowledgeIn, Body()]) -> AcknowledgeOut:
+    """An operator confirms the rig is safe: the motor controller's latched fault is reset and read
+    back, and the acknowledgement (who, when, note) is recorded in the database and the log.
+    Refused (409) while the controller still reports a fault, e.g. the crank still turning."""
+    rep = await manager.acknowledge(body.operator, body.note)
+    return AcknowledgeOut(acknowledged=rep.acknowledged, by=rep.by, at=datetime.now(UTC), detail=rep.detail,
+                          latched=bool(manager.health()["estop"]["latched"]))
 
 
 @router.get("/health", response_model=HealthOut, dependencies=[Reader],
@@ -44,4 +92,4 @@ async def station_info(settings: SettingsDep) -> StationOut:
         default_settle_s=cfg.plan.settle_s, default_record_s=cfg.plan.record_s,
         default_steps=[{"crank_frequency_hz": s.crank_frequency_hz, "crank_radius_m": s.crank_radius_m}
                        for s in cfg.plan.steps],
-        token_required=["POST /runs", "POST /runs/{id}/abort"])
+        token_required=["POST /runs", "POST /runs/{id}/abort", "POST /stop/acknowledge"])

@@ -21,7 +21,7 @@ function banner(text, kind) {
 }
 
 async function api(method, path, body) {
-  const headers = {"Accept": "application/json"};
+  const headers = {"Accept": "application/json", "X-Station-Client": "page"};
   if (token()) headers["Authorization"] = "Bearer " + token();
   if (body !== undefined) headers["Content-Type"] = "application/json";
   const r = await fetch(path, {method, headers, body: body === undefined ? undefined : JSON.stringify(body)});
@@ -63,10 +63,28 @@ async function refreshHealth() {
       link(h.rig.connected && !h.rig.daq.link_error, "DAQ"),
       link(h.database.ok, "database"),
       `<span>jobs queued ${h.worker.jobs.queued}</span>`].join(" ");
+    showLatch(h.estop);
   } catch (e) {
     $("#health").innerHTML = '<span class="bad">daemon unreachable</span>';
   }
 }
+
+// the emergency-stop latch: shown until an operator acknowledges it (token needed)
+function showLatch(e) {
+  const latched = !!(e && e.latched);
+  $("#latch").hidden = !latched;
+  $("#start").disabled = latched;
+  if (latched) $("#latch-text").textContent = `since ${e.since} (${e.source}: ${e.detail}). No run starts until it is acknowledged.`;
+}
+
+$("#ack").addEventListener("click", async () => {
+  const operator = $("#ack-operator").value.trim();
+  if (!operator) { banner("acknowledge: enter the operator's name or initials", ""); return; }
+  const r = await api("POST", "/stop/acknowledge", {operator});
+  if (r.ok) banner(`emergency stop acknowledged by ${r.data.by}: ${r.data.detail}`, "info");
+  else banner(`not acknowledged (${r.status}): ${detailText(r.data)}`, "");
+  refreshHealth();
+});
 
 $("#token-form").addEventListener("submit", (ev) => {
   ev.preventDefault();
@@ -80,6 +98,7 @@ $("#estop").addEventListener("click", async () => {
     const d = r.data || {};
     banner(`EMERGENCY STOP: ${d.detail || r.status}` + (d.aborted_runs && d.aborted_runs.length ? ` (aborted ${d.aborted_runs.join(", ")})` : ""),
            d.motor_stopped ? "info" : "");
+    refreshHealth();
   } catch (e) {
     banner("EMERGENCY STOP could not reach the daemon: use the hardware emergency stop");
   }

@@ -1,0 +1,105 @@
+"""What every request passes before any route sees it (pure ASGI, no body buffering by the framework):
+
+* a request body is read only from an authenticated client: a POST/PUT/PATCH that carries a body
+  without the valid bearer token is answered 401 before a byte of it is read (the emergency stop
+  needs no token and reads no body);
+* a body larger than ``service.max_body_bytes`` is answered 413, saying the limit, without being
+  read further (by its Content-Length when given, else while it arrives);
+* a JSON body that is not UTF-8 is answered 422 naming the first bad byte (never a 500).
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+from collections.abc import Awaitable, Callable, MutableMapping
+from typing import Any
+
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+OPEN_POSTS = ("/stop",)  # accepted without the token; their bodies are never read
+
+
+async def _answer(send: Send, status: int, detail: Any, headers: list[tuple[bytes, bytes]] | None = None) -> None:
+    body = json.dumps({"detail": detail}).encode()
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                            (b"connection", b"close"), *(headers or [])]})
+    await send({"type": "http.response.body", "body": body})
+
+
+class BodyGuard:
+    def __init__(self, app: ASGIApp, *, token: str, max_body_bytes: int) -> None:
+        self.app = app
+        self._token = f"Bearer {token}".encode()
+        self.max_body_bytes = max_body_bytes
+
+    def _authorised(self, headers: dict[bytes, bytes]) -> bool:
+        auth = headers.get(b"authorization", b"")
+        scheme, _, cred = auth.partition(b" ")
+        return scheme.lower() == b"bearer" and secrets.compare_digest(b"Bearer " + cred.strip(), self._token)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
+            await self.app(scope, receive, send)
+            return
+        headers = {k.lower(): v for k, v in scope.get("headers", [])}
+        length_text = headers.get(b"content-length")
+        chunked = b"chunked" in headers.get(b"transfer-encoding", b"").lower()
+        try:
+            length = int(length_text) if length_text is not None else None
+        except ValueError:
+            await _answer(send, 400, f"Content-Length {length_text!r} is not a number")
+            return
+        has_body = chunked or (length or 0) > 0
+        path = scope.get("path", "")
+        if path in OPEN_POSTS or not has_body:
+            await self.app(scope, receive, send)  # the route's own dependencies decide (no body to read)
+            return
+        if not self._authorised(headers):
+            await _answer(send, 401, "a valid bearer token is required (Authorization: Bearer <token>); "
+                          "the request body was not read", [(b"www-authenticate", b"Bearer")])
+            return
+        limit = self.max_body_bytes
+        if length is not None and length > limit:
+            await _answer(send, 413, f"request body of {length} bytes exceeds the limit of {limit} bytes "
+                          "(service.max_body_bytes)")
+            return
+        # read the (authorised, bounded) body here, check it, then hand it on in one piece
+        chunks, size = [], 0
+        while True:
+            msg = await receive()
+            if msg["type"] == "http.disconnect":
+                return
+            part = msg.get("body", b"")
+            size += len(part)
+            if size > limit:
+                await _answer(send, 413, f"request body exceeds the limit of {limit} bytes (service.max_body_bytes)")
+                return
+            chunks.append(part)
+            if not msg.get("more_body", False):
+                break
+        body = b"".join(chunks)
+        ctype = headers.get(b"content-type", b"").lower()
+        if not ctype or b"json" in ctype:
+            try:
+                body.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                await _answer(send, 422, [{"type": "body_not_utf8", "loc": ["body"], "input": None,
+                                           "msg": f"the request body must be UTF-8 encoded JSON; byte "
+                                                  f"0x{body[exc.start]:02x} at position {exc.start} is not UTF-8"}])
+                return
+        sent = False
+
+        async def replay() -> Message:
+            nonlocal sent
+            if not sent:
+                sent = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
