@@ -23,7 +23,7 @@ from drivers.clock import Clock
 from station.config import config_to_yaml
 from station.ident.sinefit import fit3, fit4
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id
-from station.recording.writer import is_disk_full
+from station.recording.writer import DiskFullError, is_disk_full
 from station.run.acquisition import Acquisition, AcquisitionError
 from station.run.request import Plan, PlannedStep
 
@@ -256,10 +256,12 @@ class Procedure:
                 if status == "completed" and self.acq.disk_error is not None:
                     status, reason = "failed", f"recording cannot be written: {self.acq.disk_error}"
             lost = sum(n for _, n in self.acq.lost) if self.acq else 0
-            disk_full = is_disk_full(error) or (self.acq is not None and is_disk_full(self.acq.disk_error))
-            if disk_full:  # room to close the file and note the end: the daemon's reserve goes first
+            disk_error = self.acq.disk_error if self.acq is not None else None
+            if is_disk_full(error) or is_disk_full(disk_error):  # ENOSPC, not the writer's own reserve guard
                 status, reason = "failed", ("recording cannot be written: disk full (no space left on device "
                                             f"in {self.out_dir})")
+            disk_full = is_disk_full(error) or is_disk_full(disk_error) or isinstance(disk_error, DiskFullError)
+            if disk_full:  # room to close the file and note the end: the daemon's reserve goes first
                 self._release_reserve()
             try:
                 path = writer.finish(status, reason)

@@ -89,9 +89,12 @@ class Artifacts:
         if value is None:
             return None
         self._cache[key] = value
+        self._trim()
+        return value
+
+    def _trim(self) -> None:
         while len(self._cache) > CACHE_ENTRIES:
             self._cache.popitem(last=False)
-        return value
 
     def _completed_path(self, run_id: str) -> Path:
         row = self._get_row(run_id)

@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections import OrderedDict
 from dataclasses import dataclass, field
+
+MAX_TRACKED = 256  # runs whose change counters are kept (the newest changed; older waiters time out and re-read)
 
 
 @dataclass
@@ -24,11 +27,21 @@ class Changes:
     """A version counter per run; ``wait`` returns at the next change, a time-out or ``closing``."""
 
     def __init__(self, closing: asyncio.Event) -> None:
-        self._changes: dict[str, _Change] = {}
+        self._changes: OrderedDict[str, _Change] = OrderedDict()
         self._closing = closing
 
+    def _entry(self, run_id: str) -> _Change:
+        ch = self._changes.get(run_id)
+        if ch is None:
+            ch = self._changes[run_id] = _Change()
+            while len(self._changes) > MAX_TRACKED:
+                self._changes.popitem(last=False)
+        else:
+            self._changes.move_to_end(run_id)
+        return ch
+
     def changed(self, run_id: str) -> None:
-        self._changes.setdefault(run_id, _Change()).bump()
+        self._entry(run_id).bump()
 
     def bump_all(self) -> None:
         for ch in self._changes.values():
@@ -39,7 +52,7 @@ class Changes:
         return 0 if ch is None else ch.version
 
     async def wait(self, run_id: str, since: int, timeout_s: float) -> int:
-        ch = self._changes.setdefault(run_id, _Change())
+        ch = self._entry(run_id)
         if ch.version == since and not self._closing.is_set():
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(ch.event.wait(), timeout_s)

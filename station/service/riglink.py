@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections.abc import Callable
 
 from station.config import StationConfig
@@ -17,6 +18,8 @@ from station.service.errors import RigUnavailableError
 from station.service.rigthread import RigThread
 
 log = logging.getLogger(__name__)
+
+STANDSTILL_WAIT_S = 10.0  # an acknowledgement waits this long for the crank to come to rest
 
 RigConnector = Callable[[StationConfig, bool], contextlib.AbstractAsyncContextManager[ConnectedRig]]
 
@@ -135,6 +138,13 @@ class RigLink:
             if not st.fault_code:
                 return True, "the motor controller reports no fault"
             before = f"{st.fault_code} ({st.fault_name})"
+            deadline = time.monotonic() + STANDSTILL_WAIT_S  # the crank may still coast down
+            while st.actual_speed_hz != 0.0:
+                if time.monotonic() > deadline:
+                    return False, (f"the crank still turns at {st.actual_speed_hz:g} Hz; fault {before} can be "
+                                   "reset at standstill only")
+                await asyncio.sleep(0.05)
+                st = await rig.motor.read_status()
             try:
                 await rig.motor.reset_faults()
             except Exception as exc:
@@ -145,7 +155,7 @@ class RigLink:
                                f"after the reset (crank still turning at {st.actual_speed_hz:g} Hz?)")
             return True, f"motor controller fault {before} reset"
         try:
-            return await self.thread.call(asyncio.wait_for(go(), 5.0))
+            return await self.thread.call(asyncio.wait_for(go(), STANDSTILL_WAIT_S + 5.0))
         except Exception as exc:
             return False, f"the motor controller cannot be reached ({type(exc).__name__}: {exc})"
 

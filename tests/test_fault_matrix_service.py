@@ -1,0 +1,479 @@
+"""The rig boundary's fault matrix, on the simulated rig: one test per row of the service's share
+of the table (the row quoted in each docstring).  Most run the daemon's app in-process (real rig
+thread, real drivers over Modbus TCP and a pseudo-terminal, real SQLite and HDF5) through httpx's
+ASGI transport; the flood goes through a real ``station serve --sim`` over loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import json
+import os
+import socket
+import sqlite3
+import subprocess
+import threading
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import h5py
+import httpx
+import pytest
+
+from station.api import create_app
+from station.config import parse_config
+from station.recording import read_recording
+from station.run.request import RunRequest
+from station.service.manager import RunManager
+from station.service.settings import build_settings
+from tests.test_service_support import FINAL, TOKEN, Daemon, daemon_config, run_body
+
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+ON_RIG_DONE = (*FINAL, "identifying")
+
+
+class _Manager(RunManager):
+    async def _warm_render_pool(self) -> None:  # no plots here: no render process to start
+        return None
+
+
+@contextlib.asynccontextmanager
+async def station(rec_dir: Path, *, min_free_mb: float | None = None,
+                  **service: Any) -> AsyncIterator[tuple[RunManager, httpx.AsyncClient]]:
+    """The daemon's app in-process on the simulated rig (no identification workers)."""
+    d = daemon_config(rec_dir, **service)
+    if min_free_mb is not None:
+        d["station"]["min_free_mb"] = min_free_mb
+    settings = build_settings(parse_config(d), sim=True, workers=0, env={"STATION_TOKEN": TOKEN})
+    app = create_app(settings, manager_factory=_Manager)
+    async with app.router.lifespan_context(app):
+        t = httpx.ASGITransport(app=app, client=("127.0.0.1", 40000))
+        async with httpx.AsyncClient(transport=t, base_url="http://127.0.0.1", headers=AUTH, timeout=60) as c:
+            yield app.state.manager, c
+
+
+async def wait_state(c: httpx.AsyncClient, rid: str, states: tuple[str, ...] = ON_RIG_DONE,
+                     step_state: str | None = None, timeout_s: float = 60.0) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout_s
+    st: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        st = (await c.get(f"/runs/{rid}")).json()
+        if st["state"] in states and (step_state is None or st["step_state"] == step_state):
+            return st
+        await asyncio.sleep(0.05)
+    raise AssertionError(f"run {rid} not in {states} after {timeout_s} s: {st}")
+
+
+async def start(c: httpx.AsyncClient, **kw: Any) -> str:
+    r = await c.post("/runs", json=run_body(**kw))
+    assert r.status_code == 202, r.text
+    return str(r.json()["id"])
+
+
+def estops(m: RunManager) -> list[dict[str, Any]]:
+    db = sqlite3.connect(m.settings.database)
+    db.row_factory = sqlite3.Row
+    try:
+        return [dict(r) for r in db.execute("SELECT * FROM estops ORDER BY id")]
+    finally:
+        db.close()
+
+
+# ---------------------------------------------------------------------------------------- row 1
+@pytest.mark.slow
+def test_stop_latches_until_an_operator_acknowledges(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """| `POST /stop`, or the controller's e-stop fault, then a new run | the next run clears the latched
+    fault itself (`reset_faults()` at every start) and moves the crank; nothing is logged |"""
+
+    async def go() -> None:
+        async with station(tmp_path / "rec") as (m, c):
+            rid = await start(c, freqs=(10.0,), record_s=30.0)
+            await wait_state(c, rid, ("running",), "recording")
+            r = await c.post("/stop", headers={"X-Station-Client": "page"})
+            assert r.status_code == 200 and r.json()["aborted_runs"] == [rid]
+            st = await wait_state(c, rid, FINAL)
+            assert st["state"] == "aborted" and st["reason"].startswith("emergency stop")
+            # nothing clears it: the controller keeps its e-stop fault, the daemon refuses runs
+            assert await m.link.motor_fault() == (2, "emergency_stop")
+            r = await c.post("/runs", json=run_body(freqs=(10.0,)))
+            assert r.status_code == 409 and "emergency stop latched" in r.json()["detail"]
+            assert "acknowledge" in r.json()["detail"]
+            assert await m.link.motor_fault() == (2, "emergency_stop")
+            h = (await c.get("/health")).json()
+            assert h["status"] == "degraded" and h["estop"]["latched"] and h["estop"]["source"] == "page"
+            # acknowledging needs the token, names the operator, and is recorded
+            assert (await c.post("/stop/acknowledge", json={"operator": "ab"}, headers={"Authorization": ""})
+                    ).status_code == 401
+            assert (await c.post("/stop/acknowledge", json={"operator": ""})).status_code == 422
+            r = await c.post("/stop/acknowledge", json={"operator": "A. Tech", "note": "crank checked"})
+            assert r.status_code == 200 and r.json()["acknowledged"] and not r.json()["latched"], r.text
+            rows = estops(m)
+            assert len(rows) == 1 and rows[0]["source"] == "page" and rows[0]["acknowledged_by"] == "A. Tech"
+            assert rows[0]["acknowledged"] >= rows[0]["raised"] and rows[0]["note"] == "crank checked"
+            assert await m.link.motor_fault() is None
+            h = (await c.get("/health")).json()
+            assert h["status"] == "ok" and not h["estop"]["latched"] and h["estop"]["last_acknowledged_by"] == "A. Tech"
+            rid2 = await start(c, freqs=(10.0,))
+            assert (await wait_state(c, rid2))["state"] == "identifying"
+    with caplog.at_level("WARNING"):
+        asyncio.run(go())
+    text = caplog.text
+    assert "emergency stop latched (source page)" in text and "acknowledged by A. Tech" in text
+
+
+@pytest.mark.slow
+def test_controller_estop_fault_latches_and_a_fault_at_start_is_not_cleared(tmp_path: Path) -> None:
+    """| `POST /stop`, or the controller's e-stop fault, then a new run | the next run clears the latched
+    fault itself (`reset_faults()` at every start) and moves the crank; nothing is logged |"""
+
+    async def go() -> None:
+        async with station(tmp_path / "rec") as (m, c):
+            assert m.rig is not None and m.rig.sim is not None
+            sim_motor = m.rig.sim.motor
+            # the controller's own e-stop during a run (its button, not the daemon's)
+            rid = await start(c, freqs=(10.0,), record_s=30.0)
+            await wait_state(c, rid, ("running",), "recording")
+            sim_motor.emergency_stop()
+            st = await wait_state(c, rid, FINAL)
+            assert st["state"] == "failed" and "emergency_stop" in st["reason"]
+            h = (await c.get("/health")).json()
+            assert h["estop"]["latched"] and h["estop"]["source"] == "controller"
+            r = await c.post("/runs", json=run_body(freqs=(10.0,)))
+            assert r.status_code == 409 and "latched" in r.json()["detail"]
+            assert (await c.post("/stop/acknowledge", json={"operator": "op"})).status_code == 200
+            # a fault already present at the start (here: overcurrent) is reported, not cleared
+            sim_motor.inject_fault(3)
+            r = await c.post("/runs", json=run_body(freqs=(10.0,)))
+            assert r.status_code == 409 and "overcurrent" in r.json()["detail"], r.text
+            assert sim_motor.snapshot().fault_code == 3 and sim_motor.speed_hz() == 0.0
+            assert estops(m)[-1]["source"] == "controller"
+            assert (await c.post("/stop/acknowledge", json={"operator": "op"})).status_code == 200
+            assert sim_motor.snapshot().fault_code == 0
+            rid2 = await start(c, freqs=(10.0,))
+            assert (await wait_state(c, rid2))["state"] == "identifying"
+    asyncio.run(go())
+
+
+# ---------------------------------------------------------------------------------------- row 2
+def _raw_post(port: int, path: str, length: int, send_bytes: int, headers: str = "") -> tuple[int, float]:
+    """POST announcing ``length`` body bytes, send ``send_bytes`` of them, read the status line."""
+    t0 = time.perf_counter()
+    with socket.create_connection(("127.0.0.1", port), timeout=30) as s:
+        s.sendall((f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+                   f"Content-Length: {length}\r\n{headers}Connection: close\r\n\r\n").encode())
+        with contextlib.suppress(OSError):  # the server may answer and close before all is sent
+            chunk = b"[" + b"0," * (2**16)
+            sent = 0
+            while sent < send_bytes:
+                s.sendall(chunk[: min(len(chunk), send_bytes - sent)])
+                sent += len(chunk)
+        data = b""
+        while b"\r\n" not in data:
+            part = s.recv(4096)
+            if not part:
+                break
+            data += part
+    return int(data.split(b" ", 2)[1]), time.perf_counter() - t0
+
+
+def _rss_kb(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+@pytest.mark.slow
+def test_flood_during_a_run_loses_no_sample_and_big_bodies_are_refused_unread(tmp_path: Path) -> None:
+    """| a 20 MB JSON body to `POST /runs` without a token, during a run | answered 401 after 1.3 s, but
+    the run fails: "motor fault 1 (watchdog_expired)"; the body is read and parsed before the token
+    check, no size limit, 100 MB took 740 MB of memory |"""
+    with Daemon(tmp_path, workers=0) as d:
+        assert d.proc is not None
+        rid = d.start_run(freqs=(10.0, 20.0), record_s=1.5)
+        d.wait_state(rid, ("running",), step_state="recording")
+        rss0 = _rss_kb(d.proc.pid)
+        lat: dict[str, list[float]] = {"get": [], "big_unauth": [], "big_auth": [], "bad": []}
+        codes: dict[str, list[int]] = {k: [] for k in lat}
+        lock = threading.Lock()
+
+        def note(kind: str, code: int, dt: float) -> None:
+            with lock:
+                lat[kind].append(dt)
+                codes[kind].append(code)
+
+        def getter(n: int) -> None:
+            with httpx.Client(base_url=d.url, timeout=30) as c:
+                for i in range(n):
+                    t0 = time.perf_counter()
+                    r = c.get(f"/runs/{rid}" if i % 2 else "/health")
+                    note("get", r.status_code, time.perf_counter() - t0)
+
+        def big_unauth(n: int) -> None:
+            for _ in range(n):  # 20 MB announced, 1 MB actually sent: answered before it is read
+                code, dt = _raw_post(d.port, "/runs", 20 * 2**20, 2**20)
+                note("big_unauth", code, dt)
+
+        def big_auth(n: int) -> None:
+            for _ in range(n):  # with the token: over the 1 MiB limit, 413 without reading it
+                code, dt = _raw_post(d.port, "/runs", 5 * 2**20, 2**18, f"Authorization: Bearer {TOKEN}\r\n")
+                note("big_auth", code, dt)
+
+        def bad(n: int) -> None:
+            with httpx.Client(base_url=d.url, timeout=30, headers=AUTH) as c:
+                for i in range(n):
+                    t0 = time.perf_counter()
+                    body = b"\xff\xfe\x00{" if i % 2 else b'{"transducer_id": true}'
+                    r = c.post("/runs", content=body, headers={"Content-Type": "application/json"})
+                    note("bad", r.status_code, time.perf_counter() - t0)
+
+        threads = [threading.Thread(target=getter, args=(60,)) for _ in range(4)]
+        threads += [threading.Thread(target=big_unauth, args=(10,)) for _ in range(2)]
+        threads += [threading.Thread(target=big_auth, args=(10,)), threading.Thread(target=bad, args=(40,))]
+        t0 = time.monotonic()
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(120)
+        flood_s = time.monotonic() - t0
+        rss1 = _rss_kb(d.proc.pid)
+        st = d.wait_state(rid, ON_RIG_DONE)
+        h = d.c().get("/health").json()
+    n = sum(len(v) for v in lat.values())
+    figures = {"requests": n, "flood_s": round(flood_s, 2), "rss_growth_MB": round((rss1 - rss0) / 1024, 1),
+               "run_state": st["state"], "lost_samples": st["lost_samples"],
+               **{f"{k}_median_ms": round(1e3 * sorted(v)[len(v) // 2], 1) for k, v in lat.items() if v},
+               **{f"{k}_max_ms": round(1e3 * max(v), 1) for k, v in lat.items() if v}}
+    print(json.dumps(figures))
+    assert n == 4 * 60 + 2 * 10 + 10 + 40
+    assert set(codes["get"]) == {200}
+    assert set(codes["big_unauth"]) == {401} and set(codes["big_auth"]) == {413}
+    assert set(codes["bad"]) == {422}
+    assert st["state"] == "identifying", st
+    assert st["lost_samples"] == 0 and st["reason"] == ""
+    assert h["rig"]["motor"]["watchdog_error"] is None
+    assert rss1 - rss0 < 50 * 1024  # 20 MB bodies were never buffered (40 of them would be 800 MB)
+
+
+# ---------------------------------------------------------------------------------------- row 3
+@pytest.fixture
+def small_disk(tmp_path: Path):
+    """A real 24 MiB file system (tmpfs); needs root, as CI has."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=24m", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def _fill(path: Path) -> int:
+    """Write zeros into ``path`` until the disk is full (a real ENOSPC); returns the bytes written."""
+    n = 0
+    with path.open("wb", buffering=0) as f:
+        block = b"\0" * 65536
+        while True:
+            try:
+                n += f.write(block)
+            except OSError as exc:
+                assert exc.errno == errno.ENOSPC
+                return n
+
+
+def _open_fds(name: str) -> list[str]:
+    out = []
+    for fd in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(OSError):
+            target = os.readlink(f"/proc/self/fd/{fd}")
+            if name in target:
+                out.append(target)
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("guard", ["writer guard off", "writer guard on"])
+def test_a_real_full_disk_fails_the_run_with_its_cause_and_frees_the_rig(
+        tmp_path: Path, small_disk: Path, guard: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """| a real ENOSPC during a run | the API says failed, the database says running, the run holds the
+    rig until restart (every POST 409, `/stop` does not release it), abort answers 500, the deleted
+    partial file's space is not freed, and after restart the cause is lost |
+
+    The disk is filled for real (a file written until ENOSPC).  With the writer's free-space guard
+    off, HDF5's own write meets ENOSPC (the guard checks twice a second and can be outrun); with it
+    on, whichever notices first ends the run: both must end the same clean way."""
+    filler = small_disk / "filler.bin"
+    if guard == "writer guard off":
+        from station.recording.writer import RecordingWriter
+        monkeypatch.setattr(RecordingWriter, "_check_space", lambda self, nbytes: None)
+    cause = "disk full (no space left on device" if guard == "writer guard off" else "disk"
+
+    async def go() -> None:
+        # no space kept in reserve by the writer's guard: the disk really fills (ENOSPC)
+        async with station(small_disk, min_free_mb=0.0) as (m, c):
+            assert (await c.get("/health")).json()["disk"]["reserve_file"]
+            rid = await start(c, freqs=(10.0,), record_s=30.0)
+            await wait_state(c, rid, ("running",), "recording")
+            await asyncio.to_thread(_fill, filler)
+            st = await wait_state(c, rid, FINAL, timeout_s=30)
+            assert st["state"] == "failed" and cause in st["reason"], st
+            assert m.live == {}
+            # every endpoint answers, none with a 500
+            answers = {
+                "health": (await c.get("/health")).status_code, "runs": (await c.get("/runs")).status_code,
+                "run": (await c.get(f"/runs/{rid}")).status_code,
+                "station": (await c.get("/station")).status_code,
+                "recording": (await c.get(f"/runs/{rid}/recording")).status_code,
+                "results": (await c.get(f"/runs/{rid}/results")).status_code,
+                "abort": (await c.post(f"/runs/{rid}/abort")).status_code,
+                "new run": (await c.post("/runs", json=run_body(freqs=(10.0,)))).status_code,
+            }
+            assert answers == {"health": 200, "runs": 200, "run": 200, "station": 200, "recording": 200,
+                               "results": 409, "abort": 409, "new run": 503}, answers
+            h = (await c.get("/health")).json()
+            assert h["status"] == "degraded" and not h["disk"]["ok"] and h["disk"]["reserve_used"] == 1
+            # the recording is closed (file released: no descriptor left), with the cause in it
+            assert _open_fds(rid) == []
+            rec = read_recording(small_disk / f"{rid}.h5")
+            assert rec.complete and rec.exit_status == "failed" and cause in rec.reason
+            assert rec.displacement_m.size > 10_000
+            assert not (small_disk / f"{rid}.h5.partial").exists()
+            # the stop still works and releases nothing it should not
+            assert (await c.post("/stop")).status_code == 200
+            # space back: healthy again, the reserve file is made anew, runs start
+            filler.unlink()
+            h = (await c.get("/health")).json()
+            assert h["disk"]["ok"] and h["disk"]["reserve_file"], h["disk"]
+            assert (await c.post("/stop/acknowledge", json={"operator": "op"})).status_code == 200
+            rid2 = await start(c, freqs=(10.0,))
+            assert (await wait_state(c, rid2))["state"] == "identifying"
+        # the database has the cause too (survives a restart)
+        db = sqlite3.connect(small_disk / "station.db")
+        state, reason = db.execute("SELECT state, reason FROM runs WHERE id = ?", (rid,)).fetchone()
+        db.close()
+        assert state == "failed" and cause in reason
+    asyncio.run(go())
+
+
+# ---------------------------------------------------------------------------------------- row 4
+def test_memory_structures_do_not_grow_with_runs(tmp_path: Path) -> None:
+    """| daemon memory | +2.3–3 MB per run, still rising after 30 runs |
+
+    (The RSS over 50 runs is measured by ``bench/service_memory.py``; here: what the daemon keeps
+    per run in its own structures stays bounded.)"""
+    from station.service.artifacts import CACHE_ENTRIES
+    from station.service.changes import MAX_TRACKED
+
+    async def go() -> None:
+        cfg = parse_config(daemon_config(tmp_path / "rec"))
+        m = RunManager(build_settings(cfg, sim=True, workers=0, env={}))
+        try:
+            for i in range(MAX_TRACKED + 50):
+                m.changes.changed(f"run-{i}")
+                async with m.artifacts.file_lock(f"run-{i}"):
+                    pass
+                m.artifacts._cache[(f"run-{i}", "report")] = "x"
+                m.artifacts._trim()
+            assert len(m.changes) <= MAX_TRACKED
+            assert m.artifacts._file_locks == {}
+            assert len(m.artifacts._cache) <= CACHE_ENTRIES
+        finally:
+            m.store.close()
+    asyncio.run(go())
+
+
+# ---------------------------------------------------------------------------------------- row 5
+def test_a_body_that_is_not_utf8_is_refused_clearly(tmp_path: Path) -> None:
+    """| a body that is not UTF-8 | 500, connection dropped |"""
+
+    async def go() -> None:
+        async with station(tmp_path / "rec") as (_, c):
+            for ctype in ("application/json", None):
+                headers = {"Content-Type": ctype} if ctype else {}
+                r = await c.post("/runs", content=b'{"transducer_id": "\xff\xfe"}', headers=headers)
+                assert r.status_code == 422, (ctype, r.text)
+                d = r.json()["detail"][0]
+                assert d["type"] == "body_not_utf8" and "0xff" in d["msg"] and "position 19" in d["msg"]
+            r = await c.post("/stop/acknowledge", content=b"\x80", headers={"Content-Type": "application/json"})
+            assert r.status_code == 422
+    asyncio.run(go())
+
+
+# ---------------------------------------------------------------------------------------- row 6
+def test_booleans_and_strings_are_not_numbers(tmp_path: Path) -> None:
+    """| `true` or `"10"` as a frequency | accepted (a 1 Hz run starts) |"""
+    good = run_body(freqs=(10.0,))
+    assert RunRequest.model_validate_json(json.dumps(good)).steps[0].crank_frequency_hz == 10.0
+    as_int = json.loads(json.dumps(good).replace("10.0", "10"))
+    assert RunRequest.model_validate(as_int).steps[0].crank_frequency_hz == 10.0  # an integer is a number
+
+    async def go() -> None:
+        async with station(tmp_path / "rec") as (m, c):
+            for field, value, loc in [("crank_frequency_hz", True, ["body", "steps", 0, "crank_frequency_hz"]),
+                                      ("crank_frequency_hz", "10", ["body", "steps", 0, "crank_frequency_hz"]),
+                                      ("crank_radius_m", "0.001", ["body", "steps", 0, "crank_radius_m"]),
+                                      ("settle_s", False, ["body", "steps", 0, "settle_s"])]:
+                body = run_body(freqs=(10.0,))
+                body["steps"][0][field] = value
+                r = await c.post("/runs", json=body)
+                assert r.status_code == 422 and r.json()["detail"][0]["loc"] == loc, (field, value, r.text)
+                assert "a number expected" in r.json()["detail"][0]["msg"]
+            body = run_body(freqs=(10.0,))
+            body["top_mass_kg"] = "25.7"
+            r = await c.post("/runs", json=body)
+            assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "top_mass_kg"]
+            assert m.store.list_runs() == []  # nothing started
+    asyncio.run(go())
+
+
+# ---------------------------------------------------------------------------------------- row 7
+@pytest.mark.slow
+def test_after_an_abort_progress_and_the_first_reason_stay(tmp_path: Path) -> None:
+    """| after an abort | progress 1.0 and "done"; a later abort overwrites the reason "emergency stop" |"""
+
+    async def go() -> None:
+        async with station(tmp_path / "rec") as (_, c):
+            rid = await start(c, freqs=(10.0, 20.0), record_s=30.0)
+            await wait_state(c, rid, ("running",), "recording")
+            assert (await c.post("/stop")).status_code == 200
+            r = await c.post(f"/runs/{rid}/abort")  # a second stop while the first is under way
+            assert r.status_code in (202, 409)
+            st = await wait_state(c, rid, FINAL)
+            assert st["state"] == "aborted" and st["reason"].startswith("emergency stop"), st
+            assert st["progress"] < 1.0 and st["step_state"] != "done", st
+            assert st["progress"] == 0.0  # stopped inside the first of two steps
+            path = tmp_path / "rec" / f"{rid}.h5"
+            with h5py.File(path, "r") as f:
+                assert f.attrs["reason"] == "emergency stop"
+    asyncio.run(go())
+
+
+# ---------------------------------------------------------------------------------------- row 8
+def test_a_cross_site_request_cannot_reach_stop(tmp_path: Path) -> None:
+    """| any web page | can trigger `/stop` with a cross-site form post |"""
+
+    async def go() -> None:
+        async with station(tmp_path / "rec") as (m, c):
+            anon = {"Authorization": ""}
+            form = {"Content-Type": "application/x-www-form-urlencoded", **anon}
+            for headers in ({"Origin": "http://evil.example", "Sec-Fetch-Site": "cross-site", **form},
+                            {"Origin": "http://evil.example", **form},  # a browser without Fetch metadata
+                            {"Origin": "null", **form},
+                            {"Sec-Fetch-Site": "same-site", **form}):
+                r = await c.post("/stop", content=b"a=1", headers=headers)
+                assert r.status_code == 403 and "cross-site" in r.json()["detail"], (headers, r.text)
+            assert estops(m) == []  # nothing was stopped or latched
+            # the page (same origin), an API client and curl (neither header) still can
+            page = {"Origin": "http://127.0.0.1", "Sec-Fetch-Site": "same-origin", "X-Station-Client": "page", **anon}
+            assert (await c.post("/stop", headers=page)).status_code == 200
+            assert (await c.post("/stop", headers=anon)).status_code == 200
+            assert [r["source"] for r in estops(m)] == ["page", "api"]
+            # acknowledging from another site is refused even with the token
+            r = await c.post("/stop/acknowledge", json={"operator": "x"}, headers={"Origin": "http://evil.example"})
+            assert r.status_code == 403
+    asyncio.run(go())
