@@ -39,4 +39,6 @@ def test_schemathesis_finds_no_server_error(tmp_path: Path) -> None:
         assert "passed" in out and "Tested: 15" in out, out[-3000:]
         log = d.log()
         assert "Traceback" not in log and "Exception in ASGI application" not in log, log
+        # the generated POST /stop latched the emergency stop; acknowledged, the station is healthy
+        assert d.c().post("/stop/acknowledge", json={"operator": "schemathesis"}).status_code == 200
         assert d.c().get("/health").json()["status"] == "ok"
