@@ -120,7 +120,7 @@ class RigLink:
         if rig is None:
             return None
         try:
-            st = await self.thread.call(asyncio.wait_for(rig.motor.read_status(), 2.0))
+            st = await self.thread.call(asyncio.wait_for(rig.motor.read_state(), 2.0))
         except Exception as exc:
             log.warning("cannot read the motor status: %s", exc)
             return None
