@@ -2,7 +2,8 @@
 
 * a request body is read only from an authenticated client: a POST/PUT/PATCH that carries a body
   without the valid bearer token is answered 401 before a byte of it is read (the emergency stop
-  needs no token and reads no body);
+  needs no token and reads no body; a computation that only reads, ``READ_POSTS``, is open to
+  loopback clients as every GET is);
 * a body larger than ``service.max_body_bytes`` is answered 413, saying the limit, without being
   read further (by its Content-Length when given, else while it arrives);
 * a JSON body that is not UTF-8 is answered 422 naming the first bad byte (never a 500).
@@ -15,6 +16,8 @@ import secrets
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
+from station.service.settings import is_loopback
+
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
 Receive = Callable[[], Awaitable[Message]]
@@ -22,6 +25,7 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 OPEN_POSTS = ("/stop",)  # accepted without the token; their bodies are never read
+READ_POSTS = ("/campaigns",)  # computations that only read: open to loopback clients like every GET
 
 
 async def _answer(send: Send, status: int, detail: Any, headers: list[tuple[bytes, bytes]] | None = None) -> None:
@@ -60,7 +64,9 @@ class BodyGuard:
         if path in OPEN_POSTS or not has_body:
             await self.app(scope, receive, send)  # the route's own dependencies decide (no body to read)
             return
-        if not self._authorised(headers):
+        client = scope.get("client") or ("", 0)
+        reader = path in READ_POSTS and is_loopback(str(client[0]))
+        if not reader and not self._authorised(headers):
             await _answer(send, 401, "a valid bearer token is required (Authorization: Bearer <token>); "
                           "the request body was not read", [(b"www-authenticate", b"Bearer")])
             return
