@@ -45,7 +45,10 @@ def test_noise_study_paper_figures_are_called_unexplained_with_the_numbers(repor
     p = rep["noise_output_power"]
     assert p["max_gain"] == pytest.approx(gain.max(), rel=1e-4) and p["bound"] == pytest.approx(16.61, abs=0.01)
     text = next(e for e in rep["explanations"] if e.startswith("Noise study"))
-    assert "unexplained" in text and "16.6" in text and "790-923" in text
+    implied = [m * 10 ** (s / 10) for s, m in sorted(PAPER_NOISE.items())]
+    assert p["paper_implied"] == pytest.approx(implied)
+    assert "unexplained" in text and f"{p['bound']:.3g}" in text
+    assert f"output power of {min(implied):.0f}-{max(implied):.0f}" in text
 
 
 def test_noise_study_mse_is_the_noise_variance(report) -> None:
@@ -75,11 +78,25 @@ def test_figures_are_written(report) -> None:
 
 
 def test_explanations_quote_measured_numbers(report) -> None:
+    """Every number the explanations give is the one measured in this run (formatted as the text does)."""
+    import numpy as np
+
     rep, _ = report
     text = " ".join(rep["explanations"])
     first = rep["table1"]["I"]["runs"][0]
-    assert f"iteration {first['first_difference']}" in text
-    assert "1.0" in text and "745" in text
+    assert f"up to iteration {first['first_difference']};" in text
+    assert f"differs from the MSE's own at iteration {first['first_tie']}:" in text
+    pp, ps = first["pso+"], first["pso"]
+    assert f"stops improving at MSE {pp['mse']:.3g} (iteration {pp['iterations_to_converge']})" in text
+    assert f"PSO goes on to {ps['mse']:.3g} (iteration {ps['iterations_to_converge']})" in text
+    ratios = ", ".join(f"{r['mse_over_noise_variance']:.2f}" for r in rep["noise_study"])
+    assert f"(ratios {ratios} for 10..50 dB)" in text
+    r5 = rep["section5"]["5kN"]
+    assert f"testing MSE is {r5['rls_III']['testing_mse_V2']:.3g} V^2" in text
+    ratio = r5["rls_III"]["testing_mse_V2"] / np.median(r5["pso+_III"]["testing_mse_V2"])
+    assert f"ours is {ratio:.3g}x" in text
+    power = rep["noise_output_power"]
+    assert f"(ours: {power['ours']:.3g})" in text and f"largest gain is {power['max_gain']:.4g}" in text
 
 
 def test_cli_paper_quick_json(tmp_path: Path, capsys) -> None:

@@ -49,8 +49,9 @@ def test_frequency_response_matches_eq8_eq9(make, coupled: bool) -> None:
     ph = make(eff, noise=False)
     t = ph.transducer
     gain = t.sensitivity_V_per_N * ph.conditioner.gain
-    for f, tol in [(1.0, 1e-6), (4.0, 1e-6), (17.0, 1e-6), (55.0, 1e-6), (100.0, 1e-6),
-                   (400.0, 1e-4), (1000.0, 1e-4)]:
+    for f in (1.0, 4.0, 17.0, 55.0, 100.0, 400.0, 1000.0):
+        # the README's claim: ~1e-9 at 100 Hz, ~1e-5 at 1 kHz (the discretisation error grows as f^4)
+        tol = max(1e-11, 2e-9 * (f / 100.0) ** 4)
         periods = 4 if f < 10 else 40
         h = measured_frf(ph, f, periods=periods)
         # Eq. 8/9 written out here independently of drivers.rig.model
