@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
 import pytest
 
 from tests.test_service_support import Daemon, run_body
@@ -56,3 +57,14 @@ def test_errors(runs: tuple[Daemon, list[str]], tmp_path: Path) -> None:
     assert c.post("/campaigns", json={"runs": ["no-such-run"]}).status_code == 404
     assert c.post("/campaigns", json={"runs": []}).status_code == 422
     assert c.post("/campaigns", json={"runs": ["../etc"]}).status_code == 422
+
+
+def test_store_needs_the_token_and_the_runs_report_shows_the_campaign(runs: tuple[Daemon, list[str]]) -> None:
+    d, ids = runs
+    anon = httpx.Client(base_url=d.url, timeout=60)
+    assert anon.post("/campaigns", json={"runs": ids}).status_code == 200  # reading: open on loopback
+    assert anon.post("/campaigns", json={"runs": ids, "store": True}).status_code == 401
+    r = d.c().post("/campaigns", json={"runs": ids, "store": True})
+    assert r.status_code == 200 and r.json()["stored_as"] == "/results/campaign"
+    html = d.c().get(f"/runs/{ids[0]}/report").text
+    assert "Multi-mass campaign" in html and 'data-key="campaign.m_e"' in html

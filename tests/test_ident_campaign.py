@@ -16,6 +16,7 @@ from station.cli import main
 from station.config import default_config_path, parse_config
 from station.ident.campaign import CampaignRefused, identify_campaign
 from station.recording import read_recording, read_results
+from station.report.html import render_report
 from station.simulate import simulate_run
 
 END_MASS = 0.12
@@ -162,5 +163,9 @@ def test_cli_identifies_jointly_and_stores_in_every_recording(three: list[Path],
     for q in copies:
         stored = read_results(q, "campaign")
         assert stored["parameters"]["m_e"]["value"] == out["parameters"]["m_e"]["value"]
+    html = render_report(copies[1])  # the report of every recording that took part shows the campaign
+    assert "Multi-mass campaign" in html and "(this run)" in html
+    me = out["parameters"]["m_e"]["value"]
+    assert f'data-value="{me!r}" data-key="campaign.m_e"' in html
     assert main(["identify", str(copies[0]), str(copies[0]), "--no-write"]) == 2
     assert "more than once" in capsys.readouterr().err

@@ -7,11 +7,9 @@ import json
 from pathlib import Path
 
 from station.errors import BadInputError
-from station.ident.campaign import CampaignRefused, identify_campaign
+from station.ident.campaign import RESULT_NAME, CampaignRefused, identify_campaign
 from station.ident.campaignresult import CampaignResult
 from station.recording import read_recording, write_results
-
-RESULT_NAME = "campaign"  # stored as /results/campaign in every recording of the campaign
 
 
 def format_text(res: CampaignResult) -> str:

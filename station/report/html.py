@@ -38,7 +38,8 @@ METHODS = {
     "pso+": "the paper's particle swarm, PSO+ (Eq. 12–16), on one step cut as in Section 5.1",
     "rls": "the paper's recursive least squares (Eq. 17) on one step cut as in Section 5.1",
 }
-MEANING = {"S": "sensitivity of the force signal (static limit of S_dyn)", "k_f": "transducer stiffness",
+MEANING = {"S": "sensitivity of the force signal (static limit of S_dyn)", "m_e": "end mass of the transducer",
+           "k_f": "transducer stiffness",
            "b_f": "transducer damping", "k_c": "coupling stiffness", "b_c": "coupling damping"}
 CSS = """body{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}
 table{border-collapse:collapse;margin:.5em 0 1.2em}td,th{border:1px solid #bbb;padding:3px 8px;text-align:left}
@@ -156,13 +157,16 @@ PARAM_HEADERS = ["parameter", "meaning", "value", "u (k = 1)", "U (k = 2)", "U r
 
 def _budget(d: RunData) -> str:
     """GUM budget: standard uncertainty of each parameter per source (k = 1), and combined."""
-    budget = d.ident.get("budget") or {}
+    return _budget_table(d.ident.get("budget") or {}, "budget.")
+
+
+def _budget_table(budget: dict[str, Any], prefix: str) -> str:
     if not budget:
         return ""
     sources = list(next(iter(budget.values()))["contributions"])
     rows = [[_e(n)] + [_num(fmt_unc(b["contributions"].get(s)) if b["contributions"].get(s) is not None
                             else "conditional") for s in sources]
-            + [_num(fmt_unc(b["combined"]), b["combined"], f"budget.{n}"), _e(b.get("unit", ""))]
+            + [_num(fmt_unc(b["combined"]), b["combined"], f"{prefix}{n}"), _e(b.get("unit", ""))]
             for n, b in budget.items()]
     return ("<h3>Uncertainty budget (standard uncertainties, k = 1)</h3>"
             + _table(["parameter", *[_e(s) for s in sources], "combined", "unit"], rows))
@@ -245,6 +249,12 @@ def _discrepancy(d: RunData) -> str:
     return "".join(out)
 
 
+def _campaign(d: RunData) -> str:
+    from station.report.campaign import campaign_section  # imports this module's helpers
+
+    return campaign_section(d)
+
+
 def render_report(recording_path: Path) -> str:
     """The complete HTML page of a recording's calibration (see module docstring)."""
     path = Path(recording_path)
@@ -257,6 +267,6 @@ def render_report(recording_path: Path) -> str:
             "a normal distribution). The uncertainties are those of the identification (measurement noise "
             "propagated through the fit); masses and the displacement sensor's calibration are taken as "
             "exact.</p>",
-            _conditions(d), _model(d), _parameters(d), _sensitivity(d), _discrepancy(d), _plots(path)]
+            _conditions(d), _model(d), _parameters(d), _campaign(d), _sensitivity(d), _discrepancy(d), _plots(path)]
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{_e(title)}</title>'
             f"<style>{CSS}</style></head><body>{''.join(body)}</body></html>\n")

@@ -11,10 +11,10 @@ from fastapi import APIRouter
 from fastapi.exceptions import RequestValidationError
 
 from station.api.campaign_schemas import CampaignOut, CampaignRequest
-from station.api.deps import ManagerDep, Reader
+from station.api.deps import Credentials, ManagerDep, Reader, SettingsDep, require_token
 from station.api.schemas import ErrorOut, ValidationErrorOut
 from station.errors import BadInputError
-from station.recording import read_recording
+from station.recording import read_recording, write_results
 from station.service.manager import RunStateError
 from station.service.results import finite
 
@@ -30,13 +30,17 @@ router = APIRouter(prefix="/campaigns", tags=["campaigns"])
                                              "transducers or nominal sensitivities, a run twice, mixed polarity)"},
                         503: {"model": ErrorOut, "description": "a recording cannot be read right now"}},
              summary="Identify runs with different top masses jointly (S, end mass m_e, k_f, b_f)")
-async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep) -> CampaignOut:
+async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep, creds: Credentials,
+                                  settings: SettingsDep) -> CampaignOut:
     """Reads each run's recording and fits Eq. 9 to all of them at once, the end mass m_e a
-    parameter.  Nothing is stored (``station identify REC1 REC2 ...`` stores the result in the
-    recordings).  Top masses too alike to separate S from m_e give status `conditional` or
-    `refused` with the named check `end_mass_separation`, not an error."""
-    from station.ident.campaign import identify_campaign
+    parameter.  With `store` (bearer token) the result is also written into every run's recording
+    as /results/campaign, where the run's report shows it.  Top masses too alike to separate S from
+    m_e give status `conditional` or `refused` with the named check `end_mass_separation`, not an
+    error."""
+    from station.ident.campaign import RESULT_NAME, identify_campaign  # scipy: loaded when used
 
+    if body.store:
+        await require_token(creds, settings)
     recs = []
     for run_id in body.runs:
         row = manager.get(run_id)
@@ -51,4 +55,10 @@ async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep) ->
     data: dict[str, Any] = finite(res.to_dict())
     for r in data["recordings"]:
         r["path"] = Path(r["path"]).name  # never a server path
-    return CampaignOut.model_validate({**data, "runs": list(body.runs)})
+    stored = None
+    if body.store:
+        payload = res.to_dict()
+        for run_id in body.runs:
+            await manager.read_file(run_id, lambda p: write_results(p, RESULT_NAME, payload))
+        stored = f"/results/{RESULT_NAME}"
+    return CampaignOut.model_validate({**data, "runs": list(body.runs), "stored_as": stored})

@@ -1,0 +1,48 @@
+"""The report's multi-mass campaign section: the joint identification stored as ``/results/campaign``
+by ``station identify REC1 REC2 ...`` or ``POST /campaigns`` with ``store``, shown in the report of
+every recording that took part (docs/identification.md, "Multi-mass campaign")."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from station.report.data import RunData
+from station.report.html import PARAM_HEADERS, _budget_table, _e, _num, _param_rows, _table
+from station.report.quantities import fmt_unc, fmt_value
+
+STATUS = {"separated": "S and the end mass m_e separated by the top masses",
+          "conditional": "the top masses are too alike to separate S from m_e: S, k_f, b_f are given on the "
+                         "stated end mass (its uncertainty propagated), m_e is not given",
+          "refused": "no S, m_e, k_f, b_f: see the checks and what the data determine"}
+
+
+def campaign_section(d: RunData) -> str:
+    """HTML of the stored campaign result, or '' when this recording took part in none."""
+    stored = d.results.get("campaign")
+    if stored is None:
+        return ""
+    c: dict[str, Any] = stored.payload
+    this = d.rec.run_id
+    rec_rows = [[_e(r.get("run_id", "")) + (" (this run)" if r.get("run_id") == this else ""),
+                 _num(fmt_value(r["load_mass_kg"]["value"], r["load_mass_kg"]["std"]), r["load_mass_kg"]["value"]),
+                 _num(fmt_unc(r["load_mass_kg"]["std"])),
+                 _num(f"{r['f_range_hz'][0]:.4g}–{r['f_range_hz'][1]:.4g}"), _num(str(len(r["steps_used"]))),
+                 _num(f"{r['chi2']:.3g}" if r.get("chi2") is not None else "n/a")]
+                for r in c.get("recordings") or []]
+    checks = "".join(f"<li><b>{_e(k['severity'])}</b> {_e(k['name'])}: {_e(k['message'])}</li>"
+                     for k in c.get("checks") or [])
+    fit = c.get("fit") or {}
+    chi = fit.get("chi2_per_dof")
+    fit_note = "" if chi is None else (
+        f'<p class="note">χ²/dof {chi:.3g} ({fit.get("chi2", 0):.4g} on {fit.get("dof")})'
+        + (", uncertainties inflated by √(χ²/dof)" if fit.get("inflated") else "") + "</p>")
+    notes = "".join(f"<li>{_e(n)}</li>" for n in c.get("notes") or [])
+    return (f"<h2>Multi-mass campaign</h2><p>Joint identification (Eq. 9, one S, m_e, k_f, b_f) of "
+            f"{len(rec_rows)} recording(s) of {_e(c.get('transducer_id', ''))}, written {_e(stored.written)}: "
+            f"<b>{_e(c.get('status', ''))}</b> — {_e(STATUS.get(str(c.get('status')), ''))}.</p>"
+            + _table(PARAM_HEADERS, _param_rows(c.get("parameters") or {}, "campaign."), "campaign")
+            + _budget_table(c.get("budget") or {}, "campaign.budget.")
+            + "<h3>Recordings</h3>"
+            + _table(["run", "load mass m_l (kg)", "u (kg)", "frequencies (Hz)", "steps", "χ² share"], rec_rows)
+            + fit_note + (f'<h3>Campaign checks</h3><ul class="note">{checks}</ul>' if checks else "")
+            + (f'<ul class="note">{notes}</ul>' if notes else ""))
