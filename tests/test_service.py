@@ -236,19 +236,25 @@ def test_worker_exits_when_the_daemon_is_killed(tmp_path: Path) -> None:
         ["ps", "-o", "pid,ppid,stat,cmd", "-p", ",".join(map(str, workers))], capture_output=True, text=True).stdout
 
 
-@pytest.mark.slow
-def test_serve_refuses_a_bad_configuration_at_start_up(tmp_path: Path) -> None:
+def test_serve_refuses_a_bad_configuration_at_start_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    import station.commands.server
+    from station.cli import main
+
+    class NeverServe:  # a refusal must come before the server is built
+        def __init__(self, *a: object, **k: object) -> None:
+            raise AssertionError("the daemon started on a configuration it should refuse")
+    monkeypatch.setattr(station.commands.server, "StationServer", NeverServe)
+    monkeypatch.delenv("STATION_TOKEN", raising=False)
+    monkeypatch.chdir(tmp_path)
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("service: {port: 99999}\n" + (Path(__file__).parent.parent / "config" / "sim-5kN.yaml").read_text())
-    env = {k: v for k, v in os.environ.items() if k != "STATION_TOKEN"}
-    r = subprocess.run([sys.executable, "-m", "station.cli", "serve", "--config", str(cfg)], capture_output=True,
-                       text=True, timeout=60, env=env, cwd=tmp_path)
-    assert r.returncode == 2 and "service.port" in r.stderr
+    assert main(["serve", "--config", str(cfg)]) == 2
+    assert "service.port" in capsys.readouterr().err
     ok = tmp_path / "ok.yaml"
     ok.write_text((Path(__file__).parent.parent / "config" / "sim-5kN.yaml").read_text())
-    r = subprocess.run([sys.executable, "-m", "station.cli", "serve", "--config", str(ok)], capture_output=True,
-                       text=True, timeout=60, env=env, cwd=tmp_path)
-    assert r.returncode == 2 and "STATION_TOKEN" in r.stderr  # a real rig needs a token
+    assert main(["serve", "--config", str(ok)]) == 2
+    assert "STATION_TOKEN" in capsys.readouterr().err  # a real rig needs a token
 
 
 def test_worker_pool_survives_a_dying_worker() -> None:
