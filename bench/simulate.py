@@ -20,7 +20,7 @@ ALL_EFFECTS = rp.Effects(
     channel_delay=rp.ChannelDelay(2.5e-5),
     crank_harmonics=rp.CrankHarmonics(0.25),
     transducer_nonlinearity=rp.TransducerNonlinearity(0.01, 0.002),
-    mains_interference=rp.MainsInterference(50.0, (0.005, 0.001, 0.002)),
+    mains_interference=rp.MainsInterference((0.005, 0.001, 0.002), frequency_hz=50.0),
     zero_drift=rp.ZeroDrift(1e-4),
 )
 

@@ -6,8 +6,9 @@ and the allowed range.  All quantities are SI; the unit is part of every field n
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, get_type_hints
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -132,52 +133,6 @@ class TruthConfig(_Model):
                                               description="true sensitivity; defaults to nominal")
 
 
-class CouplingConfig(_Model):
-    k_c: float = Field(gt=0, le=1e13)
-    b_c: float = Field(ge=0, le=1e8)
-
-
-class LowpassConfig(_Model):
-    order: int = Field(ge=1, le=8)
-    cutoff_hz: float = Field(gt=0, le=100_000)
-
-
-class DelayConfig(_Model):
-    delay_s: float = Field(ge=-1e-3, le=1e-3)
-
-
-class HarmonicsConfig(_Model):
-    rod_length_m: float = Field(gt=0, le=10)
-
-
-class NonlinearityConfig(_Model):
-    quadratic: float = Field(ge=-0.5, le=0.5)
-    cubic: float = Field(default=0.0, ge=-0.5, le=0.5)
-
-
-class MainsConfig(_Model):
-    frequency_hz: float = Field(default=50.0, ge=45, le=65)
-    amplitudes_V: list[float] = Field(min_length=1, max_length=10)
-    phases_rad: list[float] = Field(default_factory=list, max_length=10)
-
-
-class DriftConfig(_Model):
-    rate_V_per_s: float = Field(ge=-1, le=1)
-    quadratic_V_per_s2: float = Field(default=0.0, ge=-1, le=1)
-
-
-class EffectsConfig(_Model):
-    """The effect catalogue of the simulator; an absent key means the effect is off."""
-
-    coupling_compliance: CouplingConfig | None = None
-    conditioner_lowpass: LowpassConfig | None = None
-    channel_delay: DelayConfig | None = None
-    crank_harmonics: HarmonicsConfig | None = None
-    transducer_nonlinearity: NonlinearityConfig | None = None
-    mains_interference: MainsConfig | None = None
-    zero_drift: DriftConfig | None = None
-
-
 class SimulationConfig(_Model):
     """The simulated rig: truth, noise, effects, seed."""
 
@@ -186,7 +141,8 @@ class SimulationConfig(_Model):
     displacement_noise_m: float = Field(default=2e-7, ge=0, le=1e-2)
     conditioner_noise_V: float = Field(default=5e-4, ge=0, le=1.0)
     pre_roll_s: float = Field(default=0.5, ge=0, le=60, description="standstill before the first ramp")
-    effects: EffectsConfig = EffectsConfig()
+    effects: rp.Effects = Field(default=rp.Effects(), description="the simulator's effect catalogue "
+                                "(drivers.rig.params.Effects, bounds declared there); an absent key is off")
 
 
 class DevicesConfig(_Model):
@@ -242,22 +198,26 @@ class StationConfig(_Model):
 
 
 def _field_bounds(loc: tuple[Any, ...]) -> list[str]:
-    """The declared bounds of the field at ``loc`` in StationConfig, e.g. ['> 0', '<= 1.0']."""
+    """The declared bounds of the field at ``loc`` in StationConfig, e.g. ['> 0', '<= 1.0'] (fields of
+    pydantic models, and of the drivers' dataclasses such as the effect catalogue)."""
     model: Any = StationConfig
-    info = None
+    metadata: list[Any] = []
     for part in loc:
         if isinstance(part, int):  # list index: stay on the item model
             continue
-        if not (isinstance(model, type) and issubclass(model, BaseModel)) or part not in model.model_fields:
+        if isinstance(model, type) and issubclass(model, BaseModel) and part in model.model_fields:
+            info = model.model_fields[part]
+            ann, metadata = info.annotation, list(info.metadata)
+        elif dataclasses.is_dataclass(model) and part in {f.name for f in dataclasses.fields(model)}:
+            ann = get_type_hints(model, include_extras=True)[part]
+            metadata = list(getattr(ann, "__metadata__", ()))
+            ann = getattr(ann, "__origin__", ann) if metadata else ann
+        else:
             return []
-        info = model.model_fields[part]
-        ann = info.annotation
         args = [a for a in getattr(ann, "__args__", (ann,)) if isinstance(a, type)]
-        model = next((a for a in args if issubclass(a, BaseModel)), ann)
-    if info is None:
-        return []
+        model = next((a for a in args if issubclass(a, BaseModel) or dataclasses.is_dataclass(a)), ann)
     out = []
-    for meta in info.metadata:
+    for meta in metadata:
         for key, sym in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
             if getattr(meta, key, None) is not None:
                 out.append(f"{sym} {getattr(meta, key)}")
@@ -267,9 +227,9 @@ def _field_bounds(loc: tuple[Any, ...]) -> list[str]:
 def _describe_error(err: dict[str, Any]) -> str:
     loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
     bounds = _field_bounds(tuple(err["loc"]))
-    if err["type"] == "extra_forbidden":
+    if err["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
         return f"{loc}: unknown key (received {err['input']!r})"
-    if err["type"] == "missing":
+    if err["type"] in ("missing", "missing_argument"):
         return f"{loc}: required key is missing"
     allowed = f"; allowed: value {' and '.join(bounds)}" if bounds else ""
     return f"{loc} = {err.get('input')!r}: {err['msg']}{allowed}"
@@ -321,23 +281,6 @@ def to_rig_physics(cfg: StationConfig) -> rp.RigPhysics:
     if m_e is None:
         raise ConfigError("simulation needs an end mass: set simulation.truth.end_mass_kg "
                           "or transducer.end_mass_kg")
-    e = sim.effects
-    effects = rp.Effects(
-        coupling_compliance=rp.CouplingCompliance(**e.coupling_compliance.model_dump())
-        if e.coupling_compliance else None,
-        conditioner_lowpass=rp.ConditionerLowpass(**e.conditioner_lowpass.model_dump())
-        if e.conditioner_lowpass else None,
-        channel_delay=rp.ChannelDelay(**e.channel_delay.model_dump()) if e.channel_delay else None,
-        crank_harmonics=rp.CrankHarmonics(**e.crank_harmonics.model_dump()) if e.crank_harmonics else None,
-        transducer_nonlinearity=rp.TransducerNonlinearity(**e.transducer_nonlinearity.model_dump())
-        if e.transducer_nonlinearity else None,
-        mains_interference=rp.MainsInterference(
-            frequency_hz=e.mains_interference.frequency_hz,
-            amplitudes_V=tuple(e.mains_interference.amplitudes_V),
-            phases_rad=tuple(e.mains_interference.phases_rad),
-        ) if e.mains_interference else None,
-        zero_drift=rp.ZeroDrift(**e.zero_drift.model_dump()) if e.zero_drift else None,
-    )
     return rp.RigPhysics(
         transducer=rp.Transducer(
             k_f=sim.truth.k_f, b_f=sim.truth.b_f, m_e=m_e, m_l=cfg.rig.load_mass_kg,
@@ -349,6 +292,6 @@ def to_rig_physics(cfg: StationConfig) -> rp.RigPhysics:
                                    noise_V=sim.conditioner_noise_V),
         adc=rp.Adc(bits=cfg.daq.adc_bits, displacement_range_V=cfg.daq.displacement_range_V,
                    force_range_V=cfg.daq.force_range_V),
-        effects=effects,
+        effects=sim.effects,
         sample_rate_hz=cfg.daq.sample_rate_hz,
     )

@@ -1,8 +1,9 @@
 """Physical parameters of the simulated sine-mechanism rig (SI units throughout).
 
-These frozen dataclasses are the *only* vocabulary the simulator speaks; the station's
-pydantic configuration is converted into them (``station.config.to_rig_physics``), so the
-``drivers`` layer never imports ``station``.
+These frozen dataclasses are the *only* vocabulary the simulator speaks, and the effect catalogue
+(``Effects``) is declared only here: each field's valid range is part of its type
+(``annotated_types`` bounds), and the station's configuration validates ``simulation.effects``
+straight into these classes (``station.config``), so the ``drivers`` layer never imports ``station``.
 
 Model (paper Eq. 3, frame/base motion prescribed by the crank):
 
@@ -18,6 +19,9 @@ force ``k_f * Z2`` times the sensitivity: ``U = S * k_f * Z2``.  In the static l
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated
+
+from annotated_types import Ge, Gt, Le, MaxLen, MinLen
 
 G_STANDARD = 9.80665  # m/s^2
 
@@ -47,16 +51,16 @@ class Transducer:
 class CouplingCompliance:
     """Finite coupling between load mass and transducer (paper Eq. 8): k_c in N/m, b_c in N*s/m."""
 
-    k_c: float
-    b_c: float
+    k_c: Annotated[float, Gt(0), Le(1e13)]
+    b_c: Annotated[float, Ge(0), Le(1e8)]
 
 
 @dataclass(frozen=True)
 class ConditionerLowpass:
     """Analogue Butterworth low-pass in the signal conditioner: order, cut-off (-3 dB) in Hz."""
 
-    order: int
-    cutoff_hz: float
+    order: Annotated[int, Ge(1), Le(8)]
+    cutoff_hz: Annotated[float, Gt(0), Le(100_000)]
 
 
 @dataclass(frozen=True)
@@ -64,7 +68,7 @@ class ChannelDelay:
     """Time skew of a multiplexed ADC: the force sample k is taken ``delay_s`` seconds after the
     displacement sample k (positive delay).  Force/displacement phase changes by +2*pi*f*delay_s."""
 
-    delay_s: float
+    delay_s: Annotated[float, Ge(-1e-3), Le(1e-3)]
 
 
 @dataclass(frozen=True)
@@ -74,7 +78,7 @@ class CrankHarmonics:
     x_b(phi) = r sin(phi) + sqrt(L^2 - r^2 cos^2 phi) - mean; second-harmonic amplitude ~ r^2/(4L).
     """
 
-    rod_length_m: float
+    rod_length_m: Annotated[float, Gt(0), Le(10)]
 
 
 @dataclass(frozen=True)
@@ -82,8 +86,8 @@ class TransducerNonlinearity:
     """Sensitivity that depends on the force: U = S*F*(1 + quadratic*(F/C) + cubic*(F/C)^2),
     F the spring force in N (preload included), C the capacity in N; coefficients dimensionless."""
 
-    quadratic: float
-    cubic: float
+    quadratic: Annotated[float, Ge(-0.5), Le(0.5)]
+    cubic: Annotated[float, Ge(-0.5), Le(0.5)] = 0.0
 
 
 @dataclass(frozen=True)
@@ -91,17 +95,17 @@ class MainsInterference:
     """Mains pick-up on the force channel (conditioner output): amplitudes in V of the fundamental
     and its harmonics (index 0 = mains frequency), phases in rad."""
 
-    frequency_hz: float
-    amplitudes_V: tuple[float, ...]
-    phases_rad: tuple[float, ...] = ()
+    amplitudes_V: Annotated[tuple[float, ...], MinLen(1), MaxLen(10)]
+    frequency_hz: Annotated[float, Ge(45), Le(65)] = 50.0
+    phases_rad: Annotated[tuple[float, ...], MaxLen(10)] = ()
 
 
 @dataclass(frozen=True)
 class ZeroDrift:
     """Slow offset drift of the conditioner output: offset(t) = rate_V_per_s * t + quadratic_V_per_s2 * t^2."""
 
-    rate_V_per_s: float
-    quadratic_V_per_s2: float = 0.0
+    rate_V_per_s: Annotated[float, Ge(-1), Le(1)]
+    quadratic_V_per_s2: Annotated[float, Ge(-1), Le(1)] = 0.0
 
 
 @dataclass(frozen=True)
