@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from drivers.daq.protocol import SampleBlock, SampleGap
 from station.config import load_config
 from station.errors import LimitError
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, read_recording
@@ -34,16 +35,13 @@ def test_ring_buffer_wraps_and_refuses_what_it_does_not_hold() -> None:
         rb.put(20, np.zeros(1, np.int16), np.zeros(1, np.int16))
 
 
-class _Block:
-    def __init__(self, first: int, n: int) -> None:
-        self.first_index = first
-        self.displacement = np.full(n, 7, dtype=np.int16)
-        self.force = np.full(n, -7, dtype=np.int16)
+def _Block(first: int, n: int) -> SampleBlock:
+    """The driver's own event type (the acquisition matches on it)."""
+    return SampleBlock(first, np.full(n, 7, dtype=np.int16), np.full(n, -7, dtype=np.int16))
 
 
-class _Gap:
-    def __init__(self, first: int, count: int) -> None:
-        self.first_index, self.count = first, count
+def _Gap(first: int, count: int) -> SampleGap:
+    return SampleGap(first, count, frames=1)
 
 
 def _writer(tmp_path: Path, run_id: str = "unit") -> RecordingWriter:

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.clock import REAL_CLOCK, Clock
+from drivers.daq.bridge import StreamEvent, StreamStalled
+from drivers.daq.protocol import SampleBlock, SampleGap
 from station.recording import RecordingWriter
 
 log = logging.getLogger(__name__)
@@ -95,7 +97,7 @@ class Acquisition:
     virtual clock it is one of the participants time waits for).
     """
 
-    def __init__(self, get_event: Callable[[float], object | None], writer: RecordingWriter, *,
+    def __init__(self, get_event: Callable[[float], StreamEvent | None], writer: RecordingWriter, *,
                  ring_seconds: float = 60.0, sample_rate_hz: float = 20_000.0,
                  disk_queue_seconds: float = 120.0, stall_limit_s: float = 2.0,
                  storm_fraction: float = 0.5, rejected_frames: Callable[[], int] | None = None,
@@ -180,7 +182,7 @@ class Acquisition:
                 ev = self._get_event(0.0)
                 if ev is None:
                     clock.wait_for(self._stop.is_set, self._poll_s)
-                if ev is None or hasattr(ev, "seconds"):
+                if ev is None or isinstance(ev, StreamStalled):
                     if clock.monotonic() - quiet_since >= self._stall_limit:
                         bad = self._rejected() - rejected_at_quiet
                         if bad:
@@ -192,14 +194,14 @@ class Acquisition:
                     continue
                 quiet_since = clock.monotonic()  # data or gap: the stream is alive
                 rejected_at_quiet = self._rejected()
-                if hasattr(ev, "displacement"):
-                    first = ev.first_index
-                    if first > self.ring.end:  # a gap the driver did not report separately
-                        self._gap(self.ring.end, first - self.ring.end)
-                    self.ring.put(first, ev.displacement, ev.force)
-                    self._enqueue(Block(first, ev.displacement, ev.force))
-                elif hasattr(ev, "count"):
-                    self._gap(ev.first_index, ev.count)
+                match ev:
+                    case SampleBlock(first_index=first, displacement=d, force=f):
+                        if first > self.ring.end:  # a gap the driver did not report separately
+                            self._gap(self.ring.end, first - self.ring.end)
+                        self.ring.put(first, d, f)
+                        self._enqueue(Block(first, d, f))
+                    case SampleGap(first_index=first, count=count):
+                        self._gap(first, count)
         except AcquisitionError as exc:
             self.error = exc
         except Exception as exc:  # the driver's link error and anything else ends the run

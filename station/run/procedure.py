@@ -15,20 +15,19 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import numpy as np
 
 from drivers.clock import Clock
+from drivers.daq import DaqBridge
+from drivers.motor import MotorController, MotorStatus
 from station.config import config_to_yaml
 from station.ident.sinefit import fit3, fit4
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id
 from station.recording.writer import DiskFullError, is_disk_full
 from station.run.acquisition import Acquisition, AcquisitionError
 from station.run.request import Plan, PlannedStep
-
-if TYPE_CHECKING:
-    from drivers.motor.controller import MotorStatus
 
 log = logging.getLogger(__name__)
 
@@ -130,8 +129,8 @@ class RigLink(Protocol):
     the rig keeps (real time; a virtual clock on the in-process simulated rig): every wait and
     time-out of the run is on it."""
 
-    motor: object
-    daq: object
+    motor: MotorController
+    daq: DaqBridge
     radius: RadiusActuator
     clock: Clock
 
@@ -368,17 +367,16 @@ class Procedure:
             raise RunAborted(self.abort_reason or "aborted")
         if self.acq is not None:
             self.acq.check()
-        err = getattr(self.link.motor, "watchdog_error", None)
+        err = self.link.motor.watchdog_error
         if err is not None:
             raise RunFailure(f"motor link lost (watchdog refresh failed): {err}")
 
-    def _check_motor(self, st: object) -> None:
+    def _check_motor(self, st: MotorStatus) -> None:
         if self.abort_event.is_set():  # an operator's stop latches the e-stop fault: it is an abort
             raise RunAborted(self.abort_reason or "aborted")
-        code = getattr(st, "fault_code", 0)
-        if code:
-            self.motor_fault = (code, str(getattr(st, "fault_name", "?")))
-            raise RunFailure(f"motor fault {code} ({getattr(st, 'fault_name', '?')})")
+        if st.fault_code:
+            self.motor_fault = (st.fault_code, st.fault_name)
+            raise RunFailure(f"motor fault {st.fault_code} ({st.fault_name})")
 
     async def _stop_motor(self, *, hard: bool) -> None:
         """Stop the crank before anything else: ramp down, or emergency stop on a failure."""
