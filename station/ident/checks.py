@@ -37,32 +37,32 @@ class IdentificationRefused(BadInputError):
 
 
 def coarse_frequency(x: FloatArray, fs_hz: float) -> float:
-    """Frequency of the strongest spectral line (Hann window, 4x zero padding, parabolic
-    interpolation of the log magnitude), Hz; DC and a linear trend removed first."""
+    """Frequency of the strongest spectral line (mean removed, Hann window, parabolic interpolation
+    of the log magnitude: a small fraction of a bin), Hz."""
     n = x.size
-    tt = np.arange(n)
-    y = x - np.polyval(np.polyfit(tt, x, 1), tt)
-    spec = np.abs(np.fft.rfft(y * np.hanning(n), 4 * n))
-    spec[:4] = 0.0  # below one bin of the record: not a crank frequency
+    nfft = 1 << int(np.ceil(np.log2(n)))
+    spec = np.abs(np.fft.rfft((x - np.mean(x)) * np.hanning(n), nfft))
+    spec[:2 * nfft // n + 1] = 0.0  # DC and its window leakage: not a crank frequency
     k = int(np.argmax(spec))
     kf = float(k)
     if 0 < k < spec.size - 1:
         a, b, c = np.log(spec[k - 1:k + 2] + 1e-300)
         den = a - 2 * b + c
         kf += 0.5 * (a - c) / den if den != 0 else 0.0
-    return kf * fs_hz / (4 * n)
+    return kf * fs_hz / nfft
 
 
 def _clipped(y: FloatArray) -> float | None:
     """Fraction of samples sitting on the extreme value when more than an unclipped (quantised)
-    sine would put there; None when not clipped."""
-    u = np.unique(y)
-    if u.size < 3:
+    sine would put there (within one quantisation step q of its peak: sqrt(2 q / A) / pi); None when
+    not clipped.  q: the smallest nonzero step between consecutive samples."""
+    hi, lo = float(np.max(y)), float(np.min(y))
+    frac = max(np.count_nonzero(y == hi), np.count_nonzero(y == lo)) / y.size
+    if frac <= 0.005 or hi == lo:
         return None
-    q = float(np.min(np.diff(u)))
-    amp = float(u[-1] - u[0]) / 2
-    expected = np.sqrt(2 * q / amp) / np.pi
-    frac = max(np.count_nonzero(y == u[-1]), np.count_nonzero(y == u[0])) / y.size
+    d = np.abs(np.diff(y))
+    q = float(np.min(d[d > 0])) if np.any(d > 0) else 0.0
+    expected = np.sqrt(2 * q / ((hi - lo) / 2)) / np.pi
     return float(frac) if frac > 3 * expected + 0.005 else None
 
 
