@@ -131,17 +131,18 @@ def _distinct(priors: list[jf.MassPrior], k: float) -> int:
 
 def _determined(recs: list[Recording], priors: list[jf.MassPrior], own: list[FloatArray],
                 m_e: float) -> dict[str, Any]:
-    """What each recording determines whatever the end mass: S M (V/(m/s^2)) and the loaded natural
-    frequency f_0 = sqrt(k_f / M) / (2 pi) (Hz), from its own fit (invariant to the m_e held)."""
-    out: dict[str, Any] = {"S_M": [], "f_0": []}
+    """What each recording determines whatever the end mass (names as the single-recording result's
+    ``determined``, one entry per recording): S M in V s^2/m and the loaded natural frequency
+    f_0 = sqrt(k_f / M) / (2 pi) in Hz, from its own fit (invariant to the m_e held)."""
+    out: dict[str, Any] = {"S_times_M": [], "natural_frequency_hz": []}
     for r, pr, o in zip(recs, priors, own, strict=True):
         M = m_e + pr.value
-        out["S_M"].append({"run_id": r.run_id, "value": float(o[0] * M), "std": float(o[3] * M),
-                           "unit": "V/(m/s^2)"})
+        out["S_times_M"].append({"run_id": r.run_id, "value": float(o[0] * M), "combined": float(o[3] * M),
+                                 "unit": "V*s^2/m"})
         ok = o[1] > 0 and M > 0  # a fit gone wrong (e.g. a mistyped mass) has no natural frequency
         f0 = float(np.sqrt(o[1] / M) / (2 * np.pi)) if ok else None
-        out["f_0"].append({"run_id": r.run_id, "value": f0, "std": float(f0 * o[4] / (2 * o[1])) if f0 else None,
-                           "unit": "Hz"})
+        out["natural_frequency_hz"].append({"run_id": r.run_id, "value": f0, "unit": "Hz",
+                                            "combined": float(f0 * o[4] / (2 * o[1])) if f0 else None})
     return out
 
 

@@ -37,6 +37,12 @@ def campaign_section(d: RunData) -> str:
         f'<p class="note">χ²/dof {chi:.3g} ({fit.get("chi2", 0):.4g} on {fit.get("dof")})'
         + (", uncertainties inflated by √(χ²/dof)" if fit.get("inflated") else "") + "</p>")
     notes = "".join(f"<li>{_e(n)}</li>" for n in c.get("notes") or [])
+    det = c.get("determined") or {}
+    det_rows = [[_e(r.get("run_id", "")), _e(name), _num(fmt_value(r.get("value"), r.get("combined")), r.get("value")),
+                 _num(fmt_unc(r.get("combined"))), _e(r.get("unit", ""))]
+                for name, rows in det.items() for r in rows]
+    det_html = ("<h3>What each recording determines whatever the end mass</h3>"
+                + _table(["run", "quantity", "value", "u (k = 1)", "unit"], det_rows)) if det_rows else ""
     return (f"<h2>Multi-mass campaign</h2><p>Joint identification (Eq. 9, one S, m_e, k_f, b_f) of "
             f"{len(rec_rows)} recording(s) of {_e(c.get('transducer_id', ''))}, written {_e(stored.written)}: "
             f"<b>{_e(c.get('status', ''))}</b> — {_e(STATUS.get(str(c.get('status')), ''))}.</p>"
@@ -44,5 +50,5 @@ def campaign_section(d: RunData) -> str:
             + _budget_table(c.get("budget") or {}, "campaign.budget.")
             + "<h3>Recordings</h3>"
             + _table(["run", "load mass m_l (kg)", "u (kg)", "frequencies (Hz)", "steps", "χ² share"], rec_rows)
-            + fit_note + (f'<h3>Campaign checks</h3><ul class="note">{checks}</ul>' if checks else "")
+            + fit_note + det_html + (f'<h3>Campaign checks</h3><ul class="note">{checks}</ul>' if checks else "")
             + (f'<ul class="note">{notes}</ul>' if notes else ""))
