@@ -45,7 +45,7 @@ def record_once(port: str, factor: float, seconds: float, out_dir: str) -> dict[
     frame = int(min(4096, 256 * max(1.0, factor)))
     daq = DaqBridge(reply_timeout_s=3.0)
     daq.connect(SerialLink(port))
-    daq.configure(rate_hz=rate, frame_samples=frame)
+    daq.configure(rate_hz=rate, frame_samples=frame, check_link_budget=False)  # an unpaced pty
     meta = RunMetadata(run_id=new_run_id("BENCH"), transducer_id="BENCH", source="calibrate",
                        sample_rate_hz=rate, load_mass_kg=26.2, end_mass_kg=0.12, sensitivity_V_per_N=2e-3,
                        capacity_N=5000.0, config_yaml="bench: true\n")

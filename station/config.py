@@ -14,6 +14,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from sinecal_config import config_file
 
+from drivers.daq.protocol import link_budget
 from drivers.rig import params as rp
 from station.errors import ConfigError
 from station.ident.inputs import MeasurementChain
@@ -196,6 +197,15 @@ class StationConfig(_Model):
     simulation: SimulationConfig | None = None
     service: ServiceSection = ServiceSection()
 
+    @model_validator(mode="after")
+    def _daq_link_budget(self) -> StationConfig:
+        """devices.daq_baudrate must carry daq.sample_rate_hz x 2 channels even if SLIP escaped every
+        byte (drivers.daq.protocol.link_budget; docs/daq-protocol.md, link budget)."""
+        budget = link_budget(self.daq.sample_rate_hz, self.devices.daq_baudrate)
+        if not budget.ok:
+            raise ValueError(f"devices.daq_baudrate / daq.sample_rate_hz: {budget.message()}")
+        return self
+
 
 def _field_bounds(loc: tuple[Any, ...]) -> list[str]:
     """The declared bounds of the field at ``loc`` in StationConfig, e.g. ['> 0', '<= 1.0'] (fields of
@@ -231,6 +241,8 @@ def _describe_error(err: dict[str, Any]) -> str:
         return f"{loc}: unknown key (received {err['input']!r})"
     if err["type"] in ("missing", "missing_argument"):
         return f"{loc}: required key is missing"
+    if not err["loc"] and err["type"] == "value_error":  # a check across sections: the message says it all
+        return str(err["msg"]).removeprefix("Value error, ")
     allowed = f"; allowed: value {' and '.join(bounds)}" if bounds else ""
     return f"{loc} = {err.get('input')!r}: {err['msg']}{allowed}"
 

@@ -331,3 +331,64 @@ def test_modbus_watchdog_cannot_be_switched_off_while_enabled(modbus_rig: SimRig
         await motor.close()
 
     asyncio.run(run())
+
+
+# ---------------------------------------------------------------------------------------------- link budget
+def test_link_budget_is_checked() -> None:
+    """default 3 Mbaud link | carries 3.6× the 20 kHz stream at most; measured lossless to 3×. The ≥ 10×
+    in `bench/daq_stream.py` is measured on a pty, which ignores baud rate. Nothing checks that a
+    configured baud rate can carry the configured rate (9600 Bd is accepted)"""
+    import copy
+
+    import yaml
+    from sinecal_config import config_file
+
+    from drivers.daq import link_budget
+    from station.config import parse_config
+    from station.errors import ConfigError
+
+    # the worst case is an upper bound of what the encoder really sends for the nastiest samples
+    nasty = np.full(256, np.frombuffer(b"\xc0\xdb", "<i2")[0])
+    wire = encode_samples(SEQ_MODULUS - 1, nasty, nasty)
+    b = link_budget(20_000, 3_000_000)
+    assert b.frame_bytes == 1035 and len(wire) <= b.worst_wire_bytes == 2072
+    assert len(wire) > 2 * 1024  # (every sample byte is escaped: the bound is nearly reached)
+    assert b.required_baud == pytest.approx(20_000 / 256 * 2072 * 10)  # 1,618,750 Bd
+    assert b.margin == pytest.approx(3_000_000 / 1_618_750)
+
+    base = yaml.safe_load(config_file("sim-5kN.yaml").read_text(encoding="utf-8"))
+
+    def cfg(baud: int, rate: float) -> object:
+        d = copy.deepcopy(base)
+        d.setdefault("devices", {})["daq_baudrate"] = baud
+        d["daq"]["sample_rate_hz"] = rate
+        return parse_config(d, "test.yaml")
+
+    cfg(3_000_000, 20_000)  # the shipped default is carried, with margin 1.85
+    cfg(921_600, 10_000)
+    with pytest.raises(ConfigError, match=r"a DAQ link of 9600 Bd cannot carry 20000 Hz x 2 channels: expected "
+                                          r"at least 1,618,750 Bd .* received 9600 Bd"):
+        cfg(9600, 20_000)
+    with pytest.raises(ConfigError, match=r"921600 Bd cannot carry 20000 Hz"):
+        cfg(921_600, 20_000)
+    with pytest.raises(ConfigError, match=r"3000000 Bd cannot carry 50000 Hz .*largest rate at 3000000 Bd: "
+                                          r"37,066 Hz"):
+        cfg(3_000_000, 50_000)
+
+
+def test_driver_refuses_a_rate_its_serial_link_cannot_carry(bridge_pty: tuple[DaqEmulator, str]) -> None:
+    """default 3 Mbaud link | ... Nothing checks that a configured baud rate can carry the configured
+    rate (9600 Bd is accepted) -- part: the driver, before anything is sent."""
+    from drivers.daq import DaqLinkBudgetError
+
+    emu, path = bridge_pty
+    daq = DaqBridge()
+    daq.connect(SerialLink(path, baudrate=9600))
+    try:
+        with pytest.raises(DaqLinkBudgetError, match="9600 Bd cannot carry 20000 Hz"):
+            daq.configure(rate_hz=20_000)
+        assert emu.config["rate"] == "20000" and daq.config is None
+        assert daq.configure(rate_hz=100, frame_samples=16).rate_hz == 100  # 100 Hz fits in 9600 Bd
+        assert daq.configure(rate_hz=20_000, check_link_budget=False).rate_hz == 20_000  # benches only
+    finally:
+        daq.close()

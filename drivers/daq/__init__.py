@@ -4,23 +4,34 @@ from drivers.daq.bridge import (
     DaqBridge,
     DaqCommandError,
     DaqConfig,
+    DaqLinkBudgetError,
     DaqTimeoutError,
     StreamEvent,
     StreamStalled,
     StreamSummary,
 )
 from drivers.daq.link import ByteLink, DaqLinkError, SerialLink, SocketLink
-from drivers.daq.protocol import DecoderStats, FrameError, SampleBlock, SampleGap, StreamDecoder
+from drivers.daq.protocol import (
+    DecoderStats,
+    FrameError,
+    LinkBudget,
+    SampleBlock,
+    SampleGap,
+    StreamDecoder,
+    link_budget,
+)
 
 __all__ = [
     "ByteLink",
     "DaqBridge",
     "DaqCommandError",
     "DaqConfig",
+    "DaqLinkBudgetError",
     "DaqLinkError",
     "DaqTimeoutError",
     "DecoderStats",
     "FrameError",
+    "LinkBudget",
     "SampleBlock",
     "SampleGap",
     "SerialLink",
@@ -29,4 +40,5 @@ __all__ = [
     "StreamEvent",
     "StreamStalled",
     "StreamSummary",
+    "link_budget",
 ]

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 from drivers.daq.link import ByteLink, DaqLinkError
 from drivers.daq.protocol import (
+    DEFAULT_FRAME_SAMPLES,
     DecoderStats,
     FrameError,
     Reply,
@@ -39,6 +40,7 @@ from drivers.daq.protocol import (
     SampleGap,
     StreamDecoder,
     encode_command,
+    link_budget,
     split_tag,
 )
 
@@ -47,6 +49,10 @@ log = logging.getLogger(__name__)
 
 class DaqCommandError(RuntimeError):
     """The bridge answered ``ERR ...`` or something unexpected to a command."""
+
+
+class DaqLinkBudgetError(ValueError):
+    """The serial link's baud rate cannot carry the configured stream (what it needs, what it has)."""
 
 
 class DaqTimeoutError(TimeoutError):
@@ -221,9 +227,20 @@ class DaqBridge:
         """Identity string of the bridge (vendor, model, serial, firmware)."""
         return self.command("IDN?")[3:]
 
-    def configure(self, *, rate_hz: float = 20_000.0, frame_samples: int = 256, range_disp_V: float = 10.0,
-                  range_force_V: float = 10.0) -> DaqConfig:
-        """Set sample rate (Hz), samples per frame and the +-V ranges; returns the effective config."""
+    def configure(self, *, rate_hz: float = 20_000.0, frame_samples: int = DEFAULT_FRAME_SAMPLES,
+                  range_disp_V: float = 10.0, range_force_V: float = 10.0,
+                  check_link_budget: bool = True) -> DaqConfig:
+        """Set sample rate (Hz), samples per frame and the +-V ranges; returns the effective config.
+
+        On a link with a known baud rate (``SerialLink``) a rate the link cannot carry in the worst
+        case (:func:`~drivers.daq.protocol.link_budget`) is refused before anything is sent
+        (:class:`DaqLinkBudgetError`); ``check_link_budget=False`` is for benches that measure beyond.
+        """
+        baud = getattr(self._link, "baudrate", None)
+        if check_link_budget and isinstance(baud, int):
+            budget = link_budget(rate_hz, baud, frame_samples)
+            if not budget.ok:
+                raise DaqLinkBudgetError(budget.message())
         kv = _parse_kv(self.command(f"CONF rate={rate_hz:g} frame={frame_samples} "
                                     f"range_disp={range_disp_V:g} "
                                     f"range_force={range_force_V:g} channels=disp,force"))

@@ -34,6 +34,7 @@ class SerialLink:
         except (serial.SerialException, OSError) as exc:
             raise DaqLinkError(f"cannot open DAQ bridge port {port}: {exc}") from exc
         self.description = f"serial {port} @ {baudrate} Bd"
+        self.baudrate = baudrate
 
     def read(self, max_bytes: int, timeout_s: float) -> bytes:
         try:

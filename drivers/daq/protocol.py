@@ -40,6 +40,56 @@ TAG_PREFIX = "#"
 MAX_TAG_CHARS = 16
 
 
+DEFAULT_FRAME_SAMPLES = 256  # samples per channel per frame the station configures
+BITS_PER_CHAR = 10  # the DAQ serial link is 8N1: start bit, 8 data bits, stop bit
+
+
+@dataclass(frozen=True)
+class LinkBudget:
+    """Can a serial link of ``baudrate`` Bd carry ``rate_hz`` x 2 channels in frames of ``frame_samples``?
+
+    ``frame_bytes``: un-escaped sample packet (11 + 4 x frame); ``worst_wire_bytes``: on the wire if
+    SLIP escaped every byte, plus the two END bytes (2 x frame_bytes + 2); ``required_baud``: what
+    the worst case needs at 10 bits per byte (the link is lossless for *any* sample values at or below
+    it); ``nominal_baud``: the same without escapes (no 0xC0/0xDB bytes); ``margin`` = baudrate /
+    required_baud (>= 1 is carried).
+    """
+
+    rate_hz: float
+    frame_samples: int
+    baudrate: int
+    frame_bytes: int
+    worst_wire_bytes: int
+    required_baud: float
+    nominal_baud: float
+
+    @property
+    def margin(self) -> float:
+        return self.baudrate / self.required_baud
+
+    @property
+    def ok(self) -> bool:
+        return self.margin >= 1.0
+
+    def message(self) -> str:
+        """What the link needs and what it has, e.g. for a refused configuration."""
+        return (f"a DAQ link of {self.baudrate} Bd cannot carry {self.rate_hz:g} Hz x 2 channels: "
+                f"expected at least {self.required_baud:,.0f} Bd (frames of {self.frame_samples} samples = "
+                f"{self.frame_bytes} bytes, {self.worst_wire_bytes} on the wire if SLIP escapes every byte, "
+                f"{BITS_PER_CHAR} bits per byte; {self.nominal_baud:,.0f} Bd without escapes), "
+                f"received {self.baudrate} Bd; largest rate at {self.baudrate} Bd: "
+                f"{self.rate_hz * self.margin:,.0f} Hz")
+
+
+def link_budget(rate_hz: float, baudrate: int, frame_samples: int = DEFAULT_FRAME_SAMPLES) -> LinkBudget:
+    """The :class:`LinkBudget` of a configuration (rate in Hz per channel, link in Bd)."""
+    frame_bytes = SAMPLE_HEADER.size + 4 * frame_samples + CRC_SIZE
+    worst = 2 * frame_bytes + 2
+    frames_per_s = rate_hz / frame_samples
+    return LinkBudget(rate_hz, frame_samples, baudrate, frame_bytes, worst,
+                      frames_per_s * worst * BITS_PER_CHAR, frames_per_s * (frame_bytes + 2) * BITS_PER_CHAR)
+
+
 class DaqProtocolError(ValueError):
     """A packet does not follow the protocol; the message says what was expected and what came."""
 

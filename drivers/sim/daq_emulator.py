@@ -107,6 +107,10 @@ class DaqEmulator:
         with self._lock:
             self._reply_delay.extend([seconds] * n)
 
+    def _release_delayed(self, now: float) -> None:
+        while self._delayed and self._delayed[0][0] <= now:
+            self._out += self._delayed.pop(0)[1]
+
     def close_port(self) -> None:
         """Close the port as a crashed or unplugged bridge would (the driver sees a lost link)."""
         self._stop.set()
@@ -139,7 +143,9 @@ class DaqEmulator:
 
     def pull(self, max_bytes: int) -> bytes:
         """Produce what is due by now (clock time) and take up to ``max_bytes`` of the output."""
-        self._produce(self.clock.monotonic())
+        now = self.clock.monotonic()
+        self._release_delayed(now)
+        self._produce(now)
         with self._lock:
             out = bytes(self._out[:max_bytes])
             del self._out[:max_bytes]
@@ -329,8 +335,7 @@ class DaqEmulator:
                     if data:
                         self._read_commands(data)
                 now = self.clock.monotonic()
-                while self._delayed and self._delayed[0][0] <= now:
-                    self._out += self._delayed.pop(0)[1]
+                self._release_delayed(now)
                 self._produce(now)
                 if self._out and (w or not wlist):
                     try:
