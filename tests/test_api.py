@@ -268,7 +268,14 @@ def test_emergency_stop_is_always_accepted(daemon: Daemon, tmp_path: Path) -> No
     c = anon(daemon)  # no token: stopping is never refused
     r = c.post("/stop")
     assert r.status_code == 200 and r.json()["motor_stopped"] and r.json()["aborted_runs"] == []
-    assert daemon.c().post("/stop/acknowledge", json={"operator": "tester"}).status_code == 200
+    # acknowledged from the command line (`station ack` against the daemon, with the token)
+    import os
+    import subprocess
+    import sys
+    cli = subprocess.run([sys.executable, "-m", "station.cli", "ack", "--operator", "cli tester", "--url", daemon.url],
+                         capture_output=True, text=True, timeout=60, env={**os.environ, "STATION_TOKEN": TOKEN})
+    assert cli.returncode == 0 and "acknowledged by cli tester" in cli.stdout, cli.stderr
+    assert c.get("/health").json()["estop"]["last_acknowledged_by"] == "cli tester"
     rid = daemon.start_run(freqs=(10.0,), record_s=30.0)
     daemon.wait_state(rid, ("running",), step_state="recording")
     t0 = time.monotonic()

@@ -72,9 +72,17 @@ class RingBuffer:
                 self._d[: n - k], self._f[: n - k] = d[k:], f[k:]
             self._end = first + n
 
+    def release(self) -> None:
+        """Give the memory back (the run is over; the buffer is a few MB).  ``get`` raises after."""
+        with self._lock:
+            self._d = self._f = np.zeros(0, dtype=np.int16)
+            self.capacity = 0
+
     def get(self, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
         """Copies of samples [start, stop); raises if they have left the buffer or not arrived."""
         with self._lock:
+            if self.capacity == 0:
+                raise IndexError("the ring buffer was released at the end of the run")
             if stop > self._end or start < self._end - self.capacity or start > stop:
                 raise IndexError(f"samples [{start}, {stop}) not in the buffer "
                                  f"[{max(0, self._end - self.capacity)}, {self._end})")
@@ -132,6 +140,8 @@ class Acquisition:
         self._acq.join(timeout_s)
         self._disk_q.put(None)
         self._disk.join(timeout_s)
+        if not self._acq.is_alive():
+            self.ring.release()  # not kept until the procedure object is collected
 
     @property
     def samples(self) -> int:

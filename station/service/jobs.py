@@ -66,7 +66,11 @@ class JobQueue:
                 continue
             t = asyncio.create_task(self._run_job(job.id, job.run_id, job.attempts), name=f"job-{job.id}")
             self._tasks.add(t)
-            t.add_done_callback(lambda t: (self._tasks.discard(t), slots.release()))
+
+            def done(t: asyncio.Task[None]) -> None:
+                self._tasks.discard(t)
+                slots.release()
+            t.add_done_callback(done)
 
     async def _run_job(self, job_id: int, run_id: str, attempts: int) -> None:
         row = self.store.get_run(run_id)

@@ -164,6 +164,12 @@ class Runs:
             raise EStopLatchedError(why)
 
     async def _execute(self, live: LiveRun) -> None:
+        try:
+            await self._execute_and_note(live)
+        finally:  # the procedure (and its buffers) is not kept by the run's record: no cycle to wait for
+            live.proc, live.rig_task = None, None
+
+    async def _execute_and_note(self, live: LiveRun) -> None:
         run_id = live.row.id
         try:
             fut = self.link.thread.start().submit(self._carry_out(live))
