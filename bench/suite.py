@@ -4,8 +4,9 @@
     python3 bench/suite.py --fast-only --repeat 3
 
 Each figure is the median wall time of ``--repeat`` runs of ``python3 -m pytest -q`` in a
-subprocess (the same command as the README), with the pass/fail counts of the last run and the
-1-minute load average before and after (the machine is shared: a figure taken under load says so).
+subprocess (the same command as the README), with the pass/fail counts of the last run, the CPU
+time (user + system) of pytest and everything it started, and the 1-minute load average before and
+after (the machine is shared: a figure taken under load says so; the CPU time hardly depends on it).
 Targets (docs/testing.md): fast subset <= 60 s, full suite <= 300 s on the 2-core station PC.
 """
 
@@ -15,6 +16,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import statistics
 import subprocess
 import sys
@@ -33,15 +35,19 @@ def run_suite(marker: str | None, repeat: int) -> dict[str, Any]:
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
     if marker:
         cmd += ["-m", marker]
-    times, last = [], ""
+    times, cpu, last = [], [], ""
     load_before = os.getloadavg()[0]
     for _ in range(repeat):
+        r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
         times.append(time.perf_counter() - t0)
+        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
         last = res.stdout.strip().splitlines()[-1] if res.stdout.strip() else res.stderr[-500:]
     return {"command": " ".join(["pytest", "-q", *(["-m", marker] if marker else [])]),
             "wall_s_median": round(statistics.median(times), 1), "wall_s_runs": [round(t, 1) for t in times],
+            "cpu_s_median": round(statistics.median(cpu), 1),
             "counts": _counts(last), "summary": last,
             "load_avg_1min_before": round(load_before, 2), "load_avg_1min_after": round(os.getloadavg()[0], 2)}
 

@@ -1,7 +1,8 @@
 """The rig boundary's fault matrix, on the simulated rig: one test per row of the service's share
 of the table (the row quoted in each docstring).  Most run the daemon's app in-process (real rig
-thread, real drivers over Modbus TCP and a pseudo-terminal, real SQLite and HDF5) through httpx's
-ASGI transport; the flood goes through a real ``station serve --sim`` over loopback."""
+thread, real drivers on the simulated rig's in-process backends on a virtual clock, real SQLite and
+HDF5) through httpx's ASGI transport; the flood goes through a real ``station serve --sim`` over
+loopback in real time."""
 
 from __future__ import annotations
 
@@ -23,19 +24,29 @@ import h5py
 import httpx
 import pytest
 
+from drivers.sim.clock import VirtualClock
 from station.api import create_app
-from station.config import parse_config
+from station.config import StationConfig, parse_config
 from station.recording import read_recording
 from station.run.request import RunRequest
+from station.run.rig import ConnectedRig, connect
 from station.service.manager import RunManager
-from station.service.settings import build_settings
+from station.service.settings import ServiceSettings, build_settings
 from tests.test_service_support import FINAL, TOKEN, Daemon, daemon_config, run_body
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 ON_RIG_DONE = (*FINAL, "identifying")
 
 
+def _virtual_rig(cfg: StationConfig, sim: bool) -> contextlib.AbstractAsyncContextManager[ConnectedRig]:
+    """The simulated rig without a wire, on a virtual clock: a run's seconds take milliseconds."""
+    return connect(cfg, sim=sim, sim_clock=VirtualClock())
+
+
 class _Manager(RunManager):
+    def __init__(self, settings: ServiceSettings) -> None:
+        super().__init__(settings, connector=_virtual_rig)
+
     async def _warm_render_pool(self) -> None:  # no plots here: no render process to start
         return None
 
@@ -83,7 +94,6 @@ def estops(m: RunManager) -> list[dict[str, Any]]:
 
 
 # ---------------------------------------------------------------------------------------- row 1
-@pytest.mark.slow
 def test_stop_latches_until_an_operator_acknowledges(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """| `POST /stop`, or the controller's e-stop fault, then a new run | the next run clears the latched
     fault itself (`reset_faults()` at every start) and moves the crank; nothing is logged |"""
@@ -124,7 +134,6 @@ def test_stop_latches_until_an_operator_acknowledges(tmp_path: Path, caplog: pyt
     assert "emergency stop latched (source page)" in text and "acknowledged by A. Tech" in text
 
 
-@pytest.mark.slow
 def test_controller_estop_fault_latches_and_a_fault_at_start_is_not_cleared(tmp_path: Path) -> None:
     """| `POST /stop`, or the controller's e-stop fault, then a new run | the next run clears the latched
     fault itself (`reset_faults()` at every start) and moves the crank; nothing is logged |"""
@@ -296,7 +305,6 @@ def _open_fds(name: str) -> list[str]:
     return out
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("guard", ["writer guard off", "writer guard on"])
 def test_a_real_full_disk_fails_the_run_with_its_cause_and_frees_the_rig(
         tmp_path: Path, small_disk: Path, guard: str, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -461,7 +469,6 @@ def test_booleans_and_strings_are_not_numbers(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------------- row 7
-@pytest.mark.slow
 def test_after_an_abort_progress_and_the_first_reason_stay(tmp_path: Path) -> None:
     """| after an abort | progress 1.0 and "done"; a later abort overwrites the reason "emergency stop" |"""
 

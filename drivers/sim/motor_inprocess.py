@@ -22,6 +22,11 @@ class InProcessTransport:
         self.description = "in-process motor emulator"
         self.link_up = True
 
+    @property
+    def connected(self) -> bool:
+        """False after :meth:`cut` (as a Modbus transport reports a lost connection)."""
+        return self.link_up
+
     def cut(self) -> None:
         """Fault injection: the link is gone (every read and write raises ``MotorLinkError``)."""
         self.link_up = False

@@ -9,7 +9,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import time
 from collections.abc import Callable
 
 from station.config import StationConfig
@@ -138,12 +137,13 @@ class RigLink:
             if not st.fault_code:
                 return True, "the motor controller reports no fault"
             before = f"{st.fault_code} ({st.fault_name})"
-            deadline = time.monotonic() + STANDSTILL_WAIT_S  # the crank may still coast down
-            while st.actual_speed_hz != 0.0:
-                if time.monotonic() > deadline:
+            clock = rig.clock  # the rig's time: the crank coasts down on it
+            deadline = clock.monotonic() + STANDSTILL_WAIT_S  # the crank may still coast down
+            while st.actual_speed_hz != 0.0 or st.flags.get("running", False):  # the flag: below 0.01 Hz too
+                if clock.monotonic() > deadline:
                     return False, (f"the crank still turns at {st.actual_speed_hz:g} Hz; fault {before} can be "
                                    "reset at standstill only")
-                await asyncio.sleep(0.05)
+                await clock.asleep(0.05)
                 st = await rig.motor.read_status()
             try:
                 await rig.motor.reset_faults()
