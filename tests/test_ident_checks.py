@@ -299,3 +299,15 @@ def test_budget_noise_term_matches_the_scatter_over_40_simulated_runs(tmp_path: 
     # existed) is small against the combined uncertainty (3e-4 relative), which covers every draw
     assert np.all(np.abs(est.mean(axis=0) - [S, K, B]) < 0.25 * comb.mean(axis=0))
     assert np.all(np.abs(est - [S, K, B]) < 3 * comb)
+
+
+def test_the_papers_methods_pass_the_same_gate(tmp_path: Path) -> None:
+    """RLS (Eq. 17) on the Section 5.1 step: a dead lowest step is left out, not fitted as zeros."""
+    base = sim(tmp_path / "sim", ((4.0, 0.004), (12.0, 0.004)), record_s=1.5)
+    rec = via_csv(base, tmp_path, step={0: lambda a: np.column_stack([a[:, :2], 0 * a[:, 2]])})
+    res = identify_recording(read_recording(rec), "rls", "h2")
+    assert "dead_channel" in names(res, "warning")
+    assert res.extra["step_index"] == 1 and res.extra["f_hz"] == pytest.approx(12.0, rel=1e-5)
+    with pytest.raises(IdentificationRefused):
+        identify_recording(read_recording(via_csv(base, tmp_path / "t", doc=lambda d: d.update(
+            top_mass_kg=d["top_mass_kg"] / 10))), "rls", "h2")

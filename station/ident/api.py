@@ -138,6 +138,11 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     inputs = inputs_for(rec)
     from station.ident.paperfit import identify_paper_method  # scipy.signal: only for the paper's methods
 
-    res = identify_paper_method(rec, method, form, model_for(rec, form, inputs), seed=seed, protocol=protocol,
-                                policy=policy)
-    return replace(res, assumptions=inputs.to_dict())
+    # the same gate: only steps that passed, each at its measured frequency (a = -w^2 s, Eq. 2)
+    cr = checked_response(rec, inputs)
+    f_of = dict(zip(cr.used, cr.frf.f_hz, strict=True))
+    checked = replace(rec, steps=[replace(st, crank_frequency_hz=float(f_of[st.index]))
+                                  for st in rec.steps if st.index in f_of])
+    res = identify_paper_method(checked, method, form, model_for(rec, form, inputs), seed=seed,
+                                protocol=protocol, policy=policy)
+    return replace(res, assumptions=inputs.to_dict(), checks=tuple(cr.checks))
