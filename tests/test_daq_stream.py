@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Iterator
 
@@ -160,3 +161,18 @@ def test_bad_configuration_is_refused_with_expected_and_received(rig_pty) -> Non
     with pytest.raises(DaqCommandError, match="unknown command 'FOO'"):
         daq.command("FOO")
     assert daq.status()["state"] == "idle"
+
+
+def test_connect_to_a_silent_port_fails_cleanly() -> None:
+    """No bridge answers the STOP of connect(): DaqTimeoutError, and no reader thread or port is left."""
+    from drivers.daq import DaqTimeoutError
+
+    pty = open_pty()
+    try:
+        daq = DaqBridge(reply_timeout_s=0.2)
+        with pytest.raises(DaqTimeoutError, match=r"no reply to 'STOP'"):
+            daq.connect(SerialLink(pty.path), reset_timeout_s=0.3)
+        assert daq._thread is not None and not daq._thread.is_alive() and daq._link is None
+        assert os.read(pty.master, 4096).startswith(b"\xc0\x10#1 STOP")  # what the bridge would have got
+    finally:
+        pty.close()

@@ -133,7 +133,11 @@ class DaqBridge:
         self._thread.start()
         log.info("DAQ bridge connected via %s", link.description)
         if reset:
-            self.reset(timeout_s=reset_timeout_s)
+            try:
+                self.reset(timeout_s=reset_timeout_s)
+            except BaseException:
+                self.close()  # no reader thread or open port left behind
+                raise
 
     def reset(self, *, timeout_s: float = 5.0, quiet_s: float = 0.1) -> dict[str, str]:
         """STOP, drain and check: returns the idle ``STAT?`` of the bridge (DaqCommandError if not idle)."""

@@ -222,7 +222,7 @@ def parse_register_map(doc: Any, source: str = "<register map>") -> RegisterMap:
     """Validate a loaded YAML document and build the frozen :class:`RegisterMap`."""
     _expect(isinstance(doc, dict), source, "a mapping with 'registers', 'status_bits', 'fault_codes'", doc)
     regs_doc = doc.get("registers")
-    _expect(isinstance(regs_doc, dict) and regs_doc, f"{source}: registers", "a non-empty mapping", regs_doc)
+    _expect(isinstance(regs_doc, dict) and bool(regs_doc), f"{source}: registers", "a non-empty mapping", regs_doc)
     regs = {name: _parse_register(name, spec) for name, spec in regs_doc.items()}
     used: dict[int, str] = {}
     for reg in regs.values():

@@ -76,8 +76,14 @@ async def _connect_drivers(motor_transport: RegisterTransport, open_daq: Callabl
     motor = MotorController(clock=clock)
     await motor.connect(motor_transport)
     daq = DaqBridge()
-    daq.connect(open_daq())
-    ident = daq.identify()
+    try:
+        daq.connect(open_daq())  # stops a stream left running, drains, checks idle
+        ident = daq.identify()
+    except BaseException:
+        daq.close()
+        with contextlib.suppress(Exception):
+            await motor.close()
+        raise
     log.info("DAQ bridge: %s", ident)
     return motor, daq
 
