@@ -78,8 +78,8 @@ def campaign_budget(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], f
                     chain: MeasurementChain, m_e_prior: jf.MassPrior | None) -> tuple[FloatArray, dict[str, Any]]:
     """Covariance (4, 4) of (S, m_e, k_f, b_f) and the GUM budget per parameter (sources as the
     single-recording ``budget``).  noise, load_mass and (conditional case) end_mass: the Fisher
-    information built up term by term (each contribution the covariance it adds; Birge-scaled when
-    the fit was inflated).  chain_gain, chain_phase, chain_delay: sensitivity coefficients
+    information built up term by term (each contribution the covariance it adds; the noise term
+    Birge-scaled when the fit was inflated).  chain_gain, chain_phase, chain_delay: sensitivity coefficients
     (``jointfit.data_sensitivity``), the recordings sharing one measurement chain: the gain ratio,
     phase offset and delay are common to every step of every recording, flatness and per-frequency
     phase independent from step to step.  radius: 0 (the measured displacement is the input)."""
@@ -102,9 +102,9 @@ def campaign_budget(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], f
             else:
                 free[1] = False
         cov = np.zeros((4, 4))
-        cov[np.ix_(free, free)] = np.linalg.pinv(F[np.ix_(free, free)]) * birge
+        cov[np.ix_(free, free)] = np.linalg.pinv(F[np.ix_(free, free)])
         cov *= np.outer(fit.scale, fit.scale)
-        covs[name] = cov - prev
+        covs[name] = (cov - prev) * (birge if name == "noise" else 1.0)
         prev = cov
     free4 = np.array([True, separated, True, True])
     sens = jf.data_sensitivity(frfs, priors, p, scale, free4, m_e_prior.std if cond_me and m_e_prior else None)
