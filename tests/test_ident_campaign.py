@@ -173,3 +173,38 @@ def test_cli_identifies_jointly_and_stores_in_every_recording(three: list[Path],
     assert f'data-value="{me!r}" data-key="campaign.m_e"' in html
     assert main(["identify", str(copies[0]), str(copies[0]), "--no-write"]) == 2
     assert "more than once" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_joint_fit_covariance_matches_the_scatter_and_the_cramer_rao_bound() -> None:
+    """Complex Gaussian H(f) around Eq. 9 (drawn here, not by the code under test), 200 draws: the
+    estimator is unbiased, its spread is the bound, and the covariance each fit reports matches it."""
+    from station.ident import jointfit as jf
+    from station.ident.frf import FrequencyResponse
+    from station.ident.models import SdofModel
+
+    theta = np.array([TRUTH["S"], END_MASS, TRUTH["k_f"], TRUTH["b_f"]])
+    f = np.array([4.0, 20.0, 50.0, 100.0])
+    masses = (5.45, 15.45, 26.167)
+    rng = np.random.default_rng(7)
+    truth_H = [SdofModel(END_MASS, m).response(theta[[0, 2, 3]], f) for m in masses]
+    sig = [2e-5 * np.abs(H) for H in truth_H]
+    priors = [jf.MassPrior(m, 0.0) for m in masses]
+    est, rep = [], []
+    for _ in range(200):
+        frfs = [FrequencyResponse(f, H + s * (rng.normal(size=f.size) + 1j * rng.normal(size=f.size)),
+                                  np.array([np.eye(2) * v**2 for v in s]), np.zeros(f.size), np.zeros(f.size))
+                for H, s in zip(truth_H, sig, strict=True)]
+        fit = jf.fit_joint(frfs, priors, theta * np.array([1.001, 0.9, 0.999, 1.01]))
+        est.append(fit.theta)
+        rep.append(np.sqrt(np.diag(fit.cov)))
+    est_a = np.array(est)
+    emp = est_a.std(axis=0, ddof=1)
+    scale = np.r_[theta[0], np.mean(masses) + END_MASS, theta[2], theta[3], masses]
+    exact = [FrequencyResponse(f, H, np.array([np.eye(2) * v**2 for v in s]), np.zeros(f.size), np.zeros(f.size))
+             for H, s in zip(truth_H, sig, strict=True)]
+    crb = np.sqrt(np.diag(np.linalg.inv(jf.fisher_relative(exact, priors, np.r_[theta, masses], scale, None))))
+    crb *= scale[:4]
+    assert np.all(np.abs(est_a.mean(axis=0) - theta) < 4 * emp / np.sqrt(len(est)))
+    assert np.all((emp / crb > 0.8) & (emp / crb < 1.2)), emp / crb
+    assert np.all((np.mean(rep, axis=0) / emp > 0.8) & (np.mean(rep, axis=0) / emp < 1.2))
