@@ -70,10 +70,12 @@ async function refreshHealth() {
 }
 
 // the emergency-stop latch: shown until an operator acknowledges it (token needed)
+let latchShown = false;
 function showLatch(e) {
   const latched = !!(e && e.latched);
   $("#latch").hidden = !latched;
-  $("#start").disabled = latched;
+  if (latched !== latchShown) $("#start").disabled = latched;  // leave a submission in progress alone
+  latchShown = latched;
   if (latched) $("#latch-text").textContent = `since ${e.since} (${e.source}: ${e.detail}). No run starts until it is acknowledged.`;
 }
 
