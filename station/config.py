@@ -12,6 +12,7 @@ from typing import Annotated, Any, get_type_hints
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic_core import ErrorDetails
 from sinecal_config import config_file
 
 from drivers.daq.protocol import link_budget
@@ -234,7 +235,7 @@ def _field_bounds(loc: tuple[Any, ...]) -> list[str]:
     return out
 
 
-def _describe_error(err: dict[str, Any]) -> str:
+def _describe_error(err: ErrorDetails) -> str:
     loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
     bounds = _field_bounds(tuple(err["loc"]))
     if err["type"] in ("extra_forbidden", "unexpected_keyword_argument"):

@@ -143,8 +143,9 @@ def section5(out: Path, seeds: list[int], quick: bool) -> dict[str, Any]:
         fd = identify_fd(rec, "sdof")
         row["expert_stepped_sine"] = {p.name: p.to_dict() for p in fd.parameters}
         if truth:
-            row["expert_rel_err"] = {"k_f": fd.parameter("k_f").value / truth.k_f - 1,
-                                     "b_f": fd.parameter("b_f").value / truth.b_f - 1}
+            k_f, b_f = fd.parameter("k_f").value, fd.parameter("b_f").value
+            row["expert_rel_err"] = {"k_f": k_f / truth.k_f - 1 if k_f is not None else None,
+                                     "b_f": b_f / truth.b_f - 1 if b_f is not None else None}
         row["_fd"], row["_data"] = fd, d
         res[name] = row
     return res

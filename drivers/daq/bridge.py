@@ -87,7 +87,11 @@ class StreamSummary:
 
 
 StreamEvent = SampleBlock | SampleGap | StreamStalled
-_LINK_LOST = object()
+class _LinkLost:
+    """Queued after the last event when the link is lost (a sentinel)."""
+
+
+_LINK_LOST = _LinkLost()
 
 
 def _parse_kv(text: str) -> dict[str, str]:
@@ -106,7 +110,7 @@ class DaqBridge:
         self.config: DaqConfig | None = None
         self.link_error: DaqLinkError | None = None
         self._link: ByteLink | None = None
-        self._events: queue.Queue[object] = queue.Queue()
+        self._events: queue.Queue[StreamEvent | _LinkLost] = queue.Queue()
         self._replies: queue.Queue[str] = queue.Queue()
         self._cmd_lock = threading.Lock()
         self._streaming = False
@@ -288,8 +292,10 @@ class DaqBridge:
         for ev in self.decoder.finish(frames):
             if isinstance(ev, FrameError):
                 log.warning("DAQ frame rejected at STOP (%s): %s", ev.kind, ev.detail)
-            else:
+            elif isinstance(ev, SampleBlock | SampleGap):
                 self._events.put(ev)
+            else:  # a reply after the STOP reply is no stream event
+                log.debug("DAQ reply after STOP ignored: %r", ev)
         return StreamSummary(frames, frames * self.decoder.frame_samples, self.decoder.stats)
 
     # ------------------------------------------------------------------ events
@@ -299,10 +305,10 @@ class DaqBridge:
             ev = self._events.get(timeout=timeout_s)
         except queue.Empty:
             return None
-        if ev is _LINK_LOST:
+        if isinstance(ev, _LinkLost):
             self._events.put(_LINK_LOST)
             raise DaqLinkError(f"DAQ link lost: {self.link_error}")
-        return ev  # type: ignore[return-value]
+        return ev
 
     def events(self, timeout_s: float = 1.0) -> Iterator[StreamEvent]:
         """Yield events until none arrives within ``timeout_s``."""

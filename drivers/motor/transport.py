@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 from urllib.parse import parse_qs, urlparse
 
 from pymodbus import FramerType
@@ -137,13 +137,13 @@ class ModbusTransport:
         raise MotorLinkError(what, f"link to {self.description} lost; "
                                    f"{self.policy.reconnect_attempts} reconnect attempts failed")
 
-    async def _call(self, what: str, fc: int, request: Callable[[ModbusClient], object]) -> object:
+    async def _call(self, what: str, fc: int, request: Callable[[ModbusClient], Awaitable[Any]]) -> Any:
         last = "no attempt"
         lost = False
         for _ in range(self.policy.retries + 1):
             client = await self._ensure_connected(what)
             try:
-                reply = await request(client)  # type: ignore[misc]
+                reply = await request(client)
             except ConnectionException as exc:
                 last, lost = f"connection lost ({exc})", True
                 client.close()
@@ -153,7 +153,7 @@ class ModbusTransport:
                 if not client.connected:
                     lost = True
                 continue
-            if reply.isError():  # type: ignore[attr-defined]
+            if reply.isError():
                 code = getattr(reply, "exception_code", 0)
                 raise MotorExceptionReplyError(what, fc, code)
             return reply

@@ -129,6 +129,8 @@ def displacement_at(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> np
 
 def shift_angle(cs: tuple[np.ndarray, np.ndarray], delta: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
     """cos and sin of (phi - delta) from cs = (cos phi, sin phi); delta in rad, scalar or (n,)."""
+    cd: np.ndarray | float
+    sd: np.ndarray | float
     if np.ndim(delta) == 0:
         cd, sd = np.cos(delta), np.sin(delta)
     elif np.max(np.abs(delta)) < 0.1:  # Taylor to delta^6: error < 2e-12

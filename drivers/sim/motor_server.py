@@ -82,7 +82,7 @@ class _ScreeningHandler(ServerRequestHandler):
 def _screening(server_cls: type[Any], device_id: int) -> type[Any]:
     handler = type("ScreeningHandler", (_ScreeningHandler,), {"device_id": device_id})
 
-    class Screened(server_cls):  # type: ignore[misc, valid-type]
+    class Screened(server_cls):
         def callback_new_connection(self) -> ServerRequestHandler:
             return handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
 
@@ -193,7 +193,10 @@ class MotorEmulator:
         self._tcp = self._tcp_cls(self._device(), address=(LOOPBACK, self._tcp_port),
                                   trace_packet=self._trace_packet)
         await self._tcp.serve_forever(background=True)
-        sock = self._tcp.transport.sockets[0]  # type: ignore[union-attr]
+        sockets = getattr(self._tcp.transport, "sockets", None)  # an asyncio Server
+        if not sockets:
+            raise RuntimeError("the Modbus TCP server did not open its socket")
+        sock = sockets[0]
         self.tcp_address = sock.getsockname()[:2]
         if self._rtu:
             self._bridge = PtyBridge(echo_b=self._echo).start()

@@ -202,7 +202,7 @@ class SimRigProcess:
             rc = self._proc.wait()
             raise RuntimeError(f"sim rig subprocess exited with {rc} before printing addresses")
         d = json.loads(line)
-        self.addresses = SimRigAddresses(tuple(d["modbus_tcp"]), d["modbus_rtu"], d["daq"])  # type: ignore[arg-type]
+        self.addresses = SimRigAddresses(tuple(d["modbus_tcp"]), d["modbus_rtu"], d["daq"])
         return self
 
     def __exit__(self, *exc: object) -> None:

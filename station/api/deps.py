@@ -21,11 +21,11 @@ RUN_ID_PATTERN = r"^[A-Za-z0-9_.\-]{1,128}$"
 
 
 async def get_settings(request: Request) -> ServiceSettings:
-    return request.app.state.settings  # type: ignore[no-any-return]
+    return request.app.state.settings
 
 
 async def get_manager(request: Request) -> RunManager:
-    return request.app.state.manager  # type: ignore[no-any-return]
+    return request.app.state.manager
 
 
 SettingsDep = Annotated[ServiceSettings, Depends(get_settings)]

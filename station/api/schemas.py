@@ -7,7 +7,7 @@ for the daemon, the CLI and the nightly batch); everything else here is a respon
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Any, Literal
+from typing import Any, Literal, overload
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -18,7 +18,12 @@ class _Out(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+@overload
+def utc(ts: float) -> datetime: ...
+@overload
+def utc(ts: float | None) -> datetime | None: ...
 def utc(ts: float | None) -> datetime | None:
+    """UNIX seconds as an aware UTC datetime (None stays None)."""
     return None if ts is None else datetime.fromtimestamp(ts, UTC)
 
 

@@ -24,6 +24,7 @@ from collections.abc import Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
+from multiprocessing.context import BaseContext
 from pathlib import Path
 
 from station.batch.items import BatchItem
@@ -37,9 +38,11 @@ DASK_PREFIX = "dask://"
 
 
 def _local(workers: int) -> ProcessPoolExecutor:
+    ctx: BaseContext
     if "forkserver" in mp.get_all_start_methods():
-        ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(PRELOAD)  # effective when this starts the fork server
+        fs = mp.get_context("forkserver")
+        fs.set_forkserver_preload(PRELOAD)  # effective when this starts the fork server
+        ctx = fs
     else:  # pragma: no cover - Windows
         ctx = mp.get_context("spawn")
     return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=warm_up)

@@ -26,7 +26,7 @@ class StationServer(uvicorn.Server):
             manager.begin_shutdown()
         super().handle_exit(sig, frame)
 
-    async def startup(self, sockets: list | None = None) -> None:  # type: ignore[type-arg]
+    async def startup(self, sockets: list | None = None) -> None:
         await super().startup(sockets)
         for server in self.servers:
             for sock in server.sockets:

@@ -200,8 +200,8 @@ def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: Floa
 
 def _fit(B: FloatArray, y: FloatArray) -> ChannelFit:
     """LS by the normal equations: B^T B = R^T R (R upper triangular), c = (B^T B)^-1 B^T y."""
-    R = np.linalg.cholesky(B.T @ B).T
-    c = np.linalg.solve(R, np.linalg.solve(R.T, B.T @ y))
+    R = np.asarray(np.linalg.cholesky(B.T @ B).T, dtype=np.float64)
+    c = np.asarray(np.linalg.solve(R, np.linalg.solve(R.T, B.T @ y)), dtype=np.float64)
     r = y - B @ c
     return ChannelFit(coef=c, R=R, ssr=float(r @ r), sigma=robust_sigma(r), residual=r)
 
@@ -224,7 +224,7 @@ def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int
     """Fit both channels of one step (see the module docstring for the basis); ``f_start``: the crank
     frequency of an earlier pass (Hz), refined by two Gauss-Newton steps with the new nuisance columns."""
     n = w.force_V.size
-    tau = (np.arange(n) - (n - 1) / 2) / fs
+    tau = np.asarray((np.arange(n) - (n - 1) / 2) / fs, dtype=np.float64)
     half = n / (2 * fs)
     K = int(max(1, min(K_MAX, math.floor(0.45 * fs / w.f_nominal_hz))))
     merge, mains_f = [], []

@@ -130,7 +130,7 @@ class Problem:
                 hi.append((q.upper - c) / s if np.isfinite(q.upper) else np.inf)
         return np.array(lo), np.array(hi)
 
-    def values(self, u: Sequence[float]) -> dict[str, float]:
+    def values(self, u: Sequence[float] | FloatArray) -> dict[str, float]:
         out = dict(self.fixed)
         for q, x in zip(self.params, u, strict=True):
             out[q.name] = self.to_value(q, float(x))
@@ -143,7 +143,7 @@ class Problem:
         wd = np.einsum("sij,sj->si", self.Wd, self.data.cd - md)
         return wf, wd, m, md
 
-    def residual(self, u: Sequence[float]) -> FloatArray:
+    def residual(self, u: Sequence[float] | FloatArray) -> FloatArray:
         wf, wd, _, _ = self.whitened(self.values(u))
         wf = wf.copy()
         wf[:, 0:2] = np.einsum("sij,sj->si", self.eiv, wf[:, 0:2])

@@ -81,7 +81,7 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     n, K = data.n_steps, K_MAX
     kk = np.arange(1, K + 1)[None, :]
     Om = 2 * np.pi * data.f_hz[:, None] * kk
-    s = 1j * Om
+    s = np.asarray(1j * Om, dtype=np.complex128)
     if "crank_harmonics" in effects:
         D = crank_displacement_harmonics(data.x1, p["inverse_rod_length_per_m"], K)
         D[:, 0] = data.x1
@@ -99,7 +99,7 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     if "transducer_nonlinearity" in effects:
         V0, Vk = _nonlinear_output(F0, Fk, p["S"], p["quadratic"], p["cubic"], data.capacity_N, K)
     else:
-        V0, Vk = np.full(n, p["S"] * F0), p["S"] * Fk
+        V0, Vk = np.full(n, p["S"] * F0), np.asarray(p["S"] * Fk, dtype=np.complex128)
     if "conditioner_lowpass" in effects:
         Vk = Vk * butterworth(int(effects["conditioner_lowpass"]), p["cutoff_hz"], s)
     Vk = Vk * data.kmask

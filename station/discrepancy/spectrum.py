@@ -35,7 +35,7 @@ def normalised_periodogram(r: FloatArray, sigma: float, fs: float) -> tuple[Floa
     n = r.size
     w = np.hanning(n)
     spec = np.abs(np.fft.rfft(r * w, PAD * n)) ** 2 / (float(w @ w) * max(sigma, 1e-300) ** 2)
-    return np.fft.rfftfreq(PAD * n, 1.0 / fs), spec
+    return np.asarray(np.fft.rfftfreq(PAD * n, 1.0 / fs), dtype=np.float64), spec
 
 
 def line_amplitude(P: float, sigma: float, n: int) -> float:

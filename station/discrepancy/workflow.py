@@ -250,9 +250,9 @@ def _identify_before(rec: Recording) -> dict[str, Estimate] | None:
         out = {}
         for q in res.parameters:
             if q.name in ("S", "k_f", "b_f"):
-                ok = bool(q.identifiable and q.value is not None and q.std is not None)
-                out[q.name] = Estimate(float(q.value) if ok else math.nan, float(q.std) if ok else math.nan,
-                                       q.unit, ok, q.reason)
+                ok = q.identifiable and q.value is not None and q.std is not None
+                out[q.name] = Estimate(float(q.value) if ok and q.value is not None else math.nan,
+                                       float(q.std) if ok and q.std is not None else math.nan, q.unit, ok, q.reason)
         return out if len(out) == 3 else None
     except Exception as exc:  # identification is another package: never let it break this report
         log.warning("station.ident failed (%s); parameters_before from the workflow's base fit", exc)

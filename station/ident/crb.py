@@ -55,5 +55,5 @@ def crb_stepped_sine(model: Model, theta: ArrayLike, f_hz: ArrayLike, n_samples:
     s2 = h_variance(model, th, f, n_samples, displacement_amplitude_m, sigma_x_m, sigma_u_V)
     J = model.jacobian(th, f)
     F = (J.real.T / s2) @ J.real + (J.imag.T / s2) @ J.imag
-    cov = np.linalg.inv(F)
+    cov = np.asarray(np.linalg.inv(F), dtype=np.float64)
     return CramerRaoBound(model.names, cov, np.sqrt(np.diag(cov)))

@@ -116,7 +116,7 @@ def assess(model: Model, theta: FloatArray, frf: FrequencyResponse, policy: Poli
     struct_bad, cond = structural_null(J, policy, 2 * n_f)
     reasons = structural_reasons(names, struct_bad, n_f)
     for i in np.nonzero(struct_bad)[0]:
-        reasons[i] += "; " + effect_text(model, theta, frf.f_hz, i)
+        reasons[i] += "; " + effect_text(model, theta, frf.f_hz, int(i))
     ok = ~struct_bad
     Jok = J[:, ok]
     cov_rel = np.linalg.pinv(Jok.T @ Jok) if ok.any() else np.zeros((0, 0))
@@ -127,7 +127,7 @@ def assess(model: Model, theta: FloatArray, frf: FrequencyResponse, policy: Poli
             reasons[i] = (f"not identifiable in practice: relative uncertainty {rel_std[i]:.2g} "
                           f"(> {policy.max_rel_std}) with a chain floor of "
                           f"{np.rad2deg(policy.phase_floor_rad):.2g} deg phase and {policy.gain_floor:.1g} "
-                          f"gain; " + effect_text(model, theta, frf.f_hz, i))
+                          f"gain; " + effect_text(model, theta, frf.f_hz, int(i)))
     identifiable = np.array([r == "" for r in reasons])
     corr = correlations(regularised_cov(J))
     rep = Identifiability(names, cond, tuple(tuple(float(c) for c in row) for row in corr),

@@ -33,8 +33,8 @@ def step_frf(data: PaperData) -> FrequencyResponse:
     """H at the step frequency from three-parameter sine fits of the identification window
     (input: acceleration phasor, output: force phasor)."""
     t = np.arange(data.x_id.size) * data.T
-    fa = fit3(t, data.x_id, data.f_hz)
-    fu = fit3(t, data.y_id, data.f_hz, t_center_s=fa.t_center_s)
+    fa = fit3(np.asarray(t, dtype=np.float64), data.x_id, data.f_hz)
+    fu = fit3(np.asarray(t, dtype=np.float64), data.y_id, data.f_hz, t_center_s=fa.t_center_s)
     H, C = _ratio_cov(fu.phasor, fu.phasor_cov, fa.phasor, fa.phasor_cov)
     return FrequencyResponse(np.array([data.f_hz]), np.array([H]), C[None], np.array([fu.residual_rms]),
                              np.array([fu.offset]))
@@ -69,7 +69,7 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
         r = rls_h2(data.x_id, data.y_id)
         b, a = r.b, r.a
     else:
-        settings = replace(SECTION5_H2 if form == "h2" else SECTION5_H1, variant=method)
+        settings = replace(SECTION5_H2 if form == "h2" else SECTION5_H1, variant="pso+" if method == "pso+" else "pso")
         b, a, pres = identify_digital(form, data.x_id, data.y_id, settings, seed)
         extra.update(seed=seed, iterations_to_converge=pres.iterations_to_converge,
                      n_particles=settings.n_particles, n_iterations=settings.n_iterations,

@@ -58,7 +58,7 @@ def _design(t: FloatArray, w: float, n_harmonics: int) -> FloatArray:
 
 def _solve(J: FloatArray, y: FloatArray) -> FloatArray:
     """Least squares by the normal equations (columns are near-orthogonal sines: well conditioned)."""
-    return np.linalg.solve(J.T @ J, J.T @ y)
+    return np.asarray(np.linalg.solve(J.T @ J, J.T @ y), dtype=np.float64)
 
 
 def _finish(y: FloatArray, J: FloatArray, p: FloatArray, f_hz: float, f_std: float,
@@ -136,8 +136,8 @@ def fit_channels(t: FloatArray, Y: FloatArray, f_hz: float, *, t_center_s: float
     t = np.asarray(t, float)
     J = _design(t - t_center_s, 2 * np.pi * f_hz, n_harmonics)
     JtJ = J.T @ J
-    P = np.linalg.solve(JtJ, J.T @ Y)
-    Ji = np.linalg.inv(JtJ)
+    P = np.asarray(np.linalg.solve(JtJ, J.T @ Y), dtype=np.float64)
+    Ji = np.asarray(np.linalg.inv(JtJ), dtype=np.float64)
     return [_finish(Y[:, c], J, P[:, c], f_hz, 0.0, t_center_s, cov_extra=Ji, n_harmonics=n_harmonics)
             for c in range(Y.shape[1])]
 

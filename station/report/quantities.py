@@ -36,7 +36,8 @@ def polar_uncertainty(z: NDArray[np.complex128], cov: FloatArray) -> tuple[Float
 def measured_sensitivity(H: NDArray[np.complex128], cov: FloatArray, mass_kg: float) -> tuple[
         FloatArray, FloatArray, FloatArray, FloatArray]:
     """|S_dyn| (V/N), u (V/N), phase (rad), u (rad) of the measured points."""
-    return polar_uncertainty(-np.asarray(H, complex) / mass_kg, np.asarray(cov, float) / mass_kg**2)
+    return polar_uncertainty(np.asarray(-np.asarray(H, complex) / mass_kg, dtype=np.complex128),
+                             np.asarray(cov, float) / mass_kg**2)
 
 
 def model_sensitivity(curve: ModelCurve, f_hz: ArrayLike) -> tuple[FloatArray, FloatArray | None,

@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -388,10 +388,10 @@ class Procedure:
             await self._quiet(motor.stop_watchdog())
 
     @staticmethod
-    async def _quiet(aw: object) -> bool:
+    async def _quiet(aw: Awaitable[object]) -> bool:
         """Await ``aw``; log and swallow errors (used on the shutdown path). True on success."""
         try:
-            await asyncio.wait_for(aw, 3.0)  # type: ignore[arg-type]
+            await asyncio.wait_for(aw, 3.0)
             return True
         except Exception as exc:
             log.warning("shutdown step failed: %s", exc)

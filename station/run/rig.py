@@ -62,7 +62,12 @@ class SimRadius:
             try:
                 if abs(self._rig.motor.speed_hz()) > 0:
                     raise RuntimeError(f"crank at {self._rig.motor.speed_hz():g} Hz")
-                self._rig.source.set_crank_radius(radius_m)  # type: ignore[attr-defined]
+                from drivers.sim.daq_source import RigSource
+
+                source = self._rig.source
+                if not isinstance(source, RigSource):
+                    raise TypeError(f"the simulated rig's source {type(source).__name__} has no crank radius")
+                source.set_crank_radius(radius_m)
                 break
             except RuntimeError as exc:
                 if clock.monotonic() > deadline:

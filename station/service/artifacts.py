@@ -116,12 +116,12 @@ class Artifacts:
 
     async def report(self, run_id: str) -> str:
         path = self._completed_path(run_id)
-        return await self._cached((run_id, "report"),  # type: ignore[no-any-return]
+        return await self._cached((run_id, "report"),
                                   lambda: self._locked_job(run_id, worker.report_job, str(path)))
 
     async def discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
         path = self._completed_path(run_id)
         out = await self._locked_job(run_id, worker.discrepancy_job, str(path), max_effects)
         self._cache.pop((run_id, "report"), None)  # the report names the effects found
-        return out  # type: ignore[no-any-return]
+        return out
 

@@ -205,7 +205,7 @@ class Runs:
 
     async def _carry_out(self, live: LiveRun) -> RunOutcome:
         """On the rig loop: connect if needed, then the procedure."""
-        live.rig_task = asyncio.current_task()  # type: ignore[assignment]
+        live.rig_task = asyncio.current_task()
         if live.cancelled:
             raise asyncio.CancelledError
         plan = live.plan

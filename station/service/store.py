@@ -79,7 +79,7 @@ class RunRow:
     folder (never a path outside it); ``fraction`` is the progress in [0, 1]."""
 
     id: str
-    state: str
+    state: RunState
     transducer_id: str
     top_mass_kg: float
     request_json: str
@@ -200,7 +200,7 @@ class Store:
         return None if row is None else RunRow(**dict(row))
 
     def list_runs(self, *, limit: int = 100, states: Iterable[str] | None = None) -> list[RunRow]:
-        q, args = "SELECT * FROM runs", []
+        q, args = "SELECT * FROM runs", list[str | int]()
         st = list(states or ())
         if st:
             q += f" WHERE state IN ({', '.join('?' for _ in st)})"

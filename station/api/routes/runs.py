@@ -32,12 +32,14 @@ from station.service.results import load_results
 from station.service.store import FINAL_STATES, RunRow
 
 router = APIRouter(prefix="/runs", tags=["runs"])
+Responses = dict[int | str, dict[str, Any]]  # a route's documented responses, by status
 
-E401 = {401: {"model": ErrorOut, "description": "bearer token missing or wrong"}}
-E404 = {404: {"model": ErrorOut, "description": "no such run"}}
-E409 = {409: {"model": ErrorOut, "description": "the run is not in a state that allows this"}}
-E422 = {422: {"model": ValidationErrorOut, "description": "invalid or unsafe parameters; `loc` names the field"}}
-E503 = {503: {"model": ErrorOut, "description": "the recording or the rig cannot be reached right now"}}
+E401: Responses = {401: {"model": ErrorOut, "description": "bearer token missing or wrong"}}
+E404: Responses = {404: {"model": ErrorOut, "description": "no such run"}}
+E409: Responses = {409: {"model": ErrorOut, "description": "the run is not in a state that allows this"}}
+E422: Responses = {422: {"model": ValidationErrorOut,
+                          "description": "invalid or unsafe parameters; `loc` names the field"}}
+E503: Responses = {503: {"model": ErrorOut, "description": "the recording or the rig cannot be reached right now"}}
 
 
 def _json(status: int, description: str, schema: str = "ErrorOut") -> dict[int | str, dict[str, Any]]:
@@ -60,8 +62,8 @@ def links(run_id: str) -> RunLinks:
 
 def status_of(row: RunRow) -> RunStatus:
     steps = [PlannedStepOut(**{k: s[k] for k in PlannedStepOut.model_fields}) for s in row.plan.get("steps", [])]
-    return RunStatus(id=row.id, state=row.state, transducer_id=row.transducer_id,  # type: ignore[arg-type]
-                     top_mass_kg=row.top_mass_kg, created=utc(row.created), started=utc(row.started),  # type: ignore[arg-type]
+    return RunStatus(id=row.id, state=row.state, transducer_id=row.transducer_id,
+                     top_mass_kg=row.top_mass_kg, created=utc(row.created), started=utc(row.started),
                      ended=utc(row.ended), current_step=row.step, n_steps=row.n_steps, step_state=row.step_state,
                      progress=min(1.0, max(0.0, row.fraction)), samples=row.samples,
                      lost_samples=row.lost_samples, message=row.message, reason=row.reason,
@@ -81,7 +83,7 @@ async def start_run(body: RunRequest, manager: ManagerDep, response: Response) -
         raise RequestValidationError([{"type": "limit_error", "loc": list(exc.loc), "msg": str(exc),
                                        "input": exc.value}]) from None
     response.headers["Location"] = f"/runs/{row.id}"
-    return RunAccepted(id=row.id, state=row.state, links=links(row.id))  # type: ignore[arg-type]
+    return RunAccepted(id=row.id, state=row.state, links=links(row.id))
 
 
 @router.get("", response_model=RunList, dependencies=[Reader], responses={**E401, **E422},
@@ -131,7 +133,7 @@ async def run_results(run: RunDep, manager: ManagerDep) -> RunResults:
     data = await manager.read_file(run.id, lambda p: load_results(p, run.result_name or ""))
     base = f"/runs/{run.id}"
     plots = {n: f"{base}/plots/{n}.png" for n in PLOT_NAMES}
-    return RunResults(id=run.id, state=run.state, recording=run.recording or "",  # type: ignore[arg-type]
+    return RunResults(id=run.id, state=run.state, recording=run.recording or "",
                       plots=plots, report=f"{base}/report",
                       discrepancy=f"{base}/discrepancy", lost_samples=run.lost_samples, **data)
 
@@ -186,4 +188,4 @@ async def run_discrepancy(run: RunDep, manager: ManagerDep,
 async def abort_run(run: RunDep, manager: ManagerDep) -> AbortOut:
     """The crank ramps down, the recording is closed with the reason; the run ends `aborted`."""
     row = manager.abort(run.id, "aborted by operator")
-    return AbortOut(id=row.id, state=row.state, detail="abort requested; the crank ramps down")  # type: ignore[arg-type]
+    return AbortOut(id=row.id, state=row.state, detail="abort requested; the crank ramps down")
