@@ -58,7 +58,7 @@ def via_csv(rec: Path, folder: Path, *, doc: Callable[[dict[str, Any]], None] | 
 
 @pytest.fixture(scope="module")
 def base(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return sim(tmp_path_factory.mktemp("base"))
+    return sim(tmp_path_factory.mktemp("base"), record_s=0.5)
 
 
 def each_step(n: int, fn: Callable[[np.ndarray], np.ndarray]) -> dict[int, Callable[[np.ndarray], np.ndarray]]:
@@ -254,6 +254,7 @@ def test_a_channel_delay_is_covered_by_the_correlated_delay_term(tmp_path: Path)
         assert within(p, truth, 2.0)  # ... and covered
 
 
+@pytest.mark.slow
 def test_report_and_results_show_checks_assumptions_and_budget(base: Path, tmp_path: Path) -> None:
     from station.ident.api import store_result
     from station.report.html import render_report
@@ -311,3 +312,18 @@ def test_the_papers_methods_pass_the_same_gate(tmp_path: Path) -> None:
     with pytest.raises(IdentificationRefused):
         identify_recording(read_recording(via_csv(base, tmp_path / "t", doc=lambda d: d.update(
             top_mass_kg=d["top_mass_kg"] / 10))), "rls", "h2")
+
+
+def test_an_end_mass_stated_on_the_command_line(base: Path, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    rec = via_csv(base, tmp_path, doc=lambda d: d.pop("end_mass_kg"))
+    assert main(["identify", str(rec), "--json", "--no-write", "--end-mass", "0.12"]) == 0
+    doc = json.loads(capsys.readouterr().out)  # assumed without uncertainty: conditional on it
+    assert doc["assumptions"]["end_mass_kg"] == {"value": 0.12, "std": None, "source": "assumed"}
+    assert doc["parameters"]["k_f"]["flag"] == "conditional"
+    assert main(["identify", str(rec), "--json", "--no-write", "--end-mass", "0.12", "--end-mass-std", "0.01"]) == 0
+    doc = json.loads(capsys.readouterr().out)  # with its uncertainty: propagated, right within it
+    k = doc["parameters"]["k_f"]
+    assert "flag" not in k and abs(k["value"] - K) < 3 * k["std"]
+    assert doc["budget"]["k_f"]["contributions"]["end_mass"] == pytest.approx(K * 0.01 / (ME + ML), rel=0.02)
+    assert main(["identify", str(base), "--no-write", "--end-mass", "0.2"]) == 2  # the recording has one

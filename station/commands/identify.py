@@ -26,6 +26,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", choices=MODELS, default=None,
                    help="sdof (Eq. 9, default), coupled (Eq. 8), h2/h1 (the paper's digital Eq. 11/10)")
     p.add_argument("--seed", type=int, default=0, help="seed of the swarm (pso, pso+)")
+    p.add_argument("--end-mass", type=float, default=None, metavar="KG",
+                   help="end mass m_e to assume when the recording gives none (results conditional on it "
+                        "unless --end-mass-std states its uncertainty)")
+    p.add_argument("--end-mass-std", type=float, default=None, metavar="KG",
+                   help="standard uncertainty of --end-mass, propagated into S, k_f, b_f")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--no-write", action="store_true", help="do not store the result in the recording")
     p.set_defaults(handler=run)
@@ -77,8 +82,19 @@ def run(args: argparse.Namespace) -> int:
     if not args.recording.exists():
         raise BadInputError(f"{args.recording}: no such recording")
     rec = read_recording(args.recording)
+    inputs = None
+    if args.end_mass is not None or args.end_mass_std is not None:
+        from station.ident.inputs import inputs_for
+
+        if rec.end_mass_kg is not None:
+            raise BadInputError(f"{args.recording}: the recording gives the end mass ({rec.end_mass_kg:g} kg); "
+                                "--end-mass is only for recordings without one")
+        if args.end_mass is None or args.end_mass <= 0 or (args.end_mass_std is not None and args.end_mass_std < 0):
+            raise BadInputError(f"--end-mass > 0 kg (and --end-mass-std >= 0 kg) expected, got {args.end_mass!r}, "
+                                f"{args.end_mass_std!r}")
+        inputs = inputs_for(rec, assumed_end_mass_kg=args.end_mass, assumed_end_mass_std_kg=args.end_mass_std)
     try:
-        res = identify_recording(rec, args.method, args.model, seed=args.seed)
+        res = identify_recording(rec, args.method, args.model, seed=args.seed, inputs=inputs)
     except IdentificationRefused as exc:
         if not args.json:
             raise

@@ -67,10 +67,10 @@ def _params(model: Model, theta: FloatArray, cov: FloatArray, ident: tuple[bool,
                  for i, (n, u) in enumerate(zip(model.names, model.units, strict=True)))
 
 
-def identify_oe(rec: Recording, model_key: str = "sdof",
-                policy: Policy = DEFAULT_POLICY) -> IdentificationResult:
+def identify_oe(rec: Recording, model_key: str = "sdof", policy: Policy = DEFAULT_POLICY,
+                inputs: IdentInputs | None = None) -> IdentificationResult:
     """Time-domain output error on the raw force samples, started from the FD estimate."""
-    inputs = inputs_for(rec)
+    inputs = inputs or inputs_for(rec)
     cr = checked_response(rec, inputs)
     frf, sigs, notes = cr.frf, cr.sigs, []
     model = model_for(rec, "coupled" if model_key in ("coupled", "h1") else "sdof", inputs)
@@ -117,25 +117,27 @@ def store_result(path: str | Path, res: IdentificationResult) -> str:
 def identify_recording(rec: Recording, method: str | None = None, model: str | None = None, *,
                        seed: int = 0, protocol: PaperProtocol = DEFAULT_PROTOCOL,
                        policy: Policy = DEFAULT_POLICY, response: CheckedResponse | None = None,
-                       ) -> IdentificationResult:
-    """Identify the transducer from a recording (``response``: its checked H(f) if already computed,
-    used by 'fd').  Default method: 'fd' (the efficient estimator
-    for stepped-sine data, at the Cramér-Rao bound; with a single frequency it reports what is not
-    identifiable); default model: 'auto' for fd (Eq. 9, Eq. 8 when the data demand and determine
-    it), 'sdof' for oe, 'h2' for the paper's methods."""
+                       inputs: IdentInputs | None = None) -> IdentificationResult:
+    """Identify the transducer from a recording.
+
+    response: its checked H(f) if already computed (used by 'fd'); inputs: masses and chain,
+    default ``inputs_for(rec)``.  Default method: 'fd' (the efficient estimator for stepped-sine
+    data, at the Cramér-Rao bound; with a single frequency it reports what is not identifiable);
+    default model: 'auto' for fd (Eq. 9, Eq. 8 when the data demand and determine it), 'sdof' for
+    oe, 'h2' for the paper's methods."""
     method = method or "fd"
     if method not in METHODS:
         raise BadInputError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
     if model is not None and model not in MODELS:
         raise BadInputError(f"unknown model {model!r}; expected one of {', '.join(MODELS)}")
     if method == "fd":
-        return identify_fd(rec, model or "auto", policy, response=response)
+        return identify_fd(rec, model or "auto", policy, inputs=inputs, response=response)
     if method == "oe":
-        return identify_oe(rec, model or "sdof", policy)
+        return identify_oe(rec, model or "sdof", policy, inputs)
     form = {"sdof": "h2", "coupled": "h1"}.get(model or "h2", model or "h2")
     if method == "rls" and form != "h2":
         raise BadInputError("RLS (Eq. 17) is defined for H2 (Eq. 11) only")
-    inputs = inputs_for(rec)
+    inputs = inputs or inputs_for(rec)
     from station.ident.paperfit import identify_paper_method  # scipy.signal: only for the paper's methods
 
     # the same gate: only steps that passed, each at its measured frequency (a = -w^2 s, Eq. 2)

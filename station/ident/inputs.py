@@ -104,10 +104,13 @@ def _num(d: Any, *keys: str) -> float | None:
 
 
 def inputs_for(rec: Any, *, assumed_end_mass_kg: float | None = None,
+               assumed_end_mass_std_kg: float | None = None,
                chain: MeasurementChain | None = None) -> IdentInputs:
     """Masses and chain of a recording (``station.recording.Recording``).
 
-    assumed_end_mass_kg: used only when the recording gives no end mass (then conditional)."""
+    assumed_end_mass_kg: used only when the recording gives no end mass; the results are then
+    conditional on it, unless assumed_end_mass_std_kg states its standard uncertainty (then it is
+    propagated like a given one, source still 'assumed')."""
     cfg = rec.config if isinstance(rec.config, dict) else {}
     imported = cfg.get("format") == "sinecal-csv"
     src = "recording" if imported else "config"
@@ -120,8 +123,8 @@ def inputs_for(rec: Any, *, assumed_end_mass_kg: float | None = None,
                         else DEFAULT_END_MASS_REL_STD * float(rec.end_mass_kg), src)
         given = True
     else:
-        end = MassInput(float(assumed_end_mass_kg or 0.0), None, "assumed")
-        given = False
+        given = assumed_end_mass_kg is not None and assumed_end_mass_std_kg is not None
+        end = MassInput(float(assumed_end_mass_kg or 0.0), assumed_end_mass_std_kg if given else None, "assumed")
     if chain is None:
         raw = cfg.get("measurement_chain") if imported else (cfg.get("identification") or {}).get("chain")
         try:
