@@ -23,14 +23,14 @@ END_MASS = 0.12
 TRUTH = {"S": 2.0e-6 * 1000.0, "m_e": END_MASS, "k_f": 2.91e7, "b_f": 17136.0}  # bridge x conditioner gain
 
 
-def _cfg(top_mass_kg: float, transducer_id: str = "TX5K-0001") -> object:
+def _cfg(top_mass_kg: float, transducer_id: str = "TX5K-0001", effects: dict | None = None) -> object:
     d = copy.deepcopy(yaml.safe_load(default_config_path().read_text(encoding="utf-8")))
     d["plan"].update(settle_s=0.2, record_s=0.5, steps=[
         {"crank_frequency_hz": f, "crank_radius_m": r} for f, r in ((4.0, 0.01), (20.0, 0.002), (50.0, 6e-4),
                                                                     (100.0, 1.5e-4))])
     d["rig"].update(acceleration_hz_per_s=200.0, top_mass_kg=top_mass_kg)
     d["transducer"].update(end_mass_kg=END_MASS, id=transducer_id)
-    d["simulation"].update(pre_roll_s=0.1, effects={})
+    d["simulation"].update(pre_roll_s=0.1, effects=effects or {})
     return parse_config(d)
 
 
@@ -208,3 +208,16 @@ def test_joint_fit_covariance_matches_the_scatter_and_the_cramer_rao_bound() -> 
     assert np.all(np.abs(est_a.mean(axis=0) - theta) < 4 * emp / np.sqrt(len(est)))
     assert np.all((emp / crb > 0.8) & (emp / crb < 1.2)), emp / crb
     assert np.all((np.mean(rep, axis=0) / emp > 0.8) & (np.mean(rep, axis=0) / emp < 1.2))
+
+
+@pytest.mark.slow
+def test_an_effect_eq9_lacks_is_refused_not_fitted(tmp_path: Path) -> None:
+    """A coupling compliance (Eq. 8, k_c = 1e8 N/m) in every recording: not one Eq. 9 transducer."""
+    eff = {"coupling_compliance": {"k_c": 1e8, "b_c": 200.0}}
+    paths = [simulate_run(_cfg(top, effects=eff), tmp_path, seed=5 + i) for i, top in enumerate((5.0, 15.0, 25.717))]
+    res = identify_campaign([read_recording(p) for p in paths])
+    names = {c.name: c for c in res.checks}
+    assert names["model_misfit"].severity == "warning" and res.chi2_per_dof > 1e3
+    assert names["same_transducer_model"].severity == "refused" and "station discrepancy" in (
+        names["same_transducer_model"].message)
+    assert res.status == "refused" and all(p.value is None for p in res.parameters)

@@ -207,7 +207,10 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
         checks += end_mass_plausibility(fit, float(sd[1]), stated, n_distinct)
     notes: list[str] = []
     if fit.inflated:
-        notes.append(f"chi2/dof = {fit.chi2_per_dof:.3g}: uncertainties inflated by sqrt(chi2/dof)")
+        notes.append(f"chi2/dof = {fit.chi2_per_dof:.3g}: the noise terms inflated by sqrt(chi2/dof)")
+        checks.append(Check("model_misfit", "warning", None, f"Eq. 9 with one S, m_e, k_f, b_f misfits the "
+                            f"recordings: chi2/dof = {fit.chi2_per_dof:.3g} on {fit.dof}; the noise terms are "
+                            "inflated by sqrt(chi2/dof)", {"chi2_per_dof": fit.chi2_per_dof, "dof": fit.dof}))
     refused_model = cons is not None and cons.severity == "refused"
     if refused_model:
         status = "refused"

@@ -71,7 +71,8 @@ def consistency(recs: list[Recording], own: list[FloatArray], policy: CampaignPo
     return Check("same_transducer_model", sev, None,
                    f"S and k_f of the recordings' own fits disagree beyond their uncertainties ({txt}); the "
                    "recordings are not one Eq. 9 transducer with these top masses (a mistyped top mass, a "
-                   "changed set-up?)", vals)
+                   "changed set-up, or an effect Eq. 9 lacks: coupling, conditioner filter, channel delay; "
+                   "`station discrepancy` on each recording names it)", vals)
 
 
 def campaign_budget(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], fit: jf.JointFit, separated: bool,
