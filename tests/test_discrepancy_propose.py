@@ -128,3 +128,16 @@ def test_the_proposed_run_resolves_the_tie_on_the_rig_path(tmp_path: Path) -> No
     assert res.outcome.exit_status == "completed", res.outcome
     after = analyse_recording(res.outcome.path)
     _truth_ok(after, cfg)
+
+
+def test_without_the_station_configuration_nothing_is_proposed(tmp_path: Path) -> None:
+    """An import without the station's configuration: no limits known, so no steps are offered."""
+    from dataclasses import replace
+
+    from station.discrepancy.workflow import run_context
+
+    rec = read_recording(simulate_run(scenario_config({}, seed=4, n_steps=3, record_s=0.2, settle_s=0.05), tmp_path, seed=4))
+    ctx = run_context(rec)
+    assert ctx is not None and len(ctx.steps) == 3
+    assert ctx.config.rig.crank_radius_m.max == pytest.approx(0.05)
+    assert run_context(replace(rec, config={})) is None
