@@ -14,6 +14,7 @@ import yaml
 
 from station.cli import main
 from station.config import default_config_path, parse_config
+from station.errors import BadInputError
 from station.ident.campaign import CampaignRefused, identify_campaign
 from station.recording import read_recording, read_results
 from station.report.html import render_report
@@ -100,7 +101,16 @@ def test_one_recording_is_conditional_or_refused(three: list[Path]) -> None:
     res = identify_campaign([rec])
     assert res.status == "conditional" and res.parameter("m_e").value is None
     assert "distinct" in next(c for c in res.checks if c.name == "end_mass_separation").message
-    assert identify_campaign([replace(rec, end_mass_kg=None)]).status == "refused"
+    bare = replace(rec, end_mass_kg=None)
+    assert identify_campaign([bare]).status == "refused"
+    held = identify_campaign([bare], assumed_end_mass_kg=END_MASS)  # assumed, no uncertainty: conditional
+    S = held.parameter("S")
+    assert held.status == "conditional" and S.flag == "conditional" and "not propagated" in S.reason
+    assert "end_mass" not in held.budget["S"]["contributions"]
+    prop = identify_campaign([bare], assumed_end_mass_kg=END_MASS, assumed_end_mass_std_kg=0.01)
+    assert prop.budget["S"]["contributions"]["end_mass"] > 0 and prop.parameter("S").std > S.std
+    with pytest.raises(BadInputError, match="states the end mass"):
+        identify_campaign([rec], assumed_end_mass_kg=0.1)
 
 
 def test_recordings_of_different_transducers_are_refused(three: list[Path]) -> None:

@@ -35,14 +35,15 @@ def format_text(res: CampaignResult) -> str:
     return "\n".join(lines)
 
 
-def run_campaign(paths: list[Path], *, as_json: bool, write: bool) -> int:
+def run_campaign(paths: list[Path], *, as_json: bool, write: bool, end_mass_kg: float | None = None,
+                 end_mass_std_kg: float | None = None) -> int:
     """Identify the recordings jointly, print the result, store it in each of them unless told not to."""
     for p in paths:
         if not p.exists():
             raise BadInputError(f"{p}: no such recording")
     recs = [read_recording(p) for p in paths]
     try:
-        res = identify_campaign(recs)
+        res = identify_campaign(recs, assumed_end_mass_kg=end_mass_kg, assumed_end_mass_std_kg=end_mass_std_kg)
     except CampaignRefused as exc:
         if not as_json:
             raise

@@ -77,7 +77,10 @@ def run(args: argparse.Namespace) -> int:
 
         if args.method not in (None, "fd") or args.model not in (None, "sdof", "h2"):
             raise BadInputError("a campaign of several recordings is identified with --method fd, --model sdof")
-        return run_campaign([args.recording, *args.more], as_json=args.json, write=not args.no_write)
+        if args.end_mass is None and args.end_mass_std is not None:
+            raise BadInputError("--end-mass-std needs --end-mass")
+        return run_campaign([args.recording, *args.more], as_json=args.json, write=not args.no_write,
+                            end_mass_kg=args.end_mass, end_mass_std_kg=args.end_mass_std)
 
     if not args.recording.exists():
         raise BadInputError(f"{args.recording}: no such recording")

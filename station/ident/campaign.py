@@ -146,15 +146,30 @@ def _determined(recs: list[Recording], priors: list[jf.MassPrior], own: list[Flo
     return out
 
 
-def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = None) -> CampaignResult:
+def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = None, *,
+                      assumed_end_mass_kg: float | None = None,
+                      assumed_end_mass_std_kg: float | None = None) -> CampaignResult:
     """Identify S, m_e, k_f, b_f jointly from recordings of one transducer with different top masses
-    (module docstring).  Raises CampaignRefused for recordings that cannot be one campaign."""
+    (module docstring).  Raises CampaignRefused for recordings that cannot be one campaign.
+
+    assumed_end_mass_kg (kg; with its standard uncertainty assumed_end_mass_std_kg, else none): for
+    recordings that state no end mass; used where the masses cannot separate S from m_e (the results
+    are then conditional on it) and compared with the campaign's m_e where they can."""
     policy = policy or CampaignPolicy()
     check_inputs(recs)
+    if assumed_end_mass_kg is not None:
+        stating = [r.path.name for r in recs if r.end_mass_kg is not None]
+        if stating:
+            raise BadInputError(f"{', '.join(stating)}: the recording states the end mass; an assumed one is only "
+                                "for recordings that give none")
+        if assumed_end_mass_kg <= 0 or (assumed_end_mass_std_kg is not None and assumed_end_mass_std_kg < 0):
+            raise BadInputError(f"an assumed end mass > 0 kg (std >= 0 kg) expected, got {assumed_end_mass_kg!r} kg, "
+                                f"std {assumed_end_mass_std_kg!r}")
     checks: list[Check] = []
     frfs, used, inputs, signs = [], [], [], set()
     for r in recs:
-        inp = inputs_for(r)
+        inp = inputs_for(r, assumed_end_mass_kg=assumed_end_mass_kg,
+                         assumed_end_mass_std_kg=assumed_end_mass_std_kg)
         try:
             cr = checked_response(r, inp)
         except IdentificationRefused as exc:
@@ -173,6 +188,8 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
                             f"the first one's ({recs[0].path.name}) is used for the budget", {}))
     priors = [_load_mass(i) for i in inputs]
     stated = _stated_end_mass(inputs, checks)
+    if stated is None and assumed_end_mass_kg is not None:  # assumed without an uncertainty: held exactly
+        stated = jf.MassPrior(assumed_end_mass_kg, 0.0)
     n_distinct = _distinct(priors, policy.distinct_sigma)
     th0 = jf.start_values(frfs, priors, stated.value if stated else 0.0)
     sep: Check
@@ -223,8 +240,10 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
                               flag if i < 2 else "") for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
     elif stated is not None:
         status = "conditional"
-        why = (f"given on the stated end mass m_e = {stated.value:g} kg (std {stated.std:.2g} kg, "
-               "propagated): the top masses do not separate S from m_e")
+        src = inputs[0].end_mass.source
+        why = (f"given on the {'assumed' if src == 'assumed' else 'stated'} end mass m_e = {stated.value:g} kg "
+               + (f"(std {stated.std:.2g} kg, propagated)" if stated.std > 0 else "(no uncertainty: not propagated)")
+               + ": the top masses do not separate S from m_e")
         params = tuple(_param(n, u, None, None, sep.message) if i == 1 else
                        _param(n, u, float(fit.theta[i]), float(sd[i]), why, "conditional")
                        for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
