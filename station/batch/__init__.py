@@ -4,10 +4,11 @@ time with drift flagged against its history (docs/batch.md).
 
 Modules: ``items`` (BatchItem), ``worker`` (the job run in a worker process), ``runner``
 (``run_batch``, executors), ``scope`` (which recordings), ``summary`` (history, drift, JSON/CSV),
-``progress`` (the progress bar), ``blas_env`` (single-threaded BLAS in the pool's workers).
+``progress`` (the progress bar).  The worker processes are the station's (``station.procpool``).
 
-The package's attributes are imported lazily: a worker's fork server imports ``blas_env`` before
-numpy, which would not work if importing the package pulled numpy in.
+The package's attributes are imported lazily: the worker processes' fork server imports
+``station.blas_env`` before numpy and then ``batch.worker``, which would not work if importing the
+package pulled numpy in.
 """
 
 from __future__ import annotations

@@ -1,13 +1,8 @@
 """``run_batch``: jobs through a ``concurrent.futures``-style executor.
 
-* ``executor="local"``: a ``ProcessPoolExecutor`` of ``workers`` processes started by the
-  multiprocessing *fork server* (spawn where there is none).  The fork server is started once per
-  parent process with ``blas_env`` and ``worker`` preloaded, so every worker is a fork of a process
-  that has numpy, scipy, h5py and the identification imported (no per-worker or per-job import) and
-  runs single-threaded BLAS.  A fork server, unlike a plain fork, is safe from a multi-threaded
-  parent such as the daemon.  The fork server is per process: other users of the "forkserver" start
-  method in the same process get these preloads too (single-threaded BLAS), and if one of them started
-  it first, the workers import what they need themselves (slower, multi-threaded BLAS).
+* ``executor="local"``: ``station.procpool.process_pool`` of ``workers`` processes, the same worker
+  processes as the daemon's: forks of a fork server that has numpy, scipy, h5py and the
+  identification imported (no per-worker or per-job import) and runs single-threaded BLAS.
 * ``executor="dask://HOST:PORT"``: a ``distributed.Client`` to that scheduler and its
   ``concurrent.futures`` executor; ``workers`` is then the cluster's business.  Needs the optional
   dependency ``sinecal[dask]`` and sinecal installed on the cluster's workers.
@@ -19,33 +14,24 @@ workers); results come back in the input order.
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 from collections.abc import Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
-from multiprocessing.context import BaseContext
 from pathlib import Path
 
 from station.batch.items import BatchItem
 from station.batch.progress import ProgressBar
 from station.batch.worker import identify_chunk, warm_up
 from station.errors import BadInputError, StationError
+from station.procpool import process_pool
 
 log = logging.getLogger(__name__)
-PRELOAD = ["station.batch.blas_env", "station.batch.worker"]
 DASK_PREFIX = "dask://"
 
 
 def _local(workers: int) -> ProcessPoolExecutor:
-    ctx: BaseContext
-    if "forkserver" in mp.get_all_start_methods():
-        fs = mp.get_context("forkserver")
-        fs.set_forkserver_preload(PRELOAD)  # effective when this starts the fork server
-        ctx = fs
-    else:  # pragma: no cover - Windows
-        ctx = mp.get_context("spawn")
-    return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=warm_up)
+    return process_pool(workers, warm_up)
 
 
 @contextmanager

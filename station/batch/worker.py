@@ -1,7 +1,7 @@
 """The batch job, run in a worker process (or a Dask worker): read, identify, optionally store.
 
-Imported by the pool's fork server (after ``blas_env``) so that forked workers start with numpy,
-scipy, h5py and the identification already imported.
+Imported by the worker processes' fork server (after ``station.blas_env``; see ``station.procpool``)
+so that forked workers start with numpy, scipy, h5py and the identification already imported.
 """
 
 from __future__ import annotations

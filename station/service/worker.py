@@ -13,15 +13,15 @@ import concurrent.futures
 import contextlib
 import functools
 import logging
-import multiprocessing
 import os
-import sys
 import threading
 import time
 from collections.abc import Callable
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any, TypeVar
+
+from station.procpool import process_pool
 
 log = logging.getLogger(__name__)
 
@@ -42,16 +42,11 @@ def _watch_parent(parent_pid: int) -> None:
             os._exit(0)
 
 
-def _init_worker(parent_pid: int, level: int) -> None:
-    # The pool's processes are the parallelism: one BLAS thread each (a multi-threaded OpenBLAS in every
-    # worker oversubscribes the cores: identify_fd 0.14 s against 0.04 s on 2 cores).  This module
-    # imports no numpy at the top, so in a spawned worker this runs before numpy is loaded.
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[var] = "1"
+def _init_worker(level: int) -> None:
+    """Logging, and an exit once the daemon (the parent) is gone.  One BLAS thread per worker is set
+    by ``station.procpool`` before this runs."""
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s worker[%(process)d] %(name)s: %(message)s")
-    if "numpy" in sys.modules:
-        log.warning("worker %d: numpy was loaded before the BLAS thread limit was set", os.getpid())
-    threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True, name="parent-watch").start()
+    threading.Thread(target=_watch_parent, args=(os.getppid(),), daemon=True, name="parent-watch").start()
 
 
 def _job(fn: Callable[..., T]) -> Callable[..., T]:
@@ -136,9 +131,8 @@ class WorkerPool:
     def _get(self) -> concurrent.futures.ProcessPoolExecutor:
         with self._lock:
             if self._executor is None:
-                self._executor = concurrent.futures.ProcessPoolExecutor(
-                    max_workers=max(1, self.processes), mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_init_worker, initargs=(os.getpid(), logging.getLogger().getEffectiveLevel()))
+                self._executor = process_pool(self.processes, _init_worker,
+                                              (logging.getLogger().getEffectiveLevel(),), fork_server=False)
             return self._executor
 
     @property
