@@ -327,3 +327,15 @@ def test_an_end_mass_stated_on_the_command_line(base: Path, tmp_path: Path,
     assert "flag" not in k and abs(k["value"] - K) < 3 * k["std"]
     assert doc["budget"]["k_f"]["contributions"]["end_mass"] == pytest.approx(K * 0.01 / (ME + ML), rel=0.02)
     assert main(["identify", str(base), "--no-write", "--end-mass", "0.2"]) == 2  # the recording has one
+
+
+def test_a_single_step_near_the_resonance_is_not_taken_for_a_mass_typo(tmp_path: Path) -> None:
+    """|H| / (S M) = 5 at 160 Hz (f_0 167 Hz, zeta 0.09): a warning naming the resonance, no refusal."""
+    def resonant(d: dict[str, Any]) -> None:
+        d["simulation"]["truth"]["b_f"] = 5000.0
+        d["rig"]["crank_frequency_hz"]["max"] = 200.0
+        d["rig"]["crank_radius_m"]["min"] = 1e-6
+    res = identify_recording(read_recording(sim(tmp_path, ((160.0, 1e-5),), edit=resonant)))
+    c = next(c for c in res.checks if c.name == "low_frequency_gain")
+    assert c.severity == "warning" and c.values["gain_ratio"] > 4 and c.values["phase_lag_deg"] > 45
+    assert "resonance" in c.message and not res.parameter("S").identifiable

@@ -25,6 +25,7 @@ MIN_SNR = 10.0  # fundamental amplitude over its standard deviation
 FREQ_TOL = 0.005  # relative deviation of the measured from the labelled frequency that is named
 AMP_TOL = 0.05  # relative deviation of the displacement amplitude from the crank radius that is named
 GAIN_WARN, GAIN_REFUSE = 0.10, 2.0  # low-frequency gain vs S_nominal M: warn beyond 10 %, refuse beyond 2x
+MAX_QUASI_STATIC_LAG_DEG = 20.0  # ... refuse only where the phase lag shows the step is quasi-static
 
 
 class IdentificationRefused(BadInputError):
@@ -181,10 +182,17 @@ def run_checks(items: dict[int, tuple], step_checks: list[Check], radii: dict[in
             "sensitivity_nominal_V_per_N": sensitivity_nominal}
     text = (f"|H| at {f_low:.4g} Hz is {g:.4g} times |S_nominal| (m_l + m_e) = "
             f"{abs(sensitivity_nominal):.4g} V/N x {mass_kg:.5g} kg")
-    if not 1 / GAIN_REFUSE < g < GAIN_REFUSE:
+    lag = float(np.degrees(abs(np.angle(-H * sign))))  # ~0 far below the resonance, whatever the masses
+    vals["phase_lag_deg"] = lag
+    if not 1 / GAIN_REFUSE < g < GAIN_REFUSE and lag < MAX_QUASI_STATIC_LAG_DEG:
         out.append(Check("low_frequency_gain", "refused", None, text + ": a top mass or the sensitivity "
                          "typed wrong (e.g. by a factor 10), or the force signal in other units", vals))
         raise IdentificationRefused(out[-1].message, step_checks + out)
+    if not 1 / GAIN_REFUSE < g < GAIN_REFUSE:
+        out.append(Check("low_frequency_gain", "warning", None, text + f" with a phase lag of {lag:.3g} deg: "
+                         "the lowest step is near the resonance, so the gain cannot tell a mass or "
+                         "sensitivity typed wrong", vals))
+        return out, used, sign
     if abs(g - 1) > GAIN_WARN:
         out.append(Check("low_frequency_gain", "warning", None, text + " (resonance amplification, or a "
                          "mass or the nominal sensitivity off)", vals))
