@@ -148,11 +148,11 @@ def test_cli_json_contract_and_plot(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert station_main(["discrepancy", str(rec), "--json", "--plot", str(png), "--max-effects", "2"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out) == {"base_gap", "effects", "final_gap", "parameters_before", "parameters_after",
-                        "unexplained", "proposal"}
+                        "unexplained", "proposal", "ties", "notes"}
     assert isinstance(out["base_gap"], float) and isinstance(out["final_gap"], float)
     assert [e["name"] for e in out["effects"]] == ["transducer_nonlinearity"]
     for e in out["effects"]:
-        assert set(e) == {"name", "params", "gap_after", "evidence"} and isinstance(e["evidence"], str)
+        assert set(e) == {"name", "params", "gap_after", "evidence", "tied_with"} and isinstance(e["evidence"], str)
     for key in ("parameters_before", "parameters_after"):
         for p in ("S", "k_f", "b_f"):
             assert set(out[key][p]) >= {"value", "std", "unit", "identifiable"}

@@ -186,6 +186,8 @@ class DiscrepancyOut(BaseModel):
     parameters_before: dict[str, Any] = {}
     parameters_after: dict[str, Any] = {}
     unexplained: list[str] = []
+    ties: list[dict[str, Any]] = Field(default=[], description="models the data do not decide between")
+    notes: list[str] = []
 
 
 class StopOut(_Out):

@@ -58,10 +58,12 @@ class AddedEffect:
     evidence: str
     candidates: tuple[Candidate, ...]
     parameters: dict[str, Estimate]
+    tied: tuple[str, ...] = ()  # the candidates of its round that fit as well (itself included)
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "params": {k: v.to_dict() for k, v in self.params.items()},
-                "gap_after": float(self.gap_after), "evidence": self.evidence}
+                "gap_after": float(self.gap_after), "evidence": self.evidence,
+                "tied_with": [t for t in self.tied if t != self.name]}
 
 
 @dataclass(frozen=True)
@@ -96,6 +98,7 @@ class DiscrepancyReport:
     notes: tuple[str, ...] = field(default_factory=tuple)
     wall_s: float = 0.0
     proposal: Any = None  # propose.Proposal: the next run that settles a tie, or None
+    ties: tuple[Any, ...] = ()  # ties.Tie: models the data do not decide between
 
     def to_json(self) -> dict[str, Any]:
         """The stable ``--json`` contract."""
@@ -103,7 +106,8 @@ class DiscrepancyReport:
                 "final_gap": float(self.final_gap),
                 "parameters_before": {k: v.to_dict() for k, v in self.parameters_before.items()},
                 "parameters_after": {k: v.to_dict() for k, v in self.parameters_after.items()},
-                "unexplained": list(self.unexplained),
+                "unexplained": list(self.unexplained), "ties": [t.to_json() for t in self.ties],
+                "notes": list(self.notes),
                 "proposal": None if self.proposal is None else self.proposal.to_json()}
 
     def to_dict(self) -> dict[str, Any]:
@@ -119,7 +123,7 @@ class DiscrepancyReport:
             "base_fundamental": [list(r) for r in self.base_fundamental],
             "final_fundamental": [list(r) for r in self.final_fundamental],
             "rounds": [[c.__dict__ for c in e.candidates] for e in self.effects],
-            "rejected": [c.__dict__ for c in self.rejected], "notes": list(self.notes)})
+            "rejected": [c.__dict__ for c in self.rejected]})
         return out
 
 

@@ -46,12 +46,22 @@ def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | Non
         return None
     if name == "coupling_compliance" and data.end_mass_kg <= 0:
         return None
-    orders = LOWPASS_ORDERS if name == "conditioner_lowpass" else (0,)
+    lp = "conditioner_lowpass"
+    variants: list[dict[str, int]]
+    if name == lp:
+        variants = [{**current.effects, name: o} for o in LOWPASS_ORDERS]
+    elif lp in current.effects:
+        # the low-pass order was chosen without this effect: let it move by one (a low-pass of the
+        # wrong order can absorb part of e.g. a coupling and hold the search in a local optimum)
+        o = current.effects[lp]
+        variants = [{**current.effects, lp: k, name: 0} for k in (o, o - 1, o + 1) if k in LOWPASS_ORDERS]
+    else:
+        variants = [{**current.effects, name: 0}]
     best: ModelFit | None = None
     alts: list[tuple[int, float, float, float]] = []
     n_starts = MULTI_START.get(name, 1)
-    for order in orders:
-        effects: dict[str, int] = {**current.effects, name: order}
+    for effects in variants:
+        order = effects.get(lp, 0)
         grid = start_grid(name, data, current.values)
         best_order: ModelFit | None = None
         for start in _best_starts(data, effects, current.values, grid, n_starts):
@@ -67,7 +77,7 @@ def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | Non
         alts.append((order, best_order.chi2, best_order.values["k_f"], best_order.values["b_f"]))
         if best is None or best_order.chi2 < best.chi2:
             best = best_order
-    if best is not None and name == "conditioner_lowpass":
+    if best is not None and lp in best.effects:
         best = replace(best, alternatives=tuple(alts))
     return best
 

@@ -39,6 +39,7 @@ from station.discrepancy.report import (
     transducer_parameters,
 )
 from station.discrepancy.search import base_start, fit_candidate
+from station.discrepancy.ties import TIE_CHI2, averaged, tie_models, tied_names, undetectable
 from station.recording import Recording, read_recording
 
 log = logging.getLogger(__name__)
@@ -71,11 +72,16 @@ def _evidence(best: Candidate, ranked: list[Candidate], before_gap: float, share
     return text
 
 
-def _forward(data: RigData, current: ModelFit, allowed: tuple[str, ...], max_effects: int
-             ) -> tuple[ModelFit, list[AddedEffect], tuple[Candidate, ...]]:
-    """Greedy forward selection from ``current`` over the ``allowed`` effects (module docstring)."""
+Round = tuple[ModelFit, list[AddedEffect], tuple[Candidate, ...], list[tuple[Candidate, ModelFit]]]
+
+
+def _forward(data: RigData, current: ModelFit, allowed: tuple[str, ...], max_effects: int) -> Round:
+    """Greedy forward selection from ``current`` over the ``allowed`` effects (module docstring).
+    Returns the final fit, the named effects, the last round's candidates that were not named, and
+    those candidates with their fits (for the effects the data cannot rule out)."""
     added: list[AddedEffect] = []
     rejected: tuple[Candidate, ...] = ()
+    last: list[tuple[Candidate, ModelFit]] = []
     for _ in range(max_effects):
         fits: dict[str, ModelFit] = {}
         cands: list[Candidate] = []
@@ -99,6 +105,7 @@ def _forward(data: RigData, current: ModelFit, allowed: tuple[str, ...], max_eff
               and (current.chi2 - fits[c.name].chi2) >= MIN_SHARE * excess]
         if not ok:
             rejected = tuple(ranked)
+            last = [(c, fits[c.name]) for c in ranked]
             break
         best = ok[0]
         pinned = _at_bound(fits[best.name], current)
@@ -111,12 +118,17 @@ def _forward(data: RigData, current: ModelFit, allowed: tuple[str, ...], max_eff
             ranked = [best] + [c for c in ranked if c.name != best.name]
         fit = fits[best.name]
         share = (current.chi2 - fit.chi2) / excess
+        tied = tied_names(ok, fits, birge)
+        if len(tied) > 1:
+            tie += (f"; TIE: {', '.join(t for t in tied if t != best.name)} fit(s) as well (chi2 within "
+                    f"{TIE_CHI2:g}): the name is not decided by these data, see ties")
         added.append(AddedEffect(name=best.name, params=effect_estimates(fit, best.name), gap_after=fit.gap_V,
                                  gap_steps_after=tuple(float(g) for g in fit.gap_steps_V),
                                  evidence=_evidence(best, ranked, current.gap_V, share, fits) + tie,
-                                 candidates=tuple(ranked), parameters=transducer_parameters(fit)))
+                                 candidates=tuple(ranked), parameters=transducer_parameters(fit),
+                                 tied=tied if len(tied) > 1 else ()))
         current = fit
-    return current, added, rejected
+    return current, added, rejected, last
 
 
 def _at_bound(fit: ModelFit, current: ModelFit) -> str:
@@ -166,21 +178,26 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
     (configuration and steps) the report carries the next run that would settle a tie."""
     t0 = time.perf_counter()
     base = fit_model(data, {}, base_start(data))
-    current, added, rejected = _forward(data, base, CATALOGUE, max_effects)
+    current, added, rejected, last = _forward(data, base, CATALOGUE, max_effects)
     swapped = _swap(data, current) if len(added) >= 2 else None
     swap_note = ""
     if swapped is not None:
         swap_note = (f"greedy order named {', '.join(current.effects)}; the set {', '.join(swapped)} "
                      f"fits clearly better and replaces it")
         log.info(swap_note)
-        current, added, _ = _forward(data, base, tuple(swapped), len(swapped))
-        more, extra, rejected = _forward(data, current, CATALOGUE, max_effects - len(added))
+        current, added, _, _ = _forward(data, base, tuple(swapped), len(swapped))
+        more, extra, rejected, last = _forward(data, current, CATALOGUE, max_effects - len(added))
         current, added = more, added + extra
     # report every named effect's parameters from the final model (all effects present, so no
     # missing effect inflates or biases them); gaps stay those after each stage
     added = [AddedEffect(name=e.name, params=effect_estimates(current, e.name), gap_after=e.gap_after,
                          gap_steps_after=e.gap_steps_after, evidence=e.evidence, candidates=e.candidates,
-                         parameters=e.parameters) for e in added]
+                         parameters=e.parameters, tied=e.tied) for e in added]
+    ties = [t for e in added if e.tied for t in [tie_models(data, current, e.name, e.tied)] if t is not None]
+    ties += undetectable(current, last)
+    after = transducer_parameters(current)
+    if ties:
+        after.update(averaged(current, ties))
     left = [f.text for f in in_basis(data, current)] + [f.text for f in out_of_basis(data)]
     floor = data.noise_floor_V()
     if current.gap_V > 1.5 * floor and not left:
@@ -195,12 +212,13 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
         notes.append(f"only {data.n_steps} steps: the fundamental gives {2 * data.n_steps} numbers for S, k_f, "
                      "b_f and the offset-free phase; coupling, low-pass and delay act on the fundamental only "
                      "and are hardly separable from the transducer parameters (more frequencies needed)")
+    notes += [f"{t.kind}: {t.message}" for t in ties]
     if data.end_mass_kg <= 0:
         notes.append("no end mass in the recording: m_e = 0 assumed, coupling not testable")
     return DiscrepancyReport(
         recording=recording, base_gap=base.gap_V, final_gap=current.gap_V, noise_floor_V=floor,
         effects=tuple(added), parameters_before=transducer_parameters(base),
-        parameters_after=transducer_parameters(current), unexplained=tuple(left),
+        parameters_after=after, unexplained=tuple(left), ties=tuple(ties),
         base_findings=tuple(f.text for f in in_basis(data, base)),
         steps=tuple(s.index for s in data.steps), f_hz=tuple(float(f) for f in data.f_hz),
         base_gap_steps=tuple(float(g) for g in base.gap_steps_V),

@@ -243,6 +243,20 @@ def _discrepancy(d: RunData) -> str:
         if disc.get(key):
             out.append(f"<h3>Transducer parameters {title} the effects</h3>"
                        + _table(PARAM_HEADERS, _param_rows(disc[key], f"disc.{title}.")))
+    ties = disc.get("ties") or []
+    if ties:
+        trows = []
+        for t in ties:
+            for c in t.get("candidates") or []:
+                kf, bf = c.get("k_f") or {}, c.get("b_f") or {}
+                trows.append([_e(t.get("kind", "tie")), _e(" + ".join(c.get("effects") or []) or "base model"),
+                              f"{fmt_value(kf.get('value'), kf.get('std'))} ± {fmt_unc(kf.get('std'))}",
+                              f"{fmt_value(bf.get('value'), bf.get('std'))} ± {fmt_unc(bf.get('std'))}",
+                              _num(fmt_unc(c.get("chi2")), c.get("chi2"))])
+        out.append("<h3>Ties: explanations the data do not decide between</h3>"
+                   "<p>k_f and b_f after the effects are averaged over these models and carry their spread.</p>"
+                   + _table(["kind", "model", "k_f (N/m)", "b_f (N*s/m)", "chi2"], trows)
+                   + "<ul>" + "".join(f"<li>{_e(t.get('message', ''))}</li>" for t in ties) + "</ul>")
     unexplained = disc.get("unexplained") or []
     out.append("<h3>Unexplained</h3>" + ("<ul>" + "".join(f"<li>{_e(u)}</li>" for u in unexplained) + "</ul>"
                                          if unexplained else "<p>nothing left unexplained</p>"))

@@ -105,16 +105,13 @@ def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
 
     cached = read_results(path, "discrepancy")
     if cached is not None and cached.get("max_effects") == max_effects:
-        return {k: cached.get(k) for k in CONTRACT_KEYS}  # results stored before a key existed: null
-    from station.discrepancy import analyse_recording
-
-    rep = analyse_recording(path, max_effects=max_effects)
+                 "ties", "notes", "proposal", "drive")
     write_results(path, "discrepancy", {**rep.to_dict(), "max_effects": max_effects})
     return rep.to_json()
 
 
 CONTRACT_KEYS = ("base_gap", "effects", "final_gap", "parameters_before", "parameters_after", "unexplained",
-                 "proposal")
+                 "ties", "notes", "proposal", "drive")
 
 
 # --------------------------------------------------------------------------- in the daemon

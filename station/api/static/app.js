@@ -297,7 +297,13 @@ async function loadDiscrepancy(url) {
   let html = `<p>force residual (RMS) of the model: ${mV(d.base_gap)} → ${mV(d.final_gap)} after the effects below</p>`;
   html += d.effects.length ? "<ul>" + d.effects.map((e) => `<li>${esc(e.name)} (gap after: ${mV(e.gap_after)})</li>`).join("") + "</ul>"
     : "<p>no catalogue effect needed: the model explains the measurement</p>";
+  if (d.ties && d.ties.length) {
+    html += '<div class="ties"><p><b>not decided by these data</b> (k_f and b_f carry the spread):</p><ul>'
+      + d.ties.map((t) => `<li>${esc(t.kind)}: ${t.candidates.map((c) => esc(c.effects.join(" + ") || "base model")
+        + ` (k_f ${c.k_f.value === null ? "—" : c.k_f.value.toPrecision(6)} N/m)`).join(" vs ")}</li>`).join("") + "</ul></div>";
+  }
   if (d.unexplained.length) html += "<p>unexplained: " + d.unexplained.map(esc).join("; ") + "</p>";
+  if (d.notes && d.notes.length) html += "<ul class=\"notes\">" + d.notes.map((n) => `<li>${esc(n)}</li>`).join("") + "</ul>";
   html += proposalHtml(d.proposal);
   box.innerHTML = html;
   const btn = $("#run-proposal");
