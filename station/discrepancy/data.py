@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 
 from station.discrepancy.decompose import (
     FLAT_TOP,
@@ -74,6 +75,12 @@ class RigData:
     sensitivity_nominal: float
     sample_rate_hz: float
     excluded: tuple[tuple[int, str], ...] = ()
+    driven: tuple[bool, ...] = ()  # per harmonic k = 1..K_MAX: the recorded motion's D_k drives the model
+
+    def motion_harmonics(self) -> NDArray[np.bool_]:
+        """(K_MAX,) harmonics of the recorded frame motion that drive the model (``driven``; all
+        when not set)."""
+        return np.array(self.driven, dtype=bool) if self.driven else np.ones(K_MAX, dtype=bool)
 
     @property
     def n_steps(self) -> int:
@@ -121,6 +128,31 @@ def _stack(steps: list[StepDecomposition], n_mains: int) -> dict[str, np.ndarray
             Rd[i, :m, :m] = s.disp.R[-m:, -m:]
             cd[i, :m] = s.disp.coef[-m:]
     return {"Rf": Rf, "cf": cf, "Rd": Rd, "cd": cd, "kmask": kmask, "merge": merge, "Rx": Rx, "bx": bx}
+
+
+def significant_motion(Rd: FloatArray, cd: FloatArray, sigma_d: FloatArray, alpha: float = 1e-6
+                       ) -> tuple[bool, ...]:
+    """Per harmonic k = 1..K_MAX whether the displacement channel holds significant structure at k
+    over the steps (chi^2 of the marginal (a, b) of each step, 2 dof per step, p < alpha); k = 1
+    always.  Harmonics within the noise (and the displacement ADC's quantisation residue) are the
+    ideal sine's zeros, not an input: feeding noise into the force model would only cost precision."""
+    out = [True]
+    n = cd.shape[0]
+    for k in range(2, K_MAX + 1):
+        cols = [2 * k - 4, 2 * k - 3]
+        c2, dof = 0.0, 0
+        for i in range(n):
+            valid = np.nonzero(np.any(Rd[i] != 0, axis=0))[0]
+            if not set(cols) <= set(valid.tolist()):
+                continue
+            Rv = Rd[i][np.ix_(valid, valid)]
+            pos = [int(np.nonzero(valid == c)[0][0]) for c in cols]
+            C = sigma_d[i] ** 2 * np.linalg.inv(Rv.T @ Rv)[np.ix_(pos, pos)]
+            e = cd[i, cols]
+            c2 += float(e @ np.linalg.solve(C, e))
+            dof += 2
+        out.append(bool(dof) and float(stats.chi2.sf(c2, dof)) < alpha)
+    return tuple(out)
 
 
 def _outside_lines(s: StepDecomposition, f_mains: float | None, fs: float, max_lines: int = 12
@@ -171,4 +203,5 @@ def prepare(rec: Recording) -> RigData:
         n_samples=np.array([s.n_samples for s in steps], dtype=float), Rd=st["Rd"], cd=st["cd"],
         sigma_d=np.array([s.disp.sigma for s in steps]), merge=st["merge"], Rx=st["Rx"], bx=st["bx"], mains=det,
         load_mass_kg=rec.load_mass_kg, end_mass_kg=rec.end_mass_kg or 0.0, capacity_N=rec.capacity_N,
-        sensitivity_nominal=rec.sensitivity_V_per_N, sample_rate_hz=fs, excluded=excluded)
+        sensitivity_nominal=rec.sensitivity_V_per_N, sample_rate_hz=fs, excluded=excluded,
+        driven=significant_motion(st["Rd"], st["cd"], np.array([s.disp.sigma for s in steps])))

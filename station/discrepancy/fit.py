@@ -1,11 +1,10 @@
 """Weighted least-squares fit of the rig model (base + a set of effects) to the decomposed steps.
 
-chi^2(theta) = sum_steps ||W_f (c_f - m_f(theta))||^2 + ||W_d (c_d - m_d(theta))||^2, the whitened force
-coefficients (W_f = R_f / sigma_f, Gauss-Markov for white noise of the measured sigma) and displacement
-harmonics.  The displacement noise enters the force fundamental through the measured X_1
-(errors in variables): its two whitened rows are further whitened by chol(I + A C_X A^T)^-1,
-A = R_f[0:2, 0:2] / sigma_f * d m_1 / d X_1 evaluated at the measured V_1/X_1 (the same weights for every
-model, so that chi^2 of different models can be compared).
+chi^2(theta) = sum_steps ||E W_f (c_f - m_f(theta))||^2, the whitened force coefficients (W_f = R_f /
+sigma_f, Gauss-Markov for white noise of the measured sigma).  The model is driven by the measured
+frame motion (all its harmonics), whose noise enters the force coefficients: E = chol(I + A C_D A^T)^-1
+(errors in variables, ``eiv``; the same weights for every model, so that chi^2 of different models
+can be compared).
 
 The time-domain gap of a model is  gap = sqrt(sum_s (ssr_s + sigma_s^2 ||W_f (c_f - m_f)||^2 + ||b_x +
 R_x (c_f - m_f)||^2) / sum_s N_s) (the last term: lines outside the catalogue, see ``data``),
@@ -30,6 +29,7 @@ from scipy.optimize import least_squares
 
 from station.discrepancy.catalogue import BASE_PARAMS, NEUTRAL, Param, effect_params, scales
 from station.discrepancy.data import RigData
+from station.discrepancy.eiv import whitening
 from station.discrepancy.model import predict
 
 FloatArray = NDArray[np.float64]
@@ -96,19 +96,10 @@ class Problem:
         self.Wf = data.Rf / data.sigma_f[:, None, None]
         self.Wd = data.Rd / data.sigma_d[:, None, None]
         self.valid_f = np.any(data.Rf != 0, axis=1)
-        self.valid_d = np.any(data.Rd != 0, axis=1)
-        # measured V_1 / X_1: the same weights for every model, so chi^2 values stay comparable
-        self.eiv = self._eiv((data.cf[:, 0] - 1j * data.cf[:, 1]) / data.x1)
-
-    def _eiv(self, h1: ComplexArray) -> FloatArray:
-        """Per step the 2x2 whitening of the fundamental rows for the displacement noise."""
-        J = np.empty((h1.size, 2, 2))
-        J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1] = h1.real, -h1.imag, -h1.imag, -h1.real
-        T = np.diag([1.0, -1.0])
-        Cx = T @ self.data.x1_cov @ T  # covariance of the displacement (a, b) coefficients
-        A = self.Wf[:, 0:2, 0:2] @ J
-        M = np.eye(2)[None] + A @ Cx @ np.swapaxes(A, 1, 2)
-        return np.linalg.inv(np.linalg.cholesky(M))
+        # the measured motion is the model's input, not data it is fitted to: no displacement rows
+        self.valid_d = np.zeros(data.Rd.shape[:2], dtype=bool)
+        # its noise enters the force rows (errors in variables); the same weights for every model
+        self.eiv = whitening(data, self.Wf)
 
     def to_value(self, q: Param, u: float) -> float:
         c, s = self.centre[q.name], self.scale[q.name]
@@ -145,8 +136,7 @@ class Problem:
 
     def residual(self, u: Sequence[float] | FloatArray) -> FloatArray:
         wf, wd, _, _ = self.whitened(self.values(u))
-        wf = wf.copy()
-        wf[:, 0:2] = np.einsum("sij,sj->si", self.eiv, wf[:, 0:2])
+        wf = np.einsum("sij,sj->si", self.eiv, wf)
         return np.concatenate([wf[self.valid_f], wd[self.valid_d]])
 
     def n_obs(self) -> int:
@@ -192,7 +182,7 @@ def finish(prob: Problem, u: FloatArray, jac: FloatArray, converged: bool) -> Mo
     std = {q.name: float(math.sqrt(max(cov[i, i], 0.0))) for i, q in enumerate(prob.params)}
     wf, wd, m, md = prob.whitened(vals)
     gap, gap_steps = gap_of(prob.data, wf, m)
-    wf_fund = np.einsum("sij,sj->si", prob.eiv, wf[:, 0:2])
+    wf_fund = np.einsum("sij,sj->si", prob.eiv, wf)[:, 0:2]
     notes = () if birge <= 1.0 else (f"uncertainties inflated by sqrt(chi2/dof) = {math.sqrt(birge):.3g}",)
     return ModelFit(effects=dict(prob.effects), params=prob.params, values=vals, std=std, cov=cov,
                     chi2=chi2, n_obs=n_obs, gap_V=gap, gap_steps_V=gap_steps, wf=wf, wd=wd, m_f=m,

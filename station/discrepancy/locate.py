@@ -1,9 +1,8 @@
 """Where a model and the measurement disagree: significant residual structure, by step and component.
 
 In the basis (from the coefficient residuals of a fit and their marginal covariance): per step and
-component group
-(force fundamental, force harmonic k, force offset/drift polynomial, mains line h, displacement harmonic
-k) the chi^2 of its rows; a component counts when its chi^2 summed over steps has p < ``ALPHA`` (2 dof
+component group (force fundamental, force harmonic k, force offset/drift polynomial, mains line h) the
+chi^2 of its rows; a component counts when its chi^2 summed over steps has p < ``ALPHA`` (2 dof
 per step and sinusoid, 3 for the polynomial), and the steps named are those with p < 1e-3.
 Outside the basis (from the LS residual of each step): significant spectral lines, grouped across steps
 by their frequency relative to the crank frequency (sidebands, non-integer harmonics) or by absolute
@@ -20,6 +19,7 @@ from scipy import stats
 
 from station.discrepancy.data import RigData
 from station.discrepancy.decompose import FLAT_TOP, K_MAX
+from station.discrepancy.eiv import force_cov
 from station.discrepancy.fit import ModelFit
 from station.discrepancy.spectrum import Line, significant_lines
 
@@ -77,35 +77,21 @@ def _marginal_chi2(R: np.ndarray, sigma: float, e: np.ndarray, cols: list[int],
     return float(eg @ np.linalg.solve(C, eg))
 
 
-def _eiv_cov(data: RigData) -> np.ndarray:
-    """(n, 2, 2) covariance the displacement noise adds to the force fundamental (a, b) coefficients,
-    through the measured V_1/X_1 (errors in variables, as in the fits)."""
-    h1 = (data.cf[:, 0] - 1j * data.cf[:, 1]) / data.x1
-    J = np.empty((h1.size, 2, 2))
-    J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1] = h1.real, -h1.imag, -h1.imag, -h1.real
-    T = np.diag([1.0, -1.0])
-    return J @ (T @ data.x1_cov @ T) @ np.swapaxes(J, 1, 2)
-
-
 def in_basis(data: RigData, fit: ModelFit) -> list[Finding]:
-    """Significant coefficient residuals of ``fit`` (see module docstring), each component tested on
-    its own marginal covariance."""
+    """Significant force coefficient residuals of ``fit`` (see module docstring), each component tested
+    on its own marginal covariance, the noise of the measured motion that drives the model included
+    (``eiv.force_cov``).  The displacement channel is the model's input: ``drive`` checks it."""
     out: list[Finding] = []
     idx = [s.index for s in data.steps]
     resid = data.cf - fit.m_f
-    rd = data.cd - fit.m_d
-    eiv = _eiv_cov(data)
+    fcov = force_cov(data)
     n = data.n_steps
     for channel, comp, cols, unit in _groups(data.n_mains):
+        k = cols[1] // 2 + 1 if comp.startswith(("fundamental", "harmonic")) else 0
         c2 = np.array([_marginal_chi2(data.Rf[i], data.sigma_f[i], resid[i], cols,
-                                      eiv[i] if comp == "fundamental" else None) for i in range(n)])
+                                      fcov[i, k - 1] if k else None) for i in range(n)])
         valid = np.isfinite(c2)
         _report(out, channel, comp, cols, unit, np.nan_to_num(c2), valid, resid, data, idx)
-    for k in range(2, K_MAX + 1):
-        cols = [2 * k - 4, 2 * k - 3]
-        c2 = np.array([_marginal_chi2(data.Rd[i], data.sigma_d[i], rd[i], cols) for i in range(n)])
-        valid = np.isfinite(c2)
-        _report(out, "displacement", f"harmonic {k}", cols, "m", np.nan_to_num(c2), valid, rd, data, idx)
     return out
 
 
@@ -144,7 +130,7 @@ def fundamental_table(data: RigData, fit: ModelFit) -> tuple[tuple[float, float,
     V1 = data.cf[:, 0] - 1j * data.cf[:, 1]
     M1 = fit.m_f[:, 0] - 1j * fit.m_f[:, 1]
     rel = V1 / np.where(M1 == 0, 1.0, M1) - 1.0
-    eiv = _eiv_cov(data)
+    eiv = force_cov(data)[:, 0]
     z = np.sqrt([_marginal_chi2(data.Rf[i], data.sigma_f[i], data.cf[i] - fit.m_f[i], [0, 1], eiv[i])
                  for i in range(data.n_steps)])
     return tuple((float(f), float(100 * r.real), float(1e3 * r.imag), float(q))

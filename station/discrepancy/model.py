@@ -3,9 +3,10 @@
 Per step (crank frequency f, w = 2 pi f, harmonics k = 1..K, Omega_k = k w), from the measured
 displacement fundamental X_1 (phasor, m):
 
-1. displacement channel  D_1 = X_1;  D_k (k >= 2) = 0 (paper Eq. 1), or with ``crank_harmonics``
-   the Fourier coefficients of the slider crank x(phi) = r sin phi - kappa r^2 cos^2 phi /
-   (1 + sqrt(1 - kappa^2 r^2 cos^2 phi)), kappa = 1/L, r = |X_1|, phi = w tau + angle(j X_1);
+1. frame motion  D_k (k = 1..K): the displacement channel's harmonics as recorded (``eiv``), whatever
+   their origin; the slider crank x(phi) = r sin phi - kappa r^2 cos^2 phi / (1 + sqrt(1 - kappa^2 r^2
+   cos^2 phi)), kappa = 1/L, r = |X_1|, phi = w tau + angle(j X_1) is only a check of the drive
+   (``drive``), not part of the force model;
 2. frame motion at the force sample instants  x_k = D_k exp(j Omega_k Delta)  (``channel_delay``);
 3. spring force  F_k = G(Omega_k) x_k,  G = k_f Z2 / X_b = s^2 * (paper Eq. 9, or Eq. 8 with
    ``coupling_compliance``) in N/m;  F(t) = -M g + sum Re(F_k e^{j k w tau});
@@ -30,6 +31,7 @@ from drivers.rig.model import spring_force_per_acceleration
 from drivers.rig.params import CouplingCompliance, Transducer
 from station.discrepancy.data import G, RigData
 from station.discrepancy.decompose import K_MAX
+from station.discrepancy.eiv import measured_motion
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
@@ -82,13 +84,7 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     kk = np.arange(1, K + 1)[None, :]
     Om = 2 * np.pi * data.f_hz[:, None] * kk
     s = np.asarray(1j * Om, dtype=np.complex128)
-    if "crank_harmonics" in effects:
-        D = crank_displacement_harmonics(data.x1, p["inverse_rod_length_per_m"], K)
-        D[:, 0] = data.x1
-    else:
-        D = np.zeros((n, K), dtype=complex)
-        D[:, 0] = data.x1
-    D = D * data.kmask
+    D = measured_motion(data)  # the frame motion as recorded drives the model (``eiv``)
     x = D * np.exp(1j * Om * p["delay_s"]) if "channel_delay" in effects else D
     t = Transducer(k_f=p["k_f"], b_f=p["b_f"], m_e=data.end_mass_kg, m_l=data.load_mass_kg,
                    sensitivity_V_per_N=p["S"], capacity_N=data.capacity_N)

@@ -99,6 +99,7 @@ class DiscrepancyReport:
     wall_s: float = 0.0
     proposal: Any = None  # propose.Proposal: the next run that settles a tie, or None
     ties: tuple[Any, ...] = ()  # ties.Tie: models the data do not decide between
+    drive: Any = None  # drive.DriveCheck: the recorded frame motion against the slider crank
 
     def to_json(self) -> dict[str, Any]:
         """The stable ``--json`` contract."""
@@ -107,7 +108,7 @@ class DiscrepancyReport:
                 "parameters_before": {k: v.to_dict() for k, v in self.parameters_before.items()},
                 "parameters_after": {k: v.to_dict() for k, v in self.parameters_after.items()},
                 "unexplained": list(self.unexplained), "ties": [t.to_json() for t in self.ties],
-                "notes": list(self.notes),
+                "notes": list(self.notes), "drive": None if self.drive is None else self.drive.to_json(),
                 "proposal": None if self.proposal is None else self.proposal.to_json()}
 
     def to_dict(self) -> dict[str, Any]:

@@ -1,40 +1,22 @@
-"""Fitting one candidate effect on top of the current model, and the base model's start values."""
+"""Fitting one candidate effect on top of the current model (the base model's start values:
+``eiv.base_start``, re-exported here)."""
 
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Mapping
 from dataclasses import replace
 
 import numpy as np
 
 from station.discrepancy.catalogue import LOWPASS_ORDERS, start_grid
-from station.discrepancy.data import G, RigData
+from station.discrepancy.data import RigData
+from station.discrepancy.eiv import base_start
 from station.discrepancy.fit import ModelFit, Problem, fit_model, profiled_chi2
 
 log = logging.getLogger(__name__)
+__all__ = ["base_start", "fit_candidate"]
 MULTI_START: dict[str, int] = {"coupling_compliance": 3}  # LM runs from the best grid points
-
-
-def base_start(data: RigData) -> dict[str, float]:
-    """Start values of S, k_f, b_f, offset from the measured H_i = V_1/X_1 (V/m), stiff model:
-    1/H = -(M s^2 + b s + k)/(S M k s^2), i.e. Re(1/H) = -1/(S k) + 1/(S M w^2) and
-    Im(1/H) = b/(S M k w): linear least squares in (1/(S k), 1/(S M)) and b/(S M k)."""
-    V1 = data.cf[:, 0] - 1j * data.cf[:, 1]
-    inv = data.x1 / V1
-    w = 2 * np.pi * data.f_hz
-    M = data.total_mass_kg
-    A = np.column_stack([-np.ones_like(w), 1 / w**2])
-    wt = 1 / np.abs(inv)
-    (alpha, gamma), *_ = np.linalg.lstsq(A * wt[:, None], inv.real * wt, rcond=None)
-    beta = float(np.sum(inv.imag * w * wt**2) / np.sum(wt**2))
-    S = 1.0 / (gamma * M)
-    k = gamma * M / alpha if alpha * gamma > 0 else 1e3 * M * float(w.max()) ** 2
-    b = beta * M / alpha if alpha != 0 else 0.0
-    b = b if b > 0 else 1e-3 * math.sqrt(k * M)
-    offset = float(np.mean(data.cf[:, 2 * ((data.cf.shape[1] - 3 - 2 * data.n_mains) // 2)])) + S * M * G
-    return {"S": float(S), "k_f": float(k), "b_f": float(b), "offset_V": offset}
 
 
 def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | None:

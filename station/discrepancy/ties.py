@@ -63,8 +63,9 @@ class Model:
 
 @dataclass(frozen=True)
 class Tie:
-    """A set of models the data do not decide between.  kind: "tie" (equally good explanations) or
-    "undetectable" (an effect neither named nor ruled out); ``differ``: the effects the models
+    """A set of models the data do not decide between.  kind: "tie" (equally good explanations),
+    "undetectable" (an effect neither named nor ruled out) or "unexplained" (a name withdrawn,
+    ``plausible``: the models with and without the effect); ``differ``: the effects the models
     differ by; message: one sentence."""
 
     kind: str

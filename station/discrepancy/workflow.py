@@ -27,8 +27,11 @@ from scipy import stats
 
 from station.discrepancy.catalogue import CATALOGUE
 from station.discrepancy.data import RigData, prepare
+from station.discrepancy.drive import check_drive
+from station.discrepancy.eiv import noise_floor
 from station.discrepancy.fit import ModelFit, fit_model
 from station.discrepancy.locate import fundamental_table, in_basis, out_of_basis
+from station.discrepancy.plausible import withdraw
 from station.discrepancy.propose import RunContext, next_run
 from station.discrepancy.report import (
     AddedEffect,
@@ -193,17 +196,22 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
     added = [AddedEffect(name=e.name, params=effect_estimates(current, e.name), gap_after=e.gap_after,
                          gap_steps_after=e.gap_steps_after, evidence=e.evidence, candidates=e.candidates,
                          parameters=e.parameters, tied=e.tied) for e in added]
-    ties = [t for e in added if e.tied for t in [tie_models(data, current, e.name, e.tied)] if t is not None]
+    findings = in_basis(data, current)
+    withdrawn, ties = withdraw(data, current, [e.name for e in added], findings)
+    added = [e for e in added if e.name not in withdrawn]
+    ties += [t for e in added if e.tied for t in [tie_models(data, current, e.name, e.tied)] if t is not None]
     ties += undetectable(current, last)
     after = transducer_parameters(current)
     if ties:
         after.update(averaged(current, ties))
-    left = [f.text for f in in_basis(data, current)] + [f.text for f in out_of_basis(data)]
-    floor = data.noise_floor_V()
+    drive = check_drive(data)
+    left = [*withdrawn.values(), *[f.text for f in findings], *drive.findings,
+            *[f.text for f in out_of_basis(data)]]
+    floor = noise_floor(data)
     if current.gap_V > 1.5 * floor and not left:
         left.append(f"gap {current.gap_V:.3g} V is {current.gap_V / floor:.3g} x the noise floor "
                     f"{floor:.3g} V but is not localised")
-    notes = list(current.notes)
+    notes = [*current.notes, drive.message]
     if swap_note:
         notes.append(swap_note)
     if rec_notes:
@@ -218,7 +226,7 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
     return DiscrepancyReport(
         recording=recording, base_gap=base.gap_V, final_gap=current.gap_V, noise_floor_V=floor,
         effects=tuple(added), parameters_before=transducer_parameters(base),
-        parameters_after=after, unexplained=tuple(left), ties=tuple(ties),
+        parameters_after=after, unexplained=tuple(left), ties=tuple(ties), drive=drive,
         base_findings=tuple(f.text for f in in_basis(data, base)),
         steps=tuple(s.index for s in data.steps), f_hz=tuple(float(f) for f in data.f_hz),
         base_gap_steps=tuple(float(g) for g in base.gap_steps_V),
