@@ -51,6 +51,9 @@ def effect_params(name: str, data: RigData) -> tuple[Param, ...]:
     if name == "transducer_nonlinearity":
         return (Param("quadratic", "1", lower=-1.0, upper=1.0), Param("cubic", "1", lower=-1.0, upper=1.0))
     if name == "mains_interference":
+        if not data.common_clock:  # phases not comparable between steps: a phasor per step and line
+            return tuple(Param(f"{c}_{h}_s{i}", "V") for i in range(data.n_steps)
+                         for h in range(1, data.n_mains + 1) for c in ("re", "im"))
         out = [Param("frequency_hz", "Hz", lower=40.0, upper=70.0)]
         for h in range(1, data.n_mains + 1):
             out += [Param(f"re_{h}", "V"), Param(f"im_{h}", "V")]
@@ -76,6 +79,8 @@ def scales(p: dict[str, float], data: RigData) -> dict[str, float]:
            "quadratic_V_per_s2": 10 * sig / T**2}
     for h in range(1, data.n_mains + 1):
         out[f"re_{h}"] = out[f"im_{h}"] = 10 * sig
+        for i in range(data.n_steps):
+            out[f"re_{h}_s{i}"] = out[f"im_{h}_s{i}"] = 10 * sig
     return out
 
 
@@ -114,6 +119,9 @@ def mains_start(data: RigData) -> dict[str, float]:
     a = data.cf[:, 2 * K + 3 :: 2]
     b = data.cf[:, 2 * K + 4 :: 2]
     W = (a - 1j * b) * (data.merge == 0)
+    if not data.common_clock:  # each step's own phasors (lines merged with a crank harmonic: 0)
+        return {f"{c}_{h}_s{i}": float(getattr(W[i, h - 1], "real" if c == "re" else "imag"))
+                for i in range(data.n_steps) for h in range(1, data.n_mains + 1) for c in ("re", "im")}
     hh = np.arange(1, data.n_mains + 1)[None, None, :]
     grid = f0 + np.linspace(-0.15, 0.15, 1201)
     ph = np.exp(-1j * hh * 2 * np.pi * grid[:, None, None] * data.t_mid_s[None, :, None])

@@ -9,6 +9,7 @@ the time-domain residual energy the model can change (the LS residual energy ``s
 
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass
 
@@ -75,6 +76,7 @@ class RigData:
     sensitivity_nominal: float
     sample_rate_hz: float
     excluded: tuple[tuple[int, str], ...] = ()
+    common_clock: bool = True  # False: the steps' windows overlap in time (each has its own time origin)
     driven: tuple[bool, ...] = ()  # per harmonic k = 1..K_MAX: the recorded motion's D_k drives the model
 
     def motion_harmonics(self) -> NDArray[np.bool_]:
@@ -155,6 +157,13 @@ def significant_motion(Rd: FloatArray, cd: FloatArray, sigma_d: FloatArray, alph
     return tuple(out)
 
 
+def _common_clock(steps: list[StepDecomposition]) -> bool:
+    """Whether the step windows lie on one time axis: in recording order, none starts before the
+    previous one ends (an import may give every step its own time origin: then phases of lines that
+    run through the whole recording, e.g. mains, are not comparable between steps)."""
+    return all(b.t_mid_s - b.half_s >= a.t_mid_s + a.half_s - 1e-9 for a, b in itertools.pairwise(steps))
+
+
 def _outside_lines(s: StepDecomposition, f_mains: float | None, fs: float, max_lines: int = 12
                    ) -> tuple[float, ...]:
     """Significant lines (alpha 1e-4 over the bins) of the force residual that are not basis
@@ -169,14 +178,14 @@ def _outside_lines(s: StepDecomposition, f_mains: float | None, fs: float, max_l
 def prepare(rec: Recording) -> RigData:
     """Decompose every usable step (twice: without mains lines to search them, then with them)."""
     wins = windows_of(rec)
-    if len(wins) < 2:
-        raise StationError(f"{rec.path}: the workflow needs at least 2 usable steps, found {len(wins)}")
+    if not wins:
+        raise StationError(f"{rec.path}: the workflow needs at least 1 usable step, found none")
     fs = rec.sample_rate_hz
     first = [decompose_step(w, fs, None, 0) for w in wins]
     # a clipped window is not data about the rig: leave it out (and say so) while 2 steps remain
     clipped = [s.flat_top >= FLAT_TOP for s in first]
     excluded: tuple[tuple[int, str], ...] = ()
-    if any(clipped) and len(wins) - sum(clipped) >= 2:
+    if any(clipped) and len(wins) - sum(clipped) >= 1:
         excluded = tuple((s.index, f"force signal clipped (flat tops of {s.flat_top} samples at the window "
                                    f"extreme); step left out") for s, c in zip(first, clipped, strict=True) if c)
         wins = [w for w, c in zip(wins, clipped, strict=True) if not c]
@@ -204,4 +213,5 @@ def prepare(rec: Recording) -> RigData:
         sigma_d=np.array([s.disp.sigma for s in steps]), merge=st["merge"], Rx=st["Rx"], bx=st["bx"], mains=det,
         load_mass_kg=rec.load_mass_kg, end_mass_kg=rec.end_mass_kg or 0.0, capacity_N=rec.capacity_N,
         sensitivity_nominal=rec.sensitivity_V_per_N, sample_rate_hz=fs, excluded=excluded,
+        common_clock=_common_clock(second),
         driven=significant_motion(st["Rd"], st["cd"], np.array([s.disp.sigma for s in steps])))

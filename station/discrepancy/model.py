@@ -104,8 +104,12 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     W = np.zeros((n, nm), dtype=complex)
     if "mains_interference" in effects and nm:
         hh = np.arange(1, nm + 1)[None, :]
-        Q = np.array([complex(p[f"re_{h}"], p[f"im_{h}"]) for h in range(1, nm + 1)])[None, :]
-        W = Q * np.exp(1j * hh * 2 * np.pi * p["frequency_hz"] * data.t_mid_s[:, None])
+        if data.common_clock:
+            Q = np.array([complex(p[f"re_{h}"], p[f"im_{h}"]) for h in range(1, nm + 1)])[None, :]
+            W = Q * np.exp(1j * hh * 2 * np.pi * p["frequency_hz"] * data.t_mid_s[:, None])
+        else:  # steps with their own time origins: a phasor per step and line
+            W = np.array([[complex(p[f"re_{h}_s{i}"], p[f"im_{h}_s{i}"]) for h in range(1, nm + 1)]
+                          for i in range(n)])
         for i, h in zip(*np.nonzero(data.merge), strict=True):
             Vk[i, data.merge[i, h] - 1] += W[i, h]
             W[i, h] = 0.0

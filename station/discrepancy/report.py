@@ -174,6 +174,8 @@ def effect_estimates(fit: ModelFit, name: str) -> dict[str, Estimate]:
     if name == "zero_drift":
         return {"rate_V_per_s": Estimate(v["rate_V_per_s"], s["rate_V_per_s"], "V/s"),
                 "quadratic_V_per_s2": Estimate(v["quadratic_V_per_s2"], s["quadratic_V_per_s2"], "V/s^2")}
+    if name == "mains_interference" and "frequency_hz" not in v:
+        return _mains_per_step(fit)
     if name == "mains_interference":
         out = {"frequency_hz": Estimate(v["frequency_hz"], s["frequency_hz"], "Hz")}
         h = 1
@@ -191,3 +193,28 @@ def effect_estimates(fit: ModelFit, name: str) -> dict[str, Estimate]:
             h += 1
         return out
     raise KeyError(name)
+
+
+NO_CLOCK = ("the steps have their own time origins (their windows overlap on the recorded time axis): the "
+            "phase of a line between steps is unknown, so its frequency (and phase) is not determined")
+
+
+def _mains_per_step(fit: ModelFit) -> dict[str, Estimate]:
+    """Mains lines fitted with a phasor per step (no common clock): frequency and phases not
+    identifiable; the amplitude of line h as the mean of its per-step amplitudes (V), standard
+    uncertainty from their scatter (or the fit's, if larger) over sqrt(n)."""
+    v = fit.values
+    out = {"frequency_hz": Estimate(math.nan, math.nan, "Hz", False, NO_CLOCK)}
+    h = 1
+    while f"re_{h}_s0" in v:
+        amps, i = [], 0
+        while f"re_{h}_s{i}" in v:
+            amps.append(math.hypot(v[f"re_{h}_s{i}"], v[f"im_{h}_s{i}"]))
+            i += 1
+        a = np.array(amps)
+        fit_sd = max(fit.std[f"re_{h}_s0"], fit.std[f"im_{h}_s0"])
+        sd = max(float(a.std(ddof=1)) if a.size > 1 else 0.0, fit_sd) / math.sqrt(a.size)
+        out[f"amplitude_V_{h}"] = Estimate(float(a.mean()), sd, "V")
+        out[f"phase_rad_{h}"] = Estimate(math.nan, math.nan, "rad", False, NO_CLOCK)
+        h += 1
+    return out

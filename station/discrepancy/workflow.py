@@ -204,6 +204,12 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
     after = transducer_parameters(current)
     if ties:
         after.update(averaged(current, ties))
+    before = transducer_parameters(base)
+    if data.n_steps < 2:
+        why = ("one step: its force fundamental gives 2 numbers for S, k_f and b_f (and a coupling); they are "
+               "not determined without assuming one of them")
+        after = {k: Estimate(math.nan, math.nan, e.unit, False, why) for k, e in after.items()}
+        before = {k: Estimate(math.nan, math.nan, e.unit, False, why) for k, e in before.items()}
     drive = check_drive(data)
     left = [*withdrawn.values(), *[f.text for f in findings], *drive.findings,
             *[f.text for f in out_of_basis(data)]]
@@ -225,7 +231,7 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
         notes.append("no end mass in the recording: m_e = 0 assumed, coupling not testable")
     return DiscrepancyReport(
         recording=recording, base_gap=base.gap_V, final_gap=current.gap_V, noise_floor_V=floor,
-        effects=tuple(added), parameters_before=transducer_parameters(base),
+        effects=tuple(added), parameters_before=before,
         parameters_after=after, unexplained=tuple(left), ties=tuple(ties), drive=drive,
         base_findings=tuple(f.text for f in in_basis(data, base)),
         steps=tuple(s.index for s in data.steps), f_hz=tuple(float(f) for f in data.f_hz),
@@ -245,7 +251,7 @@ def analyse_recording(path: str | Path | Recording, max_effects: int = 4) -> Dis
     events = tuple(str(d.get("warning")) for d in rec.documents if d.get("kind") == "event" and d.get("warning"))
     rep = analyse(data, max_effects=max_effects, recording=str(rec.path), rec_notes=events,
                   context=run_context(rec))
-    before = _identify_before(rec)
+    before = _identify_before(rec) if data.n_steps >= 2 else None
     return replace(rep, parameters_before=before or rep.parameters_before, wall_s=time.perf_counter() - t0)
 
 
