@@ -16,6 +16,7 @@ from station.discrepancy.fit import ModelFit, Problem, fit_model, profiled_chi2
 
 log = logging.getLogger(__name__)
 __all__ = ["base_start", "fit_candidate"]
+FUNDAMENTAL_ONLY = ("coupling_compliance", "conditioner_lowpass", "channel_delay")
 MULTI_START: dict[str, int] = {"coupling_compliance": 3}  # LM runs from the best grid points
 
 
@@ -27,6 +28,9 @@ def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | Non
     if name == "mains_interference" and data.n_mains == 0:
         return None
     if name == "coupling_compliance" and data.end_mass_kg <= 0:
+        return None
+    if name in FUNDAMENTAL_ONLY and data.n_steps < 3:
+        # 2 numbers per step for S, k_f, b_f and the effect's own: no degree of freedom left to test it
         return None
     lp = "conditioner_lowpass"
     variants: list[dict[str, int]]
