@@ -61,6 +61,23 @@ def draw_effect(name: str, rng: np.random.Generator, k_f: float, b_f: float) -> 
     raise KeyError(name)
 
 
+WIDE_EFFECTS = ("coupling_compliance", "conditioner_lowpass", "channel_delay")
+
+
+def draw_wide(name: str, rng: np.random.Generator, k_f: float, b_f: float) -> dict[str, Any]:
+    """A fundamental-only effect drawn from ranges wider than those where the data decide: coupling
+    k_c in [1, 10] k_f (log-uniform), b_c in [0, 0.5] b_f; low-pass order 1-4, cut-off in [150, 3000] Hz
+    (log-uniform); delay |delay| in [1, 100] us (log-uniform), either sign.  The workflow must report
+    ties and undetectable effects as such, never a k_f or b_f off by more than 3 stated uncertainties."""
+    if name == "coupling_compliance":
+        return {"k_c": _logu(rng, 1.0, 10.0) * k_f, "b_c": float(rng.uniform(0, 0.5)) * b_f}
+    if name == "conditioner_lowpass":
+        return {"order": int(rng.integers(1, 5)), "cutoff_hz": _logu(rng, 150.0, 3000.0)}
+    if name == "channel_delay":
+        return {"delay_s": _sign(rng) * _logu(rng, 1e-6, 1e-4)}
+    raise KeyError(f"{name} is not a fundamental-only effect ({', '.join(WIDE_EFFECTS)})")
+
+
 def plan_steps(cfg: StationConfig, n_steps: int, f_lo: float = 5.0, f_hi: float = 95.0,
                fill: float = 0.6) -> list[dict[str, float]]:
     """n steps log-spaced in [f_lo, f_hi] Hz at one crank radius, chosen so that the dynamic spring
