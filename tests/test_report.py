@@ -192,7 +192,15 @@ def _discrepancy_payload() -> dict[str, Any]:
                          "gap_after": 0.00051, "evidence": "p = 1e-30"}],
             "parameters_before": {"k_f": {"value": 2.8e7, "std": 1e3, "unit": "N/m", "identifiable": True}},
             "parameters_after": {"k_f": {"value": 2.91e7, "std": 1.1e3, "unit": "N/m", "identifiable": True}},
-            "unexplained": ["a line at 137 Hz in step 2"]}
+            "unexplained": ["a line at 137 Hz in step 2"],
+            "ties": [{"kind": "tie", "message": "coupling_compliance / channel_delay explain the data equally well",
+                      "candidates": [
+                          {"effects": ["coupling_compliance"], "chi2": 101.4,
+                           "k_f": {"value": 2.9e7, "std": 3e3, "unit": "N/m"},
+                           "b_f": {"value": 17136.0, "std": 4.0, "unit": "N*s/m"}},
+                          {"effects": ["channel_delay"], "chi2": 101.9,
+                           "k_f": {"value": 3.4e7, "std": 6e4, "unit": "N/m"},
+                           "b_f": {"value": 33541.0, "std": 64.0, "unit": "N*s/m"}}]}]}
 
 
 @pytest.mark.slow
@@ -202,7 +210,8 @@ def test_report_names_the_discrepancy_effects(sim_recording: Path, tmp_path: Pat
     write_results(rec_path, "discrepancy", copy.deepcopy(_discrepancy_payload()))
     page = render_report(rec_path)
     for text in ("coupling_compliance", "channel_delay", "a line at 137 Hz in step 2", "0.012 V", "5.1e-04 V",
-                 "not identifiable: b_c at its bound", "2.50e-05 ± 1.0e-06 s"):
+                 "not identifiable: b_c at its bound", "2.50e-05 ± 1.0e-06 s", "Ties: explanations the data do not",
+                 "coupling_compliance / channel_delay explain the data equally well"):
         assert text in page, text
     assert "<script>" not in page and "&lt;script&gt;" in page
     assert _cell(page, "disc.before.k_f")[1] == 2.8e7

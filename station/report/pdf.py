@@ -58,6 +58,7 @@ def summary_lines(d: RunData) -> list[str]:
                       f"{fmt_unc(d.discrepancy.get('final_gap'))} V; effects: "
                       + (", ".join(str(e.get("name")) for e in d.discrepancy.get("effects") or []) or "none")]
         lines += [f"  unexplained: {u}" for u in d.discrepancy.get("unexplained") or []]
+        lines += [f"  {t.get('kind', 'tie')}: {t.get('message', '')}" for t in d.discrepancy.get("ties") or []]
     lines += [f"note: {n}" for n in ident.get("notes") or []]
     lines += [f"check {c.get('severity')}: {c.get('name')}: {c.get('message')}" for c in ident.get("checks") or []]
     em = (ident.get("assumptions") or {}).get("end_mass_kg")
