@@ -34,7 +34,7 @@ import numpy as np
 
 from station.discrepancy.data import RigData
 from station.discrepancy.fit import ModelFit, fit_model
-from station.discrepancy.report import Candidate, Estimate, effect_estimates
+from station.discrepancy.report import ORDER_AMBIGUITY, Candidate, Estimate, effect_estimates
 from station.discrepancy.search import fit_candidate
 
 log = logging.getLogger(__name__)
@@ -145,16 +145,31 @@ def undetectable(final: ModelFit, last: Sequence[tuple[Candidate, ModelFit]]) ->
     return out
 
 
+def _with_orders(fit: ModelFit, weight: float) -> list[tuple[dict[str, float], dict[str, float], float]]:
+    """(values, stds, weight) of a model and of its low-pass orders that fit as well (chi^2 within
+    ``ORDER_AMBIGUITY`` B; their k_f, b_f with the model's uncertainties), each with the model's weight."""
+    out = [(fit.values, fit.std, weight)]
+    if "conditioner_lowpass" in fit.effects:
+        order = fit.effects["conditioner_lowpass"]
+        for o, chi2, kf, bf in fit.alternatives:
+            if o != order and chi2 - fit.chi2 < ORDER_AMBIGUITY * fit.birge:
+                out.append(({**fit.values, "k_f": kf, "b_f": bf}, fit.std, weight))
+    return out
+
+
 def averaged(final: ModelFit, ties: Sequence[Tie]) -> dict[str, Estimate]:
-    """S, k_f, b_f averaged over the final model and every model of the ties (module docstring)."""
-    models: list[tuple[ModelFit, float]] = [(final, 1.0)]
+    """S, k_f, b_f averaged over the final model and every model of the ties, each with its low-pass
+    orders that fit as well (module docstring)."""
+    models = _with_orders(final, 1.0)
     for t in ties:
-        models += [(m.fit, m.weight) for m in t.models if m.fit is not final]
-    w = np.array([m[1] for m in models])
+        for m in t.models:
+            if m.fit is not final:
+                models += _with_orders(m.fit, m.weight)
+    w = np.array([m[2] for m in models])
     out = {}
     for k, unit in AVERAGED:
-        mu = np.array([m[0].values[k] for m in models])
-        u = np.array([m[0].std[k] for m in models])
+        mu = np.array([m[0][k] for m in models])
+        u = np.array([m[1][k] for m in models])
         mean = float(np.sum(w * mu) / w.sum())
         out[k] = Estimate(mean, float(math.sqrt(np.sum(w * (u**2 + (mu - mean) ** 2)) / w.sum())), unit)
     return out

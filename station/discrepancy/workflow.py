@@ -202,8 +202,7 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
     ties += [t for e in added if e.tied for t in [tie_models(data, current, e.name, e.tied)] if t is not None]
     ties += undetectable(current, last)
     after = transducer_parameters(current)
-    if ties:
-        after.update(averaged(current, ties))
+    after.update(averaged(current, ties))
     before = transducer_parameters(base)
     if data.n_steps < 2:
         why = ("one step: its force fundamental gives 2 numbers for S, k_f and b_f (and a coupling); they are "
