@@ -81,6 +81,22 @@ class ModelFit:
         return max(1.0, self.chi2 / self.dof)
 
 
+_EIV: dict[int, tuple[RigData, FloatArray]] = {}
+
+
+def _whitening(data: RigData, Wf: FloatArray) -> FloatArray:
+    """``eiv.whitening`` once per data set (a frozen ``RigData``; every model and start point of a
+    recording's analysis shares it; the few most recent are kept)."""
+    hit = _EIV.get(id(data))
+    if hit is not None and hit[0] is data:
+        return hit[1]
+    E = whitening(data, Wf)
+    if len(_EIV) >= 4:
+        _EIV.clear()
+    _EIV[id(data)] = (data, E)
+    return E
+
+
 class Problem:
     """The residual function of one model on one data set (internal variables u, see catalogue)."""
 
@@ -99,7 +115,7 @@ class Problem:
         # the measured motion is the model's input, not data it is fitted to: no displacement rows
         self.valid_d = np.zeros(data.Rd.shape[:2], dtype=bool)
         # its noise enters the force rows (errors in variables); the same weights for every model
-        self.eiv = whitening(data, self.Wf)
+        self.eiv = _whitening(data, self.Wf)
 
     def to_value(self, q: Param, u: float) -> float:
         c, s = self.centre[q.name], self.scale[q.name]
