@@ -1,4 +1,4 @@
-"""The DAQ-bridge driver (thread-based; an asyncio adapter is provided).
+"""The DAQ-bridge driver (thread-based; asyncio callers wrap its blocking calls in a thread).
 
 A reader thread owns the link: it decodes the stream (:class:`StreamDecoder`), routes replies to
 the command in flight and queues stream events for the consumer.  Usage::
@@ -19,6 +19,9 @@ Events, in stream order: :class:`SampleBlock` (first_index, displacement int16[n
 
 Every command carries a tag (``#N``) that the bridge echoes in its reply; a reply with another tag
 (a late answer to a command that timed out) is dropped, never taken as the answer to a later one.
+
+(Just over 300 lines: one driver class, its command/reply matching and its reader thread share the
+link's state.)
 """
 
 from __future__ import annotations
