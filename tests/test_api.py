@@ -171,6 +171,13 @@ def test_plots_report_recording_and_discrepancy(daemon: Daemon, completed: dict)
     assert "has not been run" not in report and "Model discrepancy" in report
 
 
+def test_discrepancy_takes_zero_to_eight_effects_as_an_integer(daemon: Daemon, completed: dict) -> None:
+    c, rid = anon(daemon), completed["id"]
+    for bad in ("-1", "9", "true", "2.5"):
+        r = c.get(f"/runs/{rid}/discrepancy", params={"max_effects": bad})
+        assert r.status_code == 422 and "max_effects" in r.text, (bad, r.status_code, r.text)
+
+
 # ---------------------------------------------------------------------------------------- errors
 @pytest.mark.slow
 def test_writes_need_the_token(daemon: Daemon, completed: dict) -> None:
