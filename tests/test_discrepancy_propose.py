@@ -136,7 +136,8 @@ def test_without_the_station_configuration_nothing_is_proposed(tmp_path: Path) -
 
     from station.discrepancy.workflow import run_context
 
-    rec = read_recording(simulate_run(scenario_config({}, seed=4, n_steps=3, record_s=0.2, settle_s=0.05), tmp_path, seed=4))
+    cfg = scenario_config({}, seed=4, n_steps=3, record_s=0.2, settle_s=0.05)
+    rec = read_recording(simulate_run(cfg, tmp_path, seed=4))
     ctx = run_context(rec)
     assert ctx is not None and len(ctx.steps) == 3
     assert ctx.config.rig.crank_radius_m.max == pytest.approx(0.05)

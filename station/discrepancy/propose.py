@@ -246,6 +246,7 @@ def next_run(data: RigData, final: ModelFit, added: Sequence[Any], ctx: RunConte
             continue
         tied = [c.name for c in e.candidates if c.name != e.name and c.name not in final.effects
                 and c.p_value < alpha and named.delta_bic - c.delta_bic < margin]
+        tied += [t for t in getattr(e, "tied", ()) if t != e.name and t not in tied and t not in final.effects]
         if not tied:
             continue
         rest = {k: v for k, v in final.effects.items() if k != e.name}
