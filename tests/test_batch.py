@@ -97,6 +97,7 @@ def test_drift_rule_uses_the_history_scatter_when_it_exceeds_the_uncertainty() -
 
 # -- executors -------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_run_batch_gives_the_identification_results_in_order(history: dict, tmp_path: Path) -> None:
     bad = tmp_path / "garbage.h5"
     bad.write_text("not an HDF5 file")

@@ -134,6 +134,7 @@ def _add_sidebands(run_yaml: Path, steps: range, ratio: float, amp_V: float, see
         np.savetxt(f, d, delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
 
 
+@pytest.mark.slow
 def test_effect_outside_the_catalogue_is_unexplained_not_misnamed(tmp_path: Path) -> None:
     """Sidebands at f +- 0.4 f in steps 3-5 of an imported run: no catalogue name, located instead."""
     rng = np.random.default_rng(9)

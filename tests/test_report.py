@@ -218,6 +218,7 @@ def test_report_names_the_discrepancy_effects(sim_recording: Path, tmp_path: Pat
     assert _cell(page, "disc.after.k_f.u")[1] == 1.1e3
 
 
+@pytest.mark.slow
 def test_pdf_report(sim_recording: Path) -> None:
     pdf = render_report_pdf(sim_recording)
     assert pdf.startswith(b"%PDF") and pdf.rstrip().endswith(b"%%EOF")

@@ -82,6 +82,7 @@ def test_inprocess_daq_backend_streams_without_loss() -> None:
     assert summary.stats.samples_lost == 0
 
 
+@pytest.mark.slow
 def test_subprocess_rig_serves_both_devices() -> None:
     with SimRigProcess(seed=2) as proc:
         async def read_max() -> float:

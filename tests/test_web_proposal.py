@@ -61,6 +61,7 @@ def page(daemon: Daemon) -> Iterator[object]:
         assert errors == [], errors
 
 
+@pytest.mark.slow
 def test_proposal_of_an_unknown_run_is_404(daemon: Daemon) -> None:
     r = daemon.c().get("/runs/no-such-run/proposal")
     assert r.status_code == 404 and "detail" in r.json()
