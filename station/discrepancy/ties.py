@@ -147,14 +147,15 @@ def undetectable(final: ModelFit, last: Sequence[tuple[Candidate, ModelFit]]) ->
 
 def _with_orders(fit: ModelFit, weight: float) -> list[tuple[dict[str, float], dict[str, float], float]]:
     """(values, stds, weight) of a model and of its low-pass orders that fit as well (chi^2 within
-    ``ORDER_AMBIGUITY`` B; their k_f, b_f with the model's uncertainties), each with the model's weight."""
-    out = [(fit.values, fit.std, weight)]
+    ``ORDER_AMBIGUITY`` B; their k_f, b_f with the model's uncertainties); they share the model's
+    weight (one explanation, whose order the data do not fix, not several)."""
+    out = [(fit.values, fit.std)]
     if "conditioner_lowpass" in fit.effects:
         order = fit.effects["conditioner_lowpass"]
         for o, chi2, kf, bf in fit.alternatives:
             if o != order and chi2 - fit.chi2 < ORDER_AMBIGUITY * fit.birge:
-                out.append(({**fit.values, "k_f": kf, "b_f": bf}, fit.std, weight))
-    return out
+                out.append(({**fit.values, "k_f": kf, "b_f": bf}, fit.std))
+    return [(v, u, weight / len(out)) for v, u in out]
 
 
 def averaged(final: ModelFit, ties: Sequence[Tie]) -> dict[str, Estimate]:
