@@ -11,7 +11,10 @@ fundamental (delay, low-pass, coupling) can also be named as one another (a tie)
 counted as ``misnamed`` with the name given and the next run the report proposed
 (``proposal.steps``): the plan needed to separate that pair.
 
-Run: ``python bench/detection_limits.py [--seeds 10] [--levels 4] [--only NAME ...]``.
+Run: ``python bench/detection_limits.py [--seeds 10] [--levels 4] [--only NAME ...] [--start NAME=SIZE ...]``.
+The figures in docs/discrepancy.md: ``--levels 2`` in two groups, then ``--levels 2 --only channel_delay
+crank_harmonics transducer_nonlinearity --start channel_delay=1.5e-6 crank_harmonics=4
+transducer_nonlinearity=5e-5`` (each about 3-5 min on a loaded 2-core machine).
 """
 
 from __future__ import annotations
@@ -91,7 +94,13 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--levels", type=int, default=4)
     ap.add_argument("--only", nargs="*", default=None)
+    ap.add_argument("--start", nargs="*", default=[], metavar="EFFECT=SIZE",
+                    help="start size of an effect's ladder (e.g. channel_delay=1.5e-6)")
     args = ap.parse_args()
+    for item in args.start:
+        name, _, value = item.partition("=")
+        a = LADDERS[name]
+        LADDERS[name] = (a[0], a[1], float(value), a[3], a[4])
     names = args.only or list(LADDERS)
     walls: list[float] = []
     out = []
