@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 from collections.abc import Sequence
 
@@ -24,8 +25,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _single_threaded_blas() -> None:
+    """One BLAS/OpenMP thread unless the user chose otherwise: the station's linear algebra is many
+    small problems, for which a BLAS thread pool costs more than it gains (``bench/cli.py``: identify
+    0.67 s against 0.92 s of CPU on 2 cores).  Effective because the commands load numpy only when
+    they run, after this; worker processes inherit it."""
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns the exit code (2 for bad input, 1 for other failures)."""
+    _single_threaded_blas()
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
