@@ -171,6 +171,7 @@ def test_plots_report_recording_and_discrepancy(daemon: Daemon, completed: dict)
     assert "has not been run" not in report and "Model discrepancy" in report
 
 
+@pytest.mark.slow
 def test_discrepancy_takes_zero_to_eight_effects_as_an_integer(daemon: Daemon, completed: dict) -> None:
     c, rid = anon(daemon), completed["id"]
     for bad in ("-1", "9", "true", "2.5"):

@@ -33,6 +33,7 @@ def dominant_hz(x: np.ndarray, rate: float) -> float:
     return float(np.fft.rfftfreq(len(x), 1 / rate)[np.argmax(spec)])
 
 
+@pytest.mark.slow
 def test_both_channels_move_with_the_emulated_motor() -> None:
     with SimRig(seed=5, crank_radius_m=0.01) as rig:
         daq = DaqBridge()
