@@ -21,6 +21,7 @@ from drivers.motor import (
     RegisterTransport,
 )
 from drivers.sim import SimRig
+from drivers.sim.clock import VirtualClock
 
 FAST = LinkPolicy(timeout_s=0.3, retries=1, backoff_initial_s=0.05, reconnect_attempts=3)
 
@@ -47,16 +48,27 @@ async def connected(rig: SimRig, kind: str = "tcp") -> MotorController:
 
 
 @pytest.mark.parametrize("kind", ["tcp", "rtu", "inprocess"])
-def test_ramp_to_setpoint_and_back(rig: SimRig, kind: str) -> None:
+def test_ramp_to_setpoint_and_back(request: pytest.FixtureRequest, kind: str) -> None:
+    """Over Modbus TCP and RTU in real time; in-process on a virtual clock (the driver keeps the
+    rig's clock: its status stamps, its watchdog keeper and ``wait_for_speed`` run on it)."""
+    if kind == "inprocess":
+        clock = VirtualClock()
+        rig = SimRig(seed=2, wire=False, clock=clock).start()
+        request.addfinalizer(rig.close)
+    else:
+        rig = request.getfixturevalue("rig")
+
     async def run() -> None:
-        motor = await connected(rig, kind)
+        motor = MotorController(clock=rig.clock)
+        await motor.connect(transport(rig, kind))
+        clock = motor.clock
         await motor.start_watchdog(0.1)
         await motor.set_ramp(20.0)
         await motor.enable()
         await motor.set_frequency(10.0)
-        t0 = time.monotonic()
+        t0 = clock.monotonic()
         mid = await motor.read_status()
-        await asyncio.sleep(0.1)
+        await clock.asleep(0.1)
         mid2 = await motor.read_status()
         # ramping at 20 Hz/s (the emulator integrates exactly); each reading is known to within its
         # round trip, plus the 0.01 Hz register resolution
@@ -64,11 +76,15 @@ def test_ramp_to_setpoint_and_back(rig: SimRig, kind: str) -> None:
         assert mid2.actual_speed_hz - mid.actual_speed_hz == pytest.approx(20.0 * (mid2.time_s - mid.time_s),
                                                                            abs=slack)
         assert mid2.flags["ramping"] and not mid2.flags["at_setpoint"]
-        st = await motor.wait_for_speed(10.0, timeout_s=3.0)
-        assert 0.4 < time.monotonic() - t0 < 2.0
+        await motor.wait_for_speed(10.0, timeout_s=3.0)  # within the register's 0.01 Hz
+        assert 0.4 < clock.monotonic() - t0 < 2.0
+        await clock.asleep(0.05)  # at_setpoint is exact equality: one poll later it is there
+        st = await motor.read_status()
         assert st.flags["at_setpoint"] and st.flags["running"] and st.fault_code == 0
         await motor.stop()
-        down = await motor.wait_for_speed(0.0, timeout_s=3.0)
+        await motor.wait_for_speed(0.0, timeout_s=3.0)
+        await clock.asleep(0.05)
+        down = await motor.read_status()
         assert not down.flags["running"] and not down.flags["enabled"] and down.fault_code == 0
         assert rig.motor.snapshot().speed_hz == 0.0
         await motor.close()
