@@ -160,7 +160,8 @@ def test_plots_report_recording_and_discrepancy(daemon: Daemon, completed: dict)
     assert disc.status_code == 200, disc.text
     d = disc.json()
     assert set(d) == {"base_gap", "effects", "final_gap", "parameters_before", "parameters_after", "unexplained",
-                      "proposal"}
+                      "ties", "notes", "drive", "proposal"}
+    assert isinstance(d["ties"], list) and isinstance(d["notes"], list)
     assert d["final_gap"] <= d["base_gap"] + 1e-12
     again = c.get(f"/runs/{rid}/discrepancy")  # cached in the recording's results
     assert again.json() == d
