@@ -79,18 +79,18 @@ def merged(intervals: list[tuple[int, int]]) -> list[tuple[int, int]]:
 @pytest.mark.slow
 @pytest.mark.parametrize("rig_pty", [RigSource(paper_5kN_physics(), seed=7, crank_radius_m=0.01)],
                          indirect=True)
-def test_ten_seconds_of_20khz_rig_data_through_a_pty_without_loss(rig_pty) -> None:
+def test_four_seconds_of_20khz_rig_data_through_a_pty_without_loss(rig_pty) -> None:
     _, daq = rig_pty
     assert daq.identify().startswith("SINECAL,DAQ-BRIDGE-EMU")
     cfg = daq.configure(rate_hz=20_000, frame_samples=256)
     assert (cfg.rate_hz, cfg.frame_samples) == (20_000.0, 256)
     daq.start()
-    events = collect(daq, 10.0)
+    events = collect(daq, 4.0)  # longer streams: bench/daq_stream.py, tests/test_clock.py (virtual clock, 10 s)
     summary = daq.stop()
     events += drain(daq)
     blocks = [e for e in events if isinstance(e, SampleBlock)]
     assert [e for e in events if not isinstance(e, SampleBlock)] == []
-    assert summary.samples_sent >= 10 * 20_000 * 0.98
+    assert summary.samples_sent >= 4 * 20_000 * 0.98
     starts = np.array([b.first_index for b in blocks])
     ends = starts + np.array([b.count for b in blocks])
     assert starts[0] == 0 and np.array_equal(starts[1:], ends[:-1])  # contiguous, in order

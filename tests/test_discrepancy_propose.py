@@ -15,6 +15,7 @@ import pytest
 
 from drivers.rig.model import spring_force_per_acceleration
 from drivers.rig.params import CouplingCompliance, Transducer
+from drivers.sim.clock import VirtualClock
 from station.config import StationConfig, parse_config
 from station.discrepancy import analyse_recording
 from station.discrepancy.data import prepare
@@ -117,14 +118,16 @@ def test_the_proposed_run_resolves_the_coupling_delay_tie(tmp_path: Path) -> Non
 
 @pytest.mark.slow
 def test_the_proposed_run_resolves_the_tie_on_the_rig_path(tmp_path: Path) -> None:
-    """The same over the real rig path (``station calibrate --sim``: emulated motor over Modbus and
-    DAQ over a pseudo-terminal, the procedure, the HDF5 recording)."""
+    """The same over the rig path of ``station calibrate --sim`` (emulated motor and DAQ bridge, the
+    drivers, the procedure, the HDF5 recording, processing), in-process on the virtual clock; the
+    wire itself is covered by the real-time layer (tests/test_calibrate_e2e.py, the page's one-click
+    run in tests/test_web_proposal.py)."""
     cfg = tie_config(record_s=1.0, settle_s=0.3)
     rep = analyse_recording(simulate_run(cfg, tmp_path / "tie", seed=SEED))
     assert rep.proposal is not None and "coupling_compliance" in rep.proposal.separates
     req = RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg,
                      steps=[StepSpec(crank_frequency_hz=f, crank_radius_m=r) for f, r in rep.proposal.run_steps])
-    res = asyncio.run(run_and_identify(cfg, req, tmp_path / "rig", sim=True))
+    res = asyncio.run(run_and_identify(cfg, req, tmp_path / "rig", sim=True, sim_clock=VirtualClock()))
     assert res.outcome.exit_status == "completed", res.outcome
     after = analyse_recording(res.outcome.path)
     _truth_ok(after, cfg)
