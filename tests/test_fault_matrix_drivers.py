@@ -33,23 +33,9 @@ from drivers.motor import (
 from drivers.sim import SimRig
 from drivers.sim.daq_emulator import DaqEmulator
 from drivers.sim.pty import open_pty
+from tests.test_daq_stream import CounterSource
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-class CounterSource:
-    """Displacement = running sample counter (mod 2^16), force = its negative."""
-
-    def __init__(self) -> None:
-        self.k = 0
-
-    def configure(self, rate_hz: float, range_disp_V: float, range_force_V: float) -> None:
-        return None
-
-    def advance(self, n: int, f_end_hz: float) -> tuple[np.ndarray, np.ndarray]:
-        d = (np.arange(self.k, self.k + n) % 65536).astype(np.uint16).view(np.int16)
-        self.k += n
-        return d, (-d.astype(np.int32)).astype(np.int16)
 
 
 @pytest.fixture

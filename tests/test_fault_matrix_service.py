@@ -13,10 +13,9 @@ import json
 import os
 import socket
 import sqlite3
-import subprocess
 import threading
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +31,7 @@ from station.run.request import RunRequest
 from station.run.rig import ConnectedRig, connect
 from station.service.manager import RunManager
 from station.service.settings import ServiceSettings, build_settings
+from tests.disk_support import mounted_tmpfs
 from tests.test_service_support import FINAL, TOKEN, Daemon, daemon_config, run_body
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -269,17 +269,10 @@ def test_flood_during_a_run_loses_no_sample_and_big_bodies_are_refused_unread(tm
 
 # ---------------------------------------------------------------------------------------- row 3
 @pytest.fixture
-def small_disk(tmp_path: Path):
+def small_disk(tmp_path: Path) -> Iterator[Path]:
     """A real 24 MiB file system (tmpfs); needs root, as CI has."""
-    mnt = tmp_path / "disk"
-    mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=24m", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
-    try:
+    with mounted_tmpfs(tmp_path, 24) as mnt:
         yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=False)
 
 
 def _fill(path: Path) -> int:

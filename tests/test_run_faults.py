@@ -14,7 +14,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,7 @@ from station.recording import read_recording
 from station.run.procedure import Procedure, Progress
 from station.run.request import RunRequest, StepSpec, plan_run
 from station.run.rig import ConnectedRig, connect
+from tests.disk_support import mounted_tmpfs
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -259,17 +260,10 @@ def test_kill_9_leaves_a_readable_interrupted_file_and_the_watchdog_stops_the_mo
 
 
 @pytest.fixture
-def small_disk(tmp_path: Path):
+def small_disk(tmp_path: Path) -> Iterator[Path]:
     """A real 3 MiB file system (tmpfs); needs root, as CI has."""
-    mnt = tmp_path / "disk"
-    mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
-    try:
+    with mounted_tmpfs(tmp_path, 3) as mnt:
         yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=False)
 
 
 def test_full_disk_fails_the_run_keeps_the_samples_and_stops_the_motor(tmp_path: Path, small_disk: Path) -> None:
