@@ -9,6 +9,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from station.api.deps import RUN_ID_PATTERN
+from station.api.schemas import CheckOut, EstimateOut, _Out
 
 RunIdStr = Annotated[str, StringConstraints(pattern=RUN_ID_PATTERN)]
 
@@ -23,19 +24,6 @@ class CampaignRequest(BaseModel):
                                              "S from the end mass m_e")
     store: bool = Field(default=False, description="also store the result as /results/campaign in every run's "
                                                    "recording (its report then shows it); needs the bearer token")
-
-
-class _Out(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class CampaignParameterOut(_Out):
-    value: float | None = Field(description="estimate in `unit`; None when refused")
-    std: float | None = Field(description="combined standard uncertainty in `unit` (the budget's)")
-    unit: str
-    identifiable: bool
-    reason: str = ""
-    flag: str = Field(default="", description="'', 'poorly_determined' or 'conditional' (on the stated end mass)")
 
 
 class CovarianceOut(_Out):
@@ -79,15 +67,6 @@ class CampaignFitOut(_Out):
     inflated: bool = Field(description="uncertainties scaled by sqrt(chi2/dof)")
 
 
-class CheckOut(_Out):
-    name: str
-    severity: Literal["info", "warning", "refused"]
-    step: int | None
-    message: str
-    values: dict[str, Any] = Field(description="the numbers behind it; `recording`: the file a recording's own "
-                                   "check concerns")
-
-
 class BudgetOut(_Out):
     contributions: dict[str, float | None] = Field(description="standard uncertainty per source, in `unit`")
     combined: float
@@ -106,7 +85,7 @@ class CampaignOut(_Out):
     transducer_id: str
     runs: list[str]
     stored_as: str | None = Field(default=None, description="where the result was stored in each recording")
-    parameters: dict[str, CampaignParameterOut]
+    parameters: dict[str, EstimateOut]
     covariance: CovarianceOut
     recordings: list[CampaignRecordingOut]
     fit: CampaignFitOut

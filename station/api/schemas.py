@@ -100,24 +100,30 @@ class RunAccepted(_Out):
     links: RunLinks
 
 
-class ParameterOut(_Out):
-    name: str
-    value: float | None = Field(description="estimate in `unit`; None when not identifiable")
-    std: float | None = Field(description="standard uncertainty in `unit`")
+class EstimateOut(_Out):
+    """One identified quantity with its uncertainty (a single recording's or a campaign's)."""
+
+    value: float | None = Field(description="estimate in `unit`; None when not identifiable or refused")
+    std: float | None = Field(description="combined standard uncertainty in `unit` (the budget's)")
     unit: str
     identifiable: bool
     reason: str = ""
     flag: str = Field(default="", description="'', 'poorly_determined' or 'conditional' (on an assumption)")
 
 
+class ParameterOut(EstimateOut):
+    name: str
+
+
 class CheckOut(_Out):
     """A finding of the identification's input checks."""
 
     name: str
-    severity: str = Field(description="info, warning or refused")
+    severity: Literal["info", "warning", "refused"]
     step: int | None
     message: str
-    values: dict[str, Any]
+    values: dict[str, Any] = Field(description="the numbers behind it; `recording`: the file a recording's own "
+                                   "check concerns (campaigns)")
 
 
 class FitOut(_Out):
