@@ -6,29 +6,16 @@ Skipped only when /usr/bin/chromium is absent and CI is not set; under CI it mus
 
 from __future__ import annotations
 
-import os
 import re
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
 from tests.test_service_support import TOKEN, Daemon, run_body
+from tests.web_support import ARGS, CHROMIUM, sync_api
 
 pytestmark = pytest.mark.slow  # a real daemon, a real run and a real browser: the end-to-end layer
 
-CHROMIUM = Path("/usr/bin/chromium")
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-
-if not CHROMIUM.exists() and not os.environ.get("CI"):
-    pytest.skip("Debian's chromium is not installed (apt-get install chromium); CI runs this test",
-                allow_module_level=True)
-
-if os.environ.get("CI"):
-    from playwright import sync_api
-else:
-    sync_api = pytest.importorskip("playwright.sync_api")
 
 
 @pytest.fixture(scope="module")

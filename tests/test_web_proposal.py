@@ -8,30 +8,17 @@ Skipped only when /usr/bin/chromium is absent and CI is not set; under CI it mus
 
 from __future__ import annotations
 
-import os
 import re
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 import yaml
 
 from tests.test_service_support import TOKEN, Daemon, daemon_config
+from tests.web_support import ARGS, CHROMIUM, sync_api
 
-CHROMIUM = Path("/usr/bin/chromium")
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 K_F, B_F = 2.91e7, 17136.0  # the truth of config/sim-5kN.yaml (N/m, N*s/m)
 TIE_STEPS = (3.0, 5.036, 8.455, 14.193, 23.827, 40.0)
-
-if not CHROMIUM.exists() and not os.environ.get("CI"):
-    pytest.skip("Debian's chromium is not installed (apt-get install chromium); CI runs this test",
-                allow_module_level=True)
-
-if os.environ.get("CI"):
-    from playwright import sync_api
-else:
-    sync_api = pytest.importorskip("playwright.sync_api")
 
 
 @pytest.fixture(scope="module")
