@@ -166,6 +166,23 @@ def test_conditioner_lowpass_is_a_butterworth() -> None:
         pytest.approx(2**-0.5, rel=1e-6)
 
 
+def test_displacement_sensor_resonance_is_a_second_order_low_pass_on_the_displacement() -> None:
+    """The measured displacement is w_r^2/(w_r^2 - w^2 + 2j p w_r w) times the frame's (written out
+    here), the force channel untouched; the analytic small-signal response says the same."""
+    base = paper_5kN_physics(noise=False)
+    for fr, p in ((600.0, 0.3), (600.0, 1.0)):
+        res = rp.DisplacementResonance(resonance_hz=fr, damping=p)
+        ph = replace(base, effects=rp.Effects(displacement_resonance=res))
+        for f in (10.0, 40.0, 300.0):
+            ratio = measured_frf(ph, f, periods=20) / measured_frf(base, f, periods=20)
+            w, wr = 2 * np.pi * f, 2 * np.pi * fr
+            expected = (wr * wr - w * w + 2j * p * wr * w) / (wr * wr)  # force per measured displacement
+            assert abs(ratio / expected - 1) < 1e-6
+            analytic = force_signal_per_displacement(ph, np.array([f])) / force_signal_per_displacement(
+                base, np.array([f]))
+            assert abs(analytic[0] / expected - 1) < 1e-12
+
+
 def test_crank_harmonics_of_a_slider_crank() -> None:
     r, L, f = 0.01, 0.15, 5.0
     ph = paper_5kN_physics(rp.Effects(crank_harmonics=rp.CrankHarmonics(L)), noise=False)

@@ -127,6 +127,11 @@ def displacement_at(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> np
     return _series(coeffs, cs)[0]
 
 
+def displacement_and_slope(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """x_b(phi) in m and dx_b/dphi in m/rad (times the crank rate: the velocity)."""
+    return _series(coeffs, cs)
+
+
 def shift_angle(cs: tuple[np.ndarray, np.ndarray], delta: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
     """cos and sin of (phi - delta) from cs = (cos phi, sin phi); delta in rad, scalar or (n,)."""
     cd: np.ndarray | float

@@ -12,7 +12,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from drivers.rig.params import ConditionerLowpass, CouplingCompliance, RigPhysics, Transducer
+from drivers.rig.params import (
+    ConditionerLowpass,
+    CouplingCompliance,
+    DisplacementResonance,
+    RigPhysics,
+    Transducer,
+)
 
 
 @dataclass(frozen=True)
@@ -63,6 +69,14 @@ def lowpass_state_space(lp: ConditionerLowpass) -> StateSpace:
     return StateSpace(np.asarray(A), np.asarray(B).reshape(-1, 1), np.asarray(C))
 
 
+def sensor_resonance_state_space(res: DisplacementResonance) -> StateSpace:
+    """The displacement sensor's resonance x_m'' + 2 p w_r x_m' + w_r^2 x_m = w_r^2 x_b, state
+    [x_m, x_m'], input x_b (m), output x_m (m): ``DisplacementResonance.response`` as state space."""
+    w = 2.0 * np.pi * res.resonance_hz
+    A = np.array([[0.0, 1.0], [-w * w, -2.0 * res.damping * w]])
+    return StateSpace(A, np.array([[0.0], [w * w]]), np.array([[1.0, 0.0]]))
+
+
 def spring_force_per_acceleration(t: Transducer, coupling: CouplingCompliance | None,
                                   f_hz: np.ndarray) -> np.ndarray:
     """Analytic k_f*Z2/(s^2 X_b) in N/(m/s^2) at f_hz (paper Eq. 8, or Eq. 9 when coupling is None)."""
@@ -82,7 +96,8 @@ def spring_force_per_acceleration(t: Transducer, coupling: CouplingCompliance | 
 
 def force_signal_per_displacement(physics: RigPhysics, f_hz: np.ndarray) -> np.ndarray:
     """Analytic small-signal response of the recorded force voltage to the frame displacement,
-    in V/m, with every *linear* effect that is switched on (coupling, low-pass, channel delay).
+    in V/m, with every *linear* effect that is switched on (coupling, low-pass, channel delay,
+    the displacement sensor's resonance: force voltage per *measured* displacement).
 
     Nonlinear or additive effects (harmonics, nonlinearity, mains, drift) have no single-frequency
     transfer function and are not included.  The result is what a sine fit of the force-channel
@@ -99,4 +114,6 @@ def force_signal_per_displacement(physics: RigPhysics, f_hz: np.ndarray) -> np.n
         h = h * np.polyval(b, s) / np.polyval(a, s)
     if e.channel_delay is not None:
         h = h * np.exp(2j * np.pi * f * e.channel_delay.delay_s)
+    if e.displacement_resonance is not None:
+        h = h / e.displacement_resonance.response(f)
     return h

@@ -19,7 +19,7 @@ force ``k_f * Z2`` times the sensitivity: ``U = S * k_f * Z2``.  In the static l
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Annotated
+from typing import Annotated, Any
 
 from annotated_types import Ge, Gt, Le, MaxLen, MinLen
 
@@ -109,6 +109,28 @@ class ZeroDrift:
 
 
 @dataclass(frozen=True)
+class DisplacementResonance:
+    """The displacement sensor's own second-order resonance (e.g. a seismic or capacitive pick-up on
+    its mount): the measured frame displacement is x_m = H_s x_b with
+
+        H_s(j w) = w_r^2 / (w_r^2 - w^2 + 2 j p w_r w),   w_r = 2 pi resonance_hz,
+
+    damping p the damping ratio (dimensionless).  Flat (1) far below the resonance: +(f/f_r)^2
+    (1 - 2 p^2) in gain and -2 p f/f_r rad in phase to first order.  ``response`` is the one
+    definition the simulator and the station's measurement chain both use."""
+
+    resonance_hz: Annotated[float, Gt(0), Le(1e6)]
+    damping: Annotated[float, Ge(0), Le(10)] = 0.0
+
+    def response(self, f_hz: Any) -> Any:
+        """H_s at f_hz (Hz, scalar or array): measured over true displacement, complex."""
+        import numpy as np
+
+        r = np.asarray(f_hz, dtype=float) / self.resonance_hz
+        return 1.0 / (1.0 - r * r + 2j * self.damping * r)
+
+
+@dataclass(frozen=True)
 class Effects:
     """The catalogue of effects; each is off (None) by default and they compose freely."""
 
@@ -119,6 +141,7 @@ class Effects:
     transducer_nonlinearity: TransducerNonlinearity | None = None
     mains_interference: MainsInterference | None = None
     zero_drift: ZeroDrift | None = None
+    displacement_resonance: DisplacementResonance | None = None
 
     def active(self) -> list[str]:
         """Names of the effects that are switched on."""
@@ -133,6 +156,7 @@ EFFECT_NAMES: tuple[str, ...] = (
     "transducer_nonlinearity",
     "mains_interference",
     "zero_drift",
+    "displacement_resonance",
 )
 
 

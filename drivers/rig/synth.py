@@ -5,7 +5,9 @@ Signal chain per sample k (t_k = k / fs):
     acceleration, jerk (``crank``) -> mechanical chain (paper Eq. 3, exact Hermite discretisation)
     -> spring force F = k_f Z2 -> transducer output S*F*(1 + q F/C + c (F/C)^2) -> conditioner
     low-pass -> gain, offset, drift, mains, noise -> force ADC;
-    x_b (sampled ``channel_delay`` earlier) -> displacement sensor gain + noise -> displacement ADC.
+    x_b (sampled ``channel_delay`` earlier) -> the displacement sensor's own resonance
+    (``displacement_resonance``, a second-order low-pass integrated exactly like the mechanics)
+    -> displacement sensor gain + noise -> displacement ADC.
 
 Every effect is off unless configured (``params.Effects``).  Blocks may have any length; the
 result does not depend on how a run is cut into blocks except for the noise draws.
@@ -19,7 +21,7 @@ import numpy as np
 
 from drivers.rig import crank
 from drivers.rig.discretize import FilterBank, hermite_discretize
-from drivers.rig.model import lowpass_state_space, mechanical_state_space
+from drivers.rig.model import lowpass_state_space, mechanical_state_space, sensor_resonance_state_space
 from drivers.rig.params import MainsInterference, RigPhysics
 
 
@@ -68,6 +70,11 @@ class RigSynth:
             F0 = -physics.transducer.total_mass_kg * g
             lp = hermite_discretize(lowpass_state_space(eff.conditioner_lowpass), self._T)
             self._lowpass = FilterBank(lp, u0=float(self._transducer_output(np.array([F0]))[0]))
+        self._sensor: FilterBank | None = None
+        if eff.displacement_resonance is not None:
+            x0 = crank.displacement_at(self._coeffs, (np.array([np.cos(self._phi)]), np.array([np.sin(self._phi)])))
+            self._sensor = FilterBank(hermite_discretize(sensor_resonance_state_space(eff.displacement_resonance),
+                                                         self._T), u0=float(x0[0]))
         disp_seq, force_seq = np.random.SeedSequence(seed).spawn(2)
         self._rng_disp = np.random.default_rng(disp_seq)
         self._rng_force = np.random.default_rng(force_seq)
@@ -155,9 +162,14 @@ class RigSynth:
             force_V += self._rng_force.standard_normal(n) * cond.noise_V
 
         x = kin.displacement
+        cs_x = cs
         if eff.channel_delay is not None:
             d = eff.channel_delay.delay_s
-            x = crank.displacement_at(self._coeffs, crank.shift_angle(cs, omega * d - 0.5 * alpha * d * d))
+            cs_x = crank.shift_angle(cs, omega * d - 0.5 * alpha * d * d)
+            x = crank.displacement_at(self._coeffs, cs_x)
+        if self._sensor is not None:
+            x, dx_dphi = crank.displacement_and_slope(self._coeffs, cs_x)
+            x = self._sensor.run(x, dx_dphi * omega)[0]
         sens = ph.displacement_sensor
         disp_V = sens.gain_V_per_m * x
         if sens.noise_m > 0:

@@ -14,9 +14,10 @@ import numpy as np
 from drivers.rig.params import EFFECT_NAMES
 from station.discrepancy.data import RigData
 
-# the effects the force model can name; the crank harmonics are not among them: the model takes the
-# frame motion as recorded, and ``drive`` checks it against the slider crank
-CATALOGUE: tuple[str, ...] = tuple(e for e in EFFECT_NAMES if e != "crank_harmonics")
+# the effects the force model can name; the crank harmonics are not among them (the model takes the
+# frame motion as recorded, and ``drive`` checks it against the slider crank), nor yet the
+# displacement sensor's resonance
+CATALOGUE: tuple[str, ...] = tuple(e for e in EFFECT_NAMES if e not in ("crank_harmonics", "displacement_resonance"))
 LOWPASS_ORDERS: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8)
 
 
