@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Annotated, Any, get_type_hints
+from typing import Annotated, Any, Literal, get_type_hints
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -158,6 +158,9 @@ class DevicesConfig(_Model):
                            "modbus-rtu:///dev/ttyX?baudrate=115200")
     motor_device_id: int = Field(default=1, ge=1, le=247)
     daq_port: str = Field(default="/dev/ttyACM0", min_length=1)
+    daq_link: Literal["uart", "usb-cdc"] = Field(
+        default="uart", description="uart: the baud rate bounds the stream (checked here); usb-cdc: the "
+        "bridge's own USB port, checked at connect against the throughput the bridge reports")
     daq_baudrate: int = Field(default=3_000_000, ge=9600, le=50_000_000)
     crank_radius_m: float = Field(default=0.01, gt=0, le=1.0,
                                   description="radius the crank is set to by hand (real rig)")
@@ -205,6 +208,8 @@ class StationConfig(_Model):
     def _daq_link_budget(self) -> StationConfig:
         """devices.daq_baudrate must carry daq.sample_rate_hz x 2 channels even if SLIP escaped every
         byte (drivers.daq.protocol.link_budget; docs/daq-protocol.md, link budget)."""
+        if self.devices.daq_link != "uart":
+            return self  # a USB-CDC link ignores the baud rate: checked at connect (drivers.daq.bridge)
         budget = link_budget(self.daq.sample_rate_hz, self.devices.daq_baudrate)
         if not budget.ok:
             raise ValueError(f"devices.daq_baudrate / daq.sample_rate_hz: {budget.message()}")

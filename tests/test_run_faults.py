@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 import yaml
@@ -97,6 +98,10 @@ def test_completed_run_records_every_step(tmp_path: Path, wire: bool) -> None:
     assert stop["exit_status"] == "completed"
     step_doc = [d for d in rec.documents if d["kind"] == "step"][1]
     assert step_doc["units"]["crank_frequency_hz"] == "Hz" and "crank_angle_rad_at_start" in step_doc
+    with h5py.File(outcome.path, "r") as f:  # the bridge as it reported itself at connect
+        attrs = f["raw"].attrs
+        assert (attrs["daq_adc"], attrs["daq_link"], attrs["daq_channels"]) == ("EMULATED", "uart", "disp,force")
+        assert attrs["sample_rate_requested_hz"] == attrs["sample_rate_hz"] == 20_000.0
     for st in rec.steps:  # each window holds a steady sine at the step's frequency
         d, _ = rec.step_signals(st)
         spec = np.abs(np.fft.rfft(d - d.mean()))

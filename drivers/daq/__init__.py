@@ -4,6 +4,7 @@ from drivers.daq.bridge import (
     DaqBridge,
     DaqCommandError,
     DaqConfig,
+    DaqHardware,
     DaqLinkBudgetError,
     DaqTimeoutError,
     StreamEvent,
@@ -18,7 +19,9 @@ from drivers.daq.protocol import (
     SampleBlock,
     SampleGap,
     StreamDecoder,
+    UsbLinkBudget,
     link_budget,
+    usb_link_budget,
 )
 
 __all__ = [
@@ -26,6 +29,7 @@ __all__ = [
     "DaqBridge",
     "DaqCommandError",
     "DaqConfig",
+    "DaqHardware",
     "DaqLinkBudgetError",
     "DaqLinkError",
     "DaqTimeoutError",
@@ -40,5 +44,7 @@ __all__ = [
     "StreamEvent",
     "StreamStalled",
     "StreamSummary",
+    "UsbLinkBudget",
     "link_budget",
+    "usb_link_budget",
 ]

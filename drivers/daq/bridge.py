@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from drivers.daq.link import ByteLink, DaqLinkError
 from drivers.daq.protocol import (
     DEFAULT_FRAME_SAMPLES,
+    LINK_KINDS,
     DecoderStats,
     FrameError,
     Reply,
@@ -45,6 +46,7 @@ from drivers.daq.protocol import (
     encode_command,
     link_budget,
     split_tag,
+    usb_link_budget,
 )
 
 log = logging.getLogger(__name__)
@@ -72,12 +74,63 @@ class StreamStalled:
 
 @dataclass(frozen=True)
 class DaqConfig:
-    """Effective bridge configuration: rate in Hz, samples per frame, ADC ranges +-V."""
+    """Effective bridge configuration: ``rate_hz`` is the sample rate the ADC actually delivers
+    (``rate_exact``, Hz per channel), ``rate_requested_hz`` the one asked for; samples per frame;
+    ADC ranges +-V."""
 
     rate_hz: float
     frame_samples: int
     range_disp_V: float
     range_force_V: float
+    rate_requested_hz: float
+
+
+@dataclass(frozen=True)
+class DaqHardware:
+    """What the bridge reports of itself at connect (``IDN?`` and ``HW?``).
+
+    ``adc``: the converter's part name; ``adc_bits``: its resolution (the frames carry 16-bit codes);
+    ``channels``: in frame order; ``adc_clock_hz``: its master clock; ``rate_min_hz``/``rate_max_hz``:
+    the rates it can be configured to; ``link``: ``uart`` or ``usb-cdc``; ``link_bytes_per_s``: the
+    throughput the bridge sustains to the host (required for ``usb-cdc``, None if not reported)."""
+
+    identity: str
+    adc: str
+    adc_bits: int
+    channels: tuple[str, ...]
+    adc_clock_hz: float
+    rate_min_hz: float
+    rate_max_hz: float
+    link: str
+    link_bytes_per_s: float | None
+
+    def as_attrs(self) -> dict[str, str | float | int]:
+        """Flat attributes for a recording (units in the names)."""
+        return {"daq_identity": self.identity, "daq_adc": self.adc, "daq_adc_bits": self.adc_bits,
+                "daq_channels": ",".join(self.channels), "daq_adc_clock_hz": self.adc_clock_hz,
+                "daq_rate_min_hz": self.rate_min_hz, "daq_rate_max_hz": self.rate_max_hz,
+                "daq_link": self.link,
+                "daq_link_bytes_per_s": float("nan") if self.link_bytes_per_s is None else self.link_bytes_per_s}
+
+
+def parse_hardware(identity: str, reply: str) -> DaqHardware:
+    """The ``HW?`` reply text (``OK HW adc=... bits=... ...``) -> :class:`DaqHardware`; DaqCommandError
+    naming the key that is missing or malformed."""
+    kv = _parse_kv(reply)
+    try:
+        link = kv["link"]
+        if link not in LINK_KINDS:
+            raise ValueError(f"link={link!r} (expected {' or '.join(LINK_KINDS)})")
+        lbps = float(kv["link_bytes_per_s"]) if "link_bytes_per_s" in kv else None
+        if link == "usb-cdc" and (lbps is None or not lbps > 0):
+            raise ValueError("link=usb-cdc without a positive link_bytes_per_s")
+        hw = DaqHardware(identity, kv["adc"], int(kv["bits"]), tuple(kv["channels"].split(",")),
+                         float(kv["clock_hz"]), float(kv["rate_min"]), float(kv["rate_max"]), link, lbps)
+    except (KeyError, ValueError) as exc:
+        raise DaqCommandError(f"HW? reply: expected adc=, bits=, channels=, clock_hz=, rate_min=, rate_max=, "
+                              f"link=uart|usb-cdc (and link_bytes_per_s= for usb-cdc), got {reply!r}: "
+                              f"{exc}") from exc
+    return hw
 
 
 @dataclass(frozen=True)
@@ -111,6 +164,7 @@ class DaqBridge:
         self.read_interval_s = read_interval_s
         self.decoder = StreamDecoder()
         self.config: DaqConfig | None = None
+        self.hardware: DaqHardware | None = None
         self.link_error: DaqLinkError | None = None
         self._link: ByteLink | None = None
         self._events: queue.Queue[StreamEvent | _LinkLost] = queue.Queue()
@@ -142,6 +196,7 @@ class DaqBridge:
         if reset:
             try:
                 self.reset(timeout_s=reset_timeout_s)
+                self.hardware = self.read_hardware()
             except BaseException:
                 self.close()  # no reader thread or open port left behind
                 raise
@@ -238,6 +293,32 @@ class DaqBridge:
         """Identity string of the bridge (vendor, model, serial, firmware)."""
         return self.command("IDN?")[3:]
 
+    def read_hardware(self) -> DaqHardware:
+        """``IDN?`` and ``HW?``: the bridge's ADC, resolution, channels, clock, rates and link."""
+        return parse_hardware(self.identify(), self.command("HW?"))
+
+    def _check_budget(self, rate_hz: float, frame_samples: int) -> None:
+        """Refuse (DaqLinkBudgetError) a rate the link cannot carry in the worst case: a UART by its baud
+        rate, a USB-CDC port by the throughput the bridge reports."""
+        kind = getattr(self._link, "kind", None)
+        hw = self.hardware
+        if kind is not None and hw is not None and hw.link != kind:
+            raise DaqLinkBudgetError(f"DAQ link kind: the station is configured for {kind}, the bridge "
+                                     f"reports link={hw.link} (HW?): expected the same kind")
+        if kind == "usb-cdc":
+            if hw is None or hw.link_bytes_per_s is None:
+                raise DaqLinkBudgetError("a usb-cdc DAQ link is checked against the throughput the bridge "
+                                         "reports (HW? link_bytes_per_s=): expected it, got none")
+            usb = usb_link_budget(rate_hz, hw.link_bytes_per_s, frame_samples)
+            if not usb.ok:
+                raise DaqLinkBudgetError(usb.message())
+            return
+        baud = getattr(self._link, "baudrate", None)
+        if isinstance(baud, int):
+            budget = link_budget(rate_hz, baud, frame_samples)
+            if not budget.ok:
+                raise DaqLinkBudgetError(budget.message())
+
     def configure(self, *, rate_hz: float = 20_000.0, frame_samples: int = DEFAULT_FRAME_SAMPLES,
                   range_disp_V: float = 10.0, range_force_V: float = 10.0,
                   check_link_budget: bool = True) -> DaqConfig:
@@ -247,20 +328,24 @@ class DaqBridge:
         case (:func:`~drivers.daq.protocol.link_budget`) is refused before anything is sent
         (:class:`DaqLinkBudgetError`); ``check_link_budget=False`` is for benches that measure beyond.
         """
-        baud = getattr(self._link, "baudrate", None)
-        if check_link_budget and isinstance(baud, int):
-            budget = link_budget(rate_hz, baud, frame_samples)
-            if not budget.ok:
-                raise DaqLinkBudgetError(budget.message())
+        if check_link_budget:
+            self._check_budget(rate_hz, frame_samples)
         kv = _parse_kv(self.command(f"CONF rate={rate_hz:g} frame={frame_samples} "
                                     f"range_disp={range_disp_V:g} "
                                     f"range_force={range_force_V:g} channels=disp,force"))
         try:
-            self.config = DaqConfig(float(kv["rate"]), int(kv["frame"]), float(kv["range_disp"]),
-                                    float(kv["range_force"]))
+            asked = float(kv["rate"])
+            exact = float(kv.get("rate_exact", kv["rate"]))  # a bridge without rate_exact: its rate is exact
+            config = DaqConfig(exact, int(kv["frame"]), float(kv["range_disp"]), float(kv["range_force"]), asked)
         except (KeyError, ValueError) as exc:
             raise DaqCommandError(
-                f"CONF reply: expected rate=, frame=, range_disp=, range_force=, got {kv}") from exc
+                f"CONF reply: expected rate=, rate_exact=, frame=, range_disp=, range_force=, got {kv}") from exc
+        if not abs(exact - asked) <= 0.01 * asked:
+            raise DaqCommandError(f"CONF reply: the ADC delivers rate_exact={exact:g} Hz for rate={asked:g} Hz: "
+                                  "expected within 1 %")
+        if check_link_budget and exact > rate_hz:
+            self._check_budget(exact, frame_samples)
+        self.config = config
         return self.config
 
     def status(self) -> dict[str, str]:

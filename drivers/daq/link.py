@@ -8,6 +8,8 @@ from typing import Protocol
 
 import serial
 
+from drivers.daq.protocol import LINK_KINDS
+
 
 class DaqLinkError(ConnectionError):
     """The link to the bridge is lost (port closed, device unplugged, read/write failure)."""
@@ -26,14 +28,21 @@ class ByteLink(Protocol):
 
 
 class SerialLink:
-    """pyserial port; ``read`` drains continuously for up to ``timeout_s`` (batched reads)."""
+    """pyserial port; ``read`` drains continuously for up to ``timeout_s`` (batched reads).
 
-    def __init__(self, port: str, *, baudrate: int = 3_000_000) -> None:
+    ``kind``: ``"uart"`` (a UART, also behind a USB-serial adapter: ``baudrate`` is the line's rate and
+    bounds the stream) or ``"usb-cdc"`` (the bridge's own USB port: the baud rate is ignored by the
+    device and the stream is bounded by the throughput the bridge reports)."""
+
+    def __init__(self, port: str, *, baudrate: int = 3_000_000, kind: str = "uart") -> None:
+        if kind not in LINK_KINDS:
+            raise ValueError(f"DAQ link kind: expected one of {', '.join(LINK_KINDS)}, got {kind!r}")
+        self.kind = kind
         try:
             self._ser = serial.Serial(port, baudrate=baudrate, timeout=0.02, write_timeout=1.0)
         except (serial.SerialException, OSError) as exc:
             raise DaqLinkError(f"cannot open DAQ bridge port {port}: {exc}") from exc
-        self.description = f"serial {port} @ {baudrate} Bd"
+        self.description = f"serial {port} @ {baudrate} Bd" if kind == "uart" else f"usb-cdc {port}"
         self.baudrate = baudrate
 
     def read(self, max_bytes: int, timeout_s: float) -> bytes:

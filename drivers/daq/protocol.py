@@ -46,6 +46,9 @@ MAX_TAG_CHARS = 16
 
 DEFAULT_FRAME_SAMPLES = 256  # samples per channel per frame the station configures
 BITS_PER_CHAR = 10  # the DAQ serial link is 8N1: start bit, 8 data bits, stop bit
+# a UART (the budget is the host port's baud rate) or a native USB-CDC port (the baud rate is
+# ignored; the budget is the throughput the bridge reports in its HW? reply)
+LINK_KINDS = ("uart", "usb-cdc")
 
 
 @dataclass(frozen=True)
@@ -83,6 +86,46 @@ class LinkBudget:
                 f"{BITS_PER_CHAR} bits per byte; {self.nominal_baud:,.0f} Bd without escapes), "
                 f"received {self.baudrate} Bd; largest rate at {self.baudrate} Bd: "
                 f"{self.rate_hz * self.margin:,.0f} Hz")
+
+
+@dataclass(frozen=True)
+class UsbLinkBudget:
+    """Can a USB-CDC link that sustains ``capacity_bytes_per_s`` (the bridge's own figure, ``HW?``)
+    carry ``rate_hz`` x 2 channels?  A CDC link has no baud rate and no start/stop bits: the budget
+    is bytes per second, worst case (every byte escaped) as for a UART.  ``rate_hz`` is the rate the
+    bridge's ADC actually delivers (``rate_exact``)."""
+
+    rate_hz: float
+    frame_samples: int
+    capacity_bytes_per_s: float
+    frame_bytes: int
+    worst_wire_bytes: int
+    required_bytes_per_s: float
+
+    @property
+    def margin(self) -> float:
+        return self.capacity_bytes_per_s / self.required_bytes_per_s
+
+    @property
+    def ok(self) -> bool:
+        return self.margin >= 1.0
+
+    def message(self) -> str:
+        return (f"a USB-CDC DAQ link sustaining {self.capacity_bytes_per_s:,.0f} B/s (as the bridge reports) "
+                f"cannot carry {self.rate_hz:g} Hz x 2 channels: expected at least "
+                f"{self.required_bytes_per_s:,.0f} B/s (frames of {self.frame_samples} samples = "
+                f"{self.frame_bytes} bytes, {self.worst_wire_bytes} on the wire if SLIP escapes every byte), "
+                f"received {self.capacity_bytes_per_s:,.0f} B/s; largest rate: "
+                f"{self.rate_hz * self.margin:,.0f} Hz")
+
+
+def usb_link_budget(rate_hz: float, capacity_bytes_per_s: float,
+                    frame_samples: int = DEFAULT_FRAME_SAMPLES) -> UsbLinkBudget:
+    """The :class:`UsbLinkBudget` of a configuration (rate in Hz per channel, capacity in B/s)."""
+    frame_bytes = SAMPLE_HEADER.size + 4 * frame_samples + CRC_SIZE
+    worst = 2 * frame_bytes + 2
+    return UsbLinkBudget(rate_hz, frame_samples, capacity_bytes_per_s, frame_bytes, worst,
+                         rate_hz / frame_samples * worst)
 
 
 def link_budget(rate_hz: float, baudrate: int, frame_samples: int = DEFAULT_FRAME_SAMPLES) -> LinkBudget:

@@ -55,8 +55,16 @@ class DaqEmulator:
 
     def __init__(self, fd: int | None, source: SampleSource, speed_hz: Callable[[], float], *,
                  seed: int = 0, fifo_bytes: int = 1 << 20, tick_s: float = 0.005,
-                 on_close: Callable[[], None] | None = None, clock: Clock = REAL_CLOCK) -> None:
+                 on_close: Callable[[], None] | None = None, clock: Clock = REAL_CLOCK,
+                 adc_clock_hz: float | None = None, link: str = "uart",
+                 link_bytes_per_s: float | None = None) -> None:
+        """``adc_clock_hz``: the emulated ADC's rate is ``adc_clock_hz / N`` for a whole N (the
+        achievable rate nearest the asked one, reported as ``rate_exact``); None: every rate is exact.
+        ``link``/``link_bytes_per_s``: what ``HW?`` reports (``usb-cdc`` needs the throughput)."""
         self.fd = -1 if fd is None else fd
+        self.adc_clock_hz = adc_clock_hz
+        self.link = link
+        self.link_bytes_per_s = link_bytes_per_s
         self.clock = clock
         self.source = source
         self.speed_hz = speed_hz
@@ -64,8 +72,8 @@ class DaqEmulator:
         self.fifo_bytes = fifo_bytes
         self._on_close = on_close
         self._rng = np.random.default_rng(seed)
-        self.config: dict[str, str] = {"rate": "20000", "frame": "256", "range_disp": "10",
-                                       "range_force": "10", "channels": "disp,force"}
+        self.config: dict[str, str] = {"rate": "20000", "rate_exact": self._exact_text(20000.0), "frame": "256",
+                                       "range_disp": "10", "range_force": "10", "channels": "disp,force"}
         self._lock = threading.Lock()
         self._out = bytearray()
         self._cmd_buf = b""
@@ -177,6 +185,11 @@ class DaqEmulator:
         cmd, args = words[0].upper(), words[1:]
         if cmd == "IDN?":
             return f"OK {IDENTITY}"
+        if cmd == "HW?":
+            clock = self.adc_clock_hz if self.adc_clock_hz is not None else RATE_LIMITS_HZ[1]
+            text = (f"OK HW adc=EMULATED bits=16 channels=disp,force clock_hz={clock:g} "
+                    f"rate_min={RATE_LIMITS_HZ[0]:g} rate_max={RATE_LIMITS_HZ[1]:g} link={self.link}")
+            return text + ("" if self.link_bytes_per_s is None else f" link_bytes_per_s={self.link_bytes_per_s:g}")
         if cmd == "STAT?":
             state = "streaming" if self.streaming else "idle"
             return f"OK STAT state={state} frames={self.seq} overflows={self.overflows} " + self._conf_text()
@@ -198,11 +211,20 @@ class DaqEmulator:
             self.streaming = False
             return f"OK STOP frames={self.seq} samples={self.seq * int(self.config['frame'])}" + (
                 "" if was else " (was idle)")
-        return f"ERR 1 unknown command {cmd!r}: expected IDN?, CONF, START, STOP or STAT?"
+        return f"ERR 1 unknown command {cmd!r}: expected IDN?, HW?, CONF, START, STOP or STAT?"
+
+    def _exact_rate(self, rate: float) -> float:
+        """The achievable rate nearest ``rate`` (Hz): ``adc_clock_hz / N``, or ``rate`` without a clock."""
+        if self.adc_clock_hz is None:
+            return rate
+        return self.adc_clock_hz / max(1, round(self.adc_clock_hz / rate))
+
+    def _exact_text(self, rate: float) -> str:
+        return f"{self._exact_rate(rate):.10g}"
 
     def _configure_source(self) -> None:
         c = self.config
-        key = (float(c["rate"]), float(c["range_disp"]), float(c["range_force"]))
+        key = (float(c["rate_exact"]), float(c["range_disp"]), float(c["range_force"]))
         if key != getattr(self, "_source_key", None):
             self.source.configure(*key)
             self._source_key = key
@@ -216,8 +238,9 @@ class DaqEmulator:
         new = dict(self.config)
         for arg in args:
             key, sep, value = arg.partition("=")
-            if not sep or key not in new:
-                return f"ERR 2 bad argument {arg!r}: expected key=value with key in {', '.join(new)}"
+            if not sep or key not in new or key == "rate_exact":
+                keys = ", ".join(k for k in new if k != "rate_exact")
+                return f"ERR 2 bad argument {arg!r}: expected key=value with key in {keys}"
             try:
                 if key == "rate":
                     ok = RATE_LIMITS_HZ[0] <= float(value) <= RATE_LIMITS_HZ[1]
@@ -234,9 +257,13 @@ class DaqEmulator:
                     ok, lim = value == "disp,force", "disp,force"
             except ValueError:
                 ok, lim = False, "a number"
+            if ok and key == "rate" and abs(self._exact_rate(float(value)) - float(value)) > 0.01 * float(value):
+                ok, lim = False, f"a rate within 1 % of {self.adc_clock_hz:g} Hz / N"
             if not ok:
                 return f"ERR 2 bad value for {key}: expected {lim}, got {value!r}"
             new[key] = value
+            if key == "rate":
+                new["rate_exact"] = self._exact_text(float(value))
         self.config = new
         self._configure_source()
         return f"OK CONF {self._conf_text()}"
@@ -278,7 +305,7 @@ class DaqEmulator:
     # ------------------------------------------------------------------ streaming
     def _produce(self, now: float) -> None:
         frame = int(self.config["frame"])
-        due = int((now - self._t0) * float(self.config["rate"]))
+        due = int((now - self._t0) * float(self.config["rate_exact"]))
         if not self.streaming:  # keep the physics running with the motor; samples are discarded
             if due - self._produced >= frame:
                 n = due - self._produced

@@ -15,6 +15,7 @@ import logging
 import os
 import shutil
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -70,6 +71,11 @@ class RunMetadata:
     sensitivity_V_per_N: float
     capacity_N: float
     config_yaml: str
+    # the DAQ bridge as it reported itself at connect (adc, resolution, channels, clock, link; see
+    # drivers.daq.DaqHardware.as_attrs) and the sample rate asked of it (``sample_rate_hz`` is the
+    # rate its ADC delivers)
+    daq_hardware: Mapping[str, str | float | int] | None = None
+    sample_rate_requested_hz: float | None = None
 
 
 def new_run_id(transducer_id: str) -> str:
@@ -132,6 +138,10 @@ class RecordingWriter:
         f["config"].attrs["encoding"] = "utf-8 YAML"
         raw = f.create_group("raw")
         raw.attrs.update({"sample_rate_hz": meta.sample_rate_hz, "units_of_time": "s"})
+        if meta.sample_rate_requested_hz is not None:
+            raw.attrs["sample_rate_requested_hz"] = meta.sample_rate_requested_hz
+        if meta.daq_hardware is not None:
+            raw.attrs.update(dict(meta.daq_hardware))
         self._raw = []
         for ch in channels:
             d = raw.create_dataset(ch.name, shape=(0,), maxshape=(None,), dtype=ch.dtype,

@@ -205,7 +205,9 @@ class Procedure:
             sample_rate_hz=daq_cfg.rate_hz, load_mass_kg=cfg.rig.load_mass_kg,
             end_mass_kg=cfg.transducer.end_mass_kg,
             sensitivity_V_per_N=cfg.transducer.sensitivity_V_per_N * cfg.conditioner.gain,
-            capacity_N=cfg.transducer.capacity_N, config_yaml=config_to_yaml(cfg))
+            capacity_N=cfg.transducer.capacity_N, config_yaml=config_to_yaml(cfg),
+            daq_hardware=None if daq.hardware is None else daq.hardware.as_attrs(),
+            sample_rate_requested_hz=daq_cfg.rate_requested_hz)
         specs = channel_specs(cfg.displacement_sensor.gain_V_per_m, lsb * daq_cfg.range_disp_V,
                               lsb * daq_cfg.range_force_V)
         writer = RecordingWriter(self.out_dir, meta, specs, plan=self.plan.to_dict(),

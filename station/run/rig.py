@@ -83,13 +83,14 @@ async def _connect_drivers(motor_transport: RegisterTransport, open_daq: Callabl
     daq = DaqBridge()
     try:
         daq.connect(open_daq())  # stops a stream left running, drains, checks idle
-        ident = daq.identify()
+        hw = daq.hardware or daq.read_hardware()
     except BaseException:
         daq.close()
         with contextlib.suppress(Exception):
             await motor.close()
         raise
-    log.info("DAQ bridge: %s", ident)
+    log.info("DAQ bridge: %s; %s, %d bits, channels %s, link %s", hw.identity, hw.adc, hw.adc_bits,
+             ",".join(hw.channels), hw.link)
     return motor, daq
 
 
@@ -122,13 +123,15 @@ async def connect(cfg: StationConfig, *, sim: bool, seed: int | None = None,
                 host, port = rig.addresses.modbus_tcp
                 motor, daq = await _connect_drivers(
                     ModbusTransport.tcp(host, port),
-                    lambda: SerialLink(rig.addresses.daq, baudrate=cfg.devices.daq_baudrate))
+                    lambda: SerialLink(rig.addresses.daq, baudrate=cfg.devices.daq_baudrate,
+                                       kind=cfg.devices.daq_link))
                 desc = f"simulated rig (Modbus TCP {host}:{port}, DAQ {rig.addresses.daq})"
             actuator: RadiusActuator = SimRadius(rig, radius)
         else:
             dev = cfg.devices
             transport = transport_from_url(dev.motor_url, device_id=dev.motor_device_id)
-            motor, daq = await _connect_drivers(transport, lambda: SerialLink(dev.daq_port, baudrate=dev.daq_baudrate))
+            motor, daq = await _connect_drivers(transport, lambda: SerialLink(dev.daq_port, baudrate=dev.daq_baudrate,
+                                                                              kind=dev.daq_link))
             actuator = FixedRadius(dev.crank_radius_m)
             desc = f"rig (motor {dev.motor_url}, DAQ {dev.daq_port})"
         yield ConnectedRig(motor, daq, actuator, rig, desc, clock)
