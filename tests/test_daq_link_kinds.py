@@ -55,7 +55,7 @@ def test_hw_reply_is_checked() -> None:
 
 def test_the_recorded_rate_is_the_one_the_adc_delivers() -> None:
     """An ADC clocked at 8.192 MHz divides by a whole number: 20 kHz asked is 8.192 MHz / 410."""
-    emu, daq = inprocess(adc_clock_hz=8_192_000.0)
+    _, daq = inprocess(adc_clock_hz=8_192_000.0)
     try:
         cfg = daq.configure(rate_hz=20_000, frame_samples=256)
         assert cfg.rate_requested_hz == 20_000.0
@@ -79,7 +79,7 @@ def usb_bridge() -> Iterator[tuple[DaqEmulator, str]]:
 
 
 def test_usb_cdc_budget_is_the_bridges_throughput_not_the_baud_rate(usb_bridge: tuple[DaqEmulator, str]) -> None:
-    emu, path = usb_bridge
+    _, path = usb_bridge
     # 20 kHz needs 20000/256 x 2072 = 161,875 B/s in the worst case: 200,000 B/s carry it, and the
     # 9600 Bd the port was opened with do not matter on a CDC port
     daq = DaqBridge()
