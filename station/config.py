@@ -20,6 +20,7 @@ from sinecal_config import config_file
 
 from drivers.daq.protocol import link_budget
 from drivers.rig import params as rp
+from station.bounded import MAX_YAML_BYTES, load_yaml, quote, read_text_limited
 from station.errors import ConfigError
 from station.ident.inputs import MeasurementChain
 
@@ -243,17 +244,29 @@ def _field_bounds(loc: tuple[Any, ...]) -> list[str]:
     return out
 
 
+SECRET_KEYS = frozenset({"token"})  # their values are never quoted in an error message
+SECRET_SECTIONS = frozenset({"service"})  # the section holding the token: a misspelt key's value is not quoted
+
+
 def _describe_error(err: ErrorDetails) -> str:
     loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
     bounds = _field_bounds(tuple(err["loc"]))
     if err["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
-        return f"{loc}: unknown key (received {err['input']!r})"
+        if err["loc"] and str(err["loc"][0]) in SECRET_SECTIONS:
+            return f"{loc}: unknown key"  # its value is not quoted: it may be the token under a misspelt key
+        return f"{loc}: unknown key (received {quote(err['input'])})"
     if err["type"] in ("missing", "missing_argument"):
         return f"{loc}: required key is missing"
     if not err["loc"] and err["type"] == "value_error":  # a check across sections: the message says it all
         return str(err["msg"]).removeprefix("Value error, ")
     allowed = f"; allowed: value {' and '.join(bounds)}" if bounds else ""
-    return f"{loc} = {err.get('input')!r}: {err['msg']}{allowed}"
+    if SECRET_KEYS & {str(p) for p in err["loc"]}:
+        value = err.get("input")
+        shown = f"<not shown, {len(value)} characters>" if isinstance(value, str) else "<not shown>"
+        msg = "expected at least 8 printable ASCII characters without spaces" if err["type"] in (
+            "string_pattern_mismatch", "string_too_short") else err["msg"]
+        return f"{loc} = {shown}: {msg}"
+    return f"{loc} = {quote(err.get('input'))}: {err['msg']}{allowed}"
 
 
 def parse_config(data: Any, source: str = "<config>") -> StationConfig:
@@ -270,15 +283,8 @@ def parse_config(data: Any, source: str = "<config>") -> StationConfig:
 def load_config(path: str | Path) -> StationConfig:
     """Read and validate a station YAML file."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read configuration: {exc.strerror}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: not valid YAML: {exc}") from None
-    return parse_config(data, str(p))
+    text = read_text_limited(p, MAX_YAML_BYTES, "configuration", ConfigError, say_what=True)
+    return parse_config(load_yaml(text, str(p), ConfigError), str(p))
 
 
 def config_to_yaml(cfg: StationConfig) -> str:

@@ -7,15 +7,18 @@ the reason, and no half-written recording is left behind.
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from station.bounded import MAX_YAML_BYTES, load_yaml, quote, read_text_limited
 from station.errors import RecordingFormatError, StationError
 from station.ident.inputs import MeasurementChain
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id, read_recording
@@ -25,6 +28,7 @@ log = logging.getLogger(__name__)
 HEADER = "t_s,displacement_m,force_V"
 FORMAT = "sinecal-csv"
 RATE_TOLERANCE = 1e-3  # allowed deviation of each time step from 1/fs, as a fraction of 1/fs
+MAX_STEP_FILE_BYTES = 64 << 20  # one step file: ~1.6 million samples (80 s at 20 kHz) at ~40 bytes a line
 
 
 class _Strict(BaseModel):
@@ -58,71 +62,78 @@ class RunFile(_Strict):
     steps: list[CsvStep] = Field(min_length=1)
 
 
-def _load_run_file(path: Path) -> RunFile:
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise RecordingFormatError(f"{path}: cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise RecordingFormatError(f"{path}: not valid YAML: {exc}") from None
+def _load_run_file(path: Path) -> tuple[RunFile, str]:
+    """RUN.yaml validated, and its text."""
+    text = read_text_limited(path, MAX_YAML_BYTES, "RUN.yaml", RecordingFormatError)
+    data = load_yaml(text, str(path), RecordingFormatError)
     if not isinstance(data, dict):
         raise RecordingFormatError(f"{path}: a mapping was expected, got {type(data).__name__}")
     if data.get("format") != FORMAT or data.get("format_version") != 1:
         raise RecordingFormatError(f"{path}: format {FORMAT!r} version 1 expected, got "
-                                   f"{data.get('format')!r} version {data.get('format_version')!r}")
+                                   f"{quote(data.get('format'))} version {quote(data.get('format_version'))}")
     try:
         run = RunFile.model_validate(data)
     except ValidationError as exc:
-        msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']} (received {e.get('input')!r})"
-                         for e in exc.errors())
+        msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']} (received {quote(e.get('input'))})"
+                         for e in exc.errors()[:10])
         raise RecordingFormatError(f"{path}: {msgs}") from None
     if run.transducer.sensitivity_V_per_N == 0:
         raise RecordingFormatError(f"{path}: transducer.sensitivity_V_per_N must not be 0")
-    return run
+    return run, text
 
 
-def _first_bad_line(path: Path, lines: list[tuple[int, str]]) -> str:
-    """Locate the first malformed data line; ``lines`` are (1-based line number in the file, text)
-    of the non-blank lines, the header first."""
-    for i, line in lines[1:]:
+def _nonblank(text: str) -> Iterator[tuple[int, str]]:
+    """(1-based line number in the file, text) of the non-blank lines, lazily (a large file is never
+    held twice as a list of lines)."""
+    for i, ln in enumerate(io.StringIO(text), start=1):
+        if ln.strip():
+            yield i, ln.rstrip("\r\n")
+
+
+def _first_bad_line(path: Path, lines: Iterator[tuple[int, str]]) -> str:
+    """Locate the first malformed data line among ``lines`` (the data lines, ``_nonblank``)."""
+    for i, line in lines:
         cells = line.split(",")
         if len(cells) != 3:
-            return f"{path}, line {i}: 3 cells expected, got {len(cells)} ({line!r})"
+            return f"{path}, line {i}: 3 cells expected, got {len(cells)} ({quote(line)})"
         for name, cell in zip(HEADER.split(","), cells, strict=True):
             try:
                 v = float(cell)
             except ValueError:
-                return f"{path}, line {i}: column {name}: a number expected, got {cell.strip()!r}"
+                return f"{path}, line {i}: column {name}: a number expected, got {quote(cell.strip())}"
             if not np.isfinite(v):
-                return f"{path}, line {i}: column {name}: a finite number expected, got {cell.strip()!r}"
+                return f"{path}, line {i}: column {name}: a finite number expected, got {quote(cell.strip())}"
         try:  # what float() takes but the CSV parser does not (e.g. '1_0')
             np.loadtxt([line], delimiter=",", dtype=np.float64, comments=None)
         except ValueError:
-            return f"{path}, line {i}: three plain numbers expected, got {line!r}"
+            return f"{path}, line {i}: three plain numbers expected, got {quote(line)}"
     return f"{path}: malformed CSV"
 
 
 def read_step_csv(path: Path, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray, float]:
-    """Parse and check one step file; returns (displacement_m, force_V, t0_s)."""
+    """Parse and check one step file (at most ``MAX_STEP_FILE_BYTES``); returns (displacement_m,
+    force_V, t0_s).  Blank lines are skipped; error messages give line numbers in the file as it is."""
+    text = read_text_limited(path, MAX_STEP_FILE_BYTES, "step file", RecordingFormatError)
+    header = next(_nonblank(text), None)
+    if header is None or header[1].strip().replace(" ", "") != HEADER:
+        got = header[1].strip() if header else "an empty file"
+        raise RecordingFormatError(f"{path}, line {header[0] if header else 1}: header {HEADER!r} "
+                                   f"expected, got {quote(got)}")
+
+    def data_lines() -> Iterator[tuple[int, str]]:
+        lines = _nonblank(text)
+        next(lines)  # the header
+        return lines
+
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise RecordingFormatError(f"{path}: cannot read: {exc.strerror}") from None
-    # blank lines are skipped; error messages give line numbers in the file as it is
-    lines = [(i, ln) for i, ln in enumerate(text.splitlines(), start=1) if ln.strip()]
-    if not lines or lines[0][1].strip().replace(" ", "") != HEADER:
-        got = lines[0][1].strip() if lines else "an empty file"
-        raise RecordingFormatError(f"{path}, line {lines[0][0] if lines else 1}: header {HEADER!r} "
-                                   f"expected, got {got!r}")
-    if len(lines) < 3:
-        raise RecordingFormatError(f"{path}: at least 2 samples expected, got {len(lines) - 1}")
-    try:
-        data = np.loadtxt([ln for _, ln in lines[1:]], delimiter=",", dtype=np.float64, ndmin=2,
+        data = np.loadtxt((ln for _, ln in data_lines()), delimiter=",", dtype=np.float64, ndmin=2,
                           comments=None)
     except ValueError:
-        raise RecordingFormatError(_first_bad_line(path, lines)) from None
+        raise RecordingFormatError(_first_bad_line(path, data_lines())) from None
+    if data.shape[0] < 2:
+        raise RecordingFormatError(f"{path}: at least 2 samples expected, got {data.shape[0]}")
     if data.shape[1] != 3 or not np.all(np.isfinite(data)):
-        raise RecordingFormatError(_first_bad_line(path, lines))
+        raise RecordingFormatError(_first_bad_line(path, data_lines()))
     t = data[:, 0]
     dt = np.diff(t)
     T = 1.0 / sample_rate_hz
@@ -134,8 +145,9 @@ def read_step_csv(path: Path, sample_rate_hz: float) -> tuple[np.ndarray, np.nda
     bad = np.nonzero(np.abs(dt - T) > RATE_TOLERANCE * T)[0]
     if bad.size:
         i = int(bad[0])
+        line_no = next(n for k, (n, _) in enumerate(data_lines()) if k == i + 1)
         raise RecordingFormatError(
-            f"{path}, line {lines[i + 2][0]}: non-uniform time: t_s steps by {dt[i]:.9g} s from the line "
+            f"{path}, line {line_no}: non-uniform time: t_s steps by {dt[i]:.9g} s from the line "
             f"before, {T:.9g} s expected")
     return data[:, 1].copy(), data[:, 2].copy(), float(t[0])
 
@@ -143,7 +155,7 @@ def read_step_csv(path: Path, sample_rate_hz: float) -> tuple[np.ndarray, np.nda
 def import_run(run_yaml: str | Path, out_dir: str | Path) -> Path:
     """Convert a sinecal-csv run into a recording in ``out_dir``; returns its path."""
     src = Path(run_yaml)
-    run = _load_run_file(src)
+    run, run_text = _load_run_file(src)
     steps = []
     for st in run.steps:
         f = (src.parent / st.file).resolve()
@@ -154,7 +166,7 @@ def import_run(run_yaml: str | Path, out_dir: str | Path) -> Path:
         run_id=new_run_id(run.transducer.id), transducer_id=run.transducer.id, source="import",
         sample_rate_hz=run.sample_rate_hz, load_mass_kg=run.top_mass_kg, end_mass_kg=run.end_mass_kg,
         sensitivity_V_per_N=run.transducer.sensitivity_V_per_N, capacity_N=run.transducer.capacity_N,
-        config_yaml=src.read_text(encoding="utf-8"))
+        config_yaml=run_text)
     channels = (ChannelSpec("displacement", "f8", "m", "m", scale=1.0),
                 ChannelSpec("force", "f8", "V", "V", scale=1.0))
     writer = RecordingWriter(out_dir, meta, channels,

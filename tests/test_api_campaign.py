@@ -59,10 +59,10 @@ def test_errors(runs: tuple[Daemon, list[str]], tmp_path: Path) -> None:
     assert c.post("/campaigns", json={"runs": ["../etc"]}).status_code == 422
 
 
-def test_store_needs_the_token_and_the_runs_report_shows_the_campaign(runs: tuple[Daemon, list[str]]) -> None:
+def test_campaigns_need_the_token_and_the_runs_report_shows_the_stored_campaign(runs: tuple[Daemon, list[str]]) -> None:
     d, ids = runs
     anon = httpx.Client(base_url=d.url, timeout=60)
-    assert anon.post("/campaigns", json={"runs": ids}).status_code == 200  # reading: open on loopback
+    assert anon.post("/campaigns", json={"runs": ids}).status_code == 401  # a computation: the token, always
     assert anon.post("/campaigns", json={"runs": ids, "store": True}).status_code == 401
     r = d.c().post("/campaigns", json={"runs": ids, "store": True})
     assert r.status_code == 200 and r.json()["stored_as"] == "/results/campaign"

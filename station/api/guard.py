@@ -2,8 +2,10 @@
 
 * a request body is read only from an authenticated client: a POST/PUT/PATCH that carries a body
   without the valid bearer token is answered 401 before a byte of it is read (the emergency stop
-  needs no token and reads no body; a computation that only reads, ``READ_POSTS``, is open to
-  loopback clients as every GET is);
+  needs no token and reads no body; every other endpoint that takes a body computes or stores);
+* a body that is not JSON by its ``Content-Type`` (form, multipart, text/plain, octet-stream, ...)
+  is answered 415 unread: every body the API takes is JSON, and a browser can send the other types
+  from any web site without asking;
 * a body larger than ``service.max_body_bytes`` is answered 413, saying the limit, without being
   read further (by its Content-Length when given, else while it arrives);
 * a JSON body that is not UTF-8 is answered 422 naming the first bad byte (never a 500).
@@ -16,8 +18,6 @@ import secrets
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
-from station.service.settings import is_loopback
-
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
 Receive = Callable[[], Awaitable[Message]]
@@ -25,7 +25,14 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 OPEN_POSTS = ("/stop",)  # accepted without the token; their bodies are never read
-READ_POSTS = ("/campaigns",)  # computations that only read: open to loopback clients like every GET
+QUOTE_CHARS = 120  # at most this much of a header value is quoted back
+
+
+def is_json_type(ctype: bytes) -> bool:
+    """``application/json`` or a ``+json`` type, parameters aside; no Content-Type counts as JSON."""
+    media = ctype.split(b";", 1)[0].strip().lower()
+    return not media or media == b"application/json" or (media.startswith(b"application/")
+                                                         and media.endswith(b"+json"))
 
 
 async def _answer(send: Send, status: int, detail: Any, headers: list[tuple[bytes, bytes]] | None = None) -> None:
@@ -52,23 +59,27 @@ class BodyGuard:
             await self.app(scope, receive, send)
             return
         headers = {k.lower(): v for k, v in scope.get("headers", [])}
-        length_text = headers.get(b"content-length")
+        length_text: bytes | None = headers.get(b"content-length")
         chunked = b"chunked" in headers.get(b"transfer-encoding", b"").lower()
         try:
             length = int(length_text) if length_text is not None else None
         except ValueError:
-            await _answer(send, 400, f"Content-Length {length_text!r} is not a number")
+            await _answer(send, 400, f"Content-Length {(length_text or b'')[:QUOTE_CHARS]!r} is not a number")
             return
         has_body = chunked or (length or 0) > 0
         path = scope.get("path", "")
         if path in OPEN_POSTS or not has_body:
             await self.app(scope, receive, send)  # the route's own dependencies decide (no body to read)
             return
-        client = scope.get("client") or ("", 0)
-        reader = path in READ_POSTS and is_loopback(str(client[0]))
-        if not reader and not self._authorised(headers):
+        if not self._authorised(headers):
             await _answer(send, 401, "a valid bearer token is required (Authorization: Bearer <token>); "
                           "the request body was not read", [(b"www-authenticate", b"Bearer")])
+            return
+        ctype = headers.get(b"content-type", b"")
+        if not is_json_type(ctype):
+            shown = ctype[:QUOTE_CHARS].decode("latin-1")
+            await _answer(send, 415, f"the request body must be JSON (Content-Type: application/json), got "
+                          f"Content-Type {shown!r}; the body was not read")
             return
         limit = self.max_body_bytes
         if length is not None and length > limit:
@@ -90,15 +101,13 @@ class BodyGuard:
             if not msg.get("more_body", False):
                 break
         body = b"".join(chunks)
-        ctype = headers.get(b"content-type", b"").lower()
-        if not ctype or b"json" in ctype:
-            try:
-                body.decode("utf-8")
-            except UnicodeDecodeError as exc:
-                await _answer(send, 422, [{"type": "body_not_utf8", "loc": ["body"], "input": None,
-                                           "msg": f"the request body must be UTF-8 encoded JSON; byte "
-                                                  f"0x{body[exc.start]:02x} at position {exc.start} is not UTF-8"}])
-                return
+        try:
+            body.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            await _answer(send, 422, [{"type": "body_not_utf8", "loc": ["body"], "input": None,
+                                       "msg": f"the request body must be UTF-8 encoded JSON; byte "
+                                              f"0x{body[exc.start]:02x} at position {exc.start} is not UTF-8"}])
+            return
         sent = False
 
         async def replay() -> Message:

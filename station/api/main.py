@@ -7,11 +7,13 @@ HTTP statuses here; nothing below the API layer knows about HTTP.
 
 from __future__ import annotations
 
+import json
 import logging
 import sqlite3
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
@@ -50,8 +52,44 @@ on loopback; `POST /stop` (emergency stop) is always accepted, except from anoth
 an emergency stop no run starts until an operator acknowledges it.  Units are SI and part of every field name."""
 
 
+QUOTE_CHARS = 200  # the most of a request's input a validation error quotes back
+
+
 def _error(status: int, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": str(exc)}, status_code=status)
+
+
+def _quoted(value: Any) -> Any:
+    """A request's input as a validation error quotes it: JSON as it came, or, when that is long or
+    not JSON at all, at most ``QUOTE_CHARS`` characters of its text."""
+    if isinstance(value, str):
+        return value if len(value) <= QUOTE_CHARS else f"{value[:QUOTE_CHARS]}... ({len(value)} characters)"
+    try:
+        text = json.dumps(finite(jsonable_encoder(value)), allow_nan=False)
+    except (TypeError, ValueError):  # bytes that are not UTF-8, objects JSON has no form for
+        text = repr(value)
+    else:
+        if len(text) <= QUOTE_CHARS:
+            return finite(jsonable_encoder(value))
+    if len(text) <= QUOTE_CHARS:
+        return text
+    return f"{text[:QUOTE_CHARS]}... ({len(text)} characters)"
+
+
+def validation_details(errors: Sequence[Any]) -> list[dict[str, Any]]:
+    """FastAPI's error list, made safe to send: every ``input`` quoted within ``QUOTE_CHARS``,
+    messages and contexts as text of bounded length."""
+    out = []
+    for err in errors:
+        e = dict(err)
+        if "input" in e:
+            e["input"] = _quoted(e["input"])
+        if "ctx" in e:
+            e["ctx"] = {str(k): _quoted(v) for k, v in dict(e["ctx"]).items()}
+        e["msg"] = str(e.get("msg", ""))[:4 * QUOTE_CHARS]
+        e.pop("url", None)
+        out.append(e)
+    return out
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -66,7 +104,7 @@ def install_error_handlers(app: FastAPI) -> None:
     async def validation_error(request: Request, exc: Exception) -> JSONResponse:
         # FastAPI's own handler echoes the input, which cannot be JSON when it is NaN or inf (-> 500)
         errors = exc.errors() if isinstance(exc, RequestValidationError) else []
-        return JSONResponse({"detail": finite(jsonable_encoder(errors))}, status_code=422)
+        return JSONResponse({"detail": validation_details(errors)}, status_code=422)
     app.add_exception_handler(RequestValidationError, validation_error)
 
     async def http_error(request: Request, exc: Exception) -> Response:
@@ -85,6 +123,13 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(StationError, station_error)
     app.add_exception_handler(OSError, station_error)
     app.add_exception_handler(sqlite3.Error, station_error)  # e.g. the database's disk is full
+
+    async def internal_error(request: Request, exc: Exception) -> JSONResponse:
+        # a bug: the traceback goes to the daemon's log, never to the client
+        log.error("%s %s: internal error", request.method, request.url.path, exc_info=exc)
+        return JSONResponse({"detail": "internal error of the station daemon; the details are in its log"},
+                            status_code=500)
+    app.add_exception_handler(Exception, internal_error)
 
 
 def create_app(settings: ServiceSettings, *,

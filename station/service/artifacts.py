@@ -119,6 +119,21 @@ class Artifacts:
         return await self._cached((run_id, "report"),
                                   lambda: self._locked_job(run_id, worker.report_job, str(path)))
 
+    async def campaign(self, run_ids: list[str]) -> dict[str, Any]:
+        """The joint identification of completed runs in the render worker (``worker.campaign_job``),
+        every recording held against the daemon's other accesses meanwhile (locked in id order)."""
+        paths = []
+        for run_id in run_ids:
+            row = self._get_row(run_id)
+            if row.state != "completed":
+                raise RunStateError(f"run {run_id} is {row.state}: only completed runs take part in a campaign")
+            paths.append(str(self.recording_path(row)))
+        async with contextlib.AsyncExitStack() as stack:
+            for run_id in sorted(set(run_ids)):
+                await stack.enter_async_context(self.file_lock(run_id))
+            out: dict[str, Any] = await self.render_pool.run(worker.campaign_job, paths)
+        return out
+
     async def discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
         path = self._completed_path(run_id)
         out = await self._locked_job(run_id, worker.discrepancy_job, str(path), max_effects)

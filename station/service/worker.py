@@ -113,6 +113,22 @@ def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
     return rep.to_json()
 
 
+@_job
+def campaign_job(paths: list[str]) -> dict[str, Any]:
+    """The joint identification of several recordings (``station.ident.campaign``):
+    ``{"result": CampaignResult.to_dict()}``, or ``{"refused": message}`` for recordings that cannot
+    be one campaign (a plain message: an exception's own fields need not survive the pickling)."""
+    from station.errors import BadInputError
+    from station.ident.campaign import identify_campaign
+    from station.recording import read_recording
+
+    try:
+        res = identify_campaign([read_recording(Path(p)) for p in paths])
+    except BadInputError as exc:
+        return {"refused": str(exc)}
+    return {"result": res.to_dict()}
+
+
 CONTRACT_KEYS = ("base_gap", "effects", "final_gap", "parameters_before", "parameters_after", "unexplained",
                  "ties", "notes", "proposal", "drive")
 

@@ -3,7 +3,6 @@ jointly (S, m_e, k_f, b_f; ``station.ident.campaign``)."""
 
 from __future__ import annotations
 
-import asyncio
 from pathlib import Path
 from typing import Any
 
@@ -11,18 +10,16 @@ from fastapi import APIRouter
 from fastapi.exceptions import RequestValidationError
 
 from station.api.campaign_schemas import CampaignOut, CampaignRequest
-from station.api.deps import Credentials, ManagerDep, Reader, SettingsDep, require_token
+from station.api.deps import ManagerDep, Writer
 from station.api.schemas import ErrorOut, ValidationErrorOut
-from station.errors import BadInputError
-from station.recording import read_recording, write_results
-from station.service.manager import RunStateError
+from station.recording import write_results
 from station.service.results import finite
 
 router = APIRouter(prefix="/campaigns", tags=["campaigns"])
 
 
-@router.post("", response_model=CampaignOut, dependencies=[Reader],
-             responses={401: {"model": ErrorOut, "description": "bearer token missing or wrong (off loopback)"},
+@router.post("", response_model=CampaignOut, dependencies=[Writer],
+             responses={401: {"model": ErrorOut, "description": "bearer token missing or wrong"},
                         404: {"model": ErrorOut, "description": "no such run"},
                         409: {"model": ErrorOut, "description": "a run is not completed"},
                         422: {"model": ValidationErrorOut,
@@ -30,34 +27,24 @@ router = APIRouter(prefix="/campaigns", tags=["campaigns"])
                                              "transducers or nominal sensitivities, a run twice, mixed polarity)"},
                         503: {"model": ErrorOut, "description": "a recording cannot be read right now"}},
              summary="Identify runs with different top masses jointly (S, end mass m_e, k_f, b_f)")
-async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep, creds: Credentials,
-                                  settings: SettingsDep) -> CampaignOut:
+async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep) -> CampaignOut:
     """Reads each run's recording and fits Eq. 9 to all of them at once, the end mass m_e a
-    parameter.  With `store` (bearer token) the result is also written into every run's recording
-    as /results/campaign, where the run's report shows it.  Top masses too alike to separate S from
-    m_e give status `conditional` or `refused` with the named check `end_mass_separation`, not an
-    error."""
-    from station.ident.campaign import RESULT_NAME, identify_campaign  # scipy: loaded when used
+    parameter, in a worker process (like every computation of the station).  With `store` the
+    result is also written into every run's recording as /results/campaign, where the run's report
+    shows it.  Top masses too alike to separate S from m_e give status `conditional` or `refused`
+    with the named check `end_mass_separation`, not an error."""
+    from station.ident.campaign import RESULT_NAME
 
-    if body.store:
-        await require_token(creds, settings)
-    recs = []
-    for run_id in body.runs:
-        row = manager.get(run_id)
-        if row.state != "completed":
-            raise RunStateError(f"run {run_id} is {row.state}: only completed runs take part in a campaign")
-        recs.append(await manager.read_file(run_id, read_recording))
-    try:
-        res = await asyncio.to_thread(identify_campaign, recs)
-    except BadInputError as exc:
-        raise RequestValidationError([{"type": "campaign_refused", "loc": ["body", "runs"], "msg": str(exc),
-                                       "input": list(body.runs)}]) from None
-    data: dict[str, Any] = finite(res.to_dict())
+    out = await manager.artifacts.campaign(list(body.runs))
+    if "refused" in out:
+        raise RequestValidationError([{"type": "campaign_refused", "loc": ["body", "runs"], "msg": out["refused"],
+                                       "input": list(body.runs)}])
+    payload: dict[str, Any] = out["result"]
+    data: dict[str, Any] = finite(payload)
     for r in data["recordings"]:
         r["path"] = Path(r["path"]).name  # never a server path
     stored = None
     if body.store:
-        payload = res.to_dict()
         for run_id in body.runs:
             await manager.read_file(run_id, lambda p: write_results(p, RESULT_NAME, payload))
         stored = f"/results/{RESULT_NAME}"
