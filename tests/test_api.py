@@ -13,7 +13,7 @@ import h5py
 import httpx
 import pytest
 
-from station.recording import read_recording
+from station.recording import read_recording, read_stored
 from tests.test_service_support import FINAL, TOKEN, Daemon, run_body
 
 
@@ -70,6 +70,7 @@ def test_openapi_documents_every_endpoint(daemon: Daemon) -> None:
                       ("/runs/{run_id}/events", "get"), ("/runs/{run_id}/results", "get"),
                       ("/runs/{run_id}/plots/{name}.png", "get"), ("/runs/{run_id}/report", "get"),
                       ("/runs/{run_id}/recording", "get"), ("/runs/{run_id}/discrepancy", "get"),
+                      ("/runs/{run_id}/discrepancy", "post"),
                       ("/runs/{run_id}/abort", "post"), ("/stop", "post"), ("/health", "get")]:
         assert method in paths[p], (p, method)
     post = paths["/runs"]["post"]
@@ -155,19 +156,25 @@ def test_plots_report_recording_and_discrepancy(daemon: Daemon, completed: dict)
     assert f'filename="{rid}.h5"' in rec.headers["content-disposition"]
     with h5py.File(io.BytesIO(rec.content), "r") as f:
         assert f.attrs["run_id"] == rid and f.attrs["exit_status"] == "completed"
-        assert "results" in f and any(k.startswith("identify_") for k in f["results"])
-    disc = c.get(f"/runs/{rid}/discrepancy")
+        assert "results" not in f or not len(f["results"])  # results live beside the recording
+    assert any(k.startswith("identify_") for k in read_stored(daemon.data_dir / f"{rid}.h5"))
+    path = daemon.data_dir / f"{rid}.h5"
+    size = path.stat().st_size
+    missing = c.get(f"/runs/{rid}/discrepancy")  # a GET reads only: nothing stored yet
+    assert missing.status_code == 404 and f"POST /runs/{rid}/discrepancy" in missing.json()["detail"]
+    assert c.post(f"/runs/{rid}/discrepancy").status_code == 401  # computing and storing needs the token
+    disc = daemon.c().post(f"/runs/{rid}/discrepancy", timeout=120)
     assert disc.status_code == 200, disc.text
     d = disc.json()
     assert set(d) == {"base_gap", "effects", "final_gap", "parameters_before", "parameters_after", "unexplained",
                       "ties", "notes", "drive", "proposal"}
     assert isinstance(d["ties"], list) and isinstance(d["notes"], list)
     assert d["final_gap"] <= d["base_gap"] + 1e-12
-    again = c.get(f"/runs/{rid}/discrepancy")  # cached in the recording's results
-    assert again.json() == d
-    path = daemon.data_dir / f"{rid}.h5"
-    with h5py.File(path, "r") as f:
-        assert "discrepancy" in f["results"]  # where the report and `station discrepancy --save` look
+    for _ in range(3):  # stored beside the recording; GETs read it and write nothing
+        again = c.get(f"/runs/{rid}/discrepancy")
+        assert again.status_code == 200 and again.json() == d
+    assert path.stat().st_size == size
+    assert "discrepancy" in read_stored(path)  # where the report and `station discrepancy --save` look
     report = c.get(f"/runs/{rid}/report").text
     assert "has not been run" not in report and "Model discrepancy" in report
 
@@ -233,7 +240,8 @@ def test_unknown_runs_are_404_and_bad_ids_422(daemon: Daemon) -> None:
         r = c.get(f"/runs/20990101T000000-NOPE-000000{path}")
         assert r.status_code == 404, (path, r.status_code, r.text)
         assert "no run" in r.json()["detail"]
-    assert c.post("/runs/20990101T000000-NOPE-000000/abort").status_code == 404
+    for path in ("/abort", "/discrepancy"):
+        assert c.post(f"/runs/20990101T000000-NOPE-000000{path}").status_code == 404
     assert c.get("/runs/bad id!").status_code == 422
     for evil in ("..%2F..%2Fetc%2Fpasswd", "..", "%2e%2e"):
         r = c.get(f"/runs/{evil}/recording")

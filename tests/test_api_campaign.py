@@ -65,6 +65,6 @@ def test_campaigns_need_the_token_and_the_runs_report_shows_the_stored_campaign(
     assert anon.post("/campaigns", json={"runs": ids}).status_code == 401  # a computation: the token, always
     assert anon.post("/campaigns", json={"runs": ids, "store": True}).status_code == 401
     r = d.c().post("/campaigns", json={"runs": ids, "store": True})
-    assert r.status_code == 200 and r.json()["stored_as"] == "/results/campaign"
+    assert r.status_code == 200 and r.json()["stored_as"] == "<run>.results/results.campaign.h5"
     html = d.c().get(f"/runs/{ids[0]}/report").text
     assert "Multi-mass campaign" in html and 'data-key="campaign.m_e"' in html

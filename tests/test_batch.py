@@ -20,7 +20,7 @@ from station.cli import main
 from station.config import parse_config
 from station.errors import BadInputError
 from station.ident.api import identify_recording
-from station.recording import read_recording, read_results
+from station.recording import read_recording, read_result
 from station.simulate import simulate_run
 from tests.conftest import make_fast_dict
 
@@ -123,8 +123,8 @@ def test_run_batch_stores_results_when_asked(history: dict, tmp_path: Path) -> N
     p = tmp_path / history["stable"][0].name
     shutil.copy(history["stable"][0], p)
     [it] = run_batch([p], workers=1, store=True, chunksize=1)
-    assert it.stored_as == f"/results/identify_{it.method}_{it.model}"
-    stored = read_results(p, it.stored_as.split("/")[-1])
+    assert it.stored_as == f"{p.stem}.results/results.identify_{it.method}_{it.model}.h5"
+    stored = read_result(p, f"identify_{it.method}_{it.model}")
     assert stored is not None and stored["parameters"] == it.parameters
 
 

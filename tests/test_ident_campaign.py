@@ -16,7 +16,7 @@ from station.cli import main
 from station.config import default_config_path, parse_config
 from station.errors import BadInputError
 from station.ident.campaign import CampaignRefused, identify_campaign
-from station.recording import read_recording, read_results
+from station.recording import read_recording, read_result
 from station.report.html import render_report
 from station.simulate import simulate_run
 
@@ -175,7 +175,7 @@ def test_cli_identifies_jointly_and_stores_in_every_recording(three: list[Path],
     assert out["covariance"]["names"] == ["S", "m_e", "k_f", "b_f"]
     assert {c["name"] for c in out["checks"]} >= {"end_mass_separation", "same_transducer_model"}
     for q in copies:
-        stored = read_results(q, "campaign")
+        stored = read_result(q, "campaign")
         assert stored["parameters"]["m_e"]["value"] == out["parameters"]["m_e"]["value"]
     html = render_report(copies[1])  # the report of every recording that took part shows the campaign
     assert "Multi-mass campaign" in html and "(this run)" in html

@@ -11,7 +11,7 @@ import yaml
 from station.cli import main
 from station.config import default_config_path, parse_config
 from station.ident.api import identify_recording
-from station.recording import read_recording, read_results
+from station.recording import read_recording, read_result
 from station.simulate import simulate_run
 
 TRUTH = {"k_f": 2.91e7, "b_f": 17136.0}
@@ -108,7 +108,7 @@ def test_cli_identify_json_and_stored_result(stepped: Path, tmp_path: Path, caps
         p = doc["parameters"][name]
         assert p["unit"] == unit and p["identifiable"] and p["value"] > 0 and p["std"] > 0
     assert doc["fit"]["mse"] > 0 and len(doc["fit"]["residual_rms_V"]) == 4
-    stored = read_results(path, "identify_fd_sdof")
+    stored = read_result(path, "identify_fd_sdof")
     assert stored is not None and stored["parameters"]["k_f"]["value"] == doc["parameters"]["k_f"]["value"]
     assert main(["identify", str(path), "--model", "coupled", "--json", "--no-write"]) == 0
     doc = json.loads(capsys.readouterr().out)

@@ -26,9 +26,7 @@ from station.recording import (
     RunMetadata,
     new_run_id,
     read_recording,
-    read_results,
     recover_partial,
-    write_results,
 )
 from station.simulate import simulate_run
 
@@ -399,58 +397,6 @@ def test_damaged_recording_names_what_is_missing(written: tuple[Path, int], dama
     with pytest.raises(RecordingFormatError, match=message) as exc:
         read_recording(path)
     assert str(path) in str(exc.value)
-
-
-# -- results ---------------------------------------------------------------------------------------
-
-def test_results_are_stored_replaced_and_leave_raw_data_alone(written: tuple[Path, int]) -> None:
-    path, _ = written
-    before = read_recording(path)
-    assert read_results(path, "fit") is None
-    write_results(path, "fit", {"k_f": 2.9e7, "ok": True}, {"residual": np.arange(4.0)})
-    assert read_results(path, "fit") == {"k_f": 2.9e7, "ok": True}
-    write_results(path, "fit", {"k_f": 3.0e7})
-    write_results(path, "frf-step+1", {"n": np.int64(3)}, group="processed")
-    assert read_results(path, "fit") == {"k_f": 3.0e7}
-    assert read_results(path, "frf-step+1", group="processed") == {"n": 3}
-    with h5py.File(path, "r") as f:
-        assert "residual" not in f["results/fit"]  # the earlier result is replaced as a whole
-        _iso(f["results/fit"].attrs["written"])
-    after = read_recording(path)
-    np.testing.assert_array_equal(after.displacement_m, before.displacement_m)
-    np.testing.assert_array_equal(after.force_V, before.force_V)
-    assert after.steps == before.steps and after.attrs == before.attrs
-
-
-def test_results_arrays(written: tuple[Path, int]) -> None:
-    path, _ = written
-    write_results(path, "frf", {"unit": "V/N"}, {"H": np.array([1 + 2j, 3 - 1j]), "f_hz": np.array([4.0, 12.0])})
-    with h5py.File(path, "r") as f:
-        np.testing.assert_array_equal(f["results/frf/H"][...], [1 + 2j, 3 - 1j])
-        np.testing.assert_array_equal(f["results/frf/f_hz"][...], [4.0, 12.0])
-
-
-@pytest.mark.parametrize("group", ["raw", "steps", "config", "/", ""])
-def test_results_never_touch_recorded_groups(written: tuple[Path, int], group: str) -> None:
-    path, n = written
-    with pytest.raises(ValueError, match="results go into one of the groups"):
-        write_results(path, "displacement", {"x": 1}, group=group)
-    rec = read_recording(path)
-    assert rec.displacement_m.size == n and len(rec.steps) == 2
-
-
-@pytest.mark.parametrize("name", ["", "a/b", "../x", "x y"])
-def test_result_names_are_plain(written: tuple[Path, int], name: str) -> None:
-    path, _ = written
-    with pytest.raises(ValueError, match="result name must be alphanumeric"):
-        write_results(path, name, {})
-
-
-def test_results_only_in_complete_recordings(tmp_path: Path) -> None:
-    w = RecordingWriter(tmp_path, _meta(), FLOAT_CHANNELS)
-    w.abandon()
-    with pytest.raises(StationError, match="only into complete recordings"):
-        write_results(w.partial_path, "fit", {})
 
 
 # -- kill -9 of a writing process ------------------------------------------------------------------

@@ -19,7 +19,7 @@ import pytest
 from station.config import default_config_path, load_config, parse_config
 from station.errors import RecordingFormatError
 from station.ident.api import identify_recording
-from station.recording import read_recording, write_results
+from station.recording import read_recording, write_result
 from station.report import PLOT_NAMES, render_plot, render_report, render_report_pdf
 from station.report.data import load_run
 from station.report.plots import FIG_SIZE_PX
@@ -111,12 +111,12 @@ def test_convergence_shows_a_stored_pso_history(full_recording: Path, tmp_path: 
     placeholder = render_plot(rec_path, "convergence")
     res = identify_recording(read_recording(rec_path), "pso+", seed=1)
     assert len(res.extra["mse_history"]) > 100
-    write_results(rec_path, f"identify_{res.method}_{res.model}", res.to_dict())
+    write_result(rec_path, f"identify_{res.method}_{res.model}", res.to_dict())
     shown = render_plot(rec_path, "convergence")
     assert _png_size(shown) == FIG_SIZE_PX
     assert shown != placeholder
     page = render_report(rec_path)  # the only stored identification is the one shown
-    assert f"/results/identify_pso+_{res.model}" in page and "No iterative method was run" not in page
+    assert f"results/identify_pso+_{res.model}" in page and "No iterative method was run" not in page
 
 
 # -- HTML report -------------------------------------------------------------------------------------
@@ -124,10 +124,10 @@ def test_convergence_shows_a_stored_pso_history(full_recording: Path, tmp_path: 
 def test_report_shows_the_stored_identification_with_u_and_U(sim_recording: Path, tmp_path: Path) -> None:
     rec_path = _copy(sim_recording, tmp_path)
     res = identify_recording(read_recording(rec_path))
-    write_results(rec_path, f"identify_{res.method}_{res.model}", res.to_dict())
+    write_result(rec_path, f"identify_{res.method}_{res.model}", res.to_dict())
     page = render_report(rec_path)
     assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
-    assert f"/results/identify_fd_{res.model}" in page
+    assert f"results/identify_fd_{res.model}" in page
     for name in ("S", "k_f", "b_f"):
         p = res.parameter(name)
         text, value = _cell(page, f"param.{name}")
@@ -151,12 +151,12 @@ def test_report_prefers_a_stored_result_and_processed_steps(sim_recording: Path,
     rec_path = _copy(sim_recording, tmp_path)
     payload = identify_recording(read_recording(rec_path)).to_dict()
     payload["parameters"]["k_f"].update(value=1.2345e7, std=3.1e3)  # not what the data give: proves use
-    write_results(rec_path, "identify_fd_sdof", payload)
+    write_result(rec_path, "identify_fd_sdof", payload)
     steps = process_recording(rec_path)
     page = render_report(rec_path)
     assert _cell(page, "param.k_f")[1] == 1.2345e7
     assert _cell(page, "param.k_f.u")[1] == 3.1e3
-    assert "Measured points from /processed/steps" in page
+    assert "Measured points from processed/steps" in page
     M = load_run(rec_path).mass_kg
     for i, st in enumerate(steps):
         assert _cell(page, f"sdyn.{i}")[1] == pytest.approx(abs(st.H) / M, rel=1e-12)
@@ -207,7 +207,7 @@ def _discrepancy_payload() -> dict[str, Any]:
 def test_report_names_the_discrepancy_effects(sim_recording: Path, tmp_path: Path) -> None:
     rec_path = _copy(sim_recording, tmp_path)
     assert "has not been run on this recording" in render_report(rec_path)
-    write_results(rec_path, "discrepancy", copy.deepcopy(_discrepancy_payload()))
+    write_result(rec_path, "discrepancy", copy.deepcopy(_discrepancy_payload()))
     page = render_report(rec_path)
     for text in ("coupling_compliance", "channel_delay", "a line at 137 Hz in step 2", "0.012 V", "5.1e-04 V",
                  "not identifiable: b_c at its bound", "2.50e-05 ± 1.0e-06 s", "Ties: explanations the data do not",

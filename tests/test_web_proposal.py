@@ -59,6 +59,8 @@ def test_run_the_proposed_steps_with_one_click(page: object, daemon: Daemon) -> 
     pg = page
     rid = daemon.start_run(freqs=TIE_STEPS, radius=0.00125)
     assert daemon.wait_state(rid, timeout_s=120)["state"] == "completed"
+    assert daemon.c().get(f"/runs/{rid}/proposal").status_code == 404  # not analysed yet: a GET computes nothing
+    assert daemon.c().post(f"/runs/{rid}/discrepancy").status_code == 200
     api = daemon.c().get(f"/runs/{rid}/proposal").json()
     prop = api["proposal"]
     assert prop is not None and prop["steps"], api

@@ -22,7 +22,7 @@ class CampaignRequest(BaseModel):
     runs: list[RunIdStr] = Field(min_length=1, max_length=32,
                                  description="run ids (each once); at least two distinct top masses separate "
                                              "S from the end mass m_e")
-    store: bool = Field(default=False, description="also store the result as /results/campaign in every run's "
+    store: bool = Field(default=False, description="also store the result beside every run's "
                                                    "recording (its report then shows it); needs the bearer token")
 
 
@@ -84,7 +84,8 @@ class CampaignOut(_Out):
                     "S, k_f, b_f given on the stated end mass; refused: see checks and determined")
     transducer_id: str
     runs: list[str]
-    stored_as: str | None = Field(default=None, description="where the result was stored in each recording")
+    stored_as: str | None = Field(default=None, description="where the result was stored beside each recording, "
+                                     "relative to the recordings folder")
     parameters: dict[str, EstimateOut]
     covariance: CovarianceOut
     recordings: list[CampaignRecordingOut]

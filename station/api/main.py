@@ -28,6 +28,7 @@ from station import __version__
 from station.api.guard import BodyGuard
 from station.api.routes import campaign, proposal, runs, system
 from station.errors import StationError
+from station.service.errors import ResultNotStoredError
 from station.service.manager import (
     EStopLatchedError,
     RigBusyError,
@@ -46,10 +47,11 @@ STATIC = Path(__file__).resolve().parent / "static"
 DESCRIPTION = """Calibration-station daemon: start stepped-sine calibration runs on the sine-mechanism
 rig, follow them live, read the identified transducer parameters, plots, report and recording.
 
-Endpoints that move the rig or change state (`POST /runs`, `POST /runs/{id}/abort`,
-`POST /stop/acknowledge`) need the bearer token (`service.token` or `STATION_TOKEN`); reading is open
-on loopback; `POST /stop` (emergency stop) is always accepted, except from another web site.  After
-an emergency stop no run starts until an operator acknowledges it.  Units are SI and part of every field name."""
+Endpoints that move the rig, change state or compute and store (`POST /runs`, `POST /runs/{id}/abort`,
+`POST /stop/acknowledge`, `POST /runs/{id}/discrepancy`) need the bearer token (`service.token` or
+`STATION_TOKEN`); reading is open on loopback and never writes; `POST /stop` (emergency stop) is
+always accepted, except from another web site.  After an emergency stop no run starts until an
+operator acknowledges it.  Units are SI and part of every field name."""
 
 
 QUOTE_CHARS = 200  # the most of a request's input a validation error quotes back
@@ -94,8 +96,8 @@ def validation_details(errors: Sequence[Any]) -> list[dict[str, Any]]:
 
 def install_error_handlers(app: FastAPI) -> None:
     statuses: list[tuple[type[Exception], int]] = [
-        (RunNotFoundError, 404), (RunStateError, 409), (RigBusyError, 409), (EStopLatchedError, 409),
-        (RigUnavailableError, 503)]
+        (RunNotFoundError, 404), (ResultNotStoredError, 404), (RunStateError, 409), (RigBusyError, 409),
+        (EStopLatchedError, 409), (RigUnavailableError, 503)]
     for cls, code in statuses:
         def handler(request: Request, exc: Exception, code: int = code) -> JSONResponse:
             return _error(code, exc)

@@ -82,7 +82,7 @@ def run_batch(paths: list[Path], *, workers: int = 2, executor: str = "local", p
     """Re-identify ``paths`` (method/model as ``identify_recording``; default fd, auto) in parallel.
 
     Returns one BatchItem per path, in order; a recording that fails gives a "failed" item.
-    ``store``: also write each result into its recording (``/results/identify_<method>_<model>``).
+    ``store``: also store each result beside its recording (``results/identify_<method>_<model>``).
     ``progress``: draw a progress bar on stderr.  StationError if the executor breaks down.
     """
     paths = [Path(p) for p in paths]

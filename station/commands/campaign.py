@@ -9,7 +9,7 @@ from pathlib import Path
 from station.errors import BadInputError
 from station.ident.campaign import RESULT_NAME, CampaignRefused, identify_campaign
 from station.ident.campaignresult import CampaignResult
-from station.recording import read_recording, write_results
+from station.recording import read_recording, write_result
 
 
 def format_text(res: CampaignResult) -> str:
@@ -52,8 +52,6 @@ def run_campaign(paths: list[Path], *, as_json: bool, write: bool, end_mass_kg: 
         return exc.exit_code
     payload = res.to_dict()
     if write:
-        for p in paths:
-            write_results(p, RESULT_NAME, payload)
-        payload["stored_as"] = f"/results/{RESULT_NAME}"
+        payload["stored_as"] = [str(write_result(p, RESULT_NAME, payload).relative_to(p.parent)) for p in paths]
     print(json.dumps(payload, indent=2) if as_json else format_text(res))
     return 0

@@ -19,7 +19,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", type=Path, default=None,
                    help="PNG of the gap per step and stage (default: RECORDING.discrepancy.png)")
     p.add_argument("--no-plot", action="store_true", help="do not write the PNG")
-    p.add_argument("--save", action="store_true", help="store the result in the recording (/results)")
+    p.add_argument("--save", action="store_true", help="store the result beside the recording "
+                   "(<run>.results/results.discrepancy.h5)")
     p.set_defaults(handler=run)
 
 
@@ -66,14 +67,14 @@ def text_report(rep: DiscrepancyReport) -> str:
 def run(args: argparse.Namespace) -> int:
     from station.discrepancy import analyse_recording
     from station.discrepancy.plot import plot_report
-    from station.recording import write_results
+    from station.recording import write_result
 
     rep = analyse_recording(args.recording, max_effects=args.max_effects)
     if not args.no_plot:
         png = args.plot or args.recording.with_name(args.recording.name + ".discrepancy.png")
         plot_report(rep, png)
     if args.save:
-        write_results(args.recording, "discrepancy", {**rep.to_dict(), "max_effects": args.max_effects})
+        write_result(args.recording, "discrepancy", {**rep.to_dict(), "max_effects": args.max_effects})
     if args.json:
         print(json.dumps(rep.to_json(), indent=2))
     else:

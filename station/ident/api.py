@@ -29,7 +29,7 @@ from station.ident.oe import fit_oe
 from station.ident.protocol import PaperProtocol
 from station.ident.result import FitSummary, IdentificationResult, ParameterEstimate
 from station.ident.steps import CheckedResponse, checked_response, measured_response
-from station.recording import Recording, write_results
+from station.recording import Recording, write_result
 
 __all__ = [
     "METHODS",
@@ -109,9 +109,10 @@ def identify_oe(rec: Recording, model_key: str = "sdof", policy: Policy = DEFAUL
 
 
 def store_result(path: str | Path, res: IdentificationResult) -> str:
-    """Write ``res`` into the recording's /results (replacing an earlier one); returns its path in the file."""
-    write_results(path, res.result_name, res.to_dict())
-    return f"/results/{res.result_name}"
+    """Store ``res`` beside the recording (its results folder, replacing an earlier result of the same
+    method and model); returns where, relative to the recording's folder."""
+    p = Path(path)
+    return str(write_result(p, res.result_name, res.to_dict()).relative_to(p.parent))
 
 
 def identify_recording(rec: Recording, method: str | None = None, model: str | None = None, *,

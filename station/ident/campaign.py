@@ -50,7 +50,7 @@ from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
-RESULT_NAME = "campaign"  # stored as /results/campaign in every recording of a campaign
+RESULT_NAME = "campaign"  # stored as result "campaign" beside every recording of a campaign
 
 
 @dataclass(frozen=True)

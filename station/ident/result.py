@@ -121,7 +121,7 @@ class IdentificationResult:
 
     @property
     def result_name(self) -> str:
-        """Where the result is stored in a recording: /results/<result_name>."""
+        """Its name among the results stored beside a recording (``<run>.results/results.<name>.h5``)."""
         return f"identify_{self.method}_{self.model}"
 
     def parameter(self, name: str) -> ParameterEstimate:

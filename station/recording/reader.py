@@ -1,4 +1,4 @@
-"""Reading recordings, complete or cut off by a crash, and writing results into them."""
+"""Reading recordings, complete or cut off by a crash (results beside them: ``stored``)."""
 
 from __future__ import annotations
 
@@ -14,9 +14,7 @@ import numpy as np
 import yaml
 
 from station.errors import RecordingFormatError, StationError
-from station.recording.writer import FORMAT_NAME, STEP_FIELDS, _jsonable, utc_now
-
-RESULT_GROUPS = ("results", "processed")  # the only groups write_results may change
+from station.recording.writer import FORMAT_NAME, STEP_FIELDS, utc_now
 
 
 @dataclass(frozen=True)
@@ -182,35 +180,3 @@ def recover_partial(path: str | Path) -> Path:
     os.replace(tmp, dst)
     src.unlink()
     return dst
-
-
-def write_results(path: str | Path, name: str, payload: dict[str, Any],
-                  arrays: dict[str, np.ndarray] | None = None, *, group: str = "results") -> None:
-    """Store a JSON document (and optional arrays) under ``/<group>/<name>``, replacing an earlier
-    result of the same name.  Raw data is never touched.  Only complete recordings take results."""
-    p = Path(path)
-    if p.name.endswith(".partial"):
-        raise StationError(f"{p}: results are written only into complete recordings")
-    if not name.replace("_", "").replace("-", "").replace("+", "").isalnum():
-        raise ValueError(f"result name must be alphanumeric (with _ - +), got {name!r}")
-    if group not in RESULT_GROUPS:
-        raise ValueError(f"results go into one of the groups {RESULT_GROUPS}, got {group!r}")
-    with h5py.File(p, "r+") as f:
-        grp = f.require_group(group)
-        if name in grp:
-            del grp[name]
-        g = grp.create_group(name)
-        g.attrs["json"] = json.dumps(payload, default=_jsonable)
-        g.attrs["written"] = utc_now()
-        for key, arr in (arrays or {}).items():
-            g.create_dataset(key, data=arr)
-
-
-def read_results(path: str | Path, name: str, *, group: str = "results") -> dict[str, Any] | None:
-    """The JSON document stored by ``write_results``, or None."""
-    f, _ = _open(Path(path))
-    with f:
-        key = f"{group}/{name}"
-        if key not in f:
-            return None
-        return json.loads(f[key].attrs["json"])

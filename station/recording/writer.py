@@ -220,7 +220,7 @@ class RecordingWriter:
 
     def document(self, kind: str, body: dict[str, Any]) -> None:
         """Append one run document (JSON line) of kind start, step, event or stop."""
-        line = (json.dumps({"kind": kind, **body}, default=_jsonable) + "\n").encode()
+        line = (json.dumps({"kind": kind, **body}, default=jsonable) + "\n").encode()
         k = self._docs.shape[0]
         self._docs.resize((k + len(line),))
         self._docs[k:] = np.frombuffer(line, dtype=np.uint8)
@@ -279,7 +279,7 @@ def is_disk_full(exc: BaseException | None) -> bool:
     return False
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):

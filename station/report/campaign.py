@@ -1,4 +1,4 @@
-"""The report's multi-mass campaign section: the joint identification stored as ``/results/campaign``
+"""The report's multi-mass campaign section: the joint identification stored as ``results/campaign``
 by ``station identify REC1 REC2 ...`` or ``POST /campaigns`` with ``store``, shown in the report of
 every recording that took part (docs/identification.md, "Multi-mass campaign")."""
 

@@ -1,12 +1,12 @@
 """What the report and the plots need from a recording, loaded once per file version.
 
-* the identification: the stored ``/results/identify_<method>_<model>`` preferred in the order
+* the identification: the stored ``results/identify_<method>_<model>`` preferred in the order
   ``METHOD_PREFERENCE`` (the latest written of a method), else computed now with the station's
   default (``identify_recording``: fd, model auto) and not stored;
-* H(f) at the steps: ``/processed/steps`` (arrays ``frequency_hz``, ``H``, ``H_cov``) when the run was
+* H(f) at the steps: ``processed/steps`` (arrays ``frequency_hz``, ``H``, ``H_cov``) when the run was
   processed, else the identification's own sine fits of the raw record windows;
 * the per-step time signals with the model's prediction (for the time-domain plots);
-* the discrepancy workflow's ``/results/discrepancy`` when present.
+* the discrepancy workflow's ``results/discrepancy`` when present.
 
 ``load_run`` caches the last 4 recordings by (path, modification time, size), so the four plots
 and the report of one run read and fit it once (the raw channels are dropped; the record windows kept).
@@ -28,7 +28,7 @@ from station.ident.api import identify_recording, measured_response
 from station.ident.frf import FrequencyResponse, whitened_jacobian
 from station.ident.models import Model, SdofModel, make_model
 from station.recording import Recording, read_recording
-from station.recording.stored import read_processed, read_stored
+from station.recording.stored import read_processed, read_stored, results_version
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -38,7 +38,7 @@ PAPER_METHODS = ("pso", "pso+")
 
 @dataclass(frozen=True)
 class StoredResult:
-    """One ``/results/<name>`` document and when it was written (ISO 8601, UTC)."""
+    """One ``results/<name>`` document and when it was written (ISO 8601, UTC)."""
 
     name: str
     written: str
@@ -103,7 +103,7 @@ class RunData:
 
 
 def read_groups(path: Path) -> tuple[dict[str, StoredResult], dict[str, Any] | None]:
-    """All ``/results`` documents, and ``/processed/steps`` (its JSON plus arrays) or None."""
+    """All ``results`` documents, and ``processed/steps`` (its JSON plus arrays) or None."""
     results = {n: StoredResult(n, s.written, s.doc) for n, s in read_stored(path).items()}
     stored = read_processed(path)
     proc = None
@@ -175,7 +175,7 @@ def _response(proc: dict[str, Any] | None, frf: Any, usable: list[int]) -> Respo
         if len(idx) != len(proc["frequency_hz"]):
             idx = tuple(range(len(proc["frequency_hz"])))
         return Response(np.asarray(proc["frequency_hz"], float), np.asarray(proc["H"], complex),
-                        np.asarray(proc["H_cov"], float).reshape(-1, 2, 2), idx, "/processed/steps")
+                        np.asarray(proc["H_cov"], float).reshape(-1, 2, 2), idx, "processed/steps")
     return Response(frf.f_hz, frf.H, frf.cov, tuple(usable), "sine fits of the raw record windows")
 
 
@@ -195,18 +195,18 @@ def _traces(frf: Any, sigs: list[Any], usable: list[int], curve: ModelCurve | No
 
 
 @lru_cache(maxsize=4)
-def _load(path_str: str, _mtime_ns: int, _size: int) -> RunData:
+def _load(path_str: str, _mtime_ns: int, _size: int, _results: tuple[tuple[str, int], ...]) -> RunData:
     path = Path(path_str)
     results, proc = read_groups(path)
     rec = read_recording(path)
     stored = choose_identification(results)
     if stored is not None:
-        ident, source = stored.payload, f"/results/{stored.name} (written {stored.written})"
+        ident, source = stored.payload, f"results/{stored.name} (stored beside the recording, written {stored.written})"
     else:
         try:
             ident = identify_recording(rec).to_dict()
         except StationError as exc:
-            raise RecordingFormatError(f"{path}: no identification results stored (/results/identify_*) "
+            raise RecordingFormatError(f"{path}: no identification results stored (results/identify_*) "
                                        f"and none could be computed: {exc}") from None
         source = "computed for this report with the default method (not stored in the recording)"
     try:
@@ -231,4 +231,4 @@ def load_run(path: str | Path) -> RunData:
         st = p.stat()
     except OSError:
         raise RecordingFormatError(f"{path}: no such recording") from None
-    return _load(str(p), st.st_mtime_ns, st.st_size)
+    return _load(str(p), st.st_mtime_ns, st.st_size, results_version(p))

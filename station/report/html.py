@@ -222,7 +222,7 @@ def _discrepancy(d: RunData) -> str:
     disc = d.discrepancy
     if disc is None:
         return ("<h2>Model discrepancy</h2><p class=\"note\">The discrepancy workflow has not been run on this "
-                "recording (no /results/discrepancy): no effects beyond the model are named.</p>")
+                "recording (no results/discrepancy): no effects beyond the model are named.</p>")
     rows = []
     for e in disc.get("effects") or []:
         ps = "; ".join(f"{_e(k)} = " + (f"{fmt_value(p.get('value'), p.get('std'))} ± {fmt_unc(p.get('std'))} "

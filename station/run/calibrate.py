@@ -40,8 +40,9 @@ class CalibrationResult:
 
 
 def process_and_identify(path: Path) -> IdentificationResult:
-    """After a run: H(f) per step into /processed, then the default identification into /results;
-    the recording is read once and H(f) computed once (the identification fits what /processed holds)."""
+    """After a run: H(f) per step (``processed/steps``), then the default identification
+    (``results/identify_<method>_<model>``), both stored beside the recording; the recording is read
+    once and H(f) computed once (the identification fits what ``processed/steps`` holds)."""
     rec = read_recording(path)
     response = checked_response(rec)
     process_recording(path, rec, response)

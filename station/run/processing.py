@@ -1,9 +1,9 @@
-"""H(f) per step into the recording's ``/processed/steps``: the identification's own frequency response.
+"""H(f) per step stored beside the recording as ``processed/steps``: the identification's own frequency response.
 
 There is one producer of H(f): ``station.ident.steps.checked_response``, the sine fits of the raw
 record windows (IEEE 1057 fits at the crank frequency found by a four-parameter fit of the
 displacement, harmonics as nuisance terms) behind the identification's plausibility checks.  What
-``/processed`` stores, what the daemon's results and the report show, and what the parameters were
+``processed/steps`` holds, what the daemon's results and the report show, and what the parameters were
 fitted to are therefore the same numbers.  (A zero-phase low-pass and resampling before the fits,
 as this module once did, cannot change H at the fundamental: the sine fit is itself the narrowest
 band-pass, and the filter's edge transients only cost samples.)
@@ -23,7 +23,7 @@ import numpy as np
 
 from station.errors import StationError
 from station.ident.steps import CheckedResponse, checked_response
-from station.recording import Recording, read_recording, write_results
+from station.recording import Recording, read_recording, write_result
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ def step_responses(cr: CheckedResponse) -> list[StepResponse]:
 
 def process_recording(path: str | Path, rec: Recording | None = None,
                       response: CheckedResponse | None = None) -> list[StepResponse]:
-    """Store H(f) of a complete recording in /processed/steps (``rec``: the recording already read
+    """Store H(f) of a complete recording as ``processed/steps`` beside it (``rec``: the recording already read
     from ``path``; ``response``: its checked response if already computed, to save doing it twice).
     Steps left out are listed with the check that left them out."""
     rec = rec if rec is not None else read_recording(path)
@@ -84,6 +84,6 @@ def process_recording(path: str | Path, rec: Recording | None = None,
     arrays = {"frequency_hz": np.array([s.frequency_hz for s in out]),
               "H": np.array([s.H for s in out], dtype=complex),
               "H_cov": np.array([s.H_cov for s in out]).reshape(-1, 2, 2)}
-    write_results(path, "steps", payload, arrays, group="processed")
+    write_result(path, "steps", payload, arrays, group="processed")
     log.info("processed %d steps of %s (%d skipped)", len(out), rec.path.name, len(skipped))
     return out

@@ -14,7 +14,7 @@ from typing import Any
 
 from station.report.names import PLOT_NAMES
 from station.service import worker
-from station.service.errors import RunStateError
+from station.service.errors import ResultNotStoredError, RunStateError
 from station.service.store import RunRow
 
 CACHE_ENTRIES = 64  # rendered plots and reports kept in memory (a few 100 kB each)
@@ -135,8 +135,20 @@ class Artifacts:
         return out
 
     async def discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
+        """Compute the model-gap analysis in the render worker and store it beside the recording
+        (behind an authenticated POST only)."""
         path = self._completed_path(run_id)
         out = await self._locked_job(run_id, worker.discrepancy_job, str(path), max_effects)
         self._cache.pop((run_id, "report"), None)  # the report names the effects found
         return out
+
+    async def stored_discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
+        """The stored model-gap analysis (read only); ResultNotStoredError names how to make it."""
+        path = self._completed_path(run_id)
+        out = await asyncio.to_thread(worker.stored_discrepancy, path, max_effects)
+        if out is None:
+            raise ResultNotStoredError(f"run {run_id}: no model-gap analysis with max_effects={max_effects} is "
+                                       f"stored; POST /runs/{run_id}/discrepancy?max_effects={max_effects} "
+                                       "(bearer token) computes and stores it")
+        return dict(out)
 

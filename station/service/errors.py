@@ -18,6 +18,10 @@ class RunNotFoundError(StationError):
     """No run with this id (404)."""
 
 
+class ResultNotStoredError(StationError):
+    """A result that is computed on request has not been computed yet (404; the message says how)."""
+
+
 class RunStateError(StationError):
     """The run is not in a state that allows the request, e.g. results of a running run (409)."""
 

@@ -197,6 +197,9 @@ class RunManager:
     async def discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
         return await self.artifacts.discrepancy(run_id, max_effects)
 
+    async def stored_discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
+        return await self.artifacts.stored_discrepancy(run_id, max_effects)
+
     # ------------------------------------------------------------------ health
     def health(self) -> dict[str, Any]:
         act = self.active()

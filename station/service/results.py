@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from station.recording import read_results
+from station.recording import read_result
 from station.recording.stored import read_processed
 
 
@@ -57,8 +57,8 @@ def frequency_response(path: Path) -> tuple[list[dict[str, Any]], list[dict[str,
 
 
 def load_results(path: Path, result_name: str) -> dict[str, Any]:
-    """The identification stored under /results/<result_name> and the processed H(f)."""
-    ident = read_results(path, result_name) or {}
+    """The identification stored as result ``result_name`` and the processed H(f), as stored beside the recording."""
+    ident = read_result(path, result_name) or {}
     steps, skipped, units = frequency_response(path)
     params = [{"name": name, **p} for name, p in (ident.get("parameters") or {}).items()]
     return finite({"method": ident.get("method"), "model": ident.get("model"), "parameters": params,

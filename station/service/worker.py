@@ -62,7 +62,7 @@ def _job(fn: Callable[..., T]) -> Callable[..., T]:
 
 @_job
 def identify_job(path: str) -> dict[str, Any]:
-    """H(f) per step into /processed, then the identification into /results (station.run.calibrate)."""
+    """H(f) per step, then the identification, stored beside the recording (station.run.calibrate)."""
     from station.run.calibrate import process_and_identify
 
     t0 = time.perf_counter()
@@ -98,18 +98,14 @@ def report_job(path: str) -> str:
 
 @_job
 def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
-    """The model-gap analysis of a recording: the JSON contract (``to_json``).  Stored in the recording
-    as ``/results/discrepancy`` (everything, ``to_dict``, with the ``max_effects`` used: the same place
-    ``station discrepancy --save`` writes and the report reads) and reused for the same max_effects."""
-    from station.recording import read_results, write_results
-
-    cached = read_results(path, "discrepancy")
-    if cached is not None and cached.get("max_effects") == max_effects:
-        return {k: cached.get(k) for k in CONTRACT_KEYS}  # results stored before a key existed: null
+    """Compute the model-gap analysis of a recording and store it beside it as result ``discrepancy``
+    (everything, ``to_dict``, with the ``max_effects`` used: where ``station discrepancy --save``
+    writes and the report reads); returns the JSON contract (``to_json``)."""
     from station.discrepancy import analyse_recording
+    from station.recording import write_result
 
     rep = analyse_recording(path, max_effects=max_effects)
-    write_results(path, "discrepancy", {**rep.to_dict(), "max_effects": max_effects})
+    write_result(path, "discrepancy", {**rep.to_dict(), "max_effects": max_effects})
     return rep.to_json()
 
 
@@ -131,6 +127,17 @@ def campaign_job(paths: list[str]) -> dict[str, Any]:
 
 CONTRACT_KEYS = ("base_gap", "effects", "final_gap", "parameters_before", "parameters_after", "unexplained",
                  "ties", "notes", "proposal", "drive")
+
+
+def stored_discrepancy(path: Path, max_effects: int) -> dict[str, Any] | None:
+    """The stored model-gap analysis' JSON contract if it was computed with ``max_effects``, else None
+    (reads only: nothing is computed or written)."""
+    from station.recording import read_result
+
+    doc = read_result(path, "discrepancy")
+    if doc is None or doc.get("max_effects") != max_effects:
+        return None
+    return {k: doc.get(k) for k in CONTRACT_KEYS}  # results stored before a key existed: null
 
 
 # --------------------------------------------------------------------------- in the daemon

@@ -3,6 +3,7 @@ jointly (S, m_e, k_f, b_f; ``station.ident.campaign``)."""
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +13,7 @@ from fastapi.exceptions import RequestValidationError
 from station.api.campaign_schemas import CampaignOut, CampaignRequest
 from station.api.deps import ManagerDep, Writer
 from station.api.schemas import ErrorOut, ValidationErrorOut
-from station.recording import write_results
+from station.recording import write_result
 from station.service.results import finite
 
 router = APIRouter(prefix="/campaigns", tags=["campaigns"])
@@ -30,9 +31,9 @@ router = APIRouter(prefix="/campaigns", tags=["campaigns"])
 async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep) -> CampaignOut:
     """Reads each run's recording and fits Eq. 9 to all of them at once, the end mass m_e a
     parameter, in a worker process (like every computation of the station).  With `store` the
-    result is also written into every run's recording as /results/campaign, where the run's report
-    shows it.  Top masses too alike to separate S from m_e give status `conditional` or `refused`
-    with the named check `end_mass_separation`, not an error."""
+    result is also stored beside every run's recording (`<run>.results/results.campaign.h5`), where
+    the run's report shows it.  Top masses too alike to separate S from m_e give status
+    `conditional` or `refused` with the named check `end_mass_separation`, not an error."""
     from station.ident.campaign import RESULT_NAME
 
     out = await manager.artifacts.campaign(list(body.runs))
@@ -46,6 +47,6 @@ async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep) ->
     stored = None
     if body.store:
         for run_id in body.runs:
-            await manager.read_file(run_id, lambda p: write_results(p, RESULT_NAME, payload))
-        stored = f"/results/{RESULT_NAME}"
+            await asyncio.to_thread(write_result, manager.recording_path(manager.get(run_id)), RESULT_NAME, payload)
+        stored = f"<run>.results/results.{RESULT_NAME}.h5"
     return CampaignOut.model_validate({**data, "runs": list(body.runs), "stored_as": stored})

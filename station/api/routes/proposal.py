@@ -43,10 +43,10 @@ class ProposalOut(BaseModel):
             responses={**E401, **E404, **E409, **E422, **E503},
             summary="The next run that settles a tie of the model-gap analysis")
 async def run_proposal(run: RunDep, manager: ManagerDep) -> ProposalOut:
-    """Computed with the model-gap analysis (the default ``max_effects`` = 4, cached with it).
-    ``request`` is ready to POST to /runs: same transducer and top mass, the steps of
-    ``proposal.run_steps``."""
-    out = finite(await manager.discrepancy(run.id, MAX_EFFECTS))
+    """Part of the stored model-gap analysis (the default ``max_effects`` = 4; 404 until
+    `POST /runs/{id}/discrepancy` has computed it).  ``request`` is ready to POST to /runs: same
+    transducer and top mass, the steps of ``proposal.run_steps``."""
+    out = finite(await manager.stored_discrepancy(run.id, MAX_EFFECTS))
     prop = out.get("proposal") if isinstance(out, dict) else None
     if not prop or not prop.get("run_steps"):
         return ProposalOut(run=run.id, proposal=prop or None, request=None)

@@ -171,13 +171,28 @@ async def run_recording(run: RunDep, manager: ManagerDep) -> StreamingResponse:
                                       "Content-Length": str(path.stat().st_size)})
 
 
+MaxEffects = Annotated[int, Query(ge=0, le=8, description="catalogue effects added at most")]
+E404_ANALYSIS: Responses = {404: {"model": ErrorOut, "description": "no such run, or no analysis with this "
+                                  "max_effects stored yet (the message names the POST that computes it)"}}
+
+
 @router.get("/{run_id}/discrepancy", response_model=DiscrepancyOut, dependencies=[Reader],
-            responses={**E401, **E404, **E409, **E422, **E503},
-            summary="Model-gap analysis of the run")
-async def run_discrepancy(run: RunDep, manager: ManagerDep,
-                          max_effects: Annotated[int, Query(ge=0, le=8)] = 4) -> DiscrepancyOut:
-    """Which catalogue effect the measurement shows that the model lacks; computed once in a
-    worker process and cached in the recording's results."""
+            responses={**E401, **E404_ANALYSIS, **E409, **E422, **E503},
+            summary="The stored model-gap analysis of the run")
+async def run_discrepancy(run: RunDep, manager: ManagerDep, max_effects: MaxEffects = 4) -> DiscrepancyOut:
+    """Which catalogue effect the measurement shows that the model lacks, as stored beside the
+    recording by `POST /runs/{id}/discrepancy` or `station discrepancy --save`.  Reads only."""
+    from station.service.results import finite
+
+    return DiscrepancyOut.model_validate(finite(await manager.stored_discrepancy(run.id, max_effects)))
+
+
+@router.post("/{run_id}/discrepancy", response_model=DiscrepancyOut, dependencies=[Writer],
+             responses={**E401, **E404, **E409, **E422, **E503},
+             summary="Compute and store the model-gap analysis of the run")
+async def compute_discrepancy(run: RunDep, manager: ManagerDep, max_effects: MaxEffects = 4) -> DiscrepancyOut:
+    """Runs the analysis in a worker process and stores it beside the recording (replacing an
+    earlier one), where `GET`, the proposal and the report read it."""
     from station.service.results import finite
 
     return DiscrepancyOut.model_validate(finite(await manager.discrepancy(run.id, max_effects)))

@@ -289,9 +289,17 @@ async function loadResults(id) {
 
 async function loadDiscrepancy(url) {
   const box = $("#discrepancy");
-  box.textContent = "analysing…";
-  const res = await api("GET", url);
-  if (!res.ok) { box.textContent = `not available: ${detailText(res.data)}`; return; }
+  box.textContent = "loading…";
+  let res = await api("GET", url);
+  if (res.status === 404 && token()) {  // not computed yet: computing and storing it needs the token
+    box.textContent = "analysing…";
+    res = await api("POST", url);
+  }
+  if (!res.ok) {
+    box.textContent = res.status === 404 ? "not analysed yet: enter the station token (top of the page) to analyse this run"
+      : `not available: ${detailText(res.data)}`;
+    return;
+  }
   const d = res.data;
   const mV = (v) => (v === null ? "—" : (v * 1000).toPrecision(3) + " mV");
   let html = `<p>force residual (RMS) of the model: ${mV(d.base_gap)} → ${mV(d.final_gap)} after the effects below</p>`;
