@@ -15,11 +15,17 @@ import pytest
 
 from station.recording import read_recording, read_stored
 from tests.test_service_support import FINAL, TOKEN, Daemon, run_body
+from tests.test_stored_results import killed_in_place_write, small_recording
 
 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with Daemon(tmp_path_factory.mktemp("api")) as d:
+    tmp = tmp_path_factory.mktemp("api")
+    rec_dir = tmp / "recordings"  # what an older station may have left: one flagged recording, one unreadable
+    rec_dir.mkdir()
+    killed_in_place_write(small_recording(rec_dir))
+    (rec_dir / "garbage.h5").write_bytes(b"not HDF5" * 64)
+    with Daemon(tmp) as d:
         yield d
 
 
@@ -54,6 +60,9 @@ def test_health_reports_each_device_link(daemon: Daemon) -> None:
     assert h["rig"]["daq"] == {"link_error": None}
     assert h["database"] == {"ok": True, "journal_mode": "wal"}
     assert h["worker"]["processes"] == 1
+    # the start-up check repaired the flagged recording and named the unreadable one (and went on)
+    assert h["recordings"]["repaired"] == ["20250101T000000-TX-1-abcdef.h5"]
+    assert [u["file"] for u in h["recordings"]["unreadable"]] == ["garbage.h5"]
 
 
 def test_station_shows_the_limits(daemon: Daemon) -> None:

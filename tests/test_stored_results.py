@@ -23,7 +23,7 @@ from tests.disk_support import mounted_tmpfs
 from tests.test_recording import FLOAT_CHANNELS, _meta
 
 
-def _recording(folder: Path, n: int = 4000) -> Path:
+def small_recording(folder: Path, n: int = 4000) -> Path:
     w = RecordingWriter(folder, _meta(), FLOAT_CHANNELS, chunk_samples=1000, min_free_bytes=0)
     t = np.arange(n) / 20_000.0
     w.append(1e-3 * np.sin(2 * np.pi * 10 * t), 0.1 * np.cos(2 * np.pi * 10 * t))
@@ -37,7 +37,7 @@ def _digest(p: Path) -> str:
 
 @pytest.fixture
 def rec(tmp_path: Path) -> Path:
-    return _recording(tmp_path)
+    return small_recording(tmp_path)
 
 
 def test_results_live_beside_the_recording_which_is_never_opened_for_writing(rec: Path) -> None:
@@ -74,7 +74,8 @@ def test_old_recordings_with_results_inside_still_read_and_the_sidecar_wins(rec:
     assert set(old) == {"identify_fd_sdof"} and old["identify_fd_sdof"].source.endswith(":/results/identify_fd_sdof")
     assert read_processed(rec) is not None and read_processed(rec).arrays["H"].tolist() == [1j]  # type: ignore[union-attr]
     write_result(rec, "identify_fd_sdof", {"k_f": 2.0})
-    assert read_result(rec, "identify_fd_sdof") == {"k_f": 2.0} and read_stored(rec)["identify_fd_sdof"].doc == {"k_f": 2.0}
+    assert read_result(rec, "identify_fd_sdof") == {"k_f": 2.0}
+    assert read_stored(rec)["identify_fd_sdof"].doc == {"k_f": 2.0}
     assert _digest(rec) == before  # the old in-file result is read, never rewritten
 
 
@@ -160,7 +161,7 @@ def test_thirty_kills_while_results_are_written_leave_everything_readable(rec: P
 
 def test_a_full_disk_while_results_are_written_loses_nothing(tmp_path: Path) -> None:
     with mounted_tmpfs(tmp_path, 2) as disk:
-        rec = _recording(disk)
+        rec = small_recording(disk)
         digest = _digest(rec)
         write_result(rec, "identify_fd_sdof", {"k_f": 2.9e7}, {"a": np.arange(100.0)})
         filler = disk / "filler"
@@ -182,3 +183,50 @@ def test_a_full_disk_while_results_are_written_loses_nothing(tmp_path: Path) -> 
         filler.unlink()
         write_result(rec, "discrepancy", {"ok": True})
         assert read_result(rec, "discrepancy") == {"ok": True}
+
+
+# -- recordings damaged by the old in-place writes -------------------------------------------------
+
+def killed_in_place_write(rec: Path) -> None:
+    """What the old scheme left: a process killed while it held the recording open for writing."""
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child is killed
+        try:
+            f = h5py.File(rec, "r+")
+            g = f.require_group("results").create_group("identify_fd_sdof")
+            g.attrs["json"] = json.dumps({"k_f": 1.0})
+            f.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+        finally:
+            os._exit(1)
+    os.waitpid(pid, 0)
+
+
+def test_a_recording_left_flagged_by_a_killed_in_place_write_is_repaired_at_start(tmp_path: Path) -> None:
+    from station.recording.repair import check_folder
+
+    rec = small_recording(tmp_path)
+    good = read_recording(rec)
+    killed_in_place_write(rec)
+    with pytest.raises(OSError, match="already open for write"):
+        h5py.File(rec, "r")
+    (tmp_path / "garbage.h5").write_bytes(b"not an HDF5 file" * 100)
+    cut = tmp_path / "cut.h5"  # flagged and cut short: clearing the flag does not make it readable
+    cut.write_bytes(rec.read_bytes()[:3000])
+    cut_bytes = cut.read_bytes()
+    write_result(rec, "steps", {"n": 1}, group="processed")
+    tmp = next(iter(sidecar_dir(rec).iterdir())).with_name(".results.fit.h5.tmp-1-abcdef")
+    tmp.write_bytes(b"cut off")
+    out = check_folder(tmp_path)
+    assert out.repaired == (rec.name,) and [n for n, _ in out.unreadable] == ["cut.h5", "garbage.h5"]
+    assert cut.read_bytes() == cut_bytes  # its superblock put back as it was: left for a person to look at
+    assert out.temporaries_removed == (f"{sidecar_dir(rec).name}/{tmp.name}",) and not tmp.exists()
+    with h5py.File(rec, "r") as f:  # opens normally again
+        assert "identify_fd_sdof" in f["results"]
+    again = read_recording(rec)
+    assert again.complete and again.exit_status == "completed" and again.steps == good.steps
+    np.testing.assert_array_equal(again.force_V, good.force_V)
+    np.testing.assert_array_equal(again.displacement_m, good.displacement_m)
+    assert read_result(rec, "identify_fd_sdof") == {"k_f": 1.0} and read_result(rec, "steps", group="processed")
+    assert (tmp_path / "garbage.h5").read_bytes()[:6] == b"not an"  # named, never deleted
+    assert check_folder(tmp_path).repaired == ()  # nothing left to repair

@@ -279,6 +279,21 @@ class DiskHealth(_Out):
     detail: str | None
 
 
+class UnreadableRecordingOut(_Out):
+    file: str = Field(description="file name in the recordings folder")
+    error: str
+
+
+class RecordingsCheckOut(_Out):
+    """The start-up check of the recordings folder (recordings damaged by an interrupted in-place
+    write of an older station: repaired, or named when they cannot be read)."""
+
+    repaired: list[str] = Field(description="recordings whose write flag was cleared (content copied and verified)")
+    unreadable: list[UnreadableRecordingOut] = Field(description="recordings that cannot be read; left as they are")
+    temporaries_removed: list[str] = Field(description="temporary files of interrupted writes, removed")
+    notes: list[str]
+
+
 class HealthOut(_Out):
     status: Literal["ok", "degraded"]
     estop: EStopState
@@ -288,6 +303,7 @@ class HealthOut(_Out):
     worker: WorkerHealth
     active_run: str | None
     uptime_s: float
+    recordings: RecordingsCheckOut
 
 
 class RangeOut(_Out):

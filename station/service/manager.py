@@ -18,6 +18,7 @@ from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
 
+from station.recording.repair import FolderCheck, check_folder
 from station.run.request import RunRequest
 from station.run.rig import ConnectedRig
 from station.service import worker
@@ -81,11 +82,13 @@ class RunManager:
                              self.artifacts, self.changes, self.closing)
         self._warm: asyncio.Task[None] | None = None
         self.started_at = time.time()
+        self.folder_check = FolderCheck()
 
     # ------------------------------------------------------------------ life cycle
     async def start(self) -> None:
         self.runs.loop_thread = threading.get_ident()
         self.runs.web_loop = asyncio.get_running_loop()
+        self.folder_check = await asyncio.to_thread(check_folder, self.settings.recordings_dir)
         self.recover()
         await asyncio.to_thread(self.disk.ensure_reserve)
         await self.link.connect()
@@ -204,8 +207,10 @@ class RunManager:
     def health(self) -> dict[str, Any]:
         act = self.active()
         self.runs.flush_unsaved()
-        return health(self.link, self.store, self.identify_pool, self.latch, self.disk, workers=self.settings.workers,
-                      sim=self.settings.sim, active_run=act.row.id if act else None, started_at=self.started_at)
+        out = health(self.link, self.store, self.identify_pool, self.latch, self.disk, workers=self.settings.workers,
+                     sim=self.settings.sim, active_run=act.row.id if act else None, started_at=self.started_at)
+        out["recordings"] = self.folder_check.to_dict()  # what the start-up check repaired or could not read
+        return out
 
 
 def is_final(state: str) -> bool:
