@@ -193,7 +193,8 @@ def _stated_uncertainties(cfg: dict) -> dict:
     out = {"end_mass_std_kg": (cfg.get("transducer") or {}).get("end_mass_std_kg"),
            "top_mass_std_kg": (cfg.get("rig") or {}).get("load_mass_std_kg"),
            "measurement_chain": (cfg.get("identification") or {}).get("chain")}
-    if out["measurement_chain"] == MeasurementChain().model_dump():  # the configuration's defaults
+    chain = out["measurement_chain"]
+    if isinstance(chain, dict) and MeasurementChain.model_validate(chain) == MeasurementChain():  # the defaults
         out["measurement_chain"] = None
     return {k: v for k, v in out.items() if v is not None}
 

@@ -80,8 +80,8 @@ def test_clean_run_no_findings_and_the_budget_adds_up(base: Path) -> None:
         p = res.parameter(name)
         assert within(p, truth) and not p.flag
         b = res.budget[name]
-        assert set(b["contributions"]) == {"noise", "chain_gain", "chain_phase", "chain_delay", "end_mass",
-                                           "load_mass", "radius"}
+        assert set(b["contributions"]) == {"noise", "chain_gain", "chain_phase", "chain_delay", "chain_resonance",
+                                           "end_mass", "load_mass", "radius"}
         total = np.sqrt(sum(v**2 for v in b["contributions"].values()))
         assert b["combined"] == pytest.approx(total, rel=1e-9) and p.std == pytest.approx(b["combined"])
     # S is proportional to 1/M: its end-mass term is S u(m_e)/M exactly (u(m_e) = 5 % by default)

@@ -89,8 +89,13 @@ def test_auto_model_picks_eq8_when_the_coupling_is_compliant(tmp_path: Path) -> 
     eff = {"coupling_compliance": {"k_c": 1e8, "b_c": 200.0}}
     rec = read_recording(simulate_run(_cfg(steps, 1.0, eff), tmp_path, seed=5))
     stiff = identify_recording(rec, "fd", "sdof")
-    assert abs(stiff.parameter("k_f").value / TRUTH["k_f"] - 1) > 0.1  # Eq. 9 sees the series stiffness
     assert stiff.fit.chi2_per_dof > 100
+    # Eq. 9 sees the series stiffness, stated as such; k_f alone is withheld: a coupling explains the misfit
+    k_s = 1 / (1 / TRUTH["k_f"] + 1 / 1e8)
+    ser = stiff.determined["series_stiffness"]
+    assert abs(ser["value"] - k_s) < 3 * ser["combined"] and abs(ser["value"] / TRUTH["k_f"] - 1) > 0.1
+    assert not stiff.parameter("k_f").identifiable and "coupling_suspected" in {c.name for c in stiff.checks}
+    assert stiff.assumptions["structure"]["equation"] == "Eq. 9"
     res = identify_recording(rec)
     assert res.model == "coupled"
     k, kc = res.parameter("k_f"), res.parameter("k_c")

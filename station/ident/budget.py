@@ -13,6 +13,8 @@ standard uncertainty in theta is the root sum of squares of P v sigma.  Sources:
 * chain_gain: gain ratio of the chains, dH = H g (correlated) and flatness dH_i = H_i g_i;
 * chain_phase: dH = j H phi (correlated offset) and dH_i = j H_i phi_i (independent);
 * chain_delay: dH_i = j 2 pi f_i tau H_i, one tau for all frequencies;
+* chain_resonance: the stated displacement-sensor resonance (f_r, p) that H was corrected for,
+  dH = H d ln H_s/d f_r u(f_r) and H d ln H_s/d p u(p), each correlated (0 for a flat chain);
 * end_mass, load_mass: d theta = -P dH_model/dm u(m) (the model's own mass dependence);
 * radius: 0 -- the frame motion is the measured displacement, the stated crank radius enters no
   estimate (it is only checked against the measured amplitude).
@@ -31,9 +33,11 @@ from numpy.typing import NDArray
 from station.ident.frf import FrequencyResponse, _whiteners
 from station.ident.inputs import IdentInputs
 from station.ident.models import Model, make_model
+from station.ident.structure import resonance_vectors
 
 FloatArray = NDArray[np.float64]
-SOURCES = ("noise", "chain_gain", "chain_phase", "chain_delay", "end_mass", "load_mass", "radius")
+SOURCES = ("noise", "chain_gain", "chain_phase", "chain_delay", "chain_resonance", "end_mass", "load_mass",
+           "radius")
 
 
 @dataclass(frozen=True)
@@ -135,6 +139,7 @@ def uncertainty_budget(model: Model, theta: FloatArray, noise_cov: FloatArray, f
     covs["chain_phase"] = spread([(1j * H, np.deg2rad(ch.phase_offset_std_deg))]
                                  + [(single(k, 1j * H), phi) for k in range(H.size)])
     covs["chain_delay"] = spread([(2j * np.pi * f * H, ch.delay_std_s)])
+    covs["chain_resonance"] = spread(resonance_vectors(H, f, ch))
     for name, m in (("end_mass", inputs.end_mass), ("load_mass", inputs.load_mass)):
         covs[name] = None if m.std is None else spread(
             [(_mass_derivative(model, theta, f, name), float(m.std))])

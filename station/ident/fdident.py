@@ -26,6 +26,7 @@ from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.models import CoupledModel, Model, SdofModel, make_model
 from station.ident.result import Check, IdentificationResult, ParameterEstimate
 from station.ident.steps import CheckedResponse, checked_response
+from station.ident.structure import apply_structure, chain_corrected, coupling_suspected
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -115,10 +116,15 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
     policy = replace(policy or Policy(), phase_floor_rad=inputs.chain.floor_phase_rad,
                      gain_floor=inputs.chain.floor_gain)
     cr = response if response is not None else checked_response(rec, inputs)
-    frf, checks, notes = cr.frf, list(cr.checks), []
+    frf, checks, notes = chain_corrected(cr.frf, inputs.chain), list(cr.checks), []
+    if frf is not cr.frf:
+        notes.append(f"H(f) corrected for the stated displacement-sensor resonance "
+                     f"({inputs.chain.displacement_resonance_hz:g} Hz, damping {inputs.chain.displacement_damping:g})")
     sdof = make_model("sdof", inputs.m_e, inputs.m_l)
     assert isinstance(sdof, SdofModel)
     fit, rep = fd_fit(frf, sdof, start_values(frf, sdof, cr.sign), policy)
+    sdof_fit = fit
+    cfit: frfmod.FrfFit | None = None
     model: Model = sdof
     auto = model_key == "auto"
     if model_key in ("coupled", "h1") or (auto and fit.inflated and inputs.end_mass_given):
@@ -144,6 +150,13 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
             rep = replace(crep, identifiable=(*rep.identifiable, False, False),
                           reasons=(*rep.reasons[:3], crep.reasons[3] or "k_c not identifiable",
                                    crep.reasons[4] or "b_c is meaningless without k_c"))
+    if cfit is None and sdof_fit.inflated and inputs.end_mass_given and sdof_fit.dof > 2:
+        cm = make_model("coupled", inputs.m_e, inputs.m_l)
+        cfit = fd_fit(frf, cm, np.r_[sdof_fit.theta, 10 * sdof_fit.theta[1], 0.1 * sdof_fit.theta[2]], policy)[0]
+    stiff = isinstance(model, SdofModel) or not rep.identifiable[3]
+    suspected = None
+    if stiff and sdof_fit.inflated and cfit is not None:
+        suspected = coupling_suspected(frf, sdof_fit.chi2, sdof_fit.dof, cfit.theta, cfit.chi2, cfit.dof)
     free = np.diag(fit.cov) > 0
     free[3:] &= np.array(rep.identifiable[3:], bool)
     budget = uncertainty_budget(model, fit.theta, fit.cov, frf, free, inputs)
@@ -157,9 +170,13 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
                             f"{fit.chi2 / fit.dof:.3g}; noise uncertainties inflated by its square root",
                             {"chi2_per_dof": fit.chi2 / fit.dof}))
     params = _param_list(model, fit.theta, budget, rep.identifiable, reasons, inputs, policy, frf)
+    birge = sdof_fit.chi2 / sdof_fit.dof if sdof_fit.inflated else 1.0
+    structure = apply_structure(model.key, stiff, params, fit.theta, budget, frf, sdof, birge, inputs, suspected)
+    params = list(structure.parameters)
+    checks += structure.checks
     c = sensitivity_check(params[0].value, rec.sensitivity_V_per_N, not inputs.end_mass_given)
     checks += [c] if c else []
-    determined = _determined(model, fit.theta, budget)
+    determined = {**_determined(model, fit.theta, budget), **structure.determined}
     if n_f == 1 and budget.free[0]:
         determined["quasi_static_sensitivity"] = {
             "value": float(cr.sign * np.abs(frf.H[0]) / model.M), **budget.std_of(np.eye(len(fit.theta))[0]),
@@ -174,5 +191,5 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
              "H_phase_rad": np.angle(frf.H).tolist(),
              "H_std": np.sqrt(np.trace(frf.cov, axis1=1, axis2=2) / 2).tolist(), "steps_used": cr.used}
     return IdentificationResult("fd", model.key, tuple(params), summary_fd(frf, fit, cr.sigs), rep,
-                                tuple(notes), extra, tuple(checks), budget.to_dict(), inputs.to_dict(),
-                                determined)
+                                tuple(notes), extra, tuple(checks), budget.to_dict(),
+                                {**inputs.to_dict(), "structure": structure.statement}, determined)
