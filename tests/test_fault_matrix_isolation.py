@@ -7,8 +7,14 @@ tested; a second daemon and a killed daemon are real processes (marked slow)."""
 from __future__ import annotations
 
 import asyncio
+import errno
 import json
+import os
+import subprocess
+import sys
+import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -16,8 +22,10 @@ import pytest
 from station.bounded import MAX_YAML_NODES
 from station.cli import main
 from station.errors import BadInputError, ConfigError, RecordingFormatError
+from station.service.instance import LOCK_NAME, InstanceLock
+from tests.disk_support import mounted_tmpfs
 from tests.test_fault_matrix_service import station
-from tests.test_service_support import daemon_config, run_body
+from tests.test_service_support import FINAL, TOKEN, Daemon, daemon_config, run_body
 
 # --------------------------------------------------------------------------------------- bad bodies
 POSTS = ("/runs", "/runs/no-such-run/abort", "/stop/acknowledge", "/campaigns")
@@ -192,3 +200,296 @@ def test_an_invalid_token_is_never_printed(tmp_path: Path, capsys: pytest.Captur
         assert "service.token" in text and "service.tokn: unknown key" in text
         for part in secret.split():
             assert part not in text, (secret, text)
+
+
+# --------------------------------------------------------------------------------------- one daemon per folder
+def _hold_lock(folder: Path, note: dict[str, Any]) -> subprocess.Popen[bytes]:
+    """Another process holding the folder's station lock (as a daemon would), until killed."""
+    folder.mkdir(parents=True, exist_ok=True)
+    code = ("import fcntl, json, os, sys, time\n"
+            f"fd = os.open({str(folder / LOCK_NAME)!r}, os.O_RDWR | os.O_CREAT)\n"
+            "fcntl.flock(fd, fcntl.LOCK_EX)\n"
+            f"os.write(fd, json.dumps({{**{note!r}, 'pid': os.getpid()}}).encode())\n"
+            "print('locked', flush=True)\n"
+            "time.sleep(600)\n")
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE)
+    assert p.stdout is not None and p.stdout.readline() == b"locked\n"
+    return p
+
+
+def _snapshot(folder: Path) -> dict[str, tuple[int, int]]:
+    return {p.name: (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.iterdir() if p.name != LOCK_NAME}
+
+
+def test_a_second_station_on_the_folder_touches_nothing(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """| a second daemon on the same recordings folder damages the running one | (in process: the first
+    is another process holding the lock; a database with a live run and its partial recording) |"""
+    import yaml
+
+    from station.service.store import RunRow, Store
+
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    store = Store(rec / "station.db")
+    store.insert_run(RunRow(id="live", state="running", transducer_id="TX5K-0001", top_mass_kg=25.0,
+                            request_json="{}", plan_json="{}", created=time.time(), n_steps=2))
+    store.close()
+    (rec / "live.h5.partial").write_bytes(b"\x89HDF live partial recording")
+    cfg = tmp_path / "station.yaml"
+    cfg.write_text(yaml.safe_dump(daemon_config(rec)))
+    before = _snapshot(rec)
+    holder = _hold_lock(rec, {"what": "station serve", "host": "127.0.0.1", "port": 8123, "hostname": "rig-pc"})
+    try:
+        monkeypatch.setenv("STATION_TOKEN", "test-token-0123456789")
+        assert main(["serve", "--sim", "--config", str(cfg), "--port", "0"]) == 1
+        err = capsys.readouterr().err
+        assert f"PID {holder.pid}" in err and "http://127.0.0.1:8123/" in err and "rig-pc" in err, err
+        assert str(rec) in err and "touched nothing" in err and "Traceback" not in err
+        assert main(["calibrate", "--sim", "--config", str(cfg), "--out", str(rec)]) == 1
+        assert f"PID {holder.pid}" in capsys.readouterr().err
+        assert _snapshot(rec) == before  # no recovery, no rename, no database write
+        assert Store(rec / "station.db").get_run("live").state == "running"  # type: ignore[union-attr]
+    finally:
+        holder.kill()
+        holder.wait()
+    # the holder gone (however it ended), the lock is free again: no stale lock file blocks a start
+    with InstanceLock.acquire(rec, "test") as lock:
+        assert json.loads((rec / LOCK_NAME).read_text())["pid"] == os.getpid()
+        assert InstanceLock.acquire(rec, "test") is lock  # re-entrant within the process
+        lock.release()
+
+
+def test_the_daq_port_is_opened_exclusively(tmp_path: Path) -> None:
+    """| a second daemon ... opens the DAQ port and sends STOP | (the serial port is exclusive) |"""
+    import pty
+
+    from drivers.daq.link import DaqLinkError, SerialLink
+
+    master, slave = pty.openpty()
+    try:
+        name = os.ttyname(slave)
+        first = SerialLink(name, baudrate=115200)
+        try:
+            with pytest.raises(DaqLinkError, match="another program has it open"):
+                SerialLink(name, baudrate=115200)
+        finally:
+            first.close()
+        SerialLink(name, baudrate=115200).close()  # free again once closed
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+@pytest.mark.slow
+def test_two_real_daemons_on_one_folder_the_live_run_is_untouched(tmp_path: Path) -> None:
+    """| a second daemon on the same recordings folder damages the running one | the newcomer marks the
+    live run `interrupted`, renames the live `.h5.partial`, opens the DAQ port and sends STOP |"""
+    with Daemon(tmp_path, workers=0) as d:
+        assert d.proc is not None
+        rid = d.start_run(freqs=(10.0,), record_s=1.5)
+        d.wait_state(rid, ("running",), step_state="recording")
+        partial = d.data_dir / f"{rid}.h5.partial"
+        assert partial.exists()
+        p = subprocess.run([sys.executable, "-m", "station.cli", "serve", "--sim", "--config", str(d.cfg_path),
+                            "--port", "0"], capture_output=True, text=True, timeout=60,
+                           env={**os.environ, "STATION_TOKEN": TOKEN})
+        assert p.returncode == 1, p.stderr
+        assert f"PID {d.proc.pid}" in p.stderr and f"http://127.0.0.1:{d.port}/" in p.stderr, p.stderr
+        assert "Traceback" not in p.stderr
+        assert partial.exists() and not (d.data_dir / f"{rid}.h5").exists()  # not renamed under the live run
+        st = d.wait_state(rid, ("identifying", *FINAL))
+        assert st["state"] == "identifying" and st["lost_samples"] == 0, st  # finished as if alone
+        health = d.c().get("/health").json()
+        assert health["status"] == "ok" and not health["estop"]["latched"], health
+
+
+# --------------------------------------------------------------------------------------- the database at start
+def _station_db(rec: Path, runs: int = 200) -> Path:
+    from station.service.store import RunRow, Store
+
+    rec.mkdir(parents=True, exist_ok=True)
+    store = Store(rec / "station.db")
+    for i in range(runs):
+        store.insert_run(RunRow(id=f"run-{i}", state="completed", transducer_id="TX5K-0001", top_mass_kg=25.0,
+                                request_json="{}", plan_json="{}" + " " * 500, created=float(i), n_steps=2))
+    store._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    store.close()
+    return rec / "station.db"
+
+
+@pytest.mark.parametrize("damage", ["truncated", "garbage", "locked"])
+def test_a_damaged_or_locked_database_at_start_is_one_clear_message(
+        damage: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """| damaged database at start | truncated, garbage or locked `station.db`: exit 3 with a traceback
+    instead of a message that names the file and the fix |"""
+    import yaml
+
+    rec = tmp_path / "rec"
+    db = _station_db(rec)
+    holder = None
+    if damage == "truncated":
+        with db.open("r+b") as f:
+            f.truncate(db.stat().st_size // 3)
+    elif damage == "garbage":
+        db.write_bytes(os.urandom(64 * 1024))
+    else:  # another process keeps a write transaction open (e.g. a sqlite3 shell)
+        code = (f"import sqlite3, time\ndb = sqlite3.connect({str(db)!r}, isolation_level=None)\n"
+                "db.execute('BEGIN EXCLUSIVE')\nprint('locked', flush=True)\ntime.sleep(600)\n")
+        holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE)
+        assert holder.stdout is not None and holder.stdout.readline() == b"locked\n"
+    cfg = tmp_path / "station.yaml"
+    cfg.write_text(yaml.safe_dump(daemon_config(rec)))
+    monkeypatch.setenv("STATION_TOKEN", TOKEN)
+    try:
+        code = main(["serve", "--sim", "--config", str(cfg), "--port", "0"])
+    finally:
+        if holder is not None:
+            holder.kill()
+            holder.wait()
+    err = capsys.readouterr().err
+    assert code != 0
+    assert "Traceback" not in err and f"the station database {db}" in err, err
+    lines = [ln for ln in err.splitlines() if "error" in ln.lower()]
+    assert len(lines) == 1, err  # one message
+    if damage == "locked":
+        assert "locked by another process" in err and "close that program" in err
+    else:
+        assert "damaged" in err and f"mv {db} {db}.damaged" in err and ".recover" in err
+
+
+# --------------------------------------------------------------------------------------- orphaned worker
+_POOL_PARENT = """
+import sys, time
+from station.service import worker
+pool = worker.WorkerPool("identification", 1)
+ex = pool._get()
+fut = ex.submit(time.sleep, 0.0)
+print(" ".join(map(str, pool.pids())), flush=True)
+if sys.argv[1] != "starting":
+    fut.result()  # the worker is up; then a 1 s job
+    ex.submit(time.sleep, 1.0)
+    time.sleep(0.5)
+    print("ready", flush=True)
+time.sleep(600)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state not in ("Z", "X")  # a zombie is dead (waiting for PID 1 to reap it)
+
+
+@pytest.mark.parametrize("when", ["starting", "busy"])
+def test_workers_die_with_their_daemon(when: str, tmp_path: Path) -> None:
+    """| orphaned worker | a daemon killed while a worker starts leaves the worker alive (parent PID 1,
+    143 MB, 14 min later) |  (the daemon here: a process with the daemon's WorkerPool, killed -9)"""
+    parent = subprocess.Popen([sys.executable, "-c", _POOL_PARENT, when], stdout=subprocess.PIPE, cwd=tmp_path)
+    assert parent.stdout is not None
+    pids = [int(p) for p in parent.stdout.readline().split()]
+    if when != "starting":
+        assert parent.stdout.readline() == b"ready\n"
+    parent.kill()  # while the worker still imports (starting) or runs a 1 s job (busy)
+    parent.wait()
+    assert pids and (when == "starting" or all(_alive(p) for p in pids))
+    deadline = time.monotonic() + 20.0
+    while time.monotonic() < deadline and any(_alive(p) for p in pids):
+        time.sleep(0.1)
+    assert not any(_alive(p) for p in pids), pids
+
+
+# --------------------------------------------------------------------------------------- full disk while identifying
+class _IdentifyingWorker:
+    """The worker boundary of the JobQueue (one class under test): the identification succeeds, and
+    meanwhile the database's disk fills up (a real ENOSPC on a tmpfs)."""
+
+    started, crashes = True, 0
+
+    def __init__(self, disk: Path) -> None:
+        self.disk = disk
+        self.calls = 0
+
+    async def run(self, fn: Any, *args: Any) -> dict[str, Any]:
+        from station.service import worker
+
+        assert fn is worker.identify_job
+        self.calls += 1
+        _fill(self.disk / f"filler-{self.calls}")
+        return {"result_name": "identify_fd_h2", "method": "fd", "model": "h2", "wall_s": 0.5}
+
+
+def _fill(path: Path) -> None:
+    with path.open("wb", buffering=0) as f:
+        try:
+            while True:
+                f.write(b"\0" * 65536)
+        except OSError as exc:
+            assert exc.errno == errno.ENOSPC
+
+
+async def _until(cond: Any, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, "condition not met in time"
+        await asyncio.sleep(0.02)
+
+
+def test_a_full_disk_while_identifying_keeps_the_result_until_the_database_takes_it(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    """| a full disk while identifying | the worker's result is dropped when the database write fails, no
+    log line; the run stays `identifying` until a restart |"""
+    from station.service import jobs
+    from station.service.artifacts import Artifacts
+    from station.service.changes import Changes
+    from station.service.recovery import recover
+    from station.service.store import RunRow, Store
+
+    monkeypatch.setattr(jobs, "RECORD_RETRY_S", 0.05)
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    with mounted_tmpfs(tmp_path, 4) as disk:
+        store = Store(disk / "station.db")
+        for rid in ("r1", "r2"):
+            (rec / f"{rid}.h5").write_bytes(b"recording")
+            store.insert_run(RunRow(id=rid, state="identifying", transducer_id="TX5K-0001", top_mass_kg=25.0,
+                                    request_json="{}", plan_json="{}", created=time.time(), n_steps=1,
+                                    recording=f"{rid}.h5"))
+
+        async def go(rid: str, free_space: bool) -> jobs.JobQueue:
+            closing = asyncio.Event()
+            store.enqueue_job(rid)
+            q = jobs.JobQueue(store, _IdentifyingWorker(disk), 1,  # type: ignore[arg-type]
+                              Artifacts(rec, None, store.get_run), Changes(closing), closing)  # type: ignore[arg-type]
+            q.start()
+            await _until(lambda: rid in q.unrecorded)
+            assert "identified (fd, h2)" in q.unrecorded[rid] and "identify_fd_h2" in q.unrecorded[rid]
+            assert "full" in q.unrecorded[rid]
+            assert store.get_run(rid).state == "identifying"  # type: ignore[union-attr]
+            if free_space:
+                for f in disk.glob("filler-*"):
+                    f.unlink()
+                await _until(lambda: store.get_run(rid).state == "completed")  # type: ignore[union-attr]
+                assert store.get_run(rid).result_name == "identify_fd_h2"  # type: ignore[union-attr]
+                assert q.unrecorded == {}
+            closing.set()
+            await q.stop_dispatcher()
+            await asyncio.gather(*q._tasks, return_exceptions=True)
+            return q
+
+        with caplog.at_level("INFO", logger="station.service.jobs"):
+            asyncio.run(go("r1", free_space=True))
+        logged = caplog.text
+        assert "run r1: identified (fd, h2)" in logged and "the database cannot record it" in logged
+        assert "run r1: outcome recorded after" in logged
+        # shut down while the database still refuses: the job is left running, so the next start runs it again
+        asyncio.run(go("r2", free_space=False))
+        assert "runs again at the next start" in caplog.text
+        for f in disk.glob("filler-*"):
+            f.unlink()
+        assert [j.state for j in store.jobs(run_id="r2")] == ["running"]
+        out = recover(store, rec, jobs.MAX_JOB_ATTEMPTS)
+        assert "r2" in out["requeued"] and [j.state for j in store.jobs(run_id="r2")] == ["queued"]
+        store.close()

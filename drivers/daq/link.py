@@ -38,10 +38,12 @@ class SerialLink:
         if kind not in LINK_KINDS:
             raise ValueError(f"DAQ link kind: expected one of {', '.join(LINK_KINDS)}, got {kind!r}")
         self.kind = kind
-        try:
-            self._ser = serial.Serial(port, baudrate=baudrate, timeout=0.02, write_timeout=1.0)
+        try:  # exclusive: a second program on the port is refused, never sharing the stream with us
+            self._ser = serial.Serial(port, baudrate=baudrate, timeout=0.02, write_timeout=1.0, exclusive=True)
         except (serial.SerialException, OSError) as exc:
-            raise DaqLinkError(f"cannot open DAQ bridge port {port}: {exc}") from exc
+            busy = "lock" in str(exc).lower()
+            raise DaqLinkError(f"cannot open DAQ bridge port {port}: "
+                               + ("another program has it open" if busy else str(exc))) from exc
         self.description = f"serial {port} @ {baudrate} Bd" if kind == "uart" else f"usb-cdc {port}"
         self.baudrate = baudrate
 

@@ -268,6 +268,9 @@ class WorkerHealth(_Out):
     started: bool
     crashes: int
     jobs: dict[str, int]
+    unrecorded: dict[str, str] = Field(
+        default_factory=dict, description="run id -> an identification outcome the database has not taken yet "
+        "(e.g. its disk is full) and why; written again every few seconds, and `status` is `degraded` meanwhile")
 
 
 class DiskHealth(_Out):

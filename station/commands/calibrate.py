@@ -68,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from station.config import default_config_path, load_config
     from station.run.calibrate import run_and_identify
     from station.run.request import default_request
+    from station.service.instance import InstanceLock
 
     cfg = load_config(args.config or default_config_path())
     if not args.sim and cfg.simulation is not None:
@@ -75,7 +76,13 @@ def run(args: argparse.Namespace) -> int:
               "connecting to the real devices of cfg.devices", file=sys.stderr)
     request = default_request(cfg, _freqs(args.steps))
     out = args.out or Path(cfg.station.recordings_dir)
-    result = asyncio.run(run_and_identify(cfg, request, out, sim=args.sim, on_progress=_Bar(cfg.daq.sample_rate_hz)))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise BadInputError(f"recordings folder {out}: cannot create it ({exc.strerror})") from None
+    with InstanceLock.acquire(out, "station calibrate"):  # not beside a daemon's live run
+        result = asyncio.run(run_and_identify(cfg, request, out, sim=args.sim,
+                                              on_progress=_Bar(cfg.daq.sample_rate_hz)))
     sys.stderr.write("\n")
     if args.json:
         print(json.dumps(result.to_json(), indent=2))

@@ -6,6 +6,11 @@ import argparse
 import asyncio
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from station.service.instance import InstanceLock
+    from station.service.settings import ServiceSettings
 
 log = logging.getLogger("station.serve")
 
@@ -23,13 +28,25 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import uvicorn  # here, not at the top: ``station --help`` needs none of the daemon's imports
+    # imports here, not at the top: ``station --help`` needs none of the daemon's
+    from station.service.instance import InstanceLock, check_database
+    from station.service.settings import load_settings
+
+    settings = load_settings(args.config, sim=args.sim, host=args.host, port=args.port, workers=args.workers)
+    # one daemon per recordings folder, before anything is touched (recovery, database, devices)
+    with InstanceLock.acquire(settings.recordings_dir, "station serve", host=settings.host,
+                              port=settings.port or None) as lock:
+        check_database(settings.database)
+        return _serve(args, settings, lock)
+
+
+def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLock) -> int:
+    import uvicorn
 
     from station.api import create_app
     from station.commands.server import StationServer
-    from station.service.settings import TOKEN_ENV, is_loopback, load_settings
+    from station.service.settings import TOKEN_ENV, is_loopback
 
-    settings = load_settings(args.config, sim=args.sim, host=args.host, port=args.port, workers=args.workers)
     if settings.token_source == "generated":
         log.warning("no token configured (%s or service.token): this session's token is %s", TOKEN_ENV,
                     settings.token)
@@ -41,5 +58,6 @@ def run(args: argparse.Namespace) -> int:
     app = create_app(settings)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_config=None,
                             access_log=args.access_log, timeout_graceful_shutdown=5, lifespan="on")
-    asyncio.run(StationServer(config, settings).serve())
-    return 0
+    server = StationServer(config, settings, on_listening=lambda host, port: lock.update(host=host, port=port))
+    asyncio.run(server.serve())
+    return 0 if server.started else 3  # 3: the daemon could not start (the log says why)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from types import FrameType
 
 import uvicorn
@@ -16,9 +17,11 @@ class StationServer(uvicorn.Server):
     """uvicorn, plus: a shutdown signal stops the run on the rig at once (before open connections
     drain), and the address is logged once the socket is bound."""
 
-    def __init__(self, config: uvicorn.Config, settings: ServiceSettings) -> None:
+    def __init__(self, config: uvicorn.Config, settings: ServiceSettings,
+                 on_listening: Callable[[str, int], None] | None = None) -> None:
         super().__init__(config)
         self.settings = settings
+        self.on_listening = on_listening
 
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
         manager = getattr(self.config.app.state, "manager", None) if hasattr(self.config.app, "state") else None
@@ -34,3 +37,5 @@ class StationServer(uvicorn.Server):
                 shown = f"[{host}]" if ":" in host else host
                 log.info("station daemon ready: open http://%s:%d/ (API docs: /docs); rig: %s", shown, port,
                          "simulated" if self.settings.sim else "real devices")
+                if self.on_listening is not None:
+                    self.on_listening(host, port)

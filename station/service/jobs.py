@@ -1,12 +1,19 @@
 """The identification queue: jobs are rows in the database (a restart resumes them); a dispatcher
-hands them to the worker processes, retries a job whose worker died, and notes the outcome."""
+hands them to the worker processes, retries a job whose worker died, and notes the outcome.
+
+An outcome the database refuses to take (its disk full, a lock held elsewhere) is not dropped: it
+is logged, kept in memory and shown in ``/health`` (``worker.unrecorded``), and written again every
+few seconds until the database takes it.  The job stays ``running`` in the database meanwhile, so a
+daemon stopped before then runs it again at its next start."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
 import logging
+import sqlite3
 import time
+from collections.abc import Callable
 from typing import Any
 
 from station.service import worker
@@ -17,6 +24,7 @@ from station.service.store import Store
 log = logging.getLogger(__name__)
 
 MAX_JOB_ATTEMPTS = 3
+RECORD_RETRY_S = 5.0  # how often an outcome the database refused is written again
 
 
 class JobQueue:
@@ -33,6 +41,7 @@ class JobQueue:
         self._wake = asyncio.Event()
         self._dispatcher: asyncio.Task[None] | None = None
         self._tasks: set[asyncio.Task[None]] = set()
+        self.unrecorded: dict[str, str] = {}  # run id -> the outcome the database has not taken yet, and why
 
     def start(self) -> None:
         self._dispatcher = asyncio.create_task(self._dispatch(), name="job-dispatcher")
@@ -73,12 +82,24 @@ class JobQueue:
             t.add_done_callback(done)
 
     async def _run_job(self, job_id: int, run_id: str, attempts: int) -> None:
+        try:
+            await self._run_job_once(job_id, run_id, attempts)
+        except asyncio.CancelledError:
+            raise
+        except Exception:  # never a silent end of a job task
+            log.exception("run %s: identification job %d ended unexpectedly", run_id, job_id)
+
+    async def _run_job_once(self, job_id: int, run_id: str, attempts: int) -> None:
         row = self.store.get_run(run_id)
         if row is None or not row.recording:
-            self.store.finish_job(job_id, "failed", "run or recording unknown")
+            await self._record(run_id, "the job has no run or recording",
+                               lambda: self.store.finish_job(job_id, "failed", "run or recording unknown"))
             return
         path = self.artifacts.recording_path(row)
-        self._set_row(run_id, message=f"identifying (attempt {attempts})")
+        try:
+            self._set_row(run_id, message=f"identifying (attempt {attempts})")
+        except sqlite3.Error as exc:  # only the progress message: the outcome below is what must be kept
+            log.warning("run %s: progress message not stored: %s", run_id, exc)
         try:
             async with self.artifacts.file_lock(run_id):
                 out = await self.pool.run(worker.identify_job, str(path))
@@ -87,27 +108,59 @@ class JobQueue:
         except (worker.WorkerCrashed, OSError) as exc:
             if attempts < MAX_JOB_ATTEMPTS and not self.closing.is_set():
                 log.warning("run %s: identification attempt %d: %s; queued again", run_id, attempts, exc)
-                self.store.finish_job(job_id, "queued", str(exc))
-                await asyncio.sleep(1.0)
-                self._wake.set()
+                err = str(exc)
+                if await self._record(run_id, f"attempt {attempts} failed ({err}); to be queued again",
+                                      lambda: self.store.finish_job(job_id, "queued", err)):
+                    await asyncio.sleep(1.0)
+                    self._wake.set()
                 return
             if self.closing.is_set():
                 return  # left running in the database: requeued at the next start
-            self._job_failed(job_id, run_id, f"{type(exc).__name__}: {exc}")
+            await self._job_failed(job_id, run_id, f"{type(exc).__name__}: {exc}")
             return
         except Exception as exc:
-            self._job_failed(job_id, run_id, f"{type(exc).__name__}: {exc}")
+            await self._job_failed(job_id, run_id, f"{type(exc).__name__}: {exc}")
             return
-        self.store.finish_job(job_id, "done")
-        self._set_row(run_id, state="completed", result_name=out["result_name"], ended=time.time(),
-                      message=f"identified ({out['method']}, {out['model']}) in {out['wall_s']:.1f} s")
-        log.info("run %s identified (%s)", run_id, out["result_name"])
+        done = f"identified ({out['method']}, {out['model']}) in {out['wall_s']:.1f} s"
 
-    def _job_failed(self, job_id: int, run_id: str, error: str) -> None:
+        def note_done() -> None:
+            self.store.finish_job(job_id, "done")
+            self._set_row(run_id, state="completed", result_name=out["result_name"], ended=time.time(), message=done)
+        if await self._record(run_id, f"{done}, result {out['result_name']}", note_done):
+            log.info("run %s identified (%s)", run_id, out["result_name"])
+
+    async def _job_failed(self, job_id: int, run_id: str, error: str) -> None:
         log.error("run %s: identification failed: %s", run_id, error)
-        self.store.finish_job(job_id, "failed", error)
         msg = f"identification failed: {error}"
-        self._set_row(run_id, state="failed", reason=msg, message=msg, ended=time.time())
+
+        def note_failed() -> None:
+            self.store.finish_job(job_id, "failed", error)
+            self._set_row(run_id, state="failed", reason=msg, message=msg, ended=time.time())
+        await self._record(run_id, msg, note_failed)
+
+    async def _record(self, run_id: str, outcome: str, write: Callable[[], None]) -> bool:
+        """``write`` the outcome of a job into the database; while the database refuses it, keep it
+        (log, ``unrecorded``, /health) and try again every RECORD_RETRY_S.  False when the daemon shut
+        down first (the job is still ``running`` in the database: it runs again at the next start)."""
+        since = time.monotonic()
+        while True:
+            try:
+                write()
+            except sqlite3.Error as exc:
+                if run_id not in self.unrecorded:
+                    log.error("run %s: %s; the database cannot record it (%s): kept, and written again every "
+                              "%.0f s", run_id, outcome, exc, RECORD_RETRY_S)
+                self.unrecorded[run_id] = f"{outcome}; not recorded yet: {exc}"
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self.closing.wait(), RECORD_RETRY_S)
+                if self.closing.is_set():
+                    log.error("run %s: shut down before the database took the outcome (%s); the job runs again "
+                              "at the next start", run_id, outcome)
+                    return False
+                continue
+            if self.unrecorded.pop(run_id, None) is not None:
+                log.info("run %s: outcome recorded after %.0f s: %s", run_id, time.monotonic() - since, outcome)
+            return True
 
     def _set_row(self, run_id: str, **values: Any) -> None:
         self.store.update_run(run_id, **values)

@@ -34,6 +34,7 @@ from station.service.errors import (
     RunStateError,
 )
 from station.service.health import health
+from station.service.instance import InstanceLock
 from station.service.jobs import MAX_JOB_ATTEMPTS, JobQueue
 from station.service.latch import EStopLatch
 from station.service.recovery import recover
@@ -67,7 +68,13 @@ class RunManager:
     def __init__(self, settings: ServiceSettings, *, connector: RigConnector = default_connector) -> None:
         self.settings = settings
         self.cfg = settings.config
-        self.store = Store(settings.database)
+        # one daemon per recordings folder: held before the database, the recovery or a device is touched
+        self.instance = InstanceLock.acquire(settings.recordings_dir, "station serve", host=settings.host)
+        try:
+            self.store = Store(settings.database)
+        except BaseException:
+            self.instance.release()
+            raise
         self.closing = asyncio.Event()
         self.changes = Changes(self.closing)
         self.link = RigLink(self.cfg, settings.sim, connector)
@@ -121,6 +128,7 @@ class RunManager:
         self.jobs.cancel_jobs()
         await self.link.close()
         self.store.close()
+        self.instance.release()
 
     def begin_shutdown(self) -> list[asyncio.Task[None]]:
         """First step of a shutdown, at once (also from the signal handler): live streams end, the run
@@ -208,7 +216,8 @@ class RunManager:
         act = self.active()
         self.runs.flush_unsaved()
         out = health(self.link, self.store, self.identify_pool, self.latch, self.disk, workers=self.settings.workers,
-                     sim=self.settings.sim, active_run=act.row.id if act else None, started_at=self.started_at)
+                     sim=self.settings.sim, active_run=act.row.id if act else None, started_at=self.started_at,
+                     unrecorded=self.jobs.unrecorded)
         out["recordings"] = self.folder_check.to_dict()  # what the start-up check repaired or could not read
         return out
 

@@ -3,7 +3,9 @@
 Everything CPU-bound runs here, in spawned processes, never in the daemon's event loop.  The job
 functions are module-level (picklable) and take plain arguments (paths as strings, settings as
 dicts).  A worker whose daemon dies finishes the job it is on (a write into a recording is never
-cut short by us) and then exits.
+cut short by us) and then exits: the kernel tells it at once (Linux: ``PR_SET_PDEATHSIG``), a
+thread watching the parent's PID is the fallback, and a daemon that died while the worker was
+still starting is noticed as the worker starts (the PID it was given is no longer its parent).
 """
 
 from __future__ import annotations
@@ -11,9 +13,11 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import ctypes
 import functools
 import logging
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable
@@ -28,6 +32,8 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 _busy = threading.Event()
+_orphaned = threading.Event()  # the daemon is gone: exit once the job on hand is done
+PDEATH_SIGNAL = signal.SIGUSR1  # sent by the kernel when the daemon dies (Linux)
 
 
 class WorkerCrashed(RuntimeError):
@@ -35,18 +41,41 @@ class WorkerCrashed(RuntimeError):
 
 
 # --------------------------------------------------------------------------- inside the worker
-def _watch_parent(parent_pid: int) -> None:
+def _exit_if_orphaned(daemon_pid: int) -> None:
+    """Exit now if the daemon is gone and no job is running; with a job, once it is done."""
+    if os.getppid() == daemon_pid:
+        return
+    _orphaned.set()
+    if not _busy.is_set():
+        os._exit(0)
+
+
+def _watch_parent(daemon_pid: int) -> None:
     while True:
         time.sleep(0.5)
-        if os.getppid() != parent_pid and not _busy.is_set():
-            os._exit(0)
+        _exit_if_orphaned(daemon_pid)
 
 
-def _init_worker(level: int) -> None:
-    """Logging, and an exit once the daemon (the parent) is gone.  One BLAS thread per worker is set
-    by ``station.procpool`` before this runs."""
+def _ask_for_parent_death_signal() -> bool:
+    """Linux: have the kernel send PDEATH_SIGNAL when the parent exits; False elsewhere."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return int(libc.prctl(PR_SET_PDEATHSIG, int(PDEATH_SIGNAL), 0, 0, 0)) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+PR_SET_PDEATHSIG = 1
+
+
+def _init_worker(level: int, daemon_pid: int) -> None:
+    """Logging, and an exit once the daemon (PID ``daemon_pid``, the parent) is gone (module
+    docstring).  One BLAS thread per worker is set by ``station.procpool`` before this runs."""
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s worker[%(process)d] %(name)s: %(message)s")
-    threading.Thread(target=_watch_parent, args=(os.getppid(),), daemon=True, name="parent-watch").start()
+    signal.signal(PDEATH_SIGNAL, lambda signum, frame: _exit_if_orphaned(daemon_pid))
+    _ask_for_parent_death_signal()
+    _exit_if_orphaned(daemon_pid)  # the daemon died before the signal was asked for
+    threading.Thread(target=_watch_parent, args=(daemon_pid,), daemon=True, name="parent-watch").start()
 
 
 def _job(fn: Callable[..., T]) -> Callable[..., T]:
@@ -57,6 +86,8 @@ def _job(fn: Callable[..., T]) -> Callable[..., T]:
             return fn(*args, **kw)
         finally:
             _busy.clear()
+            if _orphaned.is_set():
+                os._exit(0)  # nobody is left to take the result
     return wrapper
 
 
@@ -155,7 +186,8 @@ class WorkerPool:
         with self._lock:
             if self._executor is None:
                 self._executor = process_pool(self.processes, _init_worker,
-                                              (logging.getLogger().getEffectiveLevel(),), fork_server=False)
+                                              (logging.getLogger().getEffectiveLevel(), os.getpid()),
+                                              fork_server=False)
             return self._executor
 
     @property
