@@ -28,7 +28,7 @@ from tests.test_fault_matrix_service import station
 from tests.test_service_support import FINAL, TOKEN, Daemon, daemon_config, run_body
 
 # --------------------------------------------------------------------------------------- bad bodies
-POSTS = ("/runs", "/runs/no-such-run/abort", "/stop/acknowledge", "/campaigns")
+POSTS = ("/runs", "/runs/no-such-run/abort", "/runs/no-such-run/discrepancy", "/stop/acknowledge", "/campaigns")
 NOT_JSON = {  # content type: body
     "application/octet-stream": b"\xff\xfe\x00binary",
     "text/plain": json.dumps(run_body()).encode(),  # JSON text sent as text/plain: a cross-site "simple" request
@@ -72,8 +72,8 @@ def test_every_bad_body_on_every_post_endpoint_is_a_clear_4xx(tmp_path: Path) ->
                     assert "application/json" in r.json()["detail"]
                 for name, body in BAD_JSON.items():
                     r = await c.post(path, content=body, headers={"Content-Type": "application/json"})
-                    # 404: the abort of an unknown run reads no body; 413: over service.max_body_bytes
-                    _assert_clear_4xx(r, (404, 413, 422) if "abort" in path else (413, 422), f"{path} {name}")
+                    # 404: a run's action on an unknown run reads no body; 413: over service.max_body_bytes
+                    _assert_clear_4xx(r, (404, 413, 422) if "no-such-run" in path else (413, 422), f"{path} {name}")
                 # without the token: 401 before anything is read, whatever the type
                 for ctype in ("application/json", "text/plain"):
                     r = await c.post(path, content=b"{}", headers={"Content-Type": ctype, "Authorization": ""})
