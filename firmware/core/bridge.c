@@ -321,6 +321,9 @@ static void cmd_conf(bridge *b, const word *args, size_t nargs)
     const char *refused;
     size_t i;
     size_t max_frame = BRIDGE_MAX_FRAME;
+    /* the protocol's bounds, narrowed to what this ADC achieves (HW? rate_min, rate_max) */
+    double rate_lo = b->info->rate_min_hz > BRIDGE_MIN_RATE_HZ ? b->info->rate_min_hz : BRIDGE_MIN_RATE_HZ;
+    double rate_hi = b->info->rate_max_hz < BRIDGE_MAX_RATE_HZ ? b->info->rate_max_hz : BRIDGE_MAX_RATE_HZ;
     /* a frame must fit the FIFO beside the reply reserve even if every byte is escaped */
     while (max_frame > BRIDGE_MIN_FRAME
            && 2u * BRIDGE_FRAME_BYTES(max_frame) + 2u + BRIDGE_REPLY_RESERVE > b->tx.size) {
@@ -345,8 +348,10 @@ static void cmd_conf(bridge *b, const word *args, size_t nargs)
         value.s = eq == NULL ? NULL : eq + 1;
         value.n = eq == NULL ? 0u : args[i].n - key.n - 1u;
         if (word_is(&key, "rate")) {
-            if (!parse_number(value.s, value.n, &x) || !(x >= BRIDGE_MIN_RATE_HZ && x <= BRIDGE_MAX_RATE_HZ)) {
-                err_value(b, "rate", "100..1000000 Hz", value.s, value.n);
+            if (!parse_number(value.s, value.n, &x) || !(x >= rate_lo && x <= rate_hi)) {
+                char expected[64];
+                (void)snprintf(expected, sizeof expected, "%.10g..%.10g Hz", rate_lo, rate_hi);
+                err_value(b, "rate", expected, value.s, value.n);
                 return;
             }
             rate = want.rate_hz = x;
@@ -377,9 +382,9 @@ static void cmd_conf(bridge *b, const word *args, size_t nargs)
                 return;
             }
         } else {
-            rp_str(b, "ERR 2 bad argument ");
+            rp_str(b, "ERR 2 bad argument: expected key=value with key in rate, frame, range_disp, range_force, "
+                      "channels, got ");
             rp_quoted(b, args[i].s, args[i].n);
-            rp_str(b, ": expected key=value with key in rate, frame, range_disp, range_force, channels");
             return;
         }
     }
@@ -491,10 +496,10 @@ static void dispatch(bridge *b, const word *w, size_t n)
         return;
     }
     if (n > 1u) {
-        rp_str(b, "ERR 2 bad argument ");
-        rp_quoted(b, w[1].s, w[1].n);
-        rp_str(b, ": expected none after ");
+        rp_str(b, "ERR 2 bad argument: expected none after ");
         rp_mem(b, w[0].s, w[0].n);
+        rp_str(b, ", got ");
+        rp_quoted(b, w[1].s, w[1].n);
         return;
     }
     if (word_is(&w[0], "IDN?")) {

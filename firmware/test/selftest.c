@@ -327,12 +327,14 @@ static void test_commands(void)
         "ERR 2 bad tag: expected '#' and 1..15 printable ASCII characters without spaces, got '#'",
         "#4 ERR 2 bad value for frame: expected integer 16..2048 (this bridge's largest), got '15'", /* 32 KiB FIFO */
         "#5 OK CONF rate=20000 rate_exact=20000 frame=256 range_disp=10 range_force=0.5 channels=disp,force",
-        "#6 ERR 2 bad value for rate: expected 100..1000000 Hz, got '0x4E20'",
+        "#6 ERR 2 bad value for rate: expected 250..32000 Hz, got '0x4E20'",
         "#7 OK STOP frames=0 samples=0 (was idle)",
-        "#8 ERR 2 bad argument 'now': expected none after START",
+        "#8 ERR 2 bad argument: expected none after START, got 'now'",
+        "#9 ERR 2 bad value for rate: expected 250..32000 Hz, got '32001'",
     };
     static const char *send[] = {"#1 IDN?", "#2 HW?", "", "#3 idn?", "# IDN?", "#4 CONF frame=15",
-                                 "#5 CONF range_force=0.5", "#6 CONF rate=0x4E20", "#7 STOP", "#8 START now"};
+                                 "#5 CONF range_force=0.5", "#6 CONF rate=0x4E20", "#7 STOP", "#8 START now",
+                                 "#9 CONF rate=32001"};
     size_t i, n;
     memset(&hal, 0, sizeof hal);
     hal.write_limit = sizeof hal.out;
