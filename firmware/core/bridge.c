@@ -396,11 +396,9 @@ static void cmd_conf(bridge *b, const word *args, size_t nargs)
             return;
         }
         if (rel_diff(got.rate_hz, rate) > BRIDGE_RATE_TOLERANCE) {
-            rp_str(b, "ERR 2 bad value for rate: expected a rate within 1 % of one the ADC achieves (nearest ");
+            rp_str(b, "ERR 2 bad value for rate: expected a rate within 1 % of one the ADC achieves (nearest: ");
             rp_num(b, got.rate_hz);
-            rp_str(b, " Hz from its ");
-            rp_num(b, b->info->clock_hz);
-            rp_str(b, " Hz clock), got '");
+            rp_str(b, " Hz), got '");
             rp_num(b, rate);
             rp_str(b, "'");
             (void)hal_adc_configure(&b->adc, &got); /* back to the setting in force */

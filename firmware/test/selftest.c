@@ -6,6 +6,7 @@
 #include <stdio.h>
 #include <string.h>
 
+#include "ads131m02.h"
 #include "bridge.h"
 #include "crc32.h"
 #include "slip.h"
@@ -374,8 +375,52 @@ static void test_unfinished_command_times_out(void)
     CHECK(n == 1 && memcmp(pk[0] + 1, "ERR 4 malformed command packet: expected at least 5 bytes", 57) == 0);
 }
 
+static void test_ads131m02(void)
+{
+    static const uint8_t min[3] = {0x80, 0x00, 0x00}, max[3] = {0x7F, 0xFF, 0xFF}, m1[3] = {0xFF, 0xFF, 0xFF};
+    static const uint8_t frame[12] = {0x05, 0x00, 0x00, 0x00, 0x01, 0x00, 0xFF, 0xFE, 0x00, 0x12, 0x34, 0x00};
+    static const struct {
+        double want;
+        uint32_t divider;
+        unsigned osr;
+        double rate;
+    } plans[] = {{20000.0, 25u, 128u, 20000.0},
+                 {10000.0, 25u, 256u, 10000.0}, /* tie with /50 at OSR 128: the larger OSR */
+                 {25000.0, 20u, 128u, 25000.0},
+                 {31250.0, 16u, 128u, 31250.0},
+                 {32000.0, 16u, 128u, 31250.0}, /* the nearest is 2.3 % off: the core refuses it */
+                 {1000.0, 125u, 512u, 1000.0}};
+    uint8_t word[3];
+    int32_t ch0, ch1;
+    double got;
+    size_t i;
+    ads131m02_timing t;
+    CHECK(ads131m02_code(min) == -8388608 && ads131m02_code(max) == 8388607 && ads131m02_code(m1) == -1);
+    ads131m02_frame(frame, &ch0, &ch1);
+    CHECK(ch0 == 256 && ch1 == -512);
+    CHECK(ads131m02_rreg(ADS131M02_REG_ID, 1) == 0xA000u && ads131m02_wreg(ADS131M02_REG_CLOCK, 1) == 0x6180u);
+    CHECK(ads131m02_wreg(ADS131M02_REG_MODE, 3) == 0x6102u);
+    ads131m02_word(word, 0x6180u);
+    CHECK(word[0] == 0x61 && word[1] == 0x80 && word[2] == 0x00);
+    CHECK(ads131m02_clock_reg(3) == 0x030Eu); /* the register's reset value: OSR 1024, high resolution */
+    CHECK(ads131m02_gain_reg(6, 1) == 0x16u);
+    for (i = 0; i < sizeof plans / sizeof plans[0]; i++) {
+        CHECK(ads131m02_plan_rate(128e6, plans[i].want, 16u, 400u, &t));
+        CHECK(t.divider == plans[i].divider && t.osr == plans[i].osr && t.rate_hz == plans[i].rate);
+        CHECK(t.clkin_hz == 128e6 / plans[i].divider && t.rate_hz == t.clkin_hz / 2.0 / t.osr);
+    }
+    CHECK(!ads131m02_plan_rate(128e6, 20000.0, 500u, 400u, &t));
+    CHECK(ads131m02_rate_max(128e6, 16u) == 31250.0);
+    CHECK(ads131m02_gain_code(10.0, 10.0, &got) == 0 && got == 10.0);
+    CHECK(ads131m02_gain_code(10.0, 5.0, &got) == 1 && got == 5.0);
+    CHECK(ads131m02_gain_code(10.0, 0.1, &got) == 6 && got == 0.15625);
+    CHECK(ads131m02_gain_code(10.0, 0.05, &got) == 7 && got == 0.078125); /* below the protocol's 0.1 V anyway */
+    CHECK(ads131m02_gain_code(10.0, 11.0, &got) == -1);
+}
+
 int main(void)
 {
+    test_ads131m02();
     test_crc();
     test_slip();
     test_code16();
