@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import logging
 import os
 import sys
@@ -48,6 +49,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.handler(args) or 0)
     except StationError as exc:
         print(f"station {args.command}: error: {exc}", file=sys.stderr)
+        if getattr(args, "json", False) is True:  # a refusal under --json is a JSON document too
+            print(json.dumps({"error": {"command": args.command, "message": str(exc), "kind": type(exc).__name__,
+                                        "exit_code": exc.exit_code}}, indent=2))
         return exc.exit_code
     except KeyboardInterrupt:
         print(f"station {args.command}: interrupted", file=sys.stderr)
