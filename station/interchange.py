@@ -1,8 +1,11 @@
 """The sinecal-csv interchange format (docs/interchange-format.md): runs recorded on other DAQs.
 
-``RUN.yaml`` + one CSV per step (header ``t_s,displacement_m,force_V``).  Import validates every
-file completely before anything is written; a malformed file is refused with the file, the line and
-the reason, and no half-written recording is left behind.
+``RUN.yaml`` + one CSV per step (header ``t_s,displacement_m,force_V``).  Version 2 (written by
+export) gives each step its own crank radius and may state the rig's limits (``rig``), so that the
+station's own plans export and a proposed follow-up run recorded elsewhere imports; version 1 (one
+radius per run) is still read.  Import validates every file completely before anything is written; a
+malformed file is refused with the file, the line and the reason, and no half-written recording is
+left behind.
 """
 
 from __future__ import annotations
@@ -27,6 +30,8 @@ log = logging.getLogger(__name__)
 
 HEADER = "t_s,displacement_m,force_V"
 FORMAT = "sinecal-csv"
+VERSIONS = (1, 2)
+VERSION = 2  # what export writes
 RATE_TOLERANCE = 1e-3  # allowed deviation of each time step from 1/fs, as a fraction of 1/fs
 MAX_STEP_FILE_BYTES = 64 << 20  # one step file: ~1.6 million samples (80 s at 20 kHz) at ~40 bytes a line
 
@@ -44,15 +49,31 @@ class CsvTransducer(_Strict):
 class CsvStep(_Strict):
     file: str = Field(min_length=1)
     crank_frequency_hz: float = Field(gt=0, le=1000)
+    crank_radius_m: float | None = Field(default=None, gt=0, le=1.0, description="v2: this step's radius")
+
+
+class CsvRange(_Strict):
+    min: float = Field(ge=0)
+    max: float = Field(gt=0)
+
+
+class CsvRig(_Strict):
+    """v2: the limits of the rig the run was made on (what a follow-up run may use)."""
+
+    crank_frequency_hz: CsvRange
+    crank_radius_m: CsvRange
+    peak_force_fraction: float = Field(default=0.8, gt=0, le=1.0, description="of the capacity")
 
 
 class RunFile(_Strict):
-    """RUN.yaml of the interchange format, version 1."""
+    """RUN.yaml of the interchange format, versions 1 and 2 (``VERSIONS``)."""
 
     format: str
     format_version: int
     sample_rate_hz: float = Field(gt=0, le=1e6)
-    crank_radius_m: float = Field(gt=0, le=1.0)
+    crank_radius_m: float | None = Field(default=None, gt=0, le=1.0,
+                                         description="v1: the run's radius; v2: the default of its steps")
+    rig: CsvRig | None = None
     top_mass_kg: float = Field(gt=0, le=1000, description="load mass m_l incl. adaption")
     end_mass_kg: float | None = Field(default=None, gt=0, le=100)
     end_mass_std_kg: float | None = Field(default=None, ge=0, le=100, description="default 5 % of end_mass_kg")
@@ -68,9 +89,9 @@ def _load_run_file(path: Path) -> tuple[RunFile, str]:
     data = load_yaml(text, str(path), RecordingFormatError)
     if not isinstance(data, dict):
         raise RecordingFormatError(f"{path}: a mapping was expected, got {type(data).__name__}")
-    if data.get("format") != FORMAT or data.get("format_version") != 1:
-        raise RecordingFormatError(f"{path}: format {FORMAT!r} version 1 expected, got "
-                                   f"{quote(data.get('format'))} version {quote(data.get('format_version'))}")
+    if data.get("format") != FORMAT or data.get("format_version") not in VERSIONS:
+        raise RecordingFormatError(f"{path}: format {FORMAT!r} version {' or '.join(map(str, VERSIONS))} expected, "
+                                   f"got {quote(data.get('format'))} version {quote(data.get('format_version'))}")
     try:
         run = RunFile.model_validate(data)
     except ValidationError as exc:
@@ -79,7 +100,26 @@ def _load_run_file(path: Path) -> tuple[RunFile, str]:
         raise RecordingFormatError(f"{path}: {msgs}") from None
     if run.transducer.sensitivity_V_per_N == 0:
         raise RecordingFormatError(f"{path}: transducer.sensitivity_V_per_N must not be 0")
+    if run.format_version == 1:
+        extra = ([f"steps.{i}.crank_radius_m" for i, st in enumerate(run.steps) if st.crank_radius_m is not None]
+                 + (["rig"] if run.rig is not None else []))
+        if extra:
+            raise RecordingFormatError(f"{path}: {', '.join(extra)}: not part of version 1 (one crank radius per "
+                                       "run); write format_version: 2")
+        if run.crank_radius_m is None:
+            raise RecordingFormatError(f"{path}: crank_radius_m: Field required (version 1: one radius per run)")
+    missing = [i for i, st in enumerate(run.steps) if st.crank_radius_m is None and run.crank_radius_m is None]
+    if missing:
+        raise RecordingFormatError(f"{path}: steps.{missing[0]}.crank_radius_m: no crank radius for this step "
+                                   "(give it, or crank_radius_m for the whole run)")
     return run, text
+
+
+def step_radius(run: RunFile, step: CsvStep) -> float:
+    """The crank radius of a step (m): its own (v2), else the run's."""
+    r = step.crank_radius_m if step.crank_radius_m is not None else run.crank_radius_m
+    assert r is not None  # checked when the file was read
+    return r
 
 
 def _nonblank(text: str) -> Iterator[tuple[int, str]]:
@@ -175,7 +215,7 @@ def import_run(run_yaml: str | Path, out_dir: str | Path) -> Path:
         for st, disp, force, t0 in steps:
             start = writer.samples_written
             writer.append(disp, force)
-            writer.add_step(crank_frequency_hz=st.crank_frequency_hz, crank_radius_m=run.crank_radius_m,
+            writer.add_step(crank_frequency_hz=st.crank_frequency_hz, crank_radius_m=step_radius(run, st),
                             start_sample=start, end_sample=start + disp.size,
                             extra={"file": st.file, "t0_s": t0})
         return writer.finish("completed")
@@ -199,16 +239,30 @@ def _stated_uncertainties(cfg: dict) -> dict:
     return {k: v for k, v in out.items() if v is not None}
 
 
+def _rig_limits(cfg: dict) -> dict | None:
+    """The rig limits a recording's configuration states (a station configuration's ``rig`` ranges,
+    or an imported v2 RUN.yaml's ``rig``), as the RUN.yaml v2 ``rig`` mapping; None if it has none."""
+    if cfg.get("format") == FORMAT:
+        return cfg.get("rig")
+    rig = cfg.get("rig") or {}
+    from station.config import RigConfig
+
+    try:
+        limits = RigConfig.model_validate(rig)
+    except ValidationError:
+        return None
+    return {"crank_frequency_hz": limits.crank_frequency_hz.model_dump(),
+            "crank_radius_m": limits.crank_radius_m.model_dump(),
+            "peak_force_fraction": limits.peak_force_fraction}
+
+
 def export_run(recording: str | Path, out_dir: str | Path) -> Path:
-    """Write a recording's steps in the interchange format into a new folder
-    ``<out_dir>/<run_id>/``; returns the path of its RUN.yaml.  Existing folders are refused."""
+    """Write a recording's steps in the interchange format (version 2: a crank radius per step, the
+    rig's limits when the recording states them) into a new folder ``<out_dir>/<run_id>/``; returns
+    the path of its RUN.yaml.  Existing folders are refused."""
     rec = read_recording(recording)
     if not rec.steps:
         raise StationError(f"{rec.path}: the recording has no steps to export")
-    radii = {s.crank_radius_m for s in rec.steps}
-    if len(radii) != 1:
-        raise StationError(f"{rec.path}: sinecal-csv v1 has one crank radius per run, this run has "
-                           f"{sorted(radii)}; export is refused rather than losing the radii")
     target = Path(out_dir) / rec.run_id
     if target.exists():
         raise StationError(f"{target} exists already; not overwriting it")
@@ -226,11 +280,14 @@ def export_run(recording: str | Path, out_dir: str | Path) -> Path:
             d, fv = rec.step_signals(s)
             np.savetxt(tmp / name, np.column_stack([n / fs, d, fv]), delimiter=",", fmt="%.17g",
                        header=HEADER, comments="")
-            entries.append({"file": name, "crank_frequency_hz": s.crank_frequency_hz})
-        doc = {"format": FORMAT, "format_version": 1, "sample_rate_hz": fs,
-               "crank_radius_m": radii.pop(), "top_mass_kg": rec.load_mass_kg,
+            entries.append({"file": name, "crank_frequency_hz": s.crank_frequency_hz,
+                            "crank_radius_m": s.crank_radius_m})
+        rig = _rig_limits(rec.config)
+        doc = {"format": FORMAT, "format_version": VERSION, "sample_rate_hz": fs,
+               "top_mass_kg": rec.load_mass_kg,
                **({"end_mass_kg": rec.end_mass_kg} if rec.end_mass_kg is not None else {}),
                **_stated_uncertainties(rec.config),
+               **({"rig": rig} if rig is not None else {}),
                "transducer": {"id": rec.transducer_id, "capacity_N": rec.capacity_N,
                               "sensitivity_V_per_N": rec.sensitivity_V_per_N},
                "steps": entries}
