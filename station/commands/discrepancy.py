@@ -21,6 +21,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-plot", action="store_true", help="do not write the PNG")
     p.add_argument("--save", action="store_true", help="store the result beside the recording "
                    "(<run>.results/results.discrepancy.h5)")
+    p.add_argument("--config", type=Path, default=None,
+                   help="the rig's station configuration (YAML): its limits bound a proposed follow-up run "
+                        "(default: the limits the recording states)")
     p.set_defaults(handler=run)
 
 
@@ -61,6 +64,8 @@ def text_report(rep: DiscrepancyReport) -> str:
     lines.append("unexplained: " + ("nothing significant" if not rep.unexplained else ""))
     lines += [f"  - {t}" for t in rep.unexplained]
     lines += [f"note: {n}" for n in rep.notes]
+    if rep.proposal is None and rep.proposal_note:
+        lines.append(f"proposal: {rep.proposal_note}")
     return "\n".join(lines)
 
 
@@ -69,7 +74,12 @@ def run(args: argparse.Namespace) -> int:
     from station.discrepancy.plot import plot_report
     from station.recording import write_result
 
-    rep = analyse_recording(args.recording, max_effects=args.max_effects)
+    station = None
+    if args.config is not None:
+        from station.config import load_config
+
+        station = load_config(args.config)
+    rep = analyse_recording(args.recording, max_effects=args.max_effects, station=station)
     if not args.no_plot:
         png = args.plot or args.recording.with_name(args.recording.name + ".discrepancy.png")
         plot_report(rep, png)

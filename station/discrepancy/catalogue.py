@@ -60,6 +60,9 @@ def effect_params(name: str, data: RigData) -> tuple[Param, ...]:
             out += [Param(f"re_{h}", "V"), Param(f"im_{h}", "V")]
         return tuple(out)
     if name == "zero_drift":
+        if not data.common_clock:  # no common time axis: each step's own offset, slope and curvature
+            return tuple([Param(f"dc_s{i}", "V") for i in range(1, data.n_steps)]
+                         + [Param(f"{c}_s{i}", "V") for i in range(data.n_steps) for c in ("slope", "curv")])
         return (Param("rate_V_per_s", "V/s"), Param("quadratic_V_per_s2", "V/s^2"))
     raise KeyError(f"unknown effect {name!r}; the catalogue is {', '.join(CATALOGUE)}")
 
@@ -78,6 +81,8 @@ def scales(p: dict[str, float], data: RigData) -> dict[str, float]:
            "b_c": 0.1 * p["b_f"], "cutoff_hz": 0.1, "delay_s": 1e-6, "inverse_rod_length_per_m": 0.1,
            "quadratic": 1e-3, "cubic": 1e-3, "frequency_hz": 1e-3, "rate_V_per_s": 10 * sig / T,
            "quadratic_V_per_s2": 10 * sig / T**2}
+    for i in range(data.n_steps):
+        out[f"dc_s{i}"] = out[f"slope_s{i}"] = out[f"curv_s{i}"] = 10 * sig
     for h in range(1, data.n_mains + 1):
         out[f"re_{h}"] = out[f"im_{h}"] = 10 * sig
         for i in range(data.n_steps):
@@ -107,6 +112,8 @@ def start_grid(name: str, data: RigData, p: dict[str, float]) -> list[dict[str, 
     if name == "mains_interference":
         return [mains_start(data)]
     if name == "zero_drift":
+        if not data.common_clock:
+            return [{q.name: 0.0 for q in effect_params(name, data)}]
         return [{"rate_V_per_s": 0.0, "quadratic_V_per_s2": 0.0}]
     raise KeyError(name)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -175,23 +176,51 @@ def _outside_lines(s: StepDecomposition, f_mains: float | None, fs: float, max_l
     return tuple(keep[:max_lines])
 
 
+MIN_CYCLES = 1.0
+
+
+def _too_short(window_s: float, f_hz: float) -> str:
+    """Why a record window cannot enter the model-gap analysis ('' if it can): a frequency that is not
+    positive, or less than ``MIN_CYCLES`` crank cycles (the crank frequency, the fundamental and the
+    quadratic trend of the window are then not separable: a fit of less than a cycle can return any
+    frequency, even a negative one, and blame the drive)."""
+    if not (f_hz > 0 and math.isfinite(f_hz)):
+        return f"step left out: its crank frequency {f_hz:.4g} Hz is not positive"
+    if window_s * f_hz < MIN_CYCLES:
+        return (f"step left out: its record window ({window_s:.3g} s) holds {window_s * f_hz:.2g} cycles of "
+                f"{f_hz:.4g} Hz; the model-gap analysis needs at least {MIN_CYCLES:g}")
+    return ""
+
+
 def prepare(rec: Recording) -> RigData:
     """Decompose every usable step (twice: without mains lines to search them, then with them)."""
     wins = windows_of(rec)
     if not wins:
         raise StationError(f"{rec.path}: the workflow needs at least 1 usable step, found none")
     fs = rec.sample_rate_hz
+    short = [(w.index, _too_short(w.force_V.size / fs, w.f_nominal_hz)) for w in wins]
+    wins = [w for w, (_, why) in zip(wins, short, strict=True) if not why]
     first = [decompose_step(w, fs, None, 0) for w in wins]
+    bad = [_too_short(s.n_samples / fs, s.f_hz) for s in first]  # the fitted frequency, too
+    short += [(s.index, why) for s, why in zip(first, bad, strict=True) if why]
+    wins = [w for w, why in zip(wins, bad, strict=True) if not why]
+    first = [s for s, why in zip(first, bad, strict=True) if not why]
+    excluded: tuple[tuple[int, str], ...] = tuple((i, why) for i, why in short if why)
+    for i, why in excluded:
+        log.warning("step %d: %s", i, why)
+    if not wins:
+        raise StationError(f"{rec.path}: no step's record window holds a full crank cycle ("
+                           + "; ".join(f"step {i}: {why}" for i, why in excluded) + "): nothing to analyse")
     # a clipped window is not data about the rig: leave it out (and say so) while 2 steps remain
     clipped = [s.flat_top >= FLAT_TOP for s in first]
-    excluded: tuple[tuple[int, str], ...] = ()
     if any(clipped) and len(wins) - sum(clipped) >= 1:
-        excluded = tuple((s.index, f"force signal clipped (flat tops of {s.flat_top} samples at the window "
-                                   f"extreme); step left out") for s, c in zip(first, clipped, strict=True) if c)
+        excluded += tuple((s.index, f"force signal clipped (flat tops of {s.flat_top} samples at the window "
+                                    f"extreme); step left out") for s, c in zip(first, clipped, strict=True) if c)
         wins = [w for w, c in zip(wins, clipped, strict=True) if not c]
         first = [s for s, c in zip(first, clipped, strict=True) if not c]
         for i, why in excluded:
-            log.warning("step %d: %s", i, why)
+            if "clipped" in why:
+                log.warning("step %d: %s", i, why)
     det = detect_mains([s.force.residual for s in first], [s.force.sigma for s in first], fs,
                        MAINS_RANGE_HZ, MAINS_H_MAX)
     log.info("mains search: %s", det.evidence)

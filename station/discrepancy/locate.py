@@ -153,7 +153,8 @@ def out_of_basis(data: RigData, alpha: float = 1e-4) -> list[Finding]:
     fmap = {s.index: s.f_hz for s in data.steps}
     out: list[Finding] = []
     for i, why in data.excluded:
-        out.append(Finding("force", "clipping", (i,), float("nan"), "", float("nan"), f"step {i}: {why}"))
+        if "clipped" in why:  # the others (too short) are notes, not findings about the rig
+            out.append(Finding("force", "clipping", (i,), float("nan"), "", float("nan"), f"step {i}: {why}"))
     clipped = [s.index for s in data.steps if s.flat_top >= FLAT_TOP]
     if clipped:  # kept because fewer than 2 steps would remain
         out.append(Finding("force", "clipping", tuple(clipped), float(max(s.flat_top for s in data.steps)),

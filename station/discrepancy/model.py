@@ -14,7 +14,9 @@ displacement fundamental X_1 (phasor, m):
    to harmonics on a grid of 64 points per period;
 5. conditioner low-pass  V_k <- V_k B(j Omega_k)  (analogue Butterworth, unit DC gain);
 6. force channel  = V + offset + drift (rho t + beta t^2, ``zero_drift``) + mains lines
-   sum_h Re(Q_h e^{j h w_m t}) (``mains_interference``, t absolute time).
+   sum_h Re(Q_h e^{j h w_m t}) (``mains_interference``, t absolute time).  Without a common clock
+   (steps with their own time origins) the drift is each step's own offset, slope and curvature, and
+   the mains lines each step's own phasors.
 
 Output: model coefficients in the force slots (n, n_f) and displacement-harmonic slots (n, n_d) of
 ``RigData``, and the fundamental ratio V_1 / X_1 (V/m) used for the errors-in-variables weights.
@@ -118,7 +120,11 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     dc = V0 + p["offset_V"]
     slope = np.zeros(n)
     curv = np.zeros(n)
-    if "zero_drift" in effects:
+    if "zero_drift" in effects and not data.common_clock:  # per step: offset (step 0: offset_V), slope, curvature
+        dc = dc + np.array([0.0] + [p[f"dc_s{i}"] for i in range(1, n)])
+        slope = np.array([p[f"slope_s{i}"] for i in range(n)])
+        curv = np.array([p[f"curv_s{i}"] for i in range(n)])
+    elif "zero_drift" in effects:
         rho, beta, tm, h = p["rate_V_per_s"], p["quadratic_V_per_s2"], data.t_mid_s, data.half_s
         dc = dc + rho * tm + beta * tm**2
         slope = (rho + 2 * beta * tm) * h

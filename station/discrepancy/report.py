@@ -98,6 +98,7 @@ class DiscrepancyReport:
     notes: tuple[str, ...] = field(default_factory=tuple)
     wall_s: float = 0.0
     proposal: Any = None  # propose.Proposal: the next run that settles a tie, or None
+    proposal_note: str = ""  # why there is no proposal ('' when there is one)
     ties: tuple[Any, ...] = ()  # ties.Tie: models the data do not decide between
     drive: Any = None  # drive.DriveCheck: the recorded frame motion against the slider crank
 
@@ -109,7 +110,8 @@ class DiscrepancyReport:
                 "parameters_after": {k: v.to_dict() for k, v in self.parameters_after.items()},
                 "unexplained": list(self.unexplained), "ties": [t.to_json() for t in self.ties],
                 "notes": list(self.notes), "drive": None if self.drive is None else self.drive.to_json(),
-                "proposal": None if self.proposal is None else self.proposal.to_json()}
+                "proposal": None if self.proposal is None else self.proposal.to_json(),
+                "proposal_note": self.proposal_note or None}
 
     def to_dict(self) -> dict[str, Any]:
         """Everything (the contract plus details), e.g. to store with the recording's results."""
@@ -171,6 +173,11 @@ def effect_estimates(fit: ModelFit, name: str) -> dict[str, Estimate]:
     if name == "transducer_nonlinearity":
         return {"quadratic": Estimate(v["quadratic"], s["quadratic"], "1"),
                 "cubic": Estimate(v["cubic"], s["cubic"], "1")}
+    if name == "zero_drift" and "slope_s0" in v:
+        why = ("the steps have their own time origins: the drift is fitted as each step's own offset, slope and "
+               "curvature, and a rate over the run is not determined")
+        return {"rate_V_per_s": Estimate(math.nan, math.nan, "V/s", False, why),
+                "quadratic_V_per_s2": Estimate(math.nan, math.nan, "V/s^2", False, why)}
     if name == "zero_drift":
         return {"rate_V_per_s": Estimate(v["rate_V_per_s"], s["rate_V_per_s"], "V/s"),
                 "quadratic_V_per_s2": Estimate(v["quadratic_V_per_s2"], s["quadratic_V_per_s2"], "V/s^2")}

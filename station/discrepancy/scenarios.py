@@ -5,7 +5,9 @@ and the bench).  Every draw is seeded; ranges are those of real rigs, not tuned 
   100 Hz, as well described by a delay or a first-order low-pass: the workflow reports such ties);
 * conditioner_lowpass: order 1-4, cut-off in [150, 500] Hz (log-uniform; far above the top step a
   low-pass is a pure delay to the data, see docs/discrepancy.md);
-* channel_delay: |delay| in [5, 100] us (log-uniform), either sign;
+* channel_delay: |delay| in [5, 100] us (log-uniform), either sign, a negative one at most 45 us (the
+  skew of a multiplexed ADC: the force sampled at most one sample interval, 50 us, before the
+  displacement; ``physical``);
 * crank_harmonics: connecting rod L in [0.05, 0.5] m (log-uniform);
 * transducer_nonlinearity: |quadratic| in [2e-4, 3e-3], |cubic| in [0, 2e-3], either sign;
 * mains_interference: 50 or 60 Hz, 1-3 harmonics of 0.2-3 mV, random phases;
@@ -37,6 +39,11 @@ def _sign(rng: np.random.Generator) -> float:
     return 1.0 if rng.random() < 0.5 else -1.0
 
 
+def _skew(delay_s: float) -> float:
+    """A delay as a multiplexed ADC makes it: a negative one (force first) at most 45 us."""
+    return max(delay_s, -45e-6)
+
+
 def draw_effect(name: str, rng: np.random.Generator, k_f: float, b_f: float) -> dict[str, Any]:
     """Configuration (``simulation.effects.<name>``) of one effect drawn from its plausible range."""
     if name == "coupling_compliance":
@@ -44,7 +51,7 @@ def draw_effect(name: str, rng: np.random.Generator, k_f: float, b_f: float) -> 
     if name == "conditioner_lowpass":
         return {"order": int(rng.integers(1, 5)), "cutoff_hz": _logu(rng, 150.0, 500.0)}
     if name == "channel_delay":
-        return {"delay_s": _sign(rng) * _logu(rng, 5e-6, 1e-4)}
+        return {"delay_s": _skew(_sign(rng) * _logu(rng, 5e-6, 1e-4))}
     if name == "crank_harmonics":
         return {"rod_length_m": _logu(rng, 0.05, 0.5)}
     if name == "transducer_nonlinearity":
@@ -67,14 +74,15 @@ WIDE_EFFECTS = ("coupling_compliance", "conditioner_lowpass", "channel_delay")
 def draw_wide(name: str, rng: np.random.Generator, k_f: float, b_f: float) -> dict[str, Any]:
     """A fundamental-only effect drawn from ranges wider than those where the data decide: coupling
     k_c in [1, 10] k_f (log-uniform), b_c in [0, 0.5] b_f; low-pass order 1-4, cut-off in [150, 3000] Hz
-    (log-uniform); delay |delay| in [1, 100] us (log-uniform), either sign.  The workflow must report
-    ties and undetectable effects as such, never a k_f or b_f off by more than 3 stated uncertainties."""
+    (log-uniform); delay |delay| in [1, 100] us (log-uniform), either sign (a negative one at most
+    45 us).  The workflow must report ties and undetectable effects as such, never a k_f or b_f off by
+    more than 3 stated uncertainties."""
     if name == "coupling_compliance":
         return {"k_c": _logu(rng, 1.0, 10.0) * k_f, "b_c": float(rng.uniform(0, 0.5)) * b_f}
     if name == "conditioner_lowpass":
         return {"order": int(rng.integers(1, 5)), "cutoff_hz": _logu(rng, 150.0, 3000.0)}
     if name == "channel_delay":
-        return {"delay_s": _sign(rng) * _logu(rng, 1e-6, 1e-4)}
+        return {"delay_s": _skew(_sign(rng) * _logu(rng, 1e-6, 1e-4))}
     raise KeyError(f"{name} is not a fundamental-only effect ({', '.join(WIDE_EFFECTS)})")
 
 

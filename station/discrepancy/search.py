@@ -82,3 +82,22 @@ def _best_starts(data: RigData, effects: Mapping[str, int], values: Mapping[str,
         except (ValueError, np.linalg.LinAlgError, FloatingPointError):
             scores.append(np.inf)
     return [{**values, **grid[int(i)]} for i in np.argsort(scores)[:n]]
+
+
+def with_order_alternatives(data: RigData, final: ModelFit) -> ModelFit:
+    """The final model with the k_f, b_f of every low-pass order refitted on top of all its other
+    effects (``alternatives``; an effect named after the low-pass let its order move by one only, so
+    orders that fit as well would be missing from the average); the best order's fit replaces the
+    final one if it is better."""
+    lp = "conditioner_lowpass"
+    if lp not in final.effects:
+        return final
+    rest = {k: v for k, v in final.effects.items() if k != lp}
+    try:
+        reduced = fit_model(data, rest, final.values)
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError):
+        return final
+    again = fit_candidate(data, reduced, lp)
+    if again is None:
+        return final
+    return again if again.chi2 < final.chi2 else replace(final, alternatives=again.alternatives)

@@ -14,12 +14,20 @@ k ln n, as in the selection).  It is reported when it matters: when its term rai
 standard uncertainty of k_f or b_f by more than ``MATTERS`` (e.g. a delay of a few microseconds,
 which below the resonance acts like damping).
 
+Every model that fits is kept, however poorly it determines k_f: a model whose k_f or b_f is
+barely determined (e.g. k_f against a free coupling stiffness) widens the spread, it is never dropped;
+a parameter whose uncertainty in one of the models is not finite is reported not identifiable.  Only
+a fit that is physically impossible (``plausible.implausible``: e.g. a negative delay longer than a
+sample, a coupling far softer than the transducer) is not a possible truth: it stays listed with the
+reason (``implausible`` in the JSON) and is left out of the average.
+
 Averaging (model averaging, e.g. Hoeting et al. 1999, Eq. 1-2): with weights w_m, values mu_m and
 standard uncertainties u_m of one parameter in model m,
     mean = sum w mu / sum w,   u^2 = sum w (u_m^2 + (mu_m - mean)^2) / sum w,
 so S, k_f and b_f in ``parameters_after`` carry the spread between the models, not the uncertainty
-of one of them.  (Two equally weighted models A, B: u >= |A - B| / 2, so the truth of either lies
-within 1 u of the mean.)
+of one of them.  The models of a tie (and of a withdrawn name) are equally good explanations, so the
+stated uncertainty covers each of their values: u >= max |mu_m - mean| over them (two models A, B:
+u >= |A - B| / 2, the truth of either within 1 u of the mean).
 """
 
 from __future__ import annotations
@@ -34,6 +42,7 @@ import numpy as np
 
 from station.discrepancy.data import RigData
 from station.discrepancy.fit import ModelFit, fit_model
+from station.discrepancy.physical import implausible
 from station.discrepancy.report import ORDER_AMBIGUITY, Candidate, Estimate, effect_estimates
 from station.discrepancy.search import fit_candidate
 
@@ -49,6 +58,7 @@ class Model:
 
     fit: ModelFit
     weight: float
+    implausible: str = ""  # why the fit is physically impossible ('' if it is not): not averaged
 
     def to_json(self, show: Sequence[str]) -> dict[str, Any]:
         f = self.fit
@@ -58,6 +68,7 @@ class Model:
                 params.update({k: v.to_dict() for k, v in effect_estimates(f, name).items()})
         return {"effects": list(f.effects), "parameters": params, "chi2": float(f.chi2),
                 "bic": float(f.chi2 + f.n_par * math.log(f.n_obs)), "weight": float(self.weight),
+                "implausible": self.implausible or None,
                 **{k: Estimate(f.values[k], f.std[k], u).to_dict() for k, u in AVERAGED}}
 
 
@@ -101,39 +112,50 @@ def tie_models(data: RigData, final: ModelFit, named: str, tied: Sequence[str]) 
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
         log.info("tie of %s: reduced model failed (%s)", named, exc)
         return None
-    models = [Model(final, 1.0)]
+    models = [Model(final, 1.0, implausible(named, final, data))]
+    names = [named]
     for name in others:
         alt = fit_candidate(data, reduced, name)
-        if alt is not None and _usable(alt):
-            models.append(Model(alt, 1.0))
+        if alt is not None and _finite(alt):
+            models.append(Model(alt, 1.0, implausible(name, alt, data)))
+            names.append(name)
     if len(models) < 2:
         return None
-    names = (named, *[next(iter(set(m.fit.effects) - set(rest))) for m in models[1:]])
-    text = "; ".join(f"{n}: {_kf_bf(m.fit)} (chi2 {m.fit.chi2:.5g})" for n, m in zip(names, models, strict=True))
-    return Tie("tie", tuple(models), names,
+
+    def one(n: str, m: Model) -> str:
+        why = f"; not physical ({m.implausible}), left out of the average" if m.implausible else ""
+        return f"{n}: {_kf_bf(m.fit)} (chi2 {m.fit.chi2:.5g}){why}"
+
+    text = "; ".join(one(n, m) for n, m in zip(names, models, strict=True))
+    return Tie("tie", tuple(models), tuple(names),
                f"{' / '.join(names)} explain the data equally well (chi2 within {TIE_CHI2:g}); {text}; "
                f"k_f and b_f are averaged over them with their spread")
 
 
-def _usable(f: ModelFit) -> bool:
-    return all(math.isfinite(f.values[k]) and math.isfinite(f.std[k]) and f.std[k] < abs(f.values[k])
-               for k, _ in AVERAGED)
+def _finite(f: ModelFit) -> bool:
+    """A fit with finite S, k_f, b_f values (their uncertainties may be anything: a poorly determined
+    k_f widens the average, it does not remove the model)."""
+    return all(math.isfinite(f.values[k]) for k, _ in AVERAGED)
 
 
-def undetectable(final: ModelFit, last: Sequence[tuple[Candidate, ModelFit]]) -> list[Tie]:
+def undetectable(data: RigData, final: ModelFit, last: Sequence[tuple[Candidate, ModelFit]]) -> list[Tie]:
     """Unnamed effects of the last round whose BIC weight makes k_f or b_f less certain than the final
     model alone says (module docstring)."""
     out = []
     for c, f in last:
-        if c.delta_chi2 < 1.0 or not _usable(f):
-            continue  # no trace of it in these data (fitted at its neutral value), or undetermined
+        if c.delta_chi2 < 1.0 or not _finite(f):
+            continue  # no trace of it in these data (fitted at its neutral value)
+        why = implausible(c.name, f, data)
+        if why:
+            log.info("undetectable %s left out: %s", c.name, why)
+            continue  # not a possible truth
         w = math.exp(min(c.delta_bic, 60.0) / 2)
         grow = []
         for k in ("k_f", "b_f"):
             mean = (final.values[k] + w * f.values[k]) / (1 + w)
             var = (final.std[k] ** 2 + (final.values[k] - mean) ** 2
                    + w * (f.std[k] ** 2 + (f.values[k] - mean) ** 2)) / (1 + w)
-            grow.append(math.sqrt(var) / max(final.std[k], 1e-300) - 1)
+            grow.append(math.sqrt(var) / max(final.std[k], 1e-300) - 1 if math.isfinite(var) else math.inf)
         if max(grow) <= MATTERS:
             continue
         pars = "; ".join(f"{k} = {v.value:.3g} ± {v.std:.2g} {v.unit}" for k, v in effect_estimates(f, c.name).items()
@@ -158,19 +180,33 @@ def _with_orders(fit: ModelFit, weight: float) -> list[tuple[dict[str, float], d
     return [(v, u, weight / len(out)) for v, u in out]
 
 
-def averaged(final: ModelFit, ties: Sequence[Tie]) -> dict[str, Estimate]:
+def averaged(final: ModelFit, ties: Sequence[Tie], final_implausible: str = "") -> dict[str, Estimate]:
     """S, k_f, b_f averaged over the final model and every model of the ties, each with its low-pass
-    orders that fit as well (module docstring)."""
-    models = _with_orders(final, 1.0)
+    orders that fit as well (module docstring); physically impossible models are left out (the final
+    model too, when a physical model of a tie remains).  The uncertainty covers every equally weighted model's value."""
+    entries: list[tuple[ModelFit, float, bool]] = []  # (fit, weight, equally good: covered by u)
+    alternative = any(t.kind == "tie" and any(m.fit is not final and not m.implausible for m in t.models)
+                      for t in ties)
+    if not (final_implausible and alternative):
+        entries.append((final, 1.0, True))
     for t in ties:
         for m in t.models:
-            if m.fit is not final:
-                models += _with_orders(m.fit, m.weight)
+            if m.fit is not final and not m.implausible and all(m.fit is not e[0] for e in entries):
+                entries.append((m.fit, m.weight, t.kind != "undetectable"))
+    models: list[tuple[dict[str, float], dict[str, float], float, bool]] = []
+    for fit, weight, equal in entries:
+        models += [(v, u, w, equal) for v, u, w in _with_orders(fit, weight)]
     w = np.array([m[2] for m in models])
     out = {}
     for k, unit in AVERAGED:
         mu = np.array([m[0][k] for m in models])
         u = np.array([m[1][k] for m in models])
         mean = float(np.sum(w * mu) / w.sum())
-        out[k] = Estimate(mean, float(math.sqrt(np.sum(w * (u**2 + (mu - mean) ** 2)) / w.sum())), unit)
+        if not np.all(np.isfinite(u)):
+            out[k] = Estimate(mean, math.nan, unit, False, "a model that fits as well leaves it undetermined "
+                              "(its uncertainty is not finite there); see ties")
+            continue
+        std = float(math.sqrt(np.sum(w * (u**2 + (mu - mean) ** 2)) / w.sum()))
+        cover = [abs(m - mean) for m, e in zip(mu, (m[3] for m in models), strict=True) if e]
+        out[k] = Estimate(mean, max([std, *cover]), unit)
     return out

@@ -21,6 +21,7 @@ import math
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import stats
@@ -31,8 +32,9 @@ from station.discrepancy.drive import check_drive
 from station.discrepancy.eiv import noise_floor
 from station.discrepancy.fit import ModelFit, fit_model
 from station.discrepancy.locate import fundamental_table, in_basis, out_of_basis
+from station.discrepancy.physical import implausible
 from station.discrepancy.plausible import withdraw
-from station.discrepancy.propose import RunContext, next_run
+from station.discrepancy.propose import KF_REL, RunContext, next_run
 from station.discrepancy.report import (
     AddedEffect,
     Candidate,
@@ -41,9 +43,13 @@ from station.discrepancy.report import (
     effect_estimates,
     transducer_parameters,
 )
-from station.discrepancy.search import base_start, fit_candidate
+from station.discrepancy.search import base_start, fit_candidate, with_order_alternatives
 from station.discrepancy.ties import TIE_CHI2, averaged, tie_models, tied_names, undetectable
+from station.errors import StationError
 from station.recording import Recording, read_recording
+
+if TYPE_CHECKING:
+    from station.config import StationConfig
 
 log = logging.getLogger(__name__)
 ALPHA = 1e-6
@@ -110,18 +116,12 @@ def _forward(data: RigData, current: ModelFit, allowed: tuple[str, ...], max_eff
             rejected = tuple(ranked)
             last = [(c, fits[c.name]) for c in ranked]
             break
-        best = ok[0]
-        pinned = _at_bound(fits[best.name], current)
-        tie = ""
-        if pinned and len(ok) > 1 and best.delta_bic - ok[1].delta_bic < AMBIGUOUS_BIC \
-                and not _at_bound(fits[ok[1].name], current):
-            tie = f"; named over {best.name}, which fits as well only with {pinned} (at its physical bound)"
-            log.info("tie: %s", tie[2:])
-            best = ok[1]
+        tied = tied_names(ok, fits, birge)
+        best, tie = _choose(ok, tied, fits, current, data)
+        if best is not ok[0]:
             ranked = [best] + [c for c in ranked if c.name != best.name]
         fit = fits[best.name]
         share = (current.chi2 - fit.chi2) / excess
-        tied = tied_names(ok, fits, birge)
         if len(tied) > 1:
             tie += (f"; TIE: {', '.join(t for t in tied if t != best.name)} fit(s) as well (chi2 within "
                     f"{TIE_CHI2:g}): the name is not decided by these data, see ties")
@@ -132,6 +132,39 @@ def _forward(data: RigData, current: ModelFit, allowed: tuple[str, ...], max_eff
                                  tied=tied if len(tied) > 1 else ()))
         current = fit
     return current, added, rejected, last
+
+
+def _choose(ok: list[Candidate], tied: tuple[str, ...], fits: dict[str, ModelFit], current: ModelFit,
+            data: RigData) -> tuple[Candidate, str]:
+    """The name to give among the significant candidates ``ok`` (ranked by Delta BIC) and the reason
+    when it is not the first.  Inside a tie (chi^2 within ``TIE_CHI2``) Delta BIC only counts
+    parameters (k ln n), which is no evidence: a candidate whose fit is physically impossible
+    (``plausible.implausible``) or holds a parameter at its physical bound yields to one that is
+    neither, and among those the lowest AIC (chi^2 / B + 2 k: a better fit by more than what its extra
+    parameters buy by chance) is named."""
+    best = ok[0]
+    if best.name not in tied or len(tied) < 2:
+        return best, ""
+    group = [c for c in ok if c.name in tied]
+
+    def rank(c: Candidate) -> tuple[bool, bool, float]:
+        f = fits[c.name]
+        return bool(implausible(c.name, f, data)), bool(_at_bound(f, current)), -c.delta_chi2 + 2 * c.added_params
+
+    chosen = min(group, key=rank)
+    if chosen is best:
+        return best, ""
+    why = implausible(best.name, fits[best.name], data)
+    pinned = _at_bound(fits[best.name], current)
+    if why:
+        text = f"; named over {best.name}, whose fit is not physical ({why})"
+    elif pinned:
+        text = f"; named over {best.name}, which fits as well only with {pinned} (at its physical bound)"
+    else:
+        text = (f"; named over {best.name} (Delta BIC counts parameters only; {chosen.name} fits better by "
+                f"Delta chi2/B {chosen.delta_chi2 - best.delta_chi2:.3g}, more than its extra parameters buy)")
+    log.info("tie: %s", text[2:])
+    return chosen, text
 
 
 def _at_bound(fit: ModelFit, current: ModelFit) -> str:
@@ -191,6 +224,7 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
         current, added, _, _ = _forward(data, base, tuple(swapped), len(swapped))
         more, extra, rejected, last = _forward(data, current, CATALOGUE, max_effects - len(added))
         current, added = more, added + extra
+    current = with_order_alternatives(data, current)
     # report every named effect's parameters from the final model (all effects present, so no
     # missing effect inflates or biases them); gaps stay those after each stage
     added = [AddedEffect(name=e.name, params=effect_estimates(current, e.name), gap_after=e.gap_after,
@@ -200,9 +234,10 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
     withdrawn, ties = withdraw(data, current, [e.name for e in added], findings)
     added = [e for e in added if e.name not in withdrawn]
     ties += [t for e in added if e.tied for t in [tie_models(data, current, e.name, e.tied)] if t is not None]
-    ties += undetectable(current, last)
+    ties += undetectable(data, current, last)
     after = transducer_parameters(current)
-    after.update(averaged(current, ties))
+    after.update(averaged(current, ties, "; ".join(filter(None, (implausible(n, current, data)
+                                                                 for n in current.effects)))))
     before = transducer_parameters(base)
     if data.n_steps < 2:
         why = ("one step: its force fundamental gives 2 numbers for S, k_f and b_f (and a coupling); they are "
@@ -221,6 +256,7 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
         notes.append(swap_note)
     if rec_notes:
         notes += rec_notes
+    notes += [f"step {i}: {why}" for i, why in data.excluded if "clipped" not in why]
     if data.n_steps < 4:
         notes.append(f"only {data.n_steps} steps: the fundamental gives {2 * data.n_steps} numbers for S, k_f, "
                      "b_f and the offset-free phase; coupling, low-pass and delay act on the fundamental only "
@@ -228,6 +264,7 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
     notes += [f"{t.kind}: {t.message}" for t in ties]
     if data.end_mass_kg <= 0:
         notes.append("no end mass in the recording: m_e = 0 assumed, coupling not testable")
+    proposal = next_run(data, current, added, context, alpha=ALPHA, margin=AMBIGUOUS_BIC)
     return DiscrepancyReport(
         recording=recording, base_gap=base.gap_V, final_gap=current.gap_V, noise_floor_V=floor,
         effects=tuple(added), parameters_before=before,
@@ -238,42 +275,122 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
         final_gap_steps=tuple(float(g) for g in current.gap_steps_V), rejected=rejected,
         base_fundamental=fundamental_table(data, base), final_fundamental=fundamental_table(data, current),
         mains_search=data.mains.evidence, notes=tuple(notes), wall_s=time.perf_counter() - t0,
-        proposal=next_run(data, current, added, context, alpha=ALPHA, margin=AMBIGUOUS_BIC))
+        proposal=proposal, proposal_note=_proposal_note(proposal, context, data))
 
 
-def analyse_recording(path: str | Path | Recording, max_effects: int = 4) -> DiscrepancyReport:
+def _proposal_note(proposal: Any, context: RunContext | None, data: RigData) -> str:
+    """Why there is no proposal ('' when there is one)."""
+    if proposal is not None:
+        return ""
+    if context is None:
+        return "no follow-up run proposed: no rig limits known for this recording"
+    if data.n_steps < 2:
+        return "no follow-up run proposed: one step gives nothing to compare a plan against"
+    return (f"nothing to propose: no tie left to settle and k_f is determined to better than {100 * KF_REL:g} % "
+            "(or no step within the rig's limits would improve it)")
+
+
+def analyse_recording(path: str | Path | Recording, max_effects: int = 4,
+                      station: StationConfig | None = None) -> DiscrepancyReport:
     """The whole workflow on a recording (own or imported): ``station discrepancy`` and the daemon's
-    ``GET /runs/{id}/discrepancy`` call this."""
+    ``GET /runs/{id}/discrepancy`` call this.  ``station``: the rig's configuration, whose limits a
+    proposed follow-up run respects (default: those the recording states, ``run_context``)."""
     t0 = time.perf_counter()
     rec = path if isinstance(path, Recording) else read_recording(path)
     data = prepare(rec)
     events = tuple(str(d.get("warning")) for d in rec.documents if d.get("kind") == "event" and d.get("warning"))
+    ctx = run_context(rec, station)
     rep = analyse(data, max_effects=max_effects, recording=str(rec.path), rec_notes=events,
-                  context=run_context(rec))
-    before = _identify_before(rec) if data.n_steps >= 2 else None
-    return replace(rep, parameters_before=before or rep.parameters_before, wall_s=time.perf_counter() - t0)
+                  context=ctx if isinstance(ctx, RunContext) else None)
+    if isinstance(ctx, str):
+        rep = replace(rep, proposal_note=ctx)
+    ident = _identify(rec) if data.n_steps >= 2 else None
+    before, after, notes = rep.parameters_before, rep.parameters_after, rep.notes
+    if ident is not None:
+        before = ident[0]
+        after = with_budget(after, ident[0], ident[1])
+        notes = (*notes, BUDGET_NOTE)
+    return replace(rep, parameters_before=before, parameters_after=after, notes=notes,
+                   wall_s=time.perf_counter() - t0)
 
 
-def run_context(rec: Recording) -> RunContext | None:
-    """The recording's station configuration and nominal steps, for proposing a follow-up run;
-    None (no proposal, said in the log) when the recording carries no usable configuration."""
+BUDGET_NOTE = ("parameters_after: the standard uncertainties combine the model gap's own (noise, the spread "
+               "of the models that fit) with the systematic terms of station identify's budget (measurement "
+               "chain, masses, radius), scaled to the value")
+
+
+def with_budget(after: dict[str, Estimate], ident: dict[str, Estimate], budget: dict[str, Any]
+                ) -> dict[str, Estimate]:
+    """``after`` with the systematic terms of ``station identify``'s GUM budget (every source but its
+    noise, the model gap's own noise and model spread taking its place, as identify's output-error
+    method does with its noise term) added in quadrature, each scaled by value_after / value_identify
+    (the chain and mass terms are relative to the value to first order)."""
+    out = dict(after)
+    for name, est in after.items():
+        b, ref = budget.get(name), ident.get(name)
+        if b is None or ref is None or not est.identifiable or not ref.identifiable or not ref.value:
+            continue
+        scale = abs(est.value / ref.value)
+        sys2 = sum((scale * float(v)) ** 2 for k, v in (b.get("contributions") or {}).items()
+                   if k != "noise" and v is not None and math.isfinite(float(v)))
+        out[name] = replace(est, std=math.sqrt(est.std**2 + sys2))
+    return out
+
+
+def run_context(rec: Recording, station: StationConfig | None = None) -> RunContext | str:
+    """The limits and nominal steps a follow-up run must respect: the recording's own station
+    configuration, or for an import its transducer (capacity, masses) with the rig's limits from its
+    RUN.yaml (sinecal-csv v2 ``rig``); ``station`` (``--config``) supplies the rig's limits, plan
+    times and chain instead.  Returns why nothing can be proposed when no limits are known."""
+    from pydantic import ValidationError
+
     from station.config import parse_config
 
+    steps = tuple((float(s.crank_frequency_hz), float(s.crank_radius_m)) for s in rec.steps if s.usable)
     try:
         cfg = parse_config(rec.config)
-    except Exception as exc:  # an import without the station's configuration: no limits known
-        log.info("%s: no station configuration in the recording (%s); no follow-up run proposed",
-                 rec.path, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
-        return None
-    return RunContext(cfg, tuple((float(s.crank_frequency_hz), float(s.crank_radius_m))
-                                 for s in rec.steps if s.usable))
+    except Exception:  # not a station configuration (an import): built from what the recording states
+        cfg = None
+    if cfg is not None and station is None:
+        return RunContext(cfg, steps)
+    rig = rec.config.get("rig") if isinstance(rec.config, dict) and rec.config.get("format") == "sinecal-csv" else None
+    limits = station.rig.model_dump(exclude_none=True) if station is not None else rig
+    if limits is None:
+        why = ("no follow-up run proposed: the recording states no rig limits (crank frequency and radius "
+               "ranges, peak force); an import carries them in RUN.yaml (sinecal-csv v2 `rig`), or give the "
+               "rig's station configuration with --config")
+        log.info("%s: %s", rec.path, why)
+        return why
+    end_mass = rec.end_mass_kg if rec.end_mass_kg is not None else None
+    record = [(s.end_sample - s.start_sample) / rec.sample_rate_hz for s in rec.steps]
+    doc: dict[str, Any] = {
+        "transducer": {"id": rec.transducer_id, "capacity_N": rec.capacity_N,
+                       "sensitivity_V_per_N": rec.sensitivity_V_per_N,
+                       **({"end_mass_kg": end_mass} if end_mass else {})},
+        "rig": {**{k: v for k, v in limits.items() if k in ("crank_frequency_hz", "crank_radius_m",
+                                                           "peak_force_fraction", "acceleration_hz_per_s")},
+                "top_mass_kg": rec.load_mass_kg, "adaption_mass_kg": 0.0},
+        "plan": {"settle_s": station.plan.settle_s if station is not None else 1.0,
+                 "record_s": float(np.median(record)) if record else 1.0,
+                 "steps": [{"crank_frequency_hz": f, "crank_radius_m": r} for f, r in steps] or
+                          [{"crank_frequency_hz": 1.0, "crank_radius_m": 1e-3}]}}
+    if station is not None:
+        doc["daq"] = station.daq.model_dump()
+        doc["identification"] = station.identification.model_dump()
+    try:
+        return RunContext(parse_config(doc), steps)
+    except (ValidationError, StationError) as exc:
+        why = f"no follow-up run proposed: the recording's limits are not usable ({str(exc).splitlines()[0]})"
+        log.info("%s: %s", rec.path, why)
+        return why
 
 
-def _identify_before(rec: Recording) -> dict[str, Estimate] | None:
+def _identify(rec: Recording) -> tuple[dict[str, Estimate], dict[str, Any]] | None:
     """The base model's S, k_f, b_f as ``station identify --json`` reports them (frequency-domain fit
-    of paper Eq. 9, ``station.ident``); None (the workflow's own base fit stays) if that fails.  The
-    values agree with the workflow's base fit; the uncertainties of a misfitting base model differ
-    (identify inflates by the fundamental's chi^2/dof alone, which is the honest figure for k_f)."""
+    of paper Eq. 9, ``station.ident``) and its uncertainty budget; None (the workflow's own base fit
+    stays, no systematic terms) if that fails.  The values agree with the workflow's base fit; the
+    uncertainties of a misfitting base model differ (identify inflates by the fundamental's
+    chi^2/dof alone, which is the honest figure for k_f)."""
     try:
         from station.ident.api import identify_recording
 
@@ -284,7 +401,7 @@ def _identify_before(rec: Recording) -> dict[str, Estimate] | None:
                 ok = q.identifiable and q.value is not None and q.std is not None
                 out[q.name] = Estimate(float(q.value) if ok and q.value is not None else math.nan,
                                        float(q.std) if ok and q.std is not None else math.nan, q.unit, ok, q.reason)
-        return out if len(out) == 3 else None
+        return (out, dict(res.budget or {})) if len(out) == 3 else None
     except Exception as exc:  # identification is another package: never let it break this report
         log.warning("station.ident failed (%s); parameters_before from the workflow's base fit", exc)
         return None
