@@ -165,13 +165,12 @@ def test_import_defaults_to_recordings(tmp_path: Path, sim_recording_one_radius:
     assert path.parent == Path("recordings") and (tmp_path / path).is_file()
 
 
-def test_export_refuses_several_radii(tmp_path: Path, sim_recording: Path,
-                                      capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["export", str(sim_recording), "--out", str(tmp_path)]) == 1
-    err = capsys.readouterr().err
-    assert err.startswith("station export: error: ")
-    assert "sinecal-csv v1 has one crank radius per run" in err
-    assert _files(tmp_path) == []
+def test_export_writes_several_radii(tmp_path: Path, sim_recording: Path,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """The station's default plan (a radius per step) exports as sinecal-csv v2."""
+    assert main(["export", str(sim_recording), "--out", str(tmp_path)]) == 0
+    run_yaml = Path(_last_line(capsys.readouterr().out))
+    assert "format_version: 2" in run_yaml.read_text(encoding="utf-8")
 
 
 def test_export_of_a_missing_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

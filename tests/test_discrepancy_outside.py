@@ -98,8 +98,9 @@ def _synthesise(tmp_path: Path, seed: int, motion: Motion,
     run = export_run(simulate_scenario({}, tmp_path / "sim", seed=seed), tmp_path / "exp")
     doc = yaml.safe_load(run.read_text())
     M = doc["top_mass_kg"] + doc["end_mass_kg"]
-    r, C = doc["crank_radius_m"], doc["transducer"]["capacity_N"]
+    C = doc["transducer"]["capacity_N"]
     for st in doc["steps"]:
+        r = st["crank_radius_m"]
         f = run.parent / st["file"]
         d = np.loadtxt(f, delimiter=",", skiprows=1)
         t, w = d[:, 0], 2 * math.pi * st["crank_frequency_hz"]

@@ -294,13 +294,23 @@ def _nan_sensitivity(run: Run) -> None:
 
 RUN_CASES: dict[str, tuple[Callable[[Run], None], str]] = {
     "wrong format": (_doc_edit(lambda d: d.update(format="other-csv")),
-                     "format 'sinecal-csv' version 1 expected, got 'other-csv' version 1"),
-    "wrong version": (_doc_edit(lambda d: d.update(format_version=2)),
-                      "format 'sinecal-csv' version 1 expected, got 'sinecal-csv' version 2"),
-    "no format": (_doc_edit(lambda d: d.pop("format")), "format 'sinecal-csv' version 1 expected, got None"),
+                     "format 'sinecal-csv' version 1 or 2 expected, got 'other-csv' version 1"),
+    "wrong version": (_doc_edit(lambda d: d.update(format_version=3)),
+                      "format 'sinecal-csv' version 1 or 2 expected, got 'sinecal-csv' version 3"),
+    "no format": (_doc_edit(lambda d: d.pop("format")), "format 'sinecal-csv' version 1 or 2 expected, got None"),
     "unknown key": (_doc_edit(lambda d: d.update(gain=1000)), "gain: Extra inputs are not permitted (received 1000)"),
-    "unknown step key": (_doc_edit(lambda d: d["steps"][0].update(crank_radius_m=0.01)),
-                         "steps.0.crank_radius_m: Extra inputs are not permitted"),
+    "unknown step key": (_doc_edit(lambda d: d["steps"][0].update(radius=0.01)),
+                         "steps.0.radius: Extra inputs are not permitted"),
+    "step radius in v1": (_doc_edit(lambda d: d["steps"][0].update(crank_radius_m=0.01)),
+                          "steps.0.crank_radius_m: not part of version 1 (one crank radius per run); write "
+                          "format_version: 2"),
+    "rig limits in v1": (_doc_edit(lambda d: d.update(rig={"crank_frequency_hz": {"min": 1, "max": 100},
+                                                           "crank_radius_m": {"min": 1e-4, "max": 0.05}})),
+                         "rig: not part of version 1"),
+    "no radius in v1": (_doc_edit(lambda d: d.pop("crank_radius_m")), "crank_radius_m: Field required"),
+    "v2 step without radius": (_doc_edit(lambda d: (d.pop("crank_radius_m"), d.update(format_version=2),
+                                                     d["steps"][0].update(crank_radius_m=0.01))),
+                               "steps.1.crank_radius_m: no crank radius for this step"),
     "missing rate": (_doc_edit(lambda d: d.pop("sample_rate_hz")), "sample_rate_hz: Field required"),
     "missing transducer id": (_doc_edit(lambda d: d["transducer"].pop("id")), "transducer.id: Field required"),
     "negative rate": (_doc_edit(lambda d: d.update(sample_rate_hz=-2000)),
@@ -384,12 +394,15 @@ def test_export_writes_the_interchange_format(sim_recording_one_radius: Path, tm
     assert run_yaml == tmp_path / rec.run_id / "RUN.yaml"
     assert sorted(p.name for p in tmp_path.iterdir()) == [rec.run_id]
     doc = yaml.safe_load(run_yaml.read_text(encoding="utf-8"))
-    assert doc == {"format": "sinecal-csv", "format_version": 1, "sample_rate_hz": rec.sample_rate_hz,
-                   "crank_radius_m": 0.0004, "top_mass_kg": rec.load_mass_kg, "end_mass_kg": rec.end_mass_kg,
+    rig = rec.config["rig"]
+    assert doc == {"format": "sinecal-csv", "format_version": 2, "sample_rate_hz": rec.sample_rate_hz,
+                   "top_mass_kg": rec.load_mass_kg, "end_mass_kg": rec.end_mass_kg,
+                   "rig": {"crank_frequency_hz": rig["crank_frequency_hz"], "crank_radius_m": rig["crank_radius_m"],
+                           "peak_force_fraction": rig["peak_force_fraction"]},
                    "transducer": {"id": "TX5K-0001", "capacity_N": 5000.0,
                                   "sensitivity_V_per_N": rec.sensitivity_V_per_N},
-                   "steps": [{"file": f"step{i:02d}.csv", "crank_frequency_hz": s.crank_frequency_hz}
-                             for i, s in enumerate(rec.steps)]}
+                   "steps": [{"file": f"step{i:02d}.csv", "crank_frequency_hz": s.crank_frequency_hz,
+                              "crank_radius_m": 0.0004} for i, s in enumerate(rec.steps)]}
     assert sorted(p.name for p in run_yaml.parent.iterdir()) == ["RUN.yaml", "step00.csv", "step01.csv",
                                                                  "step02.csv"]
     for s in rec.steps:
@@ -423,8 +436,11 @@ def test_round_trip_import_export(run: Run, out: Path, tmp_path: Path) -> None:
     rec = read_recording(import_run(run.yaml_path, out))
     run_yaml = export_run(rec.path, tmp_path / "back")
     doc = yaml.safe_load(run_yaml.read_text(encoding="utf-8"))
-    assert {k: v for k, v in doc.items() if k != "steps"} == {k: v for k, v in run.doc.items() if k != "steps"}
-    assert [s["crank_frequency_hz"] for s in doc["steps"]] == [5.0, 20.0]
+    # v2 now: the run's radius on every step
+    assert doc["format_version"] == 2 and "crank_radius_m" not in doc
+    assert ({k: v for k, v in doc.items() if k not in ("steps", "format_version")}
+            == {k: v for k, v in run.doc.items() if k not in ("steps", "format_version", "crank_radius_m")})
+    assert [(s["crank_frequency_hz"], s["crank_radius_m"]) for s in doc["steps"]] == [(5.0, RADIUS), (20.0, RADIUS)]
     again = read_recording(import_run(run_yaml, out))
     np.testing.assert_array_equal(again.displacement_m, rec.displacement_m)
     np.testing.assert_array_equal(again.force_V, rec.force_V)
@@ -436,13 +452,29 @@ def test_export_without_end_mass_omits_it(tmp_path: Path, out: Path) -> None:
     assert "end_mass_kg" not in doc
 
 
-def test_export_refuses_more_than_one_radius(sim_recording: Path, tmp_path: Path) -> None:
-    with pytest.raises(StationError) as exc:
-        export_run(sim_recording, tmp_path)
-    msg = str(exc.value)
-    assert "one crank radius per run" in msg
-    assert "[0.00015, 0.001, 0.01]" in msg
-    assert list(tmp_path.iterdir()) == []
+def test_a_run_with_a_radius_per_step_exports_and_imports(sim_recording: Path, tmp_path: Path) -> None:
+    """The station's default plan changes the radius between steps: v2 carries each step's radius, and
+    the round trip keeps them (and the samples, bit for bit)."""
+    original = read_recording(sim_recording)
+    run_yaml = export_run(sim_recording, tmp_path / "x")
+    doc = yaml.safe_load(run_yaml.read_text(encoding="utf-8"))
+    assert doc["format_version"] == 2
+    assert sorted({s["crank_radius_m"] for s in doc["steps"]}) == [0.00015, 0.001, 0.01]
+    imported = read_recording(import_run(run_yaml, tmp_path / "r"))
+    assert [(s.crank_frequency_hz, s.crank_radius_m) for s in imported.steps] == \
+        [(s.crank_frequency_hz, s.crank_radius_m) for s in original.steps]
+    for a, b in zip(original.steps, imported.steps, strict=True):
+        for x, y in zip(original.step_signals(a), imported.step_signals(b), strict=True):
+            np.testing.assert_array_equal(y, x)
+
+
+def test_v2_step_radius_overrides_the_runs(run: Run, out: Path) -> None:
+    """v2: the run's crank_radius_m is the default of steps that give none."""
+    run.doc.update(format_version=2)
+    run.doc["steps"][1]["crank_radius_m"] = 0.002
+    run.yaml_path.write_text(yaml.safe_dump(run.doc), encoding="utf-8")
+    rec = read_recording(import_run(run.yaml_path, out))
+    assert [s.crank_radius_m for s in rec.steps] == [RADIUS, 0.002]
 
 
 def test_export_never_overwrites(sim_recording_one_radius: Path, tmp_path: Path) -> None:
