@@ -136,14 +136,19 @@ def test_the_proposed_run_resolves_the_tie_on_the_rig_path(tmp_path: Path) -> No
 
 
 def test_without_the_station_configuration_nothing_is_proposed(tmp_path: Path) -> None:
-    """An import without the station's configuration: no limits known, so no steps are offered."""
+    """A recording without any rig limits: no steps are offered, and the reason is given; a station
+    configuration (``--config``) supplies the limits."""
     from dataclasses import replace
 
-    from station.discrepancy.workflow import run_context
+    from station.discrepancy.workflow import RunContext, run_context
 
     cfg = scenario_config({}, seed=4, n_steps=3, record_s=0.2, settle_s=0.05)
     rec = read_recording(simulate_run(cfg, tmp_path, seed=4))
     ctx = run_context(rec)
-    assert ctx is not None and len(ctx.steps) == 3
+    assert isinstance(ctx, RunContext) and len(ctx.steps) == 3
     assert ctx.config.rig.crank_radius_m.max == pytest.approx(0.05)
-    assert run_context(replace(rec, config={})) is None
+    why = run_context(replace(rec, config={}))
+    assert isinstance(why, str) and "no rig limits" in why and "--config" in why
+    given = run_context(replace(rec, config={}), cfg)
+    assert isinstance(given, RunContext) and given.config.transducer.capacity_N == rec.capacity_N
+    assert given.config.rig.load_mass_kg == pytest.approx(rec.load_mass_kg)

@@ -87,7 +87,8 @@ def test_each_catalogue_effect_is_named_estimated_and_removed(name: str, seed: i
     assert rep.final_gap <= 1.5 * rep.noise_floor_V
     assert rep.effects[0].gap_after < rep.base_gap
     _check_params(rep, name, eff[name])
-    _transducer_ok(rep, coupling=name == "coupling_compliance", transducer=transducer)
+    # a coupling or the displacement sensor's resonance trades off against k_f below the resonances
+    _transducer_ok(rep, coupling=name in ("coupling_compliance", "displacement_resonance"), transducer=transducer)
     # the bias of the base model is visible in its parameters when the effect acts on the fundamental
     if name in ("conditioner_lowpass", "coupling_compliance"):
         assert rep.parameters_before["k_f"].value != pytest.approx(rep.parameters_after["k_f"].value, rel=1e-3)

@@ -14,10 +14,9 @@ import numpy as np
 from drivers.rig.params import EFFECT_NAMES
 from station.discrepancy.data import RigData
 
-# the effects the force model can name; the crank harmonics are not among them (the model takes the
-# frame motion as recorded, and ``drive`` checks it against the slider crank), nor yet the
-# displacement sensor's resonance
-CATALOGUE: tuple[str, ...] = tuple(e for e in EFFECT_NAMES if e not in ("crank_harmonics", "displacement_resonance"))
+# the effects the force model can name; the crank harmonics are not among them: the model takes the
+# frame motion as recorded, and ``drive`` checks it against the slider crank
+CATALOGUE: tuple[str, ...] = tuple(e for e in EFFECT_NAMES if e != "crank_harmonics")
 LOWPASS_ORDERS: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8)
 
 
@@ -59,6 +58,9 @@ def effect_params(name: str, data: RigData) -> tuple[Param, ...]:
         for h in range(1, data.n_mains + 1):
             out += [Param(f"re_{h}", "V"), Param(f"im_{h}", "V")]
         return tuple(out)
+    if name == "displacement_resonance":  # the sensor's own resonance (drivers.rig.params.DisplacementResonance)
+        return (Param("sensor_resonance_hz", "Hz", log=True, lower=float(data.f_hz.max()), upper=1e6),
+                Param("sensor_damping", "1", lower=0.0, upper=10.0))
     if name == "zero_drift":
         if not data.common_clock:  # no common time axis: each step's own offset, slope and curvature
             return tuple([Param(f"dc_s{i}", "V") for i in range(1, data.n_steps)]
@@ -70,6 +72,7 @@ def effect_params(name: str, data: RigData) -> tuple[Param, ...]:
 NEUTRAL: dict[str, float] = {
     "k_c": np.inf, "b_c": 0.0, "cutoff_hz": np.inf, "delay_s": 0.0, "inverse_rod_length_per_m": 0.0,
     "quadratic": 0.0, "cubic": 0.0, "rate_V_per_s": 0.0, "quadratic_V_per_s2": 0.0,
+    "sensor_resonance_hz": np.inf, "sensor_damping": 0.0,
 }
 
 
@@ -79,7 +82,8 @@ def scales(p: dict[str, float], data: RigData) -> dict[str, float]:
     T = float(data.t_mid_s.max() + data.half_s.max())
     out = {"S": 1e-3 * abs(p["S"]), "k_f": 1e-3, "b_f": 1e-2, "offset_V": 1e2 * sig, "k_c": 0.1,
            "b_c": 0.1 * p["b_f"], "cutoff_hz": 0.1, "delay_s": 1e-6, "inverse_rod_length_per_m": 0.1,
-           "quadratic": 1e-3, "cubic": 1e-3, "frequency_hz": 1e-3, "rate_V_per_s": 10 * sig / T,
+           "quadratic": 1e-3, "cubic": 1e-3, "frequency_hz": 1e-3,
+           "sensor_resonance_hz": 0.1, "sensor_damping": 0.05, "rate_V_per_s": 10 * sig / T,
            "quadratic_V_per_s2": 10 * sig / T**2}
     for i in range(data.n_steps):
         out[f"dc_s{i}"] = out[f"slope_s{i}"] = out[f"curv_s{i}"] = 10 * sig
@@ -101,6 +105,9 @@ def start_grid(name: str, data: RigData, p: dict[str, float]) -> list[dict[str, 
         return [{"cutoff_hz": fc} for fc in np.geomspace(0.5 * fmax, 300 * fmax, 13)]
     if name == "channel_delay":
         return [{"delay_s": d} for d in (0.0, -1e-4, 1e-4, -5e-4, 5e-4)]
+    if name == "displacement_resonance":
+        return [{"sensor_resonance_hz": fr, "sensor_damping": z} for fr in np.geomspace(3 * fmax, 300 * fmax, 7)
+                for z in (0.05, 0.3, 1.0)]
     if name == "crank_harmonics":
         r = np.abs(data.x1)
         d2 = np.abs(data.cd[:, 0] - 1j * data.cd[:, 1])

@@ -7,7 +7,9 @@ displacement fundamental X_1 (phasor, m):
    their origin; the slider crank x(phi) = r sin phi - kappa r^2 cos^2 phi / (1 + sqrt(1 - kappa^2 r^2
    cos^2 phi)), kappa = 1/L, r = |X_1|, phi = w tau + angle(j X_1) is only a check of the drive
    (``drive``), not part of the force model;
-2. frame motion at the force sample instants  x_k = D_k exp(j Omega_k Delta)  (``channel_delay``);
+2. frame motion at the force sample instants  x_k = D_k exp(j Omega_k Delta)  (``channel_delay``),
+   divided by the displacement sensor's own response H_s(j Omega_k) (``displacement_resonance``,
+   ``drivers.rig.params.DisplacementResonance``: the recorded motion is H_s times the frame's);
 3. spring force  F_k = G(Omega_k) x_k,  G = k_f Z2 / X_b = s^2 * (paper Eq. 9, or Eq. 8 with
    ``coupling_compliance``) in N/m;  F(t) = -M g + sum Re(F_k e^{j k w tau});
 4. transducer output  v = S F (1 + q F/C + c (F/C)^2)  (``transducer_nonlinearity``; else S F), taken
@@ -30,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.rig.model import spring_force_per_acceleration
-from drivers.rig.params import CouplingCompliance, Transducer
+from drivers.rig.params import CouplingCompliance, DisplacementResonance, Transducer
 from station.discrepancy.data import G, RigData
 from station.discrepancy.decompose import K_MAX
 from station.discrepancy.eiv import measured_motion
@@ -88,6 +90,8 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     s = np.asarray(1j * Om, dtype=np.complex128)
     D = measured_motion(data)  # the frame motion as recorded drives the model (``eiv``)
     x = D * np.exp(1j * Om * p["delay_s"]) if "channel_delay" in effects else D
+    if "displacement_resonance" in effects:  # the recorded motion is H_s x_b: the frame's is D / H_s
+        x = x / DisplacementResonance(p["sensor_resonance_hz"], p["sensor_damping"]).response(Om / (2 * np.pi))
     t = Transducer(k_f=p["k_f"], b_f=p["b_f"], m_e=data.end_mass_kg, m_l=data.load_mass_kg,
                    sensitivity_V_per_N=p["S"], capacity_N=data.capacity_N)
     cpl = CouplingCompliance(p["k_c"], p["b_c"]) if "coupling_compliance" in effects else None

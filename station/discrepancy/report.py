@@ -164,6 +164,9 @@ def effect_estimates(fit: ModelFit, name: str) -> dict[str, Estimate]:
         return est
     if name == "channel_delay":
         return {"delay_s": Estimate(v["delay_s"], s["delay_s"], "s")}
+    if name == "displacement_resonance":
+        return {"resonance_hz": Estimate(v["sensor_resonance_hz"], s["sensor_resonance_hz"], "Hz"),
+                "damping": Estimate(v["sensor_damping"], s["sensor_damping"], "1")}
     if name == "crank_harmonics":
         kap, sk = v["inverse_rod_length_per_m"], s["inverse_rod_length_per_m"]
         if abs(kap) <= 2 * sk:

@@ -11,7 +11,9 @@ and the bench).  Every draw is seeded; ranges are those of real rigs, not tuned 
 * crank_harmonics: connecting rod L in [0.05, 0.5] m (log-uniform);
 * transducer_nonlinearity: |quadratic| in [2e-4, 3e-3], |cubic| in [0, 2e-3], either sign;
 * mains_interference: 50 or 60 Hz, 1-3 harmonics of 0.2-3 mV, random phases;
-* zero_drift: |rate| in [2e-5, 5e-4] V/s, |quadratic| in [0, 2e-5] V/s^2, either sign.
+* zero_drift: |rate| in [2e-5, 5e-4] V/s, |quadratic| in [0, 2e-5] V/s^2, either sign;
+* displacement_resonance: the displacement sensor's own resonance in [300, 1000] Hz (log-uniform),
+  damping ratio in [0.3, 1].
 """
 
 from __future__ import annotations
@@ -65,6 +67,8 @@ def draw_effect(name: str, rng: np.random.Generator, k_f: float, b_f: float) -> 
     if name == "zero_drift":
         return {"rate_V_per_s": _sign(rng) * _logu(rng, 2e-5, 5e-4),
                 "quadratic_V_per_s2": _sign(rng) * float(rng.uniform(0.0, 2e-5))}
+    if name == "displacement_resonance":
+        return {"resonance_hz": _logu(rng, 300.0, 1000.0), "damping": float(rng.uniform(0.3, 1.0))}
     raise KeyError(name)
 
 

@@ -16,8 +16,9 @@ from station.discrepancy.fit import ModelFit, Problem, fit_model, profiled_chi2
 
 log = logging.getLogger(__name__)
 __all__ = ["base_start", "fit_candidate"]
-FUNDAMENTAL_ONLY = ("coupling_compliance", "conditioner_lowpass", "channel_delay")
-MULTI_START: dict[str, int] = {"coupling_compliance": 3}  # LM runs from the best grid points
+FUNDAMENTAL_ONLY = ("coupling_compliance", "conditioner_lowpass", "channel_delay", "displacement_resonance")
+# LM runs from the best grid points
+MULTI_START: dict[str, int] = {"coupling_compliance": 3, "displacement_resonance": 3}
 
 
 def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | None:
