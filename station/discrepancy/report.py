@@ -99,6 +99,7 @@ class DiscrepancyReport:
     wall_s: float = 0.0
     proposal: Any = None  # propose.Proposal: the next run that settles a tie, or None
     proposal_note: str = ""  # why there is no proposal ('' when there is one)
+    structure: Any = None  # structure.Structure: the model parameters_after rests on, and what a coupling changes
     ties: tuple[Any, ...] = ()  # ties.Tie: models the data do not decide between
     drive: Any = None  # drive.DriveCheck: the recorded frame motion against the slider crank
 
@@ -111,7 +112,8 @@ class DiscrepancyReport:
                 "unexplained": list(self.unexplained), "ties": [t.to_json() for t in self.ties],
                 "notes": list(self.notes), "drive": None if self.drive is None else self.drive.to_json(),
                 "proposal": None if self.proposal is None else self.proposal.to_json(),
-                "proposal_note": self.proposal_note or None}
+                "proposal_note": self.proposal_note or None,
+                "structure": None if self.structure is None else self.structure.to_json()}
 
     def to_dict(self) -> dict[str, Any]:
         """Everything (the contract plus details), e.g. to store with the recording's results."""

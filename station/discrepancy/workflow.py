@@ -44,6 +44,7 @@ from station.discrepancy.report import (
     transducer_parameters,
 )
 from station.discrepancy.search import base_start, fit_candidate, with_order_alternatives
+from station.discrepancy.structure import state_structure
 from station.discrepancy.ties import TIE_CHI2, averaged, tie_models, tied_names, undetectable
 from station.errors import StationError
 from station.recording import Recording, read_recording
@@ -244,6 +245,7 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
                "not determined without assuming one of them")
         after = {k: Estimate(math.nan, math.nan, e.unit, False, why) for k, e in after.items()}
         before = {k: Estimate(math.nan, math.nan, e.unit, False, why) for k, e in before.items()}
+    structure = state_structure(data, current, last) if data.n_steps >= 3 and data.end_mass_kg > 0 else None
     drive = check_drive(data)
     left = [*withdrawn.values(), *[f.text for f in findings], *drive.findings,
             *[f.text for f in out_of_basis(data)]]
@@ -262,6 +264,8 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
                      "b_f and the offset-free phase; coupling, low-pass and delay act on the fundamental only "
                      "and are hardly separable from the transducer parameters (more frequencies needed)")
     notes += [f"{t.kind}: {t.message}" for t in ties]
+    if structure is not None:
+        notes.append(f"structure: {structure.message}")
     if data.end_mass_kg <= 0:
         notes.append("no end mass in the recording: m_e = 0 assumed, coupling not testable")
     proposal = next_run(data, current, added, context, alpha=ALPHA, margin=AMBIGUOUS_BIC)
@@ -275,7 +279,7 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
         final_gap_steps=tuple(float(g) for g in current.gap_steps_V), rejected=rejected,
         base_fundamental=fundamental_table(data, base), final_fundamental=fundamental_table(data, current),
         mains_search=data.mains.evidence, notes=tuple(notes), wall_s=time.perf_counter() - t0,
-        proposal=proposal, proposal_note=_proposal_note(proposal, context, data))
+        proposal=proposal, proposal_note=_proposal_note(proposal, context, data), structure=structure)
 
 
 def _proposal_note(proposal: Any, context: RunContext | None, data: RigData) -> str:

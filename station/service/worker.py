@@ -157,7 +157,7 @@ def campaign_job(paths: list[str]) -> dict[str, Any]:
 
 
 CONTRACT_KEYS = ("base_gap", "effects", "final_gap", "parameters_before", "parameters_after", "unexplained",
-                 "ties", "notes", "proposal", "proposal_note", "drive")
+                 "ties", "notes", "proposal", "proposal_note", "structure", "drive")
 
 
 def stored_discrepancy(path: Path, max_effects: int) -> dict[str, Any] | None:

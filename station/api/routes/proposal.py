@@ -37,6 +37,7 @@ class ProposalOut(BaseModel):
                     "the tied models, or bits for a parameter), current, separates, pairs; null when nothing "
                     "needs settling")
     request: RunRequest | None = Field(description="body for POST /runs that makes the proposed run")
+    note: str | None = Field(default=None, description="why nothing is proposed (null when there is a proposal)")
 
 
 @router.get("/{run_id}/proposal", response_model=ProposalOut, dependencies=[Reader],
@@ -49,7 +50,9 @@ async def run_proposal(run: RunDep, manager: ManagerDep) -> ProposalOut:
     out = finite(await manager.stored_discrepancy(run.id, MAX_EFFECTS))
     prop = out.get("proposal") if isinstance(out, dict) else None
     if not prop or not prop.get("run_steps"):
-        return ProposalOut(run=run.id, proposal=prop or None, request=None)
+        note = out.get("proposal_note") if isinstance(out, dict) else None
+        return ProposalOut(run=run.id, proposal=prop or None, request=None,
+                           note=note if isinstance(note, str) else None)
     req = RunRequest(transducer_id=run.transducer_id, top_mass_kg=run.top_mass_kg,
                      steps=[StepSpec(crank_frequency_hz=s["crank_frequency_hz"], crank_radius_m=s["crank_radius_m"])
                             for s in prop["run_steps"]])
