@@ -160,7 +160,8 @@ def test_cli_json_contract_and_plot(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert set(out) == {"base_gap", "effects", "final_gap", "parameters_before", "parameters_after",
                         "unexplained", "proposal", "proposal_note", "structure", "ties", "notes", "drive"}
     assert out["proposal"] is not None or isinstance(out["proposal_note"], str)
-    assert out["structure"]["model"].startswith("stiff coupling") and out["structure"]["series_stiffness"]["unit"] == "N/m"
+    st = out["structure"]
+    assert st["model"].startswith("stiff coupling") and st["series_stiffness"]["unit"] == "N/m"
     assert isinstance(out["base_gap"], float) and isinstance(out["final_gap"], float)
     assert [e["name"] for e in out["effects"]] == ["transducer_nonlinearity"]
     for e in out["effects"]:
