@@ -111,3 +111,37 @@ def test_register_image_words_and_exception_codes(model: MotorModel, clock: Cloc
     model.inject_fault(3)
     assert img.read(103, 1) == [3]
     assert img.write(0, [1]) == DEVICE_FAILURE
+
+
+def test_a_drive_that_ignores_stops_keeps_turning_until_repaired(model: MotorModel, clock: Clock) -> None:
+    img = MotorRegisterImage(load_register_map(), model)
+    seen: list[tuple[str, float]] = []
+    img.observers.append(lambda name, value, t: seen.append((name, value)))
+    model.set_watchdog_timeout(0.5)
+    model.set_ramp(50.0)
+    model.set_setpoint(10.0)
+    model.set_enable(True)
+    model.ignore_stops()
+    clock.t += 1.0  # at 10 Hz; the watchdog expired meanwhile and is ignored too
+    assert img.write(img.map["emergency_stop"].address, [1]) is None  # the command is taken ...
+    assert seen == [("emergency_stop", 1.0)]
+    clock.t += 5.0
+    s = model.snapshot()
+    assert s.speed_hz == pytest.approx(10.0) and s.fault_code != 0  # ... and ignored: still 10 Hz
+    with pytest.raises(PermissionError):
+        model.reset_faults()  # refused while turning, as on a healthy drive
+    model.ignore_stops(False)  # repaired: the latched fault stops it at the stop ramp
+    clock.t += 10.0 / model.device.stop_deceleration_hz_per_s + 0.01
+    assert model.snapshot().speed_hz == 0.0
+    model.reset_faults()
+
+
+def test_without_the_fault_the_same_stop_stops_the_crank(model: MotorModel, clock: Clock) -> None:
+    model.set_watchdog_timeout(60.0)
+    model.set_ramp(50.0)
+    model.set_setpoint(10.0)
+    model.set_enable(True)
+    clock.t += 1.0
+    model.emergency_stop()
+    clock.t += 10.0 / model.device.stop_deceleration_hz_per_s + 0.01
+    assert model.snapshot().speed_hz == 0.0

@@ -222,6 +222,23 @@ class MotorController:
             raise MotorFaultError(st.fault_code, st.fault_name)
         return st
 
+    async def settle_to_standstill(self, timeout_s: float, *, poll_s: float = 0.05) -> MotorStatus:
+        """Read the status until the drive reports standstill or ``timeout_s`` (s, on the driver's
+        clock) has passed; returns the last status read (``standstill`` says which).  Never raises
+        for a crank still turning: that is the caller's finding; link errors propagate."""
+        deadline = self.clock.monotonic() + timeout_s
+        st = await self.read_status()
+        while not st.standstill and self.clock.monotonic() < deadline:
+            await self.clock.asleep(poll_s)
+            st = await self.read_status()
+        return st
+
+    def stop_time_bound_s(self, speed_hz: float, ramp_hz_per_s: float | None = None) -> float:
+        """How long (s) a healthy drive may take to come to rest from ``speed_hz``: the ramp
+        (default: the controller's documented stop deceleration) with 50 % margin, plus 1 s."""
+        ramp = ramp_hz_per_s or self.map.device.stop_deceleration_hz_per_s
+        return abs(speed_hz) / ramp * 1.5 + 1.0
+
     async def wait_for_speed(self, hz: float, *, tolerance_hz: float = 0.01, timeout_s: float = 30.0,
                              poll_s: float = 0.05, keep_watchdog: bool = True) -> MotorStatus:
         """Poll until |actual - hz| <= tolerance, refreshing the watchdog; TimeoutError otherwise."""

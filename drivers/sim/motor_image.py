@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 
 from drivers.motor.registers import Register, RegisterMap
 from drivers.sim.motor_model import MotorModel
@@ -38,6 +39,8 @@ class MotorRegisterImage:
             for i in range(reg.words):
                 self._by_addr[reg.address + i] = (reg, i)
         self._stored: dict[str, float] = {"watchdog": 0.0}
+        # called with (register name, value, time.monotonic()) for every register a write applied
+        self.observers: list[Callable[[str, float, float], None]] = []
 
     def _values(self) -> dict[str, float]:
         s = self.model.snapshot()
@@ -126,6 +129,11 @@ class MotorRegisterImage:
         except _Refused as refused:
             self._stored = stored
             return refused.code
+        if self.observers:
+            now = time.monotonic()
+            for reg, value in values:
+                for fn in self.observers:
+                    fn(reg.name, value, now)
         return None
 
     def _apply(self, name: str, value: float) -> int | None:

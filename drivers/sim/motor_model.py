@@ -60,9 +60,13 @@ class MotorModel:
         self._wd_timeout = device.default_watchdog_timeout_s
         self._wd_deadline = math.inf
         self._wd_expired = False
+        self._ignore_stops = False
+        self._stuck_hz: float | None = None  # the speed a drive that ignores stops keeps turning at
 
     # ----------------------------------------------------------------- dynamics
     def _target_and_accel(self) -> tuple[float, float]:
+        if self._stuck_hz is not None:
+            return self._stuck_hz, self._ramp
         if self._fault != FAULT_NONE:
             return 0.0, self.device.stop_deceleration_hz_per_s
         if not self._enabled:
@@ -100,7 +104,13 @@ class MotorModel:
                 self._latch_fault(FAULT_WATCHDOG)
         return now
 
+    def _stopping(self) -> None:
+        """A command that would slow the crank down: a drive that ignores stops keeps its target."""
+        if self._ignore_stops and self._stuck_hz is None:
+            self._stuck_hz = self._target_and_accel()[0]
+
     def _latch_fault(self, code: int) -> None:
+        self._stopping()
         if self._fault == FAULT_NONE:
             self._fault = code
         self._enabled = False
@@ -145,6 +155,8 @@ class MotorModel:
             if on and not self._enabled:
                 self._wd_deadline = now + self._wd_timeout
                 self._wd_expired = False
+            if not on:
+                self._stopping()
             self._enabled = on
 
     def set_setpoint(self, hz: float) -> None:
@@ -154,6 +166,8 @@ class MotorModel:
             if not self.device.min_frequency_hz <= hz <= self.device.max_frequency_hz:
                 raise ValueError(f"setpoint {hz} Hz outside [{self.device.min_frequency_hz}, "
                                  f"{self.device.max_frequency_hz}] Hz")
+            if hz < self._setpoint:
+                self._stopping()
             self._setpoint = hz
 
     def set_ramp(self, hz_per_s: float) -> None:
@@ -193,6 +207,17 @@ class MotorModel:
         with self._lock:
             self._advance()
             self._latch_fault(code)
+
+    def ignore_stops(self, on: bool = True) -> None:
+        """Fault injection: the drive takes every command (no Modbus exception) but keeps turning
+        when told to stop or slow down (emergency stop, disable, a lower setpoint, its own watchdog
+        or a fault): a broken power stage or a welded contactor.  ``ignore_stops(False)`` repairs it;
+        the drive then obeys its latched state (a fault latched meanwhile stops it at the stop ramp)."""
+        with self._lock:
+            self._advance()
+            self._ignore_stops = on
+            if not on:
+                self._stuck_hz = None
 
     def preset_angle(self, angle_rad: float) -> None:
         """Test hook: set the unwrapped crank angle (rad), as if the crank had turned that far."""
