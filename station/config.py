@@ -182,6 +182,12 @@ class ServiceSection(_Model):
                          "(0: jobs wait in the queue until a daemon with workers runs)")
     max_body_bytes: int = Field(default=1_048_576, ge=1024, le=64 * 2**20,
                                 description="largest request body accepted, bytes (larger: 413, unread)")
+    max_connections: int = Field(default=1000, ge=16, le=100_000,
+                                 description="open HTTP connections at most (kept below the open-files "
+                                 "limit); beyond it the oldest idle ones are closed for new clients")
+    header_timeout_s: float = Field(default=10.0, ge=1.0, le=300.0,
+                                    description="a connection that sends no complete request head within this "
+                                    "after opening or after its last response is closed, s")
 
 
 class IdentificationConfig(_Model):

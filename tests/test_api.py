@@ -58,7 +58,7 @@ def test_health_reports_each_device_link(daemon: Daemon) -> None:
     assert h["rig"]["connected"] and h["rig"]["simulated"]
     assert h["rig"]["motor"] == {"connected": True, "watchdog_error": None}
     assert h["rig"]["daq"] == {"link_error": None}
-    assert h["database"] == {"ok": True, "journal_mode": "wal"}
+    assert h["database"] == {"ok": True, "journal_mode": "wal", "pending_writes": 0, "error": None}
     assert h["worker"]["processes"] == 1
     # the start-up check repaired the flagged recording and named the unreadable one (and went on)
     assert h["recordings"]["repaired"] == ["20250101T000000-TX-1-abcdef.h5"]

@@ -444,6 +444,7 @@ def test_a_full_disk_while_identifying_keeps_the_result_until_the_database_takes
     from station.service import jobs
     from station.service.artifacts import Artifacts
     from station.service.changes import Changes
+    from station.service.db import DbAccess
     from station.service.recovery import recover
     from station.service.store import RunRow, Store
 
@@ -461,8 +462,12 @@ def test_a_full_disk_while_identifying_keeps_the_result_until_the_database_takes
         async def go(rid: str, free_space: bool) -> jobs.JobQueue:
             closing = asyncio.Event()
             store.enqueue_job(rid)
-            q = jobs.JobQueue(store, _IdentifyingWorker(disk), 1,  # type: ignore[arg-type]
-                              Artifacts(rec, None, store.get_run), Changes(closing), closing)  # type: ignore[arg-type]
+            db = DbAccess(store).start()
+
+            async def get_row(run_id: str) -> RunRow:
+                return await db.read(lambda s: s.get_run(run_id))  # type: ignore[return-value]
+            q = jobs.JobQueue(db, _IdentifyingWorker(disk), 1,  # type: ignore[arg-type]
+                              Artifacts(rec, None, get_row), Changes(closing), closing)  # type: ignore[arg-type]
             q.start()
             await _until(lambda: rid in q.unrecorded)
             assert "identified (fd, h2)" in q.unrecorded[rid] and "identify_fd_h2" in q.unrecorded[rid]
@@ -477,6 +482,7 @@ def test_a_full_disk_while_identifying_keeps_the_result_until_the_database_takes
             closing.set()
             await q.stop_dispatcher()
             await asyncio.gather(*q._tasks, return_exceptions=True)
+            await asyncio.to_thread(db.close, 0.5)
             return q
 
         with caplog.at_level("INFO", logger="station.service.jobs"):

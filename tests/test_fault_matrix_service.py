@@ -85,6 +85,8 @@ async def start(c: httpx.AsyncClient, **kw: Any) -> str:
 
 
 def estops(m: RunManager) -> list[dict[str, Any]]:
+    """The emergency stops in the database, once the daemon's writer has taken what it queued."""
+    assert m.db.flush(5.0), m.db.last_error
     db = sqlite3.connect(m.settings.database)
     db.row_factory = sqlite3.Row
     try:

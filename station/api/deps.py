@@ -59,7 +59,7 @@ RunId = Annotated[str, Path(pattern=RUN_ID_PATTERN, description="run id as retur
 
 async def get_run(run_id: RunId, manager: ManagerDep) -> RunRow:
     try:
-        return manager.get(run_id)
+        return await manager.get(run_id)
     except RunNotFoundError as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
 

@@ -28,7 +28,7 @@ from station import __version__
 from station.api.guard import BodyGuard
 from station.api.routes import campaign, proposal, runs, system
 from station.errors import StationError
-from station.service.errors import ResultNotStoredError
+from station.service.errors import DatabaseBusyError, ResultNotStoredError
 from station.service.manager import (
     EStopLatchedError,
     RigBusyError,
@@ -97,7 +97,7 @@ def validation_details(errors: Sequence[Any]) -> list[dict[str, Any]]:
 def install_error_handlers(app: FastAPI) -> None:
     statuses: list[tuple[type[Exception], int]] = [
         (RunNotFoundError, 404), (ResultNotStoredError, 404), (RunStateError, 409), (RigBusyError, 409),
-        (EStopLatchedError, 409), (RigUnavailableError, 503)]
+        (EStopLatchedError, 409), (RigUnavailableError, 503), (DatabaseBusyError, 503)]
     for cls, code in statuses:
         def handler(request: Request, exc: Exception, code: int = code) -> JSONResponse:
             return _error(code, exc)

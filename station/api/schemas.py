@@ -199,9 +199,27 @@ class DiscrepancyOut(BaseModel):
     notes: list[str] = []
 
 
+class DriveOut(_Out):
+    """The drive read back after a stop (the station's own stops and the emergency stop)."""
+
+    after: str = Field(description="which stop, e.g. 'the emergency stop'")
+    standstill: bool | None = Field(description="the drive reports standstill (false: still turning after the "
+                                    "time a healthy drive needs; null: it could not be read)")
+    speed_hz: float | None = Field(description="crank frequency the drive reported last, Hz")
+    fault_code: int | None
+    fault_name: str | None
+    waited_s: float = Field(description="how long the station read it back, s")
+    at: str = Field(description="when (ISO 8601, UTC)")
+    error: str | None
+    detail: str
+
+
 class StopOut(_Out):
     accepted: bool = True
-    motor_stopped: bool = Field(description="the motor controller took the emergency stop")
+    motor_stopped: bool = Field(description="the drive, read back after the command, reports standstill "
+                                "(false: still turning, not readable, or the command was not taken)")
+    stop_commanded: bool = Field(default=False, description="the motor controller took the emergency stop")
+    drive: DriveOut | None = Field(default=None, description="what the drive reported (null: no link)")
     aborted_runs: list[str]
     detail: str
 
@@ -227,7 +245,8 @@ class EStopState(_Out):
     latched: bool | None = Field(description="an emergency stop waits for an operator's acknowledgement "
                                  "(None: the database cannot be read)")
     since: str | None = None
-    source: str | None = Field(default=None, description="page, api or controller")
+    source: str | None = Field(default=None, description="page, api, controller or drive (the drive did not "
+                               "come to rest after a stop)")
     detail: str | None = None
     count: int = 0
     last_acknowledged: str | None = None
@@ -259,8 +278,10 @@ class RigHealth(_Out):
 
 
 class DatabaseHealth(_Out):
-    ok: bool
+    ok: bool = Field(description="the database answers and takes writes")
     journal_mode: str | None
+    pending_writes: int = Field(default=0, description="changes waiting for the database (retried until taken)")
+    error: str | None = Field(default=None, description="why the database does not answer or take writes")
 
 
 class WorkerHealth(_Out):
@@ -301,6 +322,7 @@ class HealthOut(_Out):
     status: Literal["ok", "degraded"]
     estop: EStopState
     disk: DiskHealth
+    drive: DriveOut | None = Field(default=None, description="the drive read back after the last stop")
     rig: RigHealth
     database: DatabaseHealth
     worker: WorkerHealth

@@ -55,8 +55,21 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
                     settings.host)
     log.info("recordings: %s; database: %s; %d identification worker(s)", settings.recordings_dir,
              settings.database, settings.workers)
+    from station.commands.connections import (
+        ConnectionBounds,
+        connection_cap,
+        install_repeat_filter,
+        raise_fd_limit,
+    )
+
+    install_repeat_filter()
+    svc = settings.config.service
+    fd_limit = raise_fd_limit()
+    bounds = ConnectionBounds(connection_cap(svc.max_connections, fd_limit), svc.header_timeout_s)
+    log.info("HTTP: at most %d connections (open-files limit %d), request heads within %g s",
+             bounds.max_connections, fd_limit, bounds.header_timeout_s)
     app = create_app(settings)
-    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_config=None,
+    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_config=None, http=bounds.protocol(),
                             access_log=args.access_log, timeout_graceful_shutdown=5, lifespan="on")
     server = StationServer(config, settings, on_listening=lambda host, port: lock.update(host=host, port=port))
     asyncio.run(server.serve())

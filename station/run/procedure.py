@@ -32,6 +32,7 @@ from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run
 from station.recording.writer import DiskFullError, is_disk_full
 from station.run.acquisition import Acquisition, AcquisitionError
 from station.run.request import Plan, PlannedStep
+from station.run.standstill import DriveCheck, read_back_standstill
 
 log = logging.getLogger(__name__)
 
@@ -166,6 +167,7 @@ class Procedure:
         self.acq: Acquisition | None = None
         self.reset_faults = reset_faults  # an operator acknowledged a latched controller fault
         self.motor_fault: tuple[int, str] | None = None  # a controller fault seen at the start or during the run
+        self.drive_check: DriveCheck | None = None  # the drive read back after the run's stop
         self._moving = False
         self._on_disk_full = on_disk_full  # frees reserved space (bytes) so the recording can be closed
 
@@ -281,6 +283,7 @@ class Procedure:
                 if path == writer.partial_path:
                     writer.abandon()
                     reason = "; ".join(filter(None, [reason, f"recording left partial: {exc}"]))
+            await self._verify_stopped(status)
             # a run that ended early is not "done": its progress stays at the steps it recorded
             self._report(state=status, message=reason, step_state="done" if status == "completed" else status)
         return RunOutcome(self.run_id, path, status, reason, lost)
@@ -383,6 +386,24 @@ class Procedure:
         if st.fault_code:
             self.motor_fault = (st.fault_code, st.fault_name)
             raise RunFailure(f"motor fault {st.fault_code} ({st.fault_name})")
+
+    async def _verify_stopped(self, status: str) -> None:
+        """Read the drive back until it reports standstill (``drive_check``); a crank still turning
+        gets the emergency stop as a last resort (the daemon latches it; the hardware stop is the
+        operator's)."""
+        if not self._moving:
+            return
+        motor = self.link.motor
+        ramp = min(self.plan.config.rig.acceleration_hz_per_s, motor.map.device.stop_deceleration_hz_per_s)
+        bound = motor.stop_time_bound_s(motor.map.device.max_frequency_hz, ramp) + 2.0
+        try:
+            self.drive_check = await asyncio.wait_for(
+                read_back_standstill(motor, f"the stop of run {self.run_id} ({status})", ramp), bound)
+        except TimeoutError:
+            log.error("run %s: the drive did not answer its read-back within %.1f s", self.run_id, bound)
+            return
+        if self.drive_check.standstill is False:
+            await self._quiet(motor.emergency_stop())
 
     async def _stop_motor(self, *, hard: bool) -> None:
         """Stop the crank before anything else: ramp down, or emergency stop on a failure."""

@@ -30,7 +30,7 @@ class Artifacts:
     """Recordings and their renderings; ``get_row`` looks a run up (live or stored)."""
 
     def __init__(self, recordings_dir: Path, render_pool: worker.WorkerPool,
-                 get_row: Callable[[str], RunRow]) -> None:
+                 get_row: Callable[[str], Awaitable[RunRow]]) -> None:
         self.recordings_dir = recordings_dir
         self.render_pool = render_pool
         self._get_row = get_row
@@ -64,12 +64,12 @@ class Artifacts:
                 del self._file_locks[run_id]
 
     async def read_file(self, run_id: str, fn: Callable[[Path], Any]) -> Any:
-        path = self.recording_path(self._get_row(run_id))
+        path = self.recording_path(await self._get_row(run_id))
         async with self.file_lock(run_id):
             return await asyncio.to_thread(fn, path)
 
     async def stream_file(self, run_id: str, chunk: int = 1 << 20) -> AsyncIterator[bytes]:
-        path = self.recording_path(self._get_row(run_id))
+        path = self.recording_path(await self._get_row(run_id))
         async with self.file_lock(run_id):
             f = await asyncio.to_thread(open, path, "rb")
             try:
@@ -96,8 +96,8 @@ class Artifacts:
         while len(self._cache) > CACHE_ENTRIES:
             self._cache.popitem(last=False)
 
-    def _completed_path(self, run_id: str) -> Path:
-        row = self._get_row(run_id)
+    async def _completed_path(self, run_id: str) -> Path:
+        row = await self._get_row(run_id)
         if row.state != "completed":
             raise RunStateError(f"run {run_id} is {row.state}: plots, report and analyses exist for "
                                 "completed runs only")
@@ -108,14 +108,14 @@ class Artifacts:
             return await self.render_pool.run(fn, *args)
 
     async def plot(self, run_id: str, name: str) -> bytes | None:
-        path = self._completed_path(run_id)
+        path = await self._completed_path(run_id)
         if name not in PLOT_NAMES:
             return None
         return await self._cached((run_id, f"plot:{name}"),
                                   lambda: self._locked_job(run_id, worker.plot_job, str(path), name))
 
     async def report(self, run_id: str) -> str:
-        path = self._completed_path(run_id)
+        path = await self._completed_path(run_id)
         return await self._cached((run_id, "report"),
                                   lambda: self._locked_job(run_id, worker.report_job, str(path)))
 
@@ -124,7 +124,7 @@ class Artifacts:
         every recording held against the daemon's other accesses meanwhile (locked in id order)."""
         paths = []
         for run_id in run_ids:
-            row = self._get_row(run_id)
+            row = await self._get_row(run_id)
             if row.state != "completed":
                 raise RunStateError(f"run {run_id} is {row.state}: only completed runs take part in a campaign")
             paths.append(str(self.recording_path(row)))
@@ -137,14 +137,14 @@ class Artifacts:
     async def discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
         """Compute the model-gap analysis in the render worker and store it beside the recording
         (behind an authenticated POST only)."""
-        path = self._completed_path(run_id)
+        path = await self._completed_path(run_id)
         out = await self._locked_job(run_id, worker.discrepancy_job, str(path), max_effects)
         self._cache.pop((run_id, "report"), None)  # the report names the effects found
         return out
 
     async def stored_discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
         """The stored model-gap analysis (read only); ResultNotStoredError names how to make it."""
-        path = self._completed_path(run_id)
+        path = await self._completed_path(run_id)
         out = await asyncio.to_thread(worker.stored_discrepancy, path, max_effects)
         if out is None:
             raise ResultNotStoredError(f"run {run_id}: no model-gap analysis with max_effects={max_effects} is "

@@ -42,3 +42,8 @@ class RequestLimitError(LimitError):
         super().__init__(message)
         self.loc = loc
         self.value = value
+
+
+class DatabaseBusyError(StationError):
+    """The database did not answer or take a change within its bound (locked by another process,
+    disk full); nothing was changed (503)."""

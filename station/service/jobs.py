@@ -4,14 +4,14 @@ hands them to the worker processes, retries a job whose worker died, and notes t
 An outcome the database refuses to take (its disk full, a lock held elsewhere) is not dropped: it
 is logged, kept in memory and shown in ``/health`` (``worker.unrecorded``), and written again every
 few seconds until the database takes it.  The job stays ``running`` in the database meanwhile, so a
-daemon stopped before then runs it again at its next start."""
+daemon stopped before then runs it again at its next start.  The database is reached through
+``db.py``, never from the event loop."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
 import logging
-import sqlite3
 import time
 from collections.abc import Callable
 from typing import Any
@@ -19,6 +19,8 @@ from typing import Any
 from station.service import worker
 from station.service.artifacts import Artifacts
 from station.service.changes import Changes
+from station.service.db import DbAccess
+from station.service.errors import DatabaseBusyError
 from station.service.store import Store
 
 log = logging.getLogger(__name__)
@@ -30,9 +32,9 @@ RECORD_RETRY_S = 5.0  # how often an outcome the database refused is written aga
 class JobQueue:
     """Runs identification jobs on ``pool`` (``workers`` at a time; 0: jobs wait in the queue)."""
 
-    def __init__(self, store: Store, pool: worker.WorkerPool, workers: int,
+    def __init__(self, db: DbAccess, pool: worker.WorkerPool, workers: int,
                  artifacts: Artifacts, changes: Changes, closing: asyncio.Event) -> None:
-        self.store = store
+        self.db = db
         self.pool = pool
         self.workers = workers
         self.artifacts = artifacts
@@ -66,7 +68,11 @@ class JobQueue:
                 await self.closing.wait()
                 return
             await slots.acquire()
-            job = self.store.claim_job()
+            try:
+                job = await self.db.call(lambda store: store.claim_job())
+            except DatabaseBusyError as exc:
+                log.warning("identification queue: %s", exc)
+                job = None
             if job is None:
                 slots.release()
                 self._wake.clear()
@@ -90,16 +96,19 @@ class JobQueue:
             log.exception("run %s: identification job %d ended unexpectedly", run_id, job_id)
 
     async def _run_job_once(self, job_id: int, run_id: str, attempts: int) -> None:
-        row = self.store.get_run(run_id)
+        try:
+            row = await self.db.read(lambda store: store.get_run(run_id), timeout_s=60.0)
+        except DatabaseBusyError as exc:
+            log.warning("run %s: identification put back in the queue: %s", run_id, exc)
+            why = str(exc)
+            await self._record(run_id, "put back in the queue", lambda store: store.finish_job(job_id, "queued", why))
+            return
         if row is None or not row.recording:
             await self._record(run_id, "the job has no run or recording",
-                               lambda: self.store.finish_job(job_id, "failed", "run or recording unknown"))
+                               lambda store: store.finish_job(job_id, "failed", "run or recording unknown"))
             return
         path = self.artifacts.recording_path(row)
-        try:
-            self._set_row(run_id, message=f"identifying (attempt {attempts})")
-        except sqlite3.Error as exc:  # only the progress message: the outcome below is what must be kept
-            log.warning("run %s: progress message not stored: %s", run_id, exc)
+        self._set_row(run_id, message=f"identifying (attempt {attempts})")  # written when the database can
         try:
             async with self.artifacts.file_lock(run_id):
                 out = await self.pool.run(worker.identify_job, str(path))
@@ -110,7 +119,7 @@ class JobQueue:
                 log.warning("run %s: identification attempt %d: %s; queued again", run_id, attempts, exc)
                 err = str(exc)
                 if await self._record(run_id, f"attempt {attempts} failed ({err}); to be queued again",
-                                      lambda: self.store.finish_job(job_id, "queued", err)):
+                                      lambda store: store.finish_job(job_id, "queued", err)):
                     await asyncio.sleep(1.0)
                     self._wake.set()
                 return
@@ -123,9 +132,9 @@ class JobQueue:
             return
         done = f"identified ({out['method']}, {out['model']}) in {out['wall_s']:.1f} s"
 
-        def note_done() -> None:
-            self.store.finish_job(job_id, "done")
-            self._set_row(run_id, state="completed", result_name=out["result_name"], ended=time.time(), message=done)
+        def note_done(store: Store) -> None:
+            store.finish_job(job_id, "done")
+            store.update_run(run_id, state="completed", result_name=out["result_name"], ended=time.time(), message=done)
         if await self._record(run_id, f"{done}, result {out['result_name']}", note_done):
             log.info("run %s identified (%s)", run_id, out["result_name"])
 
@@ -133,26 +142,26 @@ class JobQueue:
         log.error("run %s: identification failed: %s", run_id, error)
         msg = f"identification failed: {error}"
 
-        def note_failed() -> None:
-            self.store.finish_job(job_id, "failed", error)
-            self._set_row(run_id, state="failed", reason=msg, message=msg, ended=time.time())
+        def note_failed(store: Store) -> None:
+            store.finish_job(job_id, "failed", error)
+            store.update_run(run_id, state="failed", reason=msg, message=msg, ended=time.time())
         await self._record(run_id, msg, note_failed)
 
-    async def _record(self, run_id: str, outcome: str, write: Callable[[], None]) -> bool:
-        """``write`` the outcome of a job into the database; while the database refuses it, keep it
-        (log, ``unrecorded``, /health) and try again every RECORD_RETRY_S.  False when the daemon shut
-        down first (the job is still ``running`` in the database: it runs again at the next start)."""
+    async def _record(self, run_id: str, outcome: str, write: Callable[[Store], None]) -> bool:
+        """``write(store)`` the outcome of a job into the database (in the database's writer thread);
+        while the database does not take it, keep it (log, ``unrecorded``, /health) and try
+        again every RECORD_RETRY_S.  False when the daemon shut down first (the job is still
+        ``running`` in the database: it runs again at the next start)."""
         since = time.monotonic()
         while True:
             try:
-                write()
-            except sqlite3.Error as exc:
+                await self.db.call(write, timeout_s=RECORD_RETRY_S)
+            except DatabaseBusyError as exc:
+                why = self.db.last_error or str(exc)
                 if run_id not in self.unrecorded:
                     log.error("run %s: %s; the database cannot record it (%s): kept, and written again every "
-                              "%.0f s", run_id, outcome, exc, RECORD_RETRY_S)
-                self.unrecorded[run_id] = f"{outcome}; not recorded yet: {exc}"
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self.closing.wait(), RECORD_RETRY_S)
+                              "%.0f s", run_id, outcome, why, RECORD_RETRY_S)
+                self.unrecorded[run_id] = f"{outcome}; not recorded yet: {why}"
                 if self.closing.is_set():
                     log.error("run %s: shut down before the database took the outcome (%s); the job runs again "
                               "at the next start", run_id, outcome)
@@ -160,8 +169,9 @@ class JobQueue:
                 continue
             if self.unrecorded.pop(run_id, None) is not None:
                 log.info("run %s: outcome recorded after %.0f s: %s", run_id, time.monotonic() - since, outcome)
+            self.changes.changed(run_id)
             return True
 
     def _set_row(self, run_id: str, **values: Any) -> None:
-        self.store.update_run(run_id, **values)
+        self.db.update_run(run_id, values)
         self.changes.changed(run_id)

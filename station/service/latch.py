@@ -1,17 +1,21 @@
-"""The emergency-stop latch: after ``POST /stop``, the page's button or the motor controller's
-emergency-stop fault no run starts until an operator acknowledges it.  Both the stop and the
-acknowledgement (who, when, a note) are rows in the database and lines in the log, so the latch
-survives a restart of the daemon."""
+"""The emergency-stop latch: after ``POST /stop``, the page's button, the motor controller's
+emergency-stop fault or a drive that did not come to rest, no run starts until an operator
+acknowledges it.  Both the stop and the acknowledgement (who, when, a note) are rows in the database
+and lines in the log, so the latch survives a restart of the daemon.
+
+The latch itself is in memory (loaded from the database at the start): tripping it never waits on
+the database, whose record follows through the retrying writer (``db.py``) when it can.  An
+acknowledgement is refused while the database cannot record it."""
 
 from __future__ import annotations
 
 import logging
-import sqlite3
 import time
 from datetime import UTC, datetime
 from typing import Any
 
-from station.service.store import EStopRow, Store
+from station.service.db import DbAccess
+from station.service.store import EStopRow
 
 log = logging.getLogger(__name__)
 
@@ -21,47 +25,39 @@ def _iso(ts: float | None) -> str | None:
 
 
 class EStopLatch:
-    """Latched state in the database; a stop the database cannot take (full disk) is held in memory
-    (still latched) and written at the next occasion."""
+    """Open emergency stops (oldest first) and the last acknowledgement, in memory."""
 
-    def __init__(self, store: Store) -> None:
-        self.store = store
-        self._unsaved: list[tuple[float, str, str]] = []
+    def __init__(self, db: DbAccess) -> None:
+        self.db = db
+        self._open: list[EStopRow] = []
+        self._last_ack: tuple[float, str] | None = None  # (when, by)
 
-    def _flush(self) -> None:
-        while self._unsaved:
-            raised, source, detail = self._unsaved[0]
-            try:
-                self.store.raise_estop(source, detail, raised)
-            except sqlite3.Error:
-                return
-            self._unsaved.pop(0)
-
-    def _open(self) -> list[EStopRow]:
-        self._flush()
-        rows = self.store.open_estops()
-        return rows + [EStopRow(0, r, s, d, None, None, "") for r, s, d in self._unsaved]
+    def load(self) -> None:
+        """At the start, before anything is served: the stops left open by the previous daemon."""
+        self._open = self.db.store.open_estops()
+        last = self.db.store.last_estop()
+        if last is not None and last.acknowledged is not None:
+            self._last_ack = (last.acknowledged, last.acknowledged_by or "")
 
     @property
     def latched(self) -> bool:
-        return bool(self._open())
+        return bool(self._open)
 
-    def trip(self, source: str, detail: str) -> EStopRow | None:
+    def trip(self, source: str, detail: str) -> None:
+        """Latch now; the database's record follows (retried until it is taken)."""
         log.warning("emergency stop latched (source %s): %s", source, detail)
-        try:
-            self._flush()
-            return self.store.raise_estop(source, detail)
-        except sqlite3.Error as exc:
-            log.error("the database did not take the emergency stop (%s); latched in memory", exc)
-            self._unsaved.append((time.time(), source, detail))
-            return None
+        raised = time.time()
+        self._open.append(EStopRow(0, raised, source, detail, None, None, ""))
+        self.db.post(lambda store: store.raise_estop(source, detail, raised))
 
-    def acknowledge(self, by: str, note: str = "") -> list[EStopRow]:
-        self._flush()
-        if self._unsaved:
-            raise sqlite3.OperationalError("the database cannot record the acknowledgement now (disk full?)")
-        rows = self.store.acknowledge_estops(by, note)
+    async def acknowledge(self, by: str, note: str = "") -> list[EStopRow]:
+        """Record the acknowledgement (DatabaseBusyError if the database cannot take it now: the
+        latch stays) and release the stops it covers."""
+        covered = list(self._open)
+        rows = await self.db.call(lambda store: store.acknowledge_estops(by, note))
+        self._open = [r for r in self._open if r not in covered]
         if rows:
+            self._last_ack = (rows[-1].acknowledged or time.time(), by)
             log.warning("emergency stop acknowledged by %s (%d stop(s) since %s)%s", by, len(rows),
                         _iso(rows[0].raised), f": {note}" if note else "")
         else:
@@ -70,21 +66,19 @@ class EStopLatch:
 
     def refusal(self) -> str | None:
         """Why a run may not start now (None: it may)."""
-        rows = self._open()
-        if not rows:
+        if not self._open:
             return None
-        first = rows[0]
+        first = self._open[0]
         return (f"emergency stop latched since {_iso(first.raised)} ({first.source}: {first.detail}); an operator "
                 "must acknowledge it first (POST /stop/acknowledge, the page's acknowledge button or `station ack`)")
 
     def state(self) -> dict[str, Any]:
         """For /health and the page."""
-        rows = self._open()
-        last = self.store.last_estop()
+        rows = self._open
         out: dict[str, Any] = {"latched": bool(rows), "since": None, "source": None, "detail": None,
                                "count": len(rows), "last_acknowledged": None, "last_acknowledged_by": None}
         if rows:
             out.update(since=_iso(rows[0].raised), source=rows[-1].source, detail=rows[-1].detail)
-        if last is not None and last.acknowledged is not None:
-            out.update(last_acknowledged=_iso(last.acknowledged), last_acknowledged_by=last.acknowledged_by)
+        if self._last_ack is not None:
+            out.update(last_acknowledged=_iso(self._last_ack[0]), last_acknowledged_by=self._last_ack[1])
         return out

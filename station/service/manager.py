@@ -24,6 +24,7 @@ from station.run.rig import ConnectedRig
 from station.service import worker
 from station.service.artifacts import Artifacts
 from station.service.changes import Changes
+from station.service.db import DbAccess
 from station.service.disk import RecordingsDisk
 from station.service.errors import (
     EStopLatchedError,
@@ -33,7 +34,7 @@ from station.service.errors import (
     RunNotFoundError,
     RunStateError,
 )
-from station.service.health import health
+from station.service.health import database_state, health
 from station.service.instance import InstanceLock
 from station.service.jobs import MAX_JOB_ATTEMPTS, JobQueue
 from station.service.latch import EStopLatch
@@ -75,17 +76,18 @@ class RunManager:
         except BaseException:
             self.instance.release()
             raise
+        self.db = DbAccess(self.store)
         self.closing = asyncio.Event()
         self.changes = Changes(self.closing)
         self.link = RigLink(self.cfg, settings.sim, connector)
         self.identify_pool = worker.WorkerPool("identification", settings.workers)
         self.render_pool = worker.WorkerPool("render", 1)
-        self.latch = EStopLatch(self.store)
+        self.latch = EStopLatch(self.db)
         self.disk = RecordingsDisk(settings.recordings_dir, int(self.cfg.station.min_free_mb * 2**20))
-        self.runs = Runs(settings, self.store, self.link, self.changes, self.closing, self._on_acquired, self.latch,
+        self.runs = Runs(settings, self.db, self.link, self.changes, self.closing, self._on_acquired, self.latch,
                          self.disk)
         self.artifacts = Artifacts(settings.recordings_dir, self.render_pool, self.get)
-        self.jobs = JobQueue(self.store, self.identify_pool, settings.workers,
+        self.jobs = JobQueue(self.db, self.identify_pool, settings.workers,
                              self.artifacts, self.changes, self.closing)
         self._warm: asyncio.Task[None] | None = None
         self.started_at = time.time()
@@ -96,7 +98,9 @@ class RunManager:
         self.runs.loop_thread = threading.get_ident()
         self.runs.web_loop = asyncio.get_running_loop()
         self.folder_check = await asyncio.to_thread(check_folder, self.settings.recordings_dir)
-        self.recover()
+        self.recover()  # before anything is served: nothing else waits on the loop yet
+        self.latch.load()
+        self.db.start()
         await asyncio.to_thread(self.disk.ensure_reserve)
         await self.link.connect()
         self.jobs.start()
@@ -127,6 +131,7 @@ class RunManager:
         await asyncio.to_thread(self.render_pool.shutdown, 30.0)  # it may be writing a discrepancy result
         self.jobs.cancel_jobs()
         await self.link.close()
+        await asyncio.to_thread(self.db.close, 5.0)
         self.store.close()
         self.instance.release()
 
@@ -165,8 +170,8 @@ class RunManager:
     async def submit(self, request: RunRequest) -> RunRow:
         return await self.runs.submit(request)
 
-    def abort(self, run_id: str, reason: str = "aborted by operator") -> RunRow:
-        return self.runs.abort(run_id, reason)
+    async def abort(self, run_id: str, reason: str = "aborted by operator") -> RunRow:
+        return await self.runs.abort(run_id, reason)
 
     async def emergency_stop(self, source: str = "api") -> StopReport:
         return await self.runs.emergency_stop(source)
@@ -174,11 +179,11 @@ class RunManager:
     async def acknowledge(self, by: str, note: str = "") -> AckReport:
         return await self.runs.acknowledge(by, note)
 
-    def get(self, run_id: str) -> RunRow:
-        return self.runs.get(run_id)
+    async def get(self, run_id: str) -> RunRow:
+        return await self.runs.get(run_id)
 
-    def list_runs(self, *, limit: int = 100, states: list[str] | None = None) -> list[RunRow]:
-        return self.runs.list_runs(limit=limit, states=states)
+    async def list_runs(self, *, limit: int = 100, states: list[str] | None = None) -> list[RunRow]:
+        return await self.runs.list_runs(limit=limit, states=states)
 
     def version(self, run_id: str) -> int:
         return self.changes.version(run_id)
@@ -212,11 +217,11 @@ class RunManager:
         return await self.artifacts.stored_discrepancy(run_id, max_effects)
 
     # ------------------------------------------------------------------ health
-    def health(self) -> dict[str, Any]:
+    async def health(self) -> dict[str, Any]:
         act = self.active()
-        self.runs.flush_unsaved()
-        out = health(self.link, self.store, self.identify_pool, self.latch, self.disk, workers=self.settings.workers,
-                     sim=self.settings.sim, active_run=act.row.id if act else None, started_at=self.started_at,
+        out = health(self.link, await database_state(self.db), self.identify_pool, self.latch, self.disk,
+                     workers=self.settings.workers, sim=self.settings.sim,
+                     active_run=act.row.id if act else None, started_at=self.started_at,
                      unrecorded=self.jobs.unrecorded)
         out["recordings"] = self.folder_check.to_dict()  # what the start-up check repaired or could not read
         return out

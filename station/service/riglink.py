@@ -9,10 +9,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections.abc import Callable
 
 from station.config import StationConfig
 from station.run.rig import ConnectedRig, connect
+from station.run.standstill import DriveCheck, read_back_standstill
 from station.service.errors import RigUnavailableError
 from station.service.rigthread import RigThread
 
@@ -40,6 +42,7 @@ class RigLink:
         self.error: str | None = None
         self._stack: contextlib.AsyncExitStack | None = None
         self._lock: asyncio.Lock | None = None  # created on the rig loop
+        self.drive: DriveCheck | None = None  # the last read-back after a stop
 
     def _rig_lock(self) -> asyncio.Lock:
         if self._lock is None:
@@ -100,7 +103,10 @@ class RigLink:
         return rig
 
     async def emergency_stop(self) -> tuple[bool, str]:
-        """Command the controller's emergency stop; (taken, what to tell the operator)."""
+        """Command the controller's emergency stop; (taken, what to tell the operator).  The command
+        is handed straight to the rig thread's loop (nothing else on the way); it answers as soon as
+        the controller took it (see :meth:`verify_standstill` for the crank)."""
+
         rig = self.rig
         if rig is None:
             return False, ("no link to the motor controller; if the crank turns, its watchdog stops it when "
@@ -111,6 +117,23 @@ class RigLink:
         except Exception as exc:
             return False, (f"the motor controller did not take the emergency stop ({type(exc).__name__}: {exc}); "
                            "use the hardware emergency stop")
+
+    async def verify_standstill(self, after: str, ramp_hz_per_s: float | None = None) -> DriveCheck | None:
+        """Read the drive back until it reports standstill (bounded, see ``read_back_standstill``;
+        ``ramp_hz_per_s``: the deceleration of the stop given, default the emergency stop's); kept
+        in ``drive`` for /health.  None without a link."""
+        rig = self.rig
+        if rig is None:
+            return None
+        motor = rig.motor
+        bound = motor.stop_time_bound_s(motor.map.device.max_frequency_hz, ramp_hz_per_s) + 2.0
+        try:
+            check = await self.thread.call(asyncio.wait_for(read_back_standstill(motor, after, ramp_hz_per_s),
+                                                            bound))
+        except Exception as exc:
+            check = DriveCheck(after, None, None, None, None, bound, time.time(), f"{type(exc).__name__}: {exc}")
+        self.drive = check
+        return check
 
     async def motor_fault(self) -> tuple[int, str] | None:
         """The controller's latched fault (code, name), read without clearing it; None when there is
@@ -133,18 +156,16 @@ class RigLink:
             return True, "no link to the motor controller: its faults are checked at the next connect"
 
         async def go() -> tuple[bool, str]:
-            st = await rig.motor.read_status()
+            # only at standstill, fault or none: the crank may still coast down (the flag: below 0.01 Hz too)
+            st = await rig.motor.settle_to_standstill(STANDSTILL_WAIT_S)
+            self.drive = DriveCheck.of("the acknowledgement", st, 0.0)
+            before = f"{st.fault_code} ({st.fault_name})"
+            if not st.standstill:
+                return False, (f"the crank still turns at {st.actual_speed_hz:g} Hz"
+                               + (f"; fault {before} can be reset at standstill only" if st.fault_code else
+                                  "; an acknowledgement needs the crank at rest"))
             if not st.fault_code:
                 return True, "the motor controller reports no fault"
-            before = f"{st.fault_code} ({st.fault_name})"
-            clock = rig.clock  # the rig's time: the crank coasts down on it
-            deadline = clock.monotonic() + STANDSTILL_WAIT_S  # the crank may still coast down
-            while st.actual_speed_hz != 0.0 or st.flags.get("running", False):  # the flag: below 0.01 Hz too
-                if clock.monotonic() > deadline:
-                    return False, (f"the crank still turns at {st.actual_speed_hz:g} Hz; fault {before} can be "
-                                   "reset at standstill only")
-                await clock.asleep(0.05)
-                st = await rig.motor.read_status()
             try:
                 await rig.motor.reset_faults()
             except Exception as exc:
@@ -160,10 +181,16 @@ class RigLink:
             return False, f"the motor controller cannot be reached ({type(exc).__name__}: {exc})"
 
     async def stop_motor(self) -> None:
-        """Ramp the crank down (shutdown path; errors ignored)."""
-        if self.rig is not None and self.thread.running:
+        """Ramp the crank down and read it back (shutdown path; errors ignored, a crank still
+        turning logged)."""
+        rig = self.rig
+        if rig is not None and self.thread.running:
             with contextlib.suppress(Exception):
-                await self.thread.call(asyncio.wait_for(self.rig.motor.stop(), 3.0))
+                await self.thread.call(asyncio.wait_for(rig.motor.stop(), 3.0))
+            check = await self.verify_standstill("the shutdown's stop", self.cfg.rig.acceleration_hz_per_s)
+            if check is not None and check.standstill is False:
+                with contextlib.suppress(Exception):
+                    await self.thread.call(asyncio.wait_for(rig.motor.emergency_stop(), 2.0))
 
     async def close(self) -> None:
         """Disconnect and end the rig thread."""

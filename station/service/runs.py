@@ -14,7 +14,6 @@ import dataclasses
 import json
 import logging
 import math
-import sqlite3
 import threading
 import time
 from collections.abc import Callable
@@ -28,6 +27,7 @@ from station.run.procedure import Procedure, Progress, RunOutcome
 from station.run.request import Plan, RunRequest, plan_run
 from station.run.rig import ConnectedRig
 from station.service.changes import Changes
+from station.service.db import DbAccess
 from station.service.disk import RecordingsDisk
 from station.service.errors import (
     EStopLatchedError,
@@ -38,9 +38,9 @@ from station.service.errors import (
     RunStateError,
 )
 from station.service.latch import EStopLatch
-from station.service.riglink import RigLink
+from station.service.riglink import DriveCheck, RigLink
 from station.service.settings import ServiceSettings
-from station.service.store import RunRow, Store
+from station.service.store import RunRow
 
 log = logging.getLogger(__name__)
 
@@ -83,9 +83,14 @@ class LiveRun:
 
 @dataclass
 class StopReport:
+    """``motor_stopped``: the drive, read back after the command, reports standstill; ``commanded``:
+    the controller took the emergency stop; ``drive``: its last state read (None: not readable)."""
+
     motor_stopped: bool
     aborted_runs: list[str]
     detail: str
+    commanded: bool = False
+    drive: DriveCheck | None = None
 
 
 @dataclass
@@ -99,15 +104,14 @@ class Runs:
     """The run on the rig (``live``: at most one) and the stored ones; ``on_acquired(run_id)`` is
     called when a run's acquisition completed and its identification was queued."""
 
-    def __init__(self, settings: ServiceSettings, store: Store, link: RigLink, changes: Changes,
+    def __init__(self, settings: ServiceSettings, db: DbAccess, link: RigLink, changes: Changes,
                  closing: asyncio.Event, on_acquired: Callable[[str], None], latch: EStopLatch,
                  disk: RecordingsDisk) -> None:
         self.settings = settings
         self.latch = latch
         self.disk = disk
-        self._unsaved: dict[str, dict[str, Any]] = {}  # run changes the database did not take (full disk)
         self.cfg = settings.config
-        self.store = store
+        self.db = db
         self.link = link
         self.changes = changes
         self.closing = closing
@@ -137,7 +141,6 @@ class Runs:
         if cur is not None:
             raise RigBusyError(cur.row.id, cur.row.state)
         self._refuse_if_latched()
-        self.flush_unsaved()
         self.disk.check_for_run()
         await self.link.for_run()
         fault = await self.link.motor_fault()  # read, never cleared here
@@ -152,9 +155,16 @@ class Runs:
                      top_mass_kg=request.top_mass_kg, request_json=request.model_dump_json(),
                      plan_json=json.dumps(plan.to_dict()), created=time.time(), n_steps=len(plan.steps),
                      message="waiting for the rig")
-        self.store.insert_run(row)
         live = LiveRun(row, plan)
-        self.live[run_id] = live
+        self.live[run_id] = live  # holds the rig while the database takes the row
+        try:
+            await self.db.call(lambda store: store.insert_run(row))  # DatabaseBusyError: not queued (503)
+        except BaseException:
+            self.live.pop(run_id, None)
+            raise
+        if live.abort_reason:  # an emergency stop came meanwhile
+            self._finish(live, "aborted", live.abort_reason)
+            return live.row
         live.task = asyncio.create_task(self._execute(live), name=f"run-{run_id}")
         self.changes.changed(run_id)
         log.info("run %s queued: %d steps", run_id, len(plan.steps))
@@ -187,7 +197,7 @@ class Runs:
         if outcome.exit_status == "completed":
             self._update(live, recording=name, lost_samples=outcome.lost_samples, state="identifying",
                          fraction=1.0, message="acquisition completed; identification queued")
-            self.store.enqueue_job(run_id)
+            self.db.post(lambda store: store.enqueue_job(run_id))
             self._on_acquired(run_id)
             self.live.pop(run_id, None)
             self.changes.changed(run_id)
@@ -204,6 +214,13 @@ class Runs:
                 self.latch.trip("controller", f"motor controller fault {fault[0]} ({fault[1]}) in run {run_id}")
             self._update(live, recording=name, lost_samples=outcome.lost_samples)
             self._finish(live, state, reason)
+        self._check_drive(live)
+
+    def _check_drive(self, live: LiveRun) -> None:
+        """The procedure read the drive back after its stop: a crank still turning latches."""
+        check = live.proc.drive_check if live.proc is not None else None
+        if check is not None and check.standstill is False:
+            self.latch.trip("drive", f"{check.describe()} (run {live.row.id}); use the hardware emergency stop")
 
     async def _carry_out(self, live: LiveRun) -> RunOutcome:
         """On the rig loop: connect if needed, then the procedure."""
@@ -221,7 +238,11 @@ class Runs:
         if live.abort_reason:
             proc.abort(live.abort_reason)
         self._post(self._update, live, {"state": "running", "started": time.time(), "message": "starting"})
-        return await proc.execute()
+        try:
+            return await proc.execute()
+        finally:
+            if proc.drive_check is not None:
+                self.link.drive = proc.drive_check
 
     def _finish(self, live: LiveRun, state: str, reason: str) -> None:
         try:
@@ -266,22 +287,13 @@ class Runs:
         self.changes.changed(live.row.id)
 
     def _save(self, run_id: str, values: dict[str, Any]) -> None:
-        """Into the database; a change it cannot take now (disk full) is kept and written later."""
-        pending = {**self._unsaved.pop(run_id, {}), **values}
-        try:
-            self.store.update_run(run_id, **pending)
-        except sqlite3.Error as exc:
-            log.error("run %s: the database did not take %s: %s; kept to write later", run_id, sorted(pending), exc)
-            self._unsaved[run_id] = pending
+        """To the database's writer: written when the database takes it (locked, disk full: later)."""
+        self.db.update_run(run_id, values)
 
-    def flush_unsaved(self) -> None:
-        for run_id in list(self._unsaved):
-            self._save(run_id, {})
-
-    def abort(self, run_id: str, reason: str = "aborted by operator") -> RunRow:
+    async def abort(self, run_id: str, reason: str = "aborted by operator") -> RunRow:
         live = self.live.get(run_id)
         if live is None:
-            row = self.get(run_id)
+            row = await self.get(run_id)
             raise RunStateError(f"run {run_id} is {row.state}: only a queued or running run can be aborted")
         self._abort(live, reason)
         self._update(live, message=f"aborting: {live.abort_reason}")
@@ -296,8 +308,12 @@ class Runs:
             self.link.thread.call_soon(proc.abort, live.abort_reason)
 
     async def emergency_stop(self, source: str = "api") -> StopReport:
-        """Abort every run on the rig, command an emergency stop on the motor right away, and latch:
-        no run starts until an operator acknowledges it."""
+        """Abort every run on the rig, command an emergency stop on the motor right away, latch (no
+        run starts until an operator acknowledges it), then read the drive back until it reports
+        standstill: a crank still turning after its bound latches a fault of its own (``drive``).
+
+        Nothing here waits on the database: the command goes to the rig thread, the latch is in
+        memory and its record is handed to the database's writer."""
         aborted = []
         for live in list(self.live.values()):
             self._abort(live, "emergency stop")
@@ -305,7 +321,12 @@ class Runs:
         ok, detail = await self.link.emergency_stop()
         log.warning("EMERGENCY STOP (%s): %s (aborted runs: %s)", source, detail, aborted or "none")
         self.latch.trip(source, detail + (f"; aborted runs: {', '.join(aborted)}" if aborted else ""))
-        return StopReport(ok, aborted, detail)
+        check = await self.link.verify_standstill("the emergency stop") if ok else None
+        if check is not None and check.standstill is False:
+            self.latch.trip("drive", f"{check.describe()}; use the hardware emergency stop")
+        if check is not None:
+            detail = f"{detail}; {check.describe()}"
+        return StopReport(bool(check is not None and check.standstill), aborted, detail, ok, check)
 
     async def acknowledge(self, by: str, note: str = "") -> AckReport:
         """An operator acknowledges the emergency stop: the controller's latched fault is reset (and
@@ -313,7 +334,7 @@ class Runs:
         ok, detail = await self.link.reset_faults()
         if not ok:
             raise EStopLatchedError(f"not acknowledged: {detail}")
-        rows = self.latch.acknowledge(by, note)
+        rows = await self.latch.acknowledge(by, note)
         return AckReport([r.id for r in rows], by, detail)
 
     def cancel_all(self, reason: str) -> list[asyncio.Task[None]]:
@@ -332,15 +353,23 @@ class Runs:
         if live.rig_task is not None and not live.rig_task.done():
             live.rig_task.cancel()
 
-    def get(self, run_id: str) -> RunRow:
+    def _overlaid(self, row: RunRow) -> RunRow:
+        """A row read back with the run's changes the database has not taken yet."""
+        live = self.live.get(row.id)
+        if live is not None:
+            return live.row
+        pending = self.db.overlay(row.id)
+        return dataclasses.replace(row, **pending) if pending else row
+
+    async def get(self, run_id: str) -> RunRow:
         live = self.live.get(run_id)
         if live is not None:
             return live.row
-        row = self.store.get_run(run_id)
+        row = await self.db.read(lambda store: store.get_run(run_id))
         if row is None:
             raise RunNotFoundError(f"no run {run_id!r}")
-        return row
+        return self._overlaid(row)
 
-    def list_runs(self, *, limit: int = 100, states: list[str] | None = None) -> list[RunRow]:
-        rows = self.store.list_runs(limit=limit, states=states)
-        return [self.live[r.id].row if r.id in self.live else r for r in rows]
+    async def list_runs(self, *, limit: int = 100, states: list[str] | None = None) -> list[RunRow]:
+        rows = await self.db.read(lambda store: store.list_runs(limit=limit, states=states))
+        return [self._overlaid(r) for r in rows]

@@ -1,9 +1,10 @@
 """Runs and identification jobs in SQLite (WAL): what survives a restart of the daemon.
 
-One connection, shared by the event loop and worker threads behind a lock; every statement is
-short (a row or a page of rows), so holding the lock never stalls the loop noticeably.  Writes
-are autocommitted; WAL with ``synchronous=NORMAL`` keeps a committed state change through a kill
-of the process (a power cut may lose the last few, never corrupt the file).  (Just over 300 lines:
+Two connections, each behind its own lock: one for writes, one for reads (WAL lets the reads go on
+while a writer, this process's or another's, holds the write lock).  The daemon calls them from
+threads, never from its event loop (``db.py``).  Writes are autocommitted; WAL with
+``synchronous=NORMAL`` keeps a committed state change through a kill of the process (a power cut
+may lose the last few, never corrupt the file).  (Just over 300 lines:
 the schema and every statement on it in one place, so that the lock discipline is seen at once.)
 """
 
@@ -18,6 +19,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Literal, get_args
 
+READ_BUSY_TIMEOUT_S = 2.0  # the read connection's wait for a lock (an exclusive one of another process)
 SCHEMA_VERSION = 2  # 2: the emergency-stop latch (estops)
 
 RunState = Literal["queued", "running", "identifying", "completed", "aborted", "failed", "interrupted"]
@@ -160,19 +162,26 @@ class Store:
         with self._lock:
             self._db.executescript(_SCHEMA)
             self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+        self._rlock = threading.Lock()
+        self._rdb = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None,
+                                    timeout=READ_BUSY_TIMEOUT_S)
+        self._rdb.row_factory = sqlite3.Row
+        self._rdb.execute("PRAGMA query_only=ON")
 
     def close(self) -> None:
+        with self._rlock:
+            self._rdb.close()
         with self._lock:
             self._db.close()
 
     def journal_mode(self) -> str:
-        with self._lock:
-            return str(self._db.execute("PRAGMA journal_mode").fetchone()[0])
+        with self._rlock:
+            return str(self._rdb.execute("PRAGMA journal_mode").fetchone()[0])
 
     def ping(self) -> bool:
         try:
-            with self._lock:
-                self._db.execute("SELECT 1").fetchone()
+            with self._rlock:
+                self._rdb.execute("SELECT count(*) FROM runs").fetchone()
             return True
         except sqlite3.Error:
             return False
@@ -196,8 +205,8 @@ class Store:
             self._db.execute(f"UPDATE runs SET {sets} WHERE id = ?", (*values.values(), run_id))
 
     def get_run(self, run_id: str) -> RunRow | None:
-        with self._lock:
-            row = self._db.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchone()
+        with self._rlock:
+            row = self._rdb.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchone()
         return None if row is None else RunRow(**dict(row))
 
     def list_runs(self, *, limit: int = 100, states: Iterable[str] | None = None) -> list[RunRow]:
@@ -208,8 +217,8 @@ class Store:
             args.extend(st)
         q += " ORDER BY created DESC, id DESC LIMIT ?"
         args.append(int(limit))
-        with self._lock:
-            rows = self._db.execute(q, args).fetchall()
+        with self._rlock:
+            rows = self._rdb.execute(q, args).fetchall()
         return [RunRow(**dict(r)) for r in rows]
 
     # ------------------------------------------------------------------ jobs
@@ -258,12 +267,12 @@ class Store:
         if where:
             q += " WHERE " + " AND ".join(where)
         q += " ORDER BY id"
-        with self._lock:
-            return [JobRow(**dict(r)) for r in self._db.execute(q, args).fetchall()]
+        with self._rlock:
+            return [JobRow(**dict(r)) for r in self._rdb.execute(q, args).fetchall()]
 
     def job_counts(self) -> dict[str, int]:
-        with self._lock:
-            rows = self._db.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state").fetchall()
+        with self._rlock:
+            rows = self._rdb.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state").fetchall()
         out = dict.fromkeys(JOB_STATES, 0)
         out.update({r[0]: int(r[1]) for r in rows})
         return out
@@ -291,8 +300,8 @@ class Store:
 
     def open_estops(self) -> list[EStopRow]:
         """Emergency stops not yet acknowledged, oldest first."""
-        with self._lock:
-            rows = self._db.execute("SELECT * FROM estops WHERE acknowledged IS NULL ORDER BY id").fetchall()
+        with self._rlock:
+            rows = self._rdb.execute("SELECT * FROM estops WHERE acknowledged IS NULL ORDER BY id").fetchall()
         return [EStopRow(**dict(r)) for r in rows]
 
     def acknowledge_estops(self, by: str, note: str = "") -> list[EStopRow]:
@@ -305,6 +314,6 @@ class Store:
         return [EStopRow(**dict(r)) for r in rows]
 
     def last_estop(self) -> EStopRow | None:
-        with self._lock:
-            row = self._db.execute("SELECT * FROM estops ORDER BY id DESC LIMIT 1").fetchone()
+        with self._rlock:
+            row = self._rdb.execute("SELECT * FROM estops ORDER BY id DESC LIMIT 1").fetchone()
         return None if row is None else EStopRow(**dict(row))

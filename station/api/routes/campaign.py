@@ -47,6 +47,7 @@ async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep) ->
     stored = None
     if body.store:
         for run_id in body.runs:
-            await asyncio.to_thread(write_result, manager.recording_path(manager.get(run_id)), RESULT_NAME, payload)
+            path = manager.recording_path(await manager.get(run_id))
+            await asyncio.to_thread(write_result, path, RESULT_NAME, payload)
         stored = f"<run>.results/results.{RESULT_NAME}.h5"
     return CampaignOut.model_validate({**data, "runs": list(body.runs), "stored_as": stored})

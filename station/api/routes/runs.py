@@ -90,7 +90,7 @@ async def start_run(body: RunRequest, manager: ManagerDep, response: Response) -
             summary="List runs, newest first")
 async def list_runs(manager: ManagerDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
                     state: Annotated[list[RunState] | None, Query()] = None) -> RunList:
-    rows = manager.list_runs(limit=limit, states=list(state) if state else None)
+    rows = await manager.list_runs(limit=limit, states=list(state) if state else None)
     return RunList(count=len(rows), runs=[status_of(r) for r in rows])
 
 
@@ -110,7 +110,7 @@ async def run_events(run: RunDep, manager: ManagerDep, request: Request) -> Asyn
     last: dict[str, Any] | None = None
     while True:
         cur = manager.version(run_id)
-        st = status_of(manager.get(run_id))
+        st = status_of(await manager.get(run_id))
         data = st.model_dump(mode="json")
         if data != last:
             last = data
@@ -202,5 +202,5 @@ async def compute_discrepancy(run: RunDep, manager: ManagerDep, max_effects: Max
              dependencies=[Writer], responses={**E401, **E404, **E409, **E422}, summary="Abort a run")
 async def abort_run(run: RunDep, manager: ManagerDep) -> AbortOut:
     """The crank ramps down, the recording is closed with the reason; the run ends `aborted`."""
-    row = manager.abort(run.id, "aborted by operator")
+    row = await manager.abort(run.id, "aborted by operator")
     return AbortOut(id=row.id, state=row.state, detail="abort requested; the crank ramps down")

@@ -11,6 +11,7 @@ from station.api.deps import ManagerDep, Reader, SettingsDep, Writer
 from station.api.schemas import (
     AcknowledgeIn,
     AcknowledgeOut,
+    DriveOut,
     ErrorOut,
     HealthOut,
     LimitsOut,
@@ -48,12 +49,17 @@ SameSite = Depends(not_cross_site)
 async def emergency_stop(manager: ManagerDep, request: Request) -> StopOut:
     """Aborts every run on the rig and commands an emergency stop on the motor controller at once.
     Accepted with or without a token or a run: stopping is never unsafe (only a request another web
-    site's page makes the browser send is refused).  `motor_stopped` says whether the controller
-    took the command.  The stop latches: no run starts until an operator acknowledges it
-    (`POST /stop/acknowledge`)."""
+    site's page makes the browser send is refused).  Nothing on the way waits for the database.
+    The answer comes once the drive, read back, reports standstill (at most the time a healthy drive
+    needs to stop): `motor_stopped` is what the drive reports, `stop_commanded` whether the
+    controller took the command, `drive` its last state.  The stop latches: no run starts until an
+    operator acknowledges it (`POST /stop/acknowledge`); a drive still turning latches too (source
+    `drive`) and shows in `/health`."""
     source = "page" if request.headers.get("x-station-client") == "page" else "api"
     rep = await manager.emergency_stop(source)
-    return StopOut(motor_stopped=rep.motor_stopped, aborted_runs=rep.aborted_runs, detail=rep.detail)
+    drive = DriveOut.model_validate(rep.drive.to_dict()) if rep.drive is not None else None
+    return StopOut(motor_stopped=rep.motor_stopped, stop_commanded=rep.commanded, drive=drive,
+                   aborted_runs=rep.aborted_runs, detail=rep.detail)
 
 
 @router.post("/stop/acknowledge", response_model=AcknowledgeOut, dependencies=[Writer, SameSite],
@@ -66,13 +72,13 @@ async def acknowledge_stop(manager: ManagerDep, body: Annotated[AcknowledgeIn, B
     Refused (409) while the controller still reports a fault, e.g. the crank still turning."""
     rep = await manager.acknowledge(body.operator, body.note)
     return AcknowledgeOut(acknowledged=rep.acknowledged, by=rep.by, at=datetime.now(UTC), detail=rep.detail,
-                          latched=bool(manager.health()["estop"]["latched"]))
+                          latched=manager.latch.latched)
 
 
 @router.get("/health", response_model=HealthOut, dependencies=[Reader],
             responses={401: {"model": ErrorOut}}, summary="State of each device link, database, workers")
 async def health(manager: ManagerDep) -> HealthOut:
-    return HealthOut.model_validate(manager.health())
+    return HealthOut.model_validate(await manager.health())
 
 
 @router.get("/station", response_model=StationOut, dependencies=[Reader],

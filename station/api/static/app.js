@@ -62,7 +62,10 @@ async function refreshHealth() {
       link(h.rig.motor.connected && !h.rig.motor.watchdog_error, "motor"),
       link(h.rig.connected && !h.rig.daq.link_error, "DAQ"),
       link(h.database.ok, "database"),
-      `<span>jobs queued ${h.worker.jobs.queued}</span>`].join(" ");
+      `<span>jobs queued ${h.worker.jobs.queued}</span>`].join(" ")
+      + (h.drive && h.drive.standstill === false
+         ? ` <span class="bad" id="drive-fault">DRIVE DOES NOT STOP: ${h.drive.detail}; use the hardware emergency stop</span>`
+         : "");
     showLatch(h.estop);
   } catch (e) {
     $("#health").innerHTML = '<span class="bad">daemon unreachable</span>';
@@ -98,7 +101,8 @@ $("#estop").addEventListener("click", async () => {
   try {
     const r = await api("POST", "/stop");
     const d = r.data || {};
-    banner(`EMERGENCY STOP: ${d.detail || r.status}` + (d.aborted_runs && d.aborted_runs.length ? ` (aborted ${d.aborted_runs.join(", ")})` : ""),
+    const turning = d.drive && d.drive.standstill === false ? " - THE CRANK STILL TURNS: use the hardware emergency stop" : "";
+    banner(`EMERGENCY STOP: ${d.detail || r.status}` + (d.aborted_runs && d.aborted_runs.length ? ` (aborted ${d.aborted_runs.join(", ")})` : "") + turning,
            d.motor_stopped ? "info" : "");
     refreshHealth();
   } catch (e) {

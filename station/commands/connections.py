@@ -1,0 +1,177 @@
+"""Bounds on the daemon's HTTP connections, so that idle or slow clients cannot starve ``POST /stop``
+or exhaust the process's file descriptors (used by ``station serve``):
+
+* a **header timeout**: a connection that has not delivered a complete request head within
+  ``header_timeout_s`` of opening (or of its previous response: keep-alive) is closed, even if it
+  trickles bytes (uvicorn's keep-alive timer alone is cancelled by any byte);
+* a **connection cap**: beyond ``max_connections`` open connections, the oldest *idle* one (no
+  request in progress) is closed for each new one, so a new client, e.g. the emergency stop, is
+  always served; connections with a request in progress (a running request, the page's live
+  event stream) are never closed for it;
+* the **file-descriptor limit** raised from its soft to its hard value at the start, and the cap
+  kept below it;
+* repeated identical log records (e.g. "Too many open files" while accepting) are logged once per
+  interval with a count (:class:`RepeatFilter`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import resource
+import threading
+import time
+from typing import Any
+
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+log = logging.getLogger("station.serve")
+
+FD_RESERVE = 256  # descriptors kept for the database, recordings, serial ports, worker pipes
+
+
+def raise_fd_limit() -> int:
+    """Raise RLIMIT_NOFILE's soft limit to its hard limit; returns the soft limit now in force."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY or hard > soft:
+        target = hard if hard != resource.RLIM_INFINITY else max(soft, 1 << 20)
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+            soft = target
+        except (ValueError, OSError) as exc:
+            log.warning("cannot raise the open-files limit from %d to %d: %s", soft, target, exc)
+    return soft
+
+
+def connection_cap(wanted: int, fd_limit: int) -> int:
+    """The connection cap: ``wanted``, but below the descriptor limit with room for the rest."""
+    return max(16, min(wanted, fd_limit - FD_RESERVE))
+
+
+class ConnectionBounds:
+    """State shared by every connection of one server: the idle ones, oldest first."""
+
+    def __init__(self, max_connections: int, header_timeout_s: float) -> None:
+        self.max_connections = max_connections
+        self.header_timeout_s = header_timeout_s
+        self.idle: collections.OrderedDict[int, BoundedH11Protocol] = collections.OrderedDict()
+        self.open = 0
+        self.evicted = 0
+        self.timed_out = 0
+
+    def protocol(self) -> type[BoundedH11Protocol]:
+        """uvicorn's ``http`` protocol class bound to these bounds."""
+        return type("StationH11Protocol", (BoundedH11Protocol,), {"bounds": self})
+
+
+class BoundedH11Protocol(H11Protocol):
+    """uvicorn's h11 protocol with the header timeout and the connection cap of ``bounds``."""
+
+    bounds: ConnectionBounds
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._head_timer: asyncio.TimerHandle | None = None
+        self._counted = False  # in ``bounds.open``
+
+    def _busy(self) -> bool:
+        return self.cycle is not None and not self.cycle.response_complete
+
+    def _mark_idle(self) -> None:
+        b = self.bounds
+        b.idle[id(self)] = self
+        b.idle.move_to_end(id(self))
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+        self._head_timer = self.loop.call_later(b.header_timeout_s, self._head_timeout)
+
+    def _mark_busy(self) -> None:
+        self.bounds.idle.pop(id(self), None)
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+            self._head_timer = None
+
+    def _close(self) -> None:
+        """Close and stop counting it at once (its connection_lost comes a loop turn later)."""
+        self._mark_busy()
+        if self._counted:
+            self._counted = False
+            self.bounds.open -= 1
+        self.transport.close()
+
+    def _head_timeout(self) -> None:
+        self._head_timer = None
+        if not self._busy() and not self.transport.is_closing():
+            self.bounds.timed_out += 1
+            self._close()
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        b = self.bounds
+        b.open += 1
+        self._counted = True
+        while b.open > b.max_connections and b.idle:  # the oldest idle ones make room (never this one)
+            log.warning("connection cap reached (%d open): the oldest idle connections are closed for new ones",
+                        b.max_connections)
+            _, oldest = b.idle.popitem(last=False)
+            b.evicted += 1
+            oldest._close()
+        self._mark_idle()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._mark_busy()
+        if self._counted:
+            self._counted = False
+            self.bounds.open -= 1
+        super().connection_lost(exc)
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if self._busy():
+            self._mark_busy()
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if not self.transport.is_closing() and not self._busy():
+            self._mark_idle()
+
+
+class RepeatFilter(logging.Filter):
+    """Passes a log record unless the same (logger, level, message) passed within ``interval_s``;
+    the next one after the interval says how many were held back."""
+
+    def __init__(self, interval_s: float = 10.0, max_keys: int = 1000) -> None:
+        super().__init__()
+        self.interval_s = interval_s
+        self.max_keys = max_keys
+        self._seen: dict[tuple[str, int, str], tuple[float, int]] = {}
+        self._lock = threading.Lock()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        try:
+            text = record.getMessage()
+        except Exception:
+            text = str(record.msg)
+        key = (record.name, record.levelno, text[:300])
+        now = time.monotonic()
+        with self._lock:
+            last = self._seen.get(key)
+            if last is not None and now - last[0] < self.interval_s:
+                self._seen[key] = (last[0], last[1] + 1)
+                return False
+            held = last[1] if last is not None else 0
+            if len(self._seen) >= self.max_keys:
+                self._seen.clear()
+            self._seen[key] = (now, 0)
+        if held:
+            record.msg = f"{record.msg} [{held} identical message(s) in the last {self.interval_s:g} s not logged]"
+        return True
+
+
+def install_repeat_filter(interval_s: float = 10.0) -> RepeatFilter:
+    """On every handler of the root logger (the daemon logs through it)."""
+    f = RepeatFilter(interval_s)
+    for h in logging.getLogger().handlers:
+        h.addFilter(f)
+    return f
