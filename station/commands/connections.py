@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import logging
+import math
 import resource
 import threading
 import time
@@ -28,6 +29,7 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 log = logging.getLogger("station.serve")
 
+WARN_INTERVAL_S = 10.0
 FD_RESERVE = 256  # descriptors kept for the database, recordings, serial ports, worker pipes
 
 
@@ -59,6 +61,16 @@ class ConnectionBounds:
         self.open = 0
         self.evicted = 0
         self.timed_out = 0
+        self._warned = -math.inf
+
+    def note_eviction(self) -> None:
+        self.evicted += 1
+        now = time.monotonic()
+        if now - self._warned >= WARN_INTERVAL_S:
+            self._warned = now
+            log.warning("connection cap reached (%d open): the oldest idle connections are closed for new ones "
+                        "(%d so far, %d closed by the header timeout)", self.max_connections, self.evicted,
+                        self.timed_out)
 
     def protocol(self) -> type[BoundedH11Protocol]:
         """uvicorn's ``http`` protocol class bound to these bounds."""
@@ -112,10 +124,8 @@ class BoundedH11Protocol(H11Protocol):
         b.open += 1
         self._counted = True
         while b.open > b.max_connections and b.idle:  # the oldest idle ones make room (never this one)
-            log.warning("connection cap reached (%d open): the oldest idle connections are closed for new ones",
-                        b.max_connections)
             _, oldest = b.idle.popitem(last=False)
-            b.evicted += 1
+            b.note_eviction()
             oldest._close()
         self._mark_idle()
 

@@ -66,6 +66,7 @@ class DbAccess:
         self._closing = False
         self.last_error: str | None = None  # why the write at the head of the queue waits (None: it does not)
         self.failed_since: float | None = None
+        self._head_since: float | None = None  # monotonic time the write at the head was first tried
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> DbAccess:
@@ -100,6 +101,12 @@ class DbAccess:
             while self._queue and time.monotonic() < deadline:
                 self._cond.wait(min(0.1, max(0.0, deadline - time.monotonic())))
             return not self._queue
+
+    @property
+    def stalled_s(self) -> float:
+        """How long the write at the head of the queue has been waiting for the database, s."""
+        with self._cond:
+            return 0.0 if self._head_since is None or not self._queue else time.monotonic() - self._head_since
 
     @property
     def backlog(self) -> int:
@@ -187,8 +194,11 @@ class DbAccess:
                 w = self._queue[0]
                 if w.withdrawn:
                     self._queue.popleft()
+                    self._head_since = None
                     continue
                 w.started = True
+                if self._head_since is None:
+                    self._head_since = time.monotonic()
                 if w.run_id is not None and self._open_updates.get(w.run_id) is w:
                     del self._open_updates[w.run_id]
             try:
@@ -217,6 +227,7 @@ class DbAccess:
                 log.exception("database write failed")
                 with self._cond:
                     self._queue.popleft()
+                    self._head_since = None
                     self._cond.notify_all()
                 if w.future is not None:
                     w.future.set_exception(exc)
@@ -225,7 +236,7 @@ class DbAccess:
                 self._queue.popleft()
                 if self.failed_since is not None:
                     log.warning("the database takes writes again (after %.1f s)", time.time() - self.failed_since)
-                self.failed_since, self.last_error = None, None
+                self.failed_since, self.last_error, self._head_since = None, None, None
                 self._cond.notify_all()
             pause = RETRY_FIRST_S
             if w.future is not None:

@@ -15,6 +15,7 @@ from station.service.riglink import RigLink
 from station.service.store import JOB_STATES, Store
 
 DB_HEALTH_TIMEOUT_S = 1.0
+DB_STALL_S = 1.0  # a write waiting longer than this for the database makes it not ok
 
 
 async def database_state(db: DbAccess) -> dict[str, Any]:
@@ -26,6 +27,9 @@ async def database_state(db: DbAccess) -> dict[str, Any]:
         return ok, store.journal_mode() if ok else None, store.job_counts() if ok else {}
 
     error = db.last_error
+    stalled = db.stalled_s
+    if error is None and stalled > DB_STALL_S:
+        error = f"a write has waited {stalled:.1f} s for the database (locked by another process?)"
     try:
         ok, mode, jobs = await db.read(read, timeout_s=DB_HEALTH_TIMEOUT_S)
     except DatabaseBusyError as exc:

@@ -1,0 +1,279 @@
+"""The emergency stop shares fate with nothing: it reaches the drive while another process holds the
+database's write lock, while the disk is full, while hundreds of idle connections are open; and a
+drive that does not stop is found out (read back), latched, shown and refused until resolved.
+
+The daemon's app runs in-process on the simulated rig's virtual clock (``station`` below); the
+connection bounds run on a real uvicorn server on loopback.  Times are asserted only as generous
+bounds that prove the stop did not wait for the database's 10 s busy timeout."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import socket
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+import uvicorn
+
+from station.commands.connections import ConnectionBounds, RepeatFilter
+from station.service.db import DbAccess
+from station.service.errors import DatabaseBusyError
+from station.service.store import RunRow, Store
+from tests.disk_support import mounted_tmpfs
+from tests.test_fault_matrix_service import _fill, estops, start, station, wait_state
+from tests.test_service_support import FINAL, run_body
+
+NOT_THE_BUSY_TIMEOUT_S = 5.0  # the database's busy timeout is 10 s: a stop faster than this did not wait for it
+
+_HOLDER = """
+import sqlite3, sys
+db = sqlite3.connect(sys.argv[1], isolation_level=None)
+db.execute("BEGIN IMMEDIATE")
+db.execute("CREATE TABLE IF NOT EXISTS lock_holder (x)")
+print("locked", flush=True)
+sys.stdin.read()
+db.execute("ROLLBACK")
+"""
+
+
+class WriteLock:
+    """Another process holding the database's write lock (``BEGIN IMMEDIATE``) until released."""
+
+    def __init__(self, path: Path) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-c", _HOLDER, str(path)], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True)
+        assert self.proc.stdout is not None and self.proc.stdout.readline().strip() == "locked"
+
+    def release(self) -> None:
+        if self.proc.poll() is None:
+            assert self.proc.stdin is not None
+            self.proc.stdin.close()
+            self.proc.wait(10)
+
+
+def _row(run_id: str) -> RunRow:
+    return RunRow(id=run_id, state="queued", transducer_id="T", top_mass_kg=1.0, request_json="{}",
+                  plan_json="{}", created=time.time(), n_steps=1)
+
+
+# ------------------------------------------------------------------------------------ the writer
+def test_writes_wait_in_order_for_a_locked_database_and_a_bounded_call_changes_nothing(tmp_path: Path) -> None:
+    store = Store(tmp_path / "station.db")
+    db = DbAccess(store).start()
+    lock = WriteLock(store.path)
+
+    async def go() -> None:
+        db.post(lambda s: s.insert_run(_row("a")))
+        db.update_run("a", {"state": "running", "fraction": 0.5})
+        db.update_run("a", {"fraction": 0.75})  # merged into the waiting update
+        with pytest.raises(DatabaseBusyError, match="nothing was changed"):
+            await db.call(lambda s: s.insert_run(_row("b")), timeout_s=0.3)
+        assert db.overlay("a") == {"state": "running", "fraction": 0.75}
+        t0 = time.monotonic()
+        assert (await db.read(lambda s: s.get_run("a"))) is None  # reads are not blocked by the writer (WAL)
+        assert time.monotonic() - t0 < NOT_THE_BUSY_TIMEOUT_S
+        assert db.backlog >= 2
+    try:
+        asyncio.run(go())
+    finally:
+        lock.release()
+    assert db.flush(30.0), db.last_error
+    row = store.get_run("a")
+    assert row is not None and row.state == "running" and row.fraction == 0.75
+    assert store.get_run("b") is None  # withdrawn: never written
+    assert db.close() == 0
+    store.close()
+
+
+# ------------------------------------------------------------------------------------ database locked
+def test_stop_reaches_the_drive_while_another_process_holds_the_database_write_lock(tmp_path: Path) -> None:
+    async def go() -> None:
+        async with station(tmp_path / "rec") as (m, c):
+            rid = await start(c, freqs=(10.0,), record_s=120.0)
+            await wait_state(c, rid, ("running",), "recording")
+            lock = await asyncio.to_thread(WriteLock, m.settings.database)
+            try:
+                t0 = time.monotonic()
+                r = await c.post("/stop")
+                took = time.monotonic() - t0
+                assert r.status_code == 200, r.text
+                body = r.json()
+                assert body["stop_commanded"] and body["motor_stopped"] and body["aborted_runs"] == [rid]
+                assert body["drive"]["standstill"] and body["drive"]["speed_hz"] == 0.0
+                assert took < NOT_THE_BUSY_TIMEOUT_S, took
+                assert await m.link.motor_fault() == (2, "emergency_stop")  # the drive has it
+                # the web side keeps answering: the run's state, the health, a refused run
+                st = await wait_state(c, rid, FINAL)
+                assert st["state"] == "aborted"
+                for _ in range(50):  # a waiting write shows within about a second
+                    h = (await c.get("/health")).json()
+                    if not h["database"]["ok"]:
+                        break
+                    await asyncio.sleep(0.1)
+                assert h["estop"]["latched"] and not h["database"]["ok"] and h["database"]["pending_writes"] > 0
+                assert "waited" in h["database"]["error"] and h["status"] == "degraded"
+                r = await c.post("/runs", json=run_body(freqs=(10.0,)))
+                assert r.status_code == 409 and "emergency stop latched" in r.json()["detail"]
+            finally:
+                lock.release()
+            # the database's record of the stop and of the run follows once it takes writes
+            rows = estops(m)
+            assert [r["source"] for r in rows] == ["api"] and rows[0]["acknowledged"] is None
+            db = sqlite3.connect(m.settings.database)
+            try:
+                assert db.execute("SELECT state FROM runs WHERE id = ?", (rid,)).fetchone() == ("aborted",)
+            finally:
+                db.close()
+            assert (await c.get("/health")).json()["database"] == {"ok": True, "journal_mode": "wal",
+                                                                   "pending_writes": 0, "error": None}
+    asyncio.run(go())
+
+
+# ------------------------------------------------------------------------------------ disk full
+def test_stop_reaches_the_drive_on_a_full_disk_and_its_record_follows(tmp_path: Path) -> None:
+    with mounted_tmpfs(tmp_path, 24) as disk:
+        filler = disk / "filler.bin"
+
+        async def go() -> None:
+            async with station(disk, min_free_mb=0.0) as (m, c):
+                rid = await start(c, freqs=(10.0,), record_s=30.0)
+                await wait_state(c, rid, ("running",), "recording")
+                await asyncio.to_thread(_fill, filler)
+                t0 = time.monotonic()
+                r = await c.post("/stop")
+                assert time.monotonic() - t0 < NOT_THE_BUSY_TIMEOUT_S
+                assert r.status_code == 200 and r.json()["stop_commanded"] and r.json()["motor_stopped"], r.text
+                assert await m.link.motor_fault() == (2, "emergency_stop")
+                await wait_state(c, rid, FINAL, timeout_s=30)
+                assert (await c.get("/health")).json()["estop"]["latched"]
+                filler.unlink()  # room again: the record of the stop is written
+                assert [r["source"] for r in estops(m)] == ["api"]
+        asyncio.run(go())
+
+
+# ------------------------------------------------------------------------------------ idle connections
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_stop_is_served_past_hundreds_of_idle_connections_and_a_trickling_one(tmp_path: Path) -> None:
+    async def go() -> None:
+        async with station(tmp_path / "rec") as (m, c):
+            bounds = ConnectionBounds(max_connections=64, header_timeout_s=1.0)
+            port = _free_port()
+            app = c._transport.app  # type: ignore[attr-defined]
+            server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=bounds.protocol(),
+                                                   lifespan="off", log_config=None))
+            serving = asyncio.create_task(server.serve())
+            while not server.started:
+                await asyncio.sleep(0.02)
+            idle = []
+            try:
+                trickler = socket.create_connection(("127.0.0.1", port))
+                trickler.sendall(b"GET /health HTTP/1.1\r\n")  # a head that never completes
+                for _ in range(400):
+                    idle.append(socket.create_connection(("127.0.0.1", port)))
+                await asyncio.sleep(0.2)  # accepted; the oldest idle ones closed for the newer
+                assert bounds.open <= bounds.max_connections and bounds.evicted >= 400 - 64
+                url = f"http://127.0.0.1:{port}"
+                async with httpx.AsyncClient(base_url=url, timeout=NOT_THE_BUSY_TIMEOUT_S) as tcp:
+                    r = await tcp.post("/stop")
+                assert r.status_code == 200 and r.json()["stop_commanded"], r.text
+                assert await m.link.motor_fault() == (2, "emergency_stop")
+                # the trickling connection is closed by the header timeout (or the cap) all the same
+                trickler.settimeout(NOT_THE_BUSY_TIMEOUT_S)
+                try:
+                    assert trickler.recv(1) == b""
+                except ConnectionResetError:
+                    pass  # closed with the unread head in its buffer
+            finally:
+                for s in idle:
+                    s.close()
+                server.should_exit = True
+                await serving
+    asyncio.run(go())
+
+
+def test_repeated_log_lines_are_held_back_and_counted() -> None:
+    f = RepeatFilter(interval_s=60.0)
+
+    def rec(msg: str) -> bool:
+        return f.filter(logging_record(msg))
+    assert rec("socket.accept() out of system resource")
+    assert not any(rec("socket.accept() out of system resource") for _ in range(1000))
+    assert rec("another message")
+    f.interval_s = 0.0
+    r = logging_record("socket.accept() out of system resource")
+    assert f.filter(r) and "1000 identical message(s)" in r.getMessage()
+
+
+def logging_record(msg: str) -> logging.LogRecord:
+    return logging.LogRecord("asyncio", logging.ERROR, __file__, 1, msg, None, None)
+
+
+# ------------------------------------------------------------------------------------ a drive that does not stop
+@pytest.mark.slow  # ~3 s: the read-back waits the bound a healthy drive needs (on the rig's clock)
+def test_a_drive_that_ignores_the_stop_is_found_latched_shown_and_refused_until_resolved(tmp_path: Path) -> None:
+    async def go() -> None:
+        async with station(tmp_path / "rec") as (m, c):
+            rid = await start(c, freqs=(10.0,), record_s=30.0)
+            await wait_state(c, rid, ("running",), "recording")
+            assert m.link.rig is not None and m.link.rig.sim is not None
+            motor = m.link.rig.sim.motor
+            motor.ignore_stops()
+            r = await c.post("/stop")
+            assert r.status_code == 200, r.text
+            body = r.json()
+            # the command was taken, but the drive, read back, still turns: said as it is
+            assert body["stop_commanded"] and not body["motor_stopped"]
+            assert body["drive"]["standstill"] is False and body["drive"]["speed_hz"] == pytest.approx(10.0)
+            assert "still turns" in body["detail"]
+            await wait_state(c, rid, FINAL)
+            h = (await c.get("/health")).json()
+            assert h["status"] == "degraded" and h["drive"]["standstill"] is False
+            assert h["estop"]["latched"] and h["estop"]["source"] == "drive" and "still turns" in h["estop"]["detail"]
+            # no run starts, and no acknowledgement is taken while the crank turns
+            r = await c.post("/runs", json=run_body(freqs=(10.0,)))
+            assert r.status_code == 409 and "emergency stop latched" in r.json()["detail"]
+            r = await c.post("/stop/acknowledge", json={"operator": "op"})
+            assert r.status_code == 409 and "still turns" in r.json()["detail"]
+            assert motor.snapshot().speed_hz == pytest.approx(10.0)
+            # repaired (the hardware stop): the crank comes to rest, the acknowledgement is taken
+            motor.ignore_stops(False)
+            r = await c.post("/stop/acknowledge", json={"operator": "op", "note": "drive repaired"})
+            assert r.status_code == 200 and not r.json()["latched"], r.text
+            h = (await c.get("/health")).json()
+            assert h["status"] == "ok" and h["drive"]["standstill"] is True
+            rid2 = await start(c, freqs=(10.0,))
+            assert (await wait_state(c, rid2))["state"] == "identifying"
+            assert {r["source"] for r in estops(m)} == {"api", "drive"}
+    asyncio.run(go())
+
+
+@pytest.mark.slow  # ~2 s, as above
+def test_a_run_whose_drive_does_not_stop_at_its_end_latches(tmp_path: Path) -> None:
+    """No emergency stop at all: the run's own stop (an abort) is read back too."""
+    async def go() -> None:
+        async with station(tmp_path / "rec") as (m, c):
+            rid = await start(c, freqs=(10.0,), record_s=30.0)
+            await wait_state(c, rid, ("running",), "recording")
+            assert m.link.rig is not None and m.link.rig.sim is not None
+            m.link.rig.sim.motor.ignore_stops()
+            assert (await c.post(f"/runs/{rid}/abort")).status_code == 202
+            st = await wait_state(c, rid, FINAL)
+            assert st["state"] == "aborted"
+            h = (await c.get("/health")).json()
+            assert h["estop"]["latched"] and h["estop"]["source"] == "drive", h["estop"]
+            assert h["drive"]["standstill"] is False and h["status"] == "degraded"
+            r = await c.post("/runs", json=run_body(freqs=(10.0,)))
+            assert r.status_code == 409
+            m.link.rig.sim.motor.ignore_stops(False)
+    asyncio.run(go())
