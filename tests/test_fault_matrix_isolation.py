@@ -103,6 +103,34 @@ def test_campaigns_need_the_token_even_on_loopback(tmp_path: Path) -> None:
     asyncio.run(go())
 
 
+def test_an_internal_error_is_a_short_json_500_and_the_traceback_goes_to_the_log(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """| non-UTF-8 bodies | ... a 5.4 kB traceback (no traceback reaches a user, whatever fails) |"""
+    from station.api import create_app
+    from station.config import parse_config
+    from station.service.settings import build_settings
+    from tests.test_fault_matrix_service import _Manager
+
+    settings = build_settings(parse_config(daemon_config(tmp_path / "rec")), sim=True, workers=0,
+                              env={"STATION_TOKEN": TOKEN})
+    app = create_app(settings, manager_factory=_Manager)
+
+    def broken(**_: Any) -> None:
+        raise RuntimeError("a bug deep inside")
+
+    async def go() -> None:
+        async with app.router.lifespan_context(app):
+            app.state.manager.list_runs = broken
+            t = httpx.ASGITransport(app=app, client=("127.0.0.1", 40000), raise_app_exceptions=False)
+            async with httpx.AsyncClient(transport=t, base_url="http://127.0.0.1") as c:
+                r = await c.get("/runs")
+        assert r.status_code == 500 and r.headers["content-type"] == "application/json", r.text
+        assert r.json() == {"detail": "internal error of the station daemon; the details are in its log"}
+    with caplog.at_level("ERROR", logger="station.api.main"):
+        asyncio.run(go())
+    assert "GET /runs: internal error" in caplog.text and "a bug deep inside" in caplog.text
+
+
 # --------------------------------------------------------------------------------------- imports
 def _alias_bomb(levels: int = 9) -> str:
     """A few hundred bytes that expand to 9**levels nodes (the billion laughs)."""
@@ -200,6 +228,18 @@ def test_an_invalid_token_is_never_printed(tmp_path: Path, capsys: pytest.Captur
         assert "service.token" in text and "service.tokn: unknown key" in text
         for part in secret.split():
             assert part not in text, (secret, text)
+    # a valid token is in no representation of the configuration or the settings
+    from station.config import config_to_yaml, load_config
+    from station.service.settings import build_settings
+
+    d = daemon_config(tmp_path / "rec")
+    d["service"] = {"token": "zq-valid-secret-token"}
+    cfg.write_text(yaml.safe_dump(d))
+    loaded = load_config(cfg)
+    settings = build_settings(loaded, sim=True, env={})
+    assert settings.token == "zq-valid-secret-token"
+    for shown in (repr(loaded), str(loaded), repr(settings), config_to_yaml(loaded), config_to_yaml(settings.config)):
+        assert "zq-valid" not in shown
 
 
 # --------------------------------------------------------------------------------------- one daemon per folder
@@ -258,6 +298,7 @@ def test_a_second_station_on_the_folder_touches_nothing(tmp_path: Path, capsys: 
         assert json.loads((rec / LOCK_NAME).read_text())["pid"] == os.getpid()
         assert InstanceLock.acquire(rec, "test") is lock  # re-entrant within the process
         lock.release()
+    assert not (rec / LOCK_NAME).exists()  # a clean end leaves no lock file
 
 
 def test_the_daq_port_is_opened_exclusively(tmp_path: Path) -> None:

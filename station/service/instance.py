@@ -5,7 +5,7 @@ for its whole life, taken before the start-up recovery, the database or a device
 second process on the same folder is refused at once with a message naming the holder (its PID,
 host and address, from the lock file); it touches nothing.  The lock is the kernel's: it goes with
 the process however it ends (``kill -9`` included), so a lock file left behind never blocks a
-start.  Worker processes do not inherit it (the descriptor is close-on-exec).
+start; a clean end removes it.  Worker processes do not inherit it (the descriptor is close-on-exec).
 
 ``check_database`` opens the daemon's SQLite file before the daemon starts: a damaged, foreign or
 locked file is one message naming the file and the fix, never a traceback.
@@ -86,8 +86,8 @@ class InstanceLock:
             if self._users > 0:
                 return
             self._held.pop(self.path, None)
-            with contextlib.suppress(OSError):
-                os.ftruncate(self._fd, 0)
+            with contextlib.suppress(OSError):  # nothing left behind (the next holder checks the inode)
+                self.path.unlink()
             os.close(self._fd)  # closing the descriptor releases the flock
 
     def __enter__(self) -> InstanceLock:
@@ -98,6 +98,18 @@ class InstanceLock:
 
 
 def _lock_or_refuse(path: Path, what: str) -> int:
+    for _ in range(10):
+        fd = _try_lock(path, what)
+        try:  # the holder before us may have removed the file as we opened it: lock the one in place
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                return fd
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    raise StationBusyError(f"{path}: the lock file keeps being replaced; is another station starting and stopping?")
+
+
+def _try_lock(path: Path, what: str) -> int:
     try:
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
     except OSError as exc:
