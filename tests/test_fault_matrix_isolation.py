@@ -424,7 +424,7 @@ def _alive(pid: int) -> bool:
     return state not in ("Z", "X")  # a zombie is dead (waiting for PID 1 to reap it)
 
 
-@pytest.mark.parametrize("when", ["starting", "busy"])
+@pytest.mark.parametrize("when", ["starting", pytest.param("busy", marks=pytest.mark.slow)])
 def test_workers_die_with_their_daemon(when: str, tmp_path: Path) -> None:
     """| orphaned worker | a daemon killed while a worker starts leaves the worker alive (parent PID 1,
     143 MB, 14 min later) |  (the daemon here: a process with the daemon's WorkerPool, killed -9)"""
