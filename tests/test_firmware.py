@@ -13,7 +13,6 @@ from __future__ import annotations
 import os
 import re
 import select
-import shutil
 import subprocess
 import time
 from collections.abc import Iterator
@@ -22,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.daq import DaqBridge, SampleBlock, SampleGap, SerialLink, StreamStalled, StreamSummary
+from drivers.daq import DaqBridge, SampleBlock, SampleGap, SerialLink, StreamStalled
 from drivers.daq.protocol import (
     PKT_COMMAND,
     PKT_SAMPLES,
@@ -32,26 +31,14 @@ from drivers.daq.protocol import (
     encode_command,
     encode_packet,
 )
+from tests.firmware_support import build, check_counter_tiling, stream
 
-FIRMWARE = Path(__file__).resolve().parent.parent / "firmware"
 CONFIG_KEYS = ("rate", "rate_exact", "frame", "range_disp", "range_force", "channels")
 
 
 @pytest.fixture(scope="module")
 def firmware_build() -> Path:
-    """``make`` in firmware/ (warnings are errors; incremental: nothing to do after ``.ci/run`` built it);
-    the build folder."""
-    cc = os.environ.get("CC", "cc")
-    missing = [tool for tool in (cc, "make") if shutil.which(tool) is None]
-    if missing:
-        reason = f"no {' or '.join(missing)} on PATH: the bridge firmware's host build cannot be tested"
-        if os.environ.get("CI"):
-            pytest.fail(f"{reason} (under CI a C compiler is required: .ci/run installs build-essential)")
-        pytest.skip(reason)
-    done = subprocess.run(["make", "-s", "-j2", "-C", str(FIRMWARE), f"CC={cc}", "all"],
-                          capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, f"firmware build failed:\n{done.stdout}\n{done.stderr}"
-    return FIRMWARE / "build"
+    return build("all", os.environ.get("CC", "cc"))
 
 
 class Firmware:
@@ -247,41 +234,10 @@ def test_streams_20khz_to_the_driver_without_loss(start_firmware) -> None:
     assert np.abs(disp).max() > 0.59 * 32768  # the sine's amplitude, not a flat line
 
 
-def stream_with_faults(fw: Firmware, seconds: float) -> tuple[list, dict[str, str], StreamSummary]:
-    daq = DaqBridge(stall_timeout_s=1.0)
-    daq.connect(SerialLink(fw.path, kind="usb-cdc"))
-    try:
-        daq.configure(rate_hz=20_000, frame_samples=256)
-        daq.start()
-        time.sleep(seconds)
-        status = daq.status()
-        summary = daq.stop()
-        events = [e for e in daq.events(timeout_s=0.05) if isinstance(e, SampleBlock | SampleGap)]
-    finally:
-        daq.close()
-    return events, status, summary
-
-
-def check_counter_tiling(events: list, samples_sent: int) -> list[tuple[int, int]]:
-    """Blocks and gaps tile 0..samples_sent-1; every block holds the counter of its own indices; the gaps."""
-    index, gaps = 0, []
-    for ev in events:
-        assert ev.first_index == index
-        if isinstance(ev, SampleGap):
-            gaps.append((ev.first_index, ev.count))
-            index += ev.count
-            continue
-        want = (np.arange(index, index + ev.count) % 65536).astype(np.uint16).view(np.int16)
-        assert np.array_equal(ev.displacement, want) and np.array_equal(ev.force, -1 - want.astype(np.int32))
-        index += ev.count
-    assert index == samples_sent
-    return gaps
-
-
 def test_samples_lost_before_the_core_are_a_gap_of_whole_frames_at_their_position(start_firmware) -> None:
     # samples 1000..1009 fall in frame 3 (768..1023); 3000..3599 in frames 11..14 (2816..3839)
     fw = start_firmware("--source", "counter", "--adc-skip", "1000:10", "--adc-skip", "3000:600")
-    events, status, summary = stream_with_faults(fw, 0.25)
+    events, status, summary = stream(fw.path, "usb-cdc", 0.25)
     assert check_counter_tiling(events, summary.samples_sent) == [(768, 256), (2816, 1024)]
     assert status["overflows"] == "5"
     assert re.findall(r"drop first=(\d+) count=(\d+) reason=adc", fw.close()) == [
@@ -291,7 +247,7 @@ def test_samples_lost_before_the_core_are_a_gap_of_whole_frames_at_their_positio
 def test_fifo_overflow_is_reported_as_a_gap_at_the_dropped_frames(start_firmware) -> None:
     # the link stops taking bytes at frame 5 for 0.4 s: a 16 KiB FIFO holds ~14 frames of the ~31 produced
     fw = start_firmware("--source", "counter", "--fifo-bytes", "16384", "--tx-block-at", "5", "--tx-block-ms", "400")
-    events, status, summary = stream_with_faults(fw, 0.8)
+    events, status, summary = stream(fw.path, "usb-cdc", 0.8)
     gaps = check_counter_tiling(events, summary.samples_sent)
     logged = re.findall(r"drop first=(\d+) count=(\d+) reason=fifo", fw.close())
     drops = [(int(a) * 256, int(n) * 256) for a, n in logged]

@@ -5,10 +5,8 @@
  *     ./build/bridge-host --pty            # prints "PTY /dev/pts/N"; the station opens that path
  *     socat EXEC:'./build/bridge-host --stdio' PTY,link=/tmp/daq,raw
  *
- * The ADC is emulated as a converter clocked at --adc-clock-hz with an integer divider: the
- * exact rate is clock/round(clock/rate) (rate_exact), pairs become due in real time
- * (CLOCK_MONOTONIC) and wait in a ring of --adc-ring pairs, as a DRDY interrupt would leave them;
- * a main loop later than the ring holds loses the oldest pairs, reported to the core as missed.
+ * The ADC is emulated (port/common/timed_adc.h) as a converter clocked at --adc-clock-hz with an
+ * integer divider, pairs due in real time (CLOCK_MONOTONIC) waiting in a ring of --adc-ring pairs.
  * Fault injection: --adc-skip FIRST:COUNT (samples lost before the core sees them) and
  * --tx-block-at FRAME --tx-block-ms MS (the link stops taking bytes: the FIFO overflows).
  * Dropped frames are logged on stderr as "drop first=F count=N reason=fifo|adc".
@@ -28,24 +26,12 @@
 #include <unistd.h>
 
 #include "bridge.h"
-#include "synth.h"
-
-#define MAX_SKIPS 8
+#include "timed_adc.h"
 
 static struct {
     int fd_in, fd_out;
     int eof;
-    /* ADC */
-    synth source;
-    double clock_hz;
-    double rate_hz; /* exact */
-    int running;
-    double t0;
-    uint64_t produced; /* pairs handed to the core (or lost) since START */
-    uint64_t due;      /* pairs converted by the last look at the clock */
-    uint64_t ring;     /* pairs the emulated ADC ring holds */
-    uint64_t skip_first[MAX_SKIPS], skip_count[MAX_SKIPS];
-    int nskips;
+    timed_adc adc;
     /* link */
     long tx_block_at; /* frame index, -1 = never */
     double tx_block_s;
@@ -56,66 +42,37 @@ static struct {
 static bridge b;
 static volatile sig_atomic_t stop_requested;
 
-static double now_s(void)
+static uint64_t now_ns(void)
 {
     struct timespec ts;
     clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
+    return (uint64_t)ts.tv_sec * 1000000000u + (uint64_t)ts.tv_nsec;
+}
+
+static double now_s(void)
+{
+    return (double)now_ns() * 1e-9;
 }
 
 /* ------------------------------------------------------------------ HAL */
 const char *hal_adc_configure(const bridge_adc_setting *want, bridge_adc_setting *got)
 {
-    double divider = floor(host.clock_hz / want->rate_hz + 0.5);
-    if (divider < 1.0) {
-        divider = 1.0;
-    }
-    *got = *want;
-    got->rate_hz = host.clock_hz / divider;
-    host.rate_hz = got->rate_hz;
-    return NULL;
+    return timed_adc_configure(&host.adc, want, got);
 }
 
 void hal_adc_start(void)
 {
-    host.running = 1;
-    host.t0 = now_s();
-    host.produced = 0;
-    host.due = 0;
+    timed_adc_start(&host.adc, now_ns());
 }
 
 void hal_adc_stop(void)
 {
-    host.running = 0;
+    timed_adc_stop(&host.adc);
 }
 
 int hal_adc_read(bridge_adc_pair *pair)
 {
-    int i;
-    uint64_t missed = 0;
-    if (!host.running) {
-        return 0;
-    }
-    if (host.produced >= host.due) {
-        host.due = (uint64_t)floor((now_s() - host.t0) * host.rate_hz);
-        if (host.produced >= host.due) {
-            return 0;
-        }
-    }
-    for (i = 0; i < host.nskips; i++) {
-        if (host.skip_first[i] == host.produced) {
-            missed += host.skip_count[i];
-            host.produced += host.skip_count[i];
-        }
-    }
-    if (host.due > host.produced + host.ring) { /* the main loop was late: the ring overran */
-        missed += host.due - host.ring - host.produced;
-        host.produced = host.due - host.ring;
-    }
-    synth_pair(&host.source, host.rate_hz, host.produced, &pair->disp, &pair->force);
-    pair->missed = missed > 0xFFFFFFFFu ? 0xFFFFFFFFu : (uint32_t)missed;
-    host.produced++;
-    return 1;
+    return timed_adc_read(&host.adc, now_ns, pair);
 }
 
 size_t hal_write(const uint8_t *data, size_t n)
@@ -157,7 +114,7 @@ size_t hal_read(uint8_t *data, size_t max)
 
 uint32_t hal_ticks_us(void)
 {
-    return (uint32_t)(uint64_t)(now_s() * 1e6);
+    return (uint32_t)(now_ns() / 1000u);
 }
 
 /* ------------------------------------------------------------------ set-up */
@@ -251,12 +208,14 @@ int main(int argc, char **argv)
     const char *mode = NULL, *tty = NULL;
     int counter = 0;
     uint32_t seed = 1;
+    double clock_hz = 16e6;
+    uint64_t adc_ring = 65536;
+    unsigned long long skips[TIMED_ADC_MAX_SKIPS][2];
+    int nskips = 0;
     pid_t parent = getppid();
     double last_parent_check = 0.0;
     int i;
 
-    host.clock_hz = 16e6;
-    host.ring = 65536;
     host.tx_block_at = -1;
     for (i = 1; i < argc; i++) {
         const char *a = argv[i];
@@ -282,17 +241,17 @@ int main(int argc, char **argv)
         } else if (strcmp(a, "--fifo-bytes") == 0) {
             fifo_bytes = (size_t)number_arg(a, v, 4096, 1 << 28);
         } else if (strcmp(a, "--adc-clock-hz") == 0) {
-            host.clock_hz = number_arg(a, v, 1e4, 1e9);
+            clock_hz = number_arg(a, v, 1e4, 1e9);
         } else if (strcmp(a, "--adc-ring") == 0) {
-            host.ring = (uint64_t)number_arg(a, v, 1, 1e9);
+            adc_ring = (uint64_t)number_arg(a, v, 1, 1e9);
         } else if (strcmp(a, "--adc-skip") == 0) {
             unsigned long long first, count;
             char tail;
-            if (host.nskips == MAX_SKIPS || sscanf(v, "%llu:%llu%c", &first, &count, &tail) != 2 || count == 0) {
+            if (sscanf(v, "%llu:%llu%c", &first, &count, &tail) != 2 || count == 0 || nskips == TIMED_ADC_MAX_SKIPS) {
                 usage();
             }
-            host.skip_first[host.nskips] = first;
-            host.skip_count[host.nskips++] = count;
+            skips[nskips][0] = first;
+            skips[nskips++][1] = count;
         } else if (strcmp(a, "--tx-block-at") == 0) {
             host.tx_block_at = (long)number_arg(a, v, 0, 1e9);
         } else if (strcmp(a, "--tx-block-ms") == 0) {
@@ -313,10 +272,14 @@ int main(int argc, char **argv)
     if (mode == NULL) {
         usage();
     }
-    info.clock_hz = host.clock_hz;
-    info.rate_min_hz = host.clock_hz / floor(host.clock_hz / 100.0);
-    info.rate_max_hz = host.clock_hz / ceil(host.clock_hz / 1e6);
-    synth_init(&host.source, counter, seed);
+    timed_adc_init(&host.adc, 1e9, clock_hz, adc_ring);
+    synth_init(&host.adc.source, counter, seed);
+    for (i = 0; i < nskips; i++) {
+        (void)timed_adc_skip(&host.adc, skips[i][0], skips[i][1]);
+    }
+    info.clock_hz = clock_hz;
+    info.rate_min_hz = clock_hz / floor(clock_hz / 100.0);
+    info.rate_max_hz = clock_hz / ceil(clock_hz / 1e6);
 
     if (strcmp(mode, "--pty") == 0) {
         host.fd_in = host.fd_out = open_pty();

@@ -1,4 +1,4 @@
-/* The host port's deterministic sample source (stands in for the bridge's ADC).
+/* The emulated ports' deterministic sample source (stands in for the bridge's ADC: host, QEMU).
  *
  * `sine` (default): two sines at one frequency, as a crank rig gives them, as 24-bit codes:
  *     disp(i)  = lround(0.6 * 2^23 * sin(2*pi*f*i/rate))
@@ -10,8 +10,8 @@
  * `counter`: disp(i) = (i mod 2^16 as int16) * 256, force(i) = (-1 - that int16) * 256: after the
  * core's 24 -> 16-bit rounding the protocol samples are exactly the counter and its complement.
  */
-#ifndef HOST_SYNTH_H
-#define HOST_SYNTH_H
+#ifndef PORT_SYNTH_H
+#define PORT_SYNTH_H
 
 #include <stdint.h>
 
