@@ -11,8 +11,8 @@ from typing import Any
 
 import h5py
 import numpy as np
-import yaml
 
+from station.bounded import load_yaml
 from station.errors import RecordingFormatError, StationError
 from station.recording.writer import FORMAT_NAME, STEP_FIELDS, utc_now
 
@@ -130,7 +130,7 @@ def read_recording(path: str | Path) -> Recording:
             end_mass_kg=None if math.isnan(end_mass) else end_mass,
             sensitivity_V_per_N=float(_attr(f, "sensitivity_V_per_N", p)),
             capacity_N=float(_attr(f, "capacity_N", p)),
-            config=yaml.safe_load(config_text) or {} if config_text else {},
+            config=(load_yaml(config_text, f"{p}: config/yaml", RecordingFormatError) or {}) if config_text else {},
             lost_samples=f["lost_samples"][...] if "lost_samples" in f else np.zeros((0, 2), dtype=np.int64),
             exit_status=status if complete else "interrupted",
             reason=str(attrs.get("reason", "")) if complete else "recording was cut off before its stop record",
