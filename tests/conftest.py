@@ -7,7 +7,7 @@ Session-scoped recordings are shared: tests must not modify them (copy them into
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,32 +21,57 @@ REPO = Path(__file__).resolve().parent.parent
 CONFIG_DIR = REPO / "config"
 
 
-def _base_dict() -> dict[str, Any]:
+Steps = Sequence[tuple[float, float]]  # (crank frequency in Hz, crank radius in m) per step
+
+MULTI_RADIUS: Steps = ((4.0, 0.01), (30.0, 0.001), (100.0, 0.00015))  # each radius change stops the crank
+ONE_RADIUS: Steps = ((5.0, 0.0004), (20.0, 0.0004), (60.0, 0.0004))  # sinecal-csv v1 exports only these
+
+
+def _shipped() -> dict[str, Any]:
     data = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
     assert isinstance(data, dict)
     return data
 
 
-def make_fast_dict(*, one_radius: bool = False) -> dict[str, Any]:
-    """config/sim-5kN.yaml with short settle/record/pre-roll times and a fast crank ramp.
+def station_dict(*, steps: Steps | None = None, settle_s: float | None = None, record_s: float | None = None,
+                 acceleration_hz_per_s: float | None = None, pre_roll_s: float | None = None,
+                 effects: dict[str, Any] | None = None, recordings_dir: Path | None = None,
+                 service: dict[str, Any] | None = None, **sections: dict[str, Any]) -> dict[str, Any]:
+    """The tests' one configuration builder: config/sim-5kN.yaml as parsed YAML with the given changes
+    (None: as shipped).  ``steps`` replaces the plan's steps; ``sections`` update a section's keys
+    (e.g. ``rig={"top_mass_kg": 5.0}``); ``service`` replaces the service section."""
+    d = copy.deepcopy(_shipped())
+    plan = {"settle_s": settle_s, "record_s": record_s,
+            "steps": None if steps is None else [{"crank_frequency_hz": f, "crank_radius_m": r} for f, r in steps]}
+    d["plan"].update({k: v for k, v in plan.items() if v is not None})
+    if acceleration_hz_per_s is not None:
+        d["rig"]["acceleration_hz_per_s"] = acceleration_hz_per_s
+    if pre_roll_s is not None:
+        d["simulation"]["pre_roll_s"] = pre_roll_s
+    if effects is not None:
+        d["simulation"]["effects"] = effects
+    if recordings_dir is not None:
+        d["station"]["recordings_dir"] = str(recordings_dir)
+    if service:
+        d["service"] = service
+    for name, values in sections.items():
+        d.setdefault(name, {}).update(values)
+    return d
 
-    ``one_radius``: every step at the same crank radius (sinecal-csv v1 can only export such runs).
-    """
-    data = copy.deepcopy(_base_dict())
-    data["plan"]["settle_s"] = 0.2
-    data["plan"]["record_s"] = 0.5
-    data["rig"]["acceleration_hz_per_s"] = 100.0
-    data["simulation"]["pre_roll_s"] = 0.2
-    if one_radius:
-        data["plan"]["steps"] = [{"crank_frequency_hz": f, "crank_radius_m": 0.0004}
-                                 for f in (5.0, 20.0, 60.0)]
-    else:  # the shipped radii, fewer steps: each radius change stops the crank
-        data["plan"]["steps"] = [
-            {"crank_frequency_hz": 4.0, "crank_radius_m": 0.01},
-            {"crank_frequency_hz": 30.0, "crank_radius_m": 0.001},
-            {"crank_frequency_hz": 100.0, "crank_radius_m": 0.00015},
-        ]
-    return data
+
+FAST = {"settle_s": 0.2, "record_s": 0.5, "acceleration_hz_per_s": 100.0, "pre_roll_s": 0.2, "steps": MULTI_RADIUS}
+
+
+def fast_dict(**changes: Any) -> dict[str, Any]:
+    """:func:`station_dict` with short settle/record/pre-roll times and a fast crank ramp (3 steps,
+    3 radii) unless ``changes`` say otherwise."""
+    return station_dict(**{**FAST, **changes})
+
+
+def station_config(**changes: Any) -> StationConfig:
+    """:func:`station_dict` parsed (``fast=True``: over :data:`FAST`)."""
+    fast = changes.pop("fast", False)
+    return parse_config(fast_dict(**changes) if fast else station_dict(**changes), "test")
 
 
 def write_yaml(path: Path, data: Any) -> Path:
@@ -57,28 +82,28 @@ def write_yaml(path: Path, data: Any) -> Path:
 @pytest.fixture
 def base_config_dict() -> dict[str, Any]:
     """A fresh, mutable copy of config/sim-5kN.yaml as parsed YAML."""
-    return copy.deepcopy(_base_dict())
+    return station_dict()
 
 
 @pytest.fixture
 def fast_config_dict() -> dict[str, Any]:
-    return make_fast_dict()
+    return fast_dict()
 
 
 @pytest.fixture
 def fast_config() -> StationConfig:
-    return parse_config(make_fast_dict(), "fast")
+    return parse_config(fast_dict(), "fast")
 
 
 @pytest.fixture
 def fast_config_file(tmp_path: Path) -> Path:
     """The fast (multi-radius) configuration as a YAML file."""
-    return write_yaml(tmp_path / "fast.yaml", make_fast_dict())
+    return write_yaml(tmp_path / "fast.yaml", fast_dict())
 
 
 @pytest.fixture
 def one_radius_config_file(tmp_path: Path) -> Path:
-    return write_yaml(tmp_path / "one-radius.yaml", make_fast_dict(one_radius=True))
+    return write_yaml(tmp_path / "one-radius.yaml", fast_dict(steps=ONE_RADIUS))
 
 
 @pytest.fixture
@@ -95,11 +120,11 @@ def write_config(tmp_path: Path) -> Callable[[dict[str, Any], str], Path]:
 def sim_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A completed simulated recording of the fast multi-radius plan (read-only: do not modify)."""
     out = tmp_path_factory.mktemp("sim")
-    return simulate_run(parse_config(make_fast_dict(), "fast"), out)
+    return simulate_run(parse_config(fast_dict(), "fast"), out)
 
 
 @pytest.fixture(scope="session")
 def sim_recording_one_radius(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A completed simulated recording with a single crank radius (read-only: do not modify)."""
     out = tmp_path_factory.mktemp("sim1r")
-    return simulate_run(parse_config(make_fast_dict(one_radius=True), "fast-1r"), out, seed=7)
+    return simulate_run(parse_config(fast_dict(steps=ONE_RADIUS), "fast-1r"), out, seed=7)

@@ -1,37 +1,71 @@
-"""The HTTP API through a real daemon (``station serve --sim`` on a loopback port): every endpoint,
-every error status, a whole run from POST to results, live events, abort, emergency stop."""
+"""The HTTP API: every endpoint, every error status, results of a finished run, abort, emergency stop.
+
+Most tests run the daemon's app in-process (``tests/station_support.app_in_process``: the real rig
+thread on the simulated rig's in-process backends on a virtual clock, real SQLite and HDF5) over a
+store seeded with a finished, identified simulated run.  A real ``station serve --sim`` (Modbus TCP,
+a pty, real time) carries one whole run from POST to results with its live events, and the
+emergency stop acknowledged from the command line."""
 
 from __future__ import annotations
 
+import asyncio
 import io
 import json
 import time
-from collections.abc import Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
+from typing import Any, TypeVar
 
 import h5py
 import httpx
 import pytest
+import yaml
 
 from station.recording import read_recording, read_stored
-from tests.test_service_support import FINAL, TOKEN, Daemon, run_body
+from tests.station_support import (
+    AUTH,
+    FINAL,
+    TOKEN,
+    Daemon,
+    Seed,
+    app_in_process,
+    daemon_config,
+    run_body,
+    seed_runs,
+    start,
+    wait_state,
+)
 from tests.test_stored_results import killed_in_place_write, small_recording
+
+T = TypeVar("T")
+
+
+@pytest.fixture(scope="module")
+def seeded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """A recordings folder whose store holds one completed, identified 2-step run (10 and 20 Hz)."""
+    rec = tmp_path_factory.mktemp("api") / "recordings"
+    [rid] = seed_runs(daemon_config(rec), [Seed()])
+    return rec, rid
+
+
+def in_app(rec: Path, fn: Callable[[httpx.AsyncClient], Awaitable[T]], **kw: Any) -> T:
+    """``fn(client)`` against the app in-process on the recordings folder ``rec``."""
+    async def go() -> T:
+        async with app_in_process(rec, **kw) as (_, c):
+            return await fn(c)
+    return asyncio.run(go())
 
 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    tmp = tmp_path_factory.mktemp("api")
-    rec_dir = tmp / "recordings"  # what an older station may have left: one flagged recording, one unreadable
-    rec_dir.mkdir()
-    killed_in_place_write(small_recording(rec_dir))
-    (rec_dir / "garbage.h5").write_bytes(b"not HDF5" * 64)
-    with Daemon(tmp) as d:
+    with Daemon(tmp_path_factory.mktemp("api")) as d:
         yield d
 
 
 @pytest.fixture(scope="module")
 def completed(daemon: Daemon) -> dict:
-    """A completed, identified 2-step run (shared, read-only), with the SSE events seen live."""
+    """A completed, identified 2-step run on the real daemon (shared, read-only), with the SSE events
+    seen live."""
     rid = daemon.start_run()
     events = []
     with httpx.stream("GET", f"{daemon.url}/runs/{rid}/events", timeout=60) as r:
@@ -47,13 +81,16 @@ def completed(daemon: Daemon) -> dict:
     return {"id": rid, "events": events, "status": daemon.c().get(f"/runs/{rid}").json()}
 
 
-def anon(daemon: Daemon) -> httpx.Client:
-    return httpx.Client(base_url=daemon.url, timeout=30)
-
-
 # ---------------------------------------------------------------------------------------- reading
-def test_health_reports_each_device_link(daemon: Daemon) -> None:
-    h = anon(daemon).get("/health").json()
+def test_health_reports_each_device_link(tmp_path: Path) -> None:
+    rec_dir = tmp_path / "recordings"  # what an older station may have left: one flagged recording, one unreadable
+    rec_dir.mkdir()
+    killed_in_place_write(small_recording(rec_dir))
+    (rec_dir / "garbage.h5").write_bytes(b"not HDF5" * 64)
+
+    async def go(c: httpx.AsyncClient) -> dict:
+        return (await c.get("/health")).json()
+    h = in_app(rec_dir, go, token=False, workers=1)
     assert h["status"] == "ok"
     assert h["rig"]["connected"] and h["rig"]["simulated"]
     assert h["rig"]["motor"] == {"connected": True, "watchdog_error": None}
@@ -65,15 +102,19 @@ def test_health_reports_each_device_link(daemon: Daemon) -> None:
     assert [u["file"] for u in h["recordings"]["unreadable"]] == ["garbage.h5"]
 
 
-def test_station_shows_the_limits(daemon: Daemon) -> None:
-    s = anon(daemon).get("/station").json()
+def test_station_shows_the_limits(tmp_path: Path) -> None:
+    async def go(c: httpx.AsyncClient) -> dict:
+        return (await c.get("/station")).json()
+    s = in_app(tmp_path, go, token=False)
     assert s["transducer_id"] == "TX5K-0001" and s["simulated"]
     assert s["limits"]["crank_frequency_hz"] == {"min": 1.0, "max": 100.0}
     assert s["limits"]["peak_force_limit_N"] == pytest.approx(4000.0)
 
 
-def test_openapi_documents_every_endpoint(daemon: Daemon) -> None:
-    spec = anon(daemon).get("/openapi.json").json()
+def test_openapi_documents_every_endpoint(tmp_path: Path) -> None:
+    async def go(c: httpx.AsyncClient) -> dict:
+        return (await c.get("/openapi.json")).json()
+    spec = in_app(tmp_path, go, token=False)
     paths = spec["paths"]
     for p, method in [("/runs", "post"), ("/runs", "get"), ("/runs/{run_id}", "get"),
                       ("/runs/{run_id}/events", "get"), ("/runs/{run_id}/results", "get"),
@@ -88,12 +129,13 @@ def test_openapi_documents_every_endpoint(daemon: Daemon) -> None:
     assert "text/event-stream" in paths["/runs/{run_id}/events"]["get"]["responses"]["200"]["content"]
 
 
-def test_web_page_and_assets_are_served(daemon: Daemon) -> None:
-    c = anon(daemon)
-    page = c.get("/")
+def test_web_page_and_assets_are_served(tmp_path: Path) -> None:
+    async def go(c: httpx.AsyncClient) -> tuple[httpx.Response, httpx.Response, httpx.Response]:
+        return await c.get("/"), await c.get("/static/app.js"), await c.get("/static/style.css")
+    page, js, css = in_app(tmp_path, go, token=False)
     assert page.status_code == 200 and "EMERGENCY STOP" in page.text and "/static/app.js" in page.text
-    assert c.get("/static/app.js").status_code == 200
-    assert c.get("/static/style.css").headers["content-type"].startswith("text/css")
+    assert js.status_code == 200
+    assert css.headers["content-type"].startswith("text/css")
 
 
 # ---------------------------------------------------------------------------------------- a whole run
@@ -117,20 +159,33 @@ def test_run_goes_through_its_states_live(completed: dict) -> None:
 
 
 @pytest.mark.slow
-def test_runs_list_and_state_filter(daemon: Daemon, completed: dict) -> None:
-    c = anon(daemon)
-    runs = c.get("/runs").json()
-    assert runs["count"] >= 1 and completed["id"] in [r["id"] for r in runs["runs"]]
-    done = c.get("/runs", params={"state": "completed"}).json()
-    assert all(r["state"] == "completed" for r in done["runs"]) and done["count"] >= 1
-    assert c.get("/runs", params={"state": "aborted", "limit": 1}).json()["count"] <= 1
-    assert c.get("/runs", params={"state": "bogus"}).status_code == 422
-    assert c.get("/runs", params={"limit": 0}).status_code == 422
+def test_results_of_a_live_run(daemon: Daemon, completed: dict) -> None:
+    res = daemon.c().get(f"/runs/{completed['id']}/results").json()
+    k_f = {p["name"]: p for p in res["parameters"]}["k_f"]
+    assert k_f["identifiable"] and abs(k_f["value"] - 2.91e7) < 4 * k_f["std"] + 0.02 * 2.91e7
+    assert [round(s["frequency_hz"]) for s in res["frequency_response"]] == [10, 20]
 
 
-@pytest.mark.slow
-def test_results_have_parameters_with_uncertainties_and_frf(daemon: Daemon, completed: dict) -> None:
-    res = anon(daemon).get(f"/runs/{completed['id']}/results").json()
+def test_runs_list_and_state_filter(seeded: tuple[Path, str]) -> None:
+    rec, rid = seeded
+
+    async def go(c: httpx.AsyncClient) -> None:
+        runs = (await c.get("/runs")).json()
+        assert runs["count"] >= 1 and rid in [r["id"] for r in runs["runs"]]
+        done = (await c.get("/runs", params={"state": "completed"})).json()
+        assert all(r["state"] == "completed" for r in done["runs"]) and done["count"] >= 1
+        assert (await c.get("/runs", params={"state": "aborted", "limit": 1})).json()["count"] <= 1
+        assert (await c.get("/runs", params={"state": "bogus"})).status_code == 422
+        assert (await c.get("/runs", params={"limit": 0})).status_code == 422
+    in_app(rec, go, token=False)
+
+
+def test_results_have_parameters_with_uncertainties_and_frf(seeded: tuple[Path, str]) -> None:
+    rec, rid = seeded
+
+    async def go(c: httpx.AsyncClient) -> dict:
+        return (await c.get(f"/runs/{rid}/results")).json()
+    res = in_app(rec, go, token=False)
     params = {p["name"]: p for p in res["parameters"]}
     assert set(params) >= {"S", "k_f", "b_f"}
     for p in params.values():
@@ -142,72 +197,81 @@ def test_results_have_parameters_with_uncertainties_and_frf(daemon: Daemon, comp
     assert [round(s["frequency_hz"]) for s in frf] == [10, 20]
     assert all(s["H_magnitude_std"] > 0 and s["H_phase_std_deg"] > 0 for s in frf)
     assert res["fit"]["n_points"] > 0 and len(res["fit"]["residual_rms_V"]) == 2
-    assert res["discrepancy"] == f"/runs/{completed['id']}/discrepancy"
+    assert res["discrepancy"] == f"/runs/{rid}/discrepancy"
 
 
 @pytest.mark.slow
-def test_plots_report_recording_and_discrepancy(daemon: Daemon, completed: dict) -> None:
-    c, rid = anon(daemon), completed["id"]
-    res = c.get(f"/runs/{rid}/results").json()
-    assert res["plots"] == {n: f"/runs/{rid}/plots/{n}.png" for n in ("bode", "timefit", "residuals", "convergence")}
-    for url in res["plots"].values():
-        r = c.get(url)
-        assert r.status_code == 200 and r.headers["content-type"] == "image/png"
-        assert r.content[:8] == b"\x89PNG\r\n\x1a\n"
-    r = c.get(f"/runs/{rid}/plots/nosuchplot.png")
-    assert r.status_code == 404 and "bode" in r.json()["detail"]
-    assert res["report"] == f"/runs/{rid}/report"
-    rep = c.get(res["report"])
-    assert rep.status_code == 200 and rep.headers["content-type"].startswith("text/html")
-    assert "TX5K-0001" in rep.text
-    rec = c.get(f"/runs/{rid}/recording")
-    assert rec.status_code == 200 and rec.headers["content-type"] == "application/x-hdf5"
-    assert f'filename="{rid}.h5"' in rec.headers["content-disposition"]
-    with h5py.File(io.BytesIO(rec.content), "r") as f:
-        assert f.attrs["run_id"] == rid and f.attrs["exit_status"] == "completed"
-        assert "results" not in f or not len(f["results"])  # results live beside the recording
-    assert any(k.startswith("identify_") for k in read_stored(daemon.data_dir / f"{rid}.h5"))
-    path = daemon.data_dir / f"{rid}.h5"
-    size = path.stat().st_size
-    missing = c.get(f"/runs/{rid}/discrepancy")  # a GET reads only: nothing stored yet
-    assert missing.status_code == 404 and f"POST /runs/{rid}/discrepancy" in missing.json()["detail"]
-    assert c.post(f"/runs/{rid}/discrepancy").status_code == 401  # computing and storing needs the token
-    disc = daemon.c().post(f"/runs/{rid}/discrepancy", timeout=120)
-    assert disc.status_code == 200, disc.text
-    d = disc.json()
-    assert set(d) == {"base_gap", "effects", "final_gap", "parameters_before", "parameters_after", "unexplained",
-                      "ties", "notes", "drive", "proposal"}
-    assert isinstance(d["ties"], list) and isinstance(d["notes"], list)
-    assert d["final_gap"] <= d["base_gap"] + 1e-12
-    for _ in range(3):  # stored beside the recording; GETs read it and write nothing
-        again = c.get(f"/runs/{rid}/discrepancy")
-        assert again.status_code == 200 and again.json() == d
-    assert path.stat().st_size == size
-    assert "discrepancy" in read_stored(path)  # where the report and `station discrepancy --save` look
-    report = c.get(f"/runs/{rid}/report").text
-    assert "has not been run" not in report and "Model discrepancy" in report
+def test_plots_report_recording_and_discrepancy(seeded: tuple[Path, str]) -> None:
+    rec_dir, rid = seeded
+
+    async def go(c: httpx.AsyncClient) -> None:
+        res = (await c.get(f"/runs/{rid}/results")).json()
+        assert res["plots"] == {n: f"/runs/{rid}/plots/{n}.png" for n in ("bode", "timefit", "residuals",
+                                                                            "convergence")}
+        for url in res["plots"].values():
+            r = await c.get(url)
+            assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+            assert r.content[:8] == b"\x89PNG\r\n\x1a\n"
+        r = await c.get(f"/runs/{rid}/plots/nosuchplot.png")
+        assert r.status_code == 404 and "bode" in r.json()["detail"]
+        assert res["report"] == f"/runs/{rid}/report"
+        rep = await c.get(res["report"])
+        assert rep.status_code == 200 and rep.headers["content-type"].startswith("text/html")
+        assert "TX5K-0001" in rep.text
+        rec = await c.get(f"/runs/{rid}/recording")
+        assert rec.status_code == 200 and rec.headers["content-type"] == "application/x-hdf5"
+        assert f'filename="{rid}.h5"' in rec.headers["content-disposition"]
+        with h5py.File(io.BytesIO(rec.content), "r") as f:
+            assert f.attrs["run_id"] == rid and f.attrs["exit_status"] == "completed"
+            assert "results" not in f or not len(f["results"])  # results live beside the recording
+        assert any(k.startswith("identify_") for k in read_stored(rec_dir / f"{rid}.h5"))
+        path = rec_dir / f"{rid}.h5"
+        size = path.stat().st_size
+        missing = await c.get(f"/runs/{rid}/discrepancy")  # a GET reads only: nothing stored yet
+        assert missing.status_code == 404 and f"POST /runs/{rid}/discrepancy" in missing.json()["detail"]
+        assert (await c.post(f"/runs/{rid}/discrepancy")).status_code == 401  # computing and storing needs the token
+        disc = await c.post(f"/runs/{rid}/discrepancy", headers=AUTH, timeout=120)
+        assert disc.status_code == 200, disc.text
+        d = disc.json()
+        assert set(d) == {"base_gap", "effects", "final_gap", "parameters_before", "parameters_after",
+                          "unexplained", "ties", "notes", "drive", "proposal"}
+        assert isinstance(d["ties"], list) and isinstance(d["notes"], list)
+        assert d["final_gap"] <= d["base_gap"] + 1e-12
+        for _ in range(3):  # stored beside the recording; GETs read it and write nothing
+            again = await c.get(f"/runs/{rid}/discrepancy")
+            assert again.status_code == 200 and again.json() == d
+        assert path.stat().st_size == size
+        assert "discrepancy" in read_stored(path)  # where the report and `station discrepancy --save` look
+        report = (await c.get(f"/runs/{rid}/report")).text
+        assert "has not been run" not in report and "Model discrepancy" in report
+    in_app(rec_dir, go, token=False, render=True)
 
 
-@pytest.mark.slow
-def test_discrepancy_takes_zero_to_eight_effects_as_an_integer(daemon: Daemon, completed: dict) -> None:
-    c, rid = anon(daemon), completed["id"]
-    for bad in ("-1", "9", "true", "2.5"):
-        r = c.get(f"/runs/{rid}/discrepancy", params={"max_effects": bad})
-        assert r.status_code == 422 and "max_effects" in r.text, (bad, r.status_code, r.text)
+def test_discrepancy_takes_zero_to_eight_effects_as_an_integer(seeded: tuple[Path, str]) -> None:
+    rec, rid = seeded
+
+    async def go(c: httpx.AsyncClient) -> None:
+        for bad in ("-1", "9", "true", "2.5"):
+            r = await c.get(f"/runs/{rid}/discrepancy", params={"max_effects": bad})
+            assert r.status_code == 422 and "max_effects" in r.text, (bad, r.status_code, r.text)
+    in_app(rec, go, token=False)
 
 
 # ---------------------------------------------------------------------------------------- errors
-@pytest.mark.slow
-def test_writes_need_the_token(daemon: Daemon, completed: dict) -> None:
-    c = anon(daemon)
-    r = c.post("/runs", json=run_body())
-    assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
-    assert c.post("/runs", json=run_body(), headers={"Authorization": "Bearer wrong-token"}).status_code == 401
-    assert c.post(f"/runs/{completed['id']}/abort").status_code == 401
-    assert c.get(f"/runs/{completed['id']}").status_code == 200  # reading is open on loopback
+def test_writes_need_the_token(seeded: tuple[Path, str]) -> None:
+    rec, rid = seeded
+
+    async def go(c: httpx.AsyncClient) -> None:
+        r = await c.post("/runs", json=run_body())
+        assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
+        assert (await c.post("/runs", json=run_body(), headers={"Authorization": "Bearer wrong-token"})
+                ).status_code == 401
+        assert (await c.post(f"/runs/{rid}/abort")).status_code == 401
+        assert (await c.get(f"/runs/{rid}")).status_code == 200  # reading is open on loopback
+    in_app(rec, go, token=False)
 
 
-@pytest.mark.parametrize(("body", "loc"), [
+INVALID = [
     ({"top_mass_kg": 25.7, "steps": [{"crank_frequency_hz": 10, "crank_radius_m": 0.001}]}, ["body", "transducer_id"]),
     (run_body(freqs=(-5.0,)), ["body", "steps", 0, "crank_frequency_hz"]),
     (run_body(radius=0.0), ["body", "steps", 0, "crank_radius_m"]),
@@ -220,78 +284,89 @@ def test_writes_need_the_token(daemon: Daemon, completed: dict) -> None:
     (run_body(freqs=(10.0, 150.0)), ["body", "steps", 1, "crank_frequency_hz"]),
     (run_body(freqs=(10.0, 20.0, 80.0), radius=0.01), ["body", "steps", 1, "crank_radius_m"]),
     (run_body(radius=0.2), ["body", "steps", 0, "crank_radius_m"]),
-])
-def test_invalid_or_unsafe_requests_are_422_naming_the_field(daemon: Daemon, body: dict, loc: list) -> None:
-    r = daemon.c().post("/runs", json=body)
-    assert r.status_code == 422, r.text
-    locs = [e["loc"] for e in r.json()["detail"]]
-    assert loc in locs, locs
+]
 
 
-def test_peak_force_message_says_the_limit(daemon: Daemon) -> None:
-    r = daemon.c().post("/runs", json=run_body(freqs=(50.0,), radius=0.01))
+def test_invalid_or_unsafe_requests_are_422_naming_the_field(tmp_path: Path) -> None:
+    async def go(c: httpx.AsyncClient) -> None:
+        for body, loc in INVALID:
+            r = await c.post("/runs", json=body)
+            assert r.status_code == 422, (body, r.text)
+            locs = [e["loc"] for e in r.json()["detail"]]
+            assert loc in locs, (body, locs)
+    in_app(tmp_path, go)
+
+
+def test_peak_force_message_says_the_limit(tmp_path: Path) -> None:
+    async def go(c: httpx.AsyncClient) -> httpx.Response:
+        return await c.post("/runs", json=run_body(freqs=(50.0,), radius=0.01))
+    r = in_app(tmp_path, go)
     err = r.json()["detail"][0]
     assert r.status_code == 422 and err["type"] == "limit_error"
     assert "peak force" in err["msg"] and "4000 N" in err["msg"] and err["input"] == 0.01
 
 
-def test_malformed_json_is_422_not_500(daemon: Daemon) -> None:
-    r = daemon.c().post("/runs", content=b'{"transducer_id": ', headers={"Content-Type": "application/json"})
-    assert r.status_code == 422
-    r = daemon.c().post("/runs", content=b'{"transducer_id":"TX5K-0001","top_mass_kg":NaN,"steps":[]}',
-                        headers={"Content-Type": "application/json"})
-    assert r.status_code == 422
+def test_malformed_json_is_422_not_500(tmp_path: Path) -> None:
+    async def go(c: httpx.AsyncClient) -> None:
+        r = await c.post("/runs", content=b'{"transducer_id": ', headers={"Content-Type": "application/json"})
+        assert r.status_code == 422
+        r = await c.post("/runs", content=b'{"transducer_id":"TX5K-0001","top_mass_kg":NaN,"steps":[]}',
+                         headers={"Content-Type": "application/json"})
+        assert r.status_code == 422
+    in_app(tmp_path, go)
 
 
-def test_unknown_runs_are_404_and_bad_ids_422(daemon: Daemon) -> None:
-    c = daemon.c()
-    for path in ("", "/events", "/results", "/plots/bode.png", "/report", "/recording", "/discrepancy", "/proposal"):
-        r = c.get(f"/runs/20990101T000000-NOPE-000000{path}")
-        assert r.status_code == 404, (path, r.status_code, r.text)
-        assert "no run" in r.json()["detail"]
-    for path in ("/abort", "/discrepancy"):
-        assert c.post(f"/runs/20990101T000000-NOPE-000000{path}").status_code == 404
-    assert c.get("/runs/bad id!").status_code == 422
-    for evil in ("..%2F..%2Fetc%2Fpasswd", "..", "%2e%2e"):
-        r = c.get(f"/runs/{evil}/recording")
-        assert r.status_code in (404, 422), (evil, r.status_code)
+def test_unknown_runs_are_404_and_bad_ids_422(tmp_path: Path) -> None:
+    async def go(c: httpx.AsyncClient) -> None:
+        for path in ("", "/events", "/results", "/plots/bode.png", "/report", "/recording", "/discrepancy",
+                     "/proposal"):
+            r = await c.get(f"/runs/20990101T000000-NOPE-000000{path}")
+            assert r.status_code == 404, (path, r.status_code, r.text)
+            assert "no run" in r.json()["detail"]
+        for path in ("/abort", "/discrepancy"):
+            assert (await c.post(f"/runs/20990101T000000-NOPE-000000{path}")).status_code == 404
+        assert (await c.get("/runs/bad id!")).status_code == 422
+        for evil in ("..%2F..%2Fetc%2Fpasswd", "..", "%2e%2e"):
+            r = await c.get(f"/runs/{evil}/recording")
+            assert r.status_code in (404, 422), (evil, r.status_code)
+    in_app(tmp_path, go)
 
 
-@pytest.mark.slow
-def test_busy_rig_409_abort_and_results_states(daemon: Daemon, completed: dict) -> None:
-    c = daemon.c()
-    rid = daemon.start_run(freqs=(10.0,), record_s=30.0)
-    daemon.wait_state(rid, ("running",), step_state="recording")
-    busy = c.post("/runs", json=run_body())
-    assert busy.status_code == 409 and rid in busy.json()["detail"]
-    assert c.get(f"/runs/{rid}/results").status_code == 409
-    assert c.get(f"/runs/{rid}/recording").status_code == 409  # still being written
-    assert c.get(f"/runs/{rid}/plots/bode.png").status_code == 409
-    st = c.get(f"/runs/{rid}").json()
-    assert st["samples"] > 0 and st["current_step"] == 0
-    r = c.post(f"/runs/{rid}/abort")
-    assert r.status_code == 202 and r.json()["id"] == rid
-    st = daemon.wait_state(rid)
-    assert st["state"] == "aborted" and st["reason"] == "aborted by operator"
-    assert c.post(f"/runs/{rid}/abort").status_code == 409
-    res = c.get(f"/runs/{rid}/results")
-    assert res.status_code == 409 and "aborted" in res.json()["detail"]
-    rec = c.get(f"/runs/{rid}/recording")
-    assert rec.status_code == 200
-    with h5py.File(io.BytesIO(rec.content), "r") as f:
-        assert f.attrs["exit_status"] == "aborted"
-    assert c.get(f"/runs/{rid}/discrepancy").status_code == 409
-    assert c.get(f"/runs/{rid}/proposal").status_code == 409
-    # the rig is free again
-    rid2 = daemon.start_run(freqs=(10.0,), record_s=30.0)
-    daemon.wait_state(rid2, ("running",))
-    c.post(f"/runs/{rid2}/abort")
-    daemon.wait_state(rid2)
+def test_busy_rig_409_abort_and_results_states(tmp_path: Path) -> None:
+    async def go(c: httpx.AsyncClient) -> None:
+        rid = await start(c, freqs=(10.0,), record_s=30.0)
+        await wait_state(c, rid, ("running",), step_state="recording")
+        busy = await c.post("/runs", json=run_body())
+        assert busy.status_code == 409 and rid in busy.json()["detail"]
+        assert (await c.get(f"/runs/{rid}/results")).status_code == 409
+        assert (await c.get(f"/runs/{rid}/recording")).status_code == 409  # still being written
+        assert (await c.get(f"/runs/{rid}/plots/bode.png")).status_code == 409
+        st = (await c.get(f"/runs/{rid}")).json()
+        assert st["samples"] > 0 and st["current_step"] == 0
+        r = await c.post(f"/runs/{rid}/abort")
+        assert r.status_code == 202 and r.json()["id"] == rid
+        st = await wait_state(c, rid, FINAL)
+        assert st["state"] == "aborted" and st["reason"] == "aborted by operator"
+        assert (await c.post(f"/runs/{rid}/abort")).status_code == 409
+        res = await c.get(f"/runs/{rid}/results")
+        assert res.status_code == 409 and "aborted" in res.json()["detail"]
+        rec = await c.get(f"/runs/{rid}/recording")
+        assert rec.status_code == 200
+        with h5py.File(io.BytesIO(rec.content), "r") as f:
+            assert f.attrs["exit_status"] == "aborted"
+        assert (await c.get(f"/runs/{rid}/discrepancy")).status_code == 409
+        assert (await c.get(f"/runs/{rid}/proposal")).status_code == 409
+        # the rig is free again
+        rid2 = await start(c, freqs=(10.0,), record_s=30.0)
+        await wait_state(c, rid2, ("running",))
+        await c.post(f"/runs/{rid2}/abort")
+        await wait_state(c, rid2, FINAL)
+    in_app(tmp_path, go)
 
 
 @pytest.mark.slow
 def test_emergency_stop_is_always_accepted(daemon: Daemon, tmp_path: Path) -> None:
-    c = anon(daemon)  # no token: stopping is never refused
+    c = httpx.Client(base_url=daemon.url, timeout=30)  # no token: stopping is never refused
     r = c.post("/stop")
     assert r.status_code == 200 and r.json()["motor_stopped"] and r.json()["aborted_runs"] == []
     # acknowledged from the command line (`station ack` against the daemon, with the token)
@@ -334,13 +409,13 @@ def test_emergency_stop_is_always_accepted(daemon: Daemon, tmp_path: Path) -> No
     assert h["estop"]["last_acknowledged_by"] == "tester"
 
 
-def test_reading_from_another_machine_needs_the_token_and_foreign_hosts_are_refused(daemon: Daemon) -> None:
-    import asyncio
-
+def test_reading_from_another_machine_needs_the_token_and_foreign_hosts_are_refused(tmp_path: Path) -> None:
     from station.api import create_app
     from station.service.settings import load_settings
 
-    settings = load_settings(daemon.cfg_path, sim=True, host="0.0.0.0")
+    cfg_path = tmp_path / "station.yaml"
+    cfg_path.write_text(yaml.safe_dump(daemon_config(tmp_path / "recordings")))
+    settings = load_settings(cfg_path, sim=True, host="0.0.0.0")
     app = create_app(settings)
 
     async def go() -> tuple[int, int, int]:
@@ -348,11 +423,10 @@ def test_reading_from_another_machine_needs_the_token_and_foreign_hosts_are_refu
         async with httpx.AsyncClient(transport=t, base_url="http://192.0.2.1") as c:
             no = (await c.get("/station")).status_code
             yes = (await c.get("/station", headers={"Authorization": f"Bearer {settings.token}"})).status_code
-        local = create_app(load_settings(daemon.cfg_path, sim=True))
+        local = create_app(load_settings(cfg_path, sim=True))
         t2 = httpx.ASGITransport(app=local, client=("127.0.0.1", 5555))
         async with httpx.AsyncClient(transport=t2, base_url="http://evil.example") as c:
             rebinding = (await c.get("/station")).status_code
         return no, yes, rebinding
     no, yes, rebinding = asyncio.run(go())
     assert (no, yes, rebinding) == (401, 200, 400)
-    assert TOKEN  # the daemon's token came from STATION_TOKEN

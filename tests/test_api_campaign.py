@@ -9,7 +9,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.test_service_support import Daemon, run_body
+from tests.station_support import Daemon, run_body
 
 pytestmark = pytest.mark.slow
 END_MASS = 0.12  # the simulated transducer's (config/sim-5kN.yaml)

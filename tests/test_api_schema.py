@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_service_support import TOKEN, Daemon
+from tests.station_support import TOKEN, Daemon
 
 CHECKS = ("not_a_server_error,status_code_conformance,content_type_conformance,response_schema_conformance,"
           "negative_data_rejection,response_headers_conformance")

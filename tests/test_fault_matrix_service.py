@@ -15,7 +15,7 @@ import socket
 import sqlite3
 import threading
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -23,65 +23,24 @@ import h5py
 import httpx
 import pytest
 
-from drivers.sim.clock import VirtualClock
-from station.api import create_app
-from station.config import StationConfig, parse_config
+from station.config import parse_config
 from station.recording import read_recording
 from station.run.request import RunRequest
-from station.run.rig import ConnectedRig, connect
 from station.service.manager import RunManager
-from station.service.settings import ServiceSettings, build_settings
+from station.service.settings import build_settings
 from tests.disk_support import mounted_tmpfs
-from tests.test_service_support import FINAL, TOKEN, Daemon, daemon_config, run_body
-
-AUTH = {"Authorization": f"Bearer {TOKEN}"}
-ON_RIG_DONE = (*FINAL, "identifying")
-
-
-def _virtual_rig(cfg: StationConfig, sim: bool) -> contextlib.AbstractAsyncContextManager[ConnectedRig]:
-    """The simulated rig without a wire, on a virtual clock: a run's seconds take milliseconds."""
-    return connect(cfg, sim=sim, sim_clock=VirtualClock())
-
-
-class _Manager(RunManager):
-    def __init__(self, settings: ServiceSettings) -> None:
-        super().__init__(settings, connector=_virtual_rig)
-
-    async def _warm_render_pool(self) -> None:  # no plots here: no render process to start
-        return None
-
-
-@contextlib.asynccontextmanager
-async def station(rec_dir: Path, *, min_free_mb: float | None = None,
-                  **service: Any) -> AsyncIterator[tuple[RunManager, httpx.AsyncClient]]:
-    """The daemon's app in-process on the simulated rig (no identification workers)."""
-    d = daemon_config(rec_dir, **service)
-    if min_free_mb is not None:
-        d["station"]["min_free_mb"] = min_free_mb
-    settings = build_settings(parse_config(d), sim=True, workers=0, env={"STATION_TOKEN": TOKEN})
-    app = create_app(settings, manager_factory=_Manager)
-    async with app.router.lifespan_context(app):
-        t = httpx.ASGITransport(app=app, client=("127.0.0.1", 40000))
-        async with httpx.AsyncClient(transport=t, base_url="http://127.0.0.1", headers=AUTH, timeout=60) as c:
-            yield app.state.manager, c
-
-
-async def wait_state(c: httpx.AsyncClient, rid: str, states: tuple[str, ...] = ON_RIG_DONE,
-                     step_state: str | None = None, timeout_s: float = 60.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout_s
-    st: dict[str, Any] = {}
-    while time.monotonic() < deadline:
-        st = (await c.get(f"/runs/{rid}")).json()
-        if st["state"] in states and (step_state is None or st["step_state"] == step_state):
-            return st
-        await asyncio.sleep(0.05)
-    raise AssertionError(f"run {rid} not in {states} after {timeout_s} s: {st}")
-
-
-async def start(c: httpx.AsyncClient, **kw: Any) -> str:
-    r = await c.post("/runs", json=run_body(**kw))
-    assert r.status_code == 202, r.text
-    return str(r.json()["id"])
+from tests.station_support import (
+    AUTH,
+    FINAL,
+    ON_RIG_DONE,
+    TOKEN,
+    Daemon,
+    app_in_process,
+    daemon_config,
+    run_body,
+    start,
+    wait_state,
+)
 
 
 def estops(m: RunManager) -> list[dict[str, Any]]:
@@ -101,7 +60,7 @@ def test_stop_latches_until_an_operator_acknowledges(tmp_path: Path, caplog: pyt
     fault itself (`reset_faults()` at every start) and moves the crank; nothing is logged |"""
 
     async def go() -> None:
-        async with station(tmp_path / "rec") as (m, c):
+        async with app_in_process(tmp_path / "rec") as (m, c):
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
             r = await c.post("/stop", headers={"X-Station-Client": "page"})
@@ -141,7 +100,7 @@ def test_controller_estop_fault_latches_and_a_fault_at_start_is_not_cleared(tmp_
     fault itself (`reset_faults()` at every start) and moves the crank; nothing is logged |"""
 
     async def go() -> None:
-        async with station(tmp_path / "rec") as (m, c):
+        async with app_in_process(tmp_path / "rec") as (m, c):
             assert m.rig is not None and m.rig.sim is not None
             sim_motor = m.rig.sim.motor
             # the controller's own e-stop during a run (its button, not the daemon's)
@@ -316,9 +275,12 @@ def test_a_real_full_disk_fails_the_run_with_its_cause_and_frees_the_rig(
         monkeypatch.setattr(RecordingWriter, "_check_space", lambda self, nbytes: None)
     cause = "disk full (no space left on device" if guard == "writer guard off" else "disk"
 
+    config = daemon_config(small_disk)
+    config["station"]["min_free_mb"] = 0.0
+
     async def go() -> None:
         # no space kept in reserve by the writer's guard: the disk really fills (ENOSPC)
-        async with station(small_disk, min_free_mb=0.0) as (m, c):
+        async with app_in_process(small_disk, config=config) as (m, c):
             assert (await c.get("/health")).json()["disk"]["reserve_file"]
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
@@ -400,7 +362,7 @@ def test_a_finished_run_leaves_nothing_behind_without_waiting_for_the_garbage_co
     import weakref
 
     async def go() -> None:
-        async with station(tmp_path / "rec") as (m, c):
+        async with app_in_process(tmp_path / "rec") as (m, c):
             for _ in range(2):
                 rid = await start(c, freqs=(10.0,))
                 while (live := m.live.get(rid)) is None or live.proc is None or live.proc.acq is None:
@@ -424,7 +386,7 @@ def test_a_body_that_is_not_utf8_is_refused_clearly(tmp_path: Path) -> None:
     """| a body that is not UTF-8 | 500, connection dropped |"""
 
     async def go() -> None:
-        async with station(tmp_path / "rec") as (_, c):
+        async with app_in_process(tmp_path / "rec") as (_, c):
             for ctype in ("application/json", None):
                 headers = {"Content-Type": ctype} if ctype else {}
                 r = await c.post("/runs", content=b'{"transducer_id": "\xff\xfe"}', headers=headers)
@@ -445,7 +407,7 @@ def test_booleans_and_strings_are_not_numbers(tmp_path: Path) -> None:
     assert RunRequest.model_validate(as_int).steps[0].crank_frequency_hz == 10.0  # an integer is a number
 
     async def go() -> None:
-        async with station(tmp_path / "rec") as (m, c):
+        async with app_in_process(tmp_path / "rec") as (m, c):
             for field, value, loc in [("crank_frequency_hz", True, ["body", "steps", 0, "crank_frequency_hz"]),
                                       ("crank_frequency_hz", "10", ["body", "steps", 0, "crank_frequency_hz"]),
                                       ("crank_radius_m", "0.001", ["body", "steps", 0, "crank_radius_m"]),
@@ -468,7 +430,7 @@ def test_after_an_abort_progress_and_the_first_reason_stay(tmp_path: Path) -> No
     """| after an abort | progress 1.0 and "done"; a later abort overwrites the reason "emergency stop" |"""
 
     async def go() -> None:
-        async with station(tmp_path / "rec") as (_, c):
+        async with app_in_process(tmp_path / "rec") as (_, c):
             rid = await start(c, freqs=(10.0, 20.0), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
             assert (await c.post("/stop")).status_code == 200
@@ -489,7 +451,7 @@ def test_a_cross_site_request_cannot_reach_stop(tmp_path: Path) -> None:
     """| any web page | can trigger `/stop` with a cross-site form post |"""
 
     async def go() -> None:
-        async with station(tmp_path / "rec") as (m, c):
+        async with app_in_process(tmp_path / "rec") as (m, c):
             anon = {"Authorization": ""}
             form = {"Content-Type": "application/x-www-form-urlencoded", **anon}
             for headers in ({"Origin": "http://evil.example", "Sec-Fetch-Site": "cross-site", **form},

@@ -22,7 +22,7 @@ from station.run.request import RunRequest, StepSpec
 from station.service.manager import RequestLimitError, RunManager, RunStateError, check_request
 from station.service.settings import build_settings
 from station.service.store import RunRow, Store
-from tests.test_service_support import Daemon, daemon_config
+from tests.station_support import Daemon, daemon_config
 
 
 def _row(run_id: str, state: str = "queued", created: float | None = None) -> RunRow:
@@ -295,7 +295,7 @@ def test_unreachable_rig_health_degraded_runs_503_stop_still_accepted(tmp_path: 
     import httpx
     import yaml
 
-    from tests.test_service_support import TOKEN, free_port, run_body
+    from tests.station_support import TOKEN, free_port, run_body
 
     d = daemon_config(tmp_path / "rec")
     del d["simulation"]

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from tests.test_service_support import TOKEN, Daemon, run_body
+from tests.station_support import TOKEN, Daemon, run_body
 from tests.web_support import ARGS, CHROMIUM, sync_api
 
 pytestmark = pytest.mark.slow  # a real daemon, a real run and a real browser: the end-to-end layer

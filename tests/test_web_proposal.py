@@ -14,7 +14,7 @@ from collections.abc import Iterator
 import pytest
 import yaml
 
-from tests.test_service_support import TOKEN, Daemon, daemon_config
+from tests.station_support import TOKEN, Daemon, daemon_config
 from tests.web_support import ARGS, CHROMIUM, sync_api
 
 K_F, B_F = 2.91e7, 17136.0  # the truth of config/sim-5kN.yaml (N/m, N*s/m)

@@ -1,0 +1,264 @@
+"""The daemon two ways, for the API tests.
+
+- :func:`app_in_process`: ``create_app`` in this process through httpx's ASGI transport, with the
+  real rig thread, SQLite and HDF5, the simulated rig's in-process backends on a virtual clock (a
+  run's seconds take milliseconds), and a store that :func:`seed_runs` may have filled with
+  finished simulated recordings (identified, as the worker would have left them).  Everything that
+  does not need a real process, socket or signal runs here.
+- :class:`Daemon`: a real ``station serve --sim`` process on a free loopback port (Modbus TCP and a
+  pty to the emulators, real time), for kills, signals, the browser and generated HTTP clients.
+
+Both use the same short configuration (:func:`daemon_config`: 2-step runs, settle 0.2 s, record
+0.5 s, 50 Hz/s ramps) and the same token.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import copy
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import AsyncIterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import yaml
+
+from station.config import StationConfig, parse_config
+from station.service.store import RunRow, Store
+from tests.conftest import fast_dict
+
+TOKEN = "test-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+FINAL = ("completed", "aborted", "failed", "interrupted")
+ON_RIG_DONE = (*FINAL, "identifying")
+
+
+def daemon_config(data_dir: Path, **service: Any) -> dict[str, Any]:
+    """The daemon tests' configuration as parsed YAML (recordings and database in ``data_dir``)."""
+    return fast_dict(steps=((10.0, 0.001), (20.0, 0.001)), acceleration_hz_per_s=50.0, recordings_dir=data_dir,
+                     service=service or None)
+
+
+def run_body(freqs: tuple[float, ...] = (10.0, 20.0), radius: float = 0.001, **step: Any) -> dict[str, Any]:
+    return {"transducer_id": "TX5K-0001", "top_mass_kg": 25.717,
+            "steps": [{"crank_frequency_hz": f, "crank_radius_m": radius, **step} for f in freqs]}
+
+
+# ---------------------------------------------------------------------------------------- seeded runs
+@dataclass(frozen=True)
+class Seed:
+    """A finished run to put in a store: its steps (Hz, m), top mass (kg), record time (s), seed."""
+
+    freqs: Sequence[float] = (10.0, 20.0)
+    radius_m: float = 0.001
+    top_mass_kg: float = 25.717
+    record_s: float = 0.5
+    seed: int = 1
+
+
+def seed_runs(config: dict[str, Any], seeds: Sequence[Seed]) -> list[str]:
+    """Simulate, process and identify each run (as the daemon's worker would) into the configured
+    recordings folder and store it as ``completed`` in the daemon's database; returns the run ids.
+
+    ``config``: the daemon's configuration as parsed YAML.  The recordings are simulated from the
+    physics (``station.simulate``), not by the code under test."""
+    from station.run.calibrate import process_and_identify
+    from station.run.request import RunRequest, plan_run
+    from station.service.settings import build_settings
+    from station.simulate import simulate_run
+
+    cfg = parse_config(config)
+    settings = build_settings(cfg, sim=True, workers=0, env={"STATION_TOKEN": TOKEN})
+    store = Store(settings.database)
+    ids = []
+    try:
+        for s in seeds:
+            body = run_body(tuple(s.freqs), s.radius_m, record_s=s.record_s)
+            body["top_mass_kg"] = s.top_mass_kg
+            request = RunRequest.model_validate(body)
+            plan = plan_run(cfg, request)
+            run = copy.deepcopy(config)
+            run["plan"].update(record_s=s.record_s, steps=[
+                {"crank_frequency_hz": f, "crank_radius_m": s.radius_m} for f in s.freqs])
+            run["rig"]["top_mass_kg"] = s.top_mass_kg
+            path = simulate_run(parse_config(run), settings.recordings_dir, seed=s.seed)
+            res = process_and_identify(path)
+            now = time.time()
+            store.insert_run(RunRow(
+                id=path.stem, state="completed", transducer_id=request.transducer_id,
+                top_mass_kg=request.top_mass_kg, request_json=request.model_dump_json(),
+                plan_json=json.dumps(plan.to_dict()), created=now, n_steps=len(plan.steps), started=now,
+                ended=now, step=len(plan.steps) - 1, step_state="done", fraction=1.0,
+                samples=int(sum(st.record_s for st in plan.steps) * cfg.daq.sample_rate_hz),
+                message="identified (seeded)", recording=path.name, result_name=res.result_name))
+            ids.append(path.stem)
+    finally:
+        store.close()
+    return ids
+
+
+# ---------------------------------------------------------------------------------------- in process
+@contextlib.asynccontextmanager
+async def app_in_process(rec_dir: Path, *, config: dict[str, Any] | None = None, workers: int = 0,
+                         render: bool = False, client: str = "127.0.0.1", token: bool = True,
+                         **service: Any) -> AsyncIterator[tuple[Any, httpx.AsyncClient]]:
+    """The daemon's app in-process on the simulated rig (virtual clock, no wire); yields (manager,
+    client: with the token unless ``token=False``).  ``workers``: identification processes (0: runs
+    stop at ``identifying``); ``render``: start the render worker at once (plots, report, discrepancy);
+    ``client``: the caller's address."""
+    from drivers.sim.clock import VirtualClock
+    from station.api import create_app
+    from station.run.rig import connect
+    from station.service.manager import RunManager
+    from station.service.settings import ServiceSettings, build_settings
+
+    def virtual_rig(cfg: StationConfig, sim: bool) -> contextlib.AbstractAsyncContextManager[Any]:
+        return connect(cfg, sim=sim, sim_clock=VirtualClock())
+
+    class Manager(RunManager):
+        def __init__(self, settings: ServiceSettings) -> None:
+            super().__init__(settings, connector=virtual_rig)
+
+        async def _warm_render_pool(self) -> None:
+            if render:
+                await super()._warm_render_pool()
+
+    d = config if config is not None else daemon_config(rec_dir, **service)
+    settings = build_settings(parse_config(d), sim=True, workers=workers, env={"STATION_TOKEN": TOKEN})
+    app = create_app(settings, manager_factory=Manager)
+    async with app.router.lifespan_context(app):
+        t = httpx.ASGITransport(app=app, client=(client, 40000))
+        async with httpx.AsyncClient(transport=t, base_url="http://127.0.0.1", headers=AUTH if token else None,
+                                     timeout=60) as c:
+            yield app.state.manager, c
+
+
+async def wait_state(c: httpx.AsyncClient, rid: str, states: tuple[str, ...] = ON_RIG_DONE,
+                     step_state: str | None = None, timeout_s: float = 60.0) -> dict[str, Any]:
+    """Poll ``GET /runs/{rid}`` until the run is in one of ``states`` (and ``step_state``)."""
+    deadline = time.monotonic() + timeout_s
+    st: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        st = (await c.get(f"/runs/{rid}")).json()
+        if st["state"] in states and (step_state is None or st["step_state"] == step_state):
+            return st
+        await asyncio.sleep(0.05)
+    raise AssertionError(f"run {rid} not in {states} after {timeout_s} s: {st}")
+
+
+async def start(c: httpx.AsyncClient, **kw: Any) -> str:
+    """POST /runs with :func:`run_body` (``kw``); the run's id."""
+    r = await c.post("/runs", json=run_body(**kw))
+    assert r.status_code == 202, r.text
+    return str(r.json()["id"])
+
+
+# ---------------------------------------------------------------------------------------- a real daemon
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Daemon:
+    """``station serve --sim`` in a subprocess; ``client`` talks to it (with the token).
+    ``config``: the configuration as parsed YAML (default :func:`daemon_config`); ``seeds``: finished
+    runs put in its store before it starts (:func:`seed_runs`, ids in ``seeded``)."""
+
+    def __init__(self, tmp: Path, *, workers: int = 1, data_dir: Path | None = None, name: str = "daemon",
+                 config: dict[str, Any] | None = None, seeds: Sequence[Seed] = (), **service: Any) -> None:
+        self.tmp = tmp
+        self.data_dir = data_dir or tmp / "recordings"
+        cfg = config if config is not None else daemon_config(self.data_dir, **service)
+        cfg["station"]["recordings_dir"] = str(self.data_dir)
+        self.cfg_path = tmp / f"{name}.yaml"
+        self.cfg_path.write_text(yaml.safe_dump(cfg))
+        self.seeded = seed_runs(cfg, seeds) if seeds else []
+        self.log_path = tmp / f"{name}.log"
+        self.workers = workers
+        self.port = 0
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.client: httpx.Client | None = None
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def start(self, timeout_s: float = 40.0) -> Daemon:
+        self.port = free_port()
+        env = {**os.environ, "STATION_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
+        log = self.log_path.open("ab")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "station.cli", "serve", "--sim", "--config", str(self.cfg_path),
+             "--port", str(self.port), "--workers", str(self.workers)],
+            stdout=log, stderr=subprocess.STDOUT, env=env, cwd=self.tmp)
+        log.close()
+        self.client = httpx.Client(base_url=self.url, headers=AUTH, timeout=30.0)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"daemon exited with {self.proc.returncode}:\n{self.log()}")
+            try:
+                if self.client.get("/health").status_code == 200:
+                    return self
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        raise RuntimeError(f"daemon not ready in {timeout_s} s:\n{self.log()}")
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")[-6000:] if self.log_path.exists() else ""
+
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 40.0) -> int:
+        assert self.proc is not None
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+                raise
+        if self.client is not None:
+            self.client.close()
+        return int(self.proc.returncode)
+
+    def kill(self) -> None:
+        self.stop(signal.SIGKILL)
+
+    def __enter__(self) -> Daemon:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.stop()
+
+    # ---- helpers
+    def c(self) -> httpx.Client:
+        assert self.client is not None
+        return self.client
+
+    def start_run(self, **kw: Any) -> str:
+        r = self.c().post("/runs", json=run_body(**kw))
+        assert r.status_code == 202, r.text
+        return str(r.json()["id"])
+
+    def wait_state(self, run_id: str, states: tuple[str, ...] = FINAL, timeout_s: float = 60.0,
+                   step_state: str | None = None) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout_s
+        st: dict[str, Any] = {}
+        while time.monotonic() < deadline:
+            st = self.c().get(f"/runs/{run_id}").json()
+            if st["state"] in states and (step_state is None or st["step_state"] == step_state):
+                return st
+            time.sleep(0.1)
+        raise AssertionError(f"run {run_id} not in {states} after {timeout_s} s: {st}\n{self.log()}")
