@@ -24,10 +24,10 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 import yaml
@@ -38,6 +38,7 @@ from tests.conftest import fast_dict
 
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
+T = TypeVar("T")
 FINAL = ("completed", "aborted", "failed", "interrupted")
 ON_RIG_DONE = (*FINAL, "identifying")
 
@@ -108,13 +109,11 @@ def seed_runs(config: dict[str, Any], seeds: Sequence[Seed]) -> list[str]:
 
 # ---------------------------------------------------------------------------------------- in process
 @contextlib.asynccontextmanager
-async def app_in_process(rec_dir: Path, *, config: dict[str, Any] | None = None, workers: int = 0,
-                         render: bool = False, client: str = "127.0.0.1", token: bool = True,
-                         **service: Any) -> AsyncIterator[tuple[Any, httpx.AsyncClient]]:
-    """The daemon's app in-process on the simulated rig (virtual clock, no wire); yields (manager,
-    client: with the token unless ``token=False``).  ``workers``: identification processes (0: runs
-    stop at ``identifying``); ``render``: start the render worker at once (plots, report, discrepancy);
-    ``client``: the caller's address."""
+async def running_app(rec_dir: Path, *, config: dict[str, Any] | None = None, workers: int = 0,
+                      render: bool = False, **service: Any) -> AsyncIterator[Any]:
+    """The daemon's FastAPI app, started (its lifespan entered) in this process on the simulated rig
+    (virtual clock, no wire).  ``workers``: identification processes (0: runs stop at
+    ``identifying``); ``render``: start the render worker at once (plots, report, discrepancy)."""
     from drivers.sim.clock import VirtualClock
     from station.api import create_app
     from station.run.rig import connect
@@ -136,10 +135,50 @@ async def app_in_process(rec_dir: Path, *, config: dict[str, Any] | None = None,
     settings = build_settings(parse_config(d), sim=True, workers=workers, env={"STATION_TOKEN": TOKEN})
     app = create_app(settings, manager_factory=Manager)
     async with app.router.lifespan_context(app):
-        t = httpx.ASGITransport(app=app, client=(client, 40000))
-        async with httpx.AsyncClient(transport=t, base_url="http://127.0.0.1", headers=AUTH if token else None,
-                                     timeout=60) as c:
-            yield app.state.manager, c
+        yield app
+
+
+def asgi_client(app: Any, *, token: bool = True, client: str = "127.0.0.1") -> httpx.AsyncClient:
+    """A client of the app in this process (with the token unless ``token=False``), calling from ``client``."""
+    t = httpx.ASGITransport(app=app, client=(client, 40000))
+    return httpx.AsyncClient(transport=t, base_url="http://127.0.0.1", headers=AUTH if token else None, timeout=60)
+
+
+@contextlib.asynccontextmanager
+async def app_in_process(rec_dir: Path, *, token: bool = True, client: str = "127.0.0.1",
+                         **kw: Any) -> AsyncIterator[tuple[Any, httpx.AsyncClient]]:
+    """:func:`running_app` (``kw``) and a client of it; yields (the run manager, the client)."""
+    async with running_app(rec_dir, **kw) as app, asgi_client(app, token=token, client=client) as c:
+        yield app.state.manager, c
+
+
+class HeldApp:
+    """:func:`running_app` held open across tests (a module fixture): ``call(fn)`` awaits
+    ``fn(client)`` on the app's own loop (``anon=True``: a client without the token); ``close()``."""
+
+    def __init__(self, rec_dir: Path, **kw: Any) -> None:
+        self.loop = asyncio.new_event_loop()
+        self._cm = running_app(rec_dir, **kw)
+        self.app = self.loop.run_until_complete(self._cm.__aenter__())
+        self.manager = self.app.state.manager
+        self.client, self.anon = asgi_client(self.app), asgi_client(self.app, token=False)
+
+    def call(self, fn: Callable[[httpx.AsyncClient], Awaitable[T]], *, anon: bool = False) -> T:
+        return self.loop.run_until_complete(fn(self.anon if anon else self.client))
+
+    def get(self, url: str, *, anon: bool = False, **kw: Any) -> httpx.Response:
+        return self.loop.run_until_complete((self.anon if anon else self.client).get(url, **kw))
+
+    def post(self, url: str, *, anon: bool = False, **kw: Any) -> httpx.Response:
+        return self.loop.run_until_complete((self.anon if anon else self.client).post(url, **kw))
+
+    def close(self) -> None:
+        try:
+            for c in (self.client, self.anon):
+                self.loop.run_until_complete(c.aclose())
+            self.loop.run_until_complete(self._cm.__aexit__(None, None, None))
+        finally:
+            self.loop.close()
 
 
 async def wait_state(c: httpx.AsyncClient, rid: str, states: tuple[str, ...] = ON_RIG_DONE,

@@ -1,38 +1,35 @@
-"""POST /campaigns through a real daemon (``station serve --sim``): two runs of the simulated
-transducer with different top masses identified jointly; the refusals and error statuses."""
+"""POST /campaigns on the daemon's app in-process over a store seeded with two finished runs of the
+simulated transducer with different top masses, identified jointly; the refusals and error statuses."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
 
-import httpx
 import pytest
 
-from tests.station_support import Daemon, run_body
+from tests.station_support import HeldApp, Seed, daemon_config, seed_runs
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.slow  # the campaign is computed in the render worker (a process start)
+Runs = tuple[HeldApp, list[str]]
 END_MASS = 0.12  # the simulated transducer's (config/sim-5kN.yaml)
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Daemon, list[str]]]:
-    with Daemon(tmp_path_factory.mktemp("campaign")) as d:
-        ids = []
-        for top in (5.0, 25.717):
-            body = run_body((10.0, 80.0), 2e-4, settle_s=0.2, record_s=0.5)
-            body["top_mass_kg"] = top
-            r = d.c().post("/runs", json=body)
-            assert r.status_code == 202, r.text
-            ids.append(r.json()["id"])
-            st = d.wait_state(ids[-1], timeout_s=120)
-            assert st["state"] == "completed", d.log()[-6000:]
-        yield d, ids
+def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[HeldApp, list[str]]]:
+    rec = tmp_path_factory.mktemp("campaign") / "recordings"
+    ids = seed_runs(daemon_config(rec), [Seed((10.0, 80.0), 2e-4, top, seed=s)
+                                         for s, top in ((1, 5.0), (2, 25.717))])
+    app = HeldApp(rec)
+    try:
+        yield app, ids
+    finally:
+        app.close()
 
 
-def test_two_runs_separate_the_end_mass(runs: tuple[Daemon, list[str]]) -> None:
+def test_two_runs_separate_the_end_mass(runs: Runs) -> None:
     d, ids = runs
-    r = d.c().post("/campaigns", json={"runs": ids})
+    r = d.post("/campaigns", json={"runs": ids})
     assert r.status_code == 200, r.text
     out = r.json()
     assert out["status"] == "separated" and out["runs"] == ids
@@ -42,16 +39,16 @@ def test_two_runs_separate_the_end_mass(runs: tuple[Daemon, list[str]]) -> None:
     assert [rec["load_mass_kg"]["value"] for rec in out["recordings"]] == pytest.approx([5.45, 26.167])
 
 
-def test_one_run_is_conditional_on_the_stated_end_mass(runs: tuple[Daemon, list[str]]) -> None:
+def test_one_run_is_conditional_on_the_stated_end_mass(runs: Runs) -> None:
     d, ids = runs
-    out = d.c().post("/campaigns", json={"runs": ids[:1]}).json()
+    out = d.post("/campaigns", json={"runs": ids[:1]}).json()
     assert out["status"] == "conditional" and out["parameters"]["m_e"]["value"] is None
     assert next(c for c in out["checks"] if c["name"] == "end_mass_separation")["severity"] == "refused"
 
 
-def test_errors(runs: tuple[Daemon, list[str]], tmp_path: Path) -> None:
+def test_errors(runs: tuple[HeldApp, list[str]], tmp_path: Path) -> None:
     d, ids = runs
-    c = d.c()
+    c = d
     r = c.post("/campaigns", json={"runs": [ids[0], ids[0]]})
     assert r.status_code == 422 and "more than once" in r.json()["detail"][0]["msg"]
     assert c.post("/campaigns", json={"runs": ["no-such-run"]}).status_code == 404
@@ -59,12 +56,11 @@ def test_errors(runs: tuple[Daemon, list[str]], tmp_path: Path) -> None:
     assert c.post("/campaigns", json={"runs": ["../etc"]}).status_code == 422
 
 
-def test_campaigns_need_the_token_and_the_runs_report_shows_the_stored_campaign(runs: tuple[Daemon, list[str]]) -> None:
+def test_campaigns_need_the_token_and_the_runs_report_shows_the_stored_campaign(runs: Runs) -> None:
     d, ids = runs
-    anon = httpx.Client(base_url=d.url, timeout=60)
-    assert anon.post("/campaigns", json={"runs": ids}).status_code == 401  # a computation: the token, always
-    assert anon.post("/campaigns", json={"runs": ids, "store": True}).status_code == 401
-    r = d.c().post("/campaigns", json={"runs": ids, "store": True})
+    assert d.post("/campaigns", json={"runs": ids}, anon=True).status_code == 401  # a computation: the token, always
+    assert d.post("/campaigns", json={"runs": ids, "store": True}, anon=True).status_code == 401
+    r = d.post("/campaigns", json={"runs": ids, "store": True})
     assert r.status_code == 200 and r.json()["stored_as"] == "<run>.results/results.campaign.h5"
-    html = d.c().get(f"/runs/{ids[0]}/report").text
+    html = d.get(f"/runs/{ids[0]}/report").text
     assert "Multi-mass campaign" in html and 'data-key="campaign.m_e"' in html

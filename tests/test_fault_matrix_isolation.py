@@ -24,8 +24,7 @@ from station.cli import main
 from station.errors import BadInputError, ConfigError, RecordingFormatError
 from station.service.instance import LOCK_NAME, InstanceLock
 from tests.disk_support import mounted_tmpfs
-from tests.test_fault_matrix_service import station
-from tests.test_service_support import FINAL, TOKEN, Daemon, daemon_config, run_body
+from tests.station_support import FINAL, TOKEN, Daemon, app_in_process, daemon_config, run_body
 
 # --------------------------------------------------------------------------------------- bad bodies
 POSTS = ("/runs", "/runs/no-such-run/abort", "/runs/no-such-run/discrepancy", "/stop/acknowledge", "/campaigns")
@@ -64,7 +63,7 @@ def test_every_bad_body_on_every_post_endpoint_is_a_clear_4xx(tmp_path: Path) ->
     `/campaigns` for every non-JSON content type (octet-stream, text/plain, form, multipart) |"""
 
     async def go() -> None:
-        async with station(tmp_path / "rec") as (m, c):
+        async with app_in_process(tmp_path / "rec") as (m, c):
             for path in POSTS:
                 for ctype, body in NOT_JSON.items():
                     r = await c.post(path, content=body, headers={"Content-Type": ctype})
@@ -89,7 +88,7 @@ def test_campaigns_need_the_token_even_on_loopback(tmp_path: Path) -> None:
     """| non-UTF-8 bodies | `/campaigns` needs no token and accepts cross-site text/plain |"""
 
     async def go() -> None:
-        async with station(tmp_path / "rec") as (_, c):
+        async with app_in_process(tmp_path / "rec") as (_, c):
             anon = {"Authorization": "", "Content-Type": "text/plain", "Origin": "http://evil.example",
                     "Sec-Fetch-Site": "cross-site"}
             r = await c.post("/campaigns", content=json.dumps({"runs": ["x"]}).encode(), headers=anon)
