@@ -1,6 +1,6 @@
 """Schemathesis against the daemon's OpenAPI schema: generated requests for every operation (the
 run-id parameter pinned to a real, completed run so results, plots, report and discrepancy are
-reached) find no server error and no response outside the documented statuses, content types
+reached; the run is seeded into the daemon's store before it starts) find no server error and no response outside the documented statuses, content types
 and schemas.
 
 Left out on purpose: `ignored_auth`/`missing_required_header` (reading is open on loopback by
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.station_support import TOKEN, Daemon
+from tests.station_support import TOKEN, Daemon, Seed
 
 CHECKS = ("not_a_server_error,status_code_conformance,content_type_conformance,response_schema_conformance,"
           "negative_data_rejection,response_headers_conformance")
@@ -24,9 +24,9 @@ CHECKS = ("not_a_server_error,status_code_conformance,content_type_conformance,r
 
 @pytest.mark.slow
 def test_schemathesis_finds_no_server_error(tmp_path: Path) -> None:
-    with Daemon(tmp_path) as d:
-        rid = d.start_run()
-        assert d.wait_state(rid)["state"] == "completed"
+    with Daemon(tmp_path, seeds=[Seed()]) as d:
+        [rid] = d.seeded
+        assert d.c().get(f"/runs/{rid}").json()["state"] == "completed"
         cfg = tmp_path / "schemathesis.toml"
         # max_effects pinned: each value is a fresh model-gap analysis of ~10 s in the render worker,
         # which tests nothing new about the schema; its bounds are checked in tests/test_api.py

@@ -1,7 +1,8 @@
 """The follow-up run from the technicians' page, in a real headless Chromium against ``station serve
 --sim`` whose simulated transducer sits on a soft coupling (k_c = 2 k_f): a 3-40 Hz run cannot tell
 the coupling from a delay or a low-pass; the page shows the proposed steps; one click starts them
-(the run's own steps plus the added ones).
+(the run's own steps plus the added ones).  The 3-40 Hz run is seeded into the daemon's store before
+it starts (simulated and identified as the daemon would), so that no real-time run is needed to make it.
 
 Skipped only when /usr/bin/chromium is absent and CI is not set; under CI it must run.
 """
@@ -12,9 +13,8 @@ import re
 from collections.abc import Iterator
 
 import pytest
-import yaml
 
-from tests.station_support import TOKEN, Daemon, daemon_config
+from tests.station_support import TOKEN, Daemon, Seed, daemon_config
 from tests.web_support import ARGS, CHROMIUM, sync_api
 
 K_F, B_F = 2.91e7, 17136.0  # the truth of config/sim-5kN.yaml (N/m, N*s/m)
@@ -24,12 +24,10 @@ TIE_STEPS = (3.0, 5.036, 8.455, 14.193, 23.827, 40.0)
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
     tmp = tmp_path_factory.mktemp("web-proposal")
-    d = Daemon(tmp)
-    cfg = daemon_config(d.data_dir)
+    cfg = daemon_config(tmp / "recordings")
     cfg["simulation"]["effects"] = {"coupling_compliance": {"k_c": 2 * K_F, "b_c": 0.5 * B_F}}
     cfg["rig"]["acceleration_hz_per_s"] = 100.0
-    d.cfg_path.write_text(yaml.safe_dump(cfg))
-    with d:
+    with Daemon(tmp, config=cfg, seeds=[Seed(TIE_STEPS, 0.00125)]) as d:
         yield d
 
 
@@ -57,8 +55,8 @@ def test_proposal_of_an_unknown_run_is_404(daemon: Daemon) -> None:
 @pytest.mark.slow
 def test_run_the_proposed_steps_with_one_click(page: object, daemon: Daemon) -> None:
     pg = page
-    rid = daemon.start_run(freqs=TIE_STEPS, radius=0.00125)
-    assert daemon.wait_state(rid, timeout_s=120)["state"] == "completed"
+    [rid] = daemon.seeded
+    assert daemon.c().get(f"/runs/{rid}").json()["state"] == "completed"
     assert daemon.c().get(f"/runs/{rid}/proposal").status_code == 404  # not analysed yet: a GET computes nothing
     assert daemon.c().post(f"/runs/{rid}/discrepancy").status_code == 200
     api = daemon.c().get(f"/runs/{rid}/proposal").json()
