@@ -1,7 +1,7 @@
 """Schemathesis against the daemon's OpenAPI schema: generated requests for every operation (the
 run-id parameter pinned to a real, completed run so results, plots, report and discrepancy are
-reached; the run is seeded into the daemon's store before it starts) find no server error and no response outside the documented statuses, content types
-and schemas.
+reached; the run is seeded into the daemon's store before it starts) find no server error and no
+response outside the documented statuses, content types and schemas.
 
 Left out on purpose: `ignored_auth`/`missing_required_header` (reading is open on loopback by
 design), `positive_data_acceptance` (a schema-valid run can still break the configured rig limits:

@@ -1,5 +1,10 @@
-"""``station paper --quick``: the report's structure, its measured claims and the figures."""
+"""``station paper --quick``: the report's structure, its measured claims and the figures.
 
+The reproduction is computed once, through the command (``station paper --quick --json``), and
+every test reads that one report."""
+
+import contextlib
+import io
 import json
 from pathlib import Path
 
@@ -12,9 +17,11 @@ pytestmark = pytest.mark.slow  # the quick paper reproduction alone takes ~7 s
 
 @pytest.fixture(scope="module")
 def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
-    from station.paper import run_paper
     out = tmp_path_factory.mktemp("paper")
-    return run_paper(out, quick=True, seed=0), out
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(["paper", "--quick", "--json", "--out", str(out)]) == 0
+    return json.loads(printed.getvalue()), out
 
 
 def test_report_has_the_paper_sections_side_by_side(report) -> None:
@@ -99,7 +106,6 @@ def test_explanations_quote_measured_numbers(report) -> None:
     assert f"(ours: {power['ours']:.3g})" in text and f"largest gain is {power['max_gain']:.4g}" in text
 
 
-def test_cli_paper_quick_json(tmp_path: Path, capsys) -> None:
-    assert main(["paper", "--quick", "--json", "--out", str(tmp_path)]) == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert "table1" in doc and (tmp_path / "noise_study.png").exists()
+def test_cli_paper_quick_json(report) -> None:
+    doc, out = report  # printed by `station paper --quick --json`
+    assert "table1" in doc and (out / "noise_study.png").exists()
