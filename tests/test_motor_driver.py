@@ -1,4 +1,8 @@
-"""Integration: the real motor driver against the emulated controller (Modbus TCP, RTU, in-process)."""
+"""Integration: the real motor driver against the emulated controller (Modbus TCP, RTU, in-process).
+
+The controller's logic (watchdog, faults, emergency stop, state checks) runs in-process on a virtual
+clock (``vrig``): the emulator integrates its ramps and expires its watchdog on that clock, so seconds
+of ramps take milliseconds.  Framing, lost replies and lost links stay on the wire in real time."""
 
 from __future__ import annotations
 
@@ -41,9 +45,21 @@ def transport(rig: SimRig, kind: str) -> RegisterTransport:
     return rig.motor_transport()
 
 
+@pytest.fixture
+def vrig() -> Iterator[SimRig]:
+    """The simulated rig without a wire, on a virtual clock."""
+    rig = SimRig(seed=2, wire=False, clock=VirtualClock()).start()
+    try:
+        yield rig
+    finally:
+        rig.close()
+
+
 async def connected(rig: SimRig, kind: str = "tcp") -> MotorController:
-    motor = MotorController()
-    await motor.connect(transport(rig, kind))
+    """The driver connected to ``rig`` over ``kind`` (the in-process transport for a rig without a wire),
+    keeping the rig's clock."""
+    motor = MotorController(clock=rig.clock)
+    await motor.connect(transport(rig, kind if rig.wire else "inprocess"))
     return motor
 
 
@@ -92,7 +108,9 @@ def test_ramp_to_setpoint_and_back(request: pytest.FixtureRequest, kind: str) ->
     asyncio.run(run())
 
 
-def test_stopping_the_watchdog_refresh_stops_the_motor(rig: SimRig) -> None:
+def test_stopping_the_watchdog_refresh_stops_the_motor(vrig: SimRig) -> None:
+    rig, clock = vrig, vrig.clock
+
     async def run() -> None:
         motor = await connected(rig)
         await motor.set_watchdog_timeout(0.4)
@@ -101,11 +119,11 @@ def test_stopping_the_watchdog_refresh_stops_the_motor(rig: SimRig) -> None:
         await motor.set_frequency(20.0)
         await motor.start_watchdog(0.1)
         await motor.wait_for_speed(20.0, timeout_s=3.0)
-        await asyncio.sleep(0.6)  # longer than the timeout, but refreshed: still running
+        await clock.asleep(0.6)  # longer than the timeout, but refreshed: still running
         st = await motor.read_status()
         assert st.actual_speed_hz == pytest.approx(20.0) and st.fault_code == 0
         await motor.stop_watchdog()
-        await asyncio.sleep(0.5)
+        await clock.asleep(0.5)
         st = await motor.read_status()
         assert st.fault_name == "watchdog_expired" and st.flags["watchdog_expired"] and st.flags["fault"]
         assert st.actual_speed_hz < 20.0
@@ -114,6 +132,7 @@ def test_stopping_the_watchdog_refresh_stops_the_motor(rig: SimRig) -> None:
         with pytest.raises(MotorExceptionReplyError, match="SERVER DEVICE FAILURE") as info:
             await motor.enable()  # refused until the fault is reset
         assert info.value.register == "enable"
+        await clock.asleep(0.05)  # the register reads 0 below 0.005 Hz; the reset needs true standstill
         await motor.reset_faults()
         assert (await motor.read_status()).fault_code == 0
         await motor.close()
@@ -183,7 +202,9 @@ def test_lost_link_is_typed_the_emulator_stops_and_the_driver_reconnects(rig: Si
     asyncio.run(run())
 
 
-def test_injected_motor_fault_and_emergency_stop(rig: SimRig) -> None:
+def test_injected_motor_fault_and_emergency_stop(vrig: SimRig) -> None:
+    rig = vrig
+
     async def run() -> None:
         motor = await connected(rig)
         await motor.set_watchdog_timeout(60.0)  # 0 (off) is refused with the drive enabled
@@ -214,7 +235,9 @@ def test_injected_motor_fault_and_emergency_stop(rig: SimRig) -> None:
     asyncio.run(run())
 
 
-def test_state_check_reports_faults_without_clearing_them(rig: SimRig) -> None:
+def test_state_check_reports_faults_without_clearing_them(vrig: SimRig) -> None:
+    rig = vrig
+
     async def run() -> None:
         motor = await connected(rig)
         st = await motor.check_standstill()
