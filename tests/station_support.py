@@ -57,18 +57,21 @@ def run_body(freqs: tuple[float, ...] = (10.0, 20.0), radius: float = 0.001, **s
 # ---------------------------------------------------------------------------------------- seeded runs
 @dataclass(frozen=True)
 class Seed:
-    """A finished run to put in a store: its steps (Hz, m), top mass (kg), record time (s), seed."""
+    """A finished run to put in a store: its steps (Hz, m), top mass (kg), record time (s), seed;
+    ``identified=False``: acquired, its identification job queued (as the rig side leaves it)."""
 
     freqs: Sequence[float] = (10.0, 20.0)
     radius_m: float = 0.001
     top_mass_kg: float = 25.717
     record_s: float = 0.5
     seed: int = 1
+    identified: bool = True
 
 
 def seed_runs(config: dict[str, Any], seeds: Sequence[Seed]) -> list[str]:
     """Simulate, process and identify each run (as the daemon's worker would) into the configured
-    recordings folder and store it as ``completed`` in the daemon's database; returns the run ids.
+    recordings folder and store it as ``completed`` in the daemon's database (or as ``identifying``
+    with its job queued, see :class:`Seed`); returns the run ids.
 
     ``config``: the daemon's configuration as parsed YAML.  The recordings are simulated from the
     physics (``station.simulate``), not by the code under test."""
@@ -92,15 +95,19 @@ def seed_runs(config: dict[str, Any], seeds: Sequence[Seed]) -> list[str]:
                 {"crank_frequency_hz": f, "crank_radius_m": s.radius_m} for f in s.freqs])
             run["rig"]["top_mass_kg"] = s.top_mass_kg
             path = simulate_run(parse_config(run), settings.recordings_dir, seed=s.seed)
-            res = process_and_identify(path)
+            result_name = process_and_identify(path).result_name if s.identified else None
             now = time.time()
             store.insert_run(RunRow(
-                id=path.stem, state="completed", transducer_id=request.transducer_id,
+                id=path.stem, state="completed" if s.identified else "identifying",
+                transducer_id=request.transducer_id,
                 top_mass_kg=request.top_mass_kg, request_json=request.model_dump_json(),
                 plan_json=json.dumps(plan.to_dict()), created=now, n_steps=len(plan.steps), started=now,
                 ended=now, step=len(plan.steps) - 1, step_state="done", fraction=1.0,
                 samples=int(sum(st.record_s for st in plan.steps) * cfg.daq.sample_rate_hz),
-                message="identified (seeded)", recording=path.name, result_name=res.result_name))
+                message="identified (seeded)" if s.identified else "acquisition completed; identification queued",
+                recording=path.name, result_name=result_name))
+            if not s.identified:
+                store.enqueue_job(path.stem)
             ids.append(path.stem)
     finally:
         store.close()

@@ -3,12 +3,12 @@ and what survives the end of the daemon (kill -9 mid-run, SIGTERM mid-run, queue
 
 from __future__ import annotations
 
+import asyncio
 import io
 import os
 import signal
 import sqlite3
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -22,7 +22,7 @@ from station.run.request import RunRequest, StepSpec
 from station.service.manager import RequestLimitError, RunManager, RunStateError, check_request
 from station.service.settings import build_settings
 from station.service.store import RunRow, Store
-from tests.station_support import Daemon, daemon_config
+from tests.station_support import Daemon, Seed, daemon_config
 
 
 def _row(run_id: str, state: str = "queued", created: float | None = None) -> RunRow:
@@ -144,10 +144,10 @@ def _children(pid: int) -> list[int]:
 @pytest.mark.slow
 def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume(tmp_path: Path) -> None:
     data = tmp_path / "recordings"
-    # first daemon without workers: the identification of run A stays queued
-    first = Daemon(tmp_path, workers=0, data_dir=data, name="first").start()
+    # first daemon without workers: the identification of run A (acquired, seeded) stays queued
+    first = Daemon(tmp_path, workers=0, data_dir=data, name="first", seeds=[Seed(identified=False)]).start()
     try:
-        a = first.start_run()
+        [a] = first.seeded
         st = first.wait_state(a, ("identifying",))
         assert st["recording"] == f"{a}.h5"
         b = first.start_run(freqs=(10.0,), record_s=30.0)
@@ -186,10 +186,9 @@ def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume
 
 @pytest.mark.slow
 def test_sigterm_mid_run_stops_the_run_closes_the_recording_and_the_workers(tmp_path: Path) -> None:
-    d = Daemon(tmp_path).start()
+    d = Daemon(tmp_path, seeds=[Seed(identified=False)]).start()
     try:
-        done = d.start_run(freqs=(10.0,))
-        d.wait_state(done)  # the identification worker process has started
+        d.wait_state(d.seeded[0])  # the identification worker process has started
         assert d.proc is not None
         workers = _children(d.proc.pid)
         assert workers
@@ -220,10 +219,9 @@ def test_sigterm_mid_run_stops_the_run_closes_the_recording_and_the_workers(tmp_
 @pytest.mark.slow
 def test_worker_exits_when_the_daemon_is_killed(tmp_path: Path) -> None:
     """No orphaned worker processes after kill -9 of the daemon."""
-    d = Daemon(tmp_path).start()
+    d = Daemon(tmp_path, seeds=[Seed(identified=False)]).start()
     try:
-        rid = d.start_run(freqs=(10.0,))
-        d.wait_state(rid)
+        d.wait_state(d.seeded[0])  # identified by a worker process
         assert d.proc is not None
         workers = _children(d.proc.pid)
         assert workers
@@ -258,7 +256,6 @@ def test_serve_refuses_a_bad_configuration_at_start_up(tmp_path: Path, monkeypat
 
 
 def test_worker_pool_survives_a_dying_worker() -> None:
-    import asyncio
 
     from station.service.worker import WorkerCrashed, WorkerPool
 
@@ -276,7 +273,6 @@ def test_worker_pool_survives_a_dying_worker() -> None:
 
 
 def test_worker_processes_run_single_threaded_blas() -> None:
-    import asyncio
 
     from station.service.worker import WorkerPool
 
@@ -290,45 +286,31 @@ def test_worker_processes_run_single_threaded_blas() -> None:
     assert asyncio.run(go()) == ("1", "1")
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # the connection attempts back off for ~3 s
 def test_unreachable_rig_health_degraded_runs_503_stop_still_accepted(tmp_path: Path) -> None:
-    import httpx
-    import yaml
-
-    from tests.station_support import TOKEN, free_port, run_body
+    """The daemon's app in-process with the real rig's connector: nothing listens at the motor's
+    address and the DAQ port does not exist."""
+    from station.api import create_app
+    from station.service.settings import build_settings
+    from tests.station_support import TOKEN, asgi_client, free_port, run_body
 
     d = daemon_config(tmp_path / "rec")
     del d["simulation"]
     d["devices"] = {"motor_url": f"modbus-tcp://127.0.0.1:{free_port()}", "daq_port": str(tmp_path / "no-such-tty")}
-    cfg = tmp_path / "real.yaml"
-    cfg.write_text(yaml.safe_dump(d))
-    port = free_port()
-    log = (tmp_path / "real.log").open("wb")
-    proc = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--config", str(cfg), "--port", str(port)],
-                            stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "STATION_TOKEN": TOKEN})
-    try:
-        c = httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60)
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                h = c.get("/health")
-                break
-            except httpx.TransportError:
-                assert proc.poll() is None and time.monotonic() < deadline, (tmp_path / "real.log").read_text()
-                time.sleep(0.2)
-        h = h.json()
-        assert h["status"] == "degraded" and not h["rig"]["connected"] and h["rig"]["error"]
-        assert not h["rig"]["simulated"] and h["database"]["ok"]
-        r = c.post("/runs", json=run_body())
-        assert r.status_code == 503 and "not connected" in r.json()["detail"]
-        s = c.post("/stop")
-        assert s.status_code == 200 and s.json()["accepted"] and not s.json()["motor_stopped"]
-        assert "hardware emergency stop" in s.json()["detail"]
-        assert c.get("/runs").json()["count"] == 0
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(30)
-        log.close()
+    app = create_app(build_settings(parse_config(d), sim=False, env={"STATION_TOKEN": TOKEN}))
+
+    async def go() -> None:
+        async with app.router.lifespan_context(app), asgi_client(app) as c:
+            h = (await c.get("/health")).json()
+            assert h["status"] == "degraded" and not h["rig"]["connected"] and h["rig"]["error"]
+            assert not h["rig"]["simulated"] and h["database"]["ok"]
+            r = await c.post("/runs", json=run_body())
+            assert r.status_code == 503 and "not connected" in r.json()["detail"]
+            s = await c.post("/stop")
+            assert s.status_code == 200 and s.json()["accepted"] and not s.json()["motor_stopped"]
+            assert "hardware emergency stop" in s.json()["detail"]
+            assert (await c.get("/runs")).json()["count"] == 0
+    asyncio.run(go())
 
 
 def test_start_up_recovery_of_every_kind_of_cut_off_run(tmp_path: Path) -> None:
