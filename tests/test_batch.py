@@ -22,7 +22,7 @@ from station.errors import BadInputError
 from station.ident.api import identify_recording
 from station.recording import read_recording, read_result
 from station.simulate import simulate_run
-from tests.conftest import make_fast_dict
+from tests.conftest import fast_dict
 
 TX, OTHER = "TX5K-0001", "TX12-0007"
 N_STABLE = 6
@@ -42,17 +42,17 @@ def history(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     """A recordings folder: N_STABLE runs of TX on successive days, then one with k_f 0.2 % higher
     (about 40 standard uncertainties), one of another transducer, an aborted run and a partial file."""
     folder = tmp_path_factory.mktemp("recordings")
-    d = make_fast_dict()
+    d = fast_dict()
     stable = []
     for i in range(N_STABLE):
         p = simulate_run(parse_config(d, "fast"), folder, seed=100 + i)
         _set_attrs(p, start_time=_day(i))
         stable.append(p)
-    dd = make_fast_dict()
+    dd = fast_dict()
     dd["simulation"]["truth"]["k_f"] *= 1.002
     drifted = simulate_run(parse_config(dd, "drift"), folder, seed=200)
     _set_attrs(drifted, start_time=_day(N_STABLE))
-    do = make_fast_dict()
+    do = fast_dict()
     do["transducer"]["id"] = OTHER
     other = simulate_run(parse_config(do, "other"), folder, seed=300)
     _set_attrs(other, start_time=_day(2).replace("T09", "T08"))  # just before stable[2]

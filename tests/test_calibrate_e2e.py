@@ -23,16 +23,13 @@ from station.config import parse_config
 from station.recording import read_recording, read_result, read_stored
 from station.run.calibrate import run_and_identify
 from station.run.request import default_request
+from tests.conftest import station_dict
 
-ROOT = Path(__file__).resolve().parent.parent
 STEPS = [8.0, 30.0, 60.0, 95.0]
 
 
 def _config() -> dict[str, Any]:
-    d = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
-    d["plan"].update({"settle_s": 0.3, "record_s": 1.5})
-    d["rig"]["acceleration_hz_per_s"] = 50.0
-    return d
+    return station_dict(settle_s=0.3, record_s=1.5, acceleration_hz_per_s=50.0)
 
 
 def _check_against_the_truth(out: dict[str, Any], truth: dict[str, float]) -> None:

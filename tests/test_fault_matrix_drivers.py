@@ -324,14 +324,10 @@ def test_link_budget_is_checked() -> None:
     """default 3 Mbaud link | carries 3.6× the 20 kHz stream at most; measured lossless to 3×. The ≥ 10×
     in `bench/daq_stream.py` is measured on a pty, which ignores baud rate. Nothing checks that a
     configured baud rate can carry the configured rate (9600 Bd is accepted)"""
-    import copy
-
-    import yaml
-    from sinecal_config import config_file
 
     from drivers.daq import link_budget
-    from station.config import parse_config
     from station.errors import ConfigError
+    from tests.conftest import station_config
 
     # the worst case is an upper bound of what the encoder really sends for the nastiest samples
     nasty = np.full(256, np.frombuffer(b"\xc0\xdb", "<i2")[0])
@@ -342,13 +338,8 @@ def test_link_budget_is_checked() -> None:
     assert b.required_baud == pytest.approx(20_000 / 256 * 2072 * 10)  # 1,618,750 Bd
     assert b.margin == pytest.approx(3_000_000 / 1_618_750)
 
-    base = yaml.safe_load(config_file("sim-5kN.yaml").read_text(encoding="utf-8"))
-
     def cfg(baud: int, rate: float) -> object:
-        d = copy.deepcopy(base)
-        d.setdefault("devices", {})["daq_baudrate"] = baud
-        d["daq"]["sample_rate_hz"] = rate
-        return parse_config(d, "test.yaml")
+        return station_config(devices={"daq_baudrate": baud}, daq={"sample_rate_hz": rate})
 
     cfg(3_000_000, 20_000)  # the shipped default is carried, with margin 1.85
     cfg(921_600, 10_000)

@@ -3,36 +3,30 @@
 
 from __future__ import annotations
 
-import copy
 import json
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from station.cli import main
-from station.config import default_config_path, parse_config
 from station.errors import BadInputError
 from station.ident.campaign import CampaignRefused, identify_campaign
 from station.recording import read_recording, read_result
 from station.report.html import render_report
 from station.simulate import simulate_run
+from tests.conftest import station_config
 
 END_MASS = 0.12
 TRUTH = {"S": 2.0e-6 * 1000.0, "m_e": END_MASS, "k_f": 2.91e7, "b_f": 17136.0}  # bridge x conditioner gain
 
 
 def _cfg(top_mass_kg: float, transducer_id: str = "TX5K-0001", effects: dict | None = None) -> object:
-    d = copy.deepcopy(yaml.safe_load(default_config_path().read_text(encoding="utf-8")))
-    d["plan"].update(settle_s=0.2, record_s=0.5, steps=[
-        {"crank_frequency_hz": f, "crank_radius_m": r} for f, r in ((4.0, 0.01), (20.0, 0.002), (50.0, 6e-4),
-                                                                    (100.0, 1.5e-4))])
-    d["rig"].update(acceleration_hz_per_s=200.0, top_mass_kg=top_mass_kg)
-    d["transducer"].update(end_mass_kg=END_MASS, id=transducer_id)
-    d["simulation"].update(pre_roll_s=0.1, effects=effects or {})
-    return parse_config(d)
+    return station_config(settle_s=0.2, record_s=0.5, acceleration_hz_per_s=200.0, pre_roll_s=0.1,
+                          steps=((4.0, 0.01), (20.0, 0.002), (50.0, 6e-4), (100.0, 1.5e-4)), effects=effects or {},
+                          rig={"top_mass_kg": top_mass_kg},
+                          transducer={"end_mass_kg": END_MASS, "id": transducer_id})
 
 
 def _sim(tmp: Path, top_masses: tuple[float, ...], seed: int) -> list[Path]:

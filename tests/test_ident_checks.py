@@ -5,7 +5,6 @@ configuration (k_f 2.91e7 N/m, b_f 17136 N*s/m, S 2e-3 V/N, m_e 0.12 kg, m_l 26.
 
 from __future__ import annotations
 
-import copy
 import json
 import re
 from collections.abc import Callable
@@ -17,12 +16,13 @@ import pytest
 import yaml
 
 from station.cli import main
-from station.config import default_config_path, parse_config
+from station.config import parse_config
 from station.ident.api import identify_recording
 from station.ident.checks import IdentificationRefused
 from station.interchange import export_run, import_run
 from station.recording import read_recording
 from station.simulate import simulate_run
+from tests.conftest import station_dict
 
 K, B, S, ME, ML = 2.91e7, 17136.0, 2e-3, 0.12, 26.167
 R = 2.5e-4  # sinecal-csv has one crank radius per run: the largest the 100 Hz step allows
@@ -31,11 +31,7 @@ PLAN = tuple((f, R) for f in (4.0, 12.0, 30.0, 60.0, 100.0))
 
 def sim(folder: Path, steps: tuple[tuple[float, float], ...] = PLAN, *, seed: int = 3, record_s: float = 1.0,
         edit: Callable[[dict[str, Any]], None] | None = None) -> Path:
-    data = copy.deepcopy(yaml.safe_load(default_config_path().read_text(encoding="utf-8")))
-    data["plan"].update(settle_s=0.3, record_s=record_s,
-                        steps=[{"crank_frequency_hz": f, "crank_radius_m": r} for f, r in steps])
-    data["rig"]["acceleration_hz_per_s"] = 200.0
-    data["simulation"]["pre_roll_s"] = 0.1
+    data = station_dict(settle_s=0.3, record_s=record_s, steps=steps, acceleration_hz_per_s=200.0, pre_roll_s=0.1)
     if edit:
         edit(data)
     return simulate_run(parse_config(data), folder, seed=seed)

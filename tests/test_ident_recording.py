@@ -1,30 +1,24 @@
 """identify_recording and ``station identify`` on simulated recordings (station.simulate)."""
 
-import copy
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from station.cli import main
-from station.config import default_config_path, parse_config
 from station.ident.api import identify_recording
 from station.recording import read_recording, read_result
 from station.simulate import simulate_run
+from tests.conftest import station_config
 
 TRUTH = {"k_f": 2.91e7, "b_f": 17136.0}
 
 
 def _cfg(steps: list[dict], record_s: float, effects: dict | None = None) -> object:
-    data = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
-    data = copy.deepcopy(data)
-    data["plan"].update(settle_s=0.3, record_s=record_s, steps=steps)
-    data["simulation"]["effects"] = effects or {}
-    data["rig"]["acceleration_hz_per_s"] = 200.0
-    data["simulation"]["pre_roll_s"] = 0.1
-    return parse_config(data)
+    return station_config(settle_s=0.3, record_s=record_s, steps=[(s["crank_frequency_hz"], s["crank_radius_m"])
+                                                                  for s in steps],
+                          effects=effects or {}, acceleration_hz_per_s=200.0, pre_roll_s=0.1)
 
 
 @pytest.fixture(scope="module")

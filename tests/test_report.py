@@ -26,7 +26,7 @@ from station.report.plots import FIG_SIZE_PX
 from station.report.quantities import fmt_unc, fmt_value
 from station.run.processing import process_recording
 from station.simulate import simulate_run
-from tests.conftest import make_fast_dict
+from tests.conftest import fast_dict
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -165,7 +165,7 @@ def test_report_prefers_a_stored_result_and_processed_steps(sim_recording: Path,
 
 @pytest.mark.slow
 def test_single_frequency_says_not_identifiable(tmp_path: Path) -> None:
-    d = make_fast_dict()
+    d = fast_dict()
     d["plan"]["steps"] = [{"crank_frequency_hz": 20.0, "crank_radius_m": 0.001}]
     rec_path = simulate_run(parse_config(d, "one-step"), tmp_path)
     res = identify_recording(read_recording(rec_path))

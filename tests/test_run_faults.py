@@ -16,6 +16,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -31,16 +32,12 @@ from station.recording import read_recording
 from station.run.procedure import Procedure, Progress
 from station.run.request import RunRequest, StepSpec, plan_run
 from station.run.rig import ConnectedRig, connect
+from tests.conftest import station_dict
 from tests.disk_support import mounted_tmpfs
 
-ROOT = Path(__file__).resolve().parent.parent
 
-
-def small_config(**plan: object) -> dict:
-    d = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
-    d["plan"].update({"settle_s": 0.2, "record_s": 1.0, **plan})
-    d["rig"]["acceleration_hz_per_s"] = 50.0
-    return d
+def small_config(**plan: Any) -> dict:
+    return station_dict(**{"settle_s": 0.2, "record_s": 1.0, "acceleration_hz_per_s": 50.0, **plan})
 
 
 CFG = parse_config(small_config())
@@ -201,7 +198,7 @@ def test_a_few_lost_frames_mark_the_step(tmp_path: Path) -> None:
 # ---- the acquiring process killed, and the disk full: separate processes ------------------------
 
 def _external_config(tmp_path: Path, addresses: object, radius: float) -> Path:
-    d = small_config(steps=[{"crank_frequency_hz": f, "crank_radius_m": radius} for f in (10.0, 20.0, 30.0)],
+    d = small_config(steps=[(f, radius) for f in (10.0, 20.0, 30.0)],
                      record_s=3.0)
     d["devices"] = {"motor_url": f"modbus-tcp://{addresses.modbus_tcp[0]}:{addresses.modbus_tcp[1]}",
                     "daq_port": addresses.daq, "crank_radius_m": radius}
