@@ -321,6 +321,31 @@ def test_the_daq_port_is_opened_exclusively(tmp_path: Path) -> None:
         os.close(slave)
 
 
+def test_the_motor_rtu_port_is_opened_exclusively(tmp_path: Path) -> None:
+    """| a second daemon ... opens the DAQ port and sends STOP | (the Modbus RTU port is exclusive too: a
+    second program cannot send the motor a command while the station holds the line) |"""
+    import pty
+
+    import serial
+
+    from drivers.motor.errors import MotorLinkError
+    from drivers.motor.transport import LinkPolicy, ModbusTransport
+
+    master, slave = pty.openpty()
+    try:
+        held = serial.Serial(os.ttyname(slave), exclusive=True)  # the station's line
+        try:
+            t = ModbusTransport.rtu(os.ttyname(slave), policy=LinkPolicy(reconnect_attempts=1, backoff_initial_s=0.01))
+            with pytest.raises(MotorLinkError):
+                asyncio.run(t.open())
+            assert not t.connected
+        finally:
+            held.close()
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
 @pytest.mark.slow
 def test_two_real_daemons_on_one_folder_the_live_run_is_untouched(tmp_path: Path) -> None:
     """| a second daemon on the same recordings folder damages the running one | the newcomer marks the
