@@ -423,6 +423,38 @@ def test_a_damaged_or_locked_database_at_start_is_one_clear_message(
         assert "damaged" in err and f"mv {db} {db}.damaged" in err and ".recover" in err
 
 
+def test_a_daemon_that_cannot_start_says_why_in_one_line(tmp_path: Path) -> None:
+    """| damaged database at start | ... exit 3 with a traceback (whatever else stops a start: one line) |"""
+    from station.api import create_app
+    from station.config import parse_config
+    from station.errors import StationError
+    from station.service.settings import build_settings
+
+    settings = build_settings(parse_config(daemon_config(tmp_path / "rec")), sim=True, workers=0,
+                              env={"STATION_TOKEN": TOKEN})
+
+    def broken(_: Any) -> Any:
+        raise StationError("the recordings folder went away")
+
+    app = create_app(settings, manager_factory=broken)
+    sent: list[dict[str, Any]] = []
+
+    async def go() -> None:
+        messages = iter([{"type": "lifespan.startup"}])
+
+        async def receive() -> dict[str, Any]:
+            return next(messages)
+
+        async def send(message: dict[str, Any]) -> None:
+            sent.append(message)
+        with pytest.raises(StationError):
+            await app({"type": "lifespan", "asgi": {"version": "3.0"}, "state": {}}, receive, send)
+    asyncio.run(go())
+    assert sent[-1]["type"] == "lifespan.startup.failed"
+    assert sent[-1]["message"] == ("the station daemon cannot start: station.errors.StationError: the recordings "
+                                   "folder went away (details: -v)")
+
+
 # --------------------------------------------------------------------------------------- orphaned worker
 _POOL_PARENT = """
 import sys, time

@@ -134,6 +134,29 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(Exception, internal_error)
 
 
+class StartupFailureLine:
+    """A daemon that cannot start says why in one line: the framework reports a failed start-up with
+    the whole traceback, which goes to the debug log; the error line is its last line (the
+    exception and its message)."""
+
+    def __init__(self, app: Any) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "lifespan":
+            await self.app(scope, receive, send)
+            return
+
+        async def one_line(message: Any) -> None:
+            if message.get("type") == "lifespan.startup.failed" and message.get("message"):
+                text = str(message["message"]).strip()
+                log.debug("start-up failed:\n%s", text)
+                last = text.splitlines()[-1] if text else "unknown error"
+                message = {**message, "message": f"the station daemon cannot start: {last} (details: -v)"}
+            await send(message)
+        await self.app(scope, receive, one_line)
+
+
 def create_app(settings: ServiceSettings, *,
                manager_factory: Callable[[ServiceSettings], RunManager] | None = None) -> FastAPI:
     @asynccontextmanager
@@ -154,6 +177,7 @@ def create_app(settings: ServiceSettings, *,
     install_error_handlers(app)
     # outermost: authenticate and bound a request body before anything reads it
     app.add_middleware(BodyGuard, token=settings.token, max_body_bytes=settings.config.service.max_body_bytes)
+    app.add_middleware(StartupFailureLine)
     app.include_router(runs.router)
     app.include_router(campaign.router)
     app.include_router(proposal.router)
