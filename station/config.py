@@ -19,6 +19,8 @@ from pydantic_core import ErrorDetails
 from sinecal_config import config_file
 
 from drivers.daq.protocol import link_budget
+from drivers.motor.errors import RegisterMapError
+from drivers.motor.profile import load_profile
 from drivers.rig import params as rp
 from station.bounded import MAX_YAML_BYTES, load_yaml, quote, read_text_limited
 from station.errors import ConfigError
@@ -75,8 +77,18 @@ class TransducerConfig(_Model):
                                           "of end_mass_kg (default: 5 % of it, station.ident.inputs)")
 
 
+class MotorSection(_Model):
+    """The crank drive: which drive profile describes it (``docs/drive-profiles.md``)."""
+
+    profile: str = Field(default="sinecal-crank", min_length=1, max_length=4096,
+                         description="a shipped drive profile by name (config/drives/<name>.yaml) or the "
+                         "path of a profile YAML")
+
+
 class RigConfig(_Model):
     """The sine-mechanism rig and its limits."""
+
+    motor: MotorSection = MotorSection()
 
     top_mass_kg: float = Field(gt=0, le=MAX_TOP_MASS_KG)
     adaption_mass_kg: float = Field(default=0.0, ge=0, le=100)
@@ -157,7 +169,8 @@ class DevicesConfig(_Model):
     motor_url: str = Field(default="modbus-tcp://127.0.0.1:502",
                            pattern=r"^modbus-(tcp|rtu)://.+", description="modbus-tcp://HOST:PORT or "
                            "modbus-rtu:///dev/ttyX?baudrate=115200")
-    motor_device_id: int = Field(default=1, ge=1, le=247)
+    motor_device_id: int | None = Field(default=None, ge=1, le=247,
+                                        description="Modbus unit id (default: the drive profile's)")
     daq_port: str = Field(default="/dev/ttyACM0", min_length=1)
     daq_link: Literal["uart", "usb-cdc"] = Field(
         default="uart", description="uart: the baud rate bounds the stream (checked here); usb-cdc: the "
@@ -210,6 +223,25 @@ class StationConfig(_Model):
     devices: DevicesConfig = DevicesConfig()
     simulation: SimulationConfig | None = None
     service: ServiceSection = ServiceSection()
+
+    @model_validator(mode="after")
+    def _drive_profile(self) -> StationConfig:
+        """rig.motor.profile must load, and the drive must be able to run the rig's frequency range
+        and ramp (drivers.motor.profile)."""
+        try:
+            prof = load_profile(self.rig.motor.profile)
+        except RegisterMapError as exc:
+            raise ValueError(f"rig.motor.profile: {exc}") from None
+        dev = prof.device
+        hz = self.rig.crank_frequency_hz
+        if not dev.min_frequency_hz <= hz.min <= hz.max <= dev.max_frequency_hz:
+            raise ValueError(f"rig.crank_frequency_hz: expected a range within what drive profile {prof.name!r} can "
+                             f"be set to ({dev.min_frequency_hz:g}..{dev.max_frequency_hz:g} Hz), got "
+                             f"{hz.min:g}..{hz.max:g} Hz")
+        if prof.ramp is not None and self.rig.acceleration_hz_per_s > dev.max_ramp_hz_per_s:
+            raise ValueError(f"rig.acceleration_hz_per_s: expected at most {dev.max_ramp_hz_per_s:g} Hz/s (drive "
+                             f"profile {prof.name!r}), got {self.rig.acceleration_hz_per_s:g} Hz/s")
+        return self
 
     @model_validator(mode="after")
     def _daq_link_budget(self) -> StationConfig:

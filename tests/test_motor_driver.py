@@ -224,7 +224,7 @@ def test_injected_motor_fault_and_emergency_stop(vrig: SimRig) -> None:
         await motor.wait_for_speed(30.0, timeout_s=2.0)
         await motor.emergency_stop()
         st = await motor.read_status()
-        assert st.flags["estop_active"] and st.fault_name == "emergency_stop"
+        assert st.flags["estop"] and st.fault_name == "emergency_stop"
         with pytest.raises(MotorExceptionReplyError, match="register 'fault_reset'"):
             await motor.reset_faults()  # refused while still turning
         await motor.wait_for_speed(0.0, timeout_s=2.0)

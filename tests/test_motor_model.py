@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from drivers.motor.registers import load_register_map
+from drivers.motor.profile import load_profile
 from drivers.sim.motor_image import DEVICE_FAILURE, ILLEGAL_ADDRESS, ILLEGAL_VALUE, MotorRegisterImage
 from drivers.sim.motor_model import FAULT_ESTOP, FAULT_WATCHDOG, MotorModel
 
@@ -26,7 +26,7 @@ def clock() -> Clock:
 
 @pytest.fixture
 def model(clock: Clock) -> MotorModel:
-    return MotorModel(load_register_map().device, clock=clock)
+    return MotorModel(load_profile().device, clock=clock)
 
 
 def test_ramp_to_setpoint_and_exact_angle(model: MotorModel, clock: Clock) -> None:
@@ -89,7 +89,7 @@ def test_limits_estop_and_fault_reset(model: MotorModel, clock: Clock) -> None:
 
 
 def test_register_image_words_and_exception_codes(model: MotorModel, clock: Clock) -> None:
-    m = load_register_map()
+    m = load_profile()
     img = MotorRegisterImage(m, model)
     assert img.read(106, 1) == [10000]  # max_frequency 100.00 Hz
     assert img.read(50, 1) == ILLEGAL_ADDRESS

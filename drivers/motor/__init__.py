@@ -1,4 +1,4 @@
-"""Crank motor-controller driver (Modbus TCP/RTU); register map in ``config/motor_registers.yaml``."""
+"""Crank drive driver (Modbus TCP/RTU) for any drive described by a profile (``config/drives/``)."""
 
 from drivers.motor.controller import MotorController, MotorStatus
 from drivers.motor.errors import (
@@ -13,10 +13,12 @@ from drivers.motor.errors import (
     MotorValueError,
     RegisterMapError,
 )
-from drivers.motor.registers import Register, RegisterMap, load_register_map
+from drivers.motor.profile import DriveProfile, load_profile, parse_profile, shipped_profiles
+from drivers.motor.registers import Register
 from drivers.motor.transport import LinkPolicy, ModbusTransport, RegisterTransport, transport_from_url
 
 __all__ = [
+    "DriveProfile",
     "LinkPolicy",
     "ModbusTransport",
     "MotorCommunicationError",
@@ -31,9 +33,10 @@ __all__ = [
     "MotorTimeoutError",
     "MotorValueError",
     "Register",
-    "RegisterMap",
     "RegisterMapError",
     "RegisterTransport",
-    "load_register_map",
+    "load_profile",
+    "parse_profile",
+    "shipped_profiles",
     "transport_from_url",
 ]

@@ -1,16 +1,21 @@
-"""The crank motor-controller driver: one interface, the backend (transport) chosen at connect time.
+"""The crank drive's driver: one interface for every drive profile, the backend (transport) chosen at
+connect time.
 
 Usage (asyncio)::
 
-    motor = MotorController()                              # register map from config/
+    motor = MotorController(load_profile("toshiba-vf-s11"))  # default: the station's own controller
     await motor.connect(ModbusTransport.tcp("127.0.0.1", 5020))
     await motor.set_ramp(5.0); await motor.enable(); await motor.set_frequency(20.0)
     status = await motor.read_status()                     # MotorStatus
     ...
     await motor.stop(); await motor.close()
 
-The station must refresh the controller's watchdog: call :meth:`refresh_watchdog` at least every
-``watchdog_timeout`` (or run :meth:`start_watchdog`); otherwise the controller stops the motor.
+The station must refresh the drive's watchdog: call :meth:`refresh_watchdog` at least every
+watchdog time-out (or run :meth:`start_watchdog`); otherwise the drive stops the motor.  Commands
+(enable, stop, quick stop, fault reset) are the profile's write sequences with their hold times.
+
+(Over 300 lines: one driver class; its commands, status decoding and watchdog keeper share the
+profile and the link.)
 """
 
 from __future__ import annotations
@@ -19,50 +24,55 @@ import asyncio
 import contextlib
 import logging
 import math
+from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 from drivers.clock import REAL_CLOCK, Clock
 from drivers.motor.errors import MotorError, MotorFaultError, MotorStateError, MotorValueError
-from drivers.motor.registers import RegisterMap, load_register_map
+from drivers.motor.profile import PSEUDO_ESTOP, PSEUDO_FAULT, CommandStep, DriveProfile, load_profile
 from drivers.motor.transport import RegisterTransport
 
 log = logging.getLogger(__name__)
 
-STATUS_BLOCK = ("actual_speed", "crank_angle", "status_word", "fault_code", "revolution_count")
+# writes of one EEPROM-backed register per connection beyond which the driver refuses: an EEPROM lasts
+# 10^4..10^5 writes, so such a register is written when its value changes, never in a loop
+EEPROM_WRITES_PER_CONNECTION = 4
 
 
 @dataclass(frozen=True)
 class MotorStatus:
-    """One consistent read of the status block.
+    """One consistent read of the drive's status.
 
-    actual_speed_hz: crank frequency in Hz (rev/s); crank_angle_rad in [0, 2*pi);
-    flags: decoded status word; fault_code 0 = none; time_s: the driver's clock (``time.monotonic()`` on
-    a real rig) at the middle of the request (the angle's timestamp, to within half the round trip ``round_trip_s``).
+    actual_speed_hz: crank frequency in Hz (rev/s); crank_angle_rad in [0, 2*pi) (None: the drive has
+    no angle register); flags: the canonical flags (ready, enabled, running, at_setpoint, fault, estop)
+    and the profile's own; fault_code 0 = none (``PSEUDO_ESTOP``/``PSEUDO_FAULT`` when the drive shows
+    a quick stop or a fault without a code); time_s: the driver's clock (``time.monotonic()`` on a
+    real rig) at the middle of the request (the angle's timestamp, to within half ``round_trip_s``).
     """
 
     actual_speed_hz: float
-    crank_angle_rad: float
+    crank_angle_rad: float | None
     status_word: int
     flags: Mapping[str, bool]
     fault_code: int
     fault_name: str
-    revolution_count: int
+    revolution_count: int | None
     time_s: float
     round_trip_s: float
 
     @property
-    def crank_angle_deg(self) -> float:
-        return math.degrees(self.crank_angle_rad)
+    def crank_angle_deg(self) -> float | None:
+        return None if self.crank_angle_rad is None else math.degrees(self.crank_angle_rad)
 
     @property
     def standstill(self) -> bool:
-        """The crank does not turn (speed 0, status bit ``running`` clear)."""
+        """The crank does not turn (speed 0, flag ``running`` clear)."""
         return self.actual_speed_hz == 0.0 and not self.flags.get("running", False)
 
     @property
     def estop_latched(self) -> bool:
-        return bool(self.flags.get("estop_active", False))
+        return bool(self.flags.get("estop", False))
 
     def describe(self) -> str:
         """One line for logs and error messages, e.g. ``standstill, disabled, fault 2 (emergency_stop)``."""
@@ -75,17 +85,21 @@ class MotorStatus:
 
 
 class MotorController:
-    """Driver of the crank motor controller over any :class:`RegisterTransport`."""
+    """Driver of a crank drive described by a :class:`DriveProfile`, over any :class:`RegisterTransport`."""
 
-    def __init__(self, regmap: RegisterMap | None = None, *, clock: Clock = REAL_CLOCK) -> None:
-        """``clock``: time of the status stamps, the watchdog keeper and ``wait_for_speed`` (real time,
-        or the virtual clock of an in-process simulated rig)."""
-        self.map = regmap or load_register_map()
+    def __init__(self, profile: DriveProfile | None = None, *, clock: Clock = REAL_CLOCK) -> None:
+        """``profile``: the drive (default: the station's own controller, ``sinecal-crank``);
+        ``clock``: time of the status stamps, the command hold times, the watchdog keeper and
+        ``wait_for_speed`` (real time, or the virtual clock of an in-process simulated rig)."""
+        self.profile = profile or load_profile()
+        self.map = self.profile  # registers by name: ``motor.map["frequency_setpoint"]``
         self.clock = clock
         self._t: RegisterTransport | None = None
         self._wd_counter = 0
         self._wd_task: asyncio.Task[None] | None = None
+        self._setpoint_hz = 0.0
         self.watchdog_error: MotorError | None = None
+        self.eeprom_writes: Counter[str] = Counter()
 
     @property
     def transport(self) -> RegisterTransport:
@@ -97,7 +111,8 @@ class MotorController:
         """Attach the backend (Modbus TCP/RTU or in-process) and open it."""
         await transport.open()
         self._t = transport
-        log.info("motor controller connected via %s", transport.description)
+        self.eeprom_writes.clear()
+        log.info("motor controller (%s) connected via %s", self.profile.name, transport.description)
 
     async def close(self) -> None:
         await self.stop_watchdog()
@@ -107,88 +122,160 @@ class MotorController:
 
     # --------------------------------------------------------------- register level
     async def read(self, name: str) -> float:
-        """Physical value of one register, in its unit (see the register map)."""
-        reg = self.map[name]
-        return reg.decode(await self.transport.read(reg.address, reg.words, name))
+        """Physical value of one register, in its unit (see the profile)."""
+        reg = self.profile[name]
+        return reg.decode(await self.transport.read(reg.address, reg.words, name, reg.read_function))
 
     async def write(self, name: str, value: float) -> None:
         """Write one register (physical value in its unit).
 
-        A value outside the register's declared range (config/motor_registers.yaml ``min``/``max``)
-        is refused here, before anything is sent (:class:`MotorValueError`)."""
-        reg = self.map[name]
+        A value outside the register's declared range (the profile's ``min``/``max``) is refused
+        here, before anything is sent (:class:`MotorValueError`), and so is a write to an EEPROM-backed
+        register beyond ``EEPROM_WRITES_PER_CONNECTION`` per connection."""
+        reg = self.profile[name]
         if not reg.writable:
             raise MotorValueError(f"register {name!r} is read-only")
         reg.check(value)
-        await self.transport.write(reg.address, reg.encode(value), name)
+        await self._write_words(name, reg.encode(value))
+
+    async def _write_words(self, name: str, words: list[int]) -> None:
+        reg = self.profile[name]
+        if reg.eeprom:
+            if self.eeprom_writes[name] >= EEPROM_WRITES_PER_CONNECTION:
+                raise MotorValueError(
+                    f"register {name!r} is EEPROM-backed and was written {self.eeprom_writes[name]} times "
+                    "since connect: refused (an EEPROM wears out; it is written when its value changes, "
+                    "never in a loop)")
+            self.eeprom_writes[name] += 1
+        await self.transport.write(reg.address, words, name)
+
+    async def set_parameter(self, name: str, value: float) -> bool:
+        """Set a parameter: an EEPROM-backed one is read first and written only if it differs (to its
+        resolution), a RAM one is written.  Returns whether it wrote."""
+        reg = self.profile[name]
+        reg.check(value)
+        if reg.eeprom and reg.raw_of(await self.read(name)) == reg.raw_of(value):
+            return False
+        await self.write(name, value)
+        return True
+
+    async def _run(self, command: str) -> None:
+        """Carry out one command of the profile's command model, step by step with its hold times."""
+        steps: tuple[CommandStep, ...] = self.profile.commands.sequences[command]
+        for i, step in enumerate(steps):
+            await self._write_words(step.register, self.profile[step.register].words_of_raw(step.value))
+            if step.hold_s > 0 and i < len(steps) - 1:
+                await self.clock.asleep(step.hold_s)
 
     # --------------------------------------------------------------- commands
     async def enable(self) -> None:
-        """Enable the drive (it follows the setpoint; the watchdog starts counting)."""
-        await self.write("enable", 1)
+        """Enable the drive: it follows the set point (the watchdog starts counting)."""
+        await self._run("enable")
 
     async def disable(self) -> None:
-        await self.write("enable", 0)
+        """Ramp down to standstill and disable (the profile's ``stop`` sequence)."""
+        await self._run("stop")
 
     async def set_frequency(self, hz: float) -> None:
-        """Crank-frequency setpoint in Hz; checked against the register's range before sending."""
-        await self.write("frequency_setpoint", hz)
+        """Crank-frequency set point in Hz; checked against the register's range before sending."""
+        await self.write(self.profile.setpoint, hz)
+        self._setpoint_hz = hz
 
     async def set_ramp(self, hz_per_s: float) -> None:
-        """Acceleration ramp in Hz/s (magnitude), within the register's range (0 < ramp <= max)."""
-        await self.write("acceleration_ramp", hz_per_s)
+        """Acceleration ramp in Hz/s (magnitude), within the drive's range (0 < ramp <= max).  A ramp
+        parameter is written only when it changes (it may live in EEPROM)."""
+        ramp = self.profile.ramp
+        if ramp is None:
+            log.info("profile %s has no ramp parameter: the drive keeps its own ramp", self.profile.name)
+            return
+        dev = self.profile.device
+        if not 0 < hz_per_s <= dev.max_ramp_hz_per_s:
+            raise MotorValueError(f"ramp: expected 0..{dev.max_ramp_hz_per_s:g} Hz/s, got {hz_per_s!r} Hz/s")
+        value = hz_per_s if ramp.form == "rate" else dev.max_frequency_hz / hz_per_s
+        for name in ramp.registers:
+            await self.set_parameter(name, value)
 
     async def set_watchdog_timeout(self, seconds: float) -> None:
-        """Watchdog timeout in s; 0 (off) is refused while the drive is enabled (checked here first,
-        :class:`MotorStateError`; the controller refuses it too, exception 04)."""
-        self.map["watchdog_timeout"].check(seconds)
-        if seconds == 0 and await self.read("enable") != 0:
+        """Watchdog time-out in s; 0 (off) is refused while the drive is enabled (checked here first,
+        :class:`MotorStateError`; the emulated controller refuses it too, exception 04)."""
+        name = self.profile.watchdog.register
+        self.profile[name].check(seconds)
+        if seconds == 0 and (await self.read_status()).flags.get("enabled"):
             raise MotorStateError("watchdog_timeout: expected a timeout > 0 s while the drive is enabled, "
                                   "got 0 (the watchdog cannot be switched off while enabled)")
-        await self.write("watchdog_timeout", seconds)
+        await self.set_parameter(name, seconds)
+
+    async def ensure_watchdog(self) -> None:
+        """Set the drive's communication watchdog to the profile's time-out (written only if it differs)."""
+        await self.set_watchdog_timeout(self.profile.watchdog.timeout_s)
 
     async def refresh_watchdog(self) -> None:
-        """Write the next value of the rolling watchdog counter."""
+        """Refresh the drive's watchdog: write the next rolling counter value to its refresh register,
+        or, where every valid request refreshes it, read the status word."""
+        refresh = self.profile.watchdog.refresh
+        if refresh is None:
+            reg = self.profile[self.profile.status.register]
+            await self.transport.read(reg.address, reg.words, f"{reg.name} (watchdog refresh)", reg.read_function)
+            return
         self._wd_counter = (self._wd_counter + 1) & 0xFFFF
-        await self.write("watchdog", self._wd_counter)
+        await self.write(refresh, self._wd_counter)
 
     async def stop(self) -> None:
-        """Normal stop: setpoint 0, then disable; the drive ramps down at the configured ramp."""
-        await self.write("frequency_setpoint", 0.0)
+        """Normal stop: set point 0, then the ``stop`` sequence; the drive ramps down at its ramp."""
+        await self.set_frequency(0.0)
         await self.disable()
 
     async def emergency_stop(self) -> None:
-        """Emergency stop: latched; the drive decelerates at its stop ramp.  Clear with reset_faults."""
-        await self.write("emergency_stop", 1)
+        """Emergency (quick) stop: latched; the drive decelerates at its stop ramp.  Clear with reset_faults."""
+        await self._run("quick_stop")
 
     async def reset_faults(self) -> None:
-        """Clear latched faults (the controller refuses while the crank still turns)."""
-        await self.write("fault_reset", 1)
+        """Clear latched faults (the drive refuses while the crank still turns)."""
+        await self._run("fault_reset")
 
     async def read_status(self) -> MotorStatus:
-        """Read speed, angle, status word, fault code and revolution count in one request."""
-        start, count = self.map.span(STATUS_BLOCK)
+        """Read speed, status, fault code (and angle, revolutions where the drive has them), each
+        contiguous run of registers in one request (within the drive's longest read)."""
+        p = self.profile
+        names = [n for n in (p.speed, p.status.register, p.faults.register, p.angle, p.revolutions) if n]
+        values: dict[str, list[int]] = {}
         t0 = self.clock.monotonic()
-        words = await self.transport.read(start, count, "status block (" + ", ".join(STATUS_BLOCK) + ")")
+        for fc, start, count, members in p.blocks(names):
+            words = await self.transport.read(start, count, "status block (" + ", ".join(members) + ")", fc)
+            for n in members:
+                reg = p[n]
+                values[n] = words[reg.address - start: reg.address - start + reg.words]
         t1 = self.clock.monotonic()
 
         def get(name: str) -> float:
-            reg = self.map[name]
-            return reg.decode(words[reg.address - start: reg.address - start + reg.words])
+            return p[name].decode(values[name])
 
-        angle_reg = self.map["crank_angle"]
-        angle = get("crank_angle")
-        angle_rad = math.radians(angle) if angle_reg.unit == "deg" else angle
-        word = int(get("status_word"))
-        fault = int(get("fault_code"))
+        speed = get(p.speed)
+        word = int(p[p.status.register].decode_raw(values[p.status.register])) & 0xFFFF
+        flags = p.decode_status(word)
+        code = int(get(p.faults.register)) if p.faults.register else 0
+        flags.setdefault("running", speed != 0.0)
+        flags.setdefault("fault", code != 0)
+        flags.setdefault("estop", code != 0 and code == p.faults.kinds.get("emergency_stop"))
+        resolution = abs(p[p.setpoint].scale)
+        flags.setdefault("at_setpoint", flags["enabled"] and abs(speed - self._setpoint_hz) <= 0.5 * resolution)
+        flags.setdefault("ready", not flags["fault"] and not flags["enabled"])
+        if code == 0 and flags["estop"]:
+            code = PSEUDO_ESTOP
+        elif code == 0 and flags["fault"]:
+            code = PSEUDO_FAULT
+        angle: float | None = None
+        if p.angle:
+            a = get(p.angle)
+            angle = (math.radians(a) if p[p.angle].unit == "deg" else a) % (2 * math.pi)
         return MotorStatus(
-            actual_speed_hz=get("actual_speed"),
-            crank_angle_rad=angle_rad % (2 * math.pi),
+            actual_speed_hz=speed,
+            crank_angle_rad=angle,
             status_word=word,
-            flags=self.map.decode_status(word),
-            fault_code=fault,
-            fault_name=self.map.fault_name(fault),
-            revolution_count=int(get("revolution_count")),
+            flags=flags,
+            fault_code=code,
+            fault_name=p.fault_name(code),
+            revolution_count=int(get(p.revolutions)) if p.revolutions else None,
             time_s=0.5 * (t0 + t1),
             round_trip_s=t1 - t0,
         )

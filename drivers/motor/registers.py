@@ -1,10 +1,13 @@
-"""The motor-controller register map: loaded once from ``config/motor_registers.yaml``
-(shipped as ``sinecal_config``).
+"""One register of a drive profile: where it is on the wire, how it is read and written, how its
+raw words become a physical value.
 
-Both the driver and the emulator use :class:`RegisterMap`; nothing else declares an address,
-a type, a scaling or a valid range.  Physical value = raw * scale + offset, in the register's ``unit``.
-A writable register may declare ``min``/``max`` (physical units): the driver refuses a value outside
-them before sending, the emulator answers exception 03 ILLEGAL DATA VALUE.
+Physical value = raw * scale + offset, in the register's ``unit``.  A profile writes each register as
+its drive's manual prints it (``address`` with the manual's ``numbering``: 0-based wire addresses,
+1-based register numbers, or Modicon references such as 40101) and the scaling as the manual gives
+it (``scale``/``offset``, or a normalised form such as "16384 = 100 % of the reference frequency");
+:func:`parse_register` turns that into the wire address and one ``scale``.  A writable register may
+declare ``min``/``max`` (physical units): the driver refuses a value outside them before sending,
+the emulator answers exception 03 ILLEGAL DATA VALUE.
 """
 
 from __future__ import annotations
@@ -12,15 +15,9 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-import yaml
-from sinecal_config import config_file
-
 from drivers.motor.errors import MotorValueError, RegisterMapError
-
-DEFAULT_REGISTER_MAP_PATH = config_file("motor_registers.yaml")
 
 # type name -> (number of 16-bit words, signed)
 _TYPES: dict[str, tuple[int, bool]] = {
@@ -29,11 +26,19 @@ _TYPES: dict[str, tuple[int, bool]] = {
     "uint32": (2, False),
     "int32": (2, True),
 }
+FUNCTIONS = {"holding": 0x03, "input": 0x04}  # read function code of each register kind
+WORD_ORDERS = ("high_first", "low_first")
+MEMORIES = ("ram", "eeprom")
+NUMBERINGS = (0, 1, "modicon")
 
 
 @dataclass(frozen=True)
 class Register:
-    """One register (or a 32-bit pair): address is the 0-based wire address of the first word."""
+    """One register (or a 32-bit pair): ``address`` is the 0-based wire address of the first word.
+
+    ``function``: ``holding`` (read FC 03, written FC 06/16) or ``input`` (read FC 04, read-only);
+    ``word_order`` of a 32-bit value; ``memory``: ``ram`` or ``eeprom`` (an EEPROM-backed register
+    wears out: the driver writes it only when its value changes, never in a loop)."""
 
     name: str
     address: int
@@ -45,6 +50,10 @@ class Register:
     description: str = ""
     min: float | None = None
     max: float | None = None
+    function: str = "holding"
+    word_order: str = "high_first"
+    memory: str = "ram"
+    reads_flag: str | None = None  # a command register that reads back a status flag (1 while it is set)
 
     @property
     def words(self) -> int:
@@ -54,6 +63,15 @@ class Register:
     @property
     def writable(self) -> bool:
         return self.access == "rw"
+
+    @property
+    def eeprom(self) -> bool:
+        return self.memory == "eeprom"
+
+    @property
+    def read_function(self) -> int:
+        """Modbus function code that reads this register (03 or 04)."""
+        return FUNCTIONS[self.function]
 
     def raw_range(self) -> tuple[int, int]:
         """Smallest and largest raw integer of the type."""
@@ -80,8 +98,9 @@ class Register:
             unit = f" {self.unit}" if self.unit else ""
             raise MotorValueError(f"register {self.name!r}: expected {lo:g}..{hi:g}{unit}, got {value!r}{unit}")
 
-    def encode(self, value: float) -> list[int]:
-        """Physical value (in ``unit``) -> list of 16-bit words (high word first)."""
+    def raw_of(self, value: float) -> int:
+        """Physical value -> raw integer (rounded to the register's resolution); MotorValueError outside
+        what the type holds."""
         if not math.isfinite(value):
             raise MotorValueError(f"register {self.name!r}: expected a finite value, got {value!r}")
         raw = round((value - self.offset) / self.scale)
@@ -92,15 +111,25 @@ class Register:
                 f"[{lo}, {hi}] (i.e. [{lo * self.scale + self.offset}, {hi * self.scale + self.offset}] "
                 f"{self.unit})"
             )
+        return raw
+
+    def words_of_raw(self, raw: int) -> list[int]:
+        """Raw integer -> 16-bit words in the register's word order."""
         raw &= (1 << (16 * self.words)) - 1
-        return [(raw >> (16 * (self.words - 1 - i))) & 0xFFFF for i in range(self.words)]
+        high_first = [(raw >> (16 * (self.words - 1 - i))) & 0xFFFF for i in range(self.words)]
+        return high_first if self.word_order == "high_first" else high_first[::-1]
+
+    def encode(self, value: float) -> list[int]:
+        """Physical value (in ``unit``) -> list of 16-bit words (in the register's word order)."""
+        return self.words_of_raw(self.raw_of(value))
 
     def decode_raw(self, words: Sequence[int]) -> int:
-        """Words (high first) -> raw integer, sign applied."""
+        """Words (in the register's word order) -> raw integer, sign applied."""
         if len(words) != self.words:
             raise MotorValueError(f"register {self.name!r}: expected {self.words} word(s), got {len(words)}")
+        ordered = list(words) if self.word_order == "high_first" else list(words)[::-1]
         raw = 0
-        for w in words:
+        for w in ordered:
             raw = (raw << 16) | (int(w) & 0xFFFF)
         bits = 16 * self.words
         if _TYPES[self.type][1] and raw >= 1 << (bits - 1):
@@ -108,161 +137,110 @@ class Register:
         return raw
 
     def decode(self, words: Sequence[int]) -> float:
-        """Words (high first) -> physical value in ``unit``."""
+        """Words -> physical value in ``unit``."""
         return self.decode_raw(words) * self.scale + self.offset
 
 
-@dataclass(frozen=True)
-class DeviceDefaults:
-    """Controller-wide settings (SI units: Hz, Hz/s, s)."""
-
-    device_id: int = 1
-    max_frequency_hz: float = 100.0
-    min_frequency_hz: float = 0.0
-    default_ramp_hz_per_s: float = 5.0
-    max_ramp_hz_per_s: float = 100.0
-    stop_deceleration_hz_per_s: float = 50.0
-    default_watchdog_timeout_s: float = 1.0
-
-
-# DeviceDefaults fields that come from a register's declared range (declared there, once)
-_FROM_RANGES = {"min_frequency_hz": ("frequency_setpoint", "min"),
-                "max_frequency_hz": ("frequency_setpoint", "max"),
-                "max_ramp_hz_per_s": ("acceleration_ramp", "max")}
-
-
-@dataclass(frozen=True)
-class RegisterMap:
-    """All registers by name, the status-word bits and the fault-code names."""
-
-    registers: Mapping[str, Register]
-    status_bits: Mapping[str, int]
-    fault_codes: Mapping[int, str]
-    device: DeviceDefaults
-
-    def __getitem__(self, name: str) -> Register:
-        try:
-            return self.registers[name]
-        except KeyError:
-            raise KeyError(f"no register {name!r} in the map (have: {', '.join(self.registers)})") from None
-
-    def span(self, names: Sequence[str]) -> tuple[int, int]:
-        """(first address, word count) of the contiguous block covering ``names``."""
-        regs = [self[n] for n in names]
-        start = min(r.address for r in regs)
-        end = max(r.address + r.words for r in regs)
-        return start, end - start
-
-    def decode_status(self, word: int) -> dict[str, bool]:
-        """Status word -> {bit name: set?}."""
-        return {name: bool(word >> bit & 1) for name, bit in self.status_bits.items()}
-
-    def encode_status(self, flags: Mapping[str, bool]) -> int:
-        """{bit name: set?} -> status word; unknown names are an error."""
-        word = 0
-        for name, on in flags.items():
-            if name not in self.status_bits:
-                raise KeyError(f"unknown status bit {name!r} (have: {', '.join(self.status_bits)})")
-            if on:
-                word |= 1 << self.status_bits[name]
-        return word
-
-    def fault_name(self, code: int) -> str:
-        return self.fault_codes.get(code, f"unknown_fault_{code}")
-
-    def fault_code(self, name: str) -> int:
-        for code, n in self.fault_codes.items():
-            if n == name:
-                return code
-        raise KeyError(f"unknown fault {name!r} (have: {', '.join(self.fault_codes.values())})")
-
-
-def _expect(cond: bool, where: str, expected: str, got: Any) -> None:
+def expect(cond: bool, where: str, expected: str, got: Any) -> None:
+    """Raise :class:`RegisterMapError` ``<where>: expected <expected>, got <got>`` unless ``cond``."""
     if not cond:
         raise RegisterMapError(f"{where}: expected {expected}, got {got!r}")
 
 
-def _parse_register(name: str, spec: Any) -> Register:
+def is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def wire_address(number: Any, numbering: Any, function: str, where: str) -> int:
+    """The 0-based wire address of a register the manual numbers ``number`` (``numbering`` 0: as on the
+    wire; 1: register numbers from 1; ``modicon``: 4xxxx holding / 3xxxx input references)."""
+    expect(isinstance(number, int) and not isinstance(number, bool), f"{where}.address", "an integer", number)
+    expect(numbering in NUMBERINGS, f"{where}.numbering", "0 (wire address), 1 (register number) or "
+           "'modicon' (40001-based holding, 30001-based input references)", numbering)
+    if numbering == 0:
+        addr = number
+    elif numbering == 1:
+        addr = number - 1
+    else:
+        base = 40001 if function == "holding" else 30001
+        expect(base <= number <= base + 0xFFFF, f"{where}.address",
+               f"a Modicon reference {base}..{base + 0xFFFF} for a {function} register", number)
+        addr = number - base
+    expect(0 <= addr <= 0xFFFF, f"{where}.address", "a wire address 0..65535 after numbering", addr)
+    return addr
+
+
+_REGISTER_KEYS = {"address", "numbering", "function", "type", "scale", "offset", "normalised", "unit", "access",
+                  "memory", "word_order", "description", "min", "max", "reads_flag"}
+
+
+def parse_register(name: str, spec: Any, device: Mapping[str, float | None]) -> Register:
+    """Validate one register of a profile's ``registers`` section.
+
+    ``normalised: {raw: 16384, full_scale: reference_frequency_hz}`` means raw 16384 is the value of
+    that ``device`` key (100 %): scale = full_scale / raw (instead of ``scale``)."""
     where = f"registers.{name}"
-    _expect(isinstance(spec, dict), where, "a mapping", spec)
-    allowed = {"address", "type", "scale", "offset", "unit", "access", "description", "min", "max"}
-    unknown = set(spec) - allowed
-    _expect(not unknown, where, f"only keys {sorted(allowed)}", sorted(unknown))
-    addr = spec.get("address")
-    _expect(isinstance(addr, int) and not isinstance(addr, bool) and 0 <= addr <= 0xFFFF,
-            f"{where}.address", "an integer 0..65535", addr)
+    expect(isinstance(spec, dict), where, "a mapping", spec)
+    unknown = sorted(set(spec) - _REGISTER_KEYS)
+    expect(not unknown, where, f"only keys {sorted(_REGISTER_KEYS)}", unknown)
+    function = spec.get("function", "holding")
+    expect(function in FUNCTIONS, f"{where}.function", "'holding' (FC 03/06/16) or 'input' (FC 04)", function)
+    addr = wire_address(spec.get("address"), spec.get("numbering", 0), function, where)
     typ = spec.get("type")
-    _expect(typ in _TYPES, f"{where}.type", f"one of {sorted(_TYPES)}", typ)
-    scale = spec.get("scale", 1.0)
-    _expect(isinstance(scale, int | float) and not isinstance(scale, bool) and scale != 0
-            and math.isfinite(scale), f"{where}.scale", "a finite non-zero number", scale)
+    expect(typ in _TYPES, f"{where}.type", f"one of {sorted(_TYPES)}", typ)
+    if "normalised" in spec:
+        expect("scale" not in spec, where, "either scale or normalised", "both")
+        norm = spec["normalised"]
+        expect(isinstance(norm, dict) and set(norm) == {"raw", "full_scale"}, f"{where}.normalised",
+               "{raw: <raw value of 100 %>, full_scale: <a device key>}", norm)
+        expect(is_number(norm["raw"]) and norm["raw"] != 0, f"{where}.normalised.raw", "a non-zero number",
+               norm["raw"])
+        full = device.get(norm["full_scale"]) if isinstance(norm["full_scale"], str) else None
+        expect(full is not None and is_number(full) and full != 0, f"{where}.normalised.full_scale",
+               f"a device key with a non-zero value (have {sorted(k for k, v in device.items() if v)})",
+               norm["full_scale"])
+        assert full is not None
+        scale = float(full) / float(norm["raw"])
+    else:
+        scale = spec.get("scale", 1.0)
+        expect(is_number(scale) and scale != 0, f"{where}.scale", "a finite non-zero number", scale)
     offset = spec.get("offset", 0.0)
-    _expect(isinstance(offset, int | float) and math.isfinite(offset), f"{where}.offset", "a number", offset)
-    access = spec.get("access", "rw")
-    _expect(access in ("r", "rw"), f"{where}.access", "'r' or 'rw'", access)
+    expect(is_number(offset), f"{where}.offset", "a number", offset)
+    access = spec.get("access", "rw" if function == "holding" else "r")
+    expect(access in ("r", "rw"), f"{where}.access", "'r' or 'rw'", access)
+    expect(not (access == "rw" and function == "input"), f"{where}.access", "'r' for an input register", access)
+    memory = spec.get("memory", "ram")
+    expect(memory in MEMORIES, f"{where}.memory", "'ram' or 'eeprom'", memory)
+    order = spec.get("word_order", "high_first")
+    expect(order in WORD_ORDERS, f"{where}.word_order", "'high_first' or 'low_first'", order)
     unit = spec.get("unit", "")
-    _expect(isinstance(unit, str), f"{where}.unit", "a string", unit)
+    expect(isinstance(unit, str), f"{where}.unit", "a string", unit)
     desc = str(spec.get("description", ""))
     bounds: dict[str, float | None] = {}
     for key in ("min", "max"):
         v = spec.get(key)
-        _expect(v is None or (isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)),
-                f"{where}.{key}", "a finite number (in the register's unit)", v)
+        expect(v is None or is_number(v), f"{where}.{key}", "a finite number (in the register's unit)", v)
         bounds[key] = None if v is None else float(v)
-    reg = Register(name, addr, typ, float(scale), float(offset), unit, access, desc, bounds["min"],
-                   bounds["max"])
+    flag = spec.get("reads_flag")
+    expect(flag is None or isinstance(flag, str), f"{where}.reads_flag", "the name of a status flag", flag)
+    reg = Register(name, addr, typ, float(scale), float(offset), unit, access, desc, bounds["min"], bounds["max"],
+                   function, order, memory, flag)
     type_lo, type_hi = Register(name, addr, typ, float(scale), float(offset)).valid_range()
     lo, hi = reg.valid_range()
-    _expect(type_lo <= lo <= hi <= type_hi, f"{where}.min/max",
-            f"min <= max within what {typ} x {scale:g} holds [{type_lo:g}, {type_hi:g}]", (lo, hi))
+    expect(type_lo <= lo <= hi <= type_hi, f"{where}.min/max",
+           f"min <= max within what {typ} x {scale:g} holds [{type_lo:g}, {type_hi:g}]", (lo, hi))
     return reg
 
 
-def parse_register_map(doc: Any, source: str = "<register map>") -> RegisterMap:
-    """Validate a loaded YAML document and build the frozen :class:`RegisterMap`."""
-    _expect(isinstance(doc, dict), source, "a mapping with 'registers', 'status_bits', 'fault_codes'", doc)
-    regs_doc = doc.get("registers")
-    _expect(isinstance(regs_doc, dict) and bool(regs_doc), f"{source}: registers", "a non-empty mapping", regs_doc)
-    regs = {name: _parse_register(name, spec) for name, spec in regs_doc.items()}
-    used: dict[int, str] = {}
+def parse_registers(doc: Any, device: Mapping[str, float | None], source: str) -> dict[str, Register]:
+    """The ``registers`` section: every register valid, no wire address used twice (per function)."""
+    expect(isinstance(doc, dict) and bool(doc), f"{source}: registers", "a non-empty mapping", doc)
+    regs = {str(name): parse_register(str(name), spec, device) for name, spec in doc.items()}
+    used: dict[tuple[str, int], str] = {}
     for reg in regs.values():
         for a in range(reg.address, reg.address + reg.words):
-            _expect(a not in used, f"{source}: registers.{reg.name}", f"address {a} not used twice",
-                    f"overlap with {used.get(a)!r}")
-            used[a] = reg.name
-    bits = doc.get("status_bits", {})
-    _expect(isinstance(bits, dict), f"{source}: status_bits", "a mapping name -> bit", bits)
-    for bname, bit in bits.items():
-        _expect(isinstance(bit, int) and 0 <= bit <= 15, f"{source}: status_bits.{bname}", "a bit 0..15", bit)
-    faults = doc.get("fault_codes", {0: "none"})
-    _expect(isinstance(faults, dict), f"{source}: fault_codes", "a mapping code -> name", faults)
-    for code in faults:
-        _expect(isinstance(code, int) and 0 <= code <= 0xFFFF, f"{source}: fault_codes", "integer codes",
-                code)
-    dev_doc = doc.get("device", {})
-    _expect(isinstance(dev_doc, dict), f"{source}: device", "a mapping", dev_doc)
-    known = set(DeviceDefaults.__dataclass_fields__) - set(_FROM_RANGES)
-    extra = sorted(set(dev_doc) - known)
-    _expect(not extra, f"{source}: device", f"only keys {sorted(known)} (the frequency and ramp limits "
-            "are the min/max of registers frequency_setpoint and acceleration_ramp)", extra)
-    required = ("enable", "frequency_setpoint", "acceleration_ramp", "actual_speed", "crank_angle",
-                "status_word", "fault_code", "watchdog", "emergency_stop")
-    missing = [r for r in required if r not in regs]
-    _expect(not missing, f"{source}: registers", f"all of {list(required)}", f"missing {missing}")
-    from_ranges = {}
-    for fname, (rname, key) in _FROM_RANGES.items():
-        value = getattr(regs[rname], key)
-        _expect(value is not None, f"{source}: registers.{rname}.{key}", "a declared limit", value)
-        from_ranges[fname] = value
-    device = DeviceDefaults(**dev_doc, **from_ranges)
-    return RegisterMap(regs, dict(bits), {int(k): str(v) for k, v in faults.items()}, device)
-
-
-def load_register_map(path: str | Path | None = None) -> RegisterMap:
-    """Load and validate the register map YAML (default: ``config/motor_registers.yaml``)."""
-    p = Path(path) if path is not None else DEFAULT_REGISTER_MAP_PATH
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise RegisterMapError(f"{p}: not valid YAML: {exc}") from exc
-    return parse_register_map(doc, str(p))
+            key = ("shared", a)  # holding and input registers share one address space on most drives
+            expect(key not in used, f"{source}: registers.{reg.name}", f"address {a} not used twice",
+                   f"overlap with {used.get(key)!r}")
+            used[key] = reg.name
+    return regs

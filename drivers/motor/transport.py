@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
+import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -38,7 +40,7 @@ class RegisterTransport(Protocol):
 
     async def open(self) -> None: ...
 
-    async def read(self, address: int, count: int, what: str) -> list[int]: ...
+    async def read(self, address: int, count: int, what: str, function: int = 0x03) -> list[int]: ...
 
     async def write(self, address: int, words: Sequence[int], what: str) -> None: ...
 
@@ -60,12 +62,16 @@ class ModbusTransport:
     """pymodbus async client with our own retry/reconnect policy (pymodbus' auto-reconnect is off)."""
 
     def __init__(self, make_client: Callable[[], ModbusClient], description: str, *, device_id: int = 1,
-                 policy: LinkPolicy | None = None) -> None:
+                 policy: LinkPolicy | None = None, inter_frame_delay_s: float = 0.0) -> None:
+        """``inter_frame_delay_s``: the pause the drive needs between the end of one exchange and the
+        next request (s)."""
         self._make_client = make_client
         self.description = description
         self.device_id = device_id
         self.policy = policy or LinkPolicy()
+        self.inter_frame_delay_s = inter_frame_delay_s
         self._client: ModbusClient | None = None
+        self._last_exchange = -math.inf
         self.reconnects = 0
 
     @classmethod
@@ -142,6 +148,9 @@ class ModbusTransport:
         lost = False
         for _ in range(self.policy.retries + 1):
             client = await self._ensure_connected(what)
+            pause = self._last_exchange + self.inter_frame_delay_s - time.monotonic()
+            if pause > 0:
+                await asyncio.sleep(pause)
             try:
                 reply = await request(client)
             except ConnectionException as exc:
@@ -153,6 +162,8 @@ class ModbusTransport:
                 if not client.connected:
                     lost = True
                 continue
+            finally:
+                self._last_exchange = time.monotonic()
             if reply.isError():
                 code = getattr(reply, "exception_code", 0)
                 raise MotorExceptionReplyError(what, fc, code)
@@ -162,10 +173,14 @@ class ModbusTransport:
         attempts = self.policy.retries + 1
         raise MotorTimeoutError(what, f"{self.description}: {last} after {attempts} attempt(s)")
 
-    async def read(self, address: int, count: int, what: str) -> list[int]:
-        """FC 03 read of ``count`` words at ``address``."""
-        reply = await self._call(what, 0x03, lambda c: c.read_holding_registers(
-            address, count=count, device_id=self.device_id))
+    async def read(self, address: int, count: int, what: str, function: int = 0x03) -> list[int]:
+        """FC 03 (holding) or FC 04 (``function=4``, input registers) read of ``count`` words at ``address``."""
+        if function == 0x04:
+            reply = await self._call(what, 0x04, lambda c: c.read_input_registers(
+                address, count=count, device_id=self.device_id))
+        else:
+            reply = await self._call(what, 0x03, lambda c: c.read_holding_registers(
+                address, count=count, device_id=self.device_id))
         regs = list(getattr(reply, "registers", []))
         if len(regs) != count:
             raise MotorProtocolError(what, f"expected {count} register(s) in the reply, got {len(regs)}")
@@ -201,27 +216,34 @@ def rtu_line_settings(parity: str = "E", stopbits: int | None = None) -> tuple[s
 _RTU_QUERY_KEYS = ("baudrate", "parity", "stopbits", "echo")
 
 
-def transport_from_url(url: str, *, device_id: int = 1, policy: LinkPolicy | None = None) -> ModbusTransport:
+def transport_from_url(url: str, *, device_id: int = 1, policy: LinkPolicy | None = None,
+                       baudrate: int = 115200, parity: str = "E", stopbits: int | None = None,
+                       inter_frame_delay_s: float = 0.0) -> ModbusTransport:
     """``modbus-tcp://HOST:PORT`` or ``modbus-rtu:///dev/ttyX?baudrate=115200&parity=E&stopbits=1&echo=0``
-    (RTU defaults: 115200 Bd, 8E1; 8N2 with ``parity=N``; ``echo=1`` discards the adapter's local echo)."""
+    (RTU defaults: ``baudrate``, ``parity`` and ``stopbits`` as given, e.g. a drive profile's; else
+    115200 Bd, 8E1; 8N2 with ``parity=N``; ``echo=1`` discards the adapter's local echo)."""
     u = urlparse(url)
     if u.scheme == "modbus-tcp":
         if u.hostname is None or u.port is None:
             raise ValueError(f"expected modbus-tcp://HOST:PORT, got {url!r}")
-        return ModbusTransport.tcp(u.hostname, u.port, device_id=device_id, policy=policy)
+        t = ModbusTransport.tcp(u.hostname, u.port, device_id=device_id, policy=policy)
+        t.inter_frame_delay_s = inter_frame_delay_s
+        return t
     if u.scheme == "modbus-rtu":
         q = {k: v[-1] for k, v in parse_qs(u.query, keep_blank_values=True).items()}
         unknown = sorted(set(q) - set(_RTU_QUERY_KEYS))
         if unknown:
             raise ValueError(f"modbus-rtu URL: expected query keys among {list(_RTU_QUERY_KEYS)}, got {unknown}")
         try:
-            baud = int(q.get("baudrate", "115200"))
-            stop = int(q["stopbits"]) if "stopbits" in q else None
+            baud = int(q.get("baudrate", str(baudrate)))
+            stop = int(q["stopbits"]) if "stopbits" in q else (stopbits if "parity" not in q else None)
         except ValueError:
             raise ValueError(f"modbus-rtu URL: expected integer baudrate and stopbits, got {u.query!r}") from None
         echo = q.get("echo", "0")
         if echo not in ("0", "1"):
             raise ValueError(f"modbus-rtu URL: expected echo=0 or echo=1, got echo={echo!r}")
-        return ModbusTransport.rtu(u.path, baudrate=baud, parity=q.get("parity", "E").upper(), stopbits=stop,
-                                   local_echo=echo == "1", device_id=device_id, policy=policy)
+        t = ModbusTransport.rtu(u.path, baudrate=baud, parity=q.get("parity", parity).upper(), stopbits=stop,
+                                local_echo=echo == "1", device_id=device_id, policy=policy)
+        t.inter_frame_delay_s = inter_frame_delay_s
+        return t
     raise ValueError(f"expected a modbus-tcp:// or modbus-rtu:// URL, got {url!r}")

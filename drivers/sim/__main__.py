@@ -25,6 +25,7 @@ import threading
 import time
 from typing import Any
 
+from drivers.motor.profile import load_profile
 from drivers.sim.rig import SimRig, addresses_json
 
 _out = threading.Lock()
@@ -55,11 +56,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--modbus-port", type=int, default=0, help="TCP port on 127.0.0.1 (0 = any free port)")
     ap.add_argument("--crank-radius", type=float, default=0.01, help="crank radius in m")
     ap.add_argument("--json", action="store_true", help="print the addresses as one JSON line")
+    ap.add_argument("--profile", default=None, help="drive profile the motor emulator behaves as (shipped name "
+                    "or YAML path; default sinecal-crank)")
     ap.add_argument("--commands", action="store_true",
                     help="print every command the motor controller takes as a JSON line")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
-    with SimRig(seed=args.seed, modbus_port=args.modbus_port, crank_radius_m=args.crank_radius) as rig:
+    profile = load_profile(args.profile)
+    with SimRig(seed=args.seed, modbus_port=args.modbus_port, crank_radius_m=args.crank_radius,
+                profile=profile) as rig:
         if args.commands:
             def seen(name: str, value: float, t: float) -> None:
                 if name != "watchdog":

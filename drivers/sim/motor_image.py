@@ -1,8 +1,14 @@
-"""Register image of the emulated motor controller: the device logic behind the Modbus server.
+"""Register image of an emulated drive: any drive profile's registers on top of one :class:`MotorModel`.
 
-:class:`MotorRegisterImage` maps register reads/writes onto the :class:`MotorModel`.  It is used
-by the pymodbus server (via its ``SimDevice`` action) and directly by the in-process backend, so
-both speak the same device logic.  Errors are returned as Modbus exception codes.
+:class:`MotorRegisterImage` makes the model look, register by register, like the drive a profile
+describes: the set point, speed, ramp, watchdog and angle registers read and write the model in the
+profile's scaling; the status word is composed from the model's state through the profile's flag
+table; the fault code is the profile's code for the model's fault; and writes to command registers
+are matched against the profile's command sequences (a control-word state machine, or one register
+per command), with their hold times, before the model is commanded.  Other registers keep what was
+written.  Where the profile says every request refreshes the watchdog, every request does.  It is used
+by the pymodbus server (via its ``SimDevice`` action) and directly by the in-process backend, so both
+speak the same device logic.  Errors are returned as Modbus exception codes.
 """
 
 from __future__ import annotations
@@ -10,16 +16,19 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 
-from drivers.motor.registers import Register, RegisterMap
-from drivers.sim.motor_model import MotorModel
+from drivers.motor.profile import COMMANDS, FAULT_KINDS, DriveProfile
+from drivers.motor.registers import Register
+from drivers.sim.motor_model import FAULT_ESTOP, MotorModel
 
 log = logging.getLogger(__name__)
 
 ILLEGAL_ADDRESS = 0x02
 ILLEGAL_VALUE = 0x03
 DEVICE_FAILURE = 0x04
+_HISTORY = 16  # command-register writes kept for matching sequences
 
 
 class _Refused(Exception):
@@ -29,65 +38,100 @@ class _Refused(Exception):
 
 
 class MotorRegisterImage:
-    """Reads produce the live state; writes command the model.  Thread-safe through the model."""
+    """Reads produce the live state; writes command the model.  Thread-safe through the model.
 
-    def __init__(self, regmap: RegisterMap, model: MotorModel) -> None:
-        self.map = regmap
+    ``writes`` counts the accepted writes per register (an EEPROM-backed register's wear)."""
+
+    def __init__(self, profile: DriveProfile, model: MotorModel) -> None:
+        self.map = profile
+        self.profile = profile
         self.model = model
         self._by_addr: dict[int, tuple[Register, int]] = {}
-        for reg in regmap.registers.values():
+        for reg in profile.registers.values():
             for i in range(reg.words):
                 self._by_addr[reg.address + i] = (reg, i)
-        self._stored: dict[str, float] = {"watchdog": 0.0}
+        self._stored: dict[str, float] = {}
+        self._history: list[tuple[str, int, float]] = []  # (register, raw value, time) of command writes
+        self._command_regs = profile.commands.registers
+        self.writes: Counter[str] = Counter()
+        self.commands_seen: list[str] = []
         # called with (register name, value, time.monotonic()) for every register a write applied
         self.observers: list[Callable[[str, float, float], None]] = []
 
+    # ------------------------------------------------------------------------------ reads
+    def _fault_code(self, model_code: int) -> int:
+        """The profile's code for the model's fault (0: none, or a quick stop the drive gives no code)."""
+        if model_code == 0:
+            return 0
+        kind = FAULT_KINDS.get(model_code, "")
+        if kind in self.profile.faults.kinds:
+            return self.profile.faults.kinds[kind]
+        if model_code == FAULT_ESTOP:
+            return 0  # the drive shows a quick stop in its status word only
+        return next(c for c in self.profile.faults.codes if c != 0)
+
     def _values(self) -> dict[str, float]:
         s = self.model.snapshot()
-        m = self.map
-        status = {
+        p = self.profile
+        code = self._fault_code(s.fault_code)
+        fault = s.fault_code != 0 and not (s.fault_code == FAULT_ESTOP and code == 0)
+        truths = {
+            "ready": not fault and not s.enabled and not s.estop,
             "enabled": s.enabled,
             "running": s.speed_hz != 0.0,
             "at_setpoint": s.enabled and s.speed_hz == s.setpoint_hz,
+            "fault": fault,
+            "estop": s.estop,
             "ramping": s.speed_hz != s.target_hz,
-            "fault": s.fault_code != 0,
             "watchdog_expired": s.watchdog_expired,
-            "estop_active": s.estop,
         }
-        values = {
-            "enable": float(s.enabled),
-            "frequency_setpoint": s.setpoint_hz,
-            "acceleration_ramp": s.ramp_hz_per_s,
-            "watchdog": self._stored["watchdog"],
-            "watchdog_timeout": s.watchdog_timeout_s,
-            "emergency_stop": float(s.estop),
-            "fault_reset": 0.0,
-            "actual_speed": s.speed_hz,
-            "crank_angle": self._wrapped_angle_deg(s.angle_rad),
-            "status_word": float(m.encode_status({k: v for k, v in status.items() if k in m.status_bits})),
-            "fault_code": float(s.fault_code),
-            "revolution_count": float(math.floor(s.angle_rad / (2 * math.pi)) % (1 << 32)),
-            "max_frequency": self.model.device.max_frequency_hz,
-        }
-        if "crank_angle" in m.registers and m["crank_angle"].unit == "rad":
-            values["crank_angle"] = s.angle_rad % (2 * math.pi)
+        values = dict(self._stored)
+        values[p.setpoint] = s.setpoint_hz
+        values[p.speed] = s.speed_hz
+        values[p.status.register] = float(p.status.encode({k: truths.get(k, False) for k in p.status.flags}))
+        values[p.watchdog.register] = s.watchdog_timeout_s
+        if p.faults.register:
+            values[p.faults.register] = float(code)
+        if p.ramp is not None:
+            ramp = s.ramp_hz_per_s if p.ramp.form == "rate" else p.device.max_frequency_hz / s.ramp_hz_per_s
+            values.update(dict.fromkeys(p.ramp.registers, ramp))
+        if p.max_frequency:
+            values[p.max_frequency] = p.device.max_frequency_hz
+        if p.angle:
+            unit_deg = p[p.angle].unit == "deg"
+            values[p.angle] = self._wrapped_angle_deg(s.angle_rad) if unit_deg else s.angle_rad % (2 * math.pi)
+        for reg in p.registers.values():
+            if reg.reads_flag is not None:
+                values[reg.name] = float(truths.get(reg.reads_flag, False))
+        if p.revolutions:
+            values[p.revolutions] = float(math.floor(s.angle_rad / (2 * math.pi)) % (1 << 32))
         return values
 
     def _wrapped_angle_deg(self, angle_rad: float) -> float:
         """Angle in [0, 360) deg that never rounds up to 360.00 in the register's resolution."""
         deg = math.degrees(angle_rad % (2 * math.pi))
-        half_lsb = 0.5 * abs(self.map["crank_angle"].scale)
+        assert self.profile.angle is not None
+        half_lsb = 0.5 * abs(self.profile[self.profile.angle].scale)
         return 0.0 if deg >= 360.0 - half_lsb else deg
 
     def _raw_words(self, reg: Register, value: float) -> list[int]:
         lo, hi = reg.raw_range()
         raw = min(max(round((value - reg.offset) / reg.scale), lo), hi)  # saturate like a drive would
-        return reg.encode(raw * reg.scale + reg.offset)
+        return reg.words_of_raw(raw)
 
-    def read(self, address: int, count: int) -> list[int] | int:
-        """Words ``address .. address+count-1`` or a Modbus exception code."""
-        if count < 1 or any(a not in self._by_addr for a in range(address, address + count)):
+    def _any_request(self) -> None:
+        if self.profile.watchdog.refresh is None:
+            self.model.refresh_watchdog()  # every valid request refreshes this drive's watchdog
+
+    def read(self, address: int, count: int, function: int = 0x03) -> list[int] | int:
+        """Words ``address .. address+count-1`` or a Modbus exception code (02: an address outside the
+        profile or of the other register kind; 03: more words than the drive reads at once)."""
+        if count < 1 or any(a not in self._by_addr or self._by_addr[a][0].read_function != function
+                            for a in range(address, address + count)):
             return ILLEGAL_ADDRESS
+        if count > self.profile.transport.max_registers_per_read:
+            return ILLEGAL_VALUE
+        self._any_request()
         values = self._values()
         out: list[int] = []
         for a in range(address, address + count):
@@ -95,6 +139,7 @@ class MotorRegisterImage:
             out.append(self._raw_words(reg, values.get(reg.name, 0.0))[i])
         return out
 
+    # ------------------------------------------------------------------------------ writes
     def write(self, address: int, words: Sequence[int]) -> int | None:
         """Apply a write of whole registers, all or nothing; returns a Modbus exception code or None.
 
@@ -111,61 +156,92 @@ class MotorRegisterImage:
                 return ILLEGAL_ADDRESS
             regs.append(entry[0])
             a += entry[0].words
-        values = [(reg, reg.decode(words[reg.address - address: reg.address - address + reg.words]))
-                  for reg in regs]
-        for reg, value in values:
+        self._any_request()
+        chunks = [(reg, words[reg.address - address: reg.address - address + reg.words]) for reg in regs]
+        for reg, chunk in chunks:
+            value = reg.decode(chunk)
             if not reg.in_range(value):
                 lo, hi = reg.valid_range()
                 log.info("motor emulator: write %s=%s outside [%g, %g]: exception 3", reg.name, value, lo, hi)
                 return ILLEGAL_VALUE
-        stored = dict(self._stored)
+        saved = (dict(self._stored), list(self._history), list(self.commands_seen))
         try:
             with self.model.atomic():
-                for reg, value in values:
-                    code = self._apply(reg.name, value)
+                for reg, chunk in chunks:
+                    code = self._apply(reg, reg.decode(chunk), reg.decode_raw(chunk))
                     if code is not None:
-                        log.info("motor emulator: write %s=%s refused with exception %d", reg.name, value, code)
+                        log.info("motor emulator: write %s=%s refused with exception %d", reg.name,
+                                 reg.decode(chunk), code)
                         raise _Refused(code)
         except _Refused as refused:
-            self._stored = stored
+            self._stored, self._history, self.commands_seen = saved
             return refused.code
+        self.writes.update(reg.name for reg, _ in chunks)
         if self.observers:
             now = time.monotonic()
-            for reg, value in values:
+            for reg, chunk in chunks:
                 for fn in self.observers:
-                    fn(reg.name, value, now)
+                    fn(reg.name, reg.decode(chunk), now)
         return None
 
-    def _apply(self, name: str, value: float) -> int | None:
-        model = self.model
+    def _matched_command(self) -> str | None:
+        """The longest command sequence the latest command-register writes complete (with its holds)."""
+        best: tuple[int, str] | None = None
+        now_hist = self._history
+        for command in COMMANDS:
+            steps = self.profile.commands.sequences[command]
+            n = len(steps)
+            if n > len(now_hist):
+                continue
+            tail = now_hist[-n:]
+            if any((s.register, s.value) != (h[0], h[1]) for s, h in zip(steps, tail, strict=True)):
+                continue
+            if any(tail[i + 1][2] - tail[i][2] < steps[i].hold_s - 1e-9 for i in range(n - 1)):
+                continue  # a step not held long enough is not seen by the drive
+            if best is None or n > best[0]:
+                best = (n, command)
+        return None if best is None else best[1]
+
+    def _apply(self, reg: Register, value: float, raw: int) -> int | None:
+        p, model = self.profile, self.model
+        name = reg.name
         try:
-            if name == "enable":
-                if value not in (0.0, 1.0):
-                    return ILLEGAL_VALUE
-                model.set_enable(value == 1.0)
-            elif name == "frequency_setpoint":
+            if name == p.setpoint:
                 model.set_setpoint(value)
-            elif name == "acceleration_ramp":
-                model.set_ramp(value)
-            elif name == "watchdog":
-                self._stored["watchdog"] = value
-                model.refresh_watchdog()
-            elif name == "watchdog_timeout":
+            elif p.ramp is not None and name in p.ramp.registers:
+                if p.ramp.form == "rate":
+                    model.set_ramp(value)
+                elif value <= 0:
+                    return ILLEGAL_VALUE
+                else:
+                    model.set_ramp(p.device.max_frequency_hz / value)
+            elif name == p.watchdog.register:
                 model.set_watchdog_timeout(value)
-            elif name == "emergency_stop":
-                if value == 1.0:
-                    model.emergency_stop()
-                elif value != 0.0:
-                    return ILLEGAL_VALUE
-            elif name == "fault_reset":
-                if value == 1.0:
-                    model.reset_faults()
-                elif value != 0.0:
-                    return ILLEGAL_VALUE
+            elif name == p.watchdog.refresh:
+                self._stored[name] = value
+                model.refresh_watchdog()
+            elif name in self._command_regs:
+                self._stored[name] = value
+                self._history = [*self._history[-_HISTORY + 1:], (name, raw, model.snapshot().time_s)]
+                command = self._matched_command()
+                if command is not None:
+                    self.commands_seen.append(command)
+                    self._command(command)
             else:
-                return ILLEGAL_ADDRESS
+                self._stored[name] = value
         except ValueError:
             return ILLEGAL_VALUE
         except PermissionError:
             return DEVICE_FAILURE
         return None
+
+    def _command(self, command: str) -> None:
+        model = self.model
+        if command == "enable":
+            model.set_enable(True)
+        elif command == "stop":
+            model.set_enable(False)
+        elif command == "quick_stop":
+            model.emergency_stop()
+        else:
+            model.reset_faults()

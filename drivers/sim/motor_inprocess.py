@@ -38,11 +38,11 @@ class InProcessTransport:
     async def open(self) -> None:
         return None
 
-    async def read(self, address: int, count: int, what: str) -> list[int]:
+    async def read(self, address: int, count: int, what: str, function: int = 0x03) -> list[int]:
         self._check_link(what)
-        result = self.image.read(address, count)
+        result = self.image.read(address, count, function)
         if isinstance(result, int):
-            raise MotorExceptionReplyError(what, 0x03, result)
+            raise MotorExceptionReplyError(what, function, result)
         return result
 
     async def write(self, address: int, words: Sequence[int], what: str) -> None:

@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
-from drivers.motor.registers import DeviceDefaults
+from drivers.motor.profile import DeviceDefaults
 
 log = logging.getLogger(__name__)
 

@@ -24,7 +24,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.motor.registers import RegisterMap
+from drivers.motor.profile import DriveProfile
 from drivers.sim.motor_image import MotorRegisterImage
 from drivers.sim.pty import PtyBridge
 
@@ -41,16 +41,18 @@ RTU_PARITY = "N"
 RTU_STOPBITS = 2
 
 
-def screen_request(device_id: int, unit: int, pdu: bytes) -> int | None:
-    """The controller's answer before any register is touched: ``SILENT`` (another unit id, including
-    broadcast 0: not supported), an exception code (01 undocumented function; 03 quantity, byte count
-    or length wrong for 03/06/16), or None (a well-formed request of a documented function)."""
+def screen_request(device_id: int, unit: int, pdu: bytes,
+                   functions: tuple[int, ...] = DOCUMENTED_FUNCTIONS) -> int | None:
+    """The drive's answer before any register is touched: ``SILENT`` (another unit id, including
+    broadcast 0: not supported), an exception code (01 a function the drive does not answer, by its
+    profile; 03 quantity, byte count or length wrong for 03/04/06/16), or None (a well-formed request
+    of a function it answers)."""
     if unit != device_id:
         return SILENT
     fc = pdu[0]
-    if fc not in DOCUMENTED_FUNCTIONS:
+    if fc not in functions:
         return int(ExcCodes.ILLEGAL_FUNCTION)
-    if fc == 0x03:
+    if fc in (0x03, 0x04):
         ok = len(pdu) == 5 and 1 <= int.from_bytes(pdu[3:5], "big") <= 125
     elif fc == 0x06:
         ok = len(pdu) == 5
@@ -64,11 +66,12 @@ class _ScreeningHandler(ServerRequestHandler):
     """pymodbus' request handler with :func:`screen_request` in front."""
 
     device_id = 1
+    functions: tuple[int, ...] = DOCUMENTED_FUNCTIONS
 
     def callback_data(self, data: bytes, addr: tuple[Any, ...] | None = None) -> int:
         used, unit, tid, pdu = self.framer.decode(data)
         if used and pdu:
-            verdict = screen_request(self.device_id, unit, pdu)
+            verdict = screen_request(self.device_id, unit, pdu, self.functions)
             if verdict == SILENT:
                 log.info("motor emulator: request for unit %d ignored (this is unit %d)", unit, self.device_id)
                 return used
@@ -79,8 +82,8 @@ class _ScreeningHandler(ServerRequestHandler):
         return int(super().callback_data(data, addr))
 
 
-def _screening(server_cls: type[Any], device_id: int) -> type[Any]:
-    handler = type("ScreeningHandler", (_ScreeningHandler,), {"device_id": device_id})
+def _screening(server_cls: type[Any], device_id: int, functions: tuple[int, ...]) -> type[Any]:
+    handler = type("ScreeningHandler", (_ScreeningHandler,), {"device_id": device_id, "functions": functions})
 
     class Screened(server_cls):
         def callback_new_connection(self) -> ServerRequestHandler:
@@ -144,15 +147,15 @@ class MotorEmulator:
         """``rtu_local_echo``: the RTU line echoes every byte the client sends back to it, as an
         RS-485 adapter without echo suppression does."""
         self.image = image
-        self.map: RegisterMap = image.map
+        self.map: DriveProfile = image.profile
         self.faults = ModbusFaults()
         self._tcp_port = tcp_port
         self._rtu = rtu
         self._baud = rtu_baudrate
         self._echo = rtu_local_echo
-        dev = self.map.device.device_id
-        self._tcp_cls = _screening(ModbusTcpServer, dev)
-        self._serial_cls = _screening(ModbusSerialServer, dev)
+        dev, functions = self.map.transport.unit_id, self.map.transport.functions
+        self._tcp_cls = _screening(ModbusTcpServer, dev, functions)
+        self._serial_cls = _screening(ModbusSerialServer, dev, functions)
         self._tcp: ModbusTcpServer | None = None
         self._serial: ModbusSerialServer | None = None
         self._bridge: PtyBridge | None = None
@@ -165,7 +168,7 @@ class MotorEmulator:
                     readonly=not reg.writable)
             for reg in sorted(self.map.registers.values(), key=lambda r: r.address)
         ]
-        return SimDevice(self.map.device.device_id, simdata=simdata, action=self._action)
+        return SimDevice(self.map.transport.unit_id, simdata=simdata, action=self._action)
 
     async def _action(self, function_code: int, start_address: int, address: int, count: int,
                       registers: list[int], set_values: list[int] | list[bool] | None) -> ExcCodes | None:
@@ -174,7 +177,8 @@ class MotorEmulator:
             log.info("motor emulator: injected exception %d for fc %d @%d", injected, function_code, address)
             return ExcCodes(injected)
         if set_values is None:  # read
-            result = self.image.read(address, count)
+            # pymodbus also reads through the action before a write (FC 06/16): that is a holding read
+            result = self.image.read(address, count, 0x04 if function_code == 0x04 else 0x03)
             if isinstance(result, int):
                 return ExcCodes(result)
             registers[address - start_address: address - start_address + count] = result

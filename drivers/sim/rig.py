@@ -33,7 +33,7 @@ from typing import Any, TypeVar
 
 from drivers.clock import REAL_CLOCK, Clock
 from drivers.daq.link import SocketLink
-from drivers.motor.registers import RegisterMap, load_register_map
+from drivers.motor.profile import DriveProfile, load_profile
 from drivers.rig.params import RigPhysics
 from drivers.rig.presets import paper_5kN_physics
 from drivers.sim.daq_emulator import DaqEmulator
@@ -71,10 +71,10 @@ class SimRig:
     """Context manager starting both emulators; the Modbus servers run in a private event loop thread."""
 
     def __init__(self, *, physics: RigPhysics | None = None, seed: int = 0, crank_radius_m: float = 0.01,
-                 regmap: RegisterMap | None = None, modbus_port: int = 0, rtu: bool = True,
+                 profile: DriveProfile | None = None, modbus_port: int = 0, rtu: bool = True,
                  source: SampleSource | None = None, fifo_bytes: int = 1 << 20, wire: bool = True,
                  clock: Clock = REAL_CLOCK, rtu_local_echo: bool = False) -> None:
-        self.map = regmap or load_register_map()
+        self.map = profile or load_profile()  # the drive the motor emulator behaves as
         self.clock = clock
         self.wire = wire
         self.motor = MotorModel(self.map.device, clock=clock.monotonic)

@@ -230,6 +230,7 @@ class Procedure:
                                  "(station daemon: POST /stop/acknowledge or `station ack`)")
             self._moving = True
             await motor.set_ramp(cfg.rig.acceleration_hz_per_s)
+            await motor.ensure_watchdog()  # the drive's communication watchdog on, at the profile's time-out
             await motor.start_watchdog(0.2)
             await motor.enable()
             await asyncio.to_thread(daq.start)

@@ -20,6 +20,7 @@ from drivers.clock import REAL_CLOCK, Clock
 from drivers.daq.bridge import DaqBridge
 from drivers.daq.link import ByteLink, SerialLink
 from drivers.motor.controller import MotorController
+from drivers.motor.profile import DriveProfile, load_profile
 from drivers.motor.transport import ModbusTransport, RegisterTransport, transport_from_url
 from drivers.sim.rig import SimRig
 from station.config import StationConfig, to_rig_physics
@@ -76,9 +77,10 @@ class SimRadius:
         self.radius_m = radius_m
 
 
-async def _connect_drivers(motor_transport: RegisterTransport, open_daq: Callable[[], ByteLink],
+async def _connect_drivers(profile: DriveProfile, motor_transport: RegisterTransport,
+                           open_daq: Callable[[], ByteLink],
                            clock: Clock = REAL_CLOCK) -> tuple[MotorController, DaqBridge]:
-    motor = MotorController(clock=clock)
+    motor = MotorController(profile, clock=clock)
     await motor.connect(motor_transport)
     daq = DaqBridge()
     try:
@@ -109,31 +111,36 @@ async def connect(cfg: StationConfig, *, sim: bool, seed: int | None = None,
     rig: SimRig | None = None
     motor = daq = None
     clock: Clock = sim_clock or REAL_CLOCK
+    profile = load_profile(cfg.rig.motor.profile)
     try:
         if sim:
             physics = to_rig_physics(cfg)
             radius = first_radius_m or cfg.plan.steps[0].crank_radius_m
             s = cfg.simulation.seed if seed is None and cfg.simulation else (seed or 0)
             if sim_clock is not None:
-                rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, wire=False, clock=clock).start()
-                motor, daq = await _connect_drivers(rig.motor_transport(), rig.daq_link, clock)
+                rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, wire=False, clock=clock,
+                             profile=profile).start()
+                motor, daq = await _connect_drivers(profile, rig.motor_transport(), rig.daq_link, clock)
                 desc = "simulated rig (in-process, no wire)"
             else:
-                rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, rtu=False).start()
+                rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, rtu=False, profile=profile).start()
                 host, port = rig.addresses.modbus_tcp
                 motor, daq = await _connect_drivers(
-                    ModbusTransport.tcp(host, port),
+                    profile, ModbusTransport.tcp(host, port, device_id=profile.transport.unit_id),
                     lambda: SerialLink(rig.addresses.daq, baudrate=cfg.devices.daq_baudrate,
                                        kind=cfg.devices.daq_link))
                 desc = f"simulated rig (Modbus TCP {host}:{port}, DAQ {rig.addresses.daq})"
             actuator: RadiusActuator = SimRadius(rig, radius)
         else:
             dev = cfg.devices
-            transport = transport_from_url(dev.motor_url, device_id=dev.motor_device_id)
-            motor, daq = await _connect_drivers(transport, lambda: SerialLink(dev.daq_port, baudrate=dev.daq_baudrate,
-                                                                              kind=dev.daq_link))
+            t = profile.transport
+            transport = transport_from_url(dev.motor_url, device_id=dev.motor_device_id or t.unit_id,
+                                           baudrate=t.baudrate, parity=t.parity, stopbits=t.stopbits,
+                                           inter_frame_delay_s=t.inter_frame_delay_s)
+            motor, daq = await _connect_drivers(
+                profile, transport, lambda: SerialLink(dev.daq_port, baudrate=dev.daq_baudrate, kind=dev.daq_link))
             actuator = FixedRadius(dev.crank_radius_m)
-            desc = f"rig (motor {dev.motor_url}, DAQ {dev.daq_port})"
+            desc = f"rig (motor {profile.name} at {dev.motor_url}, DAQ {dev.daq_port})"
         yield ConnectedRig(motor, daq, actuator, rig, desc, clock)
     finally:
         if motor is not None:
