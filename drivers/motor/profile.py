@@ -211,15 +211,19 @@ class DriveProfile:
 
     def blocks(self, names: Sequence[str]) -> list[tuple[int, int, int, list[str]]]:
         """Read requests covering ``names``: (function, first address, word count, names) of runs of
-        registers adjacent on the wire, read with the same function, within the drive's longest read."""
+        registers read with the same function whose gaps are other registers of the profile (read
+        along), within the drive's longest read."""
         regs = sorted((self[n] for n in dict.fromkeys(names)), key=lambda r: (r.read_function, r.address))
+        mapped = {(r.read_function, r.address + i) for r in self.registers.values() for i in range(r.words)}
         out: list[tuple[int, int, int, list[str]]] = []
         limit = self.transport.max_registers_per_read
         for r in regs:
             if out:
                 fc, start, count, members = out[-1]
-                if fc == r.read_function and r.address == start + count and count + r.words <= limit:
-                    out[-1] = (fc, start, count + r.words, [*members, r.name])
+                end = start + count
+                gap_mapped = all((fc, a) in mapped for a in range(end, r.address))
+                if fc == r.read_function and r.address >= end and gap_mapped and r.address + r.words - start <= limit:
+                    out[-1] = (fc, start, r.address + r.words - start, [*members, r.name])
                     continue
             out.append((r.read_function, r.address, r.words, [r.name]))
         return out

@@ -68,7 +68,7 @@ class MotorRegisterImage:
             return self.profile.faults.kinds[kind]
         if model_code == FAULT_ESTOP:
             return 0  # the drive shows a quick stop in its status word only
-        return next(c for c in self.profile.faults.codes if c != 0)
+        return next((c for c in self.profile.faults.codes if c != 0), 0)  # 0: shown by the status word only
 
     def _values(self) -> dict[str, float]:
         s = self.model.snapshot()

@@ -217,6 +217,13 @@ class Procedure:
         status, reason = "completed", ""
         error: BaseException | None = None
         try:
+            dev = motor.profile.device
+            beyond = [s.crank_frequency_hz for s in self.plan.steps
+                      if not dev.min_frequency_hz <= s.crank_frequency_hz <= dev.max_frequency_hz]
+            if beyond:
+                raise RunFailure(f"crank frequencies {beyond} Hz: expected within what drive profile "
+                                 f"{motor.profile.name!r} can be set to ({dev.min_frequency_hz:g}.."
+                                 f"{dev.max_frequency_hz:g} Hz); nothing was moved")
             st = await self._wait_standstill()
             if st.fault_code and self.reset_faults:
                 log.warning("run %s: controller fault %d (%s) reset as the operator asked", self.run_id,
