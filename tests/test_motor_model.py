@@ -114,7 +114,7 @@ def test_register_image_words_and_exception_codes(model: MotorModel, clock: Cloc
 
 
 def test_a_drive_that_ignores_stops_keeps_turning_until_repaired(model: MotorModel, clock: Clock) -> None:
-    img = MotorRegisterImage(load_register_map(), model)
+    img = MotorRegisterImage(load_profile(), model)
     seen: list[tuple[str, float]] = []
     img.observers.append(lambda name, value, t: seen.append((name, value)))
     model.set_watchdog_timeout(0.5)
