@@ -39,14 +39,17 @@ class IdentificationRefused(BadInputError):
 
 def coarse_frequency(x: FloatArray, fs_hz: float) -> float:
     """Frequency of the strongest spectral line (mean removed, Hann window, parabolic interpolation
-    of the log magnitude: a small fraction of a bin), Hz."""
+    of the log magnitude: a small fraction of a bin), Hz.  Lines below one cycle per record are not
+    a crank frequency (the mean's leftover); a line of two cycles per record is (its Hann main lobe
+    reaches down to DC, so only the bins below one cycle are left out)."""
     n = x.size
     nfft = 1 << int(np.ceil(np.log2(n)))
     spec = np.abs(np.fft.rfft((x - np.mean(x)) * np.hanning(n), nfft))
-    spec[:2 * nfft // n + 1] = 0.0  # DC and its window leakage: not a crank frequency
+    cut = int(np.ceil(nfft / n))  # fft bins below one cycle per record
+    spec[:cut] = 0.0
     k = int(np.argmax(spec))
     kf = float(k)
-    if 0 < k < spec.size - 1:
+    if cut < k < spec.size - 1:
         a, b, c = np.log(spec[k - 1:k + 2] + 1e-300)
         den = a - 2 * b + c
         kf += 0.5 * (a - c) / den if den != 0 else 0.0

@@ -4,6 +4,18 @@ Digital coefficients are mapped to physical parameters with the known masses (mo
 as the paper does for Cases III and V).  The swarm gives no uncertainty; we attach the covariance
 and the identifiability decision of what the record carries: gain and phase of H at one sine
 frequency, i.e. at most two real parameters (``identifiability.assess``).
+
+A swarm's answer is a draw: a parameter is called identifiable only when it is also
+
+* stable against the swarm seed: the swarm is run again with the fixed seeds ``STABILITY_SEEDS``
+  (besides the caller's), and every run must give it within 3 standard uncertainties of the
+  reported value (so that the verdict, and the answer up to its uncertainty, do not depend on the
+  seed asked for);
+* physically plausible in every run: positive stiffnesses, non-negative dampings, and for Eq. 10
+  a coupling not far softer than the transducer (``structure.plausible_coupling``).
+
+Otherwise it is withheld with the reason.  The swarm itself (Eq. 12-16, Section 5.1 settings) is
+as published; the value reported is the caller's seed's.
 """
 
 from __future__ import annotations
@@ -22,11 +34,43 @@ from station.ident.pso import SECTION5_H1, SECTION5_H2, identify_digital
 from station.ident.result import FitSummary, Identifiability, IdentificationResult, ParameterEstimate
 from station.ident.rls import rls_h2
 from station.ident.sinefit import fit3
+from station.ident.structure import MIN_PLAUSIBLE_COUPLING_RATIO, plausible_coupling
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
 DEFAULT_POLICY = Policy()
 DEFAULT_PROTOCOL = PaperProtocol()
+STABILITY_SEEDS = (0, 1, 2)
+
+
+def _physical(form: str, theta: FloatArray) -> str:
+    """'' when theta is a parameter set a rig can have, else why not."""
+    if not np.all(np.isfinite(theta)):
+        return "the coefficients do not map to finite physical parameters"
+    if theta[1] <= 0 or theta[2] < 0:
+        return f"non-physical: k_f = {theta[1]:.3g} N/m, b_f = {theta[2]:.3g} N*s/m"
+    if form == "h1" and not plausible_coupling(theta):
+        return (f"non-physical: k_c = {theta[3]:.3g} N/m = {theta[3] / theta[1]:.2g} k_f, b_c = {theta[4]:.3g} N*s/m "
+                f"(no coupling is more than {1 / MIN_PLAUSIBLE_COUPLING_RATIO:g} times softer than the transducer)")
+    return ""
+
+
+def _stability(form: str, theta: FloatArray, std: FloatArray, others: dict[int, FloatArray],
+               names: tuple[str, ...]) -> list[str]:
+    """Per parameter, '' when every other swarm run gives a physical answer within 3 std of theta."""
+    out = [""] * theta.size
+    bad_runs = {s: why for s, th in others.items() if (why := _physical(form, th))}
+    for i in range(theta.size):
+        if bad_runs:
+            s0, why = next(iter(bad_runs.items()))
+            out[i] = f"not stable against the swarm seed: seed {s0} gives a {why.split(':')[0]} answer ({why})"
+            continue
+        off = {s: th[i] for s, th in others.items() if not abs(th[i] - theta[i]) <= 3 * std[i]}
+        if off:
+            vals = ", ".join(f"seed {s}: {v:.4g}" for s, v in sorted(off.items()))
+            out[i] = (f"not stable against the swarm seed: {names[i]} = {theta[i]:.4g} +- {std[i]:.2g} here, "
+                      f"but {vals} (beyond 3 standard uncertainties)")
+    return out
 
 
 def step_frf(data: PaperData) -> FrequencyResponse:
@@ -62,15 +106,24 @@ def steady_state_uncertainty(model: Model, theta: FloatArray, data: PaperData,
 def identify_paper_method(rec: Recording, method: str, form: str, model: Model, *, seed: int = 0,
                           protocol: PaperProtocol = DEFAULT_PROTOCOL,
                           policy: Policy = DEFAULT_POLICY) -> IdentificationResult:
-    """PSO / PSO+ (form 'h2' = Eq. 11 or 'h1' = Eq. 10) or RLS (Eq. 17) on one step of ``rec``."""
+    """PSO / PSO+ (form 'h2' = Eq. 11 or 'h1' = Eq. 10) or RLS (Eq. 17) on one step of ``rec``;
+    the swarm's answer is checked for stability and plausibility (module docstring)."""
     data = paper_data(rec, protocol)
     extra: dict = {"step_index": data.step_index, "f_hz": data.f_hz, "T_s": data.T, "form": form}
+    others: dict[int, FloatArray] = {}
     if method == "rls":
         r = rls_h2(data.x_id, data.y_id)
         b, a = r.b, r.a
     else:
         settings = replace(SECTION5_H2 if form == "h2" else SECTION5_H1, variant="pso+" if method == "pso+" else "pso")
         b, a, pres = identify_digital(form, data.x_id, data.y_id, settings, seed)
+        for s in STABILITY_SEEDS:
+            if s != seed:
+                bs, as_, _ = identify_digital(form, data.x_id, data.y_id, settings, s)
+                with np.errstate(all="ignore"):
+                    others[s] = model.from_digital(DigitalTF(bs, as_, data.T))
+        extra["stability_seeds"] = sorted(others)
+        extra["theta_other_seeds"] = {str(k): [float(v) for v in th] for k, th in others.items()}
         extra.update(seed=seed, iterations_to_converge=pres.iterations_to_converge,
                      n_particles=settings.n_particles, n_iterations=settings.n_iterations,
                      mse_history=pres.mse_history[:: max(1, settings.n_iterations // 200)].tolist())
@@ -87,6 +140,11 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
         rep = Identifiability(model.names, float("inf"), (), (False,) * theta.size,
                               ("coefficients do not map to physical parameters",) * theta.size)
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    why = _physical(form, theta) if np.all(np.isfinite(theta)) else ""
+    unstable = _stability(form, theta, std, others, model.names) if others and not why else [""] * theta.size
+    reasons = [r or (why and f"withheld: the answer is {why}") or unstable[i] if rep.identifiable[i] else r
+               for i, r in enumerate(rep.reasons)]
+    rep = replace(rep, identifiable=tuple(r == "" for r in reasons), reasons=tuple(reasons))
     params = tuple(ParameterEstimate(nm, u, float(theta[i]) if rep.identifiable[i] else None,
                                      float(std[i]) if rep.identifiable[i] else None,
                                      rep.identifiable[i], rep.reasons[i])
