@@ -43,9 +43,12 @@ from station.ident.campaigncheck import (
 )
 from station.ident.campaignresult import CampaignRecording, CampaignResult
 from station.ident.checks import IdentificationRefused
+from station.ident.frf import FrequencyResponse
 from station.ident.inputs import IdentInputs, inputs_for
+from station.ident.models import SdofModel
 from station.ident.result import Check, ParameterEstimate
 from station.ident.steps import checked_response
+from station.ident.structure import chain_corrected, coupling_bound, structure_statement
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -175,7 +178,7 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
         except IdentificationRefused as exc:
             raise CampaignRefused(f"{r.path.name}: {exc}", [_tagged(c, r) for c in exc.checks]) from None
         checks += [_tagged(c, r) for c in cr.checks if c.severity != "info"]
-        frfs.append(cr.frf)
+        frfs.append(chain_corrected(cr.frf, inp.chain))
         used.append(tuple(cr.used))
         inputs.append(inp)
         signs.add(cr.sign)
@@ -267,11 +270,25 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
                    "end_mass_kg": me,
                    "load_mass_kg": [{"run_id": r.run_id, "value": p.value, "std": p.std} for r, p in zip(recs, priors,
                                                                                                         strict=True)],
-                   "measurement_chain": chain.model_dump()}
+                   "measurement_chain": chain.model_dump(),
+                   "structure": _structure(frfs, priors, fit.theta, fit.chi2_per_dof if fit.inflated else 1.0,
+                                           inputs[0])}
     log.info("campaign of %d recordings: %s", len(recs), status)
     return CampaignResult(status, recs[0].transducer_id, params, cov, rows, fit.chi2, fit.dof, fit.inflated,
                           tuple(checks), budget, assumptions, _determined(recs, priors, own, float(fit.theta[1])),
                           tuple(notes))
+
+
+def _structure(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], theta: FloatArray, birge: float,
+               inputs: IdentInputs) -> dict[str, Any]:
+    """The structure the joint fit rests on (Eq. 9, the displacement chain) and the softest coupling
+    the best single recording cannot tell from a stiff one, with the range of k_f alone that follows
+    (the joint k_f is the series stiffness of transducer and coupling, ``structure``)."""
+    bounds = [b for f, pr in zip(frfs, priors, strict=True)
+              if (b := coupling_bound(f, SdofModel(max(float(theta[1]), 0.0), pr.value),
+                                      np.array([theta[0], theta[2], theta[3]]), birge)) is not None]
+    best = max(bounds, key=lambda b: np.inf if b.k_c_min is None else b.k_c_min) if bounds else None
+    return structure_statement("sdof", True, inputs, best)
 
 
 def _tagged(c: Check, rec: Recording) -> Check:

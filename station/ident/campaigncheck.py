@@ -22,6 +22,7 @@ from station.ident.frf import FrequencyResponse, fit_frf
 from station.ident.inputs import MeasurementChain
 from station.ident.models import SdofModel
 from station.ident.result import Check
+from station.ident.structure import resonance_vectors
 from station.recording import Recording
 
 if TYPE_CHECKING:
@@ -80,7 +81,8 @@ def campaign_budget(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], f
     """Covariance (4, 4) of (S, m_e, k_f, b_f) and the GUM budget per parameter (sources as the
     single-recording ``budget``).  noise, load_mass and (conditional case) end_mass: the Fisher
     information built up term by term (each contribution the covariance it adds; the noise term
-    Birge-scaled when the fit was inflated).  chain_gain, chain_phase, chain_delay: sensitivity coefficients
+    Birge-scaled when the fit was inflated).  chain_gain, chain_phase, chain_delay, chain_resonance:
+    sensitivity coefficients
     (``jointfit.data_sensitivity``), the recordings sharing one measurement chain: the gain ratio,
     phase offset and delay are common to every step of every recording, flatness and per-frequency
     phase independent from step to step.  radius: 0 (the measured displacement is the input)."""
@@ -131,6 +133,10 @@ def campaign_budget(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], f
     covs["chain_phase"] = spread([([1j * H for H in Hs], np.deg2rad(chain.phase_offset_std_deg))]
                                  + [(v, np.deg2rad(chain.phase_std_deg)) for v in points(lambda H: 1j * H)])
     covs["chain_delay"] = spread([([2j * np.pi * f.f_hz * f.H for f in frfs], chain.delay_std_s)])
+    # the displacement sensor's resonance (one sensor for every recording: correlated across them)
+    per_rec = [resonance_vectors(f.H, f.f_hz, chain) for f in frfs]
+    covs["chain_resonance"] = spread([([v[j][0] for v in per_rec], per_rec[0][j][1])
+                                      for j in range(len(per_rec[0]))] if per_rec else [])
     covs["radius"] = np.zeros((4, 4))
     total = np.asarray(sum(covs.values()))
     budget: dict[str, Any] = {}

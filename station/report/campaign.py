@@ -8,7 +8,7 @@ from typing import Any
 
 from station.report.data import RunData
 from station.report.html import PARAM_HEADERS, _budget_table, _e, _num, _param_rows, _table
-from station.report.quantities import fmt_unc, fmt_value
+from station.report.quantities import fmt_unc, fmt_value, structure_sentence
 
 STATUS = {"separated": "S and the end mass m_e separated by the top masses",
           "conditional": "the top masses are too alike to separate S from m_e: S, k_f, b_f are given on the "
@@ -37,6 +37,9 @@ def campaign_section(d: RunData) -> str:
         f'<p class="note">χ²/dof {chi:.3g} ({fit.get("chi2", 0):.4g} on {fit.get("dof")})'
         + (", uncertainties inflated by √(χ²/dof)" if fit.get("inflated") else "") + "</p>")
     notes = "".join(f"<li>{_e(n)}</li>" for n in c.get("notes") or [])
+    st = (c.get("assumptions") or {}).get("structure")
+    structure = (f'<p class="note" data-structure="campaign">Model structure: {_e(structure_sentence(st))}</p>'
+                 if st else "")
     det = c.get("determined") or {}
     det_rows = [[_e(r.get("run_id", "")), _e(name), _num(fmt_value(r.get("value"), r.get("combined")), r.get("value")),
                  _num(fmt_unc(r.get("combined"))), _e(r.get("unit", ""))]
@@ -50,5 +53,6 @@ def campaign_section(d: RunData) -> str:
             + _budget_table(c.get("budget") or {}, "campaign.budget.")
             + "<h3>Recordings</h3>"
             + _table(["run", "load mass m_l (kg)", "u (kg)", "frequencies (Hz)", "steps", "χ² share"], rec_rows)
-            + fit_note + det_html + (f'<h3>Campaign checks</h3><ul class="note">{checks}</ul>' if checks else "")
+            + fit_note + structure + det_html
+            + (f'<h3>Campaign checks</h3><ul class="note">{checks}</ul>' if checks else "")
             + (f'<ul class="note">{notes}</ul>' if notes else ""))

@@ -22,6 +22,8 @@ from station.report.quantities import (
     fmt_value,
     measured_sensitivity,
     model_sensitivity,
+    range_text,
+    structure_sentence,
 )
 
 log = logging.getLogger(__name__)
@@ -115,15 +117,20 @@ def _model(d: RunData) -> str:
             rows.append([_e(name), f"{a.get('value')} ({_e(a['source'])}"
                          + (f", u = {fmt_unc(a['std'])})" if a.get("std") is not None
                             else "; no uncertainty: the results are conditional on it)")])
+    st = (ident.get("assumptions") or {}).get("structure")
+    if st:
+        rows.append(["model structure", _e(structure_sentence(st))])
     notes = "".join(f"<li>{_e(n)}</li>" for n in ident.get("notes") or [])
     checks = "".join(f'<li data-check="{_e(c.get("name"))}">{_e(c.get("severity"))}: {_e(c.get("name"))}'
                      f'{"" if c.get("step") is None else " (step " + str(c["step"]) + ")"}: {_e(c.get("message"))}</li>'
                      for c in ident.get("checks") or [])
     det = [[_e(k), _num(fmt_value(v.get("value"), v.get("combined")), v.get("value")), _num(fmt_unc(v.get("combined"))),
-            _e(v.get("unit", ""))] for k, v in (ident.get("determined") or {}).items()]
+            _e(v.get("unit", ""))] if "range" not in v else
+           [_e(k), _e(range_text(v["range"])), _e(v.get("conditional_on", "")), _e(v.get("unit", ""))]
+           for k, v in (ident.get("determined") or {}).items()]
     return ("<h2>Model and identification</h2>" + _table(["", ""], rows)
             + (f'<h3>Input checks</h3><ul class="note">{checks}</ul>' if checks else "")
-            + (("<h3>What the data determine whatever the end mass</h3>"
+            + (("<h3>What the data determine whatever the end mass and the coupling</h3>"
                 + _table(["quantity", "value", "u (k = 1)", "unit"], det)) if det else "")
             + (f'<ul class="note">{notes}</ul>' if notes else ""))
 

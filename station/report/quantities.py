@@ -91,3 +91,30 @@ def fmt_rel(value: float | None, u: float | None) -> str:
         return "n/a"
     assert value is not None and u is not None
     return f"{100 * abs(u / value):.2g}"
+
+
+def range_text(rng: list[float | None]) -> str:
+    """'[lo, hi]' of a conditional range, 'from lo up (unbounded)' when hi is None."""
+    lo, hi = rng
+    if hi is None:
+        return f"{fmt_value(lo)} and up (unbounded)"
+    return f"[{fmt_value(lo)}, {fmt_value(hi)}]"
+
+
+def structure_sentence(statement: dict) -> str:
+    """One sentence for a result's ``assumptions.structure``: the model it rests on, the displacement
+    chain, and the coupling this plan can or cannot exclude."""
+    out = [str(statement.get("model", "?"))]
+    ch = statement.get("displacement_chain") or {}
+    if ch.get("response") == "resonance":
+        out.append(f"displacement sensor resonance {ch.get('resonance_hz')} Hz (u {ch.get('resonance_std_hz')} Hz), "
+                   f"damping {ch.get('damping')} (u {ch.get('damping_std')}): H(f) corrected for it")
+    else:
+        out.append("displacement chain taken as flat")
+    c = statement.get("coupling") or {}
+    if c.get("contradicted_by_the_data"):
+        out.append("the data contradict a stiff coupling (coupling_suspected): k_f alone not determined")
+    elif c.get("k_c_lower_bound_over_k_s") is not None:
+        out.append(f"this plan cannot tell a coupling k_c >= {c['k_c_lower_bound_over_k_s']:.3g} k_s from a stiff one; "
+                   f"k_f alone in {range_text(c.get('k_f_alone_range_N_per_m') or [None, None])} N/m")
+    return "; ".join(out)

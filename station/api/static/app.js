@@ -235,6 +235,19 @@ function follow(id) {
   source.onerror = () => { /* the browser reconnects by itself; a final state closes the stream */ };
 }
 
+function structureText(assumptions, determined) {
+  // the model structure the result rests on, and what the data determine under it
+  const st = assumptions.structure;
+  if (!st) return "";
+  let t = `structure: ${st.model}; displacement chain ${st.displacement_chain.response}` +
+    (st.displacement_chain.response === "resonance" ? ` at ${st.displacement_chain.resonance_hz} Hz` : "");
+  const ks = determined.series_stiffness;
+  if (ks) t += `; series stiffness of transducer and coupling ${fmtU(ks.value, ks.combined)} N/m`;
+  const alone = determined.transducer_stiffness_alone;
+  if (alone) t += `; k_f alone ${alone.conditional_on}`;
+  return t;
+}
+
 async function loadResults(id) {
   if ($("#results").dataset.run === id) return;
   const res = await api("GET", `/runs/${encodeURIComponent(id)}/results`);
@@ -253,6 +266,7 @@ async function loadResults(id) {
   const em = (d.assumptions || {}).end_mass_kg;
   $("#res-assumptions").textContent = em ? `end mass m_e = ${em.value} kg (${em.source}` +
     (em.std === null ? ": assumed, no uncertainty; S, k_f, b_f are conditional on it)" : `, u = ${em.std} kg)`) : "";
+  $("#res-structure").textContent = structureText(d.assumptions || {}, d.determined || {});
   const tb = $("#params tbody");
   tb.innerHTML = "";
   for (const p of d.parameters) {
