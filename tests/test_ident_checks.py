@@ -13,43 +13,12 @@ from typing import Any
 
 import numpy as np
 import pytest
-import yaml
 
 from station.cli import main
-from station.config import parse_config
 from station.ident.api import identify_recording
 from station.ident.checks import IdentificationRefused
-from station.interchange import export_run, import_run
 from station.recording import read_recording
-from station.simulate import simulate_run
-from tests.conftest import station_dict
-
-K, B, S, ME, ML = 2.91e7, 17136.0, 2e-3, 0.12, 26.167
-R = 2.5e-4  # sinecal-csv has one crank radius per run: the largest the 100 Hz step allows
-PLAN = tuple((f, R) for f in (4.0, 12.0, 30.0, 60.0, 100.0))
-
-
-def sim(folder: Path, steps: tuple[tuple[float, float], ...] = PLAN, *, seed: int = 3, record_s: float = 1.0,
-        edit: Callable[[dict[str, Any]], None] | None = None) -> Path:
-    data = station_dict(settle_s=0.3, record_s=record_s, steps=steps, acceleration_hz_per_s=200.0, pre_roll_s=0.1)
-    if edit:
-        edit(data)
-    return simulate_run(parse_config(data), folder, seed=seed)
-
-
-def via_csv(rec: Path, folder: Path, *, doc: Callable[[dict[str, Any]], None] | None = None,
-            step: dict[int, Callable[[np.ndarray], np.ndarray]] | None = None) -> Path:
-    """Export a simulated recording as sinecal-csv, edit RUN.yaml and step files, import it back."""
-    run = export_run(rec, folder / "csv")
-    d = yaml.safe_load(run.read_text(encoding="utf-8"))
-    if doc:
-        doc(d)
-    run.write_text(yaml.safe_dump(d, sort_keys=False), encoding="utf-8")
-    for i, fn in (step or {}).items():
-        f = run.parent / d["steps"][i]["file"]
-        a = np.loadtxt(f, delimiter=",", skiprows=1)
-        np.savetxt(f, fn(a), delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
-    return import_run(run, folder / "imported")
+from tests.ident_support import ME, ML, PLAN, B, K, R, S, sim, via_csv
 
 
 @pytest.fixture(scope="module")

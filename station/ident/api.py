@@ -29,6 +29,7 @@ from station.ident.oe import fit_oe
 from station.ident.protocol import PaperProtocol
 from station.ident.result import FitSummary, IdentificationResult, ParameterEstimate
 from station.ident.steps import CheckedResponse, checked_response, measured_response
+from station.ident.structure import structure_statement
 from station.recording import Recording, write_result
 
 __all__ = [
@@ -148,4 +149,7 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
                                   for st in rec.steps if st.index in f_of])
     res = identify_paper_method(checked, method, form, model_for(rec, form, inputs), seed=seed,
                                 protocol=protocol, policy=policy)
-    return replace(res, assumptions=inputs.to_dict(), checks=tuple(cr.checks))
+    statement = structure_statement(form, form == "h2", inputs)
+    statement["displacement_chain"]["note"] = (  # the swarm runs on the raw samples of one step
+        "the paper's methods take the displacement samples as recorded: no chain correction is applied")
+    return replace(res, assumptions={**inputs.to_dict(), "structure": statement}, checks=tuple(cr.checks))

@@ -20,6 +20,8 @@ as published; the value reported is the caller's seed's.
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from dataclasses import replace
 
 import numpy as np
@@ -30,7 +32,7 @@ from station.ident.frf import FrequencyResponse, _ratio_cov, whitened_jacobian
 from station.ident.identifiability import Policy, assess
 from station.ident.models import DigitalTF, Model
 from station.ident.protocol import PaperData, PaperProtocol, paper_data, testing_mse
-from station.ident.pso import SECTION5_H1, SECTION5_H2, identify_digital
+from station.ident.pso import SECTION5_H1, SECTION5_H2, PsoSettings, identify_digital
 from station.ident.result import FitSummary, Identifiability, IdentificationResult, ParameterEstimate
 from station.ident.rls import rls_h2
 from station.ident.sinefit import fit3
@@ -41,6 +43,19 @@ FloatArray = NDArray[np.float64]
 DEFAULT_POLICY = Policy()
 DEFAULT_PROTOCOL = PaperProtocol()
 STABILITY_SEEDS = (0, 1, 2)
+
+
+_SWARMS: OrderedDict[tuple, tuple] = OrderedDict()  # the last few swarm runs: the stability seeds are shared
+
+
+def _swarm(form: str, data: PaperData, settings: PsoSettings, seed: int) -> tuple:
+    """identify_digital, remembered for the last 16 (form, settings, seed, data) in this process."""
+    key = (form, settings, seed, data.T, hashlib.sha1(data.x_id.tobytes() + data.y_id.tobytes()).hexdigest())
+    if key not in _SWARMS:
+        _SWARMS[key] = identify_digital(form, data.x_id, data.y_id, settings, seed)
+        while len(_SWARMS) > 16:
+            _SWARMS.popitem(last=False)
+    return _SWARMS[key]
 
 
 def _physical(form: str, theta: FloatArray) -> str:
@@ -116,10 +131,10 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
         b, a = r.b, r.a
     else:
         settings = replace(SECTION5_H2 if form == "h2" else SECTION5_H1, variant="pso+" if method == "pso+" else "pso")
-        b, a, pres = identify_digital(form, data.x_id, data.y_id, settings, seed)
+        b, a, pres = _swarm(form, data, settings, seed)
         for s in STABILITY_SEEDS:
             if s != seed:
-                bs, as_, _ = identify_digital(form, data.x_id, data.y_id, settings, s)
+                bs, as_, _ = _swarm(form, data, settings, s)
                 with np.errstate(all="ignore"):
                     others[s] = model.from_digital(DigitalTF(bs, as_, data.T))
         extra["stability_seeds"] = sorted(others)
