@@ -189,7 +189,7 @@ static void end_frame(bridge *b)
         put_u32(b->frame_buf + n, crc);
         n += BRIDGE_CRC_SIZE;
         wire = slip_wire_length(b->frame_buf, n);
-        if (ring_free(&b->tx) >= wire + BRIDGE_REPLY_RESERVE) {
+        if (bridge_ring_free(&b->tx) >= wire + BRIDGE_REPLY_RESERVE) {
             slip_put(&b->tx, b->frame_buf, n);
         } else {
             dropped(b, index, 1u, BRIDGE_DROP_FIFO);
@@ -620,7 +620,7 @@ static void handle_packet(bridge *b)
 
 static void read_commands(bridge *b)
 {
-    while (ring_free(&b->tx) >= BRIDGE_REPLY_RESERVE) {
+    while (bridge_ring_free(&b->tx) >= BRIDGE_REPLY_RESERVE) {
         if (b->in_pos == b->in_len) {
             b->in_pos = 0;
             b->in_len = hal_read(b->in_buf, sizeof b->in_buf);
@@ -633,7 +633,7 @@ static void read_commands(bridge *b)
             handle_packet(b);
         }
     }
-    if (b->rx.raw > 0u && b->in_pos == b->in_len && ring_free(&b->tx) >= BRIDGE_REPLY_RESERVE
+    if (b->rx.raw > 0u && b->in_pos == b->in_len && bridge_ring_free(&b->tx) >= BRIDGE_REPLY_RESERVE
         && (uint32_t)(hal_ticks_us() - b->rx_last_us) > BRIDGE_RX_TIMEOUT_US) {
         if (slip_rx_flush(&b->rx) == SLIP_RX_PACKET) {
             handle_packet(b);
@@ -645,12 +645,12 @@ static void send_queued(bridge *b)
 {
     for (;;) {
         size_t n, sent;
-        const uint8_t *p = ring_peek(&b->tx, &n);
+        const uint8_t *p = bridge_ring_peek(&b->tx, &n);
         if (n == 0u) {
             return;
         }
         sent = hal_write(p, n);
-        ring_consume(&b->tx, sent);
+        bridge_ring_consume(&b->tx, sent);
         if (sent < n) {
             return;
         }
@@ -664,7 +664,7 @@ const char *bridge_init(bridge *b, const bridge_port_info *info, uint8_t *fifo, 
     const char *refused;
     memset(b, 0, sizeof *b);
     b->info = info;
-    ring_init(&b->tx, fifo, fifo_size);
+    bridge_ring_init(&b->tx, fifo, fifo_size);
     slip_rx_init(&b->rx, b->rx_buf, sizeof b->rx_buf);
     b->frame = 256;
     b->rate_hz = 20000.0;

@@ -90,7 +90,7 @@ struct bridge {
     int frame_lost;      /* the frame being built already lost samples */
     uint8_t frame_buf[BRIDGE_FRAME_BYTES(BRIDGE_MAX_FRAME)];
     /* link */
-    ring tx;
+    bridge_ring tx;
     slip_rx rx;
     uint8_t rx_buf[1u + BRIDGE_MAX_COMMAND + BRIDGE_CRC_SIZE];
     uint8_t in_buf[64];  /* bytes read from the HAL, not yet parsed */

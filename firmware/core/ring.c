@@ -1,7 +1,7 @@
 /* Byte FIFO (see ring.h). */
 #include "ring.h"
 
-void ring_init(ring *r, uint8_t *buf, size_t size)
+void bridge_ring_init(bridge_ring *r, uint8_t *buf, size_t size)
 {
     r->buf = buf;
     r->size = size;
@@ -9,12 +9,12 @@ void ring_init(ring *r, uint8_t *buf, size_t size)
     r->used = 0;
 }
 
-size_t ring_free(const ring *r)
+size_t bridge_ring_free(const bridge_ring *r)
 {
     return r->size - r->used;
 }
 
-void ring_put(ring *r, uint8_t byte)
+void bridge_ring_put(bridge_ring *r, uint8_t byte)
 {
     size_t tail = r->head + r->used;
     if (tail >= r->size) {
@@ -24,14 +24,14 @@ void ring_put(ring *r, uint8_t byte)
     r->used++;
 }
 
-const uint8_t *ring_peek(const ring *r, size_t *n)
+const uint8_t *bridge_ring_peek(const bridge_ring *r, size_t *n)
 {
     size_t contiguous = r->size - r->head;
     *n = r->used < contiguous ? r->used : contiguous;
     return r->buf + r->head;
 }
 
-void ring_consume(ring *r, size_t n)
+void bridge_ring_consume(bridge_ring *r, size_t n)
 {
     if (n > r->used) {
         n = r->used;

@@ -11,18 +11,18 @@ typedef struct {
     size_t size; /* capacity in bytes */
     size_t head; /* next byte to send */
     size_t used; /* bytes queued */
-} ring;
+} bridge_ring;
 
-void ring_init(ring *r, uint8_t *buf, size_t size);
-size_t ring_free(const ring *r);
+void bridge_ring_init(bridge_ring *r, uint8_t *buf, size_t size);
+size_t bridge_ring_free(const bridge_ring *r);
 
-/* Append one byte; the caller has checked ring_free(). */
-void ring_put(ring *r, uint8_t byte);
+/* Append one byte; the caller has checked bridge_ring_free(). */
+void bridge_ring_put(bridge_ring *r, uint8_t byte);
 
 /* The queued bytes that are contiguous in memory from the head (for one write call). */
-const uint8_t *ring_peek(const ring *r, size_t *n);
+const uint8_t *bridge_ring_peek(const bridge_ring *r, size_t *n);
 
 /* Drop `n` bytes from the head (they were sent). */
-void ring_consume(ring *r, size_t n);
+void bridge_ring_consume(bridge_ring *r, size_t n);
 
 #endif

@@ -13,22 +13,22 @@ size_t slip_wire_length(const uint8_t *packet, size_t n)
     return wire;
 }
 
-void slip_put(ring *r, const uint8_t *packet, size_t n)
+void slip_put(bridge_ring *r, const uint8_t *packet, size_t n)
 {
     size_t i;
-    ring_put(r, SLIP_END);
+    bridge_ring_put(r, SLIP_END);
     for (i = 0; i < n; i++) {
         if (packet[i] == SLIP_END) {
-            ring_put(r, SLIP_ESC);
-            ring_put(r, SLIP_ESC_END);
+            bridge_ring_put(r, SLIP_ESC);
+            bridge_ring_put(r, SLIP_ESC_END);
         } else if (packet[i] == SLIP_ESC) {
-            ring_put(r, SLIP_ESC);
-            ring_put(r, SLIP_ESC_ESC);
+            bridge_ring_put(r, SLIP_ESC);
+            bridge_ring_put(r, SLIP_ESC_ESC);
         } else {
-            ring_put(r, packet[i]);
+            bridge_ring_put(r, packet[i]);
         }
     }
-    ring_put(r, SLIP_END);
+    bridge_ring_put(r, SLIP_END);
 }
 
 void slip_rx_init(slip_rx *rx, uint8_t *buf, size_t size)

@@ -17,7 +17,7 @@
 size_t slip_wire_length(const uint8_t *packet, size_t n);
 
 /* Queue END | escaped packet | END; the caller has checked that slip_wire_length() bytes are free. */
-void slip_put(ring *r, const uint8_t *packet, size_t n);
+void slip_put(bridge_ring *r, const uint8_t *packet, size_t n);
 
 /* Receiving side: feed bytes one at a time, a packet ends at END. */
 typedef enum {

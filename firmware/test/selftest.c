@@ -134,7 +134,7 @@ static void command(bridge *b, const char *text)
 {
     static uint8_t pkt[300];
     static uint8_t wire[700];
-    ring r;
+    bridge_ring r;
     size_t n = strlen(text), w;
     uint32_t crc;
     pkt[0] = BRIDGE_PKT_COMMAND;
@@ -144,7 +144,7 @@ static void command(bridge *b, const char *text)
     pkt[n + 2] = (uint8_t)(crc >> 8);
     pkt[n + 3] = (uint8_t)(crc >> 16);
     pkt[n + 4] = (uint8_t)(crc >> 24);
-    ring_init(&r, wire, sizeof wire);
+    bridge_ring_init(&r, wire, sizeof wire);
     slip_put(&r, pkt, n + 5);
     w = r.used;
     hal.in = wire;
@@ -185,10 +185,10 @@ static void test_slip(void)
     static const uint8_t raw[] = {0x01, 0xC0, 0x02, 0xDB, 0x03, 0xDB, 0xDC};
     static const uint8_t wire[] = {0xC0, 0x01, 0xDB, 0xDC, 0x02, 0xDB, 0xDD, 0x03, 0xDB, 0xDD, 0xDC, 0xC0};
     uint8_t mem[64], buf[4];
-    ring r;
+    bridge_ring r;
     slip_rx rx;
     size_t i;
-    ring_init(&r, mem, sizeof mem);
+    bridge_ring_init(&r, mem, sizeof mem);
     CHECK(slip_wire_length(raw, sizeof raw) == sizeof wire);
     slip_put(&r, raw, sizeof raw);
     CHECK(r.used == sizeof wire && memcmp(r.buf, wire, sizeof wire) == 0);

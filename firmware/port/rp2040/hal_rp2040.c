@@ -3,7 +3,8 @@
  * clocks and bring-up.
  *
  * Core 1 polls DRDY and reads each 12-byte SPI frame into a single-producer/single-consumer ring of
- * pairs; core 0 runs TinyUSB and bridge_poll().  Written against pico-sdk 1.5 and its TinyUSB; not
+ * pairs, and owns the SPI bus (core 0's register writes go through it); core 0 runs TinyUSB and
+ * bridge_poll().  Written against pico-sdk 1.5 and its TinyUSB; not
  * built in CI (no pico-sdk there); ads131m02.c, the arithmetic, is (test/selftest.c).
  */
 #include <stdio.h>
@@ -64,19 +65,42 @@ static void adc_command(uint16_t command, const uint16_t *values, unsigned n)
     adc_transfer(tx, rx);
 }
 
+/* Once core 1 runs it owns the SPI bus: core 0 posts a register write and waits for it to be done. */
+static volatile uint32_t core1_running;
+static volatile uint32_t reg_request; /* 0, or 1 << 31 | address << 16 | value */
+
 static void adc_write_reg(unsigned address, uint16_t value)
 {
-    adc_command(ads131m02_wreg(address, 1u), &value, 1u);
+    if (!core1_running) {
+        adc_command(ads131m02_wreg(address, 1u), &value, 1u);
+        return;
+    }
+    reg_request = 0x80000000u | ((uint32_t)address << 16) | value;
+    while (reg_request != 0u) {
+        tight_loop_contents();
+    }
+}
+
+static void serve_reg_request(void)
+{
+    uint32_t r = reg_request;
+    if (r != 0u) {
+        uint16_t value = (uint16_t)(r & 0xFFFFu);
+        adc_command(ads131m02_wreg((r >> 16) & 0x3Fu, 1u), &value, 1u);
+        reg_request = 0u;
+    }
 }
 
 static void core1_main(void)
 {
     static const uint8_t null_frame[ADS131M02_FRAME_BYTES] = {0}; /* NULL command: STATUS, ch0, ch1, CRC */
     uint8_t rx[ADS131M02_FRAME_BYTES];
+    core1_running = 1u;
     for (;;) {
         uint32_t head;
         if (gpio_get(PIN_DRDY)) {
-            continue; /* DRDY is active low */
+            serve_reg_request(); /* between conversions only (CONF comes while idle) */
+            continue;            /* DRDY is active low */
         }
         adc_transfer(null_frame, rx); /* reading the frame releases DRDY */
         if (!converting) {
