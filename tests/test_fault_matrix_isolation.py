@@ -24,7 +24,7 @@ from station.cli import main
 from station.errors import BadInputError, ConfigError, RecordingFormatError
 from station.service.instance import LOCK_NAME, InstanceLock
 from tests.disk_support import mounted_tmpfs
-from tests.station_support import FINAL, TOKEN, Daemon, app_in_process, daemon_config, run_body
+from tests.station_support import FINAL, TOKEN, Daemon, app_in_process, daemon_config, run_body, running_app
 
 # --------------------------------------------------------------------------------------- bad bodies
 POSTS = ("/runs", "/runs/no-such-run/abort", "/runs/no-such-run/discrepancy", "/stop/acknowledge", "/campaigns")
@@ -105,20 +105,12 @@ def test_campaigns_need_the_token_even_on_loopback(tmp_path: Path) -> None:
 def test_an_internal_error_is_a_short_json_500_and_the_traceback_goes_to_the_log(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """| non-UTF-8 bodies | ... a 5.4 kB traceback (no traceback reaches a user, whatever fails) |"""
-    from station.api import create_app
-    from station.config import parse_config
-    from station.service.settings import build_settings
-    from tests.test_fault_matrix_service import _Manager
-
-    settings = build_settings(parse_config(daemon_config(tmp_path / "rec")), sim=True, workers=0,
-                              env={"STATION_TOKEN": TOKEN})
-    app = create_app(settings, manager_factory=_Manager)
 
     def broken(**_: Any) -> None:
         raise RuntimeError("a bug deep inside")
 
     async def go() -> None:
-        async with app.router.lifespan_context(app):
+        async with running_app(tmp_path / "rec") as app:
             app.state.manager.list_runs = broken
             t = httpx.ASGITransport(app=app, client=("127.0.0.1", 40000), raise_app_exceptions=False)
             async with httpx.AsyncClient(transport=t, base_url="http://127.0.0.1") as c:
@@ -575,7 +567,7 @@ def test_a_full_disk_while_identifying_keeps_the_result_until_the_database_takes
                     f.unlink()
                 await _until(lambda: store.get_run(rid).state == "completed")  # type: ignore[union-attr]
                 assert store.get_run(rid).result_name == "identify_fd_h2"  # type: ignore[union-attr]
-                assert q.unrecorded == {}
+                await _until(lambda: q.unrecorded == {})  # dropped once the write returned
             closing.set()
             await q.stop_dispatcher()
             await asyncio.gather(*q._tasks, return_exceptions=True)
