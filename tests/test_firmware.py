@@ -31,6 +31,8 @@ from drivers.daq.protocol import (
     encode_command,
     encode_packet,
 )
+from drivers.sim.daq_emulator import DaqEmulator
+from drivers.sim.pty import open_pty
 from tests.firmware_support import build, check_counter_tiling, stream
 
 CONFIG_KEYS = ("rate", "rate_exact", "frame", "range_disp", "range_force", "channels")
@@ -178,6 +180,55 @@ def test_every_command_is_answered_per_the_spec(start_firmware) -> None:
         assert kv(port.command("STAT?"))["state"] == "idle"
     finally:
         port.link.close()
+
+
+class _SilentSource:
+    """The emulator's sample source for reply comparisons (samples do not matter here)."""
+
+    def configure(self, rate_hz: float, range_disp_V: float, range_force_V: float) -> None:
+        return None
+
+    def advance(self, n: int, f_end_hz: float) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(n, np.int16), np.zeros(n, np.int16)
+
+
+def reply_kind(reply: str) -> tuple[str | None, str, str]:
+    """``"#1 OK CONF rate=..."`` -> ``("#1", "OK", "CONF")``; ``"ERR 2 ..."`` -> ``(None, "ERR", "2")``;
+    the identity of ``IDN?`` -> ``"IDN?"``."""
+    words = reply.split()
+    tag = words.pop(0) if words[0].startswith("#") else None
+    second = words[1] if words[0] == "ERR" or words[1] in ("HW", "CONF", "START", "STOP", "STAT") else "IDN?"
+    return tag, words[0], second
+
+
+def test_firmware_and_python_emulator_give_the_same_reply_kinds(start_firmware) -> None:
+    """Where the spec fixes the reply (section 4), both implementations answer alike: the first two words
+    (``OK CONF``, ``ERR 2``, ...) and the tagging.  (Where the spec is silent they may differ:
+    firmware/README.md lists the firmware's choices.)"""
+    good = encode_command("IDN?", "#1")
+    script = [encode_command(text, "#1") for text in (
+        "IDN?", "HW?", "STAT?", "CONF", "CONF rate=20000 frame=256", "CONF rate=99", "CONF frame=4097",
+        "CONF range_disp=11", "CONF channels=force,disp", "CONF foo=1", "STOP", "FLY", "", "START", "START",
+        "CONF frame=64", "HW?", "STOP")]
+    script[12:12] = [encode_packet(PKT_COMMAND, b"#0123456789abcdef IDN?"),      # bad tag: ERR 2 untagged
+                     good[:-2] + bytes([good[-2] ^ 1]) + good[-1:],             # CRC: ERR 4 untagged
+                     encode_packet(PKT_SAMPLES, b"#1 IDN?"), b"\xc0\x10\x00\xc0"]  # type, length: ERR 4
+    pty = open_pty()
+    emulator = DaqEmulator(pty.master, _SilentSource(), lambda: 20.0, on_close=pty.forget_master).start()
+    answers = []
+    try:
+        for path in (start_firmware().path, pty.path):
+            port = RawPort(path)
+            try:
+                answers.append([reply_kind(port.ask(wire)) for wire in script])
+            finally:
+                port.link.close()
+    finally:
+        emulator.close()
+        pty.close()
+    assert answers[0] == answers[1]
+    assert answers[0][12:16] == [(None, "ERR", "2")] + [(None, "ERR", "4")] * 3
+    assert answers[0][:2] == [("#1", "OK", "IDN?"), ("#1", "OK", "HW")]
 
 
 def synthetic_sine(seed: int, rate_hz: float, n: int) -> tuple[np.ndarray, np.ndarray]:
