@@ -115,3 +115,19 @@ def test_config_link_kind() -> None:
         cfg("uart", 9600)
     with pytest.raises(ConfigError, match="daq_link"):
         cfg("spi", 3_000_000)
+
+
+def test_a_run_over_a_usb_cdc_link_records_what_the_bridge_reported(tmp_path) -> None:
+    """The simulated rig's bridge is a USB-CDC one when the configuration says so: the run's budget is
+    its throughput (the 9600 Bd configured do not matter) and the recording stores the link."""
+    import h5py
+
+    from tests.test_run_faults import run_with, small_config
+
+    d = small_config()
+    d.setdefault("devices", {}).update({"daq_link": "usb-cdc", "daq_baudrate": 9600})
+    outcome, _, _ = run_with(tmp_path, None, lambda r, p: None, cfg=parse_config(d, "test.yaml"))
+    assert outcome.exit_status == "completed", outcome.reason  # type: ignore[attr-defined]
+    with h5py.File(outcome.path, "r") as f:  # type: ignore[attr-defined]
+        attrs = f["raw"].attrs
+        assert attrs["daq_link"] == "usb-cdc" and attrs["daq_link_bytes_per_s"] == 1_000_000.0

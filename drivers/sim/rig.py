@@ -73,7 +73,11 @@ class SimRig:
     def __init__(self, *, physics: RigPhysics | None = None, seed: int = 0, crank_radius_m: float = 0.01,
                  profile: DriveProfile | None = None, modbus_port: int = 0, rtu: bool = True,
                  source: SampleSource | None = None, fifo_bytes: int = 1 << 20, wire: bool = True,
-                 clock: Clock = REAL_CLOCK, rtu_local_echo: bool = False) -> None:
+                 clock: Clock = REAL_CLOCK, rtu_local_echo: bool = False, daq_link: str = "uart",
+                 daq_link_bytes_per_s: float = 1_000_000.0) -> None:
+        """``profile``: the drive the motor emulator behaves as (default: the station's own controller);
+        ``daq_link``: the link kind the bridge emulator reports (``uart`` or ``usb-cdc``, then with
+        ``daq_link_bytes_per_s``, about what a full-speed USB CDC port sustains)."""
         self.map = profile or load_profile()  # the drive the motor emulator behaves as
         self.clock = clock
         self.wire = wire
@@ -84,6 +88,8 @@ class SimRig:
         self._modbus = MotorEmulator(self.image, tcp_port=modbus_port, rtu=rtu, rtu_local_echo=rtu_local_echo)
         self._seed = seed
         self._fifo = fifo_bytes
+        self._daq_kind = daq_link
+        self._daq_bps = daq_link_bytes_per_s if daq_link == "usb-cdc" else None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._pty: Pty | None = None
@@ -109,7 +115,8 @@ class SimRig:
             if isinstance(self.source, RigSource):
                 self.source.set_phase(self.motor.snapshot().angle_rad % (2 * math.pi))
             self.daq = DaqEmulator(None, self.source, self.motor.speed_hz, seed=self._seed,
-                                   fifo_bytes=self._fifo, clock=self.clock).start()
+                                   fifo_bytes=self._fifo, clock=self.clock, link=self._daq_kind,
+                                   link_bytes_per_s=self._daq_bps).start()
             log.info("sim rig: in-process (no wire)")
             return self
         ready = threading.Event()
@@ -128,7 +135,8 @@ class SimRig:
         if isinstance(self.source, RigSource):
             self.source.set_phase(self.motor.snapshot().angle_rad % (2 * math.pi))
         self.daq = DaqEmulator(self._pty.master, self.source, self.motor.speed_hz, seed=self._seed,
-                               fifo_bytes=self._fifo, on_close=self._pty.forget_master).start()
+                               fifo_bytes=self._fifo, on_close=self._pty.forget_master,
+                               link=self._daq_kind, link_bytes_per_s=self._daq_bps).start()
         assert self._modbus.tcp_address is not None
         self.addresses = SimRigAddresses(self._modbus.tcp_address, self._modbus.rtu_path, self._pty.path)
         log.info("sim rig: %s", self.addresses)

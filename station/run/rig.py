@@ -119,11 +119,12 @@ async def connect(cfg: StationConfig, *, sim: bool, seed: int | None = None,
             s = cfg.simulation.seed if seed is None and cfg.simulation else (seed or 0)
             if sim_clock is not None:
                 rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, wire=False, clock=clock,
-                             profile=profile).start()
+                             profile=profile, daq_link=cfg.devices.daq_link).start()
                 motor, daq = await _connect_drivers(profile, rig.motor_transport(), rig.daq_link, clock)
                 desc = "simulated rig (in-process, no wire)"
             else:
-                rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, rtu=False, profile=profile).start()
+                rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, rtu=False, profile=profile,
+                             daq_link=cfg.devices.daq_link).start()
                 host, port = rig.addresses.modbus_tcp
                 motor, daq = await _connect_drivers(
                     profile, ModbusTransport.tcp(host, port, device_id=profile.transport.unit_id),
