@@ -28,6 +28,8 @@ from drivers.motor import (
     MotorController,
     MotorStateError,
     MotorValueError,
+    load_profile,
+    shipped_profiles,
     transport_from_url,
 )
 from drivers.sim import SimRig
@@ -317,6 +319,41 @@ def test_modbus_watchdog_cannot_be_switched_off_while_enabled(modbus_rig: SimRig
         await motor.close()
 
     asyncio.run(run())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", shipped_profiles())
+def test_modbus_emulator_answers_as_each_profiled_drive(name: str) -> None:
+    """Modbus RTU | ... the emulator answers other unit ids and undocumented function codes -- part:
+    every shipped drive profile over a real Modbus TCP server: silent for another unit id, 01 for a
+    function the drive does not answer, 03 for a read longer than the drive takes or a set point out
+    of its range, a normal reply otherwise (the in-process matrix per profile: test_drive_profiles.py)."""
+    p = load_profile(name)
+    unit, speed, sp = p.transport.unit_id, p[p.speed], p[p.setpoint]
+
+    def req(tid: int, pdu: str) -> str:
+        body = f"{unit:02X}" + pdu
+        return f"{tid:04X} 0000 {len(bytes.fromhex(body)):04X} " + body
+
+    with SimRig(seed=5, rtu=False, profile=p) as rig:
+        addr = rig.addresses.modbus_tcp
+        read_speed = f"03 {speed.address:04X} {speed.words:04X}"
+        assert tcp_exchange(addr, req(1, read_speed).replace(f" {unit:02X}", f" {unit % 247 + 1:02X}", 1),
+                            timeout_s=0.4) is None
+        assert tcp_exchange(addr, req(2, f"05 {sp.address:04X} FF00")) == f"00 02 00 00 00 03 {unit:02X} 85 01"
+        if 0x10 not in p.transport.functions:
+            assert tcp_exchange(addr, req(3, f"10 {sp.address:04X} 0001 02 0000")) == \
+                f"00 03 00 00 00 03 {unit:02X} 90 01"
+        limit = p.transport.max_registers_per_read
+        if limit < 125:
+            assert tcp_exchange(addr, req(4, f"03 {speed.address:04X} {limit + 1:04X}")) == \
+                f"00 04 00 00 00 03 {unit:02X} 83 03"
+        too_fast = sp.words_of_raw(sp.raw_of(p.device.max_frequency_hz) + 1)
+        if sp.words == 1:
+            assert tcp_exchange(addr, req(5, f"06 {sp.address:04X} {too_fast[0]:04X}")) == \
+                f"00 05 00 00 00 03 {unit:02X} 86 03"
+        reply = tcp_exchange(addr, req(6, read_speed))
+        assert reply is not None and reply.split()[6:9] == [f"{unit:02X}", "03", f"{2 * speed.words:02X}"]
 
 
 # ---------------------------------------------------------------------------------------------- link budget

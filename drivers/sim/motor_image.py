@@ -124,13 +124,13 @@ class MotorRegisterImage:
             self.model.refresh_watchdog()  # every valid request refreshes this drive's watchdog
 
     def read(self, address: int, count: int, function: int = 0x03) -> list[int] | int:
-        """Words ``address .. address+count-1`` or a Modbus exception code (02: an address outside the
-        profile or of the other register kind; 03: more words than the drive reads at once)."""
+        """Words ``address .. address+count-1`` or a Modbus exception code (03: more words than the drive
+        reads at once; 02: an address outside the profile or of the other register kind)."""
+        if count > self.profile.transport.max_registers_per_read:
+            return ILLEGAL_VALUE  # the quantity is checked before the addresses (Modbus spec)
         if count < 1 or any(a not in self._by_addr or self._by_addr[a][0].read_function != function
                             for a in range(address, address + count)):
             return ILLEGAL_ADDRESS
-        if count > self.profile.transport.max_registers_per_read:
-            return ILLEGAL_VALUE
         self._any_request()
         values = self._values()
         out: list[int] = []

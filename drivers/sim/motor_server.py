@@ -42,18 +42,18 @@ RTU_STOPBITS = 2
 
 
 def screen_request(device_id: int, unit: int, pdu: bytes,
-                   functions: tuple[int, ...] = DOCUMENTED_FUNCTIONS) -> int | None:
+                   functions: tuple[int, ...] = DOCUMENTED_FUNCTIONS, max_read: int = 125) -> int | None:
     """The drive's answer before any register is touched: ``SILENT`` (another unit id, including
     broadcast 0: not supported), an exception code (01 a function the drive does not answer, by its
     profile; 03 quantity, byte count or length wrong for 03/04/06/16), or None (a well-formed request
-    of a function it answers)."""
+    of a function it answers).  A read longer than ``max_read`` (the drive's longest read) is 03."""
     if unit != device_id:
         return SILENT
     fc = pdu[0]
     if fc not in functions:
         return int(ExcCodes.ILLEGAL_FUNCTION)
     if fc in (0x03, 0x04):
-        ok = len(pdu) == 5 and 1 <= int.from_bytes(pdu[3:5], "big") <= 125
+        ok = len(pdu) == 5 and 1 <= int.from_bytes(pdu[3:5], "big") <= max_read
     elif fc == 0x06:
         ok = len(pdu) == 5
     else:
@@ -67,11 +67,12 @@ class _ScreeningHandler(ServerRequestHandler):
 
     device_id = 1
     functions: tuple[int, ...] = DOCUMENTED_FUNCTIONS
+    max_read = 125
 
     def callback_data(self, data: bytes, addr: tuple[Any, ...] | None = None) -> int:
         used, unit, tid, pdu = self.framer.decode(data)
         if used and pdu:
-            verdict = screen_request(self.device_id, unit, pdu, self.functions)
+            verdict = screen_request(self.device_id, unit, pdu, self.functions, self.max_read)
             if verdict == SILENT:
                 log.info("motor emulator: request for unit %d ignored (this is unit %d)", unit, self.device_id)
                 return used
@@ -82,8 +83,9 @@ class _ScreeningHandler(ServerRequestHandler):
         return int(super().callback_data(data, addr))
 
 
-def _screening(server_cls: type[Any], device_id: int, functions: tuple[int, ...]) -> type[Any]:
-    handler = type("ScreeningHandler", (_ScreeningHandler,), {"device_id": device_id, "functions": functions})
+def _screening(server_cls: type[Any], device_id: int, functions: tuple[int, ...], max_read: int) -> type[Any]:
+    handler = type("ScreeningHandler", (_ScreeningHandler,),
+                   {"device_id": device_id, "functions": functions, "max_read": max_read})
 
     class Screened(server_cls):
         def callback_new_connection(self) -> ServerRequestHandler:
@@ -153,9 +155,9 @@ class MotorEmulator:
         self._rtu = rtu
         self._baud = rtu_baudrate
         self._echo = rtu_local_echo
-        dev, functions = self.map.transport.unit_id, self.map.transport.functions
-        self._tcp_cls = _screening(ModbusTcpServer, dev, functions)
-        self._serial_cls = _screening(ModbusSerialServer, dev, functions)
+        t = self.map.transport
+        self._tcp_cls = _screening(ModbusTcpServer, t.unit_id, t.functions, t.max_registers_per_read)
+        self._serial_cls = _screening(ModbusSerialServer, t.unit_id, t.functions, t.max_registers_per_read)
         self._tcp: ModbusTcpServer | None = None
         self._serial: ModbusSerialServer | None = None
         self._bridge: PtyBridge | None = None
