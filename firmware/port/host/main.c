@@ -30,7 +30,8 @@
 
 static struct {
     int fd_in, fd_out;
-    int eof;
+    int eof;          /* input closed */
+    int write_failed; /* output gone */
     timed_adc adc;
     /* link */
     long tx_block_at; /* frame index, -1 = never */
@@ -93,7 +94,7 @@ size_t hal_write(const uint8_t *data, size_t n)
     if (w < 0) {
         if (errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR) {
             fprintf(stderr, "write failed: %s\n", strerror(errno));
-            host.eof = 1;
+            host.write_failed = 1;
         }
         return 0;
     }
@@ -313,7 +314,7 @@ int main(int argc, char **argv)
     }
     b.on_drop = on_drop;
 
-    while (!stop_requested && !host.eof) {
+    while (!stop_requested && !host.eof && !host.write_failed) {
         struct pollfd p[2];
         nfds_t n = 1;
         double t;
@@ -332,6 +333,13 @@ int main(int argc, char **argv)
             if (getppid() != parent) {
                 break;
             }
+        }
+    }
+    if (host.eof && !stop_requested) { /* input closed: hand over what is queued (1 s at most) */
+        double until = now_s() + 1.0;
+        while (b.tx.used > 0u && !host.write_failed && now_s() < until) {
+            bridge_poll(&b);
+            (void)poll(NULL, 0, 1);
         }
     }
     free(fifo);
