@@ -89,7 +89,12 @@ def test_health_reports_each_device_link(tmp_path: Path) -> None:
     (rec_dir / "garbage.h5").write_bytes(b"not HDF5" * 64)
 
     async def go(c: httpx.AsyncClient) -> dict:
-        return (await c.get("/health")).json()
+        for _ in range(100):  # just after the start: the start-up's database writes may still be queued
+            h = (await c.get("/health")).json()
+            if h["database"]["pending_writes"] == 0:
+                break
+            await asyncio.sleep(0.05)
+        return h
     h = in_app(rec_dir, go, token=False, workers=1)
     assert h["status"] == "ok"
     assert h["rig"]["connected"] and h["rig"]["simulated"]
