@@ -24,4 +24,17 @@ class RecordingFormatError(BadInputError):
 
 
 class LimitError(BadInputError):
-    """A requested motion exceeds a configured rig or transducer limit."""
+    """A requested motion exceeds a configured rig or transducer limit; the message says which and why.
+
+    ``step``: the offending step's index (None: the request as a whole); ``field``: the request field
+    to change (``crank_frequency_hz``, ``crank_radius_m``, ``transducer_id``, ``steps``); ``value``:
+    its requested value; ``limit``: what it broke (a bound in the field's unit, a ``(min, max)``
+    range, or the mounted transducer's id)."""
+
+    def __init__(self, message: str, *, step: int | None = None, field: str = "steps", value: object = None,
+                 limit: object = None) -> None:
+        super().__init__(message)
+        self.step = step
+        self.field = field
+        self.value = value
+        self.limit = limit

@@ -46,22 +46,27 @@ def force_limit_N(cfg: StationConfig) -> float:
 
 
 def check_steps(cfg: StationConfig, steps: list[StepRequest]) -> None:
-    """Refuse the whole run if any step breaks a limit; the message names the step and the limit."""
+    """Refuse the whole run at the first step that breaks a limit: a :class:`LimitError` naming the
+    step, the field to change, its value and the limit (a peak force beyond the limit names the
+    radius, and the largest radius allowed at that frequency)."""
     if not steps:
-        raise LimitError("a run needs at least one step")
+        raise LimitError("a run needs at least one step", field="steps", value=0, limit=1)
     fr, rr = cfg.rig.crank_frequency_hz, cfg.rig.crank_radius_m
     limit = force_limit_N(cfg)
     for i, s in enumerate(steps):
         where = f"step {i} ({s.crank_frequency_hz:g} Hz, {s.crank_radius_m:g} m)"
         if not (math.isfinite(s.crank_frequency_hz) and fr.contains(s.crank_frequency_hz)):
             raise LimitError(f"{where}: crank frequency {s.crank_frequency_hz:g} Hz is outside the rig's "
-                             f"range [{fr.min:g}, {fr.max:g}] Hz")
+                             f"range [{fr.min:g}, {fr.max:g}] Hz", step=i, field="crank_frequency_hz",
+                             value=s.crank_frequency_hz, limit=(fr.min, fr.max))
         if not (math.isfinite(s.crank_radius_m) and rr.contains(s.crank_radius_m)):
             raise LimitError(f"{where}: crank radius {s.crank_radius_m:g} m is outside the rig's "
-                             f"range [{rr.min:g}, {rr.max:g}] m")
+                             f"range [{rr.min:g}, {rr.max:g}] m", step=i, field="crank_radius_m",
+                             value=s.crank_radius_m, limit=(rr.min, rr.max))
         peak = peak_force_N(cfg, s)
         if peak > limit:
             r_max = max_radius_m(cfg, s.crank_frequency_hz)
             raise LimitError(f"{where}: peak force {peak:.0f} N exceeds the limit {limit:.0f} N "
                              f"({cfg.rig.peak_force_fraction:g} x capacity {cfg.transducer.capacity_N:g} N); "
-                             f"at this frequency the radius must stay below {r_max:.3g} m")
+                             f"at this frequency the radius must stay below {r_max:.3g} m",
+                             step=i, field="crank_radius_m", value=s.crank_radius_m, limit=r_max)

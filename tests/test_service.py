@@ -16,10 +16,11 @@ import h5py
 import pytest
 
 from station.config import parse_config
-from station.errors import ConfigError
+from station.errors import ConfigError, LimitError
+from station.limits import max_radius_m
 from station.recording import read_recording
-from station.run.request import RunRequest, StepSpec
-from station.service.manager import RequestLimitError, RunManager, RunStateError, check_request
+from station.run.request import RunRequest, StepSpec, plan_run
+from station.service.manager import RunManager, RunStateError
 from station.service.settings import build_settings
 from station.service.store import RunRow, Store
 from tests.station_support import Daemon, Seed, daemon_config
@@ -67,23 +68,29 @@ def test_store_is_wal_and_keeps_runs_and_jobs(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------------- checks
-def test_check_request_names_the_offending_field(tmp_path: Path) -> None:
+def test_a_broken_limit_names_the_step_field_value_and_limit(tmp_path: Path) -> None:
+    """plan_run raises one LimitError that says which step, which field, its value and the limit
+    (the API puts it at that field of the body; nothing checks the request again to find it)."""
     cfg = parse_config(daemon_config(tmp_path))
 
     def req(*steps: tuple[float, float], tid: str = "TX5K-0001", mass: float = 25.717) -> RunRequest:
         return RunRequest(transducer_id=tid, top_mass_kg=mass,
                           steps=[StepSpec(crank_frequency_hz=f, crank_radius_m=r) for f, r in steps])
-    assert len(check_request(cfg, req((10, 0.001), (20, 0.001))).steps) == 2
-    cases = [(req((10, 0.001), tid="X-1"), ("body", "transducer_id")),
-             (req((10, 0.001), (0.5, 0.001)), ("body", "steps", 1, "crank_frequency_hz")),
-             (req((10, 0.001), (20, 0.00001)), ("body", "steps", 1, "crank_radius_m")),
-             (req((10, 0.01), (40, 0.01)), ("body", "steps", 1, "crank_radius_m")),
+    assert len(plan_run(cfg, req((10, 0.001), (20, 0.001))).steps) == 2
+    r_max_40 = max_radius_m(cfg, 40.0)
+    heavy = cfg.model_copy(update={"rig": cfg.rig.model_copy(update={"top_mass_kg": 60.0})})
+    cases = [(req((10, 0.001), tid="X-1"), (None, "transducer_id", "X-1", "TX5K-0001")),
+             (req((10, 0.001), (0.5, 0.001)), (1, "crank_frequency_hz", 0.5, (1.0, 100.0))),
+             (req((10, 0.001), (20, 0.00001)), (1, "crank_radius_m", 0.00001, (1e-4, 0.05))),
+             (req((10, 0.01), (40, 0.01)), (1, "crank_radius_m", 0.01, pytest.approx(r_max_40))),
              # a heavier top mass makes a step unsafe that was fine before
-             (req((20, 0.008), mass=60.0), ("body", "steps", 0, "crank_radius_m"))]
-    for request, loc in cases:
-        with pytest.raises(RequestLimitError) as ei:
-            check_request(cfg, request)
-        assert ei.value.loc == loc, (request, ei.value)
+             (req((20, 0.008), mass=60.0), (0, "crank_radius_m", 0.008, pytest.approx(max_radius_m(heavy, 20.0))))]
+    for request, (step, field, value, limit) in cases:
+        with pytest.raises(LimitError) as ei:
+            plan_run(cfg, request)
+        e = ei.value
+        assert (e.step, e.field, e.value, e.limit) == (step, field, value, limit), (request, e)
+    assert r_max_40 < 0.01
 
 
 def test_settings_refuse_a_real_rig_without_token(tmp_path: Path) -> None:

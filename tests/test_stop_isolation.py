@@ -21,6 +21,7 @@ from pathlib import Path
 import httpx
 import pytest
 import uvicorn
+from tests.test_service_support import FINAL, run_body
 
 from station.commands.connections import ConnectionBounds, RepeatFilter
 from station.service.db import DbAccess
@@ -28,7 +29,6 @@ from station.service.errors import DatabaseBusyError
 from station.service.store import RunRow, Store
 from tests.disk_support import mounted_tmpfs
 from tests.test_fault_matrix_service import _fill, estops, start, station, wait_state
-from tests.test_service_support import FINAL, run_body
 
 NOT_THE_BUSY_TIMEOUT_S = 5.0  # the database's busy timeout is 10 s: a stop faster than this did not wait for it
 

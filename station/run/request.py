@@ -76,10 +76,12 @@ class Plan:
 
 
 def plan_run(cfg: StationConfig, request: RunRequest) -> Plan:
-    """Check a request before anything moves; raises LimitError naming the offending step/limit."""
+    """Check a request before anything moves; raises :class:`LimitError` naming the offending step,
+    field, value and limit (once: callers map it, e.g. the API to a 422 at that field)."""
     if request.transducer_id != cfg.transducer.id:
         raise LimitError(f"transducer_id {request.transducer_id!r} is not the one mounted on this station "
-                         f"({cfg.transducer.id!r}, from the configuration)")
+                         f"({cfg.transducer.id!r}, from the configuration)", field="transducer_id",
+                         value=request.transducer_id, limit=cfg.transducer.id)
     eff = cfg.model_copy(update={"rig": cfg.rig.model_copy(update={"top_mass_kg": request.top_mass_kg})})
     check_steps(eff, [StepRequest(s.crank_frequency_hz, s.crank_radius_m) for s in request.steps])
     steps = tuple(
@@ -98,10 +100,11 @@ def default_request(cfg: StationConfig, frequencies_hz: list[float] | None = Non
                           steps=[StepSpec(**s.model_dump()) for s in cfg.plan.steps])
     r_cap = min(cfg.plan.steps[0].crank_radius_m, cfg.rig.crank_radius_m.max)
     steps = []
-    for f in frequencies_hz:
+    for i, f in enumerate(frequencies_hz):
         r = min(r_cap, 0.9 * max_radius_m(cfg, f))  # 10 % margin below the force limit
         if r < cfg.rig.crank_radius_m.min:
             raise LimitError(f"{f:g} Hz: no crank radius within [{cfg.rig.crank_radius_m.min:g}, "
-                             f"{cfg.rig.crank_radius_m.max:g}] m keeps the peak force within the limit")
+                             f"{cfg.rig.crank_radius_m.max:g}] m keeps the peak force within the limit",
+                             step=i, field="crank_frequency_hz", value=f, limit=max_radius_m(cfg, f))
         steps.append(StepSpec(crank_frequency_hz=f, crank_radius_m=float(f"{r:.3g}")))
     return RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg, steps=steps)

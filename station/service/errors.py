@@ -3,7 +3,7 @@ API layer knows about HTTP)."""
 
 from __future__ import annotations
 
-from station.errors import LimitError, StationError
+from station.errors import StationError
 
 
 class RigBusyError(StationError):
@@ -33,15 +33,6 @@ class RigUnavailableError(StationError):
 class EStopLatchedError(StationError):
     """An emergency stop (or a controller fault) is latched: no run starts until an operator
     acknowledges it (409)."""
-
-
-class RequestLimitError(LimitError):
-    """A LimitError with the request field it is about (``loc``, FastAPI style) and its value (422)."""
-
-    def __init__(self, message: str, loc: tuple[str | int, ...], value: object) -> None:
-        super().__init__(message)
-        self.loc = loc
-        self.value = value
 
 
 class DatabaseBusyError(StationError):

@@ -28,7 +28,6 @@ from station.service.db import DbAccess
 from station.service.disk import RecordingsDisk
 from station.service.errors import (
     EStopLatchedError,
-    RequestLimitError,
     RigBusyError,
     RigUnavailableError,
     RunNotFoundError,
@@ -40,7 +39,7 @@ from station.service.jobs import MAX_JOB_ATTEMPTS, JobQueue
 from station.service.latch import EStopLatch
 from station.service.recovery import recover
 from station.service.riglink import RigConnector, RigLink, default_connector
-from station.service.runs import AckReport, LiveRun, Runs, StopReport, check_request
+from station.service.runs import AckReport, LiveRun, Runs, StopReport
 from station.service.settings import ServiceSettings
 from station.service.store import FINAL_STATES, RunRow, Store
 
@@ -49,14 +48,12 @@ __all__ = [
     "AckReport",
     "EStopLatchedError",
     "LiveRun",
-    "RequestLimitError",
     "RigBusyError",
     "RigUnavailableError",
     "RunManager",
     "RunNotFoundError",
     "RunStateError",
     "StopReport",
-    "check_request",
     "is_final",
 ]
 

@@ -13,7 +13,6 @@ import asyncio
 import dataclasses
 import json
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -21,7 +20,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from station.config import StationConfig, to_rig_physics
-from station.errors import LimitError
 from station.recording import new_run_id
 from station.run.procedure import Procedure, Progress, RunOutcome
 from station.run.request import Plan, RunRequest, plan_run
@@ -31,7 +29,6 @@ from station.service.db import DbAccess
 from station.service.disk import RecordingsDisk
 from station.service.errors import (
     EStopLatchedError,
-    RequestLimitError,
     RigBusyError,
     RigUnavailableError,
     RunNotFoundError,
@@ -45,26 +42,6 @@ from station.service.store import RunRow
 log = logging.getLogger(__name__)
 
 PERSIST_INTERVAL_S = 1.0
-
-
-def check_request(cfg: StationConfig, request: RunRequest) -> Plan:
-    """plan_run, with the offending field located when a limit is broken."""
-    try:
-        return plan_run(cfg, request)
-    except LimitError as exc:
-        if request.transducer_id != cfg.transducer.id:
-            raise RequestLimitError(str(exc), ("body", "transducer_id"), request.transducer_id) from None
-        fr = cfg.rig.crank_frequency_hz
-        for i, s in enumerate(request.steps):
-            one = request.model_copy(update={"steps": [s]})
-            try:
-                plan_run(cfg, one)
-            except LimitError:
-                if not (math.isfinite(s.crank_frequency_hz) and fr.contains(s.crank_frequency_hz)):
-                    raise RequestLimitError(str(exc), ("body", "steps", i, "crank_frequency_hz"),
-                                            s.crank_frequency_hz) from None
-                raise RequestLimitError(str(exc), ("body", "steps", i, "crank_radius_m"), s.crank_radius_m) from None
-        raise RequestLimitError(str(exc), ("body",), None) from None
 
 
 @dataclass
@@ -132,11 +109,11 @@ class Runs:
         return next(iter(self.live.values()), None)
 
     async def submit(self, request: RunRequest) -> RunRow:
-        """Check and queue a run (202); raises RequestLimitError (422), RigBusyError (409),
+        """Check and queue a run (202); raises LimitError (422), RigBusyError (409),
         RigUnavailableError (503)."""
         if self.closing.is_set():
             raise RigUnavailableError("the daemon is shutting down")
-        plan = check_request(self.cfg, request)
+        plan = plan_run(self.cfg, request)
         cur = self.active()
         if cur is not None:
             raise RigBusyError(cur.row.id, cur.row.state)

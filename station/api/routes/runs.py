@@ -25,9 +25,10 @@ from station.api.schemas import (
     ValidationErrorOut,
     utc,
 )
+from station.errors import LimitError
 from station.report.names import PLOT_NAMES
 from station.run.request import RunRequest
-from station.service.manager import RequestLimitError, RunStateError
+from station.service.manager import RunStateError
 from station.service.results import load_results
 from station.service.store import FINAL_STATES, RunRow
 
@@ -79,8 +80,9 @@ async def start_run(body: RunRequest, manager: ManagerDep, response: Response) -
     fields other than frequency and radius default to the configured plan's."""
     try:
         row = await manager.submit(body)
-    except RequestLimitError as exc:
-        raise RequestValidationError([{"type": "limit_error", "loc": list(exc.loc), "msg": str(exc),
+    except LimitError as exc:  # the field to change, in the request body
+        loc = ["body", *(["steps", exc.step] if exc.step is not None else []), exc.field]
+        raise RequestValidationError([{"type": "limit_error", "loc": loc, "msg": str(exc),
                                        "input": exc.value}]) from None
     response.headers["Location"] = f"/runs/{row.id}"
     return RunAccepted(id=row.id, state=row.state, links=links(row.id))
