@@ -141,3 +141,47 @@ def test_crank_radius_changes_only_at_standstill() -> None:
         daq.stop()
         daq.close()
     assert np.ptp(d) == pytest.approx(16384, rel=0.03)  # 5 mm: half the 10 mm amplitude
+
+
+def test_a_connected_rig_loads_the_plan_whatever_it_is(tmp_path) -> None:
+    """``ConnectedRig.load(plan)``: the simulated rig synthesises the plan's physics (its top mass)
+    from then on, the crank angle carried over; the same plan again changes nothing; the radius
+    actuator changes the radius at standstill only."""
+    from drivers.sim.clock import VirtualClock
+    from drivers.sim.daq_source import RigSource
+    from station.config import to_rig_physics
+    from station.run.request import RunRequest, StepSpec, plan_run
+    from station.run.rig import connect
+    from tests.conftest import station_config
+
+    cfg = station_config(fast=True)
+
+    async def go() -> None:
+        async with connect(cfg, sim=True, sim_clock=VirtualClock()) as rig:
+            assert rig.simulated and rig.health()["simulated"]
+            src = rig.sim.source if rig.sim is not None else None
+            assert isinstance(src, RigSource) and src.physics == to_rig_physics(cfg)
+            src.configure(20_000.0, 10.0, 10.0)
+            synth = src.synth
+            assert synth is not None
+            plan = plan_run(cfg, RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=5.0,
+                                            steps=[StepSpec(crank_frequency_hz=10.0, crank_radius_m=0.001)]))
+            rig.load(plan)
+            assert src.physics == to_rig_physics(plan.config) != to_rig_physics(cfg)
+            assert src.synth is None and src._phi0 == synth.crank_angle_rad  # a new synthesiser, same angle
+            src.configure(20_000.0, 10.0, 10.0)
+            again = src.synth
+            rig.load(plan)
+            assert src.synth is again  # nothing to change
+            await rig.radius.set_radius(0.002)
+            assert rig.radius.radius_m == src.crank_radius_m == 0.002
+            await rig.motor.start_watchdog(0.1)
+            await rig.motor.set_ramp(100.0)
+            await rig.motor.enable()
+            await rig.motor.set_frequency(5.0)
+            await rig.motor.wait_for_speed(5.0, timeout_s=2.0)
+            with pytest.raises(RuntimeError, match=r"crank radius change refused: .*standstill"):
+                await rig.radius.set_radius(0.003)
+            assert src.crank_radius_m == 0.002
+            await rig.motor.stop()
+    asyncio.run(go())

@@ -68,6 +68,17 @@ class RigSource:
             self._phi0 = phi0_rad
             self.synth = None
 
+    def load(self, physics: RigPhysics) -> None:
+        """Synthesise with other physics from now on (e.g. another top mass); the crank angle carries
+        over to the next synthesiser.  The same physics again changes nothing."""
+        with self._lock:
+            if physics == self.physics:
+                return
+            if self.synth is not None:
+                self._phi0 = float(self.synth.crank_angle_rad)
+                self.synth = None
+            self.physics = physics
+
     def set_crank_radius(self, radius_m: float) -> None:
         """Change the crank radius (m); only at standstill (RuntimeError otherwise)."""
         with self._lock:

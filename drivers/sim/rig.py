@@ -151,6 +151,31 @@ class SimRig:
             raise RuntimeError("the crank radius needs the rig-physics source (RigSource)")
         self.source.set_crank_radius(radius_m)
 
+    async def change_crank_radius(self, radius_m: float, timeout_s: float = 3.0) -> None:
+        """Change the crank radius (m) as a motorised eccentric would: wait (up to ``timeout_s`` on
+        the rig's clock) for true standstill of the emulated crank, then change it (RuntimeError
+        naming the speed if the crank does not come to rest)."""
+        deadline = self.clock.monotonic() + timeout_s
+        while True:
+            try:
+                self.set_crank_radius(radius_m)
+                return
+            except RuntimeError as exc:
+                if "standstill" not in str(exc) or self.clock.monotonic() > deadline:
+                    raise RuntimeError(f"crank radius change refused: {exc}") from exc
+            await self.clock.asleep(0.02)
+
+    def load_physics(self, physics: RigPhysics) -> None:
+        """Synthesise the signals with other physics from now on (e.g. a run's top mass); the crank
+        keeps turning where it is.  Only for the rig-physics source (RuntimeError otherwise)."""
+        if not isinstance(self.source, RigSource):
+            raise RuntimeError("other physics need the rig-physics source (RigSource)")
+        self.source.load(physics)
+
+    def radius_actuator(self) -> SimCrankRadius:
+        """The crank-radius actuator of this rig, for the run procedure (``radius_m``, ``set_radius``)."""
+        return SimCrankRadius(self)
+
     def motor_transport(self) -> InProcessTransport:
         """In-process backend of the motor driver on this rig's register image (no wire)."""
         return InProcessTransport(self.image)
@@ -190,6 +215,19 @@ class SimRig:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class SimCrankRadius:
+    """The simulated rig's motorised crank radius: ``set_radius`` waits for standstill, then changes it."""
+
+    def __init__(self, rig: SimRig) -> None:
+        self._rig = rig
+        src = rig.source
+        self.radius_m = float(src.crank_radius_m) if isinstance(src, RigSource) else 0.0
+
+    async def set_radius(self, radius_m: float) -> None:
+        await self._rig.change_crank_radius(radius_m)
+        self.radius_m = radius_m
 
 
 class SimRigProcess:

@@ -129,7 +129,7 @@ def is_steady(disp: np.ndarray, force: np.ndarray, f_set: float, fs: float, crit
             and max(amps_f) / min(amps_f) - 1 < crit.amplitude_tol)
 
 
-class RigLink(Protocol):
+class RigDevices(Protocol):
     """What the procedure drives: the motor and DAQ drivers and a radius actuator, and the clock
     the rig keeps (real time; a virtual clock on the in-process simulated rig): every wait and
     time-out of the run is on it."""
@@ -150,13 +150,13 @@ class Procedure:
     """One calibration run on a connected rig.  ``await execute()`` returns the outcome; it never
     raises for run failures (they end in the stop record), only for programming errors."""
 
-    def __init__(self, plan: Plan, link: RigLink, out_dir: str | Path, *, run_id: str | None = None,
+    def __init__(self, plan: Plan, rig: RigDevices, out_dir: str | Path, *, run_id: str | None = None,
                  on_progress: Callable[[Progress], None] | None = None,
                  steady: SteadyCriteria | None = None, reset_faults: bool = False,
                  on_disk_full: Callable[[], int] | None = None) -> None:
         self.plan = plan
-        self.link = link
-        self.clock = link.clock
+        self.rig = rig
+        self.clock = rig.clock
         self.out_dir = Path(out_dir)
         self.run_id = run_id or new_run_id(plan.config.transducer.id)
         self.progress = Progress(self.run_id, n_steps=len(plan.steps))
@@ -197,7 +197,7 @@ class Procedure:
     # ------------------------------------------------------------------------------ main
     async def execute(self) -> RunOutcome:
         cfg = self.plan.config
-        motor, daq = self.link.motor, self.link.daq
+        motor, daq = self.rig.motor, self.rig.daq
         daq_cfg = await asyncio.to_thread(daq.configure, rate_hz=cfg.daq.sample_rate_hz,
                                           range_disp_V=cfg.daq.displacement_range_V,
                                           range_force_V=cfg.daq.force_range_V)
@@ -301,11 +301,11 @@ class Procedure:
         cfg = self.plan.config
         fs = cfg.daq.sample_rate_hz
         assert self.acq is not None
-        if not math.isclose(step.crank_radius_m, self.link.radius.radius_m, rel_tol=1e-9):
+        if not math.isclose(step.crank_radius_m, self.rig.radius.radius_m, rel_tol=1e-9):
             self._report(step=step.index, step_state="ramping",
                          message=f"stopping to set the crank radius to {step.crank_radius_m:g} m")
             await self._ramp_to(0.0)
-            await self.link.radius.set_radius(step.crank_radius_m)
+            await self.rig.radius.set_radius(step.crank_radius_m)
         self._report(step=step.index, step_state="ramping",
                      message=f"ramping to {step.crank_frequency_hz:g} Hz")
         await self._ramp_to(step.crank_frequency_hz)
@@ -323,7 +323,7 @@ class Procedure:
                 raise RunFailure(f"step {step.index} ({step.crank_frequency_hz:g} Hz): signals not steady "
                                  f"within {self.steady.timeout_s:g} s")
             await self._wait_samples(end + int(self.steady.window_s * fs))
-        st = await self.link.motor.read_status()
+        st = await self.rig.motor.read_status()
         start = self.acq.samples
         self._report(step_state="recording", message=f"recording {step.record_s:g} s")
         stop = start + round(step.record_s * fs)
@@ -341,7 +341,7 @@ class Procedure:
     async def _wait_standstill(self, timeout_s: float = 30.0) -> MotorStatus:
         """A run starts only with the crank at rest (e.g. still coasting down after an e-stop)."""
         deadline = self.clock.monotonic() + timeout_s
-        while (st := await self.link.motor.read_status()).actual_speed_hz != 0.0:
+        while (st := await self.rig.motor.read_status()).actual_speed_hz != 0.0:
             if self.clock.monotonic() > deadline:
                 raise RunFailure(f"the crank still turns at {st.actual_speed_hz:g} Hz after {timeout_s:g} s; "
                                  f"a run starts only at standstill")
@@ -349,7 +349,7 @@ class Procedure:
         return st
 
     async def _ramp_to(self, hz: float) -> None:
-        motor = self.link.motor
+        motor = self.rig.motor
         await motor.set_frequency(hz)
         st = await motor.read_status()
         acc = self.plan.config.rig.acceleration_hz_per_s
@@ -374,7 +374,7 @@ class Procedure:
             if now > deadline:
                 raise AcquisitionError(f"DAQ delivered {self.acq.samples} samples, {sample} awaited in time")
             if now >= next_status:
-                self._check_motor(await self.link.motor.read_status())
+                self._check_motor(await self.rig.motor.read_status())
                 next_status = now + 0.25
                 self._report()
             await self.clock.asleep(0.02)
@@ -384,7 +384,7 @@ class Procedure:
             raise RunAborted(self.abort_reason or "aborted")
         if self.acq is not None:
             self.acq.check()
-        err = self.link.motor.watchdog_error
+        err = self.rig.motor.watchdog_error
         if err is not None:
             raise RunFailure(f"motor link lost (watchdog refresh failed): {err}")
 
@@ -401,7 +401,7 @@ class Procedure:
         operator's)."""
         if not self._moving:
             return
-        motor = self.link.motor
+        motor = self.rig.motor
         ramp = min(self.plan.config.rig.acceleration_hz_per_s, motor.map.device.stop_deceleration_hz_per_s)
         bound = motor.stop_time_bound_s(motor.map.device.max_frequency_hz, ramp) + 2.0
         try:
@@ -415,7 +415,7 @@ class Procedure:
 
     async def _stop_motor(self, *, hard: bool) -> None:
         """Stop the crank before anything else: ramp down, or emergency stop on a failure."""
-        motor = self.link.motor
+        motor = self.rig.motor
         if hard and await self._quiet(motor.emergency_stop()):
             return
         if not await self._quiet(motor.stop()):

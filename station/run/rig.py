@@ -22,59 +22,46 @@ from drivers.daq.link import ByteLink, SerialLink
 from drivers.motor.controller import MotorController
 from drivers.motor.profile import DriveProfile, load_profile
 from drivers.motor.transport import ModbusTransport, RegisterTransport, transport_from_url
+from drivers.rig.params import RigPhysics
 from drivers.sim.rig import SimRig
 from station.config import StationConfig, to_rig_physics
-from station.run.procedure import FixedRadius, RadiusActuator, RunFailure
+from station.run.procedure import FixedRadius, RadiusActuator
+from station.run.request import Plan
 
 log = logging.getLogger(__name__)
 
 
+def _mounted(physics: RigPhysics) -> None:
+    """A real rig carries whatever is mounted on it: a plan changes nothing there."""
+
+
 @dataclass
 class ConnectedRig:
-    """The procedure's view of a rig (see ``procedure.RigLink``); ``sim`` is set on the simulated one."""
+    """The procedure's view of a rig (see ``procedure.RigDevices``), whichever backend it has.
+
+    ``load(plan)`` readies the rig for a run (the simulated rig then synthesises the plan's physics,
+    e.g. its top mass; a real rig has what is mounted).  ``sim`` holds the simulated rig's emulators
+    for tests' fault hooks (``rig.sim.motor.inject_fault(3)``); the station never reads it."""
 
     motor: MotorController
     daq: DaqBridge
     radius: RadiusActuator
-    sim: SimRig | None = None
     description: str = ""
     clock: Clock = REAL_CLOCK
+    simulated: bool = False
+    on_load: Callable[[RigPhysics], None] = _mounted
+    sim: SimRig | None = None
+
+    def load(self, plan: Plan) -> None:
+        """Ready the rig for ``plan`` (before its procedure starts)."""
+        self.on_load(to_rig_physics(plan.config))
 
     def health(self) -> dict[str, Any]:
         """State of each device link, for /health."""
         return {"motor": {"connected": bool(getattr(self.motor.transport, "connected", False)),
                           "watchdog_error": str(self.motor.watchdog_error or "") or None},
                 "daq": {"link_error": str(self.daq.link_error or "") or None},
-                "simulated": self.sim is not None}
-
-
-class SimRadius:
-    """The simulated rig's crank radius, changed at standstill like a motorised eccentric."""
-
-    def __init__(self, rig: SimRig, radius_m: float) -> None:
-        self._rig = rig
-        self.radius_m = radius_m
-
-    async def set_radius(self, radius_m: float, timeout_s: float = 3.0) -> None:
-        """Wait (up to ``timeout_s``) for true standstill of the emulated crank, then change it."""
-        clock = self._rig.clock
-        deadline = clock.monotonic() + timeout_s
-        while True:
-            try:
-                if abs(self._rig.motor.speed_hz()) > 0:
-                    raise RuntimeError(f"crank at {self._rig.motor.speed_hz():g} Hz")
-                from drivers.sim.daq_source import RigSource
-
-                source = self._rig.source
-                if not isinstance(source, RigSource):
-                    raise TypeError(f"the simulated rig's source {type(source).__name__} has no crank radius")
-                source.set_crank_radius(radius_m)
-                break
-            except RuntimeError as exc:
-                if clock.monotonic() > deadline:
-                    raise RunFailure(f"crank radius change refused: {exc}") from exc
-                await clock.asleep(0.02)
-        self.radius_m = radius_m
+                "simulated": self.simulated}
 
 
 async def _connect_drivers(profile: DriveProfile, motor_transport: RegisterTransport,
@@ -131,7 +118,7 @@ async def connect(cfg: StationConfig, *, sim: bool, seed: int | None = None,
                     lambda: SerialLink(rig.addresses.daq, baudrate=cfg.devices.daq_baudrate,
                                        kind=cfg.devices.daq_link))
                 desc = f"simulated rig (Modbus TCP {host}:{port}, DAQ {rig.addresses.daq})"
-            actuator: RadiusActuator = SimRadius(rig, radius)
+            actuator: RadiusActuator = rig.radius_actuator()
         else:
             dev = cfg.devices
             t = profile.transport
@@ -142,7 +129,10 @@ async def connect(cfg: StationConfig, *, sim: bool, seed: int | None = None,
                 profile, transport, lambda: SerialLink(dev.daq_port, baudrate=dev.daq_baudrate, kind=dev.daq_link))
             actuator = FixedRadius(dev.crank_radius_m)
             desc = f"rig (motor {profile.name} at {dev.motor_url}, DAQ {dev.daq_port})"
-        yield ConnectedRig(motor, daq, actuator, rig, desc, clock)
+        if rig is not None:
+            yield ConnectedRig(motor, daq, actuator, desc, clock, simulated=True, on_load=rig.load_physics, sim=rig)
+        else:
+            yield ConnectedRig(motor, daq, actuator, desc, clock)
     finally:
         if motor is not None:
             with contextlib.suppress(Exception):

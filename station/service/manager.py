@@ -81,8 +81,8 @@ class RunManager:
         self.render_pool = worker.WorkerPool("render", 1)
         self.latch = EStopLatch(self.db)
         self.disk = RecordingsDisk(settings.recordings_dir, int(self.cfg.station.min_free_mb * 2**20))
-        self.runs = Runs(settings, self.db, self.link, self.changes, self.closing, self._on_acquired, self.latch,
-                         self.disk)
+        self.runs = Runs(self.cfg, settings.recordings_dir, self.db, self.link, self.changes, self.closing,
+                         self._on_acquired, self.latch, self.disk)
         self.artifacts = Artifacts(settings.recordings_dir, self.render_pool, self.get)
         self.jobs = JobQueue(self.db, self.identify_pool, settings.workers,
                              self.artifacts, self.changes, self.closing)

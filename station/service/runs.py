@@ -17,9 +17,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-from station.config import StationConfig, to_rig_physics
+from station.config import StationConfig
 from station.recording import new_run_id
 from station.run.procedure import Procedure, Progress, RunOutcome
 from station.run.request import Plan, RunRequest, plan_run
@@ -36,7 +37,6 @@ from station.service.errors import (
 )
 from station.service.latch import EStopLatch
 from station.service.riglink import DriveCheck, RigLink
-from station.service.settings import ServiceSettings
 from station.service.store import RunRow
 
 log = logging.getLogger(__name__)
@@ -50,6 +50,7 @@ class LiveRun:
 
     row: RunRow
     plan: Plan
+    rig: ConnectedRig  # checked healthy when the run was queued (``RigLink.for_run``, once per run)
     proc: Procedure | None = None
     task: asyncio.Task[None] | None = None  # on the web loop: waits for the rig side
     rig_task: asyncio.Task[RunOutcome] | None = None  # on the rig loop: the procedure
@@ -81,13 +82,13 @@ class Runs:
     """The run on the rig (``live``: at most one) and the stored ones; ``on_acquired(run_id)`` is
     called when a run's acquisition completed and its identification was queued."""
 
-    def __init__(self, settings: ServiceSettings, db: DbAccess, link: RigLink, changes: Changes,
+    def __init__(self, cfg: StationConfig, recordings_dir: Path, db: DbAccess, link: RigLink, changes: Changes,
                  closing: asyncio.Event, on_acquired: Callable[[str], None], latch: EStopLatch,
                  disk: RecordingsDisk) -> None:
-        self.settings = settings
+        self.cfg = cfg
+        self.recordings_dir = recordings_dir
         self.latch = latch
         self.disk = disk
-        self.cfg = settings.config
         self.db = db
         self.link = link
         self.changes = changes
@@ -119,7 +120,7 @@ class Runs:
             raise RigBusyError(cur.row.id, cur.row.state)
         self._refuse_if_latched()
         self.disk.check_for_run()
-        await self.link.for_run()
+        rig = await self.link.for_run()
         fault = await self.link.motor_fault()  # read, never cleared here
         if fault is not None:
             self.latch.trip("controller", f"motor controller fault {fault[0]} ({fault[1]}) before a run")
@@ -132,7 +133,7 @@ class Runs:
                      top_mass_kg=request.top_mass_kg, request_json=request.model_dump_json(),
                      plan_json=json.dumps(plan.to_dict()), created=time.time(), n_steps=len(plan.steps),
                      message="waiting for the rig")
-        live = LiveRun(row, plan)
+        live = LiveRun(row, plan, rig)
         self.live[run_id] = live  # holds the rig while the database takes the row
         try:
             await self.db.call(lambda store: store.insert_run(row))  # DatabaseBusyError: not queued (503)
@@ -200,15 +201,13 @@ class Runs:
             self.latch.trip("drive", f"{check.describe()} (run {live.row.id}); use the hardware emergency stop")
 
     async def _carry_out(self, live: LiveRun) -> RunOutcome:
-        """On the rig loop: connect if needed, then the procedure."""
+        """On the rig loop: ready the rig for the plan, then the procedure."""
         live.rig_task = asyncio.current_task()
         if live.cancelled:
             raise asyncio.CancelledError
-        plan = live.plan
-        rig = await self.link._for_run()
-        if rig.sim is not None:
-            self._simulate_plan_physics(rig, plan.config)
-        proc = Procedure(plan, rig, self.settings.recordings_dir, run_id=live.row.id,
+        plan, rig = live.plan, live.rig
+        rig.load(plan)
+        proc = Procedure(plan, rig, self.recordings_dir, run_id=live.row.id,
                          on_progress=lambda p: self._post(self._on_progress, live, dataclasses.replace(p)),
                          on_disk_full=self.disk.release_reserve)
         live.proc = proc
@@ -227,18 +226,6 @@ class Runs:
         finally:  # the rig is released whatever happens to the bookkeeping
             self.live.pop(live.row.id, None)
             self.changes.changed(live.row.id)
-
-    def _simulate_plan_physics(self, rig: ConnectedRig, cfg: StationConfig) -> None:
-        """The simulated rig carries the run's top mass (a real rig has whatever is mounted)."""
-        src = getattr(rig.sim, "source", None)
-        if src is None or not hasattr(src, "physics"):
-            return
-        physics = to_rig_physics(cfg)
-        if physics == src.physics:
-            return
-        synth = getattr(src, "synth", None)
-        src.set_phase(float(synth.crank_angle_rad) if synth is not None else 0.0)
-        src.physics = physics
 
     def _on_progress(self, live: LiveRun, p: Progress) -> None:
         if threading.get_ident() != self.loop_thread:  # the procedure reports from the loop; be safe
