@@ -26,7 +26,7 @@ from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.models import CoupledModel, Model, SdofModel, make_model
 from station.ident.result import Check, IdentificationResult, ParameterEstimate
 from station.ident.steps import CheckedResponse, checked_response
-from station.ident.structure import apply_structure, chain_corrected, coupling_suspected
+from station.ident.structure import apply_structure, chain_corrected, coupling_suspected, resonance_suspected
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -157,6 +157,9 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
     suspected = None
     if stiff and sdof_fit.inflated and cfit is not None:
         suspected = coupling_suspected(frf, sdof_fit.chi2, sdof_fit.dof, cfit.theta, cfit.chi2, cfit.dof)
+    if stiff and sdof_fit.inflated and inputs.chain.displacement_resonance is None:
+        sensor = resonance_suspected(frf, sdof, sdof_fit.theta, sdof_fit.chi2, sdof_fit.dof)
+        checks += [sensor] if sensor else []
     free = np.diag(fit.cov) > 0
     free[3:] &= np.array(rep.identifiable[3:], bool)
     budget = uncertainty_budget(model, fit.theta, fit.cov, frf, free, inputs)

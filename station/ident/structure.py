@@ -28,8 +28,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import least_squares
 from scipy.stats import ncx2
 
+from drivers.rig.params import DisplacementResonance
 from station.ident import frf as frfmod
 from station.ident.inputs import IdentInputs, MeasurementChain
 from station.ident.models import CoupledModel, SdofModel, make_model
@@ -331,3 +333,46 @@ def apply_structure(model_key: str, stiff: bool, params: list[ParameterEstimate]
                                        "couplings this plan cannot exclude (b_c = 0)")
     return StructureOutcome(tuple(out), tuple(checks), determined,
                             structure_statement(model_key, stiff, inputs, bound, suspected is not None))
+
+
+def resonance_suspected(frf: frfmod.FrequencyResponse, sdof: SdofModel, theta: FloatArray, sdof_chi2: float,
+                        sdof_dof: int) -> Check | None:
+    """A finding when Eq. 9 misfits beyond the noise and a displacement-sensor resonance above the
+    plan explains most of the misfit: Eq. 9 times 1/H_s(f; f_r, p) fitted with f_r, p free (from a
+    few starts), named when its chi^2/dof is below half of Eq. 9's with f_r above the highest step
+    and 0 <= p <= 10."""
+    dof = 2 * frf.f_hz.size - 5
+    if dof < 1 or sdof_dof < 1:
+        return None
+    W = frfmod._whiteners(frf.cov)
+    f_max = float(np.max(frf.f_hz))
+
+    def resid(q: FloatArray) -> FloatArray:
+        th = theta * np.exp(q[:3])
+        res = DisplacementResonance(f_max * float(np.exp(q[3])), float(np.exp(q[4])))
+        d = sdof.response(th, frf.f_hz) / res.response(frf.f_hz) - frf.H
+        return np.einsum("fij,fj->fi", W, np.column_stack([d.real, d.imag])).ravel()
+
+    best: tuple[float, FloatArray] | None = None
+    for fr0, p0 in ((3.0, 0.3), (10.0, 0.5), (30.0, 1.0)):
+        try:
+            with np.errstate(all="ignore"):
+                sol = least_squares(resid, np.array([0.0, 0.0, 0.0, np.log(fr0), np.log(p0)]), method="trf",
+                                    max_nfev=400)
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        chi2 = float(sol.fun @ sol.fun)
+        if np.isfinite(chi2) and (best is None or chi2 < best[0]):
+            best = (chi2, sol.x)
+    if best is None:
+        return None
+    s2, c2 = sdof_chi2 / sdof_dof, best[0] / dof
+    f_r, p = f_max * float(np.exp(best[1][3])), float(np.exp(best[1][4]))
+    if not (c2 < 0.5 * s2 and f_r > f_max and p <= 10):
+        return None
+    return Check("displacement_resonance_suspected", "warning", None,
+                 f"Eq. 9 misfits the measured H(f) (chi2/dof {s2:.3g}) and a resonance of the displacement sensor "
+                 f"explains it (f_r about {f_r:.3g} Hz, damping ratio about {p:.2g}: chi2/dof {c2:.3g}): state the "
+                 "sensor's resonance in the measurement chain (displacement_resonance_hz, displacement_damping, "
+                 "with their uncertainties) and identify again",
+                 {"chi2_per_dof_flat": s2, "chi2_per_dof_resonance": c2, "resonance_hz": f_r, "damping": p})
