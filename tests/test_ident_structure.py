@@ -89,8 +89,9 @@ def test_a_clean_run_states_its_structure_and_bounds_the_coupling(tmp_path: Path
 def test_a_displacement_sensor_resonance_is_flagged_or_corrected_when_stated(
         tmp_path: Path, damping: float) -> None:
     """A displacement sensor with its own resonance at 600 Hz: with the default (flat) chain the
-    misfit is a named finding that names the sensor (its resonance found near 600 Hz); stated in RUN.yaml's measurement_chain (its data-sheet f_r and p with
-    their uncertainties), H is corrected and k_f, b_f are right within their budget."""
+    misfit is a named finding that names the sensor (its resonance found near 600 Hz); stated in
+    RUN.yaml's measurement_chain (its data-sheet f_r and p with their uncertainties), H is corrected
+    and k_f, b_f are right within their budget."""
     path = sim(tmp_path, PLAN_3_40, edit=effects({"displacement_resonance": {"resonance_hz": 600.0,
                                                                               "damping": damping}}))
     flat = identify_recording(read_recording(path))
