@@ -131,3 +131,23 @@ def test_a_run_over_a_usb_cdc_link_records_what_the_bridge_reported(tmp_path) ->
     with h5py.File(outcome.path, "r") as f:  # type: ignore[attr-defined]
         attrs = f["raw"].attrs
         assert attrs["daq_link"] == "usb-cdc" and attrs["daq_link_bytes_per_s"] == 1_000_000.0
+
+
+def test_malformed_commands_get_an_untagged_err_4_and_the_bridge_keeps_answering() -> None:
+    """A non-ASCII command byte and a bad SLIP escape are malformed packets (ERR 4, untagged); the
+    emulator stays up; the asked rate is echoed as asked; frame takes plain digits only."""
+    from drivers.daq.protocol import PKT_COMMAND, StreamDecoder, encode_command, encode_packet
+
+    emu = DaqEmulator(None, CounterSource(), lambda: 0.0, clock=VirtualClock()).start()
+
+    def ask(raw: bytes) -> list[str]:
+        emu.feed(raw)
+        return [getattr(e, "text", "") for e in StreamDecoder(256).feed(emu.pull(1 << 16))]
+
+    assert ask(encode_packet(PKT_COMMAND, b"#7 IDN\xff")) == ["ERR 4 malformed command packet (not printable ASCII)"]
+    assert ask(bytes.fromhex("C010DB41C0")) == ["ERR 4 malformed command packet (SLIP escape)"]
+    assert ask(encode_command("IDN?", "#8")) == ["#8 OK SINECAL,DAQ-BRIDGE-EMU,SN0001,1.0"]
+    conf = ask(encode_command("CONF rate=12345.67 frame=256", "#9"))[0]
+    assert "rate=12345.67 rate_exact=12345.67 " in conf
+    assert ask(encode_command("CONF frame=1_6", "#10"))[0].startswith("#10 ERR 2 bad value for frame")
+    emu.close()

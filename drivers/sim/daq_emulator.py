@@ -238,20 +238,21 @@ class DaqEmulator:
         new = dict(self.config)
         for arg in args:
             key, sep, value = arg.partition("=")
+            got = value
             if not sep or key not in new or key == "rate_exact":
                 keys = ", ".join(k for k in new if k != "rate_exact")
                 return f"ERR 2 bad argument {arg!r}: expected key=value with key in {keys}"
             try:
                 if key == "rate":
                     ok = RATE_LIMITS_HZ[0] <= float(value) <= RATE_LIMITS_HZ[1]
-                    value = f"{float(value):g}"
+                    value = f"{float(value):.10g}"  # the asked rate, as asked (to 10 digits)
                     lim = f"{RATE_LIMITS_HZ[0]:g}..{RATE_LIMITS_HZ[1]:g} Hz"
                 elif key == "frame":
-                    ok = FRAME_LIMITS[0] <= int(value) <= FRAME_LIMITS[1]
+                    ok = value.isdigit() and FRAME_LIMITS[0] <= int(value) <= FRAME_LIMITS[1]
                     lim = f"integer {FRAME_LIMITS[0]}..{FRAME_LIMITS[1]}"
                 elif key in ("range_disp", "range_force"):
                     ok = RANGES_V[0] <= float(value) <= RANGES_V[1]
-                    value = f"{float(value):g}"
+                    value = f"{float(value):.10g}"
                     lim = f"{RANGES_V[0]}..{RANGES_V[1]} V"
                 else:
                     ok, lim = value == "disp,force", "disp,force"
@@ -260,7 +261,7 @@ class DaqEmulator:
             if ok and key == "rate" and abs(self._exact_rate(float(value)) - float(value)) > 0.01 * float(value):
                 ok, lim = False, f"a rate within 1 % of {self.adc_clock_hz:g} Hz / N"
             if not ok:
-                return f"ERR 2 bad value for {key}: expected {lim}, got {value!r}"
+                return f"ERR 2 bad value for {key}: expected {lim}, got {got!r}"
             new[key] = value
             if key == "rate":
                 new["rate_exact"] = self._exact_text(float(value))
@@ -277,12 +278,19 @@ class DaqEmulator:
             try:
                 pkt = slip_unescape(chunk)
             except DaqProtocolError:
+                log.warning("DAQ emulator: rejected a command packet with a bad SLIP escape (%d bytes)", len(chunk))
+                self._out += encode_reply("ERR 4 malformed command packet (SLIP escape)")
                 continue
             if len(pkt) < 5 or crc32(pkt[:-4]) != int.from_bytes(pkt[-4:], "little") or pkt[0] != PKT_COMMAND:
                 log.warning("DAQ emulator: rejected a malformed command packet (%d bytes)", len(pkt))
                 self._out += encode_reply("ERR 4 malformed command packet (CRC, type or length)")
                 continue
-            text = pkt[1:-4].decode("ascii", errors="replace")
+            raw = pkt[1:-4]
+            if not raw.isascii() or not raw.decode("ascii").isprintable():
+                log.warning("DAQ emulator: rejected a command that is not printable ASCII (%d bytes)", len(raw))
+                self._out += encode_reply("ERR 4 malformed command packet (not printable ASCII)")
+                continue
+            text = raw.decode("ascii")
             tag, body = split_tag(text)
             if tag is not None:
                 try:
