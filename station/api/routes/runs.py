@@ -41,6 +41,9 @@ E409: Responses = {409: {"model": ErrorOut, "description": "the run is not in a 
 E422: Responses = {422: {"model": ValidationErrorOut,
                           "description": "invalid or unsafe parameters; `loc` names the field"}}
 E503: Responses = {503: {"model": ErrorOut, "description": "the recording or the rig cannot be reached right now"}}
+BODY_ERRORS: Responses = {  # what the body guard answers on any POST that carries a body (api/guard.py)
+    413: {"model": ErrorOut, "description": "request body larger than service.max_body_bytes (not read)"},
+    415: {"model": ErrorOut, "description": "request body that is not JSON by its Content-Type (not read)"}}
 
 
 def _json(status: int, description: str, schema: str = "ErrorOut") -> dict[int | str, dict[str, Any]]:
@@ -72,7 +75,8 @@ def status_of(row: RunRow) -> RunStatus:
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=RunAccepted, dependencies=[Writer],
-             responses={**E401, **E422, 409: {"model": ErrorOut, "description": "another run holds the rig"},
+             responses={**E401, **E422, **BODY_ERRORS,
+                        409: {"model": ErrorOut, "description": "another run holds the rig"},
                         503: {"model": ErrorOut, "description": "the rig is not connected"}},
              summary="Start a calibration run")
 async def start_run(body: RunRequest, manager: ManagerDep, response: Response) -> RunAccepted:
@@ -190,7 +194,7 @@ async def run_discrepancy(run: RunDep, manager: ManagerDep, max_effects: MaxEffe
 
 
 @router.post("/{run_id}/discrepancy", response_model=DiscrepancyOut, dependencies=[Writer],
-             responses={**E401, **E404, **E409, **E422, **E503},
+             responses={**E401, **E404, **E409, **E422, **E503, **BODY_ERRORS},
              summary="Compute and store the model-gap analysis of the run")
 async def compute_discrepancy(run: RunDep, manager: ManagerDep, max_effects: MaxEffects = 4) -> DiscrepancyOut:
     """Runs the analysis in a worker process and stores it beside the recording (replacing an
@@ -201,7 +205,7 @@ async def compute_discrepancy(run: RunDep, manager: ManagerDep, max_effects: Max
 
 
 @router.post("/{run_id}/abort", status_code=status.HTTP_202_ACCEPTED, response_model=AbortOut,
-             dependencies=[Writer], responses={**E401, **E404, **E409, **E422}, summary="Abort a run")
+             dependencies=[Writer], responses={**E401, **E404, **E409, **E422, **BODY_ERRORS}, summary="Abort a run")
 async def abort_run(run: RunDep, manager: ManagerDep) -> AbortOut:
     """The crank ramps down, the recording is closed with the reason; the run ends `aborted`."""
     row = await manager.abort(run.id, "aborted by operator")

@@ -8,6 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Body, Depends, HTTPException, Request, status
 
 from station.api.deps import ManagerDep, Reader, SettingsDep, Writer
+from station.api.routes.runs import BODY_ERRORS
 from station.api.schemas import (
     AcknowledgeIn,
     AcknowledgeOut,
@@ -63,7 +64,7 @@ async def emergency_stop(manager: ManagerDep, request: Request) -> StopOut:
 
 
 @router.post("/stop/acknowledge", response_model=AcknowledgeOut, dependencies=[Writer, SameSite],
-             responses={401: {"model": ErrorOut}, 403: {"model": ErrorOut},
+             responses={**BODY_ERRORS, 401: {"model": ErrorOut}, 403: {"model": ErrorOut},
                         409: {"model": ErrorOut, "description": "the motor controller still reports a fault"}},
              summary="Acknowledge the emergency stop (runs may start again)")
 async def acknowledge_stop(manager: ManagerDep, body: Annotated[AcknowledgeIn, Body()]) -> AcknowledgeOut:
