@@ -172,9 +172,11 @@ class RunResults(_Out):
     budget: dict[str, Any] = Field(default={}, description="per parameter: contributions (source -> "
                                    "standard uncertainty), combined, unit")
     assumptions: dict[str, Any] = Field(default={}, description="end and load mass (value, std, source), "
-                                        "measurement chain")
+                                        "measurement chain, displacement chain, and the model structure "
+                                        "(structure: Eq. 9 or Eq. 8, the coupling this plan cannot exclude)")
     determined: dict[str, Any] = Field(default={}, description="what the data determine whatever the end "
-                                       "mass (S M, natural frequency, damping ratio)")
+                                       "mass (S M, natural frequency, damping ratio) and the coupling (series "
+                                       "stiffness; the range of k_f alone conditional on a stiff coupling)")
     frequency_response: list[StepResponseOut]
     skipped_steps: list[dict[str, Any]]
     units: dict[str, str]
