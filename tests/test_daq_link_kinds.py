@@ -122,11 +122,13 @@ def test_a_run_over_a_usb_cdc_link_records_what_the_bridge_reported(tmp_path) ->
     its throughput (the 9600 Bd configured do not matter) and the recording stores the link."""
     import h5py
 
+    from station.run.request import StepSpec
     from tests.test_run_faults import run_with, small_config
 
-    d = small_config()
+    d = small_config(record_s=0.5)
     d.setdefault("devices", {}).update({"daq_link": "usb-cdc", "daq_baudrate": 9600})
-    outcome, _, _ = run_with(tmp_path, None, lambda r, p: None, cfg=parse_config(d, "test.yaml"))
+    outcome, _, _ = run_with(tmp_path, None, lambda r, p: None, cfg=parse_config(d, "test.yaml"),
+                             steps=[StepSpec(crank_frequency_hz=10.0, crank_radius_m=0.001)])
     assert outcome.exit_status == "completed", outcome.reason  # type: ignore[attr-defined]
     with h5py.File(outcome.path, "r") as f:  # type: ignore[attr-defined]
         attrs = f["raw"].attrs
