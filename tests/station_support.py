@@ -117,10 +117,12 @@ def seed_runs(config: dict[str, Any], seeds: Sequence[Seed]) -> list[str]:
 # ---------------------------------------------------------------------------------------- in process
 @contextlib.asynccontextmanager
 async def running_app(rec_dir: Path, *, config: dict[str, Any] | None = None, workers: int = 0,
-                      render: bool = False, **service: Any) -> AsyncIterator[Any]:
+                      render: bool = False, min_free_mb: float | None = None, **service: Any) -> AsyncIterator[Any]:
     """The daemon's FastAPI app, started (its lifespan entered) in this process on the simulated rig
-    (virtual clock, no wire).  ``workers``: identification processes (0: runs stop at
-    ``identifying``); ``render``: start the render worker at once (plots, report, discrepancy)."""
+    (virtual clock, no wire).  ``config``: as parsed YAML (default :func:`daemon_config` with
+    ``service``); ``workers``: identification processes (0: runs stop at ``identifying``);
+    ``render``: start the render worker at once (plots, report, discrepancy); ``min_free_mb``: the
+    recordings disk's reserve."""
     from drivers.sim.clock import VirtualClock
     from station.api import create_app
     from station.run.rig import connect
@@ -139,6 +141,8 @@ async def running_app(rec_dir: Path, *, config: dict[str, Any] | None = None, wo
                 await super()._warm_render_pool()
 
     d = config if config is not None else daemon_config(rec_dir, **service)
+    if min_free_mb is not None:
+        d["station"]["min_free_mb"] = min_free_mb
     settings = build_settings(parse_config(d), sim=True, workers=workers, env={"STATION_TOKEN": TOKEN})
     app = create_app(settings, manager_factory=Manager)
     async with app.router.lifespan_context(app):

@@ -275,12 +275,9 @@ def test_a_real_full_disk_fails_the_run_with_its_cause_and_frees_the_rig(
         monkeypatch.setattr(RecordingWriter, "_check_space", lambda self, nbytes: None)
     cause = "disk full (no space left on device" if guard == "writer guard off" else "disk"
 
-    config = daemon_config(small_disk)
-    config["station"]["min_free_mb"] = 0.0
-
     async def go() -> None:
         # no space kept in reserve by the writer's guard: the disk really fills (ENOSPC)
-        async with app_in_process(small_disk, config=config) as (m, c):
+        async with app_in_process(small_disk, min_free_mb=0.0) as (m, c):
             assert (await c.get("/health")).json()["disk"]["reserve_file"]
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")

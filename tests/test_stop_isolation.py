@@ -21,14 +21,14 @@ from pathlib import Path
 import httpx
 import pytest
 import uvicorn
-from tests.test_service_support import FINAL, run_body
 
 from station.commands.connections import ConnectionBounds, RepeatFilter
 from station.service.db import DbAccess
 from station.service.errors import DatabaseBusyError
 from station.service.store import RunRow, Store
 from tests.disk_support import mounted_tmpfs
-from tests.test_fault_matrix_service import _fill, estops, start, station, wait_state
+from tests.station_support import FINAL, app_in_process, run_body, start, wait_state
+from tests.test_fault_matrix_service import _fill, estops
 
 NOT_THE_BUSY_TIMEOUT_S = 5.0  # the database's busy timeout is 10 s: a stop faster than this did not wait for it
 
@@ -95,7 +95,7 @@ def test_writes_wait_in_order_for_a_locked_database_and_a_bounded_call_changes_n
 # ------------------------------------------------------------------------------------ database locked
 def test_stop_reaches_the_drive_while_another_process_holds_the_database_write_lock(tmp_path: Path) -> None:
     async def go() -> None:
-        async with station(tmp_path / "rec") as (m, c):
+        async with app_in_process(tmp_path / "rec") as (m, c):
             rid = await start(c, freqs=(10.0,), record_s=120.0)
             await wait_state(c, rid, ("running",), "recording")
             lock = await asyncio.to_thread(WriteLock, m.settings.database)
@@ -142,7 +142,7 @@ def test_stop_reaches_the_drive_on_a_full_disk_and_its_record_follows(tmp_path: 
         filler = disk / "filler.bin"
 
         async def go() -> None:
-            async with station(disk, min_free_mb=0.0) as (m, c):
+            async with app_in_process(disk, min_free_mb=0.0) as (m, c):
                 rid = await start(c, freqs=(10.0,), record_s=30.0)
                 await wait_state(c, rid, ("running",), "recording")
                 await asyncio.to_thread(_fill, filler)
@@ -167,7 +167,7 @@ def _free_port() -> int:
 
 def test_stop_is_served_past_hundreds_of_idle_connections_and_a_trickling_one(tmp_path: Path) -> None:
     async def go() -> None:
-        async with station(tmp_path / "rec") as (m, c):
+        async with app_in_process(tmp_path / "rec") as (m, c):
             bounds = ConnectionBounds(max_connections=64, header_timeout_s=1.0)
             port = _free_port()
             app = c._transport.app  # type: ignore[attr-defined]
@@ -222,7 +222,7 @@ def logging_record(msg: str) -> logging.LogRecord:
 @pytest.mark.slow  # ~3 s: the read-back waits the bound a healthy drive needs (on the rig's clock)
 def test_a_drive_that_ignores_the_stop_is_found_latched_shown_and_refused_until_resolved(tmp_path: Path) -> None:
     async def go() -> None:
-        async with station(tmp_path / "rec") as (m, c):
+        async with app_in_process(tmp_path / "rec") as (m, c):
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
             assert m.link.rig is not None and m.link.rig.sim is not None
@@ -261,7 +261,7 @@ def test_a_drive_that_ignores_the_stop_is_found_latched_shown_and_refused_until_
 def test_a_run_whose_drive_does_not_stop_at_its_end_latches(tmp_path: Path) -> None:
     """No emergency stop at all: the run's own stop (an abort) is read back too."""
     async def go() -> None:
-        async with station(tmp_path / "rec") as (m, c):
+        async with app_in_process(tmp_path / "rec") as (m, c):
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
             assert m.link.rig is not None and m.link.rig.sim is not None
