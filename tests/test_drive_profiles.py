@@ -11,6 +11,7 @@ import copy
 from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 import yaml
@@ -200,6 +201,8 @@ def test_simulated_calibration_on_every_profile(tmp_path: Path, name: str) -> No
     p = load_profile(name)
     assert all(writes.get(r.name, 0) <= 1 for r in p.registers.values() if r.eeprom), writes
     assert commands.count("enable") >= 1 and commands[-1] == "stop"
+    with h5py.File(outcome.path, "r") as f:  # type: ignore[attr-defined]  # the profile it was driven with
+        assert bytes(f["config/drive_profile"][...]).decode() == profile_path(name).read_text(encoding="utf-8")
     rec = read_recording(outcome.path)  # type: ignore[attr-defined]
     assert rec.complete and len(rec.steps) == 2 and rec.lost_samples.size == 0
     for st in rec.steps:  # each window holds a steady sine at the step's frequency

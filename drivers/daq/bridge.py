@@ -106,11 +106,13 @@ class DaqHardware:
 
     def as_attrs(self) -> dict[str, str | float | int]:
         """Flat attributes for a recording (units in the names)."""
-        return {"daq_identity": self.identity, "daq_adc": self.adc, "daq_adc_bits": self.adc_bits,
-                "daq_channels": ",".join(self.channels), "daq_adc_clock_hz": self.adc_clock_hz,
-                "daq_rate_min_hz": self.rate_min_hz, "daq_rate_max_hz": self.rate_max_hz,
-                "daq_link": self.link,
-                "daq_link_bytes_per_s": float("nan") if self.link_bytes_per_s is None else self.link_bytes_per_s}
+        attrs: dict[str, str | float | int] = {
+            "daq_identity": self.identity, "daq_adc": self.adc, "daq_adc_bits": self.adc_bits,
+            "daq_channels": ",".join(self.channels), "daq_adc_clock_hz": self.adc_clock_hz,
+            "daq_rate_min_hz": self.rate_min_hz, "daq_rate_max_hz": self.rate_max_hz, "daq_link": self.link}
+        if self.link_bytes_per_s is not None:
+            attrs["daq_link_bytes_per_s"] = self.link_bytes_per_s
+        return attrs
 
 
 def parse_hardware(identity: str, reply: str) -> DaqHardware:

@@ -201,6 +201,7 @@ class DriveProfile:
     max_frequency: str | None = None
     path: str = ""
     extra_flags: tuple[str, ...] = field(default=())
+    text: str = ""  # the YAML it was loaded from (stored with each recording)
 
     def __getitem__(self, name: str) -> Register:
         try:
@@ -495,9 +496,10 @@ def load_profile(name_or_path: str | Path | None = None) -> DriveProfile:
         raise RegisterMapError(f"drive profile {name_or_path!r}: expected a shipped profile "
                                f"({', '.join(shipped_profiles())}) or a .yaml path") from exc
     try:
-        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
+        text = p.read_text(encoding="utf-8")
+        doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise RegisterMapError(f"{p}: not valid YAML: {exc}") from exc
-    except OSError as exc:
+    except (OSError, UnicodeDecodeError) as exc:
         raise RegisterMapError(f"drive profile {p}: cannot read it ({exc})") from exc
-    return parse_profile(doc, str(p))
+    return replace(parse_profile(doc, str(p)), text=text)

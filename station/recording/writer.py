@@ -76,6 +76,7 @@ class RunMetadata:
     # rate its ADC delivers)
     daq_hardware: Mapping[str, str | float | int] | None = None
     sample_rate_requested_hz: float | None = None
+    drive_profile_yaml: str | None = None  # the motor drive's profile (docs/drive-profiles.md), verbatim
 
 
 def new_run_id(transducer_id: str) -> str:
@@ -136,6 +137,9 @@ class RecordingWriter:
         })
         f.create_dataset("config/yaml", data=np.frombuffer(meta.config_yaml.encode(), dtype=np.uint8))
         f["config"].attrs["encoding"] = "utf-8 YAML"
+        if meta.drive_profile_yaml is not None:
+            f.create_dataset("config/drive_profile",
+                             data=np.frombuffer(meta.drive_profile_yaml.encode(), dtype=np.uint8))
         raw = f.create_group("raw")
         raw.attrs.update({"sample_rate_hz": meta.sample_rate_hz, "units_of_time": "s"})
         if meta.sample_rate_requested_hz is not None:
@@ -168,7 +172,8 @@ class RecordingWriter:
         f.swmr_mode = True
         self._closed = False
         self.document("start", {"run_id": meta.run_id, "time": f.attrs["start_time"], "plan": plan or {},
-                                "metadata": {k: v for k, v in asdict(meta).items() if k != "config_yaml"},
+                                "metadata": {k: v for k, v in asdict(meta).items()
+                                             if k not in ("config_yaml", "drive_profile_yaml")},
                                 "software_version": __version__})
 
     @property

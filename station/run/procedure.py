@@ -209,7 +209,8 @@ class Procedure:
             sensitivity_V_per_N=cfg.transducer.sensitivity_V_per_N * cfg.conditioner.gain,
             capacity_N=cfg.transducer.capacity_N, config_yaml=config_to_yaml(cfg),
             daq_hardware=None if daq.hardware is None else daq.hardware.as_attrs(),
-            sample_rate_requested_hz=daq_cfg.rate_requested_hz)
+            sample_rate_requested_hz=daq_cfg.rate_requested_hz,
+            drive_profile_yaml=motor.profile.text or None)
         specs = channel_specs(cfg.displacement_sensor.gain_V_per_m, lsb * daq_cfg.range_disp_V,
                               lsb * daq_cfg.range_force_V)
         writer = RecordingWriter(self.out_dir, meta, specs, plan=self.plan.to_dict(),
