@@ -8,9 +8,9 @@ frequency, i.e. at most two real parameters (``identifiability.assess``).
 A swarm's answer is a draw: a parameter is called identifiable only when it is also
 
 * stable against the swarm seed: the swarm is run again with the fixed seeds ``STABILITY_SEEDS``
-  (besides the caller's), and every run must give it within 3 standard uncertainties of the
-  reported value (so that the verdict, and the answer up to its uncertainty, do not depend on the
-  seed asked for);
+  (besides the caller's; only when the caller's run has a verdict to confirm), and every run must
+  give it within 3 standard uncertainties of the reported value (so that the verdict, and the
+  answer up to its uncertainty, do not depend on the seed asked for);
 * physically plausible in every run: positive stiffnesses, non-negative dampings, and for Eq. 10
   a coupling not far softer than the transducer (``structure.plausible_coupling``).
 
@@ -126,19 +126,12 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
     data = paper_data(rec, protocol)
     extra: dict = {"step_index": data.step_index, "f_hz": data.f_hz, "T_s": data.T, "form": form}
     others: dict[int, FloatArray] = {}
+    settings = replace(SECTION5_H2 if form == "h2" else SECTION5_H1, variant="pso+" if method == "pso+" else "pso")
     if method == "rls":
         r = rls_h2(data.x_id, data.y_id)
         b, a = r.b, r.a
     else:
-        settings = replace(SECTION5_H2 if form == "h2" else SECTION5_H1, variant="pso+" if method == "pso+" else "pso")
         b, a, pres = _swarm(form, data, settings, seed)
-        for s in STABILITY_SEEDS:
-            if s != seed:
-                bs, as_, _ = _swarm(form, data, settings, s)
-                with np.errstate(all="ignore"):
-                    others[s] = model.from_digital(DigitalTF(bs, as_, data.T))
-        extra["stability_seeds"] = sorted(others)
-        extra["theta_other_seeds"] = {str(k): [float(v) for v in th] for k, th in others.items()}
         extra.update(seed=seed, iterations_to_converge=pres.iterations_to_converge,
                      n_particles=settings.n_particles, n_iterations=settings.n_iterations,
                      mse_history=pres.mse_history[:: max(1, settings.n_iterations // 200)].tolist())
@@ -156,7 +149,15 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
                               ("coefficients do not map to physical parameters",) * theta.size)
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     why = _physical(form, theta) if np.all(np.isfinite(theta)) else ""
-    unstable = _stability(form, theta, std, others, model.names) if others and not why else [""] * theta.size
+    if method != "rls" and not why and any(rep.identifiable):  # only a verdict to confirm costs reruns
+        for s in STABILITY_SEEDS:
+            if s != seed:
+                bs, as_, _ = _swarm(form, data, settings, s)
+                with np.errstate(all="ignore"):
+                    others[s] = model.from_digital(DigitalTF(bs, as_, data.T))
+        extra["stability_seeds"] = sorted(others)
+        extra["theta_other_seeds"] = {str(k): [float(v) for v in th] for k, th in others.items()}
+    unstable = _stability(form, theta, std, others, model.names) if others else [""] * theta.size
     reasons = [r or (why and f"withheld: the answer is {why}") or unstable[i] if rep.identifiable[i] else r
                for i, r in enumerate(rep.reasons)]
     rep = replace(rep, identifiable=tuple(r == "" for r in reasons), reasons=tuple(reasons))
