@@ -130,8 +130,8 @@ def section5(out: Path, seeds: list[int], quick: bool) -> dict[str, Any]:
                 "testing_mse_V2": [r.extra["testing_mse_V2"] for r in runs],
                 "iterations_to_converge": [r.extra["iterations_to_converge"] for r in runs],
                 "theta_from_coefficients": [r.extra["theta_from_coefficients"] for r in runs],
-                "identifiable": {p.name: p.identifiable for p in runs[0].parameters},
-                "reasons": {p.name: p.reason for p in runs[0].parameters if not p.identifiable}}
+                "identifiable": {n: p.identifiable for n, p in runs[0].parameters.items()},
+                "reasons": {n: p.reason for n, p in runs[0].parameters.items() if not p.identifiable}}
             if form == "h2":
                 row["_pso_h2"] = runs[0]
                 e = lfilter(runs[0].extra["b"], runs[0].extra["a"], d.x_test) - d.y_test
@@ -139,9 +139,9 @@ def section5(out: Path, seeds: list[int], quick: bool) -> dict[str, Any]:
         row["_rls"] = rls
         single = replace(rec, steps=[rec.steps[0]])
         fd1 = identify_fd(single, "sdof")
-        row["expert_single_4Hz"] = {p.name: p.to_dict() for p in fd1.parameters}
+        row["expert_single_4Hz"] = {n: p.to_dict() for n, p in fd1.parameters.items()}
         fd = identify_fd(rec, "sdof")
-        row["expert_stepped_sine"] = {p.name: p.to_dict() for p in fd.parameters}
+        row["expert_stepped_sine"] = {n: p.to_dict() for n, p in fd.parameters.items()}
         if truth:
             k_f, b_f = fd.parameter("k_f").value, fd.parameter("b_f").value
             row["expert_rel_err"] = {"k_f": k_f / truth.k_f - 1 if k_f is not None else None,

@@ -110,7 +110,7 @@ def test_run_batch_gives_the_identification_results_in_order(history: dict, tmp_
         if p is bad:
             continue
         res = identify_recording(read_recording(p))
-        assert it.parameters == {q.name: q.to_dict() for q in res.parameters}
+        assert it.parameters == {n: q.to_dict() for n, q in res.parameters.items()}
         assert (it.method, it.model, it.run_id) == (res.method, res.model, read_recording(p).run_id)
     assert run_batch([], workers=2) == []
     with pytest.raises(BadInputError):

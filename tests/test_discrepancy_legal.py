@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from station.discrepancy import analyse_recording
-from station.discrepancy.report import DiscrepancyReport
+from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import draw_scenario, scenario_config, simulate_scenario
 from station.interchange import export_run, import_run
 
@@ -38,7 +38,7 @@ def _imported(tmp_path: Path, effects: dict, seed: int, keep: list[int] | None =
     return import_run(run, tmp_path / "imp")
 
 
-def _honest(rep: DiscrepancyReport) -> None:
+def _honest(rep: DiscrepancyResult) -> None:
     for name, true in (("k_f", KF), ("b_f", BF)):
         e = rep.parameters_after[name]
         assert e.identifiable and abs(e.value - true) <= 3 * e.std, f"{name}: {e}, true {true:.6g}"

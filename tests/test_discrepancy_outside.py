@@ -23,7 +23,7 @@ import yaml
 from scipy.integrate import solve_ivp
 
 from station.discrepancy import analyse_recording
-from station.discrepancy.report import DiscrepancyReport
+from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import scenario_config, simulate_scenario
 from station.interchange import export_run, import_run
 
@@ -91,7 +91,7 @@ def test_synthesised_force_agrees_with_ode_integration() -> None:
 
 
 def _synthesise(tmp_path: Path, seed: int, motion: Motion,
-                output: Callable[[np.ndarray, np.ndarray, float, float], np.ndarray]) -> DiscrepancyReport:
+                output: Callable[[np.ndarray, np.ndarray, float, float], np.ndarray]) -> DiscrepancyResult:
     """A run with the station's plan (6 steps, 5-95 Hz), its signals replaced by the synthesised
     ones: output(F, t, w, C) is the force signal in V before noise."""
     rng = np.random.default_rng(seed)
@@ -111,7 +111,7 @@ def _synthesise(tmp_path: Path, seed: int, motion: Motion,
     return analyse_recording(import_run(run, tmp_path / "imp"))
 
 
-def _honest(rep: DiscrepancyReport) -> None:
+def _honest(rep: DiscrepancyResult) -> None:
     for name, true in (("k_f", KF), ("b_f", BF)):
         e = rep.parameters_after[name]
         assert abs(e.value - true) <= 3 * e.std, f"{name} = {e.value:.6g} ± {e.std:.2g}, true {true:.6g}"

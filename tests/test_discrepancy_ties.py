@@ -16,7 +16,7 @@ import pytest
 
 from station.cli import main as station_main
 from station.discrepancy import analyse_recording
-from station.discrepancy.report import DiscrepancyReport
+from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import scenario_config, simulate_scenario
 
 _cfg = scenario_config({})
@@ -25,7 +25,7 @@ KF, BF = _cfg.simulation.truth.k_f, _cfg.simulation.truth.b_f
 Z = 3.0
 
 
-def _honest(rep: DiscrepancyReport) -> None:
+def _honest(rep: DiscrepancyResult) -> None:
     for name, true in (("k_f", KF), ("b_f", BF)):
         e = rep.parameters_after[name]
         assert abs(e.value - true) <= Z * e.std, (
@@ -33,7 +33,7 @@ def _honest(rep: DiscrepancyReport) -> None:
             f"ties {[t.message for t in rep.ties]}")
 
 
-def _tie_effects(rep: DiscrepancyReport, kind: str) -> list[set[str]]:
+def _tie_effects(rep: DiscrepancyResult, kind: str) -> list[set[str]]:
     return [{n for m in t.models for n in m.fit.effects} for t in rep.ties if t.kind == kind]
 
 

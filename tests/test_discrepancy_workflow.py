@@ -22,7 +22,7 @@ from station.cli import main as station_main
 from station.config import parse_config
 from station.discrepancy import analyse_recording
 from station.discrepancy.catalogue import CATALOGUE
-from station.discrepancy.report import DiscrepancyReport
+from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import draw_scenario, scenario_config, simulate_scenario
 from station.interchange import export_run, import_run
 from station.simulate import simulate_run
@@ -43,7 +43,7 @@ def _truth_params(name: str, cfg: dict[str, Any]) -> dict[str, float]:
     return {k: float(v) for k, v in cfg.items()}
 
 
-def _check_params(rep: DiscrepancyReport, name: str, cfg: dict[str, Any]) -> None:
+def _check_params(rep: DiscrepancyResult, name: str, cfg: dict[str, Any]) -> None:
     eff = next(e for e in rep.effects if e.name == name)
     truth = _truth_params(name, cfg)
     if name == "conditioner_lowpass" and eff.params["order"].identifiable:
@@ -57,7 +57,7 @@ def _check_params(rep: DiscrepancyReport, name: str, cfg: dict[str, Any]) -> Non
         assert abs(err) <= Z_MAX * est.std, f"{name}.{k} = {est.value:.6g} ± {est.std:.2g}, true {true:.6g}"
 
 
-def _transducer_ok(rep: DiscrepancyReport, coupling: bool, transducer: str = "5kN") -> None:
+def _transducer_ok(rep: DiscrepancyResult, coupling: bool, transducer: str = "5kN") -> None:
     cfg = scenario_config({}, transducer=transducer)
     assert cfg.simulation is not None
     kf, bf = cfg.simulation.truth.k_f, cfg.simulation.truth.b_f

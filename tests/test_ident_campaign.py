@@ -59,8 +59,9 @@ def test_three_top_masses_recover_the_end_mass_within_its_uncertainty(three: lis
     for name in ("S", "m_e"):
         p = res.parameter(name)
         assert abs(p.value - TRUTH[name]) < 4 * res.budget[name]["contributions"]["noise"], name
-    assert res.cov.shape == (4, 4) and np.allclose(res.cov, res.cov.T)
-    assert np.allclose(np.sqrt(np.diag(res.cov)), [res.parameter(n).std for n in TRUTH])
+    cov = res.covariance.array
+    assert res.covariance.names == ("S", "m_e", "k_f", "b_f") and cov.shape == (4, 4) and np.allclose(cov, cov.T)
+    assert np.allclose(np.sqrt(np.diag(cov)), [res.parameter(n).std for n in TRUTH])
     for n in TRUTH:  # the budget's combined value is the reported uncertainty
         assert res.budget[n]["combined"] == pytest.approx(res.parameter(n).std)
     cons = next(c for c in res.checks if c.name == "same_transducer_model")
@@ -83,7 +84,7 @@ def test_too_alike_without_a_stated_end_mass_is_refused(alike: list[Path]) -> No
     recs = [replace(read_recording(p), end_mass_kg=None) for p in alike]
     res = identify_campaign(recs)
     assert res.status == "refused"
-    assert all(p.value is None and p.reason for p in res.parameters)
+    assert all(p.value is None and p.reason for p in res.parameters.values())
     sm = res.determined["S_times_M"]  # what the data do determine: S (m_e + m_l) per recording
     for r, d in zip(recs, sm, strict=True):
         truth = TRUTH["S"] * (END_MASS + r.load_mass_kg)
@@ -123,7 +124,7 @@ def test_a_mistyped_top_mass_is_not_a_confident_number(three: list[Path]) -> Non
     res = identify_campaign(recs)
     cons = next(c for c in res.checks if c.name == "same_transducer_model")
     assert cons.severity == "refused"
-    assert res.status == "refused" and all(p.value is None for p in res.parameters)
+    assert res.status == "refused" and all(p.value is None for p in res.parameters.values())
 
 
 def test_with_four_masses_the_mistyped_one_is_named(three: list[Path], tmp_path: Path) -> None:
@@ -224,4 +225,4 @@ def test_an_effect_eq9_lacks_is_refused_not_fitted(tmp_path: Path) -> None:
     assert names["model_misfit"].severity == "warning" and res.chi2_per_dof > 1e3
     assert names["same_transducer_model"].severity == "refused" and "station discrepancy" in (
         names["same_transducer_model"].message)
-    assert res.status == "refused" and all(p.value is None for p in res.parameters)
+    assert res.status == "refused" and all(p.value is None for p in res.parameters.values())

@@ -234,3 +234,39 @@ def test_report_of_an_imported_run(sim_recording_one_radius: Path, tmp_path: Pat
     assert "import" in page and "not recorded separately" in page  # RUN.yaml has no rig section
     res = identify_recording(read_recording(rec_path))
     assert _cell(page, "param.k_f")[1] == res.parameter("k_f").value
+
+
+# -- what the report reads: stored results, labelled by recording step ------------------------------
+
+def test_traces_keep_their_step_numbers_when_the_gate_drops_a_step(sim_recording: Path, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    import station.report.data as data
+    from station.ident.api import store_result
+
+    rec_path = _copy(sim_recording, tmp_path)
+    first = read_recording(rec_path).steps[0]
+    with h5py.File(rec_path, "r+") as f:  # a dead force channel in step 0: the plausibility gate drops it
+        f["raw/force"][first.start_sample:first.end_sample] = f["raw/force"][first.start_sample]
+    rec = read_recording(rec_path)
+    kept = [s for s in rec.steps if s.index != first.index]
+
+    def shown(d: data.RunData) -> None:
+        assert [t.index for t in d.traces] == list(d.response.step_index) == [s.index for s in kept]
+        for t, s in zip(d.traces, kept, strict=True):  # each trace is the data of the step it is labelled with
+            assert t.f_hz == pytest.approx(s.crank_frequency_hz, rel=1e-3)
+            assert t.t_s.size == s.end_sample - s.start_sample
+
+    data._load.cache_clear()
+    shown(load_run(rec_path))  # nothing stored: computed once from the raw windows
+    process_recording(rec_path)
+    res = identify_recording(rec)
+    store_result(rec_path, res)
+    monkeypatch.setattr(data, "checked_response", lambda *a, **k: pytest.fail("the report re-fitted the raw windows"))
+    d = load_run(rec_path)
+    shown(d)
+    assert d.ident == res and d.response.source == "processed/steps"
+    assert d.curve is not None and d.curve.cov is not None
+    names = list(d.curve.model.names)
+    assert res.covariance is not None
+    i = [res.covariance.names.index(n) for n in names]
+    np.testing.assert_array_equal(d.curve.cov, res.covariance.array[np.ix_(i, i)])  # the stored one, not rebuilt

@@ -9,6 +9,7 @@ import os
 import random
 import signal
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -230,3 +231,31 @@ def test_a_recording_left_flagged_by_a_killed_in_place_write_is_repaired_at_star
     assert read_result(rec, "identify_fd_sdof") == {"k_f": 1.0} and read_result(rec, "steps", group="processed")
     assert (tmp_path / "garbage.h5").read_bytes()[:6] == b"not an"  # named, never deleted
     assert check_folder(tmp_path).repaired == ()  # nothing left to repair
+
+
+# -- one result type, stored and read back unchanged ------------------------------------------------
+
+@pytest.mark.parametrize("method", ["fd", "oe"])
+def test_an_identification_round_trips_through_the_sidecar_with_its_covariance(sim_recording: Path, tmp_path: Path,
+                                                                               method: str) -> None:
+    from station.ident.api import identify_recording, store_result
+    from station.ident.result import IdentificationResult
+
+    rec = tmp_path / sim_recording.name
+    rec.write_bytes(sim_recording.read_bytes())
+    res = identify_recording(read_recording(rec), method)
+    cov = res.covariance
+    assert cov is not None and cov.names == tuple(n for n, p in res.parameters.items() if p.value is not None)
+    assert cov.units == tuple(res.parameters[n].unit for n in cov.names)
+    for n in cov.names:  # the diagonal is the stated standard uncertainty squared
+        assert cov.std(n) == pytest.approx(res.parameters[n].std, rel=1e-12)
+    c = cov.array
+    assert np.allclose(c, c.T) and np.all(np.linalg.eigvalsh(c) > -1e-12 * np.abs(c).max())
+    assert abs(c[0, 1]) > 0  # S and k_f are correlated: the matrix is more than the stds
+    store_result(rec, res)
+    back = IdentificationResult.from_dict(read_result(rec, res.result_name) or {})
+    if method == "oe":  # OE has no chi^2/dof (NaN, stored as null): compare it apart
+        assert np.isnan(back.fit.chi2_per_dof) and np.isnan(res.fit.chi2_per_dof)
+        back = replace(back, fit=res.fit)
+    assert back == res
+    assert back.covariance is not None and np.array_equal(back.covariance.array, c)

@@ -9,7 +9,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from station.api.deps import RUN_ID_PATTERN
-from station.api.schemas import CheckOut, EstimateOut, _Out
+from station.api.schemas import CheckOut, CovarianceOut, EstimateOut, _Out
 
 RunIdStr = Annotated[str, StringConstraints(pattern=RUN_ID_PATTERN)]
 
@@ -24,12 +24,6 @@ class CampaignRequest(BaseModel):
                                              "S from the end mass m_e")
     store: bool = Field(default=False, description="also store the result beside every run's "
                                                    "recording (its report then shows it); needs the bearer token")
-
-
-class CovarianceOut(_Out):
-    names: list[str]
-    units: list[str]
-    matrix: list[list[float | None]] = Field(description="covariance in the parameters' units (products)")
 
 
 class MassOut(_Out):

@@ -115,6 +115,15 @@ class ParameterOut(EstimateOut):
     name: str
 
 
+class CovarianceOut(_Out):
+    """Covariance of estimated parameters (names and units in matrix order); its diagonal is the
+    square of their stated standard uncertainties."""
+
+    names: list[str]
+    units: list[str]
+    matrix: list[list[float | None]] = Field(description="covariance in the parameters' units (products)")
+
+
 class CheckOut(_Out):
     """A finding of the identification's input checks."""
 
@@ -177,6 +186,8 @@ class RunResults(_Out):
     determined: dict[str, Any] = Field(default={}, description="what the data determine whatever the end "
                                        "mass (S M, natural frequency, damping ratio) and the coupling (series "
                                        "stiffness; the range of k_f alone conditional on a stiff coupling)")
+    covariance: CovarianceOut | None = Field(default=None, description="of the parameters that have a value, as "
+                                             "the identification stored it (null for results stored before it was)")
     frequency_response: list[StepResponseOut]
     skipped_steps: list[dict[str, Any]]
     units: dict[str, str]
@@ -187,7 +198,7 @@ class RunResults(_Out):
 
 
 class DiscrepancyOut(BaseModel):
-    """The model-gap analysis (``DiscrepancyReport.to_json``): gaps in V, effects added."""
+    """The model-gap analysis (``DiscrepancyResult.to_json``): gaps in V, effects added."""
 
     model_config = ConfigDict(extra="allow")
 

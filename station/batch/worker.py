@@ -28,7 +28,7 @@ def identify_one(path: Path, method: str | None = None, model: str | None = None
         res = identify_recording(rec, method, model)
         stored = store_result(path, res) if store else ""
         return BatchItem(Path(path), rec.run_id, rec.transducer_id, rec.start_time, "ok", res.method, res.model,
-                         {p.name: p.to_dict() for p in res.parameters}, "", time.perf_counter() - t0, stored,
+                         {n: p.to_dict() for n, p in res.parameters.items()}, "", time.perf_counter() - t0, stored,
                          time.process_time() - c0)
     except Exception as exc:  # one bad recording must not stop the night's batch
         if not isinstance(exc, StationError):

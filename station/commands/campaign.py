@@ -16,16 +16,16 @@ def format_text(res: CampaignResult) -> str:
     """Human-readable campaign result: status, checks, parameters with budget, recordings, fit."""
     lines = [f"campaign of {len(res.recordings)} recordings of {res.transducer_id}: {res.status}"]
     lines += [f"  check {c.severity}: {c.name}: {c.message}" for c in res.checks]
-    for p in res.parameters:
+    for name, p in res.parameters.items():
         if p.identifiable:
-            flag = getattr(p, "flag", "")
-            lines.append(f"  {p.name:4s} = {p.value:.7g} {p.unit}  (std {p.std:.2g})" + (f"  [{flag}]" if flag else ""))
-            b = res.budget.get(p.name)
+            flag = p.flag
+            lines.append(f"  {name:4s} = {p.value:.7g} {p.unit}  (std {p.std:.2g})" + (f"  [{flag}]" if flag else ""))
+            b = res.budget.get(name)
             if b:
                 lines.append("       budget: " + ", ".join(f"{k} {v:.2g}" for k, v in b["contributions"].items()
                                                            if v is not None) + f"; combined {b['combined']:.2g}")
         else:
-            lines.append(f"  {p.name:4s}   not given: {p.reason}")
+            lines.append(f"  {name:4s}   not given: {p.reason}")
     for r in res.recordings:
         lines.append(f"  {Path(r.path).name}: m_l {r.load_mass_kg:.6g} kg (std {r.load_mass_std_kg:.2g}), "
                      f"{len(r.steps_used)} steps {r.f_range_hz[0]:.4g}-{r.f_range_hz[1]:.4g} Hz, "

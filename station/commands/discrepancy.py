@@ -8,7 +8,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from station.discrepancy.report import DiscrepancyReport, Estimate
+    from station.discrepancy.result import DiscrepancyResult
+    from station.ident.result import Estimate
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,7 +34,7 @@ def _est(e: Estimate) -> str:
     return f"{e.value:.6g} ± {e.std:.2g} {e.unit}"
 
 
-def text_report(rep: DiscrepancyReport) -> str:
+def text_report(rep: DiscrepancyResult) -> str:
     """Human-readable summary: gaps, named effects with parameters, before/after, what is left."""
     from station.discrepancy.workflow import gap_table
 

@@ -41,17 +41,17 @@ def format_text(res: IdentificationResult) -> str:
     what the data determine, then the fit and the notes."""
     lines = [f"method {res.method}, model {res.model}"]
     lines += [f"  check {c.severity}: {c.name}: {c.message}" for c in res.checks]
-    for p in res.parameters:
+    for name, p in res.parameters.items():
         if p.identifiable:
-            lines.append(f"  {p.name:4s} = {p.value:.7g} {p.unit}  (std {p.std:.2g})"
+            lines.append(f"  {name:4s} = {p.value:.7g} {p.unit}  (std {p.std:.2g})"
                          + (f"  [{p.flag}: {p.reason}]" if p.flag else ""))
-            b = res.budget.get(p.name)
+            b = res.budget.get(name)
             if b:
                 lines.append("       budget: " + ", ".join(
                     f"{k} {v:.2g}" if v is not None else f"{k} (conditional)"
                     for k, v in b["contributions"].items()) + f"; combined {b['combined']:.2g}")
         else:
-            lines.append(f"  {p.name:4s}   not identifiable: {p.reason}")
+            lines.append(f"  {name:4s}   not identifiable: {p.reason}")
     em = (res.assumptions or {}).get("end_mass_kg")
     if em:
         lines.append(f"  end mass m_e = {em['value']:g} kg ({em['source']}"

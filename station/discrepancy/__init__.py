@@ -8,7 +8,7 @@ Modules: ``decompose`` (per-step LS decomposition, noise floor), ``spectrum`` (l
 ``scenarios`` (recordings with effects drawn at random, for tests and the bench).
 """
 
-from station.discrepancy.report import DiscrepancyReport
+from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.workflow import analyse_recording
 
-__all__ = ["DiscrepancyReport", "analyse_recording"]
+__all__ = ["DiscrepancyResult", "analyse_recording"]

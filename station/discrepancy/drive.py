@@ -24,7 +24,7 @@ from scipy.optimize import minimize_scalar
 from station.discrepancy.data import RigData
 from station.discrepancy.decompose import K_MAX
 from station.discrepancy.model import crank_displacement_harmonics
-from station.discrepancy.report import Estimate
+from station.ident.result import Estimate
 
 ALPHA = 1e-6
 

@@ -10,10 +10,10 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from station.discrepancy.report import DiscrepancyReport
+from station.discrepancy.result import DiscrepancyResult
 
 
-def plot_report(rep: DiscrepancyReport, path: str | Path) -> Path:
+def plot_report(rep: DiscrepancyResult, path: str | Path) -> Path:
     """Write the figure to ``path`` (PNG); returns the path."""
     p = Path(path)
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2), gridspec_kw={"width_ratios": [2, 1]})

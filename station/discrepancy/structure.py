@@ -21,8 +21,9 @@ import numpy as np
 
 from station.discrepancy.data import RigData
 from station.discrepancy.fit import ModelFit
-from station.discrepancy.report import Candidate, Estimate
+from station.discrepancy.result import Candidate
 from station.discrepancy.search import fit_candidate
+from station.ident.result import Estimate
 
 COUPLING = "coupling_compliance"
 UNDETERMINED = 0.5  # relative standard uncertainty of k_f above which k_f alone is called not determined

@@ -41,10 +41,12 @@ from typing import Any
 import numpy as np
 
 from station.discrepancy.data import RigData
+from station.discrepancy.estimates import ORDER_AMBIGUITY, effect_estimates
 from station.discrepancy.fit import ModelFit, fit_model
 from station.discrepancy.physical import implausible
-from station.discrepancy.report import ORDER_AMBIGUITY, Candidate, Estimate, effect_estimates
+from station.discrepancy.result import Candidate
 from station.discrepancy.search import fit_candidate
+from station.ident.result import Estimate
 
 log = logging.getLogger(__name__)
 TIE_CHI2 = 10.0

@@ -30,23 +30,18 @@ from station.discrepancy.catalogue import CATALOGUE
 from station.discrepancy.data import RigData, prepare
 from station.discrepancy.drive import check_drive
 from station.discrepancy.eiv import noise_floor
+from station.discrepancy.estimates import effect_estimates, transducer_parameters
 from station.discrepancy.fit import ModelFit, fit_model
 from station.discrepancy.locate import fundamental_table, in_basis, out_of_basis
 from station.discrepancy.physical import implausible
 from station.discrepancy.plausible import withdraw
 from station.discrepancy.propose import KF_REL, RunContext, next_run
-from station.discrepancy.report import (
-    AddedEffect,
-    Candidate,
-    DiscrepancyReport,
-    Estimate,
-    effect_estimates,
-    transducer_parameters,
-)
+from station.discrepancy.result import AddedEffect, Candidate, DiscrepancyResult
 from station.discrepancy.search import base_start, fit_candidate, with_order_alternatives
 from station.discrepancy.structure import state_structure
 from station.discrepancy.ties import TIE_CHI2, averaged, tie_models, tied_names, undetectable
 from station.errors import StationError
+from station.ident.result import Estimate
 from station.recording import Recording, read_recording
 
 if TYPE_CHECKING:
@@ -210,7 +205,7 @@ def _swap(data: RigData, current: ModelFit) -> tuple[str, ...] | None:
 
 
 def analyse(data: RigData, max_effects: int = 4, recording: str = "",
-            rec_notes: tuple[str, ...] = (), context: RunContext | None = None) -> DiscrepancyReport:
+            rec_notes: tuple[str, ...] = (), context: RunContext | None = None) -> DiscrepancyResult:
     """Run the workflow on decomposed data (see module docstring); with the run's ``context``
     (configuration and steps) the report carries the next run that would settle a tie."""
     t0 = time.perf_counter()
@@ -269,7 +264,7 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
     if data.end_mass_kg <= 0:
         notes.append("no end mass in the recording: m_e = 0 assumed, coupling not testable")
     proposal = next_run(data, current, added, context, alpha=ALPHA, margin=AMBIGUOUS_BIC)
-    return DiscrepancyReport(
+    return DiscrepancyResult(
         recording=recording, base_gap=base.gap_V, final_gap=current.gap_V, noise_floor_V=floor,
         effects=tuple(added), parameters_before=before,
         parameters_after=after, unexplained=tuple(left), ties=tuple(ties), drive=drive,
@@ -295,7 +290,7 @@ def _proposal_note(proposal: Any, context: RunContext | None, data: RigData) -> 
 
 
 def analyse_recording(path: str | Path | Recording, max_effects: int = 4,
-                      station: StationConfig | None = None) -> DiscrepancyReport:
+                      station: StationConfig | None = None) -> DiscrepancyResult:
     """The whole workflow on a recording (own or imported): ``station discrepancy`` and the daemon's
     ``GET /runs/{id}/discrepancy`` call this.  ``station``: the rig's configuration, whose limits a
     proposed follow-up run respects (default: those the recording states, ``run_context``)."""
@@ -332,7 +327,8 @@ def with_budget(after: dict[str, Estimate], ident: dict[str, Estimate], budget: 
     out = dict(after)
     for name, est in after.items():
         b, ref = budget.get(name), ident.get(name)
-        if b is None or ref is None or not est.identifiable or not ref.identifiable or not ref.value:
+        if (b is None or ref is None or not est.identifiable or not ref.identifiable or not ref.value
+                or est.value is None or est.std is None):
             continue
         scale = abs(est.value / ref.value)
         sys2 = sum((scale * float(v)) ** 2 for k, v in (b.get("contributions") or {}).items()
@@ -400,10 +396,10 @@ def _identify(rec: Recording) -> tuple[dict[str, Estimate], dict[str, Any]] | No
 
         res = identify_recording(rec, "fd", "sdof")
         out = {}
-        for q in res.parameters:
-            if q.name in ("S", "k_f", "b_f"):
+        for name, q in res.parameters.items():
+            if name in ("S", "k_f", "b_f"):
                 ok = q.identifiable and q.value is not None and q.std is not None
-                out[q.name] = Estimate(float(q.value) if ok and q.value is not None else math.nan,
+                out[name] = Estimate(float(q.value) if ok and q.value is not None else math.nan,
                                        float(q.std) if ok and q.std is not None else math.nan, q.unit, ok, q.reason)
         return (out, dict(res.budget or {})) if len(out) == 3 else None
     except Exception as exc:  # identification is another package: never let it break this report
@@ -411,7 +407,7 @@ def _identify(rec: Recording) -> tuple[dict[str, Estimate], dict[str, Any]] | No
         return None
 
 
-def gap_table(rep: DiscrepancyReport) -> list[tuple[str, list[float]]]:
+def gap_table(rep: DiscrepancyResult) -> list[tuple[str, list[float]]]:
     """Rows (stage, per-step gaps in V) from the base model through each added effect."""
     rows = [("base", list(rep.base_gap_steps))]
     rows += [(f"+ {e.name}", list(e.gap_steps_after)) for e in rep.effects]

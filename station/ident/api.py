@@ -27,7 +27,7 @@ from station.ident.models import Model, SdofModel, make_model
 from station.ident.names import METHODS, MODELS
 from station.ident.oe import fit_oe
 from station.ident.protocol import PaperProtocol
-from station.ident.result import FitSummary, IdentificationResult, ParameterEstimate
+from station.ident.result import FitSummary, IdentificationResult, estimated_covariance, estimates
 from station.ident.steps import CheckedResponse, checked_response, measured_response
 from station.ident.structure import structure_statement
 from station.recording import Recording, write_result
@@ -60,14 +60,6 @@ def model_for(rec: Recording, key: str, inputs: IdentInputs | None = None) -> Mo
     return make_model(key, inputs.m_e, inputs.m_l)
 
 
-def _params(model: Model, theta: FloatArray, cov: FloatArray, ident: tuple[bool, ...],
-            reasons: tuple[str, ...]) -> tuple[ParameterEstimate, ...]:
-    std = np.sqrt(np.clip(np.diag(cov), 0, None))
-    return tuple(ParameterEstimate(n, u, float(theta[i]) if ident[i] else None,
-                                   float(std[i]) if ident[i] else None, ident[i], reasons[i])
-                 for i, (n, u) in enumerate(zip(model.names, model.units, strict=True)))
-
-
 def identify_oe(rec: Recording, model_key: str = "sdof", policy: Policy = DEFAULT_POLICY,
                 inputs: IdentInputs | None = None) -> IdentificationResult:
     """Time-domain output error on the raw force samples, started from the FD estimate."""
@@ -88,25 +80,28 @@ def identify_oe(rec: Recording, model_key: str = "sdof", policy: Policy = DEFAUL
     rep = fd.identifiability
     ident = tuple(bool(v) for v in ok)
     reasons = rep.reasons[: len(ident)] if rep else ("",) * len(ident)
-    params = list(_params(model, fit.theta, fit.cov, ident, reasons))
+    params = estimates(model.names, model.units, fit.theta, fit.cov, ident, reasons)
+    covariance = estimated_covariance(params, model.names, fit.cov)  # correlations of the OE fit
     budget = {}
-    for i, p in enumerate(params):  # OE's own noise term, the systematic terms of the FD budget
-        b = fd.budget.get(p.name)
+    for name, p in params.items():  # OE's own noise term, the systematic terms of the FD budget
+        b = fd.budget.get(name)
         if b is None or not p.identifiable or p.std is None:
             continue
         c = {**b["contributions"], "noise": p.std}
         comb = float(np.sqrt(sum(v * v for v in c.values() if v is not None)))
-        budget[p.name] = {**b, "contributions": c, "combined": comb}
-        fdp = fd.parameter(p.name)
-        params[i] = replace(p, std=comb, flag=fdp.flag, reason=fdp.reason if fdp.flag else p.reason)
+        budget[name] = {**b, "contributions": c, "combined": comb}
+        fdp = fd.parameter(name)
+        params[name] = replace(p, std=comb, flag=fdp.flag, reason=fdp.reason if fdp.flag else p.reason)
+    if covariance is not None:  # the same correlations at the combined standard uncertainties
+        covariance = estimated_covariance(params, covariance.names, covariance.array)
     if len(params) < len(fd.parameters):
-        params += list(fd.parameters[len(params):])
+        params.update({n: p for n, p in fd.parameters.items() if n not in params})
         notes.append("k_c, b_c not identifiable: OE fit in the stiff-coupling limit (Eq. 9)")
     summary = FitSummary(fit.mse, tuple(float(v) for v in fit.residual_rms_V), float("nan"),
                          int(sum(s.t.size for s in sigs)))
-    return IdentificationResult("oe", fd.model, tuple(params), summary, rep, tuple(notes),
+    return IdentificationResult("oe", fd.model, params, summary, rep, tuple(notes),
                                 {"offsets_V": fit.offsets_V.tolist()}, fd.checks, budget, fd.assumptions,
-                                fd.determined)
+                                fd.determined, covariance)
 
 
 def store_result(path: str | Path, res: IdentificationResult) -> str:

@@ -46,7 +46,7 @@ from station.ident.checks import IdentificationRefused
 from station.ident.frf import FrequencyResponse
 from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.models import SdofModel
-from station.ident.result import Check, ParameterEstimate
+from station.ident.result import Check, Covariance, Estimate
 from station.ident.steps import checked_response
 from station.ident.structure import chain_corrected, coupling_bound, structure_statement
 from station.recording import Recording
@@ -75,8 +75,8 @@ class CampaignRefused(IdentificationRefused):
 
 
 def _param(name: str, unit: str, value: float | None, std: float | None, reason: str = "",
-           flag: str = "") -> ParameterEstimate:
-    return ParameterEstimate(name, unit, value, std, value is not None, reason, flag)
+           flag: str = "") -> tuple[str, Estimate]:
+    return name, Estimate(value, std, unit, value is not None, reason, flag)
 
 
 def _load_mass(inp: IdentInputs) -> jf.MassPrior:
@@ -234,12 +234,12 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
     refused_model = cons is not None and cons.severity == "refused"
     if refused_model:
         status = "refused"
-        params = tuple(_param(n, u, None, None, cons.message if cons else "") for n, u in zip(jf.NAMES, jf.UNITS,
+        params = dict(_param(n, u, None, None, cons.message if cons else "") for n, u in zip(jf.NAMES, jf.UNITS,
                                                                                             strict=True))
     elif separated:
         status = "separated"
         flag = "poorly_determined" if sep.severity == "warning" else ""
-        params = tuple(_param(n, u, float(fit.theta[i]), float(sd[i]), sep.message if flag and i < 2 else "",
+        params = dict(_param(n, u, float(fit.theta[i]), float(sd[i]), sep.message if flag and i < 2 else "",
                               flag if i < 2 else "") for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
     elif stated is not None:
         status = "conditional"
@@ -247,13 +247,13 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
         why = (f"given on the {'assumed' if src == 'assumed' else 'stated'} end mass m_e = {stated.value:g} kg "
                + (f"(std {stated.std:.2g} kg, propagated)" if stated.std > 0 else "(no uncertainty: not propagated)")
                + ": the top masses do not separate S from m_e")
-        params = tuple(_param(n, u, None, None, sep.message) if i == 1 else
+        params = dict(_param(n, u, None, None, sep.message) if i == 1 else
                        _param(n, u, float(fit.theta[i]), float(sd[i]), why, "conditional")
                        for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
     else:
         status = "refused"
         why = sep.message + "; no end mass is stated, so S, k_f and b_f are not given (see determined)"
-        params = tuple(_param(n, u, None, None, why) for n, u in zip(jf.NAMES, jf.UNITS, strict=True))
+        params = dict(_param(n, u, None, None, why) for n, u in zip(jf.NAMES, jf.UNITS, strict=True))
     if status == "refused":
         cov = np.zeros((4, 4))
         budget = {}
@@ -274,7 +274,8 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
                    "structure": _structure(frfs, priors, fit.theta, fit.chi2_per_dof if fit.inflated else 1.0,
                                            inputs[0])}
     log.info("campaign of %d recordings: %s", len(recs), status)
-    return CampaignResult(status, recs[0].transducer_id, params, cov, rows, fit.chi2, fit.dof, fit.inflated,
+    covariance = Covariance.of(jf.NAMES, jf.UNITS, cov)
+    return CampaignResult(status, recs[0].transducer_id, params, covariance, rows, fit.chi2, fit.dof, fit.inflated,
                           tuple(checks), budget, assumptions, _determined(recs, priors, own, float(fit.theta[1])),
                           tuple(notes))
 

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from station.ident.result import Check, ParameterEstimate
+from station.ident.result import Check, Covariance, Estimate
 
 FloatArray = NDArray[np.float64]
 
@@ -62,14 +62,14 @@ class CampaignResult:
 
     status: 'separated' (S and m_e determined by the data), 'conditional' (the masses cannot separate
     them: S, k_f, b_f conditional on the stated end mass, m_e refused), 'refused' (not separable and
-    no end mass stated: only ``determined`` is given); parameters: S, m_e, k_f, b_f; cov (4, 4) in
-    their units (zeros for a refused parameter); budget per parameter (GUM: contributions and the
+    no end mass stated: only ``determined`` is given); parameters: S, m_e, k_f, b_f; covariance
+    (4, 4) in their units (zeros for a refused parameter); budget per parameter (GUM: contributions and the
     combined standard uncertainty = sqrt of cov's diagonal)."""
 
     status: str
     transducer_id: str
-    parameters: tuple[ParameterEstimate, ...]
-    cov: FloatArray
+    parameters: dict[str, Estimate]
+    covariance: Covariance
     recordings: tuple[CampaignRecording, ...]
     chi2: float
     dof: int
@@ -84,19 +84,14 @@ class CampaignResult:
     def chi2_per_dof(self) -> float:
         return self.chi2 / self.dof if self.dof else float("nan")
 
-    def parameter(self, name: str) -> ParameterEstimate:
-        for p in self.parameters:
-            if p.name == name:
-                return p
-        raise KeyError(name)
+    def parameter(self, name: str) -> Estimate:
+        return self.parameters[name]
 
     def to_dict(self) -> dict[str, Any]:
         return {"kind": "campaign", "method": "fd", "model": "sdof", "status": self.status,
                 "transducer_id": self.transducer_id,
-                "parameters": {p.name: p.to_dict() for p in self.parameters},
-                "covariance": {"names": [p.name for p in self.parameters],
-                               "units": [p.unit for p in self.parameters],
-                               "matrix": [[_f(float(c)) for c in row] for row in self.cov]},
+                "parameters": {n: p.to_dict() for n, p in self.parameters.items()},
+                "covariance": self.covariance.to_dict(),
                 "recordings": [r.to_dict() for r in self.recordings],
                 "fit": {"chi2": _f(self.chi2), "dof": self.dof, "chi2_per_dof": _f(self.chi2_per_dof),
                         "inflated": self.inflated},

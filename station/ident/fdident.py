@@ -24,7 +24,7 @@ from station.ident.fdcore import fd_fit, start_values, summary_fd
 from station.ident.identifiability import Policy, effect_text
 from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.models import CoupledModel, Model, SdofModel, make_model
-from station.ident.result import Check, IdentificationResult, ParameterEstimate
+from station.ident.result import Check, Estimate, IdentificationResult, estimated_covariance
 from station.ident.steps import CheckedResponse, checked_response
 from station.ident.structure import apply_structure, chain_corrected, coupling_suspected, resonance_suspected
 from station.recording import Recording
@@ -77,20 +77,19 @@ def _determined(model: Model, theta: FloatArray, budget: Budget) -> dict[str, An
 
 def _param_list(model: Model, theta: FloatArray, budget: Budget, rep_ok: tuple[bool, ...],
                 reasons: list[str], inputs: IdentInputs, policy: Policy,
-                frf: frfmod.FrequencyResponse) -> list[ParameterEstimate]:
-    out = []
+                frf: frfmod.FrequencyResponse) -> dict[str, Estimate]:
+    out: dict[str, Estimate] = {}
     comb = budget.combined
     for i, (n, u) in enumerate(zip(model.names, model.units, strict=True)):
         if not budget.free[i] or not np.isfinite(comb[i]) or reasons[i].startswith("not identifiable from one"):
-            out.append(ParameterEstimate(n, u, None, None, False, reasons[i] or "held: not determined"))
+            out[n] = Estimate(None, None, u, False, reasons[i] or "held: not determined")
             continue
         rel = float(comb[i] / max(abs(theta[i]), 1e-300))
         parts = ", ".join(f"{s} {np.sqrt(c[i, i]) / abs(theta[i]):.2g}" for s, c in budget.covs.items()
                           if c is not None and c[i, i] > (0.01 * comb[i]) ** 2)
         if rel > 1:
-            out.append(ParameterEstimate(n, u, None, None, False, f"not determined by the data: relative "
-                                         f"uncertainty {rel:.2g} ({parts}); "
-                                         + effect_text(model, theta, frf.f_hz, i)))
+            out[n] = Estimate(None, None, u, False, f"not determined by the data: relative "
+                              f"uncertainty {rel:.2g} ({parts}); " + effect_text(model, theta, frf.f_hz, i))
             continue
         flag, reason = "", ""
         if rel > policy.max_rel_std or not rep_ok[i]:
@@ -102,7 +101,7 @@ def _param_list(model: Model, theta: FloatArray, budget: Budget, rep_ok: tuple[b
             reason = (reason + "; " if reason else "") + (
                 f"conditional on the assumed end mass m_e = {inputs.m_e:g} kg (not given): "
                 f"{'S' if i == 0 else n} scales as {'1/' if i == 0 else ''}(m_l + m_e)")
-        out.append(ParameterEstimate(n, u, float(theta[i]), float(comb[i]), True, reason, flag))
+        out[n] = Estimate(float(theta[i]), float(comb[i]), u, True, reason, flag)
     return out
 
 
@@ -175,9 +174,9 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
     params = _param_list(model, fit.theta, budget, rep.identifiable, reasons, inputs, policy, frf)
     birge = sdof_fit.chi2 / sdof_fit.dof if sdof_fit.inflated else 1.0
     structure = apply_structure(model.key, stiff, params, fit.theta, budget, frf, sdof, birge, inputs, suspected)
-    params = list(structure.parameters)
+    params = structure.parameters
     checks += structure.checks
-    c = sensitivity_check(params[0].value, rec.sensitivity_V_per_N, not inputs.end_mass_given)
+    c = sensitivity_check(params["S"].value, rec.sensitivity_V_per_N, not inputs.end_mass_given)
     checks += [c] if c else []
     determined = {**_determined(model, fit.theta, budget), **structure.determined}
     if n_f == 1 and budget.free[0]:
@@ -193,6 +192,7 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
     extra = {"m_e_kg": model.m_e, "m_l_kg": model.m_l, "f_hz": frf.f_hz.tolist(), "H_abs": np.abs(frf.H).tolist(),
              "H_phase_rad": np.angle(frf.H).tolist(),
              "H_std": np.sqrt(np.trace(frf.cov, axis1=1, axis2=2) / 2).tolist(), "steps_used": cr.used}
-    return IdentificationResult("fd", model.key, tuple(params), summary_fd(frf, fit, cr.sigs), rep,
+    return IdentificationResult("fd", model.key, params, summary_fd(frf, fit, cr.sigs), rep,
                                 tuple(notes), extra, tuple(checks), budget.to_dict(),
-                                {**inputs.to_dict(), "structure": structure.statement}, determined)
+                                {**inputs.to_dict(), "structure": structure.statement}, determined,
+                                estimated_covariance(params, model.names, budget.cov))

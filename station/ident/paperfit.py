@@ -33,7 +33,7 @@ from station.ident.identifiability import Policy, assess
 from station.ident.models import DigitalTF, Model
 from station.ident.protocol import PaperData, PaperProtocol, paper_data, testing_mse
 from station.ident.pso import SECTION5_H1, SECTION5_H2, PsoSettings, identify_digital
-from station.ident.result import FitSummary, Identifiability, IdentificationResult, ParameterEstimate
+from station.ident.result import FitSummary, Identifiability, IdentificationResult, estimated_covariance, estimates
 from station.ident.rls import rls_h2
 from station.ident.sinefit import fit3
 from station.ident.structure import MIN_PLAUSIBLE_COUPLING_RATIO, plausible_coupling
@@ -161,11 +161,9 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
     reasons = [r or (why and f"withheld: the answer is {why}") or unstable[i] if rep.identifiable[i] else r
                for i, r in enumerate(rep.reasons)]
     rep = replace(rep, identifiable=tuple(r == "" for r in reasons), reasons=tuple(reasons))
-    params = tuple(ParameterEstimate(nm, u, float(theta[i]) if rep.identifiable[i] else None,
-                                     float(std[i]) if rep.identifiable[i] else None,
-                                     rep.identifiable[i], rep.reasons[i])
-                   for i, (nm, u) in enumerate(zip(model.names, model.units, strict=True)))
+    params = estimates(model.names, model.units, theta, cov, rep.identifiable, rep.reasons)
     summary = FitSummary(mse, (float(np.sqrt(mse)),), float("nan"), int(data.x_id.size))
     notes = (f"paper protocol (Section 5.1) on step {data.step_index} ({data.f_hz:g} Hz): resampled to "
              f"{1 / data.T:g} Hz, {data.x_id.size} identification and {data.x_test.size} test points",)
-    return IdentificationResult(method, form, params, summary, rep, notes, extra)
+    return IdentificationResult(method, form, params, summary, rep, notes, extra,
+                                covariance=estimated_covariance(params, model.names, cov))

@@ -1,14 +1,22 @@
-"""Frozen result types of the identification package and their JSON form.
+"""Frozen result types of the station and their JSON form, read back by ``from_dict``.
 
-Every estimate carries its standard uncertainty; a parameter that the data cannot determine is
-``identifiable=False`` with ``value``/``std`` ``None`` and a ``reason`` (never digits).
+``Estimate`` is the one estimate type (identification, campaign and model-gap results): value and
+standard uncertainty; a parameter that the data cannot determine is ``identifiable=False`` with
+``value``/``std`` ``None`` and a ``reason`` (never digits).  ``Covariance`` travels with the
+identification: names, units and the matrix, whose diagonal is the square of the stated standard
+uncertainties.  ``IdentificationResult.to_dict`` is what is stored beside a recording and
+``IdentificationResult.from_dict`` reads it back unchanged.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
 
 
 def _finite_or_none(x: float | None) -> float | None:
@@ -17,18 +25,31 @@ def _finite_or_none(x: float | None) -> float | None:
     return float(x)
 
 
-@dataclass(frozen=True)
-class ParameterEstimate:
-    """One physical parameter: value and standard uncertainty in ``unit`` (SI)."""
+def _float(x: Any) -> float:
+    """A stored number back as a float (JSON null is NaN)."""
+    return math.nan if x is None else float(x)
 
-    name: str
-    unit: str
+
+@dataclass(frozen=True)
+class Estimate:
+    """A parameter: value and standard uncertainty in ``unit`` (SI).
+
+    identifiable False: the data do not determine it (value and std None, or NaN, with a reason);
+    flag: '' or 'poorly_determined' (relative uncertainty above the policy's) or 'conditional' (on
+    an assumed input, see the result's assumptions)."""
+
     value: float | None
     std: float | None
-    identifiable: bool
+    unit: str
+    identifiable: bool = True
     reason: str = ""
-    flag: str = ""  # '', 'poorly_determined' (relative uncertainty above the policy's), 'conditional'
-    #                 (on an assumed input, see the result's assumptions)
+    flag: str = ""
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Estimate:
+        v, s = d.get("value"), d.get("std")
+        return cls(None if v is None else float(v), None if s is None else float(s), str(d.get("unit", "")),
+                   bool(d.get("identifiable", True)), str(d.get("reason") or ""), str(d.get("flag") or ""))
 
     def to_dict(self) -> dict[str, Any]:
         if not self.identifiable:
@@ -59,6 +80,45 @@ class Check:
         return {"name": self.name, "severity": self.severity, "step": self.step, "message": self.message,
                 "values": vals}
 
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Check:
+        step = d.get("step")
+        return cls(str(d["name"]), str(d["severity"]), None if step is None else int(step), str(d.get("message", "")),
+                   dict(d.get("values") or {}))
+
+
+@dataclass(frozen=True)
+class Covariance:
+    """Covariance of estimated parameters: ``names`` and ``units`` (SI) in matrix order, ``matrix``
+    (n, n) as nested tuples in the product of the units (e.g. (N/m)^2 on the diagonal of k_f)."""
+
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    matrix: tuple[tuple[float, ...], ...]
+
+    @classmethod
+    def of(cls, names: Sequence[str], units: Sequence[str], matrix: NDArray[np.float64]) -> Covariance:
+        m = np.asarray(matrix, dtype=float)
+        if m.shape != (len(names), len(names)) or len(units) != len(names):
+            raise ValueError(f"covariance {m.shape} does not match {len(names)} names and {len(units)} units")
+        return cls(tuple(names), tuple(units), tuple(tuple(float(c) for c in row) for row in m))
+
+    @property
+    def array(self) -> NDArray[np.float64]:
+        return np.array(self.matrix, dtype=float).reshape(len(self.names), len(self.names))
+
+    def std(self, name: str) -> float:
+        i = self.names.index(name)
+        return math.sqrt(max(self.matrix[i][i], 0.0))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"names": list(self.names), "units": list(self.units),
+                "matrix": [[_finite_or_none(c) for c in row] for row in self.matrix]}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Covariance:
+        return cls(tuple(d["names"]), tuple(d["units"]), tuple(tuple(_float(c) for c in row) for row in d["matrix"]))
+
 
 @dataclass(frozen=True)
 class FitSummary:
@@ -78,6 +138,11 @@ class FitSummary:
         return {"mse": _finite_or_none(self.mse),
                 "residual_rms_V": [_finite_or_none(v) for v in self.residual_rms_V],
                 "chi2_per_dof": _finite_or_none(self.chi2_per_dof), "n_points": self.n_points}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> FitSummary:
+        return cls(_float(d.get("mse")), tuple(_float(v) for v in d.get("residual_rms_V") or ()),
+                   _float(d.get("chi2_per_dof")), int(d.get("n_points") or 0))
 
 
 @dataclass(frozen=True)
@@ -102,14 +167,23 @@ class Identifiability:
                 "correlations": [[_finite_or_none(c) for c in row] for row in self.correlations],
                 "identifiable": list(self.identifiable), "reasons": list(self.reasons)}
 
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Identifiability:
+        return cls(tuple(d["names"]), _float(d.get("condition_number")),
+                   tuple(tuple(_float(c) for c in row) for row in d.get("correlations") or ()),
+                   tuple(bool(v) for v in d["identifiable"]), tuple(str(r) for r in d["reasons"]))
+
 
 @dataclass(frozen=True)
 class IdentificationResult:
-    """What ``identify_recording`` returns: method, model, parameters, fit and conditioning."""
+    """What ``identify_recording`` returns: method, model, parameters by name (in the model's
+    order), fit and conditioning, checks, GUM budget, assumptions, what the data determine whatever
+    the assumptions, and the covariance of the parameters that have a value (None when the method
+    gives none)."""
 
     method: str
     model: str
-    parameters: tuple[ParameterEstimate, ...]
+    parameters: dict[str, Estimate]
     fit: FitSummary
     identifiability: Identifiability | None = None
     notes: tuple[str, ...] = ()
@@ -118,23 +192,65 @@ class IdentificationResult:
     budget: dict[str, Any] = field(default_factory=dict)
     assumptions: dict[str, Any] = field(default_factory=dict)
     determined: dict[str, Any] = field(default_factory=dict)
+    covariance: Covariance | None = None
 
     @property
     def result_name(self) -> str:
         """Its name among the results stored beside a recording (``<run>.results/results.<name>.h5``)."""
         return f"identify_{self.method}_{self.model}"
 
-    def parameter(self, name: str) -> ParameterEstimate:
-        for p in self.parameters:
-            if p.name == name:
-                return p
-        raise KeyError(name)
+    def parameter(self, name: str) -> Estimate:
+        return self.parameters[name]
 
     def to_dict(self) -> dict[str, Any]:
         return {"method": self.method, "model": self.model,
-                "parameters": {p.name: p.to_dict() for p in self.parameters},
+                "parameters": {n: p.to_dict() for n, p in self.parameters.items()},
                 "fit": self.fit.to_dict(),
                 "identifiability": None if self.identifiability is None else self.identifiability.to_dict(),
                 "notes": list(self.notes), "extra": self.extra,
                 "checks": [c.to_dict() for c in self.checks], "budget": self.budget,
-                "assumptions": self.assumptions, "determined": self.determined}
+                "assumptions": self.assumptions, "determined": self.determined,
+                "covariance": None if self.covariance is None else self.covariance.to_dict()}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> IdentificationResult:
+        """Read back what ``to_dict`` gave (e.g. a stored result).  Results stored before the
+        covariance was kept have ``covariance`` None."""
+        ident, cov = d.get("identifiability"), d.get("covariance")
+        return cls(str(d["method"]), str(d["model"]),
+                   {n: Estimate.from_dict(p) for n, p in (d.get("parameters") or {}).items()},
+                   FitSummary.from_dict(d.get("fit") or {}),
+                   None if ident is None else Identifiability.from_dict(ident), tuple(d.get("notes") or ()),
+                   dict(d.get("extra") or {}), tuple(Check.from_dict(c) for c in d.get("checks") or ()),
+                   dict(d.get("budget") or {}), dict(d.get("assumptions") or {}), dict(d.get("determined") or {}),
+                   None if cov is None else Covariance.from_dict(cov))
+
+
+def estimates(names: Sequence[str], units: Sequence[str], theta: NDArray[np.float64], cov: NDArray[np.float64],
+              identifiable: Sequence[bool], reasons: Sequence[str]) -> dict[str, Estimate]:
+    """Estimates from a fit: value theta[i] and std sqrt(cov[i, i]) for the identifiable ones,
+    None with the reason for the others."""
+    std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    return {n: Estimate(float(theta[i]) if identifiable[i] else None, float(std[i]) if identifiable[i] else None,
+                        u, bool(identifiable[i]), reasons[i])
+            for i, (n, u) in enumerate(zip(names, units, strict=True))}
+
+
+def estimated_covariance(parameters: Mapping[str, Estimate], names: Sequence[str],
+                         matrix: NDArray[np.float64]) -> Covariance | None:
+    """The covariance of the parameters that have a value: ``matrix`` (n, n) over ``names``
+    restricted to them and scaled to their stated standard uncertainties (its correlations kept,
+    its diagonal the stds squared), or None when no parameter has a value or the matrix does not
+    give a correlation."""
+    keep = [i for i, n in enumerate(names) if parameters[n].value is not None and parameters[n].std is not None]
+    if not keep:
+        return None
+    m = np.asarray(matrix, dtype=float)[np.ix_(keep, keep)]
+    d = np.sqrt(np.clip(np.diag(m), 0, None))
+    if not np.all(np.isfinite(m)) or not np.all(d > 0):
+        return None
+    std = np.array([float(parameters[names[i]].std or 0.0) for i in keep])
+    corr = np.clip(m / np.outer(d, d), -1, 1)
+    np.fill_diagonal(corr, 1.0)
+    kept = [names[i] for i in keep]
+    return Covariance.of(kept, [parameters[n].unit for n in kept], corr * np.outer(std, std))

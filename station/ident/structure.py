@@ -35,7 +35,7 @@ from drivers.rig.params import DisplacementResonance
 from station.ident import frf as frfmod
 from station.ident.inputs import IdentInputs, MeasurementChain
 from station.ident.models import CoupledModel, SdofModel, make_model
-from station.ident.result import Check, ParameterEstimate
+from station.ident.result import Check, Estimate
 
 if TYPE_CHECKING:  # budget imports this module for the chain's resonance vectors
     from station.ident.budget import Budget
@@ -244,30 +244,29 @@ class StructureOutcome:
     """What the stated structure does to a stiff-coupling result: the parameters (k_f, b_f flagged
     'conditional' or withheld), findings, the ``determined`` entries and the ``structure`` statement."""
 
-    parameters: tuple[ParameterEstimate, ...]
+    parameters: dict[str, Estimate]
     checks: tuple[Check, ...]
     determined: dict[str, Any]
     statement: dict[str, Any]
 
 
-def _conditional(p: ParameterEstimate, text: str) -> ParameterEstimate:
+def _conditional(p: Estimate, text: str) -> Estimate:
     return replace(p, flag=p.flag or "conditional", reason=(p.reason + "; " if p.reason else "") + text)
 
 
-def apply_structure(model_key: str, stiff: bool, params: list[ParameterEstimate], theta: FloatArray,
+def apply_structure(model_key: str, stiff: bool, params: dict[str, Estimate], theta: FloatArray,
                     budget: Budget, frf: frfmod.FrequencyResponse, sdof: SdofModel, birge: float,
                     inputs: IdentInputs, suspected: Check | None) -> StructureOutcome:
     """State the structure of an FD result and what follows from it (module docstring).
 
     stiff: the values are those of Eq. 9 (the sdof model, or the coupled one with k_c held in the
     stiff limit); theta: the fitted parameters (Eq. 9's three first); budget: their GUM budget."""
-    out = list(params)
+    out = dict(params)
     checks: list[Check] = []
     determined: dict[str, Any] = {}
-    by_name = {p.name: i for i, p in enumerate(out)}
-    kf = out[by_name["k_f"]]
+    kf = out["k_f"]
     if not (budget.free[1] and kf.identifiable):
-        return StructureOutcome(tuple(out), (), {}, structure_statement(model_key, stiff, inputs))
+        return StructureOutcome(out, (), {}, structure_statement(model_key, stiff, inputs))
     grad = np.zeros(theta.size)
     if stiff:
         k_s = float(theta[1])
@@ -282,13 +281,13 @@ def apply_structure(model_key: str, stiff: bool, params: list[ParameterEstimate]
     bound = coupling_bound(frf, sdof, np.asarray(theta[:3], float), birge) if stiff else None
     if stiff and suspected is not None:
         checks.append(suspected)
-        out[by_name["k_f"]] = ParameterEstimate(
-            "k_f", kf.unit, None, None, False,
+        out["k_f"] = Estimate(
+            None, None, kf.unit, False,
             "k_f of the transducer alone is not determined: the data contradict the stiff coupling it would rest on "
             f"(coupling_suspected: Eq. 9 misfits with chi2/dof {suspected.values['chi2_per_dof_stiff']:.3g}, a "
             f"coupling fits with {suspected.values['chi2_per_dof_coupled']:.3g}); the series stiffness "
             f"k_s = {k_s:.6g} N/m is in 'determined'")
-        ib = by_name["b_f"]
+        ib = "b_f"
         if out[ib].identifiable:
             out[ib] = _conditional(out[ib], "conditional on a stiff coupling, which the data contradict "
                                             "(coupling_suspected): the coupling's damping is in it too")
@@ -313,25 +312,24 @@ def apply_structure(model_key: str, stiff: bool, params: list[ParameterEstimate]
         width = np.inf if k_hi is None else k_hi - k_s
         soft = k_hi is None or (bound.k_c_min is not None and bound.k_c_min < ADAPTER_COUPLING_RATIO * k_s)
         if k_hi is None:
-            out[by_name["k_f"]] = ParameterEstimate("k_f", kf.unit, None, None, False,
-                                                    "k_f of the transducer alone is not determined: " + rng)
+            out["k_f"] = Estimate(None, None, kf.unit, False, "k_f of the transducer alone is not determined: " + rng)
         elif soft and width > u_k:
-            out[by_name["k_f"]] = _conditional(kf, text)
+            out["k_f"] = _conditional(kf, text)
         else:
-            out[by_name["k_f"]] = replace(kf, reason=(kf.reason + "; " if kf.reason else "") + text)
+            out["k_f"] = replace(kf, reason=(kf.reason + "; " if kf.reason else "") + text)
         if width > 3 * u_k:
             checks.append(Check("coupling_not_excluded", "warning" if soft else "info", None,
                                 "k_f rests on a stiff coupling that this plan cannot confirm: " + rng
                                 + f"; the stated u(k_f) = {u_k:.3g} N/m covers none of that range; steps at higher "
                                 "frequencies narrow it", bound.to_dict()))
-        ib = by_name["b_f"]
+        ib = "b_f"
         bp = out[ib]
         if soft and bp.identifiable and bp.std is not None and (bound.b_f_high is None
                                                                 or bound.b_f_high - bound.b_s > float(bp.std)):
             hi = "unbounded" if bound.b_f_high is None else f"up to {bound.b_f_high:.6g} N*s/m"
             out[ib] = _conditional(bp, f"conditional on a stiff coupling (Eq. 9): b_f alone {hi} under the "
                                        "couplings this plan cannot exclude (b_c = 0)")
-    return StructureOutcome(tuple(out), tuple(checks), determined,
+    return StructureOutcome(out, tuple(checks), determined,
                             structure_statement(model_key, stiff, inputs, bound, suspected is not None))
 
 

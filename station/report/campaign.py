@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from station.ident.result import Estimate
 from station.report.data import RunData
 from station.report.html import PARAM_HEADERS, _budget_table, _e, _num, _param_rows, _table
 from station.report.quantities import fmt_unc, fmt_value, structure_sentence
@@ -40,6 +41,7 @@ def campaign_section(d: RunData) -> str:
     st = (c.get("assumptions") or {}).get("structure")
     structure = (f'<p class="note" data-structure="campaign">Model structure: {_e(structure_sentence(st))}</p>'
                  if st else "")
+    params = {n: Estimate.from_dict(p) for n, p in (c.get("parameters") or {}).items()}
     det = c.get("determined") or {}
     det_rows = [[_e(r.get("run_id", "")), _e(name), _num(fmt_value(r.get("value"), r.get("combined")), r.get("value")),
                  _num(fmt_unc(r.get("combined"))), _e(r.get("unit", ""))]
@@ -49,7 +51,7 @@ def campaign_section(d: RunData) -> str:
     return (f"<h2>Multi-mass campaign</h2><p>Joint identification (Eq. 9, one S, m_e, k_f, b_f) of "
             f"{len(rec_rows)} recording(s) of {_e(c.get('transducer_id', ''))}, written {_e(stored.written)}: "
             f"<b>{_e(c.get('status', ''))}</b> — {_e(STATUS.get(str(c.get('status')), ''))}.</p>"
-            + _table(PARAM_HEADERS, _param_rows(c.get("parameters") or {}, "campaign."), "campaign")
+            + _table(PARAM_HEADERS, _param_rows(params, "campaign."), "campaign")
             + _budget_table(c.get("budget") or {}, "campaign.budget.")
             + "<h3>Recordings</h3>"
             + _table(["run", "load mass m_l (kg)", "u (kg)", "frequencies (Hz)", "steps", "χ² share"], rec_rows)

@@ -1,15 +1,21 @@
-"""What the report and the plots need from a recording, loaded once per file version.
+"""What the report and the plots need from a recording, read from what is stored beside it.
 
-* the identification: the stored ``results/identify_<method>_<model>`` preferred in the order
-  ``METHOD_PREFERENCE`` (the latest written of a method), else computed now with the station's
-  default (``identify_recording``: fd, model auto) and not stored;
-* H(f) at the steps: ``processed/steps`` (arrays ``frequency_hz``, ``H``, ``H_cov``) when the run was
-  processed, else the identification's own sine fits of the raw record windows;
-* the per-step time signals with the model's prediction (for the time-domain plots);
-* the discrepancy workflow's ``results/discrepancy`` when present.
+* the identification: the stored ``results/identify_<method>_<model>`` (an ``IdentificationResult``
+  with its covariance, read back by ``from_dict``) preferred in the order ``METHOD_PREFERENCE`` (the
+  latest written of a method); only when none is stored, computed now with the station's default
+  (``identify_recording``: fd, model auto) and labelled as not stored;
+* H(f) at the steps and the displacement's harmonic phasors: ``processed/steps`` (arrays
+  ``frequency_hz``, ``H``, ``H_cov``, ``t_center_s``, ``X_h``, per step of the plausibility gate's
+  kept steps); only for a recording processed before those arrays were stored (or not processed),
+  the sine fits of the raw record windows, computed once;
+* the per-step time signals (the raw record windows) with the model's prediction, each labelled with
+  its recording step index;
+* the model curve with the covariance the identification stored (never rebuilt here);
+* the model-gap analysis ``results/discrepancy`` when present.
 
-``load_run`` caches the last 4 recordings by (path, modification time, size), so the four plots
-and the report of one run read and fit it once (the raw channels are dropped; the record windows kept).
+``load_run`` caches the last 4 recordings by (path, modification time, size, the results' files), so
+the four plots and the report of one run read it once (the raw channels are dropped; the record
+windows kept).
 """
 
 from __future__ import annotations
@@ -24,9 +30,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.errors import RecordingFormatError, StationError
-from station.ident.api import identify_recording, measured_response
-from station.ident.frf import FrequencyResponse, whitened_jacobian
+from station.ident.api import identify_recording
 from station.ident.models import Model, SdofModel, make_model
+from station.ident.result import IdentificationResult
+from station.ident.steps import CheckedResponse, checked_response
 from station.recording import Recording, read_recording
 from station.recording.stored import read_processed, read_stored, results_version
 
@@ -34,6 +41,8 @@ FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
 METHOD_PREFERENCE = ("fd", "oe", "pso+", "pso", "rls")
 PAPER_METHODS = ("pso", "pso+")
+PROCESSED_ARRAYS = ("frequency_hz", "H", "H_cov")
+TRACE_ARRAYS = ("t_center_s", "X_h")
 
 
 @dataclass(frozen=True)
@@ -85,7 +94,7 @@ class RunData:
     """Everything a report of one recording shows."""
 
     rec: Recording
-    ident: dict[str, Any]
+    ident: IdentificationResult
     ident_source: str
     results: dict[str, StoredResult]
     response: Response
@@ -97,18 +106,18 @@ class RunData:
     @property
     def mass_kg(self) -> float:
         """M = m_e + m_l of the model (m_e taken as 0 when unknown)."""
-        extra = self.ident.get("extra") or {}
+        extra = self.ident.extra
         return float(extra.get("m_e_kg", self.rec.end_mass_kg or 0.0)) + float(
             extra.get("m_l_kg", self.rec.load_mass_kg))
 
 
 def read_groups(path: Path) -> tuple[dict[str, StoredResult], dict[str, Any] | None]:
-    """All ``results`` documents, and ``processed/steps`` (its JSON plus arrays) or None."""
+    """All stored ``results`` documents, and ``processed/steps`` (its JSON plus arrays) or None."""
     results = {n: StoredResult(n, s.written, s.doc) for n, s in read_stored(path).items()}
     stored = read_processed(path)
     proc = None
-    if stored is not None and all(k in stored.arrays for k in ("frequency_hz", "H", "H_cov")):
-        proc = {"json": stored.doc, **{k: stored.arrays[k] for k in ("frequency_hz", "H", "H_cov")}}
+    if stored is not None and all(k in stored.arrays for k in PROCESSED_ARRAYS):
+        proc = {"json": stored.doc, **stored.arrays}
     return results, proc
 
 
@@ -122,75 +131,85 @@ def choose_identification(results: dict[str, StoredResult]) -> StoredResult | No
     return None
 
 
-def _covariance(model: Model, theta: FloatArray, std: FloatArray, resp: Response) -> FloatArray | None:
-    """Covariance with the identification's standard uncertainties and the correlation of the
-    weighted frequency-domain problem at the estimate (results store no covariance matrix; the
-    ``identifiability.correlations`` describe the design against the noise floor, not the estimate)."""
-    if 2 * resp.f_hz.size < theta.size:
-        return None
-    frf = FrequencyResponse(resp.f_hz, resp.H, resp.cov, np.zeros(resp.f_hz.size), np.zeros(resp.f_hz.size))
+def model_curve(ident: IdentificationResult, rec: Recording) -> tuple[ModelCurve | None, str]:
+    """The identified model with its parameters and stored covariance, or None and why it cannot
+    be drawn."""
+    params = ident.parameters
+    m_e = float(ident.extra.get("m_e_kg", rec.end_mass_kg or 0.0))
+    m_l = float(ident.extra.get("m_l_kg", rec.load_mass_kg))
     try:
-        J = whitened_jacobian(model, theta, frf, scale=np.where(theta != 0, np.abs(theta), 1.0))
-        C = np.linalg.pinv(J.T @ J)
-    except np.linalg.LinAlgError:
-        return None
-    d = np.sqrt(np.clip(np.diag(C), 0, None))
-    if not np.all(d > 0) or not np.all(np.isfinite(C)):
-        return None
-    return np.clip(C / np.outer(d, d), -1, 1) * np.outer(std, std)
-
-
-def model_curve(ident: dict[str, Any], rec: Recording, resp: Response) -> tuple[ModelCurve | None, str]:
-    """The identified model with its parameters, or None and why it cannot be drawn."""
-    params: dict[str, Any] = ident.get("parameters") or {}
-    extra = ident.get("extra") or {}
-    m_e = float(extra.get("m_e_kg", rec.end_mass_kg or 0.0))
-    m_l = float(extra.get("m_l_kg", rec.load_mass_kg))
-    try:
-        model: Model = make_model(str(ident.get("model")), m_e, m_l)
+        model: Model = make_model(ident.model, m_e, m_l)
     except ValueError as exc:
         return None, f"model curve not drawn: {exc}"
     note = ""
     names = model.names
-    if model.key == "coupled" and not all((params.get(n) or {}).get("identifiable") for n in ("k_c", "b_c")):
+    if model.key == "coupled" and not all(n in params and params[n].identifiable for n in ("k_c", "b_c")):
         model, names = SdofModel(m_e, m_l), model.names[:3]
         note = "k_c, b_c not identifiable: drawn in the stiff-coupling limit (Eq. 9)"
-    bad = [n for n in names if not (params.get(n) or {}).get("identifiable")
-           or (params.get(n) or {}).get("value") is None]
+    bad = [n for n in names if n not in params or not params[n].identifiable or params[n].value is None]
     if bad:
-        why = "; ".join(f"{n} not identifiable: {(params.get(n) or {}).get('reason') or 'no value'}" for n in bad)
+        why = "; ".join(f"{n} not identifiable: {params[n].reason if n in params else 'not in the result'}"
+                        for n in bad)
         return None, f"model curve not drawn ({why})"
-    theta = np.array([float(params[n]["value"]) for n in names])
-    std = np.array([float(params[n]["std"]) if params[n].get("std") is not None else np.nan for n in names])
-    cov = _covariance(model, theta, std, resp) if np.all(np.isfinite(std)) else None
-    if cov is None:
-        note = "; ".join(filter(None, [note, "no parameter covariance: model uncertainty band not drawn"]))
+    theta = np.array([float(params[n].value or 0.0) for n in names])
+    cov = None
+    c = ident.covariance
+    if c is not None and all(n in c.names for n in names):
+        i = [c.names.index(n) for n in names]
+        cov = c.array[np.ix_(i, i)]
+    else:
+        note = "; ".join(filter(None, [note, "the stored result has no covariance of these parameters (stored "
+                                             "by an older version): model uncertainty band not drawn"]))
     return ModelCurve(model, theta, cov, note), ""
 
 
-def _response(proc: dict[str, Any] | None, frf: Any, usable: list[int]) -> Response:
-    if proc is not None and len(proc["frequency_hz"]):
-        steps = proc["json"].get("steps") or []
-        idx = tuple(int(s.get("index", i)) for i, s in enumerate(steps))
-        if len(idx) != len(proc["frequency_hz"]):
-            idx = tuple(range(len(proc["frequency_hz"])))
-        return Response(np.asarray(proc["frequency_hz"], float), np.asarray(proc["H"], complex),
-                        np.asarray(proc["H_cov"], float).reshape(-1, 2, 2), idx, "processed/steps")
-    return Response(frf.f_hz, frf.H, frf.cov, tuple(usable), "sine fits of the raw record windows")
+def _from_processed(proc: dict[str, Any]) -> Response:
+    steps = proc["json"].get("steps") or []
+    n = len(proc["frequency_hz"])
+    idx = tuple(int(s.get("index", i)) for i, s in enumerate(steps))
+    if len(idx) != n:
+        idx = tuple(range(n))
+    return Response(np.asarray(proc["frequency_hz"], float), np.asarray(proc["H"], complex),
+                    np.asarray(proc["H_cov"], float).reshape(-1, 2, 2), idx, "processed/steps")
 
 
-def _traces(frf: Any, sigs: list[Any], usable: list[int], curve: ModelCurve | None) -> tuple[StepTrace, ...]:
+def _predict(curve: ModelCurve | None, f: float, tt: FloatArray, X_h: NDArray[np.complex128],
+             offset: float) -> FloatArray | None:
+    """The model's force signal (V) at times tt (s, from the window's centre) for a frame moving
+    with displacement harmonics X_h (m) at the fundamental f (Hz)."""
+    if curve is None:
+        return None
+    h = np.arange(1, X_h.size + 1)
+    A = -((2 * np.pi * f * h) ** 2) * X_h
+    E = np.exp(1j * np.outer(tt, 2 * np.pi * f * h))
+    return offset + (E @ (curve.model.response(curve.theta, h * f) * A)).real
+
+
+def _stored_traces(rec: Recording, proc: dict[str, Any], resp: Response,
+                   curve: ModelCurve | None) -> tuple[StepTrace, ...]:
+    """Traces of the processed steps: the raw record windows, the model driven by the stored phasors."""
+    steps = {st.index: st for st in rec.steps}
+    offsets = [float(s.get("force_offset_V", 0.0)) for s in proc["json"].get("steps") or []]
     out = []
-    for i, s in enumerate(sigs):
+    for k, index in enumerate(resp.step_index):
+        st = steps[index]
+        t = np.arange(st.start_sample, st.end_sample) / rec.sample_rate_hz
+        tt = t - float(proc["t_center_s"][k])
+        f = float(resp.f_hz[k])
+        X_h = np.asarray(proc["X_h"][k], complex)
+        u = np.asarray(rec.force_V[st.start_sample:st.end_sample], float)
+        out.append(StepTrace(index, f, tt, u, _predict(curve, f, tt, X_h, offsets[k] if k < len(offsets) else 0.0)))
+    return tuple(out)
+
+
+def _fitted_traces(cr: CheckedResponse, curve: ModelCurve | None) -> tuple[StepTrace, ...]:
+    """Traces from sine fits of the raw windows, labelled with the steps the gate kept (``cr.used``)."""
+    out = []
+    for i, (index, s) in enumerate(zip(cr.used, cr.sigs, strict=True)):
         f = s.fit_x.frequency_hz
         tt = s.t - s.fit_x.t_center_s
-        pred = None
-        if curve is not None:
-            h = np.arange(1, s.X_h.size + 1)
-            A = -((2 * np.pi * f * h) ** 2) * s.X_h
-            E = np.exp(1j * np.outer(tt, 2 * np.pi * f * h))
-            pred = float(frf.force_offset_V[i]) + (E @ (curve.model.response(curve.theta, h * f) * A)).real
-        out.append(StepTrace(usable[i], float(f), tt, np.asarray(s.u, float), pred))
+        out.append(StepTrace(index, float(f), tt, np.asarray(s.u, float),
+                             _predict(curve, f, tt, s.X_h, float(cr.frf.force_offset_V[i]))))
     return tuple(out)
 
 
@@ -200,24 +219,27 @@ def _load(path_str: str, _mtime_ns: int, _size: int, _results: tuple[tuple[str, 
     results, proc = read_groups(path)
     rec = read_recording(path)
     stored = choose_identification(results)
-    if stored is not None:
-        ident, source = stored.payload, f"results/{stored.name} (stored beside the recording, written {stored.written})"
-    else:
-        try:
-            ident = identify_recording(rec).to_dict()
-        except StationError as exc:
-            raise RecordingFormatError(f"{path}: no identification results stored (results/identify_*) "
-                                       f"and none could be computed: {exc}") from None
-        source = "computed for this report with the default method (not stored in the recording)"
+    cr: CheckedResponse | None = None
     try:
-        frf, sigs, _notes = measured_response(rec)
+        if stored is not None:
+            ident = IdentificationResult.from_dict(stored.payload)
+            source = f"results/{stored.name} (stored beside the recording, written {stored.written})"
+        else:
+            cr = checked_response(rec)
+            ident = identify_recording(rec, response=cr)
+            source = "computed for this report with the default method (not stored with the recording)"
+        curve, why = model_curve(ident, rec)
+        if proc is not None and all(k in proc for k in TRACE_ARRAYS):
+            response = _from_processed(proc)
+            traces = _stored_traces(rec, proc, response, curve)
+        else:  # nothing processed stored with the phasors: the sine fits of the raw windows, once
+            cr = cr or checked_response(rec)
+            response = _from_processed(proc) if proc is not None else Response(
+                cr.frf.f_hz, cr.frf.H, cr.frf.cov, tuple(cr.used), "sine fits of the raw record windows")
+            traces = _fitted_traces(cr, curve)
     except StationError as exc:
         raise RecordingFormatError(f"{path}: no results can be shown: {exc}") from None
-    usable = [st.index for st in rec.steps if st.usable]
-    response = _response(proc, frf, usable)
-    curve, why = model_curve(ident, rec, response)
     disc = results.get("discrepancy")
-    traces = _traces(frf, sigs, usable, curve)
     empty = np.zeros(0)  # the cache keeps the record windows (traces), not the whole raw channels
     return RunData(replace(rec, displacement_m=empty, force_V=empty), ident, source, results, response, curve, why,
                    traces, disc.payload if disc else None)

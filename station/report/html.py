@@ -6,6 +6,7 @@ from __future__ import annotations
 import base64
 import html
 import logging
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -13,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from station import __version__
+from station.ident.result import Estimate
 from station.report.data import RunData, load_run
 from station.report.plots import PLOT_NAMES, render_plot
 from station.report.quantities import (
@@ -102,32 +104,32 @@ def _conditions(d: RunData) -> str:
 
 def _model(d: RunData) -> str:
     ident = d.ident
-    fit = ident.get("fit") or {}
-    rep = ident.get("identifiability") or {}
-    rms = ", ".join(fmt_unc(v) for v in fit.get("residual_rms_V") or [])
-    rows = [["method", f"{_e(ident.get('method'))}: {_e(METHODS.get(str(ident.get('method')), ''))}"],
-            ["model", f"{_e(ident.get('model'))}: {_e(MODELS.get(str(ident.get('model')), ''))}"],
+    fit = ident.fit
+    rms = ", ".join(fmt_unc(v) for v in fit.residual_rms_V)
+    rows = [["method", f"{_e(ident.method)}: {_e(METHODS.get(ident.method, ''))}"],
+            ["model", f"{_e(ident.model)}: {_e(MODELS.get(ident.model, ''))}"],
             ["result", _e(d.ident_source)],
             ["masses used", f"M = m_e + m_l = {d.mass_kg:g} kg"],
-            ["fit", f"MSE {fmt_unc(fit.get('mse'))} V², residual RMS per step [{rms}] V, "
-                    f"χ²/dof {fmt_unc(fit.get('chi2_per_dof'))}, {fit.get('n_points', '?')} points"],
-            ["condition number", fmt_unc(rep.get("condition_number"))]]
-    for name, a in (ident.get("assumptions") or {}).items():
+            ["fit", f"MSE {fmt_unc(fit.mse)} V², residual RMS per step [{rms}] V, "
+                    f"χ²/dof {fmt_unc(fit.chi2_per_dof)}, {fit.n_points or '?'} points"],
+            ["condition number", fmt_unc(None if ident.identifiability is None
+                                         else ident.identifiability.condition_number)]]
+    for name, a in ident.assumptions.items():
         if isinstance(a, dict) and "source" in a:
             rows.append([_e(name), f"{a.get('value')} ({_e(a['source'])}"
                          + (f", u = {fmt_unc(a['std'])})" if a.get("std") is not None
                             else "; no uncertainty: the results are conditional on it)")])
-    st = (ident.get("assumptions") or {}).get("structure")
+    st = ident.assumptions.get("structure")
     if st:
         rows.append(["model structure", _e(structure_sentence(st))])
-    notes = "".join(f"<li>{_e(n)}</li>" for n in ident.get("notes") or [])
-    checks = "".join(f'<li data-check="{_e(c.get("name"))}">{_e(c.get("severity"))}: {_e(c.get("name"))}'
-                     f'{"" if c.get("step") is None else " (step " + str(c["step"]) + ")"}: {_e(c.get("message"))}</li>'
-                     for c in ident.get("checks") or [])
+    notes = "".join(f"<li>{_e(n)}</li>" for n in ident.notes)
+    checks = "".join(f'<li data-check="{_e(c.name)}">{_e(c.severity)}: {_e(c.name)}'
+                     f'{"" if c.step is None else " (step " + str(c.step) + ")"}: {_e(c.message)}</li>'
+                     for c in ident.checks)
     det = [[_e(k), _num(fmt_value(v.get("value"), v.get("combined")), v.get("value")), _num(fmt_unc(v.get("combined"))),
             _e(v.get("unit", ""))] if "range" not in v else
            [_e(k), _e(range_text(v["range"])), _e(v.get("conditional_on", "")), _e(v.get("unit", ""))]
-           for k, v in (ident.get("determined") or {}).items()]
+           for k, v in ident.determined.items()]
     return ("<h2>Model and identification</h2>" + _table(["", ""], rows)
             + (f'<h3>Input checks</h3><ul class="note">{checks}</ul>' if checks else "")
             + (("<h3>What the data determine whatever the end mass and the coupling</h3>"
@@ -135,20 +137,19 @@ def _model(d: RunData) -> str:
             + (f'<ul class="note">{notes}</ul>' if notes else ""))
 
 
-def _param_rows(params: dict[str, Any], prefix: str) -> list[list[str]]:
+def _param_rows(params: Mapping[str, Estimate], prefix: str) -> list[list[str]]:
     rows = []
     for name, p in params.items():
-        unit = _e(p.get("unit", ""))
-        if not p.get("identifiable", True) or p.get("value") is None:
-            why = p.get("reason") or "no value"
+        unit = _e(p.unit)
+        if not p.identifiable or p.value is None:
+            why = p.reason or "no value"
             rows.append([_e(name), _e(MEANING.get(name, "")),
                          f'<td colspan="5" class="na" data-key="{prefix}{_e(name)}">not identifiable: {_e(why)}</td>',
                          unit])
             continue
-        v, u = float(p["value"]), p.get("std")
-        u = float(u) if u is not None else None
-        meaning = _e(MEANING.get(name, "")) + (f' <span class="na">({_e(p["flag"])}: {_e(p.get("reason", ""))})</span>'
-                                               if p.get("flag") else "")
+        v, u = float(p.value), p.std
+        meaning = _e(MEANING.get(name, "")) + (f' <span class="na">({_e(p.flag)}: {_e(p.reason)})</span>'
+                                               if p.flag else "")
         rows.append([_e(name), meaning, _num(fmt_value(v, u), v, f"{prefix}{name}"),
                      _num(fmt_unc(u), u, f"{prefix}{name}.u"),
                      _num(fmt_unc(COVERAGE_K * u) if u is not None else "n/a",
@@ -164,7 +165,7 @@ PARAM_HEADERS = ["parameter", "meaning", "value", "u (k = 1)", "U (k = 2)", "U r
 
 def _budget(d: RunData) -> str:
     """GUM budget: standard uncertainty of each parameter per source (k = 1), and combined."""
-    return _budget_table(d.ident.get("budget") or {}, "budget.")
+    return _budget_table(d.ident.budget, "budget.")
 
 
 def _budget_table(budget: dict[str, Any], prefix: str) -> str:
@@ -180,7 +181,7 @@ def _budget_table(budget: dict[str, Any], prefix: str) -> str:
 
 
 def _parameters(d: RunData) -> str:
-    return ("<h2>Identified parameters</h2>" + _table(PARAM_HEADERS, _param_rows(d.ident.get("parameters") or {},
+    return ("<h2>Identified parameters</h2>" + _table(PARAM_HEADERS, _param_rows(d.ident.parameters,
                                                                                  "param."), "params")
             + _budget(d))
 

@@ -33,19 +33,19 @@ def summary_lines(d: RunData) -> list[str]:
              f"load mass m_l {rec.load_mass_kg:g} kg   end mass m_e "
              f"{'unknown' if rec.end_mass_kg is None else f'{rec.end_mass_kg:g} kg'}   M {d.mass_kg:g} kg",
              f"software {rec.software_version or '?'} (report {__version__})",
-             f"method {ident.get('method')}   model {ident.get('model')}",
+             f"method {ident.method}   model {ident.model}",
              f"result: {d.ident_source}", "",
              "steps:  f (Hz)   radius (mm)   lost in window"]
     lines += [f"  {s.index:3d}  {s.crank_frequency_hz:8.4g}   {1e3 * s.crank_radius_m:8.4g}   {s.lost_in_window}"
               for s in rec.steps]
     lines += ["", "parameter   value            u (k = 1)   U (k = 2)   unit"]
-    for name, p in (ident.get("parameters") or {}).items():
-        if not p.get("identifiable", True) or p.get("value") is None:
-            lines.append(f"  {name:6s}    not identifiable: {p.get('reason', '')}")
+    for name, p in ident.parameters.items():
+        if not p.identifiable or p.value is None:
+            lines.append(f"  {name:6s}    not identifiable: {p.reason}")
             continue
-        u = p.get("std")
-        lines.append(f"  {name:6s}    {fmt_value(p['value'], u):15s}  {fmt_unc(u):10s}  "
-                     f"{fmt_unc(None if u is None else COVERAGE_K * u):10s}  {p.get('unit', '')}")
+        u = p.std
+        lines.append(f"  {name:6s}    {fmt_value(p.value, u):15s}  {fmt_unc(u):10s}  "
+                     f"{fmt_unc(None if u is None else COVERAGE_K * u):10s}  {p.unit}")
     r = d.response
     mag, u_mag, ph, u_ph = measured_sensitivity(r.H, r.cov, d.mass_kg)
     lines += ["", "dynamic sensitivity S_dyn = -H/M (measured):", "  f (Hz)     |S_dyn| (V/N)   U (k = 2)"
@@ -59,14 +59,14 @@ def summary_lines(d: RunData) -> list[str]:
                       + (", ".join(str(e.get("name")) for e in d.discrepancy.get("effects") or []) or "none")]
         lines += [f"  unexplained: {u}" for u in d.discrepancy.get("unexplained") or []]
         lines += [f"  {t.get('kind', 'tie')}: {t.get('message', '')}" for t in d.discrepancy.get("ties") or []]
-    lines += [f"note: {n}" for n in ident.get("notes") or []]
-    lines += [f"check {c.get('severity')}: {c.get('name')}: {c.get('message')}" for c in ident.get("checks") or []]
-    em = (ident.get("assumptions") or {}).get("end_mass_kg")
+    lines += [f"note: {n}" for n in ident.notes]
+    lines += [f"check {c.severity}: {c.name}: {c.message}" for c in ident.checks]
+    em = ident.assumptions.get("end_mass_kg")
     if em:
         lines.append(f"end mass {em.get('value')} kg ({em.get('source')}"
                      + (f", u = {fmt_unc(em['std'])} kg)" if em.get("std") is not None
                         else "; results conditional on it)"))
-    for n, b in (ident.get("budget") or {}).items():
+    for n, b in ident.budget.items():
         lines.append(f"budget {n}: " + ", ".join(f"{k} {fmt_unc(v) if v is not None else 'conditional'}"
                                                  for k, v in b["contributions"].items())
                      + f"; combined {fmt_unc(b['combined'])} {b.get('unit', '')}")

@@ -68,7 +68,7 @@ def _bode(d: RunData, fig: Figure) -> None:
         m_mag, m_umag, m_ph, m_uph = model_sensitivity(d.curve, ff)
         ph_at = np.interp(r.f_hz, ff, m_ph)
         ph = ph_at + np.angle(np.exp(1j * (ph - ph_at)))  # measured phase on the model's branch
-        label = f"model {d.ident.get('model')} ({d.ident.get('method')})"
+        label = f"model {d.ident.model} ({d.ident.method})"
         ax_m.plot(ff, 1e3 * m_mag, "C1", label=label)
         ax_p.plot(ff, np.degrees(m_ph), "C1", label=label)
         if m_umag is not None and m_uph is not None:
@@ -187,7 +187,7 @@ def _convergence(d: RunData, fig: Figure) -> None:
         _title(fig, d, "Convergence of the iterative fit")
         return
     _placeholder(fig, d, "No iterative method was run on this recording.\n\n"
-                 f"The identification shown ({d.ident.get('method')}, {d.ident.get('model')}) stores no "
+                 f"The identification shown ({d.ident.method}, {d.ident.model}) stores no "
                  "iteration history.\nRun `station identify --method pso+ RECORDING` to see the "
                  "paper's PSO+ convergence here.")
 

@@ -78,12 +78,19 @@ def process_recording(path: str | Path, rec: Recording | None = None,
     payload = {"producer": "station.ident.steps.checked_response (sine fits of the raw record windows)",
                "skipped": skipped,
                "units": {"frequency_hz": "Hz", "H": "V/(m/s^2)", "H_cov": "(V/(m/s^2))^2",
-                         "displacement_amplitude_m": "m", "force_amplitude_V": "V"},
+                         "displacement_amplitude_m": "m", "force_amplitude_V": "V", "t_center_s": "s",
+                         "X_h": "m"},
                "steps": [{k: (v if not isinstance(v, complex) else [v.real, v.imag])
                           for k, v in asdict(s).items() if k != "H_cov"} for s in out]}
+    n_h = max((sig.X_h.size for sig in cr.sigs), default=1)
+    X_h = np.zeros((len(cr.sigs), n_h), dtype=complex)
+    for k, sig in enumerate(cr.sigs):
+        X_h[k, : sig.X_h.size] = sig.X_h
     arrays = {"frequency_hz": np.array([s.frequency_hz for s in out]),
               "H": np.array([s.H for s in out], dtype=complex),
-              "H_cov": np.array([s.H_cov for s in out]).reshape(-1, 2, 2)}
+              "H_cov": np.array([s.H_cov for s in out]).reshape(-1, 2, 2),
+              "t_center_s": np.array([sig.fit_x.t_center_s for sig in cr.sigs], dtype=float),
+              "X_h": X_h}
     write_result(path, "steps", payload, arrays, group="processed")
     log.info("processed %d steps of %s (%d skipped)", len(out), rec.path.name, len(skipped))
     return out

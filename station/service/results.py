@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from station.ident.result import IdentificationResult
 from station.recording import read_result
 from station.recording.stored import read_processed
 
@@ -57,13 +58,15 @@ def frequency_response(path: Path) -> tuple[list[dict[str, Any]], list[dict[str,
 
 
 def load_results(path: Path, result_name: str) -> dict[str, Any]:
-    """The identification stored as result ``result_name`` and the processed H(f), as stored beside the recording."""
-    ident = read_result(path, result_name) or {}
+    """The identification stored as result ``result_name`` (an ``IdentificationResult``, with its
+    covariance) and the processed H(f), as stored beside the recording; nothing is re-fitted."""
+    doc = read_result(path, result_name)
     steps, skipped, units = frequency_response(path)
-    params = [{"name": name, **p} for name, p in (ident.get("parameters") or {}).items()]
-    return finite({"method": ident.get("method"), "model": ident.get("model"), "parameters": params,
-                   "fit": ident.get("fit"), "identifiability": ident.get("identifiability"),
-                   "notes": ident.get("notes") or [], "checks": ident.get("checks") or [],
-                   "budget": ident.get("budget") or {}, "assumptions": ident.get("assumptions") or {},
-                   "determined": ident.get("determined") or {}, "frequency_response": steps, "skipped_steps": skipped,
-                   "units": units})
+    out: dict[str, Any] = {"method": None, "model": None, "parameters": [], "fit": None, "identifiability": None,
+                           "notes": [], "checks": [], "budget": {}, "assumptions": {}, "determined": {},
+                           "covariance": None}
+    if doc is not None:
+        ident = IdentificationResult.from_dict(doc).to_dict()
+        out.update({k: ident[k] for k in out if k != "parameters"})
+        out["parameters"] = [{"name": name, **p} for name, p in ident["parameters"].items()]
+    return finite({**out, "frequency_response": steps, "skipped_steps": skipped, "units": units})

@@ -1,0 +1,113 @@
+"""Frozen result types of the model-gap workflow and their JSON form (the ``--json`` contract).
+
+``DiscrepancyResult`` is what ``analyse_recording`` returns and what is stored beside a recording as
+result ``discrepancy``; its parameters are ``station.ident.result.Estimate`` (the one estimate type of
+the station).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from station.ident.result import Estimate
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One catalogue effect tried in one round: chi^2 decrease (scaled by the Birge ratio of the
+    larger model), added parameters, p-value of the likelihood-ratio test, Delta BIC (> 0 favours the
+    effect), gap after (V)."""
+
+    name: str
+    delta_chi2: float
+    added_params: int
+    p_value: float
+    delta_bic: float
+    gap_V: float
+
+
+@dataclass(frozen=True)
+class AddedEffect:
+    """An effect the workflow named: parameters with uncertainties, gap after it (V), overall and
+    per step (n,), the evidence sentence, and the candidates of its round."""
+
+    name: str
+    params: dict[str, Estimate]
+    gap_after: float
+    gap_steps_after: tuple[float, ...]
+    evidence: str
+    candidates: tuple[Candidate, ...]
+    parameters: dict[str, Estimate]
+    tied: tuple[str, ...] = ()  # the candidates of its round that fit as well (itself included)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "params": {k: v.to_dict() for k, v in self.params.items()},
+                "gap_after": float(self.gap_after), "evidence": self.evidence,
+                "tied_with": [t for t in self.tied if t != self.name]}
+
+
+@dataclass(frozen=True)
+class DiscrepancyResult:
+    """Result of ``analyse_recording``.
+
+    base_gap / final_gap: RMS force residual (V) of the base and the final model over all record
+    windows; noise_floor_V: RMS of the force noise measured from the data (the gap cannot go below);
+    steps / f_hz / base_gap_steps / final_gap_steps: per step (recording index, Hz, V);
+    base_findings: where the base model disagrees; unexplained: what no catalogue effect explains;
+    rejected: the last round's candidates that were not significant; base_fundamental /
+    final_fundamental: per step (f Hz, gain error %, phase error mrad, z) of the force fundamental.
+    """
+
+    recording: str
+    base_gap: float
+    final_gap: float
+    noise_floor_V: float
+    effects: tuple[AddedEffect, ...]
+    parameters_before: dict[str, Estimate]
+    parameters_after: dict[str, Estimate]
+    unexplained: tuple[str, ...]
+    base_findings: tuple[str, ...]
+    steps: tuple[int, ...]
+    f_hz: tuple[float, ...]
+    base_gap_steps: tuple[float, ...]
+    final_gap_steps: tuple[float, ...]
+    rejected: tuple[Candidate, ...] = ()
+    base_fundamental: tuple[tuple[float, float, float, float], ...] = ()
+    final_fundamental: tuple[tuple[float, float, float, float], ...] = ()
+    mains_search: str = ""
+    notes: tuple[str, ...] = field(default_factory=tuple)
+    wall_s: float = 0.0
+    proposal: Any = None  # propose.Proposal: the next run that settles a tie, or None
+    proposal_note: str = ""  # why there is no proposal ('' when there is one)
+    structure: Any = None  # structure.Structure: the model parameters_after rests on, and what a coupling changes
+    ties: tuple[Any, ...] = ()  # ties.Tie: models the data do not decide between
+    drive: Any = None  # drive.DriveCheck: the recorded frame motion against the slider crank
+
+    def to_json(self) -> dict[str, Any]:
+        """The stable ``--json`` contract."""
+        return {"base_gap": float(self.base_gap), "effects": [e.to_dict() for e in self.effects],
+                "final_gap": float(self.final_gap),
+                "parameters_before": {k: v.to_dict() for k, v in self.parameters_before.items()},
+                "parameters_after": {k: v.to_dict() for k, v in self.parameters_after.items()},
+                "unexplained": list(self.unexplained), "ties": [t.to_json() for t in self.ties],
+                "notes": list(self.notes), "drive": None if self.drive is None else self.drive.to_json(),
+                "proposal": None if self.proposal is None else self.proposal.to_json(),
+                "proposal_note": self.proposal_note or None,
+                "structure": None if self.structure is None else self.structure.to_json()}
+
+    def to_dict(self) -> dict[str, Any]:
+        """Everything (the contract plus details), e.g. to store with the recording's results."""
+        out = self.to_json()
+        out.update({
+            "recording": self.recording, "noise_floor_V": self.noise_floor_V,
+            "steps": list(self.steps), "f_hz": list(self.f_hz),
+            "base_gap_steps": list(self.base_gap_steps), "final_gap_steps": list(self.final_gap_steps),
+            "effect_gap_steps": {e.name: list(e.gap_steps_after) for e in self.effects},
+            "base_findings": list(self.base_findings), "mains_search": self.mains_search,
+            "fundamental_columns": ["f_hz", "gain_error_percent", "phase_error_mrad", "z"],
+            "base_fundamental": [list(r) for r in self.base_fundamental],
+            "final_fundamental": [list(r) for r in self.final_fundamental],
+            "rounds": [[c.__dict__ for c in e.candidates] for e in self.effects],
+            "rejected": [c.__dict__ for c in self.rejected]})
+        return out
