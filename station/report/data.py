@@ -225,8 +225,12 @@ def _load(path_str: str, _mtime_ns: int, _size: int, _results: tuple[tuple[str, 
             ident = IdentificationResult.from_dict(stored.payload)
             source = f"results/{stored.name} (stored beside the recording, written {stored.written})"
         else:
-            cr = checked_response(rec)
-            ident = identify_recording(rec, response=cr)
+            try:
+                cr = checked_response(rec)
+                ident = identify_recording(rec, response=cr)
+            except StationError as exc:
+                raise RecordingFormatError(f"{path}: no identification results stored (results/identify_*) "
+                                           f"and none could be computed: {exc}") from None
             source = "computed for this report with the default method (not stored with the recording)"
         curve, why = model_curve(ident, rec)
         if proc is not None and all(k in proc for k in TRACE_ARRAYS):
@@ -237,6 +241,8 @@ def _load(path_str: str, _mtime_ns: int, _size: int, _results: tuple[tuple[str, 
             response = _from_processed(proc) if proc is not None else Response(
                 cr.frf.f_hz, cr.frf.H, cr.frf.cov, tuple(cr.used), "sine fits of the raw record windows")
             traces = _fitted_traces(cr, curve)
+    except RecordingFormatError:
+        raise
     except StationError as exc:
         raise RecordingFormatError(f"{path}: no results can be shown: {exc}") from None
     disc = results.get("discrepancy")
