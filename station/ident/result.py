@@ -64,6 +64,11 @@ class Estimate:
         return out
 
 
+def estimates_from_dict(d: Mapping[str, Any] | None) -> dict[str, Estimate]:
+    """``{name: Estimate}`` from its JSON form (``{name: Estimate.to_dict()}``)."""
+    return {str(n): Estimate.from_dict(p) for n, p in (d or {}).items()}
+
+
 @dataclass(frozen=True)
 class Check:
     """One finding of the input checks: name (e.g. 'dead_channel'), severity 'info' | 'warning' |

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from station.ident.result import Estimate
+from station.ident.result import estimates_from_dict
 from station.report.data import RunData
 from station.report.html import PARAM_HEADERS, _budget_table, _e, _num, _param_rows, _table
 from station.report.quantities import fmt_unc, fmt_value, structure_sentence
@@ -41,7 +41,7 @@ def campaign_section(d: RunData) -> str:
     st = (c.get("assumptions") or {}).get("structure")
     structure = (f'<p class="note" data-structure="campaign">Model structure: {_e(structure_sentence(st))}</p>'
                  if st else "")
-    params = {n: Estimate.from_dict(p) for n, p in (c.get("parameters") or {}).items()}
+    params = estimates_from_dict(c.get("parameters"))
     det = c.get("determined") or {}
     det_rows = [[_e(r.get("run_id", "")), _e(name), _num(fmt_value(r.get("value"), r.get("combined")), r.get("value")),
                  _num(fmt_unc(r.get("combined"))), _e(r.get("unit", ""))]

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from station import __version__
-from station.ident.result import Estimate
+from station.ident.result import Estimate, estimates_from_dict
 from station.report.data import RunData, load_run
 from station.report.plots import PLOT_NAMES, render_plot
 from station.report.quantities import (
@@ -250,7 +250,7 @@ def _discrepancy(d: RunData) -> str:
     for key, title in (("parameters_before", "before"), ("parameters_after", "after")):
         if disc.get(key):
             out.append(f"<h3>Transducer parameters {title} the effects</h3>"
-                       + _table(PARAM_HEADERS, _param_rows(disc[key], f"disc.{title}.")))
+                       + _table(PARAM_HEADERS, _param_rows(estimates_from_dict(disc[key]), f"disc.{title}.")))
     ties = disc.get("ties") or []
     if ties:
         trows = []

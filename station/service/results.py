@@ -68,5 +68,5 @@ def load_results(path: Path, result_name: str) -> dict[str, Any]:
     if doc is not None:
         ident = IdentificationResult.from_dict(doc).to_dict()
         out.update({k: ident[k] for k in out if k != "parameters"})
-        out["parameters"] = [{"name": name, **p} for name, p in ident["parameters"].items()]
+        out["parameters"] = [{"name": name, **p} for name, p in ident["parameters"].items()]  # the API's order
     return finite({**out, "frequency_response": steps, "skipped_steps": skipped, "units": units})
