@@ -81,15 +81,17 @@ def state_structure(data: RigData, final: ModelFit, last: Sequence[tuple[Candida
     kf = Estimate(cpl.values["k_f"], cpl.std["k_f"], "N/m")
     kc = Estimate(cpl.values["k_c"], cpl.std["k_c"], "N/m")
     model = "stiff coupling (paper Eq. 9): k_f is of the transducer alone only if the coupling is stiff"
-    if not (math.isfinite(kf.std) and kf.std < UNDETERMINED * abs(kf.value)):
+    k, u_k = float(cpl.values["k_f"]), float(cpl.std["k_f"])
+    s_k, u_s = float(final.values["k_f"]), float(final.std["k_f"])
+    if not (math.isfinite(u_k) and u_k < UNDETERMINED * abs(k)):
         return Structure(model, stiff, kf, kc, d, None,
                          f"k_f rests on a stiff coupling: these data determine the series stiffness of transducer "
-                         f"and coupling, {stiff.value:.6g} ± {stiff.std:.2g} N/m; with a coupling free (Delta chi2 "
-                         f"{d:.3g}) k_f alone is {kf.value:.4g} ± {kf.std:.2g} N/m: not determined by this plan "
+                         f"and coupling, {s_k:.6g} ± {u_s:.2g} N/m; with a coupling free (Delta chi2 "
+                         f"{d:.3g}) k_f alone is {k:.4g} ± {u_k:.2g} N/m: not determined by this plan "
                          "(steps near the resonances would separate them)")
-    lo, hi = max(kf.value - 2 * kf.std, stiff.value - 2 * stiff.std), kf.value + 2 * kf.std
+    lo, hi = max(k - 2 * u_k, s_k - 2 * u_s), k + 2 * u_k
     return Structure(model, stiff, kf, kc, d, (lo, hi),
                      f"k_f rests on a stiff coupling: these data determine the series stiffness of transducer and "
-                     f"coupling, {stiff.value:.6g} ± {stiff.std:.2g} N/m; with a coupling free (Delta chi2 {d:.3g}, "
-                     f"k_c = {kc.value:.3g} ± {kc.std:.2g} N/m) k_f alone is {kf.value:.6g} ± {kf.std:.2g} N/m, "
+                     f"coupling, {s_k:.6g} ± {u_s:.2g} N/m; with a coupling free (Delta chi2 {d:.3g}, "
+                     f"k_c = {kc.value:.3g} ± {kc.std:.2g} N/m) k_f alone is {k:.6g} ± {u_k:.2g} N/m, "
                      f"range {lo:.4g}-{hi:.4g} N/m")
