@@ -239,7 +239,7 @@ def test_plots_report_recording_and_discrepancy(seeded: tuple[Path, str]) -> Non
         assert disc.status_code == 200, disc.text
         d = disc.json()
         assert set(d) == {"base_gap", "effects", "final_gap", "parameters_before", "parameters_after",
-                          "unexplained", "ties", "notes", "drive", "proposal"}
+                          "unexplained", "ties", "notes", "drive", "proposal", "proposal_note", "structure"}
         assert isinstance(d["ties"], list) and isinstance(d["notes"], list)
         assert d["final_gap"] <= d["base_gap"] + 1e-12
         for _ in range(3):  # stored beside the recording; GETs read it and write nothing
