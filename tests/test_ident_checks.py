@@ -232,8 +232,9 @@ def test_report_and_results_show_checks_assumptions_and_budget(base: Path, tmp_p
     assert 'data-check="end_mass_not_given"' in html and "conditional" in html
     assert "Uncertainty budget" in html and 'data-key="budget.k_f"' in html and "S_times_M" in html
     page = load_results(rec, res.result_name)
-    assert {c["name"] for c in page["checks"]} == {"end_mass_not_given"}
+    assert {c["name"] for c in page["checks"] if c["severity"] != "info"} == {"end_mass_not_given"}
     assert page["assumptions"]["end_mass_kg"]["source"] == "assumed"
+    assert page["assumptions"]["structure"]["equation"] == "Eq. 9" and "model structure" in html
     assert {p["name"]: p.get("flag") for p in page["parameters"]} == dict.fromkeys(("S", "k_f", "b_f"), "conditional")
     assert set(page["budget"]) == {"S", "k_f", "b_f"}
 
