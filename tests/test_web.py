@@ -79,6 +79,9 @@ def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon:
         cell = pg.inner_text(f"#params tr[data-param='{name}'] td.value")
         assert "±" in cell, (name, cell)
     assert pg.inner_text("#params tr[data-param='k_f'] td:nth-child(3)") == "N/m"
+    # the model structure the result rests on, and what the data determine under it
+    structure = pg.inner_text("#res-structure")
+    assert "stiff coupling" in structure and "series stiffness" in structure, structure
     assert pg.locator("#frf tbody tr").count() == 2
     assert pg.inner_text("#run-lost") == "0"
     # the plots load (or the page says why there are none); the report and recording are linked
