@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import copy
+import time
 from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 
@@ -317,11 +318,13 @@ class EchoModbusServer:
 
     def __init__(self) -> None:
         self.requests: list[str] = []
+        self.arrivals: list[float] = []  # time.monotonic() of each request's first byte
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
             while True:
                 head = await reader.readexactly(6)
+                self.arrivals.append(time.monotonic())
                 body = await reader.readexactly(int.from_bytes(head[4:6], "big"))
                 self.requests.append(body.hex(" ").upper())
                 reply = body if body[1] == 0x06 else body[:6]
@@ -399,3 +402,38 @@ def test_emulator_refuses_longer_reads_than_the_drive(image_of: Callable[[str], 
     assert img.read(0xFD00, 2) == 0x03 and isinstance(img.read(0xFD00, 1), list)
     assert img.read(0xFD02, 1) == 0x02
     assert FAULT_ESTOP == 2
+
+
+def test_the_profiles_transport_settings_reach_the_modbus_client() -> None:
+    """The profile's character format and unit id are the defaults of the station's motor URL, and its
+    inter-frame delay separates every request from the end of the previous exchange."""
+    from drivers.motor import transport_from_url
+
+    gs2 = load_profile("automationdirect-gs2").transport
+
+    def line(url: str) -> tuple[str, int, int, int]:
+        t = transport_from_url(url, device_id=gs2.unit_id, baudrate=gs2.baudrate, parity=gs2.parity,
+                               stopbits=gs2.stopbits)
+
+        async def make() -> tuple[str, int, int, int]:
+            p = t._make_client().comm_params
+            return p.parity, p.stopbits, p.baudrate, t.device_id
+        return asyncio.run(make())
+
+    assert line("modbus-rtu:///dev/ttyUSB0") == ("O", 1, 19200, 1)          # the GS2's 8O1, 19200 Bd
+    assert line("modbus-rtu:///dev/ttyUSB0?parity=N&baudrate=9600") == ("N", 2, 9600, 1)  # the URL wins
+
+    fake = EchoModbusServer()
+
+    async def run() -> None:
+        async with fake as (host, port):
+            t = transport_from_url(f"modbus-tcp://{host}:{port}", inter_frame_delay_s=0.05)
+            motor = MotorController(load_profile("automationdirect-gs2"), clock=VirtualClock())
+            await motor.connect(t)
+            for _ in range(3):
+                await motor.set_frequency(10.0)
+            await motor.close()
+
+    asyncio.run(run())
+    gaps = np.diff(fake.arrivals)
+    assert len(gaps) == 2 and gaps.min() >= 0.05  # a lower bound the transport guarantees
