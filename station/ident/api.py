@@ -85,6 +85,9 @@ def identify_oe(rec: Recording, model_key: str = "sdof", policy: Policy = DEFAUL
     budget = {}
     for name, p in params.items():  # OE's own noise term, the systematic terms of the FD budget
         b = fd.budget.get(name)
+        if p.identifiable and name in fd.parameters and not fd.parameter(name).identifiable:
+            params[name] = fd.parameter(name)  # withheld by the FD result's structure (e.g. coupling_suspected)
+            continue
         if b is None or not p.identifiable or p.std is None:
             continue
         c = {**b["contributions"], "noise": p.std}
