@@ -9,7 +9,18 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from station.api.deps import RUN_ID_PATTERN
-from station.api.schemas import CheckOut, CovarianceOut, EstimateOut, _Out
+from station.api.schemas import (
+    BudgetOut,
+    CheckOut,
+    CovarianceOut,
+    EstimateOut,
+    MassAssumptionOut,
+    MeasurementChainOut,
+    MethodName,
+    ModelName,
+    RunMassOut,
+    _Out,
+)
 
 RunIdStr = Annotated[str, StringConstraints(pattern=RUN_ID_PATTERN)]
 
@@ -61,18 +72,24 @@ class CampaignFitOut(_Out):
     inflated: bool = Field(description="uncertainties scaled by sqrt(chi2/dof)")
 
 
-class BudgetOut(_Out):
-    contributions: dict[str, float | None] = Field(description="standard uncertainty per source, in `unit`")
-    combined: float
-    unit: str
+class CampaignAssumptionsOut(BaseModel):
+    """What the joint result rests on: the model, the masses, the measurement chain, the structure."""
+
+    model_config = ConfigDict(extra="allow")
+
+    model: str
+    end_mass_kg: MassAssumptionOut | None
+    load_mass_kg: list[RunMassOut] = Field(description="each run's weighed load mass (its prior)")
+    measurement_chain: MeasurementChainOut
+    structure: dict[str, Any] | None = None
 
 
 class CampaignOut(_Out):
     """Joint identification of S, m_e, k_f, b_f (Eq. 9) from runs with different top masses."""
 
     kind: Literal["campaign"]
-    method: str
-    model: str
+    method: MethodName
+    model: ModelName
     status: Literal["separated", "conditional", "refused"] = Field(
         description="separated: S and m_e determined by the data; conditional: the top masses are too alike, "
                     "S, k_f, b_f given on the stated end mass; refused: see checks and determined")
@@ -86,6 +103,6 @@ class CampaignOut(_Out):
     fit: CampaignFitOut
     checks: list[CheckOut]
     budget: dict[str, BudgetOut]
-    assumptions: dict[str, Any]
+    assumptions: CampaignAssumptionsOut
     determined: dict[str, Any]
     notes: list[str]

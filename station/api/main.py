@@ -20,6 +20,7 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
@@ -157,6 +158,12 @@ class StartupFailureLine:
         await self.app(scope, receive, one_line)
 
 
+def _operation_id(route: APIRoute) -> str:
+    """An operation's id in the OpenAPI document: its function's name (``start_run``), so that
+    generated clients get readable names."""
+    return route.name
+
+
 def create_app(settings: ServiceSettings, *,
                manager_factory: Callable[[ServiceSettings], RunManager] | None = None) -> FastAPI:
     @asynccontextmanager
@@ -169,7 +176,8 @@ def create_app(settings: ServiceSettings, *,
         finally:
             await manager.close()
 
-    app = FastAPI(title="sinecal station", version=__version__, description=DESCRIPTION, lifespan=lifespan)
+    app = FastAPI(title="sinecal station", version=__version__, description=DESCRIPTION, lifespan=lifespan,
+                  generate_unique_id_function=_operation_id)
     app.state.settings = settings
     if settings.loopback_only:  # refuse other Host headers (DNS rebinding against the open reads)
         app.add_middleware(TrustedHostMiddleware,

@@ -14,7 +14,15 @@ from typing import Any, Literal, overload
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from station.run.procedure import StepState
 from station.service.store import RunState
+
+# closed sets of values: enumerations in the OpenAPI document (checked against their sources in the tests)
+MethodName = Literal["fd", "oe", "pso", "pso+", "rls"]  # station.ident.names.METHODS
+ModelName = Literal["sdof", "coupled", "h1", "h2"]  # station.ident.names.MODELS
+Flag = Literal["", "poorly_determined", "conditional"]
+Severity = Literal["info", "warning", "refused"]
+EStopSource = Literal["page", "api", "controller", "drive"]
 
 
 class _Out(BaseModel):
@@ -78,7 +86,8 @@ class RunStatus(_Out):
     ended: datetime | None
     current_step: int | None = Field(description="index of the step on the rig (0-based), None before the first")
     n_steps: int
-    step_state: str = Field(description="ramping, settling, recording or done")
+    step_state: StepState = Field(description="where the step on the rig is; aborted, failed or interrupted: "
+                                  "the run ended there")
     progress: float = Field(ge=0, le=1, description="fraction of the acquisition done")
     samples: int = Field(description="samples acquired so far")
     lost_samples: int = Field(description="samples the DAQ link lost in this run (0 expected)")
@@ -108,7 +117,7 @@ class EstimateOut(_Out):
     unit: str
     identifiable: bool
     reason: str = ""
-    flag: str = Field(default="", description="'', 'poorly_determined' or 'conditional' (on an assumption)")
+    flag: Flag = Field(default="", description="poorly_determined, or conditional (on an assumption)")
 
 
 class ParameterOut(EstimateOut):
@@ -128,7 +137,7 @@ class CheckOut(_Out):
     """A finding of the identification's input checks."""
 
     name: str
-    severity: Literal["info", "warning", "refused"]
+    severity: Severity
     step: int | None
     message: str
     values: dict[str, Any] = Field(description="the numbers behind it; `recording`: the file a recording's own "
@@ -167,29 +176,93 @@ class StepResponseOut(_Out):
     n_samples: int | None
 
 
+class BudgetOut(_Out):
+    """A parameter's uncertainty budget: each source's standard uncertainty and their combination."""
+
+    contributions: dict[str, float | None] = Field(description="standard uncertainty per source, in `unit`")
+    combined: float
+    unit: str
+
+
+class MassAssumptionOut(_Out):
+    value: float | None = Field(description="kg")
+    std: float | None = Field(description="kg")
+    source: str = Field(description="where the value comes from (config, request, campaign, ...)")
+
+
+class RunMassOut(_Out):
+    run_id: str
+    value: float | None = Field(description="kg")
+    std: float | None = Field(description="kg")
+
+
+class MeasurementChainOut(BaseModel):
+    """The measurement chain's stated uncertainties (relative, deg, s, Hz; further keys allowed)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    gain_rel_std: float | None = None
+    flatness_rel_std: float | None = None
+    phase_offset_std_deg: float | None = None
+    phase_std_deg: float | None = None
+    delay_std_s: float | None = None
+
+
+class AssumptionsOut(BaseModel):
+    """What a result rests on, stated with it: masses, the measurement chain, the model's structure."""
+
+    model_config = ConfigDict(extra="allow")
+
+    end_mass_kg: MassAssumptionOut | None = None
+    load_mass_kg: MassAssumptionOut | None = None
+    measurement_chain: MeasurementChainOut | None = None
+    displacement_chain: dict[str, Any] | None = None
+    structure: dict[str, Any] | None = Field(default=None, description="the model structure (equation, coupling, "
+                                             "displacement chain) and what the data determine of it")
+
+
+class DeterminedOut(BaseModel):
+    """A quantity the data determine whatever the assumptions: value, combined standard uncertainty,
+    unit (further keys: the budget's sources, a range, a note)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    value: float | None
+    combined: float | None = None
+    unit: str
+
+
+class SkippedStepOut(_Out):
+    """A step left out of H(f), and why."""
+
+    step: int
+    reason: str
+
+
 class RunResults(_Out):
     id: str
     state: RunState
     recording: str
-    method: str | None
-    model: str | None
+    method: MethodName | None
+    model: ModelName | None
     parameters: list[ParameterOut]
     fit: FitOut | None
     identifiability: IdentifiabilityOut | None
     notes: list[str]
     checks: list[CheckOut] = []
-    budget: dict[str, Any] = Field(default={}, description="per parameter: contributions (source -> "
-                                   "standard uncertainty), combined, unit")
-    assumptions: dict[str, Any] = Field(default={}, description="end and load mass (value, std, source), "
-                                        "measurement chain, displacement chain, and the model structure "
-                                        "(structure: Eq. 9 or Eq. 8, the coupling this plan cannot exclude)")
-    determined: dict[str, Any] = Field(default={}, description="what the data determine whatever the end "
-                                       "mass (S M, natural frequency, damping ratio) and the coupling (series "
-                                       "stiffness; the range of k_f alone conditional on a stiff coupling)")
+    budget: dict[str, BudgetOut] = Field(default={}, description="per parameter")
+    assumptions: AssumptionsOut = Field(default_factory=lambda: AssumptionsOut(),
+                                        description="end and load mass, measurement chain, displacement chain, "
+                                        "and the model structure (Eq. 9 or Eq. 8, the coupling this plan cannot "
+                                        "exclude)")
+    determined: dict[str, DeterminedOut] = Field(default={}, description="what the data determine whatever the "
+                                                 "end mass (S M, natural frequency, damping ratio) and the coupling "
+                                                 "(series stiffness; the range of k_f alone conditional on a stiff "
+                                                 "coupling)")
     covariance: CovarianceOut | None = Field(default=None, description="of the parameters that have a value, as "
                                              "the identification stored it (null for results stored before it was)")
     frequency_response: list[StepResponseOut]
-    skipped_steps: list[dict[str, Any]]
+    skipped_steps: list[SkippedStepOut]
     units: dict[str, str]
     plots: dict[str, str] = Field(description="plot name -> URL of its PNG")
     report: str = Field(description="URL of the calibration report (HTML)")
@@ -258,8 +331,8 @@ class EStopState(_Out):
     latched: bool | None = Field(description="an emergency stop waits for an operator's acknowledgement "
                                  "(None: the database cannot be read)")
     since: str | None = None
-    source: str | None = Field(default=None, description="page, api, controller or drive (the drive did not "
-                               "come to rest after a stop)")
+    source: EStopSource | None = Field(default=None, description="page, api, controller or drive (the drive did "
+                                       "not come to rest after a stop)")
     detail: str | None = None
     count: int = 0
     last_acknowledged: str | None = None

@@ -19,7 +19,7 @@ import math
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 
@@ -65,6 +65,10 @@ class RunAborted(RuntimeError):
     """An operator (or the emergency stop) aborted the run."""
 
 
+StepState = Literal["", "ramping", "settling", "recording", "done", "aborted", "failed", "interrupted"]
+"""Where the step on the rig is (the last three: the run ended there)."""
+
+
 @dataclass
 class Progress:
     """Live state of a run for status displays."""
@@ -73,7 +77,7 @@ class Progress:
     state: str = "starting"
     step: int | None = None
     n_steps: int = 0
-    step_state: str = ""
+    step_state: StepState = ""
     samples: int = 0
     lost_samples: int = 0
     message: str = ""

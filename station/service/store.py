@@ -19,6 +19,8 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Literal, get_args
 
+from station.run.procedure import StepState
+
 READ_BUSY_TIMEOUT_S = 2.0  # the read connection's wait for a lock (an exclusive one of another process)
 SCHEMA_VERSION = 2  # 2: the emergency-stop latch (estops)
 
@@ -92,7 +94,7 @@ class RunRow:
     started: float | None = None
     ended: float | None = None
     step: int | None = None
-    step_state: str = ""
+    step_state: StepState = ""
     fraction: float = 0.0
     samples: int = 0
     lost_samples: int = 0

@@ -32,6 +32,8 @@ from station.service.manager import RunStateError
 from station.service.results import load_results
 from station.service.store import FINAL_STATES, RunRow
 
+BINARY = {"type": "string", "format": "binary"}  # a file's bytes, as OpenAPI declares them
+
 router = APIRouter(prefix="/runs", tags=["runs"])
 Responses = dict[int | str, dict[str, Any]]  # a route's documented responses, by status
 
@@ -145,7 +147,8 @@ async def run_results(run: RunDep, manager: ManagerDep) -> RunResults:
 
 
 @router.get("/{run_id}/plots/{name}.png", response_class=Response, dependencies=[Reader],
-            responses={200: {"content": {"image/png": {}}, "description": "PNG image"}, **NON_JSON_ERRORS},
+            responses={200: {"content": {"image/png": {"schema": BINARY}}, "description": "PNG image"},
+                       **NON_JSON_ERRORS},
             summary="A plot: bode, timefit, residuals, convergence, ...")
 async def run_plot(run: RunDep, manager: ManagerDep,
                    name: Annotated[str, Path(pattern=r"^[A-Za-z0-9_\-]{1,64}$")]) -> Response:
@@ -157,14 +160,15 @@ async def run_plot(run: RunDep, manager: ManagerDep,
 
 
 @router.get("/{run_id}/report", response_class=HTMLResponse, dependencies=[Reader],
-            responses={200: {"content": {"text/html": {}}}, **NON_JSON_ERRORS},
+            responses={200: {"content": {"text/html": {"schema": {"type": "string"}}}}, **NON_JSON_ERRORS},
             summary="The calibration report (HTML)")
 async def run_report(run: RunDep, manager: ManagerDep) -> HTMLResponse:
     return HTMLResponse(await manager.report(run.id))
 
 
 @router.get("/{run_id}/recording", response_class=StreamingResponse, dependencies=[Reader],
-            responses={200: {"content": {"application/x-hdf5": {}}, "description": "the HDF5 recording"},
+            responses={200: {"content": {"application/x-hdf5": {"schema": BINARY}},
+                             "description": "the HDF5 recording"},
                        **NON_JSON_ERRORS},
             summary="Download the HDF5 recording")
 async def run_recording(run: RunDep, manager: ManagerDep) -> StreamingResponse:

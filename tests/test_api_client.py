@@ -1,0 +1,140 @@
+"""The published API is what a generated client needs: a client generated off the shelf
+(``openapi-python-client``) from the daemon's OpenAPI document, with no hand-written code, starts a
+run, follows it to its results and downloads a plot and the recording; the closed sets of values are
+enumerations in the document, the budgets, assumptions and checks typed objects.
+
+The app runs in-process (the simulated rig on a virtual clock, one identification worker); the
+client talks to it through httpx's ASGI transport, as it would over a socket."""
+
+from __future__ import annotations
+
+import asyncio
+import importlib
+import io
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, get_args
+
+import h5py
+import httpx
+import pytest
+
+from station.api import create_app
+from station.api.schemas import MethodName, ModelName
+from station.config import parse_config
+from station.ident.names import METHODS, MODELS
+from station.run.procedure import StepState
+from station.service.settings import build_settings
+from tests.station_support import TOKEN, daemon_config, running_app
+
+# the generator's documented setting for binary media types: read as bytes (application/octet-stream)
+GENERATOR_CONFIG = """
+content_type_overrides:
+  image/png: application/octet-stream
+  application/x-hdf5: application/octet-stream
+post_hooks: []
+"""
+
+
+def openapi(tmp: Path) -> dict[str, Any]:
+    app = create_app(build_settings(parse_config(daemon_config(tmp / "recordings")), sim=True,
+                                    env={"STATION_TOKEN": TOKEN}))
+    return app.openapi()
+
+
+def test_closed_sets_are_enumerations_and_results_are_typed(tmp_path: Path) -> None:
+    spec = openapi(tmp_path)
+    schemas = spec["components"]["schemas"]
+
+    def enum(schema: str, field: str) -> list[Any]:
+        prop = schemas[schema]["properties"][field]
+        options = prop.get("anyOf", [prop])
+        return next(o["enum"] for o in options if "enum" in o)
+    assert enum("RunStatus", "step_state") == list(get_args(StepState))
+    assert enum("RunStatus", "state") == ["queued", "running", "identifying", "completed", "aborted", "failed",
+                                          "interrupted"]
+    assert enum("ParameterOut", "flag") == ["", "poorly_determined", "conditional"]
+    assert enum("CheckOut", "severity") == ["info", "warning", "refused"]
+    assert enum("RunResults", "method") == list(METHODS) == list(get_args(MethodName))
+    assert enum("RunResults", "model") == list(MODELS) == list(get_args(ModelName))
+    assert enum("CampaignOut", "status") == ["separated", "conditional", "refused"]
+    assert enum("EStopState", "source") == ["page", "api", "controller", "drive"]
+    results = schemas["RunResults"]["properties"]
+    assert results["budget"]["additionalProperties"]["$ref"].endswith("/BudgetOut")
+    assert results["assumptions"]["$ref"].endswith("/AssumptionsOut")
+    assert results["checks"]["items"]["$ref"].endswith("/CheckOut")
+    assert results["determined"]["additionalProperties"]["$ref"].endswith("/DeterminedOut")
+    assert schemas["CampaignOut"]["properties"]["assumptions"]["$ref"].endswith("/CampaignAssumptionsOut")
+    paths = spec["paths"]
+    binary = {"type": "string", "format": "binary"}
+    assert paths["/runs/{run_id}/plots/{name}.png"]["get"]["responses"]["200"]["content"] == {
+        "image/png": {"schema": binary}}
+    assert paths["/runs/{run_id}/recording"]["get"]["responses"]["200"]["content"] == {
+        "application/x-hdf5": {"schema": binary}}
+    assert paths["/runs"]["post"]["operationId"] == "start_run"  # readable names in generated clients
+
+
+@pytest.mark.slow  # the generator, then a run identified in a worker process
+def test_a_generated_client_drives_a_run(tmp_path: Path) -> None:
+    spec_path = tmp_path / "openapi.json"
+    spec_path.write_text(json.dumps(openapi(tmp_path)))
+    cfg = tmp_path / "generator.yaml"
+    cfg.write_text(GENERATOR_CONFIG)
+    out = tmp_path / "gen" / "sinecal_client"
+    r = subprocess.run([sys.executable, "-m", "openapi_python_client", "generate", "--path", str(spec_path),
+                        "--config", str(cfg), "--output-path", str(out), "--meta", "none"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "WARNING" not in r.stdout + r.stderr, r.stdout + r.stderr
+    sys.path.insert(0, str(out.parent))
+    try:
+        client_pkg = importlib.import_module("sinecal_client")
+        runs = importlib.import_module("sinecal_client.api.runs")
+        models = importlib.import_module("sinecal_client.models")
+        for name in ("start_run", "get_run", "run_results", "run_plot", "run_recording"):
+            importlib.import_module(f"sinecal_client.api.runs.{name}")
+        asyncio.run(_drive(tmp_path / "recordings", client_pkg, runs, models))
+    finally:
+        sys.path.remove(str(out.parent))
+        for m in [m for m in sys.modules if m == "sinecal_client" or m.startswith("sinecal_client.")]:
+            del sys.modules[m]
+
+
+async def _drive(rec: Path, pkg: Any, runs: Any, models: Any) -> None:
+    async with running_app(rec, workers=1) as app:
+        transport = httpx.ASGITransport(app=app, client=("127.0.0.1", 40000))
+        client = pkg.AuthenticatedClient(base_url="http://127.0.0.1", token=TOKEN, raise_on_unexpected_status=True,
+                                         httpx_args={"transport": transport})
+        async with client:
+            body = models.RunRequest(transducer_id="TX5K-0001", top_mass_kg=25.717, steps=[
+                models.StepSpec(crank_frequency_hz=f, crank_radius_m=0.001) for f in (10.0, 20.0)])
+            accepted = await runs.start_run.asyncio(client=client, body=body)
+            assert isinstance(accepted, models.RunAccepted), accepted
+            rid = accepted.id
+            for _ in range(1200):  # the rig on a virtual clock, then the identification worker
+                status = await runs.get_run.asyncio(rid, client=client)
+                assert isinstance(status, models.RunStatus)
+                if status.state.value in ("completed", "aborted", "failed", "interrupted"):
+                    break
+                await asyncio.sleep(0.05)
+            assert status.state.value == "completed", status
+            assert status.step_state.value == "done" and status.lost_samples == 0
+            res = await runs.run_results.asyncio(rid, client=client)
+            assert isinstance(res, models.RunResults), res
+            assert res.method.value == "fd" and res.model.value == "sdof"
+            k_f = next(p for p in res.parameters if p.name == "k_f")
+            assert k_f.identifiable and k_f.unit == "N/m" and k_f.flag.value in ("", "conditional")
+            assert abs(k_f.value - 2.91e7) < 4 * k_f.std + 0.02 * 2.91e7  # the simulated truth
+            budget = res.budget.additional_properties["k_f"]
+            assert isinstance(budget, models.BudgetOut) and budget.unit == "N/m"
+            assert budget.combined == pytest.approx(k_f.std, rel=1e-9)
+            assert isinstance(res.assumptions, models.AssumptionsOut)
+            assert res.assumptions.end_mass_kg.value == pytest.approx(0.12)
+            assert all(isinstance(c, models.CheckOut) and c.severity.value in ("info", "warning", "refused")
+                       for c in res.checks)
+            png = await runs.run_plot.asyncio(rid, "bode", client=client)
+            assert png.payload.read()[:8] == b"\x89PNG\r\n\x1a\n"
+            h5 = await runs.run_recording.asyncio(rid, client=client)
+            with h5py.File(io.BytesIO(h5.payload.read()), "r") as f:
+                assert f.attrs["run_id"] == rid and f.attrs["exit_status"] == "completed"
