@@ -152,7 +152,8 @@ def test_eeprom_registers_are_never_written_in_a_loop(name: str) -> None:
 
 
 def test_control_word_steps_held_too_briefly_are_not_seen_by_the_drive() -> None:
-    """The CiA 402 enable sequence written without its hold times does not enable the emulated drive."""
+    """The CiA 402 enable sequence written without its hold times does not enable the emulated drive;
+    "enable operation" alone runs a drive that is switched on, and only then."""
     p = load_profile("cia402-modbus")
     cw = p[p.commands.sequences["enable"][1].register]
 
@@ -161,8 +162,16 @@ def test_control_word_steps_held_too_briefly_are_not_seen_by_the_drive() -> None
         for word in (0x0006, 0x0007, 0x000F):  # no pause: not held for hold_s
             await motor.transport.write(cw.address, [word], cw.name)
         assert not (await motor.read_status()).flags["enabled"]
-        await motor.enable()  # with the hold times
+        await motor.enable()  # with the hold times: shutdown, switch on, then "run" (enable operation)
         assert (await motor.read_status()).flags["enabled"]
+        await motor.disable()  # disable operation (0x07): stays switched on ...
+        assert not (await motor.read_status()).flags["enabled"]
+        await motor.transport.write(cw.address, [0x000F], cw.name)  # ... so enable operation alone runs
+        assert (await motor.read_status()).flags["enabled"]
+        await motor.emergency_stop()  # quick stop: no longer switched on
+        await motor.wait_for_speed(0.0, timeout_s=5.0)
+        await motor.transport.write(cw.address, [0x000F], cw.name)
+        assert not (await motor.read_status()).flags["enabled"]
 
     drive(p, body)
 
@@ -351,7 +360,7 @@ FRAMES = {
     # HSW 40101 (wire 100): 20/50 x 16384 = 6553.6 -> 6554; STW1 40100 (wire 99): OFF1 then ON
     "siemens-sinamics-v20": ["01 06 00 64 19 9A", "01 06 00 63 04 7E", "01 06 00 63 04 7F"],
     # 0x60FF int32 in 0.1 rev/min (20 rev/s = 12000), high word first, FC 16; mode 3, then 6 -> 7 -> F
-    "cia402-modbus": ["01 10 60 FF 00 02 04 00 00 2E E0", "01 06 60 60 00 03", "01 06 60 40 00 06",
+    "cia402-modbus": ["01 10 60 FF 00 02 04 00 00 2E E0", "01 06 60 60 00 03", "01 06 60 40 00 06",  # enable, run
                       "01 06 60 40 00 07", "01 06 60 40 00 0F"],
 }
 

@@ -159,9 +159,10 @@ class MotorController:
         await self.write(name, value)
         return True
 
-    async def _run(self, command: str) -> None:
-        """Carry out one command of the profile's command model, step by step with its hold times."""
-        steps: tuple[CommandStep, ...] = self.profile.commands.sequences[command]
+    async def _run(self, *commands: str) -> None:
+        """Carry out commands of the profile's command model in turn, step by step with their hold times."""
+        seqs = self.profile.commands.sequences
+        steps: list[CommandStep] = [step for c in commands if c in seqs for step in seqs[c]]
         for i, step in enumerate(steps):
             await self._write_words(step.register, self.profile[step.register].words_of_raw(step.value))
             if step.hold_s > 0 and i < len(steps) - 1:
@@ -169,8 +170,9 @@ class MotorController:
 
     # --------------------------------------------------------------- commands
     async def enable(self) -> None:
-        """Enable the drive: it follows the set point (the watchdog starts counting)."""
-        await self._run("enable")
+        """Enable the drive: it follows the set point (the watchdog starts counting).  The profile's
+        ``enable`` sequence, then its ``run`` sequence where it has one."""
+        await self._run("enable", "run")
 
     async def disable(self) -> None:
         """Ramp down to standstill and disable (the profile's ``stop`` sequence)."""

@@ -40,6 +40,9 @@ FAULT_KINDS = {1: "watchdog_expired", 2: "emergency_stop", 3: "overcurrent", 4: 
 PSEUDO_ESTOP = 0x1_0000
 PSEUDO_FAULT = 0x1_0001
 COMMANDS = ("enable", "stop", "quick_stop", "fault_reset")
+# optional: where a drive is first switched on (``enable``) and then told to follow the set point
+# (``run``: CiA 402's "enable operation"), the station's enable is both sequences in turn
+OPTIONAL_COMMANDS = ("run",)
 RAMP_FORMS = ("rate", "time_to_max")
 
 
@@ -148,7 +151,8 @@ class CommandStep:
 @dataclass(frozen=True)
 class CommandModel:
     """``kind``: ``control_word`` (one register, a state machine driven by word sequences) or
-    ``registers`` (one register per command); ``sequences``: :data:`COMMANDS` -> steps."""
+    ``registers`` (one register per command); ``sequences``: :data:`COMMANDS` (and, where the drive
+    has it, ``run``) -> steps."""
 
     kind: str
     sequences: Mapping[str, tuple[CommandStep, ...]]
@@ -434,7 +438,7 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
     cd = doc.get("commands")
     expect(isinstance(cd, dict) and cd.get("model") in ("control_word", "registers"), f"{src}: commands",
            "{model: control_word|registers, ...}", cd)
-    allowed = {"model", "register", "hold_s", *COMMANDS}
+    allowed = {"model", "register", "hold_s", *COMMANDS, *OPTIONAL_COMMANDS}
     expect(set(cd) <= allowed, f"{src}: commands", f"only keys {sorted(allowed)}", sorted(cd))
     hold = cd.get("hold_s", 0.0)
     expect(is_number(hold) and 0 <= hold <= 5.0, f"{src}: commands.hold_s", "0..5 s", hold)
@@ -445,6 +449,9 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
     for c in COMMANDS:
         expect(c in cd, f"{src}: commands", f"a sequence for each of {list(COMMANDS)}", f"no {c!r}")
         seqs[c] = _steps(cd[c], f"{src}: commands.{c}", control, regs, float(hold))
+    for c in OPTIONAL_COMMANDS:
+        if c in cd:
+            seqs[c] = _steps(cd[c], f"{src}: commands.{c}", control, regs, float(hold))
     commands = CommandModel(cd["model"], seqs)
 
     # watchdog: never off

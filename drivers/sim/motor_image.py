@@ -19,7 +19,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 
-from drivers.motor.profile import COMMANDS, FAULT_KINDS, DriveProfile
+from drivers.motor.profile import FAULT_KINDS, DriveProfile
 from drivers.motor.registers import Register
 from drivers.sim.motor_model import FAULT_ESTOP, MotorModel
 
@@ -29,6 +29,8 @@ ILLEGAL_ADDRESS = 0x02
 ILLEGAL_VALUE = 0x03
 DEVICE_FAILURE = 0x04
 _HISTORY = 16  # command-register writes kept for matching sequences
+# the order in which sequences of the same length are tried: a stop is never taken for something else
+_MATCH_ORDER = ("stop", "quick_stop", "fault_reset", "enable", "run")
 
 
 class _Refused(Exception):
@@ -55,6 +57,9 @@ class MotorRegisterImage:
         self._command_regs = profile.commands.registers
         self.writes: Counter[str] = Counter()
         self.commands_seen: list[str] = []
+        # a drive with a ``run`` command is switched on by ``enable`` and follows the set point on ``run``
+        self._two_stage = "run" in profile.commands.sequences
+        self.switched_on = False
         # called with (register name, value, time.monotonic()) for every register a write applied
         self.observers: list[Callable[[str, float, float], None]] = []
 
@@ -164,7 +169,7 @@ class MotorRegisterImage:
                 lo, hi = reg.valid_range()
                 log.info("motor emulator: write %s=%s outside [%g, %g]: exception 3", reg.name, value, lo, hi)
                 return ILLEGAL_VALUE
-        saved = (dict(self._stored), list(self._history), list(self.commands_seen))
+        saved = (dict(self._stored), list(self._history), list(self.commands_seen), self.switched_on)
         try:
             with self.model.atomic():
                 for reg, chunk in chunks:
@@ -174,7 +179,7 @@ class MotorRegisterImage:
                                  reg.decode(chunk), code)
                         raise _Refused(code)
         except _Refused as refused:
-            self._stored, self._history, self.commands_seen = saved
+            self._stored, self._history, self.commands_seen, self.switched_on = saved
             return refused.code
         self.writes.update(reg.name for reg, _ in chunks)
         if self.observers:
@@ -188,7 +193,9 @@ class MotorRegisterImage:
         """The longest command sequence the latest command-register writes complete (with its holds)."""
         best: tuple[int, str] | None = None
         now_hist = self._history
-        for command in COMMANDS:
+        for command in _MATCH_ORDER:
+            if command not in self.profile.commands.sequences:
+                continue
             steps = self.profile.commands.sequences[command]
             n = len(steps)
             if n > len(now_hist):
@@ -237,11 +244,19 @@ class MotorRegisterImage:
 
     def _command(self, command: str) -> None:
         model = self.model
-        if command == "enable":
+        if command == "enable" and self._two_stage:
+            if model.snapshot().fault_code:
+                raise PermissionError("a fault is latched: reset it first")
+            self.switched_on = True  # switched on; it follows the set point on "run"
+        elif command in ("enable", "run"):
+            if command == "run" and not self.switched_on:
+                return  # not switched on: the drive ignores "run" (CiA 402: no transition)
             model.set_enable(True)
         elif command == "stop":
-            model.set_enable(False)
+            model.set_enable(False)  # "disable operation": still switched on
         elif command == "quick_stop":
+            self.switched_on = False
             model.emergency_stop()
         else:
+            self.switched_on = False
             model.reset_faults()
