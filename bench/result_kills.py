@@ -1,5 +1,8 @@
 """Kills while results are written: ``station identify`` and ``station discrepancy --save`` on one
-recording, each killed (SIGKILL) at a random instant of its run, as a power cut or an OOM kill would.
+recording, each killed (SIGKILL) at a random instant of its run, as a power cut or an OOM kill would;
+then a process that does nothing but store results (``write_result`` of an identification, H(f)
+and a model-gap result, over and over) killed at random instants, so that the kills land inside
+the writes themselves.
 
 After every kill: the recording must be byte for byte what it was and open normally with plain h5py
 (no "open for writing" flag), and every result beside it must read whole (the identification back
@@ -9,6 +12,7 @@ Prints JSON.
 
     PYTHONPATH=$PWD python3 bench/result_kills.py [--kills 30] [--seed 1]
 """
+
 
 from __future__ import annotations
 
@@ -25,6 +29,20 @@ import time
 from pathlib import Path
 
 import h5py
+
+WRITER = r"""
+import sys
+import numpy as np
+from station.recording import write_result
+rec, i = sys.argv[1], 0
+print("ready", flush=True)
+while True:
+    a = np.random.default_rng(i).standard_normal(20_000)
+    for name, group in (("identify_fd_sdof", "results"), ("steps", "processed"), ("discrepancy", "results")):
+        write_result(rec, name, {"method": "fd", "model": "sdof", "parameters": {}, "i": i, "sum": float(a.sum())},
+                     {"a": a}, group=group)
+    i += 1
+"""
 
 
 def _station() -> list[str]:
@@ -94,7 +112,24 @@ def main() -> None:
             state = _check(rec, digest)
             if not all(state.values()):
                 bad.append({"kill": k, "command": name, **state})
-        print(json.dumps({"kills": args.kills, "kills_during_a_result_write": mid_write,
+        loop_bad, loop_mid = 0, 0
+        for k in range(args.kills):  # kills inside the writes
+            proc = subprocess.Popen([sys.executable, "-c", WRITER, str(rec)], stdout=subprocess.PIPE,
+                                    stderr=subprocess.DEVNULL, text=True)
+            assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+            time.sleep(rng.uniform(0.0, 0.2))
+            proc.send_signal(signal.SIGKILL)
+            proc.wait()
+            left = stale_temporaries(folder)
+            loop_mid += bool(left)
+            for q in left:
+                os.unlink(q)
+            state = _check(rec, digest)
+            if not all(state.values()):
+                loop_bad += 1
+                bad.append({"kill": k, "command": "write_result loop", **state})
+        print(json.dumps({"cli_kills": args.kills, "cli_kills_during_a_result_write": mid_write,
+                          "writer_kills": args.kills, "writer_kills_during_a_result_write": loop_mid,
                           "unreadable_recordings": sum(1 for b in bad if not b["recording_opens"]),
                           "changed_recordings": sum(1 for b in bad if not b["recording_unchanged"]),
                           "unreadable_results": sum(1 for b in bad if not b["results_read"]),
