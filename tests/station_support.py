@@ -221,8 +221,10 @@ def free_port() -> int:
 
 class Daemon:
     """``station serve --sim`` in a subprocess; ``client`` talks to it (with the token).
-    ``config``: the configuration as parsed YAML (default :func:`daemon_config`); ``seeds``: finished
-    runs put in its store before it starts (:func:`seed_runs`, ids in ``seeded``)."""
+    ``config``: the configuration as parsed YAML (default :func:`daemon_config`; without a
+    ``simulation`` section the daemon runs on its ``devices``, e.g. an emulator run as its own
+    process, without ``--sim``); ``seeds``: finished runs put in its store before it starts
+    (:func:`seed_runs`, ids in ``seeded``)."""
 
     def __init__(self, tmp: Path, *, workers: int = 1, data_dir: Path | None = None, name: str = "daemon",
                  config: dict[str, Any] | None = None, seeds: Sequence[Seed] = (), **service: Any) -> None:
@@ -232,6 +234,7 @@ class Daemon:
         cfg["station"]["recordings_dir"] = str(self.data_dir)
         self.cfg_path = tmp / f"{name}.yaml"
         self.cfg_path.write_text(yaml.safe_dump(cfg))
+        self.sim = cfg.get("simulation") is not None
         self.seeded = seed_runs(cfg, seeds) if seeds else []
         self.log_path = tmp / f"{name}.log"
         self.workers = workers
@@ -248,8 +251,8 @@ class Daemon:
         env = {**os.environ, "STATION_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
         log = self.log_path.open("ab")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "station.cli", "serve", "--sim", "--config", str(self.cfg_path),
-             "--port", str(self.port), "--workers", str(self.workers)],
+            [sys.executable, "-m", "station.cli", "serve", *(["--sim"] if self.sim else []),
+             "--config", str(self.cfg_path), "--port", str(self.port), "--workers", str(self.workers)],
             stdout=log, stderr=subprocess.STDOUT, env=env, cwd=self.tmp)
         log.close()
         self.client = httpx.Client(base_url=self.url, headers=AUTH, timeout=30.0)

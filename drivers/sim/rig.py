@@ -13,12 +13,14 @@ drivers connect through :meth:`SimRig.motor_transport` and :meth:`SimRig.daq_lin
 model and the DAQ emulator keep the given clock's time, so a run takes milliseconds in tests.
 
 As a subprocess: :class:`SimRigProcess` runs ``python -m drivers.sim`` and reads the addresses it
-prints (no fault injection across the process boundary).
+prints; through its control channel it reads the motor's true state, makes the drive ignore stops,
+and (``commands=True``) logs every command the controller takes with its time.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import math
@@ -231,17 +233,28 @@ class SimCrankRadius:
 
 
 class SimRigProcess:
-    """``python -m drivers.sim`` in a subprocess; ``addresses`` parsed from its first stdout line."""
+    """``python -m drivers.sim`` in a subprocess; ``addresses`` parsed from its first stdout line.
 
-    def __init__(self, *, seed: int = 0, modbus_port: int = 0) -> None:
+    ``commands=True``: every command the motor controller takes is collected (``commands``: name,
+    value, ``time.monotonic()`` when applied, one clock for every process) and can be waited for
+    (:meth:`wait_command`).  :meth:`status` reads the motor's true state, :meth:`ignore_stops` is the
+    fault hook of ``MotorModel.ignore_stops`` across the process boundary."""
+
+    def __init__(self, *, seed: int = 0, modbus_port: int = 0, crank_radius_m: float = 0.01,
+                 commands: bool = False) -> None:
         self._args = [sys.executable, "-m", "drivers.sim", "--json", "--seed", str(seed),
-                      "--modbus-port", str(modbus_port)]
+                      "--modbus-port", str(modbus_port), "--crank-radius", str(crank_radius_m)]
+        if commands:
+            self._args.append("--commands")
         self._proc: subprocess.Popen[str] | None = None
+        self._cond = threading.Condition()
+        self._replies: list[dict[str, Any]] = []
+        self.commands: list[tuple[str, float, float]] = []
         self.addresses: SimRigAddresses
 
     def __enter__(self) -> SimRigProcess:
         self._proc = subprocess.Popen(self._args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                      env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                      bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"})
         assert self._proc.stdout is not None
         line = self._proc.stdout.readline()
         if not line:
@@ -249,12 +262,51 @@ class SimRigProcess:
             raise RuntimeError(f"sim rig subprocess exited with {rc} before printing addresses")
         d = json.loads(line)
         self.addresses = SimRigAddresses(tuple(d["modbus_tcp"]), d["modbus_rtu"], d["daq"])
+        threading.Thread(target=self._read, name="sim-rig-process-reader", daemon=True).start()
         return self
+
+    def _read(self) -> None:
+        assert self._proc is not None and self._proc.stdout is not None
+        for line in self._proc.stdout:
+            d = json.loads(line)
+            with self._cond:
+                if "command" in d:
+                    self.commands.append((d["command"], d["value"], d["t_monotonic"]))
+                else:
+                    self._replies.append(d)
+                self._cond.notify_all()
+
+    def _ask(self, line: str, timeout_s: float = 5.0) -> dict[str, Any]:
+        assert self._proc is not None and self._proc.stdin is not None
+        with self._cond:
+            n = len(self._replies)
+            self._proc.stdin.write(line + "\n")
+            self._proc.stdin.flush()
+            if not self._cond.wait_for(lambda: len(self._replies) > n, timeout_s):
+                raise TimeoutError(f"the sim rig process did not answer {line!r}")
+            return self._replies[n]
+
+    def status(self) -> dict[str, Any]:
+        """The motor's true state: speed_hz, enabled, fault_code, estop, t_monotonic."""
+        return dict(self._ask("status")["status"])
+
+    def ignore_stops(self, on: bool = True) -> None:
+        self._ask(f"ignore-stops {'on' if on else 'off'}")
+
+    def wait_command(self, name: str, after: float, timeout_s: float = 10.0) -> float | None:
+        """``time.monotonic()`` at which the controller took the first ``name`` command applied at or
+        after ``after``; None if none within ``timeout_s``."""
+        def found() -> float | None:
+            return next((t for n, _, t in self.commands if n == name and t >= after), None)
+        with self._cond:
+            self._cond.wait_for(lambda: found() is not None, timeout_s)
+            return found()
 
     def __exit__(self, *exc: object) -> None:
         if self._proc is not None:
             assert self._proc.stdin is not None
-            self._proc.stdin.close()  # EOF on stdin ends the subprocess
+            with contextlib.suppress(OSError):
+                self._proc.stdin.close()  # EOF on stdin ends the subprocess
             try:
                 self._proc.wait(timeout=5)
             except subprocess.TimeoutExpired:

@@ -1,0 +1,334 @@
+"""Emergency-stop latency: from ``POST /stop`` to the drive taking its stop command; prints JSON.
+
+The rig's emulator runs as its own process (``python -m drivers.sim --commands``), so the motor's
+real state is the emulator's and every command it takes is printed with that process's
+``time.monotonic()`` (one clock for every process on the machine).  The daemon is a real
+``station serve`` with the real drivers, talking to the emulator over Modbus TCP and a pty like a
+real rig (no ``--sim``).  Latency = time the emulator applied the ``emergency_stop`` register write
+minus the time just before the bench sent ``POST /stop``.  Cases, each ``--repeats`` times:
+
+- ``idle``: no run, nothing else going on (the baseline);
+- ``run_recording``: a run in its record window (20 kHz to HDF5, progress written to the database);
+- ``database_locked``: as ``run_recording``, while another process (this bench) holds the database's
+  write lock (``BEGIN IMMEDIATE``) from 2 s before the stop to 1 s after it;
+- ``disk_full``: a run recording when the recordings disk (a real tmpfs, so the database too) is
+  filled to ENOSPC just before the stop (needs root to mount; otherwise null with the reason);
+- ``idle_connections``: ``--connections`` (20 000) idle TCP connections to the daemon on loopback,
+  opened just before the stop (no request on any of them).  Also reported: how many the daemon kept
+  open (its descriptors) and its log lines about open files.
+
+After each stop the bench waits for the drive's standstill (the daemon's answer says it), then
+acknowledges the stop as an operator would.  Everything is bounded in time; the daemon and the
+emulator are ended at the close.  Target: <= 100 ms in every case.
+
+Usage: python bench/stop_latency.py [--repeats 3] [--connections 20000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import errno
+import json
+import os
+import socket
+import sqlite3
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import yaml
+
+from drivers.sim import SimRigProcess
+
+ROOT = Path(__file__).resolve().parent.parent
+TOKEN = "bench-token-0123456789"
+TARGET_MS = 100.0
+RADIUS_M = 0.01
+DEADLINE_S = 900.0  # the whole bench ends by itself within this
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Daemon:
+    """``station serve`` (real drivers) on the emulator's Modbus TCP port and DAQ pty."""
+
+    def __init__(self, data_dir: Path, emu: SimRigProcess, tmp: Path) -> None:
+        cfg = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
+        cfg.pop("simulation", None)
+        host, port = emu.addresses.modbus_tcp
+        cfg["devices"] = {"motor_url": f"modbus-tcp://{host}:{port}", "daq_port": emu.addresses.daq,
+                          "crank_radius_m": RADIUS_M}
+        cfg["station"]["recordings_dir"] = str(data_dir)
+        cfg["station"]["min_free_mb"] = 1.0
+        cfg["rig"]["acceleration_hz_per_s"] = 50.0
+        cfg["plan"]["settle_s"] = 0.2
+        self.cfg_path = tmp / "station.yaml"
+        self.cfg_path.write_text(yaml.safe_dump(cfg))
+        self.log_path = tmp / "daemon.log"
+        self.port = _free_port()
+        env = {**os.environ, "STATION_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
+        with self.log_path.open("wb") as log:
+            self.proc = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--config", str(self.cfg_path),
+                                          "--port", str(self.port), "--workers", "0"],
+                                         stdout=log, stderr=subprocess.STDOUT, env=env, cwd=tmp)
+        self.client = httpx.Client(base_url=f"http://127.0.0.1:{self.port}",
+                                   headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60.0)
+        deadline = time.monotonic() + 60.0
+        while True:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"the daemon exited: {self.log_path.read_text()[-2000:]}")
+            with contextlib.suppress(httpx.TransportError):
+                if self.client.get("/health").status_code == 200:
+                    break
+            if time.monotonic() > deadline:
+                raise RuntimeError("the daemon did not answer within 60 s")
+            time.sleep(0.2)
+
+    def fds(self) -> int:
+        return len(os.listdir(f"/proc/{self.proc.pid}/fd"))
+
+    def close(self) -> None:
+        self.client.close()
+        self.proc.terminate()
+        try:
+            self.proc.wait(30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+def start_run(d: Daemon) -> str:
+    body = {"transducer_id": "TX5K-0001", "top_mass_kg": 25.717,
+            "steps": [{"crank_frequency_hz": 10.0, "crank_radius_m": RADIUS_M, "record_s": 120.0}]}
+    r = d.client.post("/runs", json=body)
+    if r.status_code != 202:
+        raise RuntimeError(f"run refused: {r.status_code} {r.text}")
+    rid = str(r.json()["id"])
+    deadline = time.monotonic() + 60.0
+    while time.monotonic() < deadline:
+        st = d.client.get(f"/runs/{rid}").json()
+        if st["state"] == "running" and st["step_state"] == "recording":
+            return rid
+        if st["state"] not in ("queued", "running"):
+            raise RuntimeError(f"run ended before recording: {st}")
+        time.sleep(0.1)
+    raise RuntimeError("the run did not reach its record window in 60 s")
+
+
+def acknowledge(d: Daemon) -> None:
+    deadline = time.monotonic() + 60.0
+    while time.monotonic() < deadline:
+        r = d.client.post("/stop/acknowledge", json={"operator": "bench"})
+        if r.status_code == 200:
+            return
+        time.sleep(0.3)
+    raise RuntimeError(f"the stop could not be acknowledged: {r.status_code} {r.text}")
+
+
+def wait_rig_free(d: Daemon) -> None:
+    deadline = time.monotonic() + 60.0
+    while time.monotonic() < deadline and d.client.get("/health").json()["active_run"]:
+        time.sleep(0.1)
+
+
+@contextlib.contextmanager
+def db_write_lock(path: Path, hold_before_s: float) -> Iterator[None]:
+    db = sqlite3.connect(path, isolation_level=None, timeout=30.0)
+    db.execute("BEGIN IMMEDIATE")
+    db.execute("CREATE TABLE IF NOT EXISTS bench_lock (x)")
+    time.sleep(hold_before_s)
+    try:
+        yield
+        time.sleep(1.0)
+    finally:
+        db.execute("ROLLBACK")
+        db.close()
+
+
+def fill(path: Path) -> int:
+    n = 0
+    with path.open("wb", buffering=0) as f:
+        block = b"\0" * (1 << 20)
+        while True:
+            try:
+                n += f.write(block)
+            except OSError as exc:
+                if exc.errno != errno.ENOSPC:
+                    raise
+                return n
+
+
+PER_HELPER = 5000  # connections per helper process (a process's open-files limit may be 20 000)
+_HELPER = """
+import contextlib, socket, sys, time
+port, n, limit_s = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
+socks = []
+deadline = time.monotonic() + limit_s
+for _ in range(n):
+    if time.monotonic() > deadline:
+        break
+    s = socket.socket()
+    s.setblocking(False)
+    s.connect_ex(("127.0.0.1", port))
+    socks.append(s)
+time.sleep(1.0)
+ok = 0
+for s in socks:
+    with contextlib.suppress(OSError):
+        s.getpeername()
+        ok += s.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR) == 0
+print(len(socks), ok, flush=True)
+sys.stdin.read()
+"""
+
+
+@contextlib.contextmanager
+def idle_connections(port: int, n: int, limit_s: float = 60.0) -> Iterator[tuple[int, int]]:
+    """``n`` TCP connections to the daemon that send nothing, held by helper processes (bounded by
+    ``limit_s`` each; ended at the close).  Yields (opened, established)."""
+    helpers = []
+    try:
+        for k in range(0, n, PER_HELPER):
+            helpers.append(subprocess.Popen([sys.executable, "-c", _HELPER, str(port), str(min(PER_HELPER, n - k)),
+                                             str(limit_s)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True))
+        opened = est = 0
+        for h in helpers:
+            assert h.stdout is not None
+            a, b = (int(x) for x in h.stdout.readline().split())
+            opened, est = opened + a, est + b
+        yield opened, est
+    finally:
+        for h in helpers:
+            with contextlib.suppress(OSError):
+                assert h.stdin is not None
+                h.stdin.close()
+        for h in helpers:
+            try:
+                h.wait(10)
+            except subprocess.TimeoutExpired:
+                h.kill()
+
+
+def one_stop(d: Daemon, emu: SimRigProcess) -> dict[str, Any]:
+    t0 = time.monotonic()
+    r = d.client.post("/stop")
+    http_ms = (time.monotonic() - t0) * 1e3
+    t_cmd = emu.wait_command("emergency_stop", t0, 30.0)
+    body = r.json()
+    return {"latency_ms": None if t_cmd is None else (t_cmd - t0) * 1e3, "http_ms": http_ms,
+            "status": r.status_code, "motor_stopped": body.get("motor_stopped"),
+            "drive_speed_hz": (body.get("drive") or {}).get("speed_hz")}
+
+
+def measure(name: str, d: Daemon, emu: SimRigProcess, repeats: int,
+            around: Callable[[], contextlib.AbstractContextManager[dict[str, Any]]], with_run: bool) -> dict[str, Any]:
+    samples = []
+    extra: dict[str, Any] = {}
+    for _ in range(repeats):
+        if with_run:
+            start_run(d)
+        with around() as info:
+            s = one_stop(d, emu)
+        extra.update(info)
+        samples.append(s)
+        wait_rig_free(d)
+        acknowledge(d)
+    lat = [s["latency_ms"] for s in samples if s["latency_ms"] is not None]
+    return {"case": name, "repeats": repeats, "stops_reaching_the_drive": len(lat),
+            "latency_ms_median": round(statistics.median(lat), 2) if lat else None,
+            "latency_ms_max": round(max(lat), 2) if lat else None,
+            "http_answer_ms_median": round(statistics.median(s["http_ms"] for s in samples), 1),
+            "motor_stopped": [s["motor_stopped"] for s in samples],
+            "met": bool(lat) and len(lat) == repeats and max(lat) <= TARGET_MS, **extra}
+
+
+@contextlib.contextmanager
+def nothing() -> Iterator[dict[str, Any]]:
+    yield {}
+
+
+def mount_tmpfs(path: Path, size_mib: int) -> str | None:
+    path.mkdir(parents=True, exist_ok=True)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mib}m", "tmpfs", str(path)],
+                       capture_output=True, text=True)
+    return None if r.returncode == 0 else (r.stderr.strip() or f"mount exited {r.returncode}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--connections", type=int, default=20_000)
+    args = ap.parse_args()
+    started = time.monotonic()
+    out: dict[str, Any] = {"target_ms": TARGET_MS, "cases": []}
+    with tempfile.TemporaryDirectory(prefix="stop-bench-") as tmp_s:
+        tmp = Path(tmp_s)
+        disk = tmp / "disk"
+        why_no_tmpfs = mount_tmpfs(disk, 96)
+        d: Daemon | None = None
+        with contextlib.ExitStack() as stack:
+            emu = stack.enter_context(SimRigProcess(crank_radius_m=RADIUS_M, commands=True))
+            if why_no_tmpfs is None:
+                stack.callback(subprocess.run, ["umount", "-l", str(disk)], check=False)
+            d = Daemon(disk, emu, tmp)
+            stack.callback(d.close)
+            db_path = disk / "station.db"
+
+            @contextlib.contextmanager
+            def locked() -> Iterator[dict[str, Any]]:
+                with db_write_lock(db_path, 2.0):
+                    yield {"lock": "BEGIN IMMEDIATE held by another process 2 s before to 1 s after the stop"}
+
+            @contextlib.contextmanager
+            def full() -> Iterator[dict[str, Any]]:
+                filler = disk / "filler.bin"
+                try:
+                    n = fill(filler)
+                    st = os.statvfs(disk)
+                    yield {"filled_bytes": n, "free_bytes_at_stop": st.f_bavail * st.f_frsize}
+                finally:
+                    filler.unlink(missing_ok=True)
+
+            @contextlib.contextmanager
+            def connections() -> Iterator[dict[str, Any]]:
+                assert d is not None
+                t = time.monotonic()
+                with idle_connections(d.port, args.connections) as (opened, est):
+                    time.sleep(1.0)  # let the daemon take them
+                    yield {"connections_opened": opened, "connections_established": est,
+                           "open_s": round(time.monotonic() - t, 2), "daemon_fds_before_stop": d.fds()}
+
+            cases: list[tuple[str, Callable[[], contextlib.AbstractContextManager[dict[str, Any]]], bool]] = [
+                ("idle", nothing, False), ("run_recording", nothing, True), ("database_locked", locked, True),
+                ("idle_connections", connections, False)]
+            if why_no_tmpfs is None:
+                cases.append(("disk_full", full, True))
+            for name, around, with_run in cases:
+                if time.monotonic() - started > DEADLINE_S:
+                    out["cases"].append({"case": name, "skipped": "the bench's time limit"})
+                    continue
+                out["cases"].append(measure(name, d, emu, args.repeats, around, with_run))
+            if why_no_tmpfs is not None:
+                out["cases"].append({"case": "disk_full", "skipped": f"no tmpfs could be mounted: {why_no_tmpfs}"})
+            text = d.log_path.read_text(errors="replace")
+            out["daemon_log"] = {"lines": text.count("\n"), "too_many_open_files": text.count("Too many open files"),
+                                 "bytes": len(text)}
+    out["all_met"] = all(c.get("met") for c in out["cases"] if "skipped" not in c)
+    out["wall_s"] = round(time.monotonic() - started, 1)
+    print(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
