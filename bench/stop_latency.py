@@ -63,7 +63,7 @@ def _free_port() -> int:
 class Daemon:
     """``station serve`` (real drivers) on the emulator's Modbus TCP port and DAQ pty."""
 
-    def __init__(self, data_dir: Path, emu: SimRigProcess, tmp: Path) -> None:
+    def __init__(self, data_dir: Path, emu: SimRigProcess, tmp: Path, tree: Path | None = None) -> None:
         cfg = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
         cfg.pop("simulation", None)
         host, port = emu.addresses.modbus_tcp
@@ -78,12 +78,17 @@ class Daemon:
         self.log_path = tmp / "daemon.log"
         self.port = _free_port()
         env = {**os.environ, "STATION_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
+        if tree is not None:  # another version of the station (a baseline), with its shipped YAML package
+            env["PYTHONPATH"] = f"{tree}{os.pathsep}{tree / '.dev'}"
         with self.log_path.open("wb") as log:
             self.proc = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--config", str(self.cfg_path),
                                           "--port", str(self.port), "--workers", "0"],
                                          stdout=log, stderr=subprocess.STDOUT, env=env, cwd=tmp)
         self.client = httpx.Client(base_url=f"http://127.0.0.1:{self.port}",
                                    headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60.0)
+        # the stop goes on a new connection each time, as a page's first press or an API client's would
+        self.stop_client = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=60.0,
+                                        limits=httpx.Limits(max_keepalive_connections=0))
         deadline = time.monotonic() + 60.0
         while True:
             if self.proc.poll() is not None:
@@ -95,11 +100,20 @@ class Daemon:
                 raise RuntimeError("the daemon did not answer within 60 s")
             time.sleep(0.2)
 
+    def call(self, method: str, url: str, **kw: Any) -> httpx.Response:
+        """A request on the kept-alive client, once more on a new connection if the daemon closed the
+        old one meanwhile (the connection cap closes idle connections)."""
+        try:
+            return self.client.request(method, url, **kw)
+        except (httpx.ReadError, httpx.RemoteProtocolError, httpx.WriteError):
+            return self.client.request(method, url, **kw)
+
     def fds(self) -> int:
         return len(os.listdir(f"/proc/{self.proc.pid}/fd"))
 
     def close(self) -> None:
         self.client.close()
+        self.stop_client.close()
         self.proc.terminate()
         try:
             self.proc.wait(30)
@@ -111,13 +125,13 @@ class Daemon:
 def start_run(d: Daemon) -> str:
     body = {"transducer_id": "TX5K-0001", "top_mass_kg": 25.717,
             "steps": [{"crank_frequency_hz": 10.0, "crank_radius_m": RADIUS_M, "record_s": 120.0}]}
-    r = d.client.post("/runs", json=body)
+    r = d.call("POST", "/runs", json=body)
     if r.status_code != 202:
         raise RuntimeError(f"run refused: {r.status_code} {r.text}")
     rid = str(r.json()["id"])
     deadline = time.monotonic() + 60.0
     while time.monotonic() < deadline:
-        st = d.client.get(f"/runs/{rid}").json()
+        st = d.call("GET", f"/runs/{rid}").json()
         if st["state"] == "running" and st["step_state"] == "recording":
             return rid
         if st["state"] not in ("queued", "running"):
@@ -129,7 +143,7 @@ def start_run(d: Daemon) -> str:
 def acknowledge(d: Daemon) -> None:
     deadline = time.monotonic() + 60.0
     while time.monotonic() < deadline:
-        r = d.client.post("/stop/acknowledge", json={"operator": "bench"})
+        r = d.call("POST", "/stop/acknowledge", json={"operator": "bench"})
         if r.status_code == 200:
             return
         time.sleep(0.3)
@@ -138,7 +152,7 @@ def acknowledge(d: Daemon) -> None:
 
 def wait_rig_free(d: Daemon) -> None:
     deadline = time.monotonic() + 60.0
-    while time.monotonic() < deadline and d.client.get("/health").json()["active_run"]:
+    while time.monotonic() < deadline and d.call("GET", "/health").json()["active_run"]:
         time.sleep(0.1)
 
 
@@ -222,13 +236,15 @@ def idle_connections(port: int, n: int, limit_s: float = 60.0) -> Iterator[tuple
 
 def one_stop(d: Daemon, emu: SimRigProcess) -> dict[str, Any]:
     t0 = time.monotonic()
-    r = d.client.post("/stop")
+    try:
+        r = d.stop_client.post("/stop")
+        status, body = r.status_code, r.json()
+    except httpx.HTTPError as exc:
+        status, body = None, {"error": f"{type(exc).__name__}: {exc}"}
     http_ms = (time.monotonic() - t0) * 1e3
-    t_cmd = emu.wait_command("emergency_stop", t0, 30.0)
-    body = r.json()
+    t_cmd = emu.wait_command("emergency_stop", t0, 60.0)
     return {"latency_ms": None if t_cmd is None else (t_cmd - t0) * 1e3, "http_ms": http_ms,
-            "status": r.status_code, "motor_stopped": body.get("motor_stopped"),
-            "drive_speed_hz": (body.get("drive") or {}).get("speed_hz")}
+            "status": status, "motor_stopped": body.get("motor_stopped"), "error": body.get("error")}
 
 
 def measure(name: str, d: Daemon, emu: SimRigProcess, repeats: int,
@@ -250,6 +266,7 @@ def measure(name: str, d: Daemon, emu: SimRigProcess, repeats: int,
             "latency_ms_max": round(max(lat), 2) if lat else None,
             "http_answer_ms_median": round(statistics.median(s["http_ms"] for s in samples), 1),
             "motor_stopped": [s["motor_stopped"] for s in samples],
+            "errors": [s["error"] for s in samples if s["error"]],
             "met": bool(lat) and len(lat) == repeats and max(lat) <= TARGET_MS, **extra}
 
 
@@ -269,6 +286,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--connections", type=int, default=20_000)
+    ap.add_argument("--daemon-tree", type=Path, default=None,
+                    help="run the daemon from this source tree (e.g. an older version as the baseline)")
     args = ap.parse_args()
     started = time.monotonic()
     out: dict[str, Any] = {"target_ms": TARGET_MS, "cases": []}
@@ -281,7 +300,7 @@ def main() -> int:
             emu = stack.enter_context(SimRigProcess(crank_radius_m=RADIUS_M, commands=True))
             if why_no_tmpfs is None:
                 stack.callback(subprocess.run, ["umount", "-l", str(disk)], check=False)
-            d = Daemon(disk, emu, tmp)
+            d = Daemon(disk, emu, tmp, args.daemon_tree)
             stack.callback(d.close)
             db_path = disk / "station.db"
 

@@ -111,8 +111,8 @@ class RigLink:
         if rig is None:
             return False, ("no link to the motor controller; if the crank turns, its watchdog stops it when "
                            "refreshes cease - use the hardware emergency stop")
-        try:
-            await self.thread.call(asyncio.wait_for(rig.motor.emergency_stop(), 2.0))
+        try:  # bounded on both sides: a rig loop that does not run cannot hold the answer either
+            await asyncio.wait_for(self.thread.call(asyncio.wait_for(rig.motor.emergency_stop(), 2.0)), 3.0)
             return True, "emergency stop commanded on the motor controller"
         except Exception as exc:
             return False, (f"the motor controller did not take the emergency stop ({type(exc).__name__}: {exc}); "
@@ -128,8 +128,9 @@ class RigLink:
         motor = rig.motor
         bound = motor.stop_time_bound_s(motor.map.device.max_frequency_hz, ramp_hz_per_s) + 2.0
         try:
-            check = await self.thread.call(asyncio.wait_for(read_back_standstill(motor, after, ramp_hz_per_s),
-                                                            bound))
+            check = await asyncio.wait_for(
+                self.thread.call(asyncio.wait_for(read_back_standstill(motor, after, ramp_hz_per_s), bound)),
+                bound + 1.0)
         except Exception as exc:
             check = DriveCheck(after, None, None, None, None, bound, time.time(), f"{type(exc).__name__}: {exc}")
         self.drive = check

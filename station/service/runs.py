@@ -95,6 +95,7 @@ class Runs:
         self.closing = closing
         self._on_acquired = on_acquired
         self.live: dict[str, LiveRun] = {}
+        self._stopping = 0  # emergency stops being commanded (not latched yet): no run may start meanwhile
         self.loop_thread = threading.get_ident()
         self.web_loop: asyncio.AbstractEventLoop | None = None
 
@@ -149,6 +150,8 @@ class Runs:
         return row
 
     def _refuse_if_latched(self) -> None:
+        if self._stopping:
+            raise EStopLatchedError("an emergency stop is being carried out; no run starts")
         why = self.latch.refusal()
         if why is not None:
             raise EStopLatchedError(why)
@@ -282,7 +285,11 @@ class Runs:
         for live in list(self.live.values()):
             self._abort(live, "emergency stop")
             aborted.append(live.row.id)
-        ok, detail = await self.link.emergency_stop()
+        self._stopping += 1
+        try:
+            ok, detail = await self.link.emergency_stop()
+        finally:
+            self._stopping -= 1
         log.warning("EMERGENCY STOP (%s): %s (aborted runs: %s)", source, detail, aborted or "none")
         self.latch.trip(source, detail + (f"; aborted runs: {', '.join(aborted)}" if aborted else ""))
         check = await self.link.verify_standstill("the emergency stop") if ok else None
