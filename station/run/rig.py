@@ -53,8 +53,10 @@ class ConnectedRig:
     sim: SimRig | None = None
 
     def load(self, plan: Plan) -> None:
-        """Ready the rig for ``plan`` (before its procedure starts)."""
-        self.on_load(to_rig_physics(plan.config))
+        """Ready the rig for ``plan`` (before its procedure starts).  A real rig's configuration
+        has no ``simulation`` section to take physics from: nothing is derived for it."""
+        if self.on_load is not _mounted:
+            self.on_load(to_rig_physics(plan.config))
 
     def health(self) -> dict[str, Any]:
         """State of each device link, for /health."""
