@@ -97,6 +97,9 @@ def test_fault_matrix_on_every_profile(name: str) -> None:
         await spin_up(motor)
         with pytest.raises(MotorStateError, match="while the drive is enabled"):
             await motor.set_watchdog_timeout(0)
+        if p.watchdog.min_s > p[p.watchdog.register].scale:
+            with pytest.raises(MotorValueError, match="at least the drive's smallest time-out"):
+                await motor.set_watchdog_timeout(0.5 * p.watchdog.min_s)
         # 3. emergency stop: latched, the crank decelerates; reset refused while it turns
         await motor.emergency_stop()
         st = await motor.read_status()
@@ -260,7 +263,7 @@ commands:
   stop: [{register: run, value: 0}]
   quick_stop: [{register: run, value: 2}]
   fault_reset: [{register: run, value: 3}, {register: run, value: 0}]
-watchdog: {register: comm_loss, timeout_s: 0.5, min_s: 0.1}
+watchdog: {register: comm_loss, timeout_s: 1.0, min_s: 0.1}
 """
 
 

@@ -71,6 +71,8 @@ def test_status_word_round_trip() -> None:
     (lambda d: d["registers"]["acceleration_ramp"].pop("max"), r"acceleration_ramp.max: expected a declared limit"),
     (lambda d: d["watchdog"].update(timeout_s=0), r"watchdog.timeout_s: expected a time-out > 0 s \(a profile "
                                                   r"whose communication watchdog is off is refused\), got 0"),
+    (lambda d: d["watchdog"].update(timeout_s=0.2), r"watchdog.timeout_s: expected at least 0.5 s \(the station "
+                                                    r"refreshes the watchdog every 0.2 s\), got 0.2"),
     (lambda d: d["commands"].pop("quick_stop"), r"commands: expected a sequence for each of .*got \"no 'quick_stop'\""),
     (lambda d: d["commands"]["enable"][0].update(register="actual_speed"),
      r"commands.enable\[0\].register: expected a writable 16-bit register"),

@@ -202,6 +202,9 @@ class MotorController:
         :class:`MotorStateError`; the emulated controller refuses it too, exception 04)."""
         name = self.profile.watchdog.register
         self.profile[name].check(seconds)
+        if 0 < seconds < self.profile.watchdog.min_s:
+            raise MotorValueError(f"register {name!r}: expected 0 (off) or at least the drive's smallest time-out "
+                                  f"{self.profile.watchdog.min_s:g} s, got {seconds!r} s")
         if seconds == 0 and (await self.read_status()).flags.get("enabled"):
             raise MotorStateError("watchdog_timeout: expected a timeout > 0 s while the drive is enabled, "
                                   "got 0 (the watchdog cannot be switched off while enabled)")

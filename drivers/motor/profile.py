@@ -37,6 +37,9 @@ CANONICAL_FLAGS = ("ready", "enabled", "running", "at_setpoint", "fault", "estop
 FAULT_KINDS = {1: "watchdog_expired", 2: "emergency_stop", 3: "overcurrent", 4: "overtemperature",
                5: "encoder_fault"}
 # reported when the drive shows a state but gives no code for it (outside any 16-bit code)
+# the station refreshes a drive's watchdog every 0.2 s while the crank may turn: a profile's time-out
+# leaves room for two missed refreshes
+MIN_WATCHDOG_TIMEOUT_S = 0.5
 PSEUDO_ESTOP = 0x1_0000
 PSEUDO_FAULT = 0x1_0001
 COMMANDS = ("enable", "stop", "quick_stop", "fault_reset")
@@ -462,6 +465,8 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
     t, m = wd.get("timeout_s"), wd.get("min_s", 0.0)
     expect(is_number(t) and t > 0, f"{src}: watchdog.timeout_s",
            "a time-out > 0 s (a profile whose communication watchdog is off is refused)", t)
+    expect(t >= MIN_WATCHDOG_TIMEOUT_S, f"{src}: watchdog.timeout_s", f"at least {MIN_WATCHDOG_TIMEOUT_S} s "
+           "(the station refreshes the watchdog every 0.2 s)", t)
     expect(is_number(m) and 0 <= m <= t, f"{src}: watchdog.min_s", f"0..timeout_s ({t} s)", m)
     assert wd_reg is not None
     expect(regs[wd_reg].in_range(t) and t >= regs[wd_reg].scale, f"{src}: watchdog.timeout_s",
