@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from station.recording.stored import results_version
 from station.report.names import PLOT_NAMES
 from station.service import worker
 from station.service.errors import ResultNotStoredError, RunStateError
@@ -111,12 +112,14 @@ class Artifacts:
         path = await self._completed_path(run_id)
         if name not in PLOT_NAMES:
             return None
-        return await self._cached((run_id, f"plot:{name}"),
+        version = await asyncio.to_thread(results_version, path)  # a result stored later shows at once
+        return await self._cached((run_id, f"plot:{name}:{hash(version)}"),
                                   lambda: self._locked_job(run_id, worker.plot_job, str(path), name))
 
     async def report(self, run_id: str) -> str:
         path = await self._completed_path(run_id)
-        return await self._cached((run_id, "report"),
+        version = await asyncio.to_thread(results_version, path)
+        return await self._cached((run_id, f"report:{hash(version)}"),
                                   lambda: self._locked_job(run_id, worker.report_job, str(path)))
 
     async def campaign(self, run_ids: list[str]) -> dict[str, Any]:
@@ -139,7 +142,6 @@ class Artifacts:
         (behind an authenticated POST only)."""
         path = await self._completed_path(run_id)
         out = await self._locked_job(run_id, worker.discrepancy_job, str(path), max_effects)
-        self._cache.pop((run_id, "report"), None)  # the report names the effects found
         return out
 
     async def stored_discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
