@@ -449,3 +449,15 @@ def test_the_profiles_transport_settings_reach_the_modbus_client() -> None:
     asyncio.run(run())
     gaps = np.diff(fake.arrivals)
     assert len(gaps) == 2 and gaps.min() >= 0.05  # a lower bound the transport guarantees
+
+
+@pytest.mark.slow
+def test_an_unknown_profile_is_a_clear_error_of_the_commands() -> None:
+    import subprocess
+    import sys
+
+    for args in (["-m", "station.cli", "sim-rig", "--profile", "no-such-drive"],
+                 ["-m", "drivers.sim", "--profile", "no-such-drive"]):
+        r = subprocess.run([sys.executable, *args], capture_output=True, text=True, timeout=60)
+        assert r.returncode != 0 and "Traceback" not in r.stderr
+        assert "drive profile 'no-such-drive': expected a shipped profile" in r.stderr

@@ -25,6 +25,7 @@ import threading
 import time
 from typing import Any
 
+from drivers.motor.errors import RegisterMapError
 from drivers.motor.profile import load_profile
 from drivers.sim.rig import SimRig, addresses_json
 
@@ -62,7 +63,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="print every command the motor controller takes as a JSON line")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
-    profile = load_profile(args.profile)
+    try:
+        profile = load_profile(args.profile)
+    except RegisterMapError as exc:
+        ap.error(str(exc))
     with SimRig(seed=args.seed, modbus_port=args.modbus_port, crank_radius_m=args.crank_radius,
                 profile=profile) as rig:
         if args.commands:

@@ -21,9 +21,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from drivers.motor.errors import RegisterMapError
     from drivers.motor.profile import load_profile
     from drivers.rig.presets import paper_5kN_physics
     from drivers.sim.rig import SimRig
+    from station.errors import ConfigError
 
     physics = paper_5kN_physics()
     radius = 0.01
@@ -37,7 +39,10 @@ def run(args: argparse.Namespace) -> int:
         profile_name = profile_name or cfg.rig.motor.profile
     if args.crank_radius is not None:
         radius = args.crank_radius
-    profile = load_profile(profile_name)
+    try:
+        profile = load_profile(profile_name)
+    except RegisterMapError as exc:
+        raise ConfigError(f"--profile: {exc}") from None
     with SimRig(physics=physics, seed=args.seed, modbus_port=args.modbus_port, crank_radius_m=radius,
                 profile=profile) as rig:
         a = rig.addresses
