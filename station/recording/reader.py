@@ -67,8 +67,9 @@ class Recording:
         return self.displacement_m[sl], self.force_V[sl]
 
 
-def _open(path: Path) -> tuple[h5py.File, bool]:
-    """Open read-only; a file cut off by a crash is opened in SWMR-read mode. Returns (file, clean)."""
+def open_recording(path: Path) -> tuple[h5py.File, bool]:
+    """Open a recording read-only (a file cut off by a crash in SWMR-read mode): (the h5py file, whether it
+    opened cleanly); RecordingFormatError when it is missing or not HDF5.  The caller closes the file."""
     if not path.exists():
         raise RecordingFormatError(f"{path}: no such recording")
     try:
@@ -101,7 +102,7 @@ def _channel(f: h5py.File, name: str, path: Path) -> np.ndarray:
 def read_recording(path: str | Path) -> Recording:
     """Load a recording; raises RecordingFormatError naming what is missing or malformed."""
     p = Path(path)
-    f, clean = _open(p)
+    f, clean = open_recording(p)
     with f:
         if f.attrs.get("format") != FORMAT_NAME:
             raise RecordingFormatError(f"{p}: format {FORMAT_NAME!r} expected, got {f.attrs.get('format')!r}")
@@ -165,7 +166,7 @@ def recover_partial(path: str | Path) -> Path:
     dst = src.with_name(src.name[: -len(".partial")])
     if dst.exists():
         raise StationError(f"{dst} exists already; not overwriting it")
-    f, _ = _open(src)
+    f, _ = open_recording(src)
     tmp = dst.with_name(dst.name + ".recovering")
     with f, h5py.File(tmp, "w") as out:
         for key in f:

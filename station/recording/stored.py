@@ -32,7 +32,7 @@ import h5py
 import numpy as np
 
 from station.errors import StationError
-from station.recording.reader import _open
+from station.recording.reader import open_recording
 from station.recording.writer import jsonable, utc_now
 
 log = logging.getLogger(__name__)
@@ -150,7 +150,7 @@ def read_stored(path: str | Path, group: str = "results") -> dict[str, Stored]:
     is a damaged disk or a foreign file)."""
     p = Path(path)
     out: dict[str, Stored] = {}
-    f, _ = _open(p)
+    f, _ = open_recording(p)
     with f:
         if group in f:
             for name, g in f[group].items():
@@ -181,7 +181,7 @@ def read_one(path: str | Path, name: str, group: str = "results") -> Stored | No
                 return s
         except (OSError, ValueError) as exc:
             log.warning("%s: result not readable (%s)", q, exc)
-    f, _ = _open(p)
+    f, _ = open_recording(p)
     with f:
         key = f"{group}/{name}"
         return _from_group(f[key], name, f"{p.name}:/{key}") if key in f else None
