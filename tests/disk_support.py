@@ -3,6 +3,7 @@ as CI has; skips elsewhere)."""
 
 from __future__ import annotations
 
+import errno
 import subprocess
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -24,3 +25,16 @@ def mounted_tmpfs(tmp_path: Path, size_mib: int) -> Iterator[Path]:
         yield mnt
     finally:
         subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def fill_disk(path: Path) -> int:
+    """Write zeros into ``path`` until its disk is full (a real ENOSPC); returns the bytes written."""
+    n = 0
+    with path.open("wb", buffering=0) as f:
+        block = b"\0" * 65536
+        while True:
+            try:
+                n += f.write(block)
+            except OSError as exc:
+                assert exc.errno == errno.ENOSPC
+                return n

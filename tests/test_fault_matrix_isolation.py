@@ -7,7 +7,6 @@ tested; a second daemon and a killed daemon are real processes (marked slow)."""
 from __future__ import annotations
 
 import asyncio
-import errno
 import json
 import os
 import subprocess
@@ -23,7 +22,7 @@ from station.bounded import MAX_YAML_NODES
 from station.cli import main
 from station.errors import BadInputError, ConfigError, RecordingFormatError
 from station.service.instance import LOCK_NAME, InstanceLock
-from tests.disk_support import mounted_tmpfs
+from tests.disk_support import fill_disk, mounted_tmpfs
 from tests.station_support import FINAL, TOKEN, Daemon, app_in_process, daemon_config, run_body, running_app
 
 # --------------------------------------------------------------------------------------- bad bodies
@@ -512,17 +511,8 @@ class _IdentifyingWorker:
 
         assert fn is worker.identify_job
         self.calls += 1
-        _fill(self.disk / f"filler-{self.calls}")
+        fill_disk(self.disk / f"filler-{self.calls}")
         return {"result_name": "identify_fd_h2", "method": "fd", "model": "h2", "wall_s": 0.5}
-
-
-def _fill(path: Path) -> None:
-    with path.open("wb", buffering=0) as f:
-        try:
-            while True:
-                f.write(b"\0" * 65536)
-        except OSError as exc:
-            assert exc.errno == errno.ENOSPC
 
 
 async def _until(cond: Any, timeout_s: float = 10.0) -> None:

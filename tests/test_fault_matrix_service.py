@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import errno
 import json
 import os
 import socket
@@ -28,7 +27,7 @@ from station.recording import read_recording
 from station.run.request import RunRequest
 from station.service.manager import RunManager
 from station.service.settings import build_settings
-from tests.disk_support import mounted_tmpfs
+from tests.disk_support import fill_disk, mounted_tmpfs
 from tests.station_support import (
     AUTH,
     FINAL,
@@ -236,19 +235,6 @@ def small_disk(tmp_path: Path) -> Iterator[Path]:
         yield mnt
 
 
-def _fill(path: Path) -> int:
-    """Write zeros into ``path`` until the disk is full (a real ENOSPC); returns the bytes written."""
-    n = 0
-    with path.open("wb", buffering=0) as f:
-        block = b"\0" * 65536
-        while True:
-            try:
-                n += f.write(block)
-            except OSError as exc:
-                assert exc.errno == errno.ENOSPC
-                return n
-
-
 def _open_fds(name: str) -> list[str]:
     out = []
     for fd in os.listdir("/proc/self/fd"):
@@ -281,7 +267,7 @@ def test_a_real_full_disk_fails_the_run_with_its_cause_and_frees_the_rig(
             assert (await c.get("/health")).json()["disk"]["reserve_file"]
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
-            await asyncio.to_thread(_fill, filler)
+            await asyncio.to_thread(fill_disk, filler)
             st = await wait_state(c, rid, FINAL, timeout_s=30)
             assert st["state"] == "failed" and cause in st["reason"], st
             assert m.live == {}

@@ -27,9 +27,9 @@ from station.commands.connections import ConnectionBounds, RepeatFilter
 from station.service.db import DbAccess
 from station.service.errors import DatabaseBusyError
 from station.service.store import RunRow, Store
-from tests.disk_support import mounted_tmpfs
+from tests.disk_support import fill_disk, mounted_tmpfs
 from tests.station_support import FINAL, Daemon, app_in_process, daemon_config, run_body, start, wait_state
-from tests.test_fault_matrix_service import _fill, estops
+from tests.test_fault_matrix_service import estops
 
 NOT_THE_BUSY_TIMEOUT_S = 5.0  # the database's busy timeout is 10 s: a stop faster than this did not wait for it
 
@@ -146,7 +146,7 @@ def test_stop_reaches_the_drive_on_a_full_disk_and_its_record_follows(tmp_path: 
             async with app_in_process(disk, min_free_mb=0.0) as (m, c):
                 rid = await start(c, freqs=(10.0,), record_s=30.0)
                 await wait_state(c, rid, ("running",), "recording")
-                await asyncio.to_thread(_fill, filler)
+                await asyncio.to_thread(fill_disk, filler)
                 t0 = time.monotonic()
                 r = await c.post("/stop")
                 assert time.monotonic() - t0 < NOT_THE_BUSY_TIMEOUT_S

@@ -23,7 +23,7 @@ END = 0xC0
 ESC = 0xDB
 ESC_END = 0xDC
 ESC_ESC = 0xDD
-_END_B = bytes([END])
+END_BYTE = bytes([END])
 _ESC_B = bytes([ESC])
 _ESC_END_PAIR = bytes([ESC, ESC_END])
 _ESC_ESC_PAIR = bytes([ESC, ESC_ESC])
@@ -148,7 +148,7 @@ def crc32(data: bytes | bytearray | memoryview) -> int:
 
 def slip_escape(data: bytes) -> bytes:
     """Escape ESC first, then END (order matters)."""
-    return data.replace(_ESC_B, _ESC_ESC_PAIR).replace(_END_B, _ESC_END_PAIR)
+    return data.replace(_ESC_B, _ESC_ESC_PAIR).replace(END_BYTE, _ESC_END_PAIR)
 
 
 def slip_unescape(data: bytes) -> bytes:
@@ -158,13 +158,13 @@ def slip_unescape(data: bytes) -> bytes:
     n_esc = data.count(_ESC_B)
     if n_esc != data.count(_ESC_END_PAIR) + data.count(_ESC_ESC_PAIR):
         raise DaqProtocolError("SLIP: expected ESC (0xDB) to be followed by 0xDC or 0xDD, found a bare ESC")
-    return data.replace(_ESC_END_PAIR, _END_B).replace(_ESC_ESC_PAIR, _ESC_B)
+    return data.replace(_ESC_END_PAIR, END_BYTE).replace(_ESC_ESC_PAIR, _ESC_B)
 
 
 def encode_packet(ptype: int, body: bytes) -> bytes:
     """``END | slip(type | body | crc32) | END``."""
     raw = bytes([ptype]) + body
-    return _END_B + slip_escape(raw + crc32(raw).to_bytes(4, "little")) + _END_B
+    return END_BYTE + slip_escape(raw + crc32(raw).to_bytes(4, "little")) + END_BYTE
 
 
 def encode_command(text: str, tag: str | None = None) -> bytes:
@@ -210,7 +210,7 @@ def sample_packet_raw(seq: int, displacement: np.ndarray, force: np.ndarray) -> 
 
 def encode_samples(seq: int, displacement: np.ndarray, force: np.ndarray) -> bytes:
     """A complete on-wire sample frame (SLIP-framed)."""
-    return _END_B + slip_escape(sample_packet_raw(seq, displacement, force)) + _END_B
+    return END_BYTE + slip_escape(sample_packet_raw(seq, displacement, force)) + END_BYTE
 
 
 # ------------------------------------------------------------------------------ decoder events
@@ -367,7 +367,7 @@ class StreamDecoder:
         """Decode ``data`` (any chunking); returns events in stream order, good samples merged."""
         out: list[DecoderEvent] = []
         self.stats.bytes += len(data)
-        chunks = (self._pending + data).split(_END_B)
+        chunks = (self._pending + data).split(END_BYTE)
         self._pending = chunks.pop()
         if len(self._pending) > 2 * (SAMPLE_HEADER.size + 4 * MAX_FRAME_SAMPLES + CRC_SIZE):
             self._offset += len(self._pending)

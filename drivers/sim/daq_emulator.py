@@ -23,7 +23,7 @@ import numpy as np
 
 from drivers.clock import REAL_CLOCK, Clock
 from drivers.daq.protocol import (
-    _END_B,
+    END_BYTE,
     PKT_COMMAND,
     DaqProtocolError,
     check_tag,
@@ -270,7 +270,7 @@ class DaqEmulator:
         return f"OK CONF {self._conf_text()}"
 
     def _read_commands(self, data: bytes) -> None:
-        chunks = (self._cmd_buf + data).split(_END_B)
+        chunks = (self._cmd_buf + data).split(END_BYTE)
         self._cmd_buf = chunks.pop()[-8192:]
         for chunk in chunks:
             if not chunk:
@@ -341,7 +341,7 @@ class DaqEmulator:
                     buf[len(buf) // 2] ^= 0x5A
                     raw = bytes(buf)
                     self._lose(first, frame)
-                wire = _END_B + slip_escape(raw) + _END_B
+                wire = END_BYTE + slip_escape(raw) + END_BYTE
                 if len(self._out) + len(wire) > self.fifo_bytes:
                     self.overflows += 1
                     if seq not in self._corrupt:

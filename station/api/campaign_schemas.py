@@ -18,8 +18,8 @@ from station.api.schemas import (
     MeasurementChainOut,
     MethodName,
     ModelName,
+    OutModel,
     RunMassOut,
-    _Out,
 )
 
 RunIdStr = Annotated[str, StringConstraints(pattern=RUN_ID_PATTERN)]
@@ -37,23 +37,23 @@ class CampaignRequest(BaseModel):
                                                    "recording (its report then shows it); needs the bearer token")
 
 
-class MassOut(_Out):
+class MassOut(OutModel):
     value: float | None = Field(description="kg")
     std: float | None = Field(description="kg")
 
 
-class OwnValueOut(_Out):
+class OwnValueOut(OutModel):
     value: float | None
     std: float | None
     unit: str
 
 
-class OwnFitOut(_Out):
+class OwnFitOut(OutModel):
     S: OwnValueOut
     k_f: OwnValueOut
 
 
-class CampaignRecordingOut(_Out):
+class CampaignRecordingOut(OutModel):
     run_id: str
     path: str = Field(description="recording file name")
     load_mass_kg: MassOut = Field(description="top mass + adaption as weighed")
@@ -65,7 +65,7 @@ class CampaignRecordingOut(_Out):
     own_fit: OwnFitOut = Field(description="its own Eq. 9 fit with m_e held at the campaign's (consistency check)")
 
 
-class CampaignFitOut(_Out):
+class CampaignFitOut(OutModel):
     chi2: float | None
     dof: int
     chi2_per_dof: float | None
@@ -84,7 +84,7 @@ class CampaignAssumptionsOut(BaseModel):
     structure: dict[str, Any] | None = None
 
 
-class CampaignOut(_Out):
+class CampaignOut(OutModel):
     """Joint identification of S, m_e, k_f, b_f (Eq. 9) from runs with different top masses."""
 
     kind: Literal["campaign"]

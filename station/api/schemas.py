@@ -25,7 +25,9 @@ Severity = Literal["info", "warning", "refused"]
 EStopSource = Literal["page", "api", "controller", "drive"]
 
 
-class _Out(BaseModel):
+class OutModel(BaseModel):
+    """Base of the response schemas: no field beyond those declared."""
+
     model_config = ConfigDict(extra="forbid")
 
 
@@ -38,7 +40,7 @@ def utc(ts: float | None) -> datetime | None:
     return None if ts is None else datetime.fromtimestamp(ts, UTC)
 
 
-class ErrorOut(_Out):
+class ErrorOut(OutModel):
     detail: str = Field(description="what went wrong, for the operator")
 
 
@@ -54,11 +56,11 @@ class FieldError(BaseModel):
     input: Any = None
 
 
-class ValidationErrorOut(_Out):
+class ValidationErrorOut(OutModel):
     detail: list[FieldError]
 
 
-class RunLinks(_Out):
+class RunLinks(OutModel):
     self: str
     events: str
     results: str
@@ -66,7 +68,7 @@ class RunLinks(_Out):
     abort: str
 
 
-class PlannedStepOut(_Out):
+class PlannedStepOut(OutModel):
     index: int
     crank_frequency_hz: float = Field(description="Hz")
     crank_radius_m: float = Field(description="m")
@@ -74,7 +76,7 @@ class PlannedStepOut(_Out):
     record_s: float = Field(description="s")
 
 
-class RunStatus(_Out):
+class RunStatus(OutModel):
     """A run's state and live progress."""
 
     id: str
@@ -98,18 +100,18 @@ class RunStatus(_Out):
     links: RunLinks
 
 
-class RunList(_Out):
+class RunList(OutModel):
     count: int
     runs: list[RunStatus]
 
 
-class RunAccepted(_Out):
+class RunAccepted(OutModel):
     id: str
     state: RunState
     links: RunLinks
 
 
-class EstimateOut(_Out):
+class EstimateOut(OutModel):
     """One identified quantity with its uncertainty (a single recording's or a campaign's)."""
 
     value: float | None = Field(description="estimate in `unit`; None when not identifiable or refused")
@@ -124,7 +126,7 @@ class ParameterOut(EstimateOut):
     name: str
 
 
-class CovarianceOut(_Out):
+class CovarianceOut(OutModel):
     """Covariance of estimated parameters (names and units in matrix order); its diagonal is the
     square of their stated standard uncertainties."""
 
@@ -133,7 +135,7 @@ class CovarianceOut(_Out):
     matrix: list[list[float | None]] = Field(description="covariance in the parameters' units (products)")
 
 
-class CheckOut(_Out):
+class CheckOut(OutModel):
     """A finding of the identification's input checks."""
 
     name: str
@@ -144,14 +146,14 @@ class CheckOut(_Out):
                                    "check concerns (campaigns)")
 
 
-class FitOut(_Out):
+class FitOut(OutModel):
     mse: float | None = Field(description="mean square force residual, V^2")
     residual_rms_V: list[float | None]
     chi2_per_dof: float | None
     n_points: int
 
 
-class IdentifiabilityOut(_Out):
+class IdentifiabilityOut(OutModel):
     names: list[str]
     condition_number: float | None
     correlations: list[list[float | None]]
@@ -159,7 +161,7 @@ class IdentifiabilityOut(_Out):
     reasons: list[str]
 
 
-class StepResponseOut(_Out):
+class StepResponseOut(OutModel):
     """H(f) = force signal / frame acceleration of one step, V/(m/s^2)."""
 
     index: int
@@ -176,7 +178,7 @@ class StepResponseOut(_Out):
     n_samples: int | None
 
 
-class BudgetOut(_Out):
+class BudgetOut(OutModel):
     """A parameter's uncertainty budget: each source's standard uncertainty and their combination."""
 
     contributions: dict[str, float | None] = Field(description="standard uncertainty per source, in `unit`")
@@ -184,13 +186,13 @@ class BudgetOut(_Out):
     unit: str
 
 
-class MassAssumptionOut(_Out):
+class MassAssumptionOut(OutModel):
     value: float | None = Field(description="kg")
     std: float | None = Field(description="kg")
     source: str = Field(description="where the value comes from (config, request, campaign, ...)")
 
 
-class RunMassOut(_Out):
+class RunMassOut(OutModel):
     run_id: str
     value: float | None = Field(description="kg")
     std: float | None = Field(description="kg")
@@ -232,14 +234,14 @@ class DeterminedOut(BaseModel):
     unit: str
 
 
-class SkippedStepOut(_Out):
+class SkippedStepOut(OutModel):
     """A step left out of H(f), and why."""
 
     step: int
     reason: str
 
 
-class RunResults(_Out):
+class RunResults(OutModel):
     id: str
     state: RunState
     recording: str
@@ -285,7 +287,7 @@ class DiscrepancyOut(BaseModel):
     notes: list[str] = []
 
 
-class DriveOut(_Out):
+class DriveOut(OutModel):
     """The drive read back after a stop (the station's own stops and the emergency stop)."""
 
     after: str = Field(description="which stop, e.g. 'the emergency stop'")
@@ -300,7 +302,7 @@ class DriveOut(_Out):
     detail: str
 
 
-class StopOut(_Out):
+class StopOut(OutModel):
     accepted: bool = True
     motor_stopped: bool = Field(description="the drive, read back after the command, reports standstill "
                                 "(false: still turning, not readable, or the command was not taken)")
@@ -319,7 +321,7 @@ class AcknowledgeIn(BaseModel):
     note: str = Field(default="", max_length=500, description="e.g. what was checked before the restart")
 
 
-class AcknowledgeOut(_Out):
+class AcknowledgeOut(OutModel):
     acknowledged: list[int] = Field(description="ids of the emergency stops acknowledged (empty: none latched)")
     by: str
     at: datetime
@@ -327,7 +329,7 @@ class AcknowledgeOut(_Out):
     latched: bool
 
 
-class EStopState(_Out):
+class EStopState(OutModel):
     latched: bool | None = Field(description="an emergency stop waits for an operator's acknowledgement "
                                  "(None: the database cannot be read)")
     since: str | None = None
@@ -339,22 +341,22 @@ class EStopState(_Out):
     last_acknowledged_by: str | None = None
 
 
-class AbortOut(_Out):
+class AbortOut(OutModel):
     id: str
     state: RunState
     detail: str
 
 
-class MotorLink(_Out):
+class MotorLink(OutModel):
     connected: bool
     watchdog_error: str | None
 
 
-class DaqLink(_Out):
+class DaqLink(OutModel):
     link_error: str | None
 
 
-class RigHealth(_Out):
+class RigHealth(OutModel):
     connected: bool
     error: str | None
     description: str
@@ -363,14 +365,14 @@ class RigHealth(_Out):
     simulated: bool
 
 
-class DatabaseHealth(_Out):
+class DatabaseHealth(OutModel):
     ok: bool = Field(description="the database answers and takes writes")
     journal_mode: str | None
     pending_writes: int = Field(default=0, description="changes waiting for the database (retried until taken)")
     error: str | None = Field(default=None, description="why the database does not answer or take writes")
 
 
-class WorkerHealth(_Out):
+class WorkerHealth(OutModel):
     processes: int
     started: bool
     crashes: int
@@ -380,7 +382,7 @@ class WorkerHealth(_Out):
         "(e.g. its disk is full) and why; written again every few seconds, and `status` is `degraded` meanwhile")
 
 
-class DiskHealth(_Out):
+class DiskHealth(OutModel):
     ok: bool
     free_bytes: int = Field(description="free space on the recordings disk, bytes")
     reserve_bytes: int = Field(description="kept free (station.min_free_mb), bytes")
@@ -389,12 +391,12 @@ class DiskHealth(_Out):
     detail: str | None
 
 
-class UnreadableRecordingOut(_Out):
+class UnreadableRecordingOut(OutModel):
     file: str = Field(description="file name in the recordings folder")
     error: str
 
 
-class RecordingsCheckOut(_Out):
+class RecordingsCheckOut(OutModel):
     """The start-up check of the recordings folder (recordings damaged by an interrupted in-place
     write of an older station: repaired, or named when they cannot be read)."""
 
@@ -404,7 +406,7 @@ class RecordingsCheckOut(_Out):
     notes: list[str]
 
 
-class HealthOut(_Out):
+class HealthOut(OutModel):
     status: Literal["ok", "degraded"]
     estop: EStopState
     disk: DiskHealth
@@ -417,12 +419,12 @@ class HealthOut(_Out):
     recordings: RecordingsCheckOut
 
 
-class RangeOut(_Out):
+class RangeOut(OutModel):
     min: float
     max: float
 
 
-class LimitsOut(_Out):
+class LimitsOut(OutModel):
     crank_frequency_hz: RangeOut
     crank_radius_m: RangeOut
     peak_force_limit_N: float = Field(description="peak |F| = M (g + r w^2) must stay below this")
@@ -432,7 +434,7 @@ class LimitsOut(_Out):
     acceleration_hz_per_s: float
 
 
-class StationOut(_Out):
+class StationOut(OutModel):
     name: str
     transducer_id: str
     capacity_N: float
