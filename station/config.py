@@ -2,9 +2,6 @@
 
 Unknown keys and out-of-range values are refused with a message naming the key, the value received
 and the allowed range.  All quantities are SI; the unit is part of every field name.
-
-(Just over 300 lines: every section of the station's YAML is validated here, in one place, so that
-a bad file is refused at start-up with every problem named at once.)
 """
 
 from __future__ import annotations

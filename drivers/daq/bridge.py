@@ -19,9 +19,6 @@ Events, in stream order: :class:`SampleBlock` (first_index, displacement int16[n
 
 Every command carries a tag (``#N``) that the bridge echoes in its reply; a reply with another tag
 (a late answer to a command that timed out) is dropped, never taken as the answer to a later one.
-
-(Just over 300 lines: one driver class, its command/reply matching and its reader thread share the
-link's state.)
 """
 
 from __future__ import annotations

@@ -5,10 +5,6 @@ ESC_ESC=0xDD), with an END before *and* after each packet so that line garbage i
 A packet is ``type:u8 | body | crc:u32le`` where the CRC is CRC-32/ISO-HDLC (``zlib.crc32``) of
 ``type | body``.  Sample packets (type 0x01) carry ``seq:u32le | count:u16le | count x (disp:i16le,
 force:i16le)``.  Replies (0x02) and commands (0x10) carry ASCII text.
-
-(Over 300 lines: the link budget, the packet encoding and the streaming decoder are the one
-protocol of ``docs/daq-protocol.md``; encoder and decoder stay side by side so that they cannot drift
-apart.)
 """
 
 from __future__ import annotations

@@ -13,9 +13,6 @@ Usage (asyncio)::
 The station must refresh the drive's watchdog: call :meth:`refresh_watchdog` at least every
 watchdog time-out (or run :meth:`start_watchdog`); otherwise the drive stops the motor.  Commands
 (enable, stop, quick stop, fault reset) are the profile's write sequences with their hold times.
-
-(Over 300 lines: one driver class; its commands, status decoding and watchdog keeper share the
-profile and the link.)
 """
 
 from __future__ import annotations

@@ -9,9 +9,6 @@ station's canonical flags, the fault-code table and the communication watchdog. 
 (:class:`~drivers.motor.controller.MotorController`) and the emulator (``drivers.sim``) read the same
 profile; nothing else declares an address.  Profiles ship in ``config/drives/`` (chosen by name) or
 come from any path.
-
-(Over 300 lines: the profile's sections refer to each other — roles, commands and the watchdog name
-registers, flags name canonical meanings — and are validated together, in one place.)
 """
 
 from __future__ import annotations

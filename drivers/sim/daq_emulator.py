@@ -5,9 +5,6 @@ frequency of every block is the motor emulator's actual speed at that moment, so
 move with the motor.  Fault injection (thread-safe): dropped and corrupted frames, garbage
 between frames, a stalled stream and a closed port.  Every sample the emulator does not deliver
 intact is recorded in :attr:`DaqEmulator.lost` as ``(first_sample_index, count)``.
-
-(Over 300 lines: command handling, real-time streaming and fault injection act on one stream
-state, and every lost sample must be accounted for in one place.)
 """
 
 from __future__ import annotations

@@ -2,9 +2,6 @@
 
 The request body of ``POST /runs`` is ``station.run.request.RunRequest`` itself (one definition
 for the daemon, the CLI and the nightly batch); everything else here is a response.
-
-(Just over 300 lines: the run, results, discrepancy and stop schemas are kept in one module so that
-the OpenAPI document has one source; the campaign's schemas live in ``campaign_schemas.py``.)
 """
 
 from __future__ import annotations

@@ -3,9 +3,7 @@ time), carry it out with the Procedure, follow its progress, abort it, stop ever
 
 The bookkeeping (``live``, the database, change notification) belongs to the web side's loop; the
 procedure runs on the rig thread's loop (``_carry_out``) and posts its progress back with
-``call_soon_threadsafe``.  Aborts and cancellations cross over the other way.  (Somewhat over 300
-lines: starting, stopping and acknowledging share one piece of state, the run on the rig, and the
-rules for handing it between the two loops; split, they would have to share those internals.)"""
+``call_soon_threadsafe``.  Aborts and cancellations cross over the other way."""
 
 from __future__ import annotations
 

@@ -4,8 +4,7 @@ Two connections, each behind its own lock: one for writes, one for reads (WAL le
 while a writer, this process's or another's, holds the write lock).  The daemon calls them from
 threads, never from its event loop (``db.py``).  Writes are autocommitted; WAL with
 ``synchronous=NORMAL`` keeps a committed state change through a kill of the process (a power cut
-may lose the last few, never corrupt the file).  (Just over 300 lines:
-the schema and every statement on it in one place, so that the lock discipline is seen at once.)
+may lose the last few, never corrupt the file).
 """
 
 from __future__ import annotations
