@@ -7,7 +7,7 @@ Each figure is the median wall time of ``--repeat`` runs of ``python3 -m pytest 
 subprocess (the same command as the README), with the pass/fail counts of the last run, the CPU
 time (user + system) of pytest and everything it started, and the 1-minute load average before and
 after (the machine is shared: a figure taken under load says so; the CPU time hardly depends on it).
-Targets (docs/testing.md): fast subset <= 60 s, full suite <= 300 s on the 2-core station PC.
+Targets (docs/testing.md): fast subset <= 45 s, full suite <= 240 s on the 2-core station PC.
 """
 
 from __future__ import annotations
