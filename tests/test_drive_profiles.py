@@ -461,3 +461,40 @@ def test_an_unknown_profile_is_a_clear_error_of_the_commands() -> None:
         r = subprocess.run([sys.executable, *args], capture_output=True, text=True, timeout=60)
         assert r.returncode != 0 and "Traceback" not in r.stderr
         assert "drive profile 'no-such-drive': expected a shipped profile" in r.stderr
+
+
+def test_any_malformed_profile_is_a_register_map_error_never_a_crash() -> None:
+    """Seeded mutations of every shipped profile (wrong types, missing keys, junk values): each is
+    refused with a RegisterMapError or loads; nothing else escapes (bad input gets a clear error)."""
+    import random
+
+    junk = [None, "x", -1, 0, 1.5, [], {}, [1], {"a": 1}, {1: 2}, True, 10**9, float("nan"), "0x10", [[1]],
+            {"bit": 3}, {"mask": 3, "value": "x"}]
+
+    def paths(d: object, pre: tuple = ()) -> Iterator[tuple]:
+        items = d.items() if isinstance(d, dict) else enumerate(d) if isinstance(d, list) else []
+        for k, v in items:
+            yield (*pre, k)
+            yield from paths(v, (*pre, k))
+
+    rng = random.Random(11)
+    refused = 0
+    for name in PROFILES:
+        doc = yaml.safe_load(profile_path(name).read_text())
+        where = list(paths(doc))
+        for _ in range(60):
+            d = copy.deepcopy(doc)
+            p = rng.choice(where)
+            tgt = d
+            for k in p[:-1]:
+                tgt = tgt[k]
+            if rng.random() < 0.2 and isinstance(tgt, dict):
+                del tgt[p[-1]]
+            else:
+                tgt[p[-1]] = rng.choice(junk)
+            try:
+                parse_profile(d, "mutated.yaml")
+            except RegisterMapError as exc:
+                refused += 1
+                assert "mutated.yaml" in str(exc) and "expected" in str(exc)
+    assert refused > 150  # most mutations break something, and each says what

@@ -264,7 +264,7 @@ def _transport(doc: Any, src: str) -> TransportSpec:
     doc = {} if doc is None else doc
     expect(isinstance(doc, dict), f"{src}: transport", "a mapping", doc)
     known = {f.name for f in fields(TransportSpec)}
-    extra = sorted(set(doc) - known)
+    extra = sorted(str(k) for k in set(doc) - known)
     expect(not extra, f"{src}: transport", f"only keys {sorted(known)}", extra)
     kw: dict[str, Any] = {k: (tuple(v) if k == "functions" and isinstance(v, list) else v) for k, v in doc.items()}
     t = TransportSpec(**kw)
@@ -273,7 +273,8 @@ def _transport(doc: Any, src: str) -> TransportSpec:
     expect(t.parity in ("E", "O", "N"), f"{src}: transport.parity", "'E', 'O' or 'N'", t.parity)
     expect(t.stopbits in (1, 2), f"{src}: transport.stopbits", "1 or 2", t.stopbits)
     expect(_int(t.unit_id) and 1 <= t.unit_id <= 247, f"{src}: transport.unit_id", "1..247", t.unit_id)
-    expect(isinstance(t.functions, tuple) and set(t.functions) <= {0x03, 0x04, 0x06, 0x10} and 0x03 in t.functions
+    expect(isinstance(t.functions, tuple) and all(_int(f) for f in t.functions)
+           and set(t.functions) <= {0x03, 0x04, 0x06, 0x10} and 0x03 in t.functions
            and 0x06 in t.functions, f"{src}: transport.functions", "a list of 3, 4, 6, 16 with 3 and 6",
            t.functions)
     expect(_int(t.max_registers_per_read) and 1 <= t.max_registers_per_read <= 125,
@@ -291,13 +292,13 @@ def _flag(spec: Any, where: str) -> FlagSpec:
     expect(isinstance(spec, dict), where, "{bit: n} (active_low: true), {mask: m, value: v} or {any: [...]}",
            spec)
     if "bit" in spec:
-        expect(set(spec) <= {"bit", "active_low"}, where, "only bit and active_low", sorted(spec))
+        expect(set(spec) <= {"bit", "active_low"}, where, "only bit and active_low", sorted(map(str, spec)))
         bit = spec["bit"]
         expect(_int(bit) and 0 <= bit <= 15, f"{where}.bit", "0..15", bit)
         low = spec.get("active_low", False)
         expect(isinstance(low, bool), f"{where}.active_low", "true or false", low)
         return FlagSpec(((1 << bit, 0 if low else 1 << bit),))
-    expect(set(spec) == {"mask", "value"}, where, "{mask: m, value: v}", sorted(spec))
+    expect(set(spec) == {"mask", "value"}, where, "{mask: m, value: v}", sorted(map(str, spec)))
     m, v = spec["mask"], spec["value"]
     expect(_int(m) and 0 < m <= 0xFFFF and _int(v) and v & ~m == 0, where,
            "a 16-bit mask and a value within it", (m, v))
@@ -315,7 +316,8 @@ def _steps(doc: Any, where: str, default_register: str | None, regs: Mapping[str
         expect(isinstance(step, dict) and set(step) <= {"register", "value", "hold_s"} and "value" in step, w,
                "a word, or {register:, value:, hold_s:}", step)
         reg_name = step.get("register", default_register)
-        expect(reg_name in regs and regs[reg_name].writable and regs[reg_name].words == 1, f"{w}.register",
+        expect(isinstance(reg_name, str) and reg_name in regs and regs[reg_name].writable
+               and regs[reg_name].words == 1, f"{w}.register",
                "a writable 16-bit register of the profile", reg_name)
         reg = regs[reg_name]
         lo, hi = reg.raw_range()
@@ -348,14 +350,14 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
     Every error is a :class:`RegisterMapError` naming the key, what was expected and what came."""
     src = source
     expect(isinstance(doc, dict), src, "a mapping (a drive profile)", type(doc).__name__)
-    extra = sorted(set(doc) - _TOP_KEYS)
+    extra = sorted(str(k) for k in set(doc) - _TOP_KEYS)
     expect(not extra, src, f"only keys {sorted(_TOP_KEYS)}", extra)
     name = doc.get("profile")
     expect(isinstance(name, str) and bool(name), f"{src}: profile", "the profile's name", name)
     transport = _transport(doc.get("transport"), src)
     dev_doc = doc.get("device", {}) or {}
     expect(isinstance(dev_doc, dict), f"{src}: device", "a mapping", dev_doc)
-    extra = sorted(set(dev_doc) - _DEVICE_KEYS)
+    extra = sorted(str(k) for k in set(dev_doc) - _DEVICE_KEYS)
     expect(not extra, f"{src}: device", f"only keys {sorted(_DEVICE_KEYS)} (the frequency and ramp limits are "
            "the min/max of the set-point and ramp registers)", extra)
     for k, v in dev_doc.items():
@@ -388,8 +390,8 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
                "{registers: [...], form: rate|time_to_max}", rd)
         expect(rd["form"] in RAMP_FORMS, f"{src}: ramp.form", "'rate' (Hz/s) or 'time_to_max' (s)", rd["form"])
         expect(isinstance(rd["registers"], list) and bool(rd["registers"]) and all(
-            r in regs and regs[r].writable for r in rd["registers"]), f"{src}: ramp.registers",
-            "writable registers of the profile", rd["registers"])
+            isinstance(r, str) and r in regs and regs[r].writable for r in rd["registers"]),
+            f"{src}: ramp.registers", "writable registers of the profile", rd["registers"])
         ramp = RampSpec(tuple(rd["registers"]), rd["form"])
         first = regs[ramp.registers[0]]
         if ramp.form == "rate":
@@ -430,7 +432,7 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
            f"{src}: faults.codes", "a mapping of integer codes 0..65535 -> names, with 0", codes)
     kinds = fd.get("kinds", {}) or {}
     expect(isinstance(kinds, dict) and set(kinds) <= set(FAULT_KINDS.values())
-           and all(c in codes and c != 0 for c in kinds.values()), f"{src}: faults.kinds",
+           and all(_int(c) and c in codes and c != 0 for c in kinds.values()), f"{src}: faults.kinds",
            f"a mapping from {sorted(FAULT_KINDS.values())} to non-zero codes of the table", kinds)
     faults = FaultTable(fault_reg, {int(k): str(v) for k, v in codes.items()}, dict(kinds))
 
@@ -439,7 +441,7 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
     expect(isinstance(cd, dict) and cd.get("model") in ("control_word", "registers"), f"{src}: commands",
            "{model: control_word|registers, ...}", cd)
     allowed = {"model", "register", "hold_s", *COMMANDS, *OPTIONAL_COMMANDS}
-    expect(set(cd) <= allowed, f"{src}: commands", f"only keys {sorted(allowed)}", sorted(cd))
+    expect(set(cd) <= allowed, f"{src}: commands", f"only keys {sorted(allowed)}", sorted(map(str, cd)))
     hold = cd.get("hold_s", 0.0)
     expect(is_number(hold) and 0 <= hold <= 5.0, f"{src}: commands.hold_s", "0..5 s", hold)
     control: str | None = None
@@ -470,7 +472,7 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
            f"a value register {wd_reg!r} holds ({regs[wd_reg].valid_range()})", t)
     refresh = wd.get("refresh", "any_request")
     if refresh != "any_request":
-        expect(refresh in regs and regs[refresh].writable, f"{src}: watchdog.refresh",
+        expect(isinstance(refresh, str) and refresh in regs and regs[refresh].writable, f"{src}: watchdog.refresh",
                "'any_request' or a writable register", refresh)
     watchdog = WatchdogSpec(wd_reg, float(t), float(m), None if refresh == "any_request" else str(refresh))
 

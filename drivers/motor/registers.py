@@ -174,20 +174,21 @@ _REGISTER_KEYS = {"address", "numbering", "function", "type", "scale", "offset",
                   "memory", "word_order", "description", "min", "max", "reads_flag"}
 
 
-def parse_register(name: str, spec: Any, device: Mapping[str, float | None]) -> Register:
+def parse_register(name: str, spec: Any, device: Mapping[str, float | None], source: str = "") -> Register:
     """Validate one register of a profile's ``registers`` section.
 
     ``normalised: {raw: 16384, full_scale: reference_frequency_hz}`` means raw 16384 is the value of
     that ``device`` key (100 %): scale = full_scale / raw (instead of ``scale``)."""
-    where = f"registers.{name}"
+    where = f"{source}: registers.{name}" if source else f"registers.{name}"
     expect(isinstance(spec, dict), where, "a mapping", spec)
-    unknown = sorted(set(spec) - _REGISTER_KEYS)
+    unknown = sorted(str(k) for k in set(spec) - _REGISTER_KEYS)
     expect(not unknown, where, f"only keys {sorted(_REGISTER_KEYS)}", unknown)
     function = spec.get("function", "holding")
-    expect(function in FUNCTIONS, f"{where}.function", "'holding' (FC 03/06/16) or 'input' (FC 04)", function)
+    expect(isinstance(function, str) and function in FUNCTIONS, f"{where}.function",
+           "'holding' (FC 03/06/16) or 'input' (FC 04)", function)
     addr = wire_address(spec.get("address"), spec.get("numbering", 0), function, where)
     typ = spec.get("type")
-    expect(typ in _TYPES, f"{where}.type", f"one of {sorted(_TYPES)}", typ)
+    expect(isinstance(typ, str) and typ in _TYPES, f"{where}.type", f"one of {sorted(_TYPES)}", typ)
     if "normalised" in spec:
         expect("scale" not in spec, where, "either scale or normalised", "both")
         norm = spec["normalised"]
@@ -210,9 +211,9 @@ def parse_register(name: str, spec: Any, device: Mapping[str, float | None]) -> 
     expect(access in ("r", "rw"), f"{where}.access", "'r' or 'rw'", access)
     expect(not (access == "rw" and function == "input"), f"{where}.access", "'r' for an input register", access)
     memory = spec.get("memory", "ram")
-    expect(memory in MEMORIES, f"{where}.memory", "'ram' or 'eeprom'", memory)
+    expect(isinstance(memory, str) and memory in MEMORIES, f"{where}.memory", "'ram' or 'eeprom'", memory)
     order = spec.get("word_order", "high_first")
-    expect(order in WORD_ORDERS, f"{where}.word_order", "'high_first' or 'low_first'", order)
+    expect(isinstance(order, str) and order in WORD_ORDERS, f"{where}.word_order", "'high_first' or 'low_first'", order)
     unit = spec.get("unit", "")
     expect(isinstance(unit, str), f"{where}.unit", "a string", unit)
     desc = str(spec.get("description", ""))
@@ -235,7 +236,7 @@ def parse_register(name: str, spec: Any, device: Mapping[str, float | None]) -> 
 def parse_registers(doc: Any, device: Mapping[str, float | None], source: str) -> dict[str, Register]:
     """The ``registers`` section: every register valid, no wire address used twice (per function)."""
     expect(isinstance(doc, dict) and bool(doc), f"{source}: registers", "a non-empty mapping", doc)
-    regs = {str(name): parse_register(str(name), spec, device) for name, spec in doc.items()}
+    regs = {str(name): parse_register(str(name), spec, device, source) for name, spec in doc.items()}
     used: dict[tuple[str, int], str] = {}
     for reg in regs.values():
         for a in range(reg.address, reg.address + reg.words):
