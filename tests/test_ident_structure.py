@@ -72,6 +72,20 @@ def test_a_soft_coupling_is_named_and_k_f_alone_withheld(tmp_path: Path) -> None
     assert res.assumptions["structure"]["coupling"]["contradicted_by_the_data"]
 
 
+@pytest.mark.slow
+def test_with_the_steps_that_show_the_coupling_eq8_is_chosen_and_k_f_alone_is_right(tmp_path: Path) -> None:
+    """The same k_c = 2 k_f with the higher steps the model-gap proposal names (16.5, 54.8, 67,
+    100 Hz): the auto model takes Eq. 8, states it, and gives k_f and k_c within 3 u."""
+    plan = (*PLAN_3_40, (16.5, 1.5e-3), (54.8, 6e-4), (67.0, 4e-4), (100.0, 1.5e-4))
+    res = identify_recording(read_recording(sim(tmp_path, plan, edit=effects({"coupling_compliance": {
+        "k_c": 2 * K, "b_c": 0.0}}))))
+    assert res.model == "coupled" and res.assumptions["structure"]["equation"] == "Eq. 8"
+    for name, truth in (("k_f", K), ("k_c", 2 * K)):
+        p = res.parameter(name)
+        assert p.value is not None and abs(p.value - truth) < 3 * p.std
+    assert not {"coupling_suspected", "coupling_not_excluded"} & {c.name for c in res.checks}
+
+
 def test_a_clean_run_states_its_structure_and_bounds_the_coupling(tmp_path: Path) -> None:
     """No coupling, the shipped plan's frequencies: the structure is stated, the plan excludes couplings
     softer than ADAPTER_COUPLING_RATIO k_s, k_f is right and unflagged, no warning."""
