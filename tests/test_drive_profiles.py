@@ -168,7 +168,8 @@ def test_control_word_steps_held_too_briefly_are_not_seen_by_the_drive() -> None
         await motor.enable()  # with the hold times: shutdown, switch on, then "run" (enable operation)
         assert (await motor.read_status()).flags["enabled"]
         await motor.disable()  # disable operation (0x07): stays switched on ...
-        assert not (await motor.read_status()).flags["enabled"]
+        st = await motor.read_status()
+        assert not st.flags["enabled"] and st.flags["switched_on"] and st.status_word & 0x6F == 0x23
         await motor.transport.write(cw.address, [0x000F], cw.name)  # ... so enable operation alone runs
         assert (await motor.read_status()).flags["enabled"]
         await motor.emergency_stop()  # quick stop: no longer switched on

@@ -89,6 +89,7 @@ class MotorRegisterImage:
             "estop": s.estop,
             "ramping": s.speed_hz != s.target_hz,
             "watchdog_expired": s.watchdog_expired,
+            "switched_on": self.switched_on and not s.enabled and not fault and not s.estop,
         }
         values = dict(self._stored)
         values[p.setpoint] = s.setpoint_hz
