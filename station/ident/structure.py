@@ -304,7 +304,7 @@ def apply_structure(model_key: str, stiff: bool, params: dict[str, Estimate], th
                    f"from a stiff one, so k_f alone lies in [{k_s:.6g}, {k_hi:.6g}] N/m "
                    f"(+{100 * (k_hi / k_s - 1):.2g} %)")
         determined["transducer_stiffness_alone"] = {
-            "value": kf.value, "range": [k_s, k_hi], "unit": "N/m",
+            "range": [k_s, k_hi], "unit": "N/m",
             "k_c_lower_bound_N_per_m": bound.k_c_min,
             "conditional_on": "a stiff coupling (k_c -> inf): " + rng}
         text = ("conditional on a stiff coupling (Eq. 9): the data determine the series stiffness of transducer "
@@ -318,10 +318,12 @@ def apply_structure(model_key: str, stiff: bool, params: dict[str, Estimate], th
         else:
             out["k_f"] = replace(kf, reason=(kf.reason + "; " if kf.reason else "") + text)
         if width > 3 * u_k:
+            lead = ("k_f rests on a stiff coupling that this plan cannot confirm: " if soft else
+                    "k_f rests on a stiff coupling; this plan excludes the soft ones, but not all that would move "
+                    "k_f by more than 3 u: ")
             checks.append(Check("coupling_not_excluded", "warning" if soft else "info", None,
-                                "k_f rests on a stiff coupling that this plan cannot confirm: " + rng
-                                + f"; the stated u(k_f) = {u_k:.3g} N/m covers none of that range; steps at higher "
-                                "frequencies narrow it", bound.to_dict()))
+                                lead + rng + f"; u(k_f) = {u_k:.3g} N/m; steps at higher frequencies narrow the range",
+                                bound.to_dict()))
         ib = "b_f"
         bp = out[ib]
         if soft and bp.identifiable and bp.std is not None and (bound.b_f_high is None
