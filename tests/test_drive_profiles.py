@@ -499,3 +499,30 @@ def test_any_malformed_profile_is_a_register_map_error_never_a_crash() -> None:
                 refused += 1
                 assert "mutated.yaml" in str(exc) and "expected" in str(exc)
     assert refused > 150  # most mutations break something, and each says what
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["cia402-modbus", "siemens-sinamics-v20"])
+def test_the_daemon_latches_a_quick_stop_of_a_drive_that_gives_no_code(tmp_path: Path, name: str) -> None:
+    """A CiA 402 or V20 quick stop is a state, not a fault code: the daemon still fails the run, latches
+    the stop and clears it only when an operator acknowledges; the next run moves the crank."""
+    from tests.station_support import FINAL, app_in_process, daemon_config, run_body, start, wait_state
+
+    cfg = daemon_config(tmp_path / "rec")
+    cfg["rig"].update(motor={"profile": name}, crank_frequency_hz={"min": 1.0, "max": 40.0})
+
+    async def go() -> None:
+        async with app_in_process(tmp_path / "rec", config=cfg) as (m, c):
+            assert m.rig is not None and m.rig.sim is not None and m.rig.motor.profile.name == name
+            rid = await start(c, freqs=(10.0,), record_s=30.0)
+            await wait_state(c, rid, ("running",), "recording")
+            m.rig.sim.motor.emergency_stop()  # the drive's own quick stop
+            st = await wait_state(c, rid, FINAL)
+            assert st["state"] == "failed" and "emergency_stop" in st["reason"], st
+            r = await c.post("/runs", json=run_body(freqs=(10.0,)))
+            assert r.status_code == 409 and "latched" in r.json()["detail"]
+            assert (await c.post("/stop/acknowledge", json={"operator": "op"})).status_code == 200
+            assert not m.rig.sim.motor.snapshot().estop
+            rid2 = await start(c, freqs=(10.0,))
+            assert (await wait_state(c, rid2))["state"] == "identifying"
+    asyncio.run(go())
