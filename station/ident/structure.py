@@ -304,7 +304,7 @@ def apply_structure(model_key: str, stiff: bool, params: dict[str, Estimate], th
                    f"from a stiff one, so k_f alone lies in [{k_s:.6g}, {k_hi:.6g}] N/m "
                    f"(+{100 * (k_hi / k_s - 1):.2g} %)")
         determined["transducer_stiffness_alone"] = {
-            "range": [k_s, k_hi], "unit": "N/m",
+            "value": None, "range": [k_s, k_hi], "unit": "N/m",
             "k_c_lower_bound_N_per_m": bound.k_c_min,
             "conditional_on": "a stiff coupling (k_c -> inf): " + rng}
         text = ("conditional on a stiff coupling (Eq. 9): the data determine the series stiffness of transducer "
