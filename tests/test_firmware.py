@@ -212,7 +212,8 @@ def test_firmware_and_python_emulator_give_the_same_reply_kinds(start_firmware) 
         "CONF frame=64", "HW?", "STOP")]
     script[12:12] = [encode_packet(PKT_COMMAND, b"#0123456789abcdef IDN?"),      # bad tag: ERR 2 untagged
                      good[:-2] + bytes([good[-2] ^ 1]) + good[-1:],             # CRC: ERR 4 untagged
-                     encode_packet(PKT_SAMPLES, b"#1 IDN?"), b"\xc0\x10\x00\xc0"]  # type, length: ERR 4
+                     encode_packet(PKT_SAMPLES, b"#1 IDN?"), b"\xc0\x10\x00\xc0",  # type, length: ERR 4
+                     encode_packet(PKT_COMMAND, b"#1 IDN\xff"), b"\xc0\x10\xdb\x41\xc0"]  # non-ASCII, SLIP: ERR 4
     pty = open_pty()
     emulator = DaqEmulator(pty.master, _SilentSource(), lambda: 20.0, on_close=pty.forget_master).start()
     answers = []
@@ -227,7 +228,7 @@ def test_firmware_and_python_emulator_give_the_same_reply_kinds(start_firmware) 
         emulator.close()
         pty.close()
     assert answers[0] == answers[1]
-    assert answers[0][12:16] == [(None, "ERR", "2")] + [(None, "ERR", "4")] * 3
+    assert answers[0][12:18] == [(None, "ERR", "2")] + [(None, "ERR", "4")] * 5
     assert answers[0][:2] == [("#1", "OK", "IDN?"), ("#1", "OK", "HW")]
 
 
