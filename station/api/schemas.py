@@ -328,7 +328,7 @@ class AcknowledgeOut(OutModel):
 
 class EStopState(OutModel):
     latched: bool | None = Field(description="an emergency stop waits for an operator's acknowledgement "
-                                 "(None: the database cannot be read)")
+                                 "(held in memory: known even when the database cannot be read)")
     since: str | None = None
     source: EStopSource | None = Field(default=None, description="page, api, controller or drive (the drive did "
                                        "not come to rest after a stop)")

@@ -20,7 +20,7 @@ from station.service.rigthread import RigThread
 
 log = logging.getLogger(__name__)
 
-STANDSTILL_WAIT_S = 10.0  # an acknowledgement waits this long for the crank to come to rest
+STANDSTILL_WAIT_S = 10.0  # an acknowledgement waits at most this long for the crank to come to rest
 
 RigConnector = Callable[[StationConfig, bool], contextlib.AbstractAsyncContextManager[ConnectedRig]]
 
@@ -157,8 +157,15 @@ class RigLink:
             return True, "no link to the motor controller: its faults are checked at the next connect"
 
         async def go() -> tuple[bool, str]:
-            # only at standstill, fault or none: the crank may still coast down (the flag: below 0.01 Hz too)
-            st = await rig.motor.settle_to_standstill(STANDSTILL_WAIT_S)
+            # only at standstill, fault or none: the crank may still coast down (the flag: below 0.01 Hz too),
+            # for as long as a healthy drive needs from the speed it reports (a drive that does not stop
+            # is not waited for in vain)
+            motor = rig.motor
+            st = await motor.read_status()
+            if not st.standstill:
+                ramp = min(self.cfg.rig.acceleration_hz_per_s, motor.map.device.stop_deceleration_hz_per_s)
+                st = await motor.settle_to_standstill(min(STANDSTILL_WAIT_S,
+                                                          motor.stop_time_bound_s(st.actual_speed_hz, ramp)))
             self.drive = DriveCheck.of("the acknowledgement", st, 0.0)
             before = f"{st.fault_code} ({st.fault_name})"
             if not st.standstill:
