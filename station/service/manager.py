@@ -129,7 +129,7 @@ class RunManager:
         self.jobs.cancel_jobs()
         await self.link.close()
         await asyncio.to_thread(self.db.close, 5.0)
-        self.store.close()
+        await asyncio.to_thread(self.store.close)  # after the writer: it may still wait on a lock
         self.instance.release()
 
     def begin_shutdown(self) -> list[asyncio.Task[None]]:
