@@ -146,3 +146,38 @@ def test_without_token_the_page_asks_for_it_and_emergency_stop_works(page: objec
     assert "acknowledged by web tester" in pg.inner_text("#banner")
     h = daemon.c().get("/health").json()
     assert not h["estop"]["latched"] and h["estop"]["last_acknowledged_by"] == "web tester"
+
+
+def test_a_drive_that_does_not_stop_is_shown_on_the_page(browser: object, tmp_path: pytest.TempPathFactory) -> None:
+    """The emulator as its own process plays a drive that takes the stop and keeps turning: the page's
+    stop says so at once, and its header shows the drive fault until the drive is repaired."""
+    from drivers.sim import SimRigProcess
+    from tests.station_support import daemon_config
+
+    with SimRigProcess(crank_radius_m=0.001) as emu:
+        cfg = daemon_config(tmp_path / "recordings")  # type: ignore[operator]
+        cfg.pop("simulation")
+        host, port = emu.addresses.modbus_tcp
+        cfg["devices"] = {"motor_url": f"modbus-tcp://{host}:{port}", "daq_port": emu.addresses.daq,
+                          "crank_radius_m": 0.001}
+        with Daemon(tmp_path, workers=0, config=cfg) as d:  # type: ignore[arg-type]
+            rid = d.start_run(freqs=(10.0,), record_s=60.0)
+            d.wait_state(rid, ("running",), step_state="recording")
+            emu.ignore_stops()
+            ctx = browser.new_context()  # type: ignore[attr-defined]
+            try:
+                pg = ctx.new_page()
+                pg.goto(d.url + "/")
+                pg.click("#estop")
+                pg.wait_for_selector("#banner:not([hidden])", timeout=15_000)
+                assert "THE CRANK STILL TURNS" in pg.inner_text("#banner")
+                pg.wait_for_selector("#drive-fault", timeout=15_000)
+                assert "DRIVE DOES NOT STOP" in pg.inner_text("#health") and pg.is_disabled("#start")
+                emu.ignore_stops(False)  # repaired: the page's acknowledgement is taken, the fault goes
+                pg.evaluate(f"localStorage.setItem('sinecal-token', '{TOKEN}')")
+                pg.fill("#ack-operator", "web tester")
+                pg.click("#ack")
+                pg.wait_for_selector("#drive-fault", state="detached", timeout=15_000)
+                assert "acknowledged by web tester" in pg.inner_text("#banner")
+            finally:
+                ctx.close()
