@@ -116,7 +116,7 @@ def test_an_internal_error_is_a_short_json_500_and_the_traceback_goes_to_the_log
 
     async def go() -> None:
         async with running_app(tmp_path / "rec") as app:
-            app.state.manager.list_runs = broken
+            app.state.manager.runs.list_runs = broken
             t = httpx.ASGITransport(app=app, client=("127.0.0.1", 40000), raise_app_exceptions=False)
             async with httpx.AsyncClient(transport=t, base_url="http://127.0.0.1") as c:
                 r = await c.get("/runs")

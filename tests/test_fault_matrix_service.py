@@ -100,8 +100,8 @@ def test_controller_estop_fault_latches_and_a_fault_at_start_is_not_cleared(tmp_
 
     async def go() -> None:
         async with app_in_process(tmp_path / "rec") as (m, c):
-            assert m.rig is not None and m.rig.sim is not None
-            sim_motor = m.rig.sim.motor
+            assert m.link.rig is not None and m.link.rig.sim is not None
+            sim_motor = m.link.rig.sim.motor
             # the controller's own e-stop during a run (its button, not the daemon's)
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
@@ -270,7 +270,7 @@ def test_a_real_full_disk_fails_the_run_with_its_cause_and_frees_the_rig(
             await asyncio.to_thread(fill_disk, filler)
             st = await wait_state(c, rid, FINAL, timeout_s=30)
             assert st["state"] == "failed" and cause in st["reason"], st
-            assert m.live == {}
+            assert m.runs.live == {}
             # every endpoint answers, none with a 500
             answers = {
                 "health": (await c.get("/health")).status_code, "runs": (await c.get("/runs")).status_code,
@@ -348,7 +348,7 @@ def test_a_finished_run_leaves_nothing_behind_without_waiting_for_the_garbage_co
         async with app_in_process(tmp_path / "rec") as (m, c):
             for _ in range(2):
                 rid = await start(c, freqs=(10.0,))
-                while (live := m.live.get(rid)) is None or live.proc is None or live.proc.acq is None:
+                while (live := m.runs.live.get(rid)) is None or live.proc is None or live.proc.acq is None:
                     await asyncio.sleep(0.01)
                 proc = weakref.ref(live.proc)
                 ring = live.proc.acq.ring

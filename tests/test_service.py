@@ -120,11 +120,11 @@ def test_recording_paths_stay_inside_the_recordings_folder(tmp_path: Path) -> No
             row = _row("r1", "completed")
             row.recording = name
             with pytest.raises(RunStateError):
-                m.recording_path(row)
+                m.artifacts.recording_path(row)
         (tmp_path / "rec" / "ok.h5").write_bytes(b"x")
         row = _row("r2", "completed")
         row.recording = "ok.h5"
-        assert m.recording_path(row) == (tmp_path / "rec" / "ok.h5").resolve()
+        assert m.artifacts.recording_path(row) == (tmp_path / "rec" / "ok.h5").resolve()
     finally:
         m.store.close()
 

@@ -1,4 +1,5 @@
-"""Typed dependencies: settings, the run manager, authorisation, a run looked up by id.
+"""Typed dependencies: settings, the run manager and the services it holds (runs, artifacts),
+authorisation, a run looked up by id.
 
 All are ``async def``: they are cheap, and FastAPI would run plain functions in its thread pool
 (a thread hop per dependency and request, which shows in the status latency under load)."""
@@ -11,7 +12,9 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Path, Request, Security, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from station.service.artifacts import Artifacts
 from station.service.manager import RunManager, RunNotFoundError
+from station.service.runs import Runs
 from station.service.settings import ServiceSettings, is_loopback
 from station.service.store import RunRow
 
@@ -30,6 +33,18 @@ async def get_manager(request: Request) -> RunManager:
 
 SettingsDep = Annotated[ServiceSettings, Depends(get_settings)]
 ManagerDep = Annotated[RunManager, Depends(get_manager)]
+
+
+async def get_runs(manager: ManagerDep) -> Runs:
+    return manager.runs
+
+
+async def get_artifacts(manager: ManagerDep) -> Artifacts:
+    return manager.artifacts
+
+
+RunsDep = Annotated[Runs, Depends(get_runs)]  # the runs on the rig and the stored ones
+ArtifactsDep = Annotated[Artifacts, Depends(get_artifacts)]  # recordings and what is rendered from them
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Security(bearer)]
 
 
@@ -57,9 +72,9 @@ async def read_access(request: Request, creds: Credentials, settings: SettingsDe
 RunId = Annotated[str, Path(pattern=RUN_ID_PATTERN, description="run id as returned by POST /runs")]
 
 
-async def get_run(run_id: RunId, manager: ManagerDep) -> RunRow:
+async def get_run(run_id: RunId, runs: RunsDep) -> RunRow:
     try:
-        return await manager.get(run_id)
+        return await runs.get(run_id)
     except RunNotFoundError as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
 

@@ -14,13 +14,9 @@ import asyncio
 import logging
 import threading
 import time
-from collections.abc import AsyncIterator, Callable
-from pathlib import Path
 from typing import Any
 
 from station.recording.repair import FolderCheck, check_folder
-from station.run.request import RunRequest
-from station.run.rig import ConnectedRig
 from station.service import worker
 from station.service.artifacts import Artifacts
 from station.service.changes import Changes
@@ -41,7 +37,7 @@ from station.service.recovery import recover
 from station.service.riglink import RigConnector, RigLink, default_connector
 from station.service.runs import AckReport, LiveRun, Runs, StopReport
 from station.service.settings import ServiceSettings
-from station.service.store import FINAL_STATES, RunRow, Store
+from station.service.store import FINAL_STATES, Store
 
 __all__ = [
     "MAX_JOB_ATTEMPTS",
@@ -83,7 +79,7 @@ class RunManager:
         self.disk = RecordingsDisk(settings.recordings_dir, int(self.cfg.station.min_free_mb * 2**20))
         self.runs = Runs(self.cfg, settings.recordings_dir, self.db, self.link, self.changes, self.closing,
                          self._on_acquired, self.latch, self.disk)
-        self.artifacts = Artifacts(settings.recordings_dir, self.render_pool, self.get)
+        self.artifacts = Artifacts(settings.recordings_dir, self.render_pool, self.runs.get)
         self.jobs = JobQueue(self.db, self.identify_pool, settings.workers,
                              self.artifacts, self.changes, self.closing)
         self._warm: asyncio.Task[None] | None = None
@@ -147,75 +143,9 @@ class RunManager:
     def _on_acquired(self, run_id: str) -> None:
         self.jobs.wake()
 
-    # ------------------------------------------------------------------ rig
-    @property
-    def rig(self) -> ConnectedRig | None:
-        return self.link.rig
-
-    @property
-    def rig_error(self) -> str | None:
-        return self.link.error
-
-    # ------------------------------------------------------------------ runs
-    @property
-    def live(self) -> dict[str, LiveRun]:
-        return self.runs.live
-
-    def active(self) -> LiveRun | None:
-        return self.runs.active()
-
-    async def submit(self, request: RunRequest) -> RunRow:
-        return await self.runs.submit(request)
-
-    async def abort(self, run_id: str, reason: str = "aborted by operator") -> RunRow:
-        return await self.runs.abort(run_id, reason)
-
-    async def emergency_stop(self, source: str = "api") -> StopReport:
-        return await self.runs.emergency_stop(source)
-
-    async def acknowledge(self, by: str, note: str = "") -> AckReport:
-        return await self.runs.acknowledge(by, note)
-
-    async def get(self, run_id: str) -> RunRow:
-        return await self.runs.get(run_id)
-
-    async def list_runs(self, *, limit: int = 100, states: list[str] | None = None) -> list[RunRow]:
-        return await self.runs.list_runs(limit=limit, states=states)
-
-    def version(self, run_id: str) -> int:
-        return self.changes.version(run_id)
-
-    async def wait_change(self, run_id: str, since: int, timeout_s: float) -> int:
-        return await self.changes.wait(run_id, since, timeout_s)
-
-    # ------------------------------------------------------------------ recordings and results
-    def recording_path(self, row: RunRow) -> Path:
-        return self.artifacts.recording_path(row)
-
-    def file_lock(self, run_id: str) -> Any:
-        return self.artifacts.file_lock(run_id)
-
-    async def read_file(self, run_id: str, fn: Callable[[Path], Any]) -> Any:
-        return await self.artifacts.read_file(run_id, fn)
-
-    def stream_file(self, run_id: str, chunk: int = 1 << 20) -> AsyncIterator[bytes]:
-        return self.artifacts.stream_file(run_id, chunk)
-
-    async def plot(self, run_id: str, name: str) -> bytes | None:
-        return await self.artifacts.plot(run_id, name)
-
-    async def report(self, run_id: str) -> str:
-        return await self.artifacts.report(run_id)
-
-    async def discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
-        return await self.artifacts.discrepancy(run_id, max_effects)
-
-    async def stored_discrepancy(self, run_id: str, max_effects: int) -> dict[str, Any]:
-        return await self.artifacts.stored_discrepancy(run_id, max_effects)
-
     # ------------------------------------------------------------------ health
     async def health(self) -> dict[str, Any]:
-        act = self.active()
+        act = self.runs.active()
         out = health(self.link, await database_state(self.db), self.identify_pool, self.latch, self.disk,
                      workers=self.settings.workers, sim=self.settings.sim,
                      active_run=act.row.id if act else None, started_at=self.started_at,

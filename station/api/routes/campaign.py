@@ -48,7 +48,7 @@ async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep) ->
     stored = None
     if body.store:
         for run_id in body.runs:
-            path = manager.recording_path(await manager.get(run_id))
+            path = manager.artifacts.recording_path(await manager.runs.get(run_id))
             await asyncio.to_thread(write_result, path, RESULT_NAME, payload)
         stored = f"<run>.results/results.{RESULT_NAME}.h5"
     return CampaignOut.model_validate({**data, "runs": list(body.runs), "stored_as": stored})

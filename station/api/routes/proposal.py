@@ -8,7 +8,7 @@ from typing import Any
 from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field
 
-from station.api.deps import ManagerDep, Reader, RunDep
+from station.api.deps import ArtifactsDep, Reader, RunDep
 from station.api.routes.runs import E401, E404, E409, E422, E503
 from station.run.request import RunRequest, StepSpec
 from station.service.results import finite
@@ -43,11 +43,11 @@ class ProposalOut(BaseModel):
 @router.get("/{run_id}/proposal", response_model=ProposalOut, dependencies=[Reader],
             responses={**E401, **E404, **E409, **E422, **E503},
             summary="The next run that settles a tie of the model-gap analysis")
-async def run_proposal(run: RunDep, manager: ManagerDep) -> ProposalOut:
+async def run_proposal(run: RunDep, artifacts: ArtifactsDep) -> ProposalOut:
     """Part of the stored model-gap analysis (the default ``max_effects`` = 4; 404 until
     `POST /runs/{id}/discrepancy` has computed it).  ``request`` is ready to POST to /runs: same
     transducer and top mass, the steps of ``proposal.run_steps``."""
-    out = finite(await manager.stored_discrepancy(run.id, MAX_EFFECTS))
+    out = finite(await artifacts.stored_discrepancy(run.id, MAX_EFFECTS))
     prop = out.get("proposal") if isinstance(out, dict) else None
     if not prop or not prop.get("run_steps"):
         note = out.get("proposal_note") if isinstance(out, dict) else None

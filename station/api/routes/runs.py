@@ -10,7 +10,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, StreamingResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 
-from station.api.deps import ManagerDep, Reader, RunDep, Writer
+from station.api.deps import ArtifactsDep, ManagerDep, Reader, RunDep, RunsDep, Writer
 from station.api.schemas import (
     AbortOut,
     DiscrepancyOut,
@@ -81,11 +81,11 @@ def status_of(row: RunRow) -> RunStatus:
                         409: {"model": ErrorOut, "description": "another run holds the rig"},
                         503: {"model": ErrorOut, "description": "the rig is not connected"}},
              summary="Start a calibration run")
-async def start_run(body: RunRequest, manager: ManagerDep, response: Response) -> RunAccepted:
+async def start_run(body: RunRequest, runs: RunsDep, response: Response) -> RunAccepted:
     """Check the request against the rig and transducer limits, then queue it on the rig.  Step
     fields other than frequency and radius default to the configured plan's."""
     try:
-        row = await manager.submit(body)
+        row = await runs.submit(body)
     except LimitError as exc:  # the field to change, in the request body
         loc = ["body", *(["steps", exc.step] if exc.step is not None else []), exc.field]
         raise RequestValidationError([{"type": "limit_error", "loc": loc, "msg": str(exc),
@@ -96,9 +96,9 @@ async def start_run(body: RunRequest, manager: ManagerDep, response: Response) -
 
 @router.get("", response_model=RunList, dependencies=[Reader], responses={**E401, **E422},
             summary="List runs, newest first")
-async def list_runs(manager: ManagerDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+async def list_runs(runs: RunsDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
                     state: Annotated[list[RunState] | None, Query()] = None) -> RunList:
-    rows = await manager.list_runs(limit=limit, states=list(state) if state else None)
+    rows = await runs.list_runs(limit=limit, states=list(state) if state else None)
     return RunList(count=len(rows), runs=[status_of(r) for r in rows])
 
 
@@ -110,15 +110,16 @@ async def get_run(run: RunDep) -> RunStatus:
 
 @router.get("/{run_id}/events", response_class=EventSourceResponse, dependencies=[Reader],
             responses=NON_JSON_ERRORS, summary="Live progress (server-sent events)")
-async def run_events(run: RunDep, manager: ManagerDep, request: Request) -> AsyncIterable[ServerSentEvent]:
+async def run_events(run: RunDep, manager: ManagerDep, runs: RunsDep,
+                     request: Request) -> AsyncIterable[ServerSentEvent]:
     """Event `status` (data: the RunStatus JSON) on every change, at most a few per second; event
     `end` with the final status once the run is completed, aborted, failed or interrupted."""
     run_id = run.id
     version = -1
     last: dict[str, Any] | None = None
     while True:
-        cur = manager.version(run_id)
-        st = status_of(await manager.get(run_id))
+        cur = manager.changes.version(run_id)
+        st = status_of(await runs.get(run_id))
         data = st.model_dump(mode="json")
         if data != last:
             last = data
@@ -129,16 +130,16 @@ async def run_events(run: RunDep, manager: ManagerDep, request: Request) -> Asyn
         if manager.closing.is_set() or await request.is_disconnected():
             return
         version = cur
-        await manager.wait_change(run_id, version, 10.0)
+        await manager.changes.wait(run_id, version, 10.0)
 
 
 @router.get("/{run_id}/results", response_model=RunResults, dependencies=[Reader],
             responses={**E401, **E404, **E409, **E422, **E503}, summary="Identified parameters, H(f), fit")
-async def run_results(run: RunDep, manager: ManagerDep) -> RunResults:
+async def run_results(run: RunDep, artifacts: ArtifactsDep) -> RunResults:
     if run.state != "completed" or not run.result_name:
         raise RunStateError(f"run {run.id} is {run.state}: results exist once a run is completed"
                             + (f" ({run.reason})" if run.reason else ""))
-    data = await manager.read_file(run.id, lambda p: load_results(p, run.result_name or ""))
+    data = await artifacts.read_file(run.id, lambda p: load_results(p, run.result_name or ""))
     base = f"/runs/{run.id}"
     plots = {n: f"{base}/plots/{n}.png" for n in PLOT_NAMES}
     return RunResults(id=run.id, state=run.state, recording=run.recording or "",
@@ -150,9 +151,9 @@ async def run_results(run: RunDep, manager: ManagerDep) -> RunResults:
             responses={200: {"content": {"image/png": {"schema": BINARY}}, "description": "PNG image"},
                        **NON_JSON_ERRORS},
             summary="A plot: bode, timefit, residuals, convergence, ...")
-async def run_plot(run: RunDep, manager: ManagerDep,
+async def run_plot(run: RunDep, artifacts: ArtifactsDep,
                    name: Annotated[str, Path(pattern=r"^[A-Za-z0-9_\-]{1,64}$")]) -> Response:
-    png = await manager.plot(run.id, name)
+    png = await artifacts.plot(run.id, name)
     if png is None:
         return Response(ErrorOut(detail=f"no plot {name!r}; available: {', '.join(PLOT_NAMES)}").model_dump_json(),
                         status_code=404, media_type="application/json")
@@ -162,8 +163,8 @@ async def run_plot(run: RunDep, manager: ManagerDep,
 @router.get("/{run_id}/report", response_class=HTMLResponse, dependencies=[Reader],
             responses={200: {"content": {"text/html": {"schema": {"type": "string"}}}}, **NON_JSON_ERRORS},
             summary="The calibration report (HTML)")
-async def run_report(run: RunDep, manager: ManagerDep) -> HTMLResponse:
-    return HTMLResponse(await manager.report(run.id))
+async def run_report(run: RunDep, artifacts: ArtifactsDep) -> HTMLResponse:
+    return HTMLResponse(await artifacts.report(run.id))
 
 
 @router.get("/{run_id}/recording", response_class=StreamingResponse, dependencies=[Reader],
@@ -171,12 +172,12 @@ async def run_report(run: RunDep, manager: ManagerDep) -> HTMLResponse:
                              "description": "the HDF5 recording"},
                        **NON_JSON_ERRORS},
             summary="Download the HDF5 recording")
-async def run_recording(run: RunDep, manager: ManagerDep) -> StreamingResponse:
+async def run_recording(run: RunDep, artifacts: ArtifactsDep) -> StreamingResponse:
     if run.state not in FINAL_STATES:
         raise RunStateError(f"run {run.id} is {run.state}: its recording is still being written; "
                             "download it once the run has ended")
-    path = manager.recording_path(run)
-    return StreamingResponse(manager.stream_file(run.id), media_type="application/x-hdf5",
+    path = artifacts.recording_path(run)
+    return StreamingResponse(artifacts.stream_file(run.id), media_type="application/x-hdf5",
                              headers={"Content-Disposition": f'attachment; filename="{path.name}"',
                                       "Content-Length": str(path.stat().st_size)})
 
@@ -189,28 +190,28 @@ E404_ANALYSIS: Responses = {404: {"model": ErrorOut, "description": "no such run
 @router.get("/{run_id}/discrepancy", response_model=DiscrepancyOut, dependencies=[Reader],
             responses={**E401, **E404_ANALYSIS, **E409, **E422, **E503},
             summary="The stored model-gap analysis of the run")
-async def run_discrepancy(run: RunDep, manager: ManagerDep, max_effects: MaxEffects = 4) -> DiscrepancyOut:
+async def run_discrepancy(run: RunDep, artifacts: ArtifactsDep, max_effects: MaxEffects = 4) -> DiscrepancyOut:
     """Which catalogue effect the measurement shows that the model lacks, as stored beside the
     recording by `POST /runs/{id}/discrepancy` or `station discrepancy --save`.  Reads only."""
     from station.service.results import finite
 
-    return DiscrepancyOut.model_validate(finite(await manager.stored_discrepancy(run.id, max_effects)))
+    return DiscrepancyOut.model_validate(finite(await artifacts.stored_discrepancy(run.id, max_effects)))
 
 
 @router.post("/{run_id}/discrepancy", response_model=DiscrepancyOut, dependencies=[Writer],
              responses={**E401, **E404, **E409, **E422, **E503, **BODY_ERRORS},
              summary="Compute and store the model-gap analysis of the run")
-async def compute_discrepancy(run: RunDep, manager: ManagerDep, max_effects: MaxEffects = 4) -> DiscrepancyOut:
+async def compute_discrepancy(run: RunDep, artifacts: ArtifactsDep, max_effects: MaxEffects = 4) -> DiscrepancyOut:
     """Runs the analysis in a worker process and stores it beside the recording (replacing an
     earlier one), where `GET`, the proposal and the report read it."""
     from station.service.results import finite
 
-    return DiscrepancyOut.model_validate(finite(await manager.discrepancy(run.id, max_effects)))
+    return DiscrepancyOut.model_validate(finite(await artifacts.discrepancy(run.id, max_effects)))
 
 
 @router.post("/{run_id}/abort", status_code=status.HTTP_202_ACCEPTED, response_model=AbortOut,
              dependencies=[Writer], responses={**E401, **E404, **E409, **E422, **BODY_ERRORS}, summary="Abort a run")
-async def abort_run(run: RunDep, manager: ManagerDep) -> AbortOut:
+async def abort_run(run: RunDep, runs: RunsDep) -> AbortOut:
     """The crank ramps down, the recording is closed with the reason; the run ends `aborted`."""
-    row = await manager.abort(run.id, "aborted by operator")
+    row = await runs.abort(run.id, "aborted by operator")
     return AbortOut(id=row.id, state=row.state, detail="abort requested; the crank ramps down")

@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Body, Depends, HTTPException, Request, status
 
-from station.api.deps import ManagerDep, Reader, SettingsDep, Writer
+from station.api.deps import ManagerDep, Reader, RunsDep, SettingsDep, Writer
 from station.api.routes.runs import BODY_ERRORS
 from station.api.schemas import (
     AcknowledgeIn,
@@ -47,7 +47,7 @@ SameSite = Depends(not_cross_site)
 @router.post("/stop", response_model=StopOut, dependencies=[SameSite],
              responses={403: {"model": ErrorOut, "description": "sent by another web site's page"}},
              summary="Emergency stop (always accepted, except from another web site)")
-async def emergency_stop(manager: ManagerDep, request: Request) -> StopOut:
+async def emergency_stop(runs: RunsDep, request: Request) -> StopOut:
     """Aborts every run on the rig and commands an emergency stop on the motor controller at once.
     Accepted with or without a token or a run: stopping is never unsafe (only a request another web
     site's page makes the browser send is refused).  Nothing on the way waits for the database.
@@ -57,7 +57,7 @@ async def emergency_stop(manager: ManagerDep, request: Request) -> StopOut:
     operator acknowledges it (`POST /stop/acknowledge`); a drive still turning latches too (source
     `drive`) and shows in `/health`."""
     source = "page" if request.headers.get("x-station-client") == "page" else "api"
-    rep = await manager.emergency_stop(source)
+    rep = await runs.emergency_stop(source)
     drive = DriveOut.model_validate(rep.drive.to_dict()) if rep.drive is not None else None
     return StopOut(motor_stopped=rep.motor_stopped, stop_commanded=rep.commanded, drive=drive,
                    aborted_runs=rep.aborted_runs, detail=rep.detail)
@@ -71,7 +71,7 @@ async def acknowledge_stop(manager: ManagerDep, body: Annotated[AcknowledgeIn, B
     """An operator confirms the rig is safe: the motor controller's latched fault is reset and read
     back, and the acknowledgement (who, when, note) is recorded in the database and the log.
     Refused (409) while the controller still reports a fault, e.g. the crank still turning."""
-    rep = await manager.acknowledge(body.operator, body.note)
+    rep = await manager.runs.acknowledge(body.operator, body.note)
     return AcknowledgeOut(acknowledged=rep.acknowledged, by=rep.by, at=datetime.now(UTC), detail=rep.detail,
                           latched=manager.latch.latched)
 
