@@ -513,16 +513,16 @@ def test_the_daemon_latches_a_quick_stop_of_a_drive_that_gives_no_code(tmp_path:
 
     async def go() -> None:
         async with app_in_process(tmp_path / "rec", config=cfg) as (m, c):
-            assert m.rig is not None and m.rig.sim is not None and m.rig.motor.profile.name == name
+            assert m.link.rig is not None and m.link.rig.sim is not None and m.link.rig.motor.profile.name == name
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
-            m.rig.sim.motor.emergency_stop()  # the drive's own quick stop
+            m.link.rig.sim.motor.emergency_stop()  # the drive's own quick stop
             st = await wait_state(c, rid, FINAL)
             assert st["state"] == "failed" and "emergency_stop" in st["reason"], st
             r = await c.post("/runs", json=run_body(freqs=(10.0,)))
             assert r.status_code == 409 and "latched" in r.json()["detail"]
             assert (await c.post("/stop/acknowledge", json={"operator": "op"})).status_code == 200
-            assert not m.rig.sim.motor.snapshot().estop
+            assert not m.link.rig.sim.motor.snapshot().estop
             rid2 = await start(c, freqs=(10.0,))
             assert (await wait_state(c, rid2))["state"] == "identifying"
     asyncio.run(go())
