@@ -7,7 +7,8 @@ catalogue_accuracy: share of 50 random cases (effect drawn uniformly from the ca
 from the plausible ranges of ``station.discrepancy.scenarios``, 6 steps of 1 s, seeds 1000..1049)
 whose named effects are exactly the one switched on.
 wide: the same over ranges wider than those where the data decide (coupling k_c 1-10 k_f, b_c 0-0.5 b_f;
-low-pass cut-off 150-3000 Hz, order 1-4; delay 1-100 us either sign; the other effects as above),
+low-pass cut-off 150-3000 Hz, order 1-4; delay 1-100 us either sign, a negative one at most 45 us; the
+other effects as above),
 ``--wide-cases`` per effect (seeds 3000..): ``confusion`` {true effect: {first named (or "none"): count}},
 ``tie_reported`` (a tie in the JSON: ``ties`` non-empty or a ``proposal`` separating models),
 ``kf_beyond_3u`` / ``bf_beyond_3u``: runs whose k_f / b_f is more than 3 reported standard uncertainties
@@ -29,7 +30,8 @@ import numpy as np
 
 from station.discrepancy import analyse_recording
 from station.discrepancy.catalogue import CATALOGUE
-from station.discrepancy.scenarios import draw_effect, draw_scenario, scenario_config, simulate_scenario
+from station.discrepancy.scenarios import WIDE_EFFECTS, draw_effect, draw_scenario, scenario_config, simulate_scenario
+from station.discrepancy.scenarios import draw_wide as scenario_wide
 
 
 def wall_8_steps(tmp: Path, repeats: int) -> tuple[float, float]:
@@ -59,15 +61,10 @@ def accuracy(tmp: Path, cases: int) -> tuple[float, list[dict[str, object]]]:
 
 
 def draw_wide(name: str, rng: np.random.Generator, k_f: float, b_f: float) -> dict[str, object]:
-    """An effect drawn from the wide ranges (module docstring)."""
-    def logu(lo: float, hi: float) -> float:
-        return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
-    if name == "coupling_compliance":
-        return {"k_c": logu(1.0, 10.0) * k_f, "b_c": float(rng.uniform(0, 0.5)) * b_f}
-    if name == "conditioner_lowpass":
-        return {"order": int(rng.integers(1, 5)), "cutoff_hz": logu(150.0, 3000.0)}
-    if name == "channel_delay":
-        return {"delay_s": (1.0 if rng.random() < 0.5 else -1.0) * logu(1e-6, 1e-4)}
+    """An effect drawn from the wide ranges (module docstring; ``scenarios.draw_wide`` for the
+    fundamental-only effects, whose negative delays are at most 45 us, an ADC's skew)."""
+    if name in WIDE_EFFECTS:
+        return scenario_wide(name, rng, k_f, b_f)
     return draw_effect(name, rng, k_f, b_f)
 
 

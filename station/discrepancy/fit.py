@@ -105,7 +105,8 @@ class Problem:
         self.effects = dict(effects)
         self.params: tuple[Param, ...] = BASE_PARAMS + tuple(
             q for e in self.effects for q in effect_params(e, data))
-        self.centre = {q.name: float(start[q.name]) for q in self.params}
+        # a per-step parameter of a step added by a proposal's plan has no value yet: 0 (all such are linear)
+        self.centre = {q.name: float(start[q.name] if q.name in start or q.log else 0.0) for q in self.params}
         sc = scales(dict(start), data)
         self.scale = {q.name: sc[q.name] for q in self.params}
         self.fixed = {**NEUTRAL, **{k: v for k, v in start.items() if k not in self.centre}}

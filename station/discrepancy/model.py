@@ -114,8 +114,8 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
             Q = np.array([complex(p[f"re_{h}"], p[f"im_{h}"]) for h in range(1, nm + 1)])[None, :]
             W = Q * np.exp(1j * hh * 2 * np.pi * p["frequency_hz"] * data.t_mid_s[:, None])
         else:  # steps with their own time origins: a phasor per step and line
-            W = np.array([[complex(p[f"re_{h}_s{i}"], p[f"im_{h}_s{i}"]) for h in range(1, nm + 1)]
-                          for i in range(n)])
+            W = np.array([[complex(p.get(f"re_{h}_s{i}", 0.0), p.get(f"im_{h}_s{i}", 0.0)) for h in range(1, nm + 1)]
+                          for i in range(n)])  # (a planned step of a proposal: no line of its own yet)
         for i, h in zip(*np.nonzero(data.merge), strict=True):
             Vk[i, data.merge[i, h] - 1] += W[i, h]
             W[i, h] = 0.0
@@ -125,9 +125,10 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     slope = np.zeros(n)
     curv = np.zeros(n)
     if "zero_drift" in effects and not data.common_clock:  # per step: offset (step 0: offset_V), slope, curvature
-        dc = dc + np.array([0.0] + [p[f"dc_s{i}"] for i in range(1, n)])
-        slope = np.array([p[f"slope_s{i}"] for i in range(n)])
-        curv = np.array([p[f"curv_s{i}"] for i in range(n)])
+        # (a planned step of a proposal has no drift of its own yet: 0)
+        dc = dc + np.array([0.0] + [p.get(f"dc_s{i}", 0.0) for i in range(1, n)])
+        slope = np.array([p.get(f"slope_s{i}", 0.0) for i in range(n)])
+        curv = np.array([p.get(f"curv_s{i}", 0.0) for i in range(n)])
     elif "zero_drift" in effects:
         rho, beta, tm, h = p["rate_V_per_s"], p["quadratic_V_per_s2"], data.t_mid_s, data.half_s
         dc = dc + rho * tm + beta * tm**2

@@ -18,7 +18,7 @@ log = logging.getLogger(__name__)
 __all__ = ["base_start", "fit_candidate"]
 FUNDAMENTAL_ONLY = ("coupling_compliance", "conditioner_lowpass", "channel_delay", "displacement_resonance")
 # LM runs from the best grid points
-MULTI_START: dict[str, int] = {"coupling_compliance": 3, "displacement_resonance": 3}
+MULTI_START: dict[str, int] = {"coupling_compliance": 3, "displacement_resonance": 2}
 
 
 def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | None:

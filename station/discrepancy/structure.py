@@ -71,7 +71,7 @@ def state_structure(data: RigData, final: ModelFit, last: Sequence[tuple[Candida
         ks = _series(final)
         return Structure("coupled: transducer and a compliant coupling in series (paper Eq. 8)", ks, None, None,
                          None, None, f"coupling named: the series stiffness of transducer and coupling is "
-                         f"{ks.value:.6g} ± {ks.std:.2g} N/m; k_f and k_c are given separately")
+                         f"{ks.value:.6g} N/m (series_stiffness); k_f and k_c are given separately")
     stiff = Estimate(final.values["k_f"], final.std["k_f"], "N/m")
     found = next(((c, f) for c, f in last if c.name == COUPLING), None)
     cpl = found[1] if found is not None else fit_candidate(data, final, COUPLING)
@@ -86,12 +86,12 @@ def state_structure(data: RigData, final: ModelFit, last: Sequence[tuple[Candida
     if not (math.isfinite(u_k) and u_k < UNDETERMINED * abs(k)):
         return Structure(model, stiff, kf, kc, d, None,
                          f"k_f rests on a stiff coupling: these data determine the series stiffness of transducer "
-                         f"and coupling, {s_k:.6g} ± {u_s:.2g} N/m; with a coupling free (Delta chi2 "
+                         f"and coupling, {s_k:.6g} N/m (series_stiffness); with a coupling free (Delta chi2 "
                          f"{d:.3g}) k_f alone is {k:.4g} ± {u_k:.2g} N/m: not determined by this plan "
                          "(steps near the resonances would separate them)")
     lo, hi = max(k - 2 * u_k, s_k - 2 * u_s), k + 2 * u_k
     return Structure(model, stiff, kf, kc, d, (lo, hi),
                      f"k_f rests on a stiff coupling: these data determine the series stiffness of transducer and "
-                     f"coupling, {s_k:.6g} ± {u_s:.2g} N/m; with a coupling free (Delta chi2 {d:.3g}, "
+                     f"coupling, {s_k:.6g} N/m (series_stiffness); with a coupling free (Delta chi2 {d:.3g}, "
                      f"k_c = {kc.value:.3g} ± {kc.std:.2g} N/m) k_f alone is {k:.6g} ± {u_k:.2g} N/m, "
                      f"range {lo:.4g}-{hi:.4g} N/m")

@@ -305,11 +305,15 @@ def analyse_recording(path: str | Path | Recording, max_effects: int = 4,
         rep = replace(rep, proposal_note=ctx)
     ident = _identify(rec) if data.n_steps >= 2 else None
     before, after, notes = rep.parameters_before, rep.parameters_after, rep.notes
+    structure = rep.structure
     if ident is not None:
         before = ident[0]
         after = with_budget(after, ident[0], ident[1])
         notes = (*notes, BUDGET_NOTE)
-    return replace(rep, parameters_before=before, parameters_after=after, notes=notes,
+        if structure is not None:  # the series stiffness carries the same systematic terms as k_f
+            ks = with_budget({"k_f": structure.series_stiffness}, ident[0], ident[1])["k_f"]
+            structure = replace(structure, series_stiffness=ks)
+    return replace(rep, parameters_before=before, parameters_after=after, notes=notes, structure=structure,
                    wall_s=time.perf_counter() - t0)
 
 
