@@ -22,7 +22,7 @@ import yaml
 from station.cli import main as station_main
 from station.config import StationConfig, parse_config
 from station.discrepancy import analyse_recording
-from station.discrepancy.report import DiscrepancyReport
+from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import plan_steps, scenario_config
 from station.ident.api import identify_recording
 from station.ident.checks import screen_step
@@ -45,7 +45,7 @@ def plan_3_40(effects: dict[str, Any], seed: int = 2, steps: list[dict[str, floa
     return parse_config(d)
 
 
-def covered(rep: DiscrepancyReport, what: str = "") -> None:
+def covered(rep: DiscrepancyResult, what: str = "") -> None:
     """k_f, b_f of parameters_after within 3 stated standard uncertainties of the truth."""
     for name, true in (("k_f", KF), ("b_f", BF)):
         e = rep.parameters_after[name]
@@ -54,13 +54,13 @@ def covered(rep: DiscrepancyReport, what: str = "") -> None:
             f"named {[x.name for x in rep.effects]}; ties {[t.message for t in rep.ties]}")
 
 
-def no_unphysical_name(rep: DiscrepancyReport) -> None:
+def no_unphysical_name(rep: DiscrepancyResult) -> None:
     for e in rep.effects:
         if e.name == "channel_delay":
             assert e.params["delay_s"].value >= -1.0 / FS, e.evidence
 
 
-def spread_covered(rep: DiscrepancyReport) -> None:
+def spread_covered(rep: DiscrepancyResult) -> None:
     """The stated uncertainty covers every equally good (tied, physical) model's k_f and b_f."""
     for t in rep.ties:
         if t.kind == "undetectable":
@@ -76,14 +76,14 @@ def spread_covered(rep: DiscrepancyReport) -> None:
 # -- the coupling (paper Eq. 8) and what else fits ------------------------------------------------
 
 @pytest.fixture(scope="module")
-def coupling_2kf(tmp_path_factory: pytest.TempPathFactory) -> tuple[StationConfig, DiscrepancyReport]:
+def coupling_2kf(tmp_path_factory: pytest.TempPathFactory) -> tuple[StationConfig, DiscrepancyResult]:
     cfg = plan_3_40({"coupling_compliance": {"k_c": 2.0 * KF, "b_c": 0.5 * BF}})
     return cfg, analyse_recording(simulate_run(cfg, tmp_path_factory.mktemp("c2"), seed=2))
 
 
 @pytest.mark.slow
 def test_coupling_twice_as_stiff_is_in_the_average_and_covered(
-        coupling_2kf: tuple[StationConfig, DiscrepancyReport]) -> None:
+        coupling_2kf: tuple[StationConfig, DiscrepancyResult]) -> None:
     """k_c = 2 k_f: a coupling, a low-pass and a (negative, so unphysical) delay fit alike.  The coupling
     model (poorly determined k_f) stays in the average, the delay is never the name, and the stated
     uncertainty covers every tied model's value."""
@@ -250,7 +250,7 @@ def test_a_refusal_under_json_is_a_json_document(tmp_path: Path, capsys: pytest.
 
 @pytest.mark.slow
 def test_the_proposed_run_recorded_elsewhere_and_imported_names_the_coupling(
-        coupling_2kf: tuple[StationConfig, DiscrepancyReport], tmp_path: Path) -> None:
+        coupling_2kf: tuple[StationConfig, DiscrepancyResult], tmp_path: Path) -> None:
     _, rep = coupling_2kf
     prop = rep.proposal
     assert prop is not None and "coupling_compliance" in prop.separates, rep.proposal_note
