@@ -155,7 +155,7 @@ def test_parameters_after_carry_the_whole_budget(tmp_path: Path) -> None:
     covered(rep, "end mass +5 %")
     clean = simulate_run(_end_mass_cfg(1.0), tmp_path / "clean", seed=3)
     rep = analyse_recording(clean)
-    ident = {q.name: q for q in identify_recording(read_recording(clean)).parameters}
+    ident = identify_recording(read_recording(clean)).parameters
     for k in ("S", "k_f", "b_f"):
         ratio = rep.parameters_after[k].std / float(ident[k].std or math.nan)
         assert 0.7 < ratio < 1.4, (k, rep.parameters_after[k], ident[k])
