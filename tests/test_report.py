@@ -19,6 +19,7 @@ import pytest
 from station.config import default_config_path, load_config, parse_config
 from station.errors import RecordingFormatError
 from station.ident.api import identify_recording
+from station.ident.coverage import coverage
 from station.recording import read_recording, write_result
 from station.report import PLOT_NAMES, render_plot, render_report, render_report_pdf
 from station.report.data import load_run
@@ -135,7 +136,8 @@ def test_report_shows_the_stored_identification_with_u_and_U(sim_recording: Path
         text, u = _cell(page, f"param.{name}.u")
         assert u == p.std and text == fmt_unc(p.std)
         _, big_u = _cell(page, f"param.{name}.U")
-        assert big_u == pytest.approx(2 * p.std, rel=1e-12)
+        k = coverage(res.budget[name]).k  # 1.96: no term with few degrees of freedom in this run
+        assert _cell(page, f"param.{name}.k")[1] == k and big_u == pytest.approx(k * p.std, rel=1e-12)
     assert "N/m" in page and "N*s/m" in page and "V/N" in page and "Hz" in page
     rec = read_recording(rec_path)
     for text in (rec.transducer_id, rec.run_id, "completed", "25.717 kg", "0 in 0 gap(s)", rec.software_version):

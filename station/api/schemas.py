@@ -181,6 +181,8 @@ class BudgetOut(OutModel):
     contributions: dict[str, float | None] = Field(description="standard uncertainty per source, in `unit`")
     combined: float
     unit: str
+    dof: dict[str, float] | None = Field(None, description="finite degrees of freedom per source (the others "
+                                         "infinite): the noise term's when it was scaled by chi^2/dof")
 
 
 class MassAssumptionOut(OutModel):

@@ -19,12 +19,19 @@ standard uncertainty in theta is the root sum of squares of P v sigma.  Sources:
 * radius: 0 -- the frame motion is the measured displacement, the stated crank radius enters no
   estimate (it is only checked against the measured amplitude).
 The combined standard uncertainty is the root sum of squares (sources independent).
+
+Degrees of freedom (GUM G.4): the Type B sources are taken as exactly known (infinite); the noise
+term has the fit's residual degrees of freedom 2 n_f - p when its covariance was scaled by chi^2/dof
+(Birge: the scale is then estimated from those few residuals), and is otherwise the sine fits' own,
+each resting on thousands of samples (infinite).  ``to_dict`` stores them per parameter as
+``dof: {source: nu}`` (only the finite ones); ``station.ident.coverage`` turns them into the
+effective degrees of freedom (Welch-Satterthwaite) and k.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -50,6 +57,7 @@ class Budget:
     units: tuple[str, ...]
     covs: dict[str, FloatArray | None]
     free: NDArray[np.bool_]
+    dof: dict[str, float] = field(default_factory=dict)
 
     @property
     def cov(self) -> FloatArray:
@@ -78,6 +86,8 @@ class Budget:
                 continue
             c = {s: (None if v is None else float(np.sqrt(max(v[i, i], 0.0)))) for s, v in self.covs.items()}
             out[n] = {"contributions": c, "combined": float(self.combined[i]), "unit": u}
+            if self.dof:
+                out[n]["dof"] = dict(self.dof)
         return out
 
 
@@ -108,8 +118,9 @@ def _mass_derivative(model: Model, theta: FloatArray, f_hz: FloatArray,
 
 
 def uncertainty_budget(model: Model, theta: FloatArray, noise_cov: FloatArray, frf: FrequencyResponse,
-                       free: NDArray[np.bool_], inputs: IdentInputs) -> Budget:
-    """The budget of the free parameters of ``theta`` (held ones get zero rows and columns)."""
+                       free: NDArray[np.bool_], inputs: IdentInputs, noise_dof: float | None = None) -> Budget:
+    """The budget of the free parameters of ``theta`` (held ones get zero rows and columns);
+    noise_dof: the noise term's degrees of freedom when finite (module docstring), else None."""
     n = theta.size
     idx = np.nonzero(free)[0]
     P = _projector(model, theta, frf, free)
@@ -144,4 +155,5 @@ def uncertainty_budget(model: Model, theta: FloatArray, noise_cov: FloatArray, f
         covs[name] = None if m.std is None else spread(
             [(_mass_derivative(model, theta, f, name), float(m.std))])
     covs["radius"] = np.zeros((n, n))
-    return Budget(tuple(model.names), tuple(model.units), covs, np.asarray(free, bool))
+    return Budget(tuple(model.names), tuple(model.units), covs, np.asarray(free, bool),
+                  {} if noise_dof is None else {"noise": float(noise_dof)})

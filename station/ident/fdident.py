@@ -161,7 +161,8 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
         checks += [sensor] if sensor else []
     free = np.diag(fit.cov) > 0
     free[3:] &= np.array(rep.identifiable[3:], bool)
-    budget = uncertainty_budget(model, fit.theta, fit.cov, frf, free, inputs)
+    budget = uncertainty_budget(model, fit.theta, fit.cov, frf, free, inputs,
+                                noise_dof=float(fit.dof) if fit.inflated else None)
     reasons = list(rep.reasons)
     n_f = int(np.unique(np.round(frf.f_hz, 6)).size)
     if n_f == 1 and isinstance(model, SdofModel):

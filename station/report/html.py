@@ -5,12 +5,17 @@ from __future__ import annotations
 
 import base64
 import logging
+import math
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
 from station import __version__
+from station.errors import StationError
+from station.ident.coverage import coverages
+from station.ident.frf import FrequencyResponse
+from station.ident.montecarlo import check_result
 from station.ident.result import estimates_from_dict
 from station.report.campaign import campaign_section
 from station.report.data import RunData, load_run
@@ -24,6 +29,7 @@ from station.report.quantities import (
     range_text,
     structure_sentence,
 )
+from station.report.statement import uncertainty_statement
 from station.report.tables import PARAM_HEADERS, budget_table, esc, num, param_rows, table
 
 log = logging.getLogger(__name__)
@@ -121,14 +127,53 @@ def _budget(d: RunData) -> str:
 
 
 def _parameters(d: RunData) -> str:
+    ks = {n: c.k for n, c in coverages(d.ident.budget).items()}
     return ("<h2>Identified parameters</h2>" + table(PARAM_HEADERS, param_rows(d.ident.parameters,
-                                                                                 "param."), "params")
+                                                                                 "param.", ks), "params")
             + _budget(d))
+
+
+def _statement(d: RunData) -> str:
+    sentences = uncertainty_statement(d.ident.budget, d.ident.assumptions)
+    return ('<h2>Uncertainty statement</h2><ul class="statement">'
+            + "".join(f"<li>{esc(s)}</li>" for s in sentences) + "</ul>")
+
+
+def _monte_carlo(path: Path, d: RunData, trials: int) -> str:
+    """GUM Supplement 1 check of the linear budget (station.ident.montecarlo)."""
+    if trials <= 0:
+        return ""
+    try:
+        r = d.response
+        zero = np.zeros(r.f_hz.size)
+        mc = check_result(d.rec, d.ident, frf=FrequencyResponse(r.f_hz, r.H, r.cov, zero, zero), trials=trials, seed=0)
+    except StationError as e:
+        return f'<h2>Monte Carlo check (GUM Supplement 1)</h2><p class="note">not made: {esc(e)}</p>'
+    rows = [[esc(p.name), num(fmt_unc(p.u_linear), p.u_linear), num(fmt_unc(p.u_mc), p.u_mc, f"mc.{p.name}.u"),
+             num(f"{p.u_mc / p.u_linear:.3f}"), num(f"{fmt_value(p.y - p.k * p.u_linear, p.u_linear)} … "
+                                                  f"{fmt_value(p.y + p.k * p.u_linear, p.u_linear)}"),
+             num(f"{fmt_value(p.low, p.u_linear)} … {fmt_value(p.high, p.u_linear)}"),
+             num(f"{fmt_unc(p.d_low)} / {fmt_unc(p.d_high)}"), num(fmt_unc(p.delta)),
+             "yes" if p.agrees else "no", esc(p.unit)] for p in mc.parameters]
+    return ("<h2>Monte Carlo check (GUM Supplement 1)</h2>"
+            f'<p class="note">{mc.trials} trials (seed {mc.seed}) drawing {esc(", ".join(mc.sources))} and '
+            "refitting each; agreement per GUM S1 8.2: both ends of y ± U within δ (half a unit of u's one "
+            f"significant digit) of the Monte Carlo 95 % interval; with {mc.trials} trials the interval's ends "
+            f"themselves scatter by about {2.7 / math.sqrt(mc.trials):.2g} u.</p>"
+            + table(["parameter", "u linear", "u Monte Carlo", "ratio", "y ± U (linear)", "95 % interval (MC)",
+                     "d_low / d_high", "δ", "agrees", "unit"], rows, "montecarlo"))
+
+
+def mass_std(assumptions: dict) -> float:
+    """u(M) of M = m_e + m_l from the result's assumptions (0 for a mass without one)."""
+    us = [(assumptions.get(k) or {}).get("std") for k in ("end_mass_kg", "load_mass_kg")]
+    return math.hypot(*[float(u) if isinstance(u, int | float) else 0.0 for u in us])
 
 
 def _sensitivity(d: RunData) -> str:
     r = d.response
-    mag, u_mag, ph, u_ph = measured_sensitivity(r.H, r.cov, d.mass_kg)
+    u_m = mass_std(d.ident.assumptions)
+    mag, u_mag, ph, u_ph = measured_sensitivity(r.H, r.cov, d.mass_kg, u_m)
     model = model_sensitivity(d.curve, r.f_hz) if d.curve is not None else None
     if model is not None:
         ph = model[2] + np.angle(np.exp(1j * (ph - model[2])))
@@ -149,8 +194,8 @@ def _sensitivity(d: RunData) -> str:
     head = ["step", "f (Hz)", "|S_dyn| (V/N)", "u (V/N)", "U, k = 2 (V/N)", "phase (°)", "u (°)", "U, k = 2 (°)"]
     if model is not None:
         head += ["model |S_dyn| (V/N)", "model U, k = 2 (V/N)", "model phase (°)", "model U, k = 2 (°)"]
-    note = (f"S_dyn(f) = −H(f)/M with M = {d.mass_kg:g} kg: force signal per inertial force of the moving "
-            f"masses. Measured points from {r.source}.")
+    note = (f"S_dyn(f) = −H(f)/M with M = {d.mass_kg:g} kg (u(M) = {u_m:.2g} kg, in the points' u): force signal "
+            f"per inertial force of the moving masses. Measured points from {r.source}.")
     extra = d.curve.note if d.curve is not None else d.curve_note
     if extra:
         note += f" {extra[0].upper()}{extra[1:]}."
@@ -211,19 +256,16 @@ def _discrepancy(d: RunData) -> str:
     return "".join(out)
 
 
-def render_report(recording_path: Path) -> str:
-    """The complete HTML page of a recording's calibration (see module docstring)."""
+def render_report(recording_path: Path, monte_carlo: int = 0) -> str:
+    """The complete HTML page of a recording's calibration (see module docstring); monte_carlo > 0
+    adds the GUM Supplement 1 check of the budget with that many trials (refits: about 3 ms each)."""
     path = Path(recording_path)
     d = load_run(path)
     now = datetime.now(UTC).isoformat(timespec="seconds")
     title = f"Calibration report: {d.rec.transducer_id}, run {d.rec.run_id}"
     body = [f"<h1>{esc(title)}</h1>",
-            f'<p class="note">Generated {now} by sinecal {esc(__version__)} from {esc(path.name)}. '
-            "u: standard uncertainty (k = 1); U = 2u: expanded uncertainty (k = 2, about 95 % coverage for "
-            "a normal distribution). The uncertainties are those of the identification (measurement noise "
-            "propagated through the fit); masses and the displacement sensor's calibration are taken as "
-            "exact.</p>",
-            _conditions(d), _model(d), _parameters(d), campaign_section(d), _sensitivity(d), _discrepancy(d),
-            _plots(path)]
+            f'<p class="note">Generated {now} by sinecal {esc(__version__)} from {esc(path.name)}.</p>',
+            _statement(d), _conditions(d), _model(d), _parameters(d), _monte_carlo(path, d, monte_carlo),
+            campaign_section(d), _sensitivity(d), _discrepancy(d), _plots(path)]
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{esc(title)}</title>'
             f"<style>{CSS}</style></head><body>{''.join(body)}</body></html>\n")

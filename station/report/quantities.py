@@ -4,8 +4,9 @@ Dynamic sensitivity (V/N): S_dyn(f) = -H(f) / M, the force signal per inertial f
 moving masses (M = m_e + m_l, a the frame acceleration); its static limit is the sensitivity S, its
 magnitude rises towards the resonance sqrt(k_f/M)/(2 pi) and its phase falls.  Measured points take
 their uncertainty from the 2x2 covariance of (Re H, Im H) (delta method); the model curve takes its
-from the parameter covariance (J C J^T).  M is taken as exact (the masses' uncertainty is not part of
-the identification).  u is the standard uncertainty (k = 1), U = 2 u the expanded one (k = 2).
+from the parameter covariance (J C J^T).  The measured points add the uncertainty of M = m_e + m_l
+in quadrature (relative, |S_dyn| u(M)/M) when it is given.  u is the standard uncertainty (k = 1),
+U = 2 u the expanded one (k = 2; these points rest on thousands of samples each).
 """
 
 from __future__ import annotations
@@ -33,11 +34,12 @@ def polar_uncertainty(z: NDArray[np.complex128], cov: FloatArray) -> tuple[Float
     return mag, u_mag, np.angle(z), u_ph
 
 
-def measured_sensitivity(H: NDArray[np.complex128], cov: FloatArray, mass_kg: float) -> tuple[
-        FloatArray, FloatArray, FloatArray, FloatArray]:
-    """|S_dyn| (V/N), u (V/N), phase (rad), u (rad) of the measured points."""
-    return polar_uncertainty(np.asarray(-np.asarray(H, complex) / mass_kg, dtype=np.complex128),
-                             np.asarray(cov, float) / mass_kg**2)
+def measured_sensitivity(H: NDArray[np.complex128], cov: FloatArray, mass_kg: float, mass_std_kg: float = 0.0
+                         ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """|S_dyn| (V/N), u (V/N), phase (rad), u (rad) of the measured points; mass_std_kg: u(M)."""
+    mag, u_mag, ph, u_ph = polar_uncertainty(np.asarray(-np.asarray(H, complex) / mass_kg, dtype=np.complex128),
+                                             np.asarray(cov, float) / mass_kg**2)
+    return mag, np.hypot(u_mag, mag * mass_std_kg / mass_kg), ph, u_ph
 
 
 def model_sensitivity(curve: ModelCurve, f_hz: ArrayLike) -> tuple[FloatArray, FloatArray | None,

@@ -35,29 +35,33 @@ def table(headers: list[str], rows: list[list[str]], cls: str = "") -> str:
     return f'<table class="{cls}"><tr>{head}</tr>{body}</table>'
 
 
-def param_rows(params: Mapping[str, Estimate], prefix: str) -> list[list[str]]:
+def param_rows(params: Mapping[str, Estimate], prefix: str, ks: Mapping[str, float] | None = None
+               ) -> list[list[str]]:
+    """Rows of PARAM_HEADERS; ks: the coverage factor per parameter (from its budget's effective
+    degrees of freedom, station.ident.coverage), COVERAGE_K where not given."""
     rows = []
     for name, p in params.items():
         unit = esc(p.unit)
         if not p.identifiable or p.value is None:
             why = p.reason or "no value"
             rows.append([esc(name), esc(MEANING.get(name, "")),
-                         f'<td colspan="5" class="na" data-key="{prefix}{esc(name)}">not identifiable: {esc(why)}</td>',
+                         f'<td colspan="6" class="na" data-key="{prefix}{esc(name)}">not identifiable: {esc(why)}</td>',
                          unit])
             continue
         v, u = float(p.value), p.std
+        k = (ks or {}).get(name, COVERAGE_K)
         meaning = esc(MEANING.get(name, "")) + (f' <span class="na">({esc(p.flag)}: {esc(p.reason)})</span>'
                                                if p.flag else "")
         rows.append([esc(name), meaning, num(fmt_value(v, u), v, f"{prefix}{name}"),
                      num(fmt_unc(u), u, f"{prefix}{name}.u"),
-                     num(fmt_unc(COVERAGE_K * u) if u is not None else "n/a",
-                          COVERAGE_K * u if u is not None else None, f"{prefix}{name}.U"),
-                     num(fmt_rel(v, COVERAGE_K * u if u is not None else None)),
-                     num("" if u is None else f"{fmt_value(v, u)} ± {fmt_unc(COVERAGE_K * u)}"), unit])
+                     num(fmt_unc(k * u) if u is not None else "n/a", k * u if u is not None else None,
+                         f"{prefix}{name}.U"), num(f"{k:.3g}", k, f"{prefix}{name}.k"),
+                     num(fmt_rel(v, k * u if u is not None else None)),
+                     num("" if u is None else f"{fmt_value(v, u)} ± {fmt_unc(k * u)}"), unit])
     return rows
 
 
-PARAM_HEADERS = ["parameter", "meaning", "value", "u (k = 1)", "U (k = 2)", "U rel. (%)", "value ± U (k = 2)",
+PARAM_HEADERS = ["parameter", "meaning", "value", "u (k = 1)", "U = k u (95 %)", "k", "U rel. (%)", "value ± U",
                  "unit"]
 
 
