@@ -197,12 +197,20 @@ def test_delay_and_drift_with_own_time_origins(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_an_import_without_rig_limits_says_why_nothing_is_proposed(tmp_path: Path) -> None:
+def test_an_import_without_rig_limits_says_why_nothing_is_proposed(tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Without rig limits the JSON says why nothing is proposed; --config (the rig's station
+    configuration) gives them."""
     cfg = scenario_config({}, seed=4, n_steps=3, record_s=0.3, settle_s=0.05)
-    rep = analyse_recording(_export_edit(simulate_run(cfg, tmp_path / "sim", seed=4), tmp_path, drop_rig=True),
-                            max_effects=1)
-    out = rep.to_json()
+    rec = _export_edit(simulate_run(cfg, tmp_path / "sim", seed=4), tmp_path, drop_rig=True)
+    out = analyse_recording(rec, max_effects=1).to_json()
     assert out["proposal"] is None and "no rig limits" in out["proposal_note"] and "--config" in out["proposal_note"]
+    station_yaml = tmp_path / "station.yaml"
+    station_yaml.write_text(yaml.safe_dump(cfg.model_dump(mode="json", exclude_none=True)), encoding="utf-8")
+    assert station_main(["discrepancy", str(rec), "--json", "--no-plot", "--max-effects", "1",
+                         "--config", str(station_yaml)]) == 0
+    given = json.loads(capsys.readouterr().out)
+    assert given["proposal"] is not None or "no rig limits" not in given["proposal_note"], given["proposal_note"]
 
 
 @pytest.mark.slow
