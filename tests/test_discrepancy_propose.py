@@ -76,6 +76,7 @@ def test_candidate_steps_stay_within_the_limits_under_every_model(tmp_path: Path
     for f, r in steps:
         check_steps(cfg, [StepRequest(f, r)])  # the station's own refusal rule
         assert fr.min <= f <= fr.max and rr.min <= r <= rr.max
+        assert r * cfg.displacement_sensor.gain_V_per_m <= cfg.daq.displacement_range_V  # no clipped motion
         for fit in (stiff, soft):  # dynamic peak force, computed here from paper Eq. 8/9
             v = fit.values
             t = Transducer(k_f=v["k_f"], b_f=v["b_f"], m_e=data.end_mass_kg, m_l=data.load_mass_kg,

@@ -106,17 +106,21 @@ def _amplification(fit: ModelFit, data: RigData, f: np.ndarray) -> np.ndarray:
 
 def candidate_steps(cfg: StationConfig, data: RigData, fits: Sequence[ModelFit]) -> list[tuple[float, float]]:
     """The rig's frequency range on a log grid, each at the largest radius (3 significant digits,
-    rounded down) within ``FILL`` of the force limit under every model, inside the radius range."""
+    rounded down) within ``FILL`` of the force limit under every model, inside the radius range, and
+    within ``FILL`` of the displacement channel's range (sensor gain times radius: a clipped
+    displacement is no measurement)."""
     fr, rr = cfg.rig.crank_frequency_hz, cfg.rig.crank_radius_m
     freqs = np.unique([float(f"{f:.3g}") for f in np.geomspace(max(fr.min, 0.5), fr.max, N_GRID)])
     freqs = freqs[(freqs >= fr.min) & (freqs <= fr.max)]
     amp = np.max([_amplification(fit, data, freqs) for fit in fits], axis=0)
     M = data.total_mass_kg
+    # the displacement channel must not clip either: r gain within FILL of the ADC's range
+    r_range = FILL * cfg.daq.displacement_range_V / cfg.displacement_sensor.gain_V_per_m
     out = []
     for f, a in zip(freqs, amp, strict=True):
         w2 = (2 * math.pi * f) ** 2
         r = FILL * (force_limit_N(cfg) / M - G) / (max(a, 1.0) * w2)
-        r = min(r, rr.max)
+        r = min(r, rr.max, r_range)
         r = _floor3(r) if r > 0 else 0.0
         if r < rr.min:
             continue

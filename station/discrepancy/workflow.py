@@ -35,7 +35,7 @@ from station.discrepancy.fit import ModelFit, fit_model
 from station.discrepancy.locate import fundamental_table, in_basis, out_of_basis
 from station.discrepancy.physical import implausible
 from station.discrepancy.plausible import withdraw
-from station.discrepancy.propose import KF_REL, RunContext, next_run
+from station.discrepancy.propose import FILL, KF_REL, RunContext, next_run
 from station.discrepancy.result import AddedEffect, Candidate, DiscrepancyResult
 from station.discrepancy.search import base_start, fit_candidate, with_order_alternatives
 from station.discrepancy.structure import state_structure
@@ -380,7 +380,12 @@ def run_context(rec: Recording, station: StationConfig | None = None) -> RunCont
                           [{"crank_frequency_hz": 1.0, "crank_radius_m": 1e-3}]}}
     if station is not None:
         doc["daq"] = station.daq.model_dump()
+        doc["displacement_sensor"] = station.displacement_sensor.model_dump()
         doc["identification"] = station.identification.model_dump()
+    else:  # an import's displacement chain is unknown: its range bounds no radius beyond the rig's
+        r_max = float(limits.get("crank_radius_m", {}).get("max", 1.0))
+        doc["displacement_sensor"] = {"gain_V_per_m": 10.0 * FILL / max(r_max, 1e-6)}
+        doc["daq"] = {"displacement_range_V": 10.0}
     try:
         return RunContext(parse_config(doc), steps)
     except (ValidationError, StationError) as exc:
