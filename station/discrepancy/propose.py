@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -234,13 +234,21 @@ def _run_steps(ctx: RunContext, new: Sequence[tuple[float, float]]) -> tuple[tup
 
 
 def next_run(data: RigData, final: ModelFit, added: Sequence[Any], ctx: RunContext | None, *,
-             alpha: float, margin: float) -> Proposal | None:
+             alpha: float, margin: float, coupled: ModelFit | None = None) -> Proposal | None:
     """The proposal for a finished analysis: for the first named effect whose round had runners-up
     within ``margin`` of Delta BIC (and p < ``alpha``), the final model with the named effect replaced
     by each of them is fitted and the tie proposed away; without a tie, k_f if it is poorly determined.
+    ``coupled``: the final model with a coupling free, when it leaves k_f of the transducer alone
+    undetermined (``structure``): the steps that determine k_f under it come first (settling a tie
+    between models that all rest on a stiff coupling would not tell k_f).
     None without a run context (no limits known) or when nothing needs settling."""
     if ctx is None:
         return None
+    if coupled is not None:
+        prop = propose_parameter(data, coupled, ctx)
+        if prop is not None:
+            return replace(prop, reason="k_f of the transducer alone is not determined with a coupling free "
+                                        f"(the data give the series stiffness): {prop.reason}")
     from station.discrepancy.fit import fit_model
     from station.discrepancy.search import fit_candidate
 

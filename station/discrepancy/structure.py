@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -43,6 +43,7 @@ class Structure:
     delta_chi2: float | None
     k_f_alone_range: tuple[float, float] | None
     message: str
+    coupled: ModelFit | None = field(default=None, compare=False, repr=False)  # the model with a coupling free
 
     def to_json(self) -> dict[str, Any]:
         return {"model": self.model, "series_stiffness": self.series_stiffness.to_dict(),
@@ -84,11 +85,11 @@ def state_structure(data: RigData, final: ModelFit, last: Sequence[tuple[Candida
     k, u_k = float(cpl.values["k_f"]), float(cpl.std["k_f"])
     s_k, u_s = float(final.values["k_f"]), float(final.std["k_f"])
     if not (math.isfinite(u_k) and u_k < UNDETERMINED * abs(k)):
-        return Structure(model, stiff, kf, kc, d, None,
-                         f"k_f rests on a stiff coupling: these data determine the series stiffness of transducer "
-                         f"and coupling, {s_k:.6g} N/m (series_stiffness); with a coupling free (Delta chi2 "
-                         f"{d:.3g}) k_f alone is {k:.4g} ± {u_k:.2g} N/m: not determined by this plan "
-                         "(steps near the resonances would separate them)")
+        why = (f"k_f rests on a stiff coupling: these data determine the series stiffness of transducer "
+               f"and coupling, {s_k:.6g} N/m (series_stiffness); with a coupling free (Delta chi2 "
+               f"{d:.3g}) k_f alone is {k:.4g} ± {u_k:.2g} N/m: not determined by this plan "
+               "(steps near the resonances would separate them: see proposal)")
+        return Structure(model, stiff, kf, kc, d, None, why, coupled=cpl)
     lo, hi = max(k - 2 * u_k, s_k - 2 * u_s), k + 2 * u_k
     return Structure(model, stiff, kf, kc, d, (lo, hi),
                      f"k_f rests on a stiff coupling: these data determine the series stiffness of transducer and "

@@ -263,7 +263,9 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
         notes.append(f"structure: {structure.message}")
     if data.end_mass_kg <= 0:
         notes.append("no end mass in the recording: m_e = 0 assumed, coupling not testable")
-    proposal = next_run(data, current, added, context, alpha=ALPHA, margin=AMBIGUOUS_BIC)
+    proposal = next_run(data, current, added, context, alpha=ALPHA, margin=AMBIGUOUS_BIC,
+                        coupled=None if structure is None or structure.k_f_alone_range is not None
+                        else structure.coupled)
     return DiscrepancyResult(
         recording=recording, base_gap=base.gap_V, final_gap=current.gap_V, noise_floor_V=floor,
         effects=tuple(added), parameters_before=before,
