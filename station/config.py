@@ -158,6 +158,9 @@ class SimulationConfig(_Model):
     pre_roll_s: float = Field(default=0.5, ge=0, le=60, description="standstill before the first ramp")
     effects: rp.Effects = Field(default=rp.Effects(), description="the simulator's effect catalogue "
                                 "(drivers.rig.params.Effects, bounds declared there); an absent key is off")
+    room_temperature_c: float = Field(default=20.0, ge=-40, le=80, description="the simulated room "
+                                      "sensor's mean reading")
+    room_humidity_pct: float = Field(default=45.0, ge=0, le=100)
 
 
 class DevicesConfig(_Model):
@@ -200,6 +203,57 @@ class ServiceSection(_Model):
                                     "after opening or after its last response is closed, s")
 
 
+class EnvironmentConfig(_Model):
+    """Environmental conditions entered with the run (the certificate states them): air temperature
+    in degC and relative humidity in %, with their standard uncertainties."""
+
+    temperature_c: float | None = Field(default=None, ge=-40, le=80)
+    temperature_std_c: float = Field(default=0.5, ge=0, le=20)
+    relative_humidity_pct: float | None = Field(default=None, ge=0, le=100)
+    relative_humidity_std_pct: float = Field(default=3.0, ge=0, le=50)
+
+
+class ReferenceStandard(_Model):
+    """A reference standard the calibration uses (displacement sensor, masses, DAQ/conditioner):
+    its identification, calibration certificate and when that is due again (ISO date)."""
+
+    name: str = Field(min_length=1, max_length=200)
+    kind: Literal["displacement_sensor", "masses", "daq", "conditioner", "thermometer", "other"]
+    id: str = Field(min_length=1, max_length=100)
+    certificate_id: str = Field(min_length=1, max_length=100)
+    due_date: str = Field(pattern=r"^\d{4}-\d{2}-\d{2}$")
+    traceability: str = Field(default="", max_length=300)
+
+
+class Party(_Model):
+    """A laboratory or a customer: name and postal address (lines)."""
+
+    name: str = Field(min_length=1, max_length=200)
+    address: list[str] = Field(default_factory=list, max_length=8)
+    accreditation: str = Field(default="", max_length=200)
+
+
+class CertificateUser(_Model):
+    """A named person and the role that decides what they may do with certificates."""
+
+    name: str = Field(min_length=1, max_length=100)
+    role: Literal["technician", "approver", "admin"]
+
+
+class CertificateConfig(_Model):
+    """What a calibration certificate names beside the run (docs/certificate.md): the laboratory, the
+    customer, the place, the reference standards; number_prefix of the certificate numbers;
+    dcc_schema: a path to the DCC XML Schema every DCC is validated against before issue."""
+
+    laboratory: Party = Party(name="sinecal calibration laboratory")
+    customer: Party | None = None
+    place: str = Field(default="", max_length=200)
+    standards: list[ReferenceStandard] = Field(default_factory=list, max_length=50)
+    number_prefix: str = Field(default="SC", pattern=r"^[A-Za-z0-9\-]{1,16}$")
+    dcc_schema: str | None = Field(default=None, max_length=4096)
+    users: list[CertificateUser] = Field(default_factory=list, max_length=200)
+
+
 class IdentificationConfig(_Model):
     """Identification: the measurement chain's own uncertainty (``station.ident.inputs``)."""
 
@@ -217,6 +271,8 @@ class StationConfig(_Model):
     daq: DaqConfig = DaqConfig()
     plan: PlanConfig
     identification: IdentificationConfig = IdentificationConfig()
+    environment: EnvironmentConfig = EnvironmentConfig()
+    certificate: CertificateConfig = CertificateConfig()
     devices: DevicesConfig = DevicesConfig()
     simulation: SimulationConfig | None = None
     service: ServiceSection = ServiceSection()

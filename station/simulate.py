@@ -13,6 +13,7 @@ from pathlib import Path
 
 from drivers.rig.synth import RigSynth
 from station.config import StationConfig, config_to_yaml, to_rig_physics
+from station.environment import run_environment
 from station.limits import StepRequest, check_steps
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id
 
@@ -84,7 +85,8 @@ def simulate_run(cfg: StationConfig, out_dir: str | Path, seed: int | None = Non
         sample_rate_hz=cfg.daq.sample_rate_hz, load_mass_kg=cfg.rig.load_mass_kg,
         end_mass_kg=cfg.transducer.end_mass_kg,
         sensitivity_V_per_N=cfg.transducer.sensitivity_V_per_N * cfg.conditioner.gain,
-        capacity_N=cfg.transducer.capacity_N, config_yaml=config_to_yaml(cfg))
+        capacity_N=cfg.transducer.capacity_N, config_yaml=config_to_yaml(cfg),
+        environment=run_environment(cfg, seed))
     plan = {"kind": "stepped_sine", "seed": seed,
             "steps": [s.model_dump(exclude_none=True) for s in cfg.plan.steps]}
     writer = RecordingWriter(out_dir, meta, channels, plan=plan)

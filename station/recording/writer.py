@@ -77,6 +77,8 @@ class RunMetadata:
     daq_hardware: Mapping[str, str | float | int] | None = None
     sample_rate_requested_hz: float | None = None
     drive_profile_yaml: str | None = None  # the motor drive's profile (docs/drive-profiles.md), verbatim
+    # temperature and humidity during the run (station.environment.run_environment), in the start document
+    environment: Mapping[str, Any] | None = None
 
 
 def new_run_id(transducer_id: str) -> str:

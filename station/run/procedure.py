@@ -27,6 +27,7 @@ from drivers.clock import Clock
 from drivers.daq import DaqBridge
 from drivers.motor import MotorController, MotorStatus
 from station.config import config_to_yaml
+from station.environment import run_environment
 from station.ident.sinefit import fit3, fit4
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id
 from station.recording.writer import DiskFullError, is_disk_full
@@ -214,7 +215,7 @@ class Procedure:
             capacity_N=cfg.transducer.capacity_N, config_yaml=config_to_yaml(cfg),
             daq_hardware=None if daq.hardware is None else daq.hardware.as_attrs(),
             sample_rate_requested_hz=daq_cfg.rate_requested_hz,
-            drive_profile_yaml=motor.profile.text or None)
+            drive_profile_yaml=motor.profile.text or None, environment=run_environment(cfg))
         specs = channel_specs(cfg.displacement_sensor.gain_V_per_m, lsb * daq_cfg.range_disp_V,
                               lsb * daq_cfg.range_force_V)
         writer = RecordingWriter(self.out_dir, meta, specs, plan=self.plan.to_dict(),

@@ -1,0 +1,27 @@
+"""The certificate (and the report) as HTML from Jinja2 templates, and as PDF: the same HTML through
+WeasyPrint, so the two never disagree and nothing is cut (tables wrap inside the page width)."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Any
+
+from jinja2 import Environment, PackageLoader, StrictUndefined, select_autoescape
+
+
+@lru_cache(maxsize=1)
+def _env() -> Environment:
+    return Environment(loader=PackageLoader("station.certificate", "templates"), autoescape=select_autoescape(
+        ["html", "j2"]), undefined=StrictUndefined, trim_blocks=True, lstrip_blocks=True)
+
+
+def certificate_html(content: dict[str, Any]) -> str:
+    """The certificate page of ``content.certificate_content(...)``."""
+    return _env().get_template("certificate.html.j2").render(c=content)
+
+
+def html_to_pdf(html: str) -> bytes:
+    """PDF bytes of an HTML page (WeasyPrint; A4 from the page's @page rule)."""
+    from weasyprint import HTML  # heavy: loaded on first use
+
+    return bytes(HTML(string=html).write_pdf())

@@ -1,0 +1,115 @@
+"""Calibration certificates: the ISO/IEC 17025 content from a simulated run, the PDF read back (no
+budget line cut), approval by a second person with the right role, numbering, immutability and
+replacement."""
+
+from __future__ import annotations
+
+import io
+import re
+import shutil
+from datetime import UTC, datetime
+from pathlib import Path
+
+import pytest
+from pypdf import PdfReader
+
+from station.certificate.content import certificate_content
+from station.certificate.issue import CertificateError, draft, issue, list_issued, read_issued
+from station.certificate.render import certificate_html, html_to_pdf
+from station.ident.api import identify_recording
+from station.recording import read_recording, write_result
+from tests.ident_support import sim
+
+TECH, APPROVER = "T. Technician", "A. Approver"
+
+
+@pytest.fixture(scope="module")
+def stored(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A simulated run (the shipped configuration: laboratory, customer, standards, users) with its
+    identification stored beside it."""
+    rec = sim(Path(tmp_path_factory.mktemp("cert")))
+    res = identify_recording(read_recording(rec))
+    write_result(rec, f"identify_{res.method}_{res.model}", res.to_dict())
+    return rec
+
+
+def _copy(rec: Path, tmp: Path) -> Path:
+    dst = tmp / "recordings"
+    dst.mkdir()
+    shutil.copy2(rec, dst / rec.name)
+    shutil.copytree(rec.with_name(rec.stem + ".results"), dst / (rec.stem + ".results"))
+    return dst / rec.name
+
+
+def _pdf_text(pdf: bytes) -> str:
+    return "\n".join(p.extract_text() for p in PdfReader(io.BytesIO(pdf)).pages)
+
+
+def test_draft_states_the_iso17025_content(stored: Path) -> None:
+    c = certificate_content(stored)
+    html = certificate_html(c)
+    rec = read_recording(stored)
+    env = next(d for d in rec.documents if d.get("kind") == "start")["metadata"]["environment"]
+    assert env["source"] == "simulated room sensor" and 19 < env["temperature_c"] < 21
+    for text in ("DRAFT", "Example Customer Ltd.", "sinecal demonstration laboratory", rec.transducer_id,
+                 "CAL-DS-2026-014", "2027-06-30", "CAL-M-2026-003", "stepped sine", "crank", "Levenberg",
+                 f"{env['temperature_c']:.1f} °C", "simulated room sensor", "relate only to the item calibrated",
+                 "not approved", "model structure"):
+        assert text in html, text
+    names = [r["name"] for r in c["results"]]
+    assert {"S", "k_f", "b_f", "natural_frequency_hz", "series_stiffness"} <= set(names)
+
+
+@pytest.mark.slow
+def test_the_pdf_is_the_html_and_cuts_nothing(stored: Path) -> None:
+    """WeasyPrint (about 2 s): the PDF read back holds every budget row whole on one line."""
+    c = certificate_content(stored)
+    text = _pdf_text(html_to_pdf(certificate_html(c)))
+    flat = re.sub(r"\s+", " ", text)
+    # every budget row whole on one line of the PDF: all its cells in order, "combined" last
+    assert "combined unit" in flat
+    lines = text.splitlines()
+    for row in c["budget"]["rows"]:
+        want = " ".join([row["name"], *row["cells"], row["combined"], row["unit"]])
+        assert want in lines, (want, [ln for ln in lines if ln.startswith(row["name"] + " ")])
+    for r in c["results"]:
+        assert f"{r['text']} {r['u_text']} {r['k_text']} {r['U_text']} 95 % {r['unit']}" in flat, r["name"]
+    for s in c["statement"]:
+        assert re.sub(r"\s+", " ", s) in flat
+
+
+@pytest.mark.slow
+def test_issue_needs_a_second_person_who_may_approve_and_is_immutable(stored: Path, tmp_path: Path) -> None:
+    rec = _copy(stored, tmp_path)
+    with pytest.raises(CertificateError, match="may not approve"):
+        issue(rec, prepared_by=APPROVER, approver=TECH)
+    with pytest.raises(CertificateError, match="second person"):
+        issue(rec, prepared_by=APPROVER, approver=APPROVER)
+    with pytest.raises(CertificateError, match="not a known user"):
+        issue(rec, prepared_by="Nobody", approver=APPROVER)
+    when = datetime(2026, 11, 24, 12, tzinfo=UTC)
+    first = issue(rec, prepared_by=TECH, approver=APPROVER, now=when)
+    assert first.number == "SC-2026-0001"
+    text = _pdf_text(first.path("pdf").read_bytes())
+    assert "SC-2026-0001" in text and "A. Approver (approver)" in text and "DRAFT" not in text
+    assert read_issued(first.folder, first.number).record["sha256"] == first.record["sha256"]
+    _, html = draft(rec, TECH)
+    assert "DRAFT" in html  # drafts stay drafts whatever was issued
+    # a correction is a new certificate that says what it replaces; the old one stays as issued
+    with pytest.raises(CertificateError, match="reason"):
+        issue(rec, prepared_by=TECH, approver=APPROVER, replaces=first.number, now=when)
+    second = issue(rec, prepared_by=TECH, approver=APPROVER, replaces=first.number, reason="customer address",
+                   now=when)
+    assert second.number == "SC-2026-0002"
+    assert "replaces" in second.path("html").read_text() and first.number in second.path("html").read_text()
+    with pytest.raises(CertificateError, match="replaced already"):
+        issue(rec, prepared_by=TECH, approver=APPROVER, replaces=first.number, reason="again", now=when)
+    listed = list_issued(first.folder, read_recording(rec).transducer_id)
+    assert [(x["number"], x["replaced_by"]) for x in listed] == [("SC-2026-0001", "SC-2026-0002"),
+                                                                 ("SC-2026-0002", None)]
+    assert list_issued(first.folder, "OTHER") == []
+    # altered after issue: refused when read
+    p = first.path("html")
+    p.write_text(p.read_text().replace("A. Approver", "B. Approver"))
+    with pytest.raises(CertificateError, match="altered"):
+        read_issued(first.folder, first.number)
