@@ -166,7 +166,10 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+@pytest.mark.slow  # ~5 s: a run, its live stream, the flood, the header timeout
 def test_stop_is_served_past_hundreds_of_idle_connections_and_a_trickling_one(tmp_path: Path) -> None:
+    """The cap closes the oldest idle connections, never the page's live event stream; the header
+    timeout closes a connection that trickles a request head."""
     async def go() -> None:
         async with app_in_process(tmp_path / "rec") as (m, c):
             bounds = ConnectionBounds(max_connections=64, header_timeout_s=1.0)
@@ -178,22 +181,41 @@ def test_stop_is_served_past_hundreds_of_idle_connections_and_a_trickling_one(tm
             while not server.started:
                 await asyncio.sleep(0.02)
             idle = []
+            url = f"http://127.0.0.1:{port}"
             try:
-                trickler = socket.create_connection(("127.0.0.1", port))
-                trickler.sendall(b"GET /health HTTP/1.1\r\n")  # a head that never completes
-                for _ in range(400):
-                    idle.append(socket.create_connection(("127.0.0.1", port)))
-                await asyncio.sleep(0.2)  # accepted; the oldest idle ones closed for the newer
-                assert bounds.open <= bounds.max_connections and bounds.evicted >= 400 - 64
-                url = f"http://127.0.0.1:{port}"
-                async with httpx.AsyncClient(base_url=url, timeout=NOT_THE_BUSY_TIMEOUT_S) as tcp:
-                    r = await tcp.post("/stop")
-                assert r.status_code == 200 and r.json()["stop_commanded"], r.text
-                assert await m.link.motor_fault() == (2, "emergency_stop")
-                # the trickling connection is closed by the header timeout (or the cap) all the same
+                rid = await start(c, freqs=(10.0,), record_s=120.0)
+                await wait_state(c, rid, ("running",), "recording")
+                async with httpx.AsyncClient(base_url=url, timeout=NOT_THE_BUSY_TIMEOUT_S) as sse, \
+                        sse.stream("GET", f"/runs/{rid}/events") as events:
+                    lines = events.aiter_lines()
+                    assert await anext(lines) == "event: status"  # the page's live stream is open
+                    trickler = socket.create_connection(("127.0.0.1", port))
+                    trickler.sendall(b"GET /health HTTP/1.1\r\n")  # a head that never completes
+                    for _ in range(400):
+                        idle.append(socket.create_connection(("127.0.0.1", port)))
+                    await asyncio.sleep(0.2)  # accepted; the oldest idle ones closed for the newer
+                    assert bounds.open <= bounds.max_connections and bounds.evicted >= 400 - 64
+                    async with httpx.AsyncClient(base_url=url, timeout=NOT_THE_BUSY_TIMEOUT_S) as tcp:
+                        r = await tcp.post("/stop")
+                    assert r.status_code == 200 and r.json()["stop_commanded"], r.text
+                    assert await m.link.motor_fault() == (2, "emergency_stop")
+                    # the live stream was not closed for the newcomers: it sees the run end
+                    async with asyncio.timeout(NOT_THE_BUSY_TIMEOUT_S):
+                        async for line in lines:
+                            if line == "event: end":
+                                break
+                # the oldest idle connection (the trickler) was closed for the newer ones ...
                 trickler.settimeout(NOT_THE_BUSY_TIMEOUT_S)
                 with contextlib.suppress(ConnectionResetError):  # closed with the unread head in its buffer
                     assert trickler.recv(1) == b""
+                # ... and one that trickles without a flood behind it, by the header timeout
+                late = socket.create_connection(("127.0.0.1", port))
+                late.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n")
+                late.settimeout(NOT_THE_BUSY_TIMEOUT_S)
+                with contextlib.suppress(ConnectionResetError):
+                    assert await asyncio.to_thread(late.recv, 1) == b""
+                assert bounds.timed_out >= 1
+                late.close()
             finally:
                 for s in idle:
                     s.close()

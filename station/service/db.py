@@ -8,9 +8,11 @@
   queue and is retried with a growing pause until it is taken; nothing behind it overtakes it.
   ``post`` hands a write over and returns at once (run progress, the emergency stop's record);
   ``call`` awaits one with a bound and withdraws it if it has not started by then (a run's first
-  row, an acknowledgement).  Updates of one run still waiting are merged into one write, and
-  :meth:`DbAccess.overlay` gives them to readers meanwhile, so that a run's state read back is the
-  latest one even before the database took it.
+  row, an acknowledgement).  Updates of one run still waiting are merged into one write.
+  :meth:`DbAccess.overlay` gives readers the latest values this daemon gave each run (kept for the
+  most recent runs), so that a run's state read back is the latest one whether or not the database
+  has taken it yet (a row read just before a write and a queue looked at just after it cannot
+  combine into an older state).
 
 Nothing on the emergency stop's path goes through here (see ``docs/safety.md``).
 """
@@ -37,6 +39,7 @@ T = TypeVar("T")
 
 READ_TIMEOUT_S = 3.0  # a read the database does not answer within this is refused (503)
 WRITE_WAIT_S = 5.0  # a caller awaiting its write gives up after this (the write is withdrawn)
+RECENT_RUNS = 256  # runs whose latest values are kept for readers
 MAX_READS_IN_FLIGHT = 32  # beyond this, reads are refused at once instead of queueing
 RETRY_FIRST_S = 0.1
 RETRY_MAX_S = 5.0
@@ -48,6 +51,7 @@ class _Write:
     run_id: str | None = None
     values: dict[str, Any] = field(default_factory=dict)
     future: concurrent.futures.Future[Any] | None = None
+    run_values: tuple[str, dict[str, Any]] | None = None  # a run's values ``fn`` writes (for readers, once taken)
     started: bool = False
     withdrawn: bool = False
 
@@ -61,6 +65,7 @@ class DbAccess:
         self._reads_in_flight = 0
         self._queue: collections.deque[_Write] = collections.deque()
         self._open_updates: dict[str, _Write] = {}  # run id -> its update not yet started
+        self._latest: collections.OrderedDict[str, dict[str, Any]] = collections.OrderedDict()
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
         self._closing = False
@@ -136,11 +141,18 @@ class DbAccess:
         """Queue a write; it is retried until the database takes it.  Returns at once."""
         self._enqueue(_Write(fn))
 
+    def _remember(self, run_id: str, values: dict[str, Any]) -> None:
+        """(Under the lock.)  Merge into the run's latest values, for readers."""
+        self._latest[run_id] = {**self._latest.pop(run_id, {}), **values}
+        while len(self._latest) > RECENT_RUNS:
+            self._latest.popitem(last=False)
+
     def update_run(self, run_id: str, values: dict[str, Any]) -> None:
         """Queue an update of a run's row, merged with one of the same run still waiting."""
         if not values:
             return
         with self._cond:
+            self._remember(run_id, values)  # written, however long the database takes: readers see it now
             w = self._open_updates.get(run_id)
             if w is not None and not w.started:
                 w.values.update(values)
@@ -151,18 +163,18 @@ class DbAccess:
             self._cond.notify_all()
 
     def overlay(self, run_id: str) -> dict[str, Any]:
-        """The values of a run's updates not yet in the database (applied over a row read back)."""
+        """The latest values this daemon gave the run (applied over a row read back); call it after
+        the read."""
         with self._cond:
-            out: dict[str, Any] = {}
-            for w in self._queue:
-                if w.run_id == run_id:
-                    out.update(w.values)
-            return out
+            return dict(self._latest.get(run_id, {}))
 
-    async def call(self, fn: Callable[[Store], T], *, timeout_s: float = WRITE_WAIT_S) -> T:
+    async def call(self, fn: Callable[[Store], T], *, timeout_s: float = WRITE_WAIT_S,
+                   run_values: tuple[str, dict[str, Any]] | None = None) -> T:
         """Queue a write and await its result; if it has not started within ``timeout_s`` it is
-        withdrawn and DatabaseBusyError raised (one that started is awaited to its end)."""
-        w = _Write(fn, future=concurrent.futures.Future())
+        withdrawn and DatabaseBusyError raised (one that started is awaited to its end).
+        ``run_values``: (run id, values) that ``fn`` writes into the run's row, given to readers
+        once it is taken."""
+        w = _Write(fn, future=concurrent.futures.Future(), run_values=run_values)
         self._enqueue(w)
         assert w.future is not None
         try:
@@ -234,6 +246,8 @@ class DbAccess:
                 continue
             with self._cond:
                 self._queue.popleft()
+                if w.run_values is not None:
+                    self._remember(*w.run_values)
                 if self.failed_since is not None:
                     log.warning("the database takes writes again (after %.1f s)", time.time() - self.failed_since)
                 self.failed_since, self.last_error, self._head_since = None, None, None

@@ -132,22 +132,27 @@ class JobQueue:
             return
         done = f"identified ({out['method']}, {out['model']}) in {out['wall_s']:.1f} s"
 
+        row_values = {"state": "completed", "result_name": out["result_name"], "ended": time.time(), "message": done}
+
         def note_done(store: Store) -> None:
             store.finish_job(job_id, "done")
-            store.update_run(run_id, state="completed", result_name=out["result_name"], ended=time.time(), message=done)
-        if await self._record(run_id, f"{done}, result {out['result_name']}", note_done):
+            store.update_run(run_id, **row_values)
+        if await self._record(run_id, f"{done}, result {out['result_name']}", note_done, row_values):
             log.info("run %s identified (%s)", run_id, out["result_name"])
 
     async def _job_failed(self, job_id: int, run_id: str, error: str) -> None:
         log.error("run %s: identification failed: %s", run_id, error)
         msg = f"identification failed: {error}"
 
+        row_values = {"state": "failed", "reason": msg, "message": msg, "ended": time.time()}
+
         def note_failed(store: Store) -> None:
             store.finish_job(job_id, "failed", error)
-            store.update_run(run_id, state="failed", reason=msg, message=msg, ended=time.time())
-        await self._record(run_id, msg, note_failed)
+            store.update_run(run_id, **row_values)
+        await self._record(run_id, msg, note_failed, row_values)
 
-    async def _record(self, run_id: str, outcome: str, write: Callable[[Store], None]) -> bool:
+    async def _record(self, run_id: str, outcome: str, write: Callable[[Store], None],
+                      row_values: dict[str, Any] | None = None) -> bool:
         """``write(store)`` the outcome of a job into the database (in the database's writer thread);
         while the database does not take it, keep it (log, ``unrecorded``, /health) and try
         again every RECORD_RETRY_S.  False when the daemon shut down first (the job is still
@@ -155,7 +160,8 @@ class JobQueue:
         since = time.monotonic()
         while True:
             try:
-                await self.db.call(write, timeout_s=RECORD_RETRY_S)
+                await self.db.call(write, timeout_s=RECORD_RETRY_S,
+                                   run_values=None if row_values is None else (run_id, row_values))
             except DatabaseBusyError as exc:
                 why = self.db.last_error or str(exc)
                 if run_id not in self.unrecorded:
