@@ -113,3 +113,36 @@ def test_issue_needs_a_second_person_who_may_approve_and_is_immutable(stored: Pa
     p.write_text(p.read_text().replace("A. Approver", "B. Approver"))
     with pytest.raises(CertificateError, match="altered"):
         read_issued(first.folder, first.number)
+
+
+@pytest.mark.slow
+def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None:
+    """The daemon's app in process on a seeded store: draft, refused and accepted approval, the
+    register per transducer, the issued forms."""
+    import asyncio
+
+    from tests.station_support import Seed, app_in_process, daemon_config, seed_runs
+
+    rec = tmp_path / "recordings"
+    [rid] = seed_runs(daemon_config(rec), [Seed()])
+
+    async def go() -> None:
+        async with app_in_process(rec) as (_, c):
+            r = await c.get(f"/runs/{rid}/certificate.html")
+            assert r.status_code == 200 and "DRAFT" in r.text and r.headers["content-type"].startswith("text/html")
+            assert (await c.get(f"/runs/{rid}/certificate.xml")).status_code == 404
+            assert (await c.get(f"/runs/{rid}/certificate.doc")).status_code == 422
+            bad = await c.post(f"/runs/{rid}/certificate", json={"prepared_by": APPROVER, "approver": TECH})
+            assert bad.status_code == 409 and "may not approve" in bad.json()["detail"]
+            ok = await c.post(f"/runs/{rid}/certificate", json={"prepared_by": TECH, "approver": APPROVER})
+            assert ok.status_code == 201, ok.text
+            number = ok.json()["number"]
+            html = (await c.get(f"/runs/{rid}/certificate.html")).text
+            assert number in html and "DRAFT" not in html
+            pdf = await c.get(ok.json()["pdf"])
+            assert pdf.headers["content-type"] == "application/pdf" and number in _pdf_text(pdf.content)
+            listed = (await c.get("/certificates", params={"transducer": "TX5K-0001"})).json()["certificates"]
+            assert [x["number"] for x in listed] == [number]
+            assert (await c.get("/certificates", params={"transducer": "OTHER"})).json()["certificates"] == []
+            assert (await c.get("/certificates/SC-1999-0001.html")).status_code == 404
+    asyncio.run(go())

@@ -27,7 +27,8 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from station import __version__
 from station.api.guard import BodyGuard
-from station.api.routes import campaign, proposal, runs, system
+from station.api.routes import campaign, certificates, proposal, runs, system
+from station.certificate.register import CertificateError, CertificateNotFoundError
 from station.errors import StationError
 from station.service.errors import DatabaseBusyError, ResultNotStoredError
 from station.service.manager import (
@@ -98,7 +99,8 @@ def validation_details(errors: Sequence[Any]) -> list[dict[str, Any]]:
 def install_error_handlers(app: FastAPI) -> None:
     statuses: list[tuple[type[Exception], int]] = [
         (RunNotFoundError, 404), (ResultNotStoredError, 404), (RunStateError, 409), (RigBusyError, 409),
-        (EStopLatchedError, 409), (RigUnavailableError, 503), (DatabaseBusyError, 503)]
+        (EStopLatchedError, 409), (RigUnavailableError, 503), (DatabaseBusyError, 503),
+        (CertificateNotFoundError, 404), (CertificateError, 409)]
     for cls, code in statuses:
         def handler(request: Request, exc: Exception, code: int = code) -> JSONResponse:
             return _error(code, exc)
@@ -187,6 +189,7 @@ def create_app(settings: ServiceSettings, *,
     app.add_middleware(BodyGuard, token=settings.token, max_body_bytes=settings.config.service.max_body_bytes)
     app.add_middleware(StartupFailureLine)
     app.include_router(runs.router)
+    app.include_router(certificates.router)
     app.include_router(campaign.router)
     app.include_router(proposal.router)
     app.include_router(system.router)

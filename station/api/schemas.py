@@ -444,3 +444,34 @@ class StationOut(OutModel):
     default_record_s: float
     default_steps: list[dict[str, float]]
     token_required: list[str] = Field(description="endpoints that need the bearer token")
+
+
+class CertificateIssueIn(BaseModel):
+    """Issue a run's certificate: who prepared it and who approves it (a second person whose role is
+    approver or admin); a correction names the certificate it replaces and why."""
+
+    model_config = ConfigDict(extra="forbid")
+    prepared_by: str = Field(min_length=1, max_length=100)
+    approver: str = Field(min_length=1, max_length=100)
+    replaces: str | None = Field(None, pattern=r"^[A-Za-z0-9\-]{1,40}$")
+    reason: str = Field("", max_length=500)
+
+
+class CertificateOut(OutModel):
+    """An issued certificate in the register."""
+
+    number: str
+    transducer_id: str
+    run_id: str
+    recording: str
+    issued_at: str = Field(description="ISO 8601, UTC")
+    approved_by: str
+    replaces: str | None
+    replaced_by: str | None = Field(description="the certificate that replaces (withdraws) this one")
+    html: str
+    pdf: str
+    xml: str
+
+
+class CertificateList(OutModel):
+    certificates: list[CertificateOut]

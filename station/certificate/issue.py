@@ -27,17 +27,21 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from station.certificate.content import Approval, certificate_content
+from station.certificate.register import (
+    FOLDER,
+    CertificateError,
+    CertificateNotFoundError,
+    Issued,
+    canonical_hash,
+    issued_file,
+    list_issued,
+    read_issued,
+)
 from station.certificate.render import certificate_html, html_to_pdf
 from station.config import CertificateConfig
-from station.errors import StationError
 from station.recording import read_recording
 
 APPROVING_ROLES = ("approver", "admin")
-FOLDER = "certificates"
-
-
-class CertificateError(StationError):
-    """A certificate that cannot be drafted, issued or read as asked (the message says why)."""
 
 
 class UserRoles(Protocol):
@@ -53,23 +57,6 @@ class ConfigRoles:
 
     def role_of(self, name: str) -> str | None:
         return next((u.role for u in self.config.users if u.name == name), None)
-
-
-@dataclass(frozen=True)
-class Issued:
-    """An issued certificate as stored: its record (``<number>.json``) and where its files are."""
-
-    number: str
-    record: dict[str, Any]
-    folder: Path
-
-    def path(self, ext: str) -> Path:
-        return self.folder / f"{self.number}.{ext}"
-
-
-def canonical_hash(content: Any) -> str:
-    return hashlib.sha256(json.dumps(content, sort_keys=True, separators=(",", ":"),
-                                     ensure_ascii=False).encode()).hexdigest()
 
 
 def _config(recording: Path) -> CertificateConfig:
@@ -180,37 +167,15 @@ def issue(recording: Path, *, prepared_by: str, approver: str, replaces: str | N
     return Issued(number, record, folder)
 
 
-def read_issued(folder: Path, number: str) -> Issued:
-    """An issued certificate, its hashes checked (CertificateError when unknown or altered)."""
-    if not re.fullmatch(r"[A-Za-z0-9\-]{1,40}", number):
-        raise CertificateError(f"not a certificate number: {number[:40]!r}")
-    try:
-        record = json.loads((folder / f"{number}.json").read_bytes())
-    except FileNotFoundError:
-        raise CertificateError(f"no issued certificate {number}") from None
-    it = Issued(number, record, folder)
-    sha = record.get("sha256") or {}
-    checks = {"content": canonical_hash(record.get("content")),
-              **{ext: hashlib.sha256(it.path(ext).read_bytes()).hexdigest() for ext in ("html", "pdf")
-                 if it.path(ext).exists()}}
-    bad = [k for k, v in checks.items() if sha.get(k) != v]
-    if bad:
-        raise CertificateError(f"certificate {number} has been altered ({', '.join(bad)} does not match its hash)")
-    return it
-
-
-def list_issued(folder: Path, transducer_id: str | None = None) -> list[dict[str, Any]]:
-    """The issued certificates (oldest first), optionally of one transducer: number, run, issue date,
-    approver, what each replaces and whether it has been replaced (withdrawn)."""
-    out: list[dict[str, Any]] = []
-    if not folder.is_dir():
-        return out
-    for p in sorted(folder.glob("*.json")):
-        rec = json.loads(p.read_bytes())
-        if transducer_id is not None and rec.get("transducer_id") != transducer_id:
-            continue
-        marker = folder / f"{rec['number']}.replaced"
-        replaced = json.loads(marker.read_bytes())["replaced_by"] if marker.exists() else None
-        out.append({k: rec.get(k) for k in ("number", "transducer_id", "run_id", "recording", "issued_at",
-                                            "approved_by", "replaces")} | {"replaced_by": replaced})
-    return out
+def run_document(recording: Path, ext: str) -> bytes:
+    """A run's certificate: the latest issued one of its run that has not been replaced, else its
+    draft rendered now (HTML or PDF; a draft has no DCC)."""
+    recording = Path(recording)
+    folder = folder_of(recording)
+    mine = [c for c in list_issued(folder) if c["recording"] == recording.name and c["replaced_by"] is None]
+    if mine:
+        return issued_file(folder, str(mine[-1]["number"]), ext)
+    if ext == "xml":
+        raise CertificateNotFoundError("a draft has no Digital Calibration Certificate: issue the certificate first")
+    _, html = draft(recording)
+    return html.encode() if ext == "html" else html_to_pdf(html)

@@ -3,6 +3,7 @@ WeasyPrint, so the two never disagree and nothing is cut (tables wrap inside the
 
 from __future__ import annotations
 
+import logging
 from functools import lru_cache
 from typing import Any
 
@@ -24,4 +25,5 @@ def html_to_pdf(html: str) -> bytes:
     """PDF bytes of an HTML page (WeasyPrint; A4 from the page's @page rule)."""
     from weasyprint import HTML  # heavy: loaded on first use
 
+    logging.getLogger("weasyprint.progress").setLevel(logging.WARNING)  # one line per layout step otherwise
     return bytes(HTML(string=html).write_pdf())

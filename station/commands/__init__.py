@@ -11,6 +11,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.paper",
     "station.commands.calibrate",
     "station.commands.discrepancy",
+    "station.commands.certificate",
     "station.commands.serve",
     "station.commands.ack",
     "station.commands.batch",

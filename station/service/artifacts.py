@@ -122,6 +122,29 @@ class Artifacts:
         return await self._cached((run_id, f"report:{hash(version)}"),
                                   lambda: self._locked_job(run_id, worker.report_job, str(path)))
 
+    async def certificate(self, run_id: str, ext: str) -> bytes:
+        """The run's certificate (the issued one, else the draft) as html, pdf or xml."""
+        path = await self._completed_path(run_id)
+        out: bytes = await self._locked_job(run_id, worker.certificate_job, str(path), ext)
+        return out
+
+    async def issue_certificate(self, run_id: str, prepared_by: str, approver: str, replaces: str | None,
+                                reason: str) -> dict[str, Any]:
+        path = await self._completed_path(run_id)
+        out: dict[str, Any] = await self._locked_job(run_id, worker.issue_job, str(path), prepared_by, approver,
+                                                     replaces, reason)
+        return out
+
+    async def certificates(self, transducer_id: str | None) -> list[dict[str, Any]]:
+        from station.certificate.register import FOLDER, list_issued
+
+        return await asyncio.to_thread(list_issued, self.recordings_dir / FOLDER, transducer_id)
+
+    async def issued_certificate(self, number: str, ext: str) -> bytes:
+        from station.certificate.register import FOLDER, issued_file
+
+        return await asyncio.to_thread(issued_file, self.recordings_dir / FOLDER, number, ext)
+
     async def campaign(self, run_ids: list[str]) -> dict[str, Any]:
         """The joint identification of completed runs in the render worker (``worker.campaign_job``),
         every recording held against the daemon's other accesses meanwhile (locked in id order)."""

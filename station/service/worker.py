@@ -128,6 +128,24 @@ def report_job(path: str) -> str:
 
 
 @_job
+def certificate_job(path: str, ext: str) -> bytes:
+    """The run's certificate (issued, else its draft) as html, pdf or xml bytes."""
+    from station.certificate.issue import run_document
+
+    return run_document(Path(path), ext)
+
+
+@_job
+def issue_job(path: str, prepared_by: str, approver: str, replaces: str | None, reason: str) -> dict[str, Any]:
+    """Issue the run's certificate; its listing entry."""
+    from station.certificate.issue import issue
+    from station.certificate.register import list_issued
+
+    it = issue(Path(path), prepared_by=prepared_by, approver=approver, replaces=replaces, reason=reason)
+    return next(c for c in list_issued(it.folder) if c["number"] == it.number)
+
+
+@_job
 def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
     """Compute the model-gap analysis of a recording and store it beside it as result ``discrepancy``
     (everything, ``to_dict``, with the ``max_effects`` used: where ``station discrepancy --save``

@@ -301,8 +301,20 @@ async function loadResults(id) {
   const rl = $("#report-link");
   if (d.report) { rl.href = d.report; rl.textContent = "calibration report"; } else { rl.removeAttribute("href"); rl.textContent = "report not available"; }
   $("#recording-link").href = `/runs/${encodeURIComponent(id)}/recording`;
+  showCertificate(id);
   $("#results").hidden = false;
   loadDiscrepancy(d.discrepancy);
+}
+
+// the run's certificate: the draft until a second person with the approver role issues it
+function showCertificate(id) {
+  const base = `/runs/${encodeURIComponent(id)}/certificate`;
+  for (const ext of ["html", "pdf", "xml"]) $(`#cert-${ext}`).href = `${base}.${ext}`;
+  $("#cert-form").onsubmit = async (ev) => {
+    ev.preventDefault();
+    const res = await api("POST", base, {prepared_by: $("#cert-prepared").value.trim(), approver: $("#cert-approver").value.trim()});
+    $("#cert-msg").textContent = res.ok ? `issued ${res.data.number}` : (detailText(res.data) || `refused (${res.status})`);
+  };
 }
 
 async function loadDiscrepancy(url) {
