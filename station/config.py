@@ -254,10 +254,83 @@ class CertificateConfig(_Model):
     users: list[CertificateUser] = Field(default_factory=list, max_length=200)
 
 
-class IdentificationConfig(_Model):
-    """Identification: the measurement chain's own uncertainty (``station.ident.inputs``)."""
+MethodKey = Literal["fd", "oe", "pso", "pso+", "rls"]  # station.ident.names.METHODS
+ModelChoice = Literal["auto", "sdof", "coupled", "h1", "h2"]  # "auto": fd picks Eq. 9 or Eq. 8 from the data
+MODELS_OF_METHOD: dict[str, tuple[str, ...]] = {  # the models each method is defined for
+    "fd": ("auto", "sdof", "coupled"), "oe": ("sdof", "coupled"),
+    "pso": ("h2", "h1"), "pso+": ("h2", "h1"), "rls": ("h2",)}
+MAX_METHODS = 6
 
+
+class MethodChoice(_Model):
+    """One identification a finished run gets: an estimator (``station.ident.names.METHODS``), the
+    model it fits (``auto``: Eq. 9, or Eq. 8 when the data demand and determine it; ``h2``/``h1``:
+    the paper's digital Eq. 11/10) and the seed of its random draws (the swarm's)."""
+
+    method: MethodKey
+    model: ModelChoice | None = Field(default=None, description="default: the method's first model "
+                                      "(fd: auto, oe: sdof, pso/pso+/rls: h2)")
+    seed: int = Field(default=0, ge=0, le=2**31 - 1, description="seed of the method's random draws")
+
+    @model_validator(mode="after")
+    def _model_of_method(self) -> MethodChoice:
+        allowed = MODELS_OF_METHOD[self.method]
+        if self.model is not None and self.model not in allowed:
+            raise ValueError(f"method {self.method!r} is defined for the models {', '.join(allowed)}, "
+                             f"not {self.model!r}")
+        return self
+
+    @property
+    def model_key(self) -> str:
+        return self.model or MODELS_OF_METHOD[self.method][0]
+
+    @property
+    def label(self) -> str:
+        return f"{self.method}/{self.model_key}"
+
+
+def _default_methods() -> list[MethodChoice]:
+    return [MethodChoice(method="fd", model="auto"), MethodChoice(method="pso+", model="h2")]
+
+
+def check_method_list(methods: list[MethodChoice]) -> list[MethodChoice]:
+    """An ordered list of identifications, the first being the primary: no method twice with the
+    same model (one result each), and fd's ``auto`` not beside an explicit fd model."""
+    seen: dict[tuple[str, str], int] = {}
+    for i, m in enumerate(methods):
+        key = (m.method, m.model_key)
+        if key in seen:
+            raise ValueError(f"{m.label} is listed twice (entries {seen[key]} and {i}); each (method, model) "
+                             "gives one result")
+        seen[key] = i
+    fd_models = {k[1] for k in seen if k[0] == "fd"}
+    if "auto" in fd_models and len(fd_models) > 1:
+        raise ValueError("fd/auto already gives fd/sdof or fd/coupled: list either auto or explicit fd models")
+    return methods
+
+
+class SwarmConfig(_Model):
+    """The paper's swarm (PSO/PSO+) size; null keeps Section 5.1's (200 particles, 1000 iterations
+    for Eq. 11, 2000 for Eq. 10).  Smaller swarms are for quick checks, not calibrations."""
+
+    n_particles: int | None = Field(default=None, ge=2, le=5000)
+    n_iterations: int | None = Field(default=None, ge=1, le=20000)
+
+
+class IdentificationConfig(_Model):
+    """Identification: which estimators every finished run gets (``methods``, the first being the
+    primary result) and the measurement chain's own uncertainty (``station.ident.inputs``)."""
+
+    methods: list[MethodChoice] = Field(default_factory=_default_methods, min_length=1, max_length=MAX_METHODS,
+                                        description="ordered (method, model) list; the first is the primary "
+                                        "result, the others are computed after it, beside it")
+    swarm: SwarmConfig = SwarmConfig()
     chain: MeasurementChain = MeasurementChain()
+
+    @model_validator(mode="after")
+    def _methods(self) -> IdentificationConfig:
+        check_method_list(self.methods)
+        return self
 
 
 class StationConfig(_Model):

@@ -54,9 +54,15 @@ def station_dict(*, steps: Steps | None = None, settle_s: float | None = None, r
         d["station"]["recordings_dir"] = str(recordings_dir)
     if service:
         d["service"] = service
+    d.setdefault("identification", {})["swarm"] = dict(TEST_SWARM)  # the paper's methods beside fd stay quick
     for name, values in sections.items():
         d.setdefault(name, {}).update(values)
     return d
+
+
+# The tests' swarm (PSO/PSO+ beside fd on every run): small enough to be quick; the shipped
+# configuration keeps the paper's (Section 5.1, 200 particles x 1000 iterations).
+TEST_SWARM = {"n_particles": 24, "n_iterations": 60}
 
 
 FAST = {"settle_s": 0.2, "record_s": 0.5, "acceleration_hz_per_s": 100.0, "pre_roll_s": 0.2, "steps": MULTI_RADIUS}

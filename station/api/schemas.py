@@ -20,6 +20,8 @@ ModelName = Literal["sdof", "coupled", "h1", "h2"]  # station.ident.names.MODELS
 Flag = Literal["", "poorly_determined", "conditional"]
 Severity = Literal["info", "warning", "refused"]
 EStopSource = Literal["page", "api", "controller", "drive"]
+ModelChoiceName = Literal["auto", "sdof", "coupled", "h1", "h2"]  # station.config.ModelChoice
+MethodStatus = Literal["pending", "running", "done", "refused", "failed"]  # station.run.methods.STATUSES
 
 
 class OutModel(BaseModel):
@@ -73,6 +75,22 @@ class PlannedStepOut(OutModel):
     record_s: float = Field(description="s")
 
 
+class MethodStateOut(OutModel):
+    """How one of the run's listed identifications (``identification.methods``) went."""
+
+    method: MethodName
+    model: ModelChoiceName = Field(description="as listed (fd's `auto`: the model comes with the result)")
+    primary: bool = Field(description="the first listed: the run's result")
+    status: MethodStatus = Field(description="pending, running, done, or refused / failed (see `reason`); a "
+                                 "secondary method's refusal or failure never fails the run")
+    seed: int = Field(description="seed of the method's random draws (the swarm's)")
+    result_name: str | None = Field(description="the stored result (done only)")
+    result_model: ModelName | None = Field(description="the model the result is for")
+    compute_s: float | None = Field(description="wall-clock time of the identification in its worker, s")
+    cpu_s: float | None = Field(description="processor time of the identification, s")
+    reason: str = Field(description="why there is no result (refused, failed)")
+
+
 class RunStatus(OutModel):
     """A run's state and live progress."""
 
@@ -95,6 +113,9 @@ class RunStatus(OutModel):
     recording: str | None = Field(description="file name of the HDF5 recording in the recordings folder")
     steps: list[PlannedStepOut]
     links: RunLinks
+    methods: list[MethodStateOut] = Field(default=[], description="the listed identifications of a run this "
+                                          "daemon identified since it started, as they go (the stored ones: "
+                                          "GET /runs/{id}/results)")
 
 
 class RunList(OutModel):
@@ -240,6 +261,30 @@ class SkippedStepOut(OutModel):
     reason: str
 
 
+class AgreementOut(OutModel):
+    """A parameter of a method against the primary's: difference and its combined standard uncertainty."""
+
+    difference: float | None = Field(description="this method's value minus the primary's, in `unit`")
+    combined_std: float | None = Field(description="sqrt(u^2 + u_primary^2), in `unit`")
+    z: float | None = Field(description="difference / combined_std (|z| > 2: they disagree)")
+    unit: str
+    reason: str = Field(description="why there is no z (a method withholds the parameter, and why)")
+
+
+class MethodResultOut(MethodStateOut):
+    """A listed identification with its stored result (parameters, fit, checks, budget) and its
+    agreement with the primary result."""
+
+    parameters: list[ParameterOut] = []
+    fit: FitOut | None = None
+    identifiability: IdentifiabilityOut | None = None
+    notes: list[str] = []
+    checks: list[CheckOut] = []
+    budget: dict[str, BudgetOut] = Field(default={}, description="per parameter")
+    agreement: dict[str, AgreementOut] = Field(default={}, description="per parameter, against the primary "
+                                               "result (empty for the primary and for a method without result)")
+
+
 class RunResults(OutModel):
     id: str
     state: RunState
@@ -269,6 +314,9 @@ class RunResults(OutModel):
     report: str = Field(description="URL of the calibration report (HTML)")
     discrepancy: str = Field(description="URL of the model-gap analysis")
     lost_samples: int
+    methods: list[MethodResultOut] = Field(default=[], description="every listed identification side by side, "
+                                           "the primary first (the top-level fields are the primary's); empty for "
+                                           "runs identified before methods were listed")
 
 
 class DiscrepancyOut(BaseModel):

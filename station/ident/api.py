@@ -26,7 +26,7 @@ from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.models import Model, SdofModel, make_model
 from station.ident.names import METHODS, MODELS
 from station.ident.oe import fit_oe
-from station.ident.protocol import PaperProtocol
+from station.ident.protocol import PUBLISHED_SWARM, PaperProtocol, SwarmSize
 from station.ident.result import FitSummary, IdentificationResult, estimated_covariance, estimates
 from station.ident.steps import CheckedResponse, checked_response, measured_response
 from station.ident.structure import structure_statement
@@ -117,14 +117,14 @@ def store_result(path: str | Path, res: IdentificationResult) -> str:
 def identify_recording(rec: Recording, method: str | None = None, model: str | None = None, *,
                        seed: int = 0, protocol: PaperProtocol = DEFAULT_PROTOCOL,
                        policy: Policy = DEFAULT_POLICY, response: CheckedResponse | None = None,
-                       inputs: IdentInputs | None = None) -> IdentificationResult:
+                       inputs: IdentInputs | None = None, swarm: SwarmSize = PUBLISHED_SWARM) -> IdentificationResult:
     """Identify the transducer from a recording.
 
     response: its checked H(f) if already computed (used by 'fd'); inputs: masses and chain,
     default ``inputs_for(rec)``.  Default method: 'fd' (the efficient estimator for stepped-sine
     data, at the Cramér-Rao bound; with a single frequency it reports what is not identifiable);
     default model: 'auto' for fd (Eq. 9, Eq. 8 when the data demand and determine it), 'sdof' for
-    oe, 'h2' for the paper's methods."""
+    oe, 'h2' for the paper's methods.  ``swarm``: another swarm size than Section 5.1's (pso, pso+)."""
     method = method or "fd"
     if method not in METHODS:
         raise BadInputError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
@@ -150,4 +150,9 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     statement = structure_statement(form, form == "h2", inputs)
     statement["displacement_chain"]["note"] = (  # the swarm runs on the raw samples of one step
         "the paper's methods take the displacement samples as recorded: no chain correction is applied")
-    return replace(res, assumptions={**inputs.to_dict(), "structure": statement}, checks=tuple(cr.checks))
+    budget = {n: {"contributions": {"noise": p.std}, "combined": p.std, "unit": p.unit}
+              for n, p in res.parameters.items() if p.identifiable and p.std is not None}
+    notes = (*res.notes, "budget: the noise of the step's steady-state gain and phase only; the paper's methods "
+             "state no systematic terms")
+    return replace(res, assumptions={**inputs.to_dict(), "structure": statement}, checks=tuple(cr.checks),
+                   budget=budget, notes=notes)

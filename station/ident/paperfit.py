@@ -31,7 +31,7 @@ from scipy.signal import lfilter
 from station.ident.frf import FrequencyResponse, _ratio_cov, whitened_jacobian
 from station.ident.identifiability import Policy, assess
 from station.ident.models import DigitalTF, Model
-from station.ident.protocol import PaperData, PaperProtocol, paper_data, testing_mse
+from station.ident.protocol import PUBLISHED_SWARM, PaperData, PaperProtocol, SwarmSize, paper_data, testing_mse
 from station.ident.pso import SECTION5_H1, SECTION5_H2, PsoSettings, identify_digital
 from station.ident.result import FitSummary, Identifiability, IdentificationResult, estimated_covariance, estimates
 from station.ident.rls import rls_h2
@@ -120,13 +120,15 @@ def steady_state_uncertainty(model: Model, theta: FloatArray, data: PaperData,
 
 def identify_paper_method(rec: Recording, method: str, form: str, model: Model, *, seed: int = 0,
                           protocol: PaperProtocol = DEFAULT_PROTOCOL,
-                          policy: Policy = DEFAULT_POLICY) -> IdentificationResult:
+                          policy: Policy = DEFAULT_POLICY, swarm: SwarmSize = PUBLISHED_SWARM) -> IdentificationResult:
     """PSO / PSO+ (form 'h2' = Eq. 11 or 'h1' = Eq. 10) or RLS (Eq. 17) on one step of ``rec``;
-    the swarm's answer is checked for stability and plausibility (module docstring)."""
+    the swarm's answer is checked for stability and plausibility (module docstring).  ``swarm``:
+    another size than Section 5.1's (quick checks)."""
     data = paper_data(rec, protocol)
     extra: dict = {"step_index": data.step_index, "f_hz": data.f_hz, "T_s": data.T, "form": form}
     others: dict[int, FloatArray] = {}
-    settings = replace(SECTION5_H2 if form == "h2" else SECTION5_H1, variant="pso+" if method == "pso+" else "pso")
+    settings = swarm.applied(replace(SECTION5_H2 if form == "h2" else SECTION5_H1,
+                                     variant="pso+" if method == "pso+" else "pso"))
     if method == "rls":
         r = rls_h2(data.x_id, data.y_id)
         b, a = r.b, r.a

@@ -10,14 +10,18 @@ input and the force signal minus its mean (the gravity preload) as the output.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from fractions import Fraction
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from station.errors import BadInputError
 from station.recording import Recording, Step
+
+if TYPE_CHECKING:
+    from station.ident.pso import PsoSettings
 
 FloatArray = NDArray[np.float64]
 
@@ -33,6 +37,21 @@ class PaperProtocol:
     n_test: int = 400
     step_index: int | None = None
     edge_s: float = 0.05
+
+
+@dataclass(frozen=True)
+class SwarmSize:
+    """A swarm size other than the published one (None: keep the settings' own; ``pso.PsoSettings``)."""
+
+    n_particles: int | None = None
+    n_iterations: int | None = None
+
+    def applied(self, settings: PsoSettings) -> PsoSettings:
+        return replace(settings, n_particles=self.n_particles or settings.n_particles,
+                       n_iterations=self.n_iterations or settings.n_iterations)
+
+
+PUBLISHED_SWARM = SwarmSize()  # the paper's own settings (Section 5.1)
 
 
 @dataclass(frozen=True)

@@ -10,10 +10,10 @@ from typing import Any
 
 from drivers.clock import Clock
 from station.config import StationConfig
-from station.ident.api import identify_recording, store_result
 from station.ident.result import IdentificationResult
 from station.ident.steps import checked_response
 from station.recording import read_recording
+from station.run.methods import identify_all, identify_primary
 from station.run.procedure import Procedure, Progress, RunOutcome
 from station.run.processing import process_recording
 from station.run.request import RunRequest, plan_run
@@ -39,16 +39,19 @@ class CalibrationResult:
                           f"lost samples: {self.outcome.lost_samples}"])
 
 
-def process_and_identify(path: Path) -> IdentificationResult:
-    """After a run: H(f) per step (``processed/steps``), then the default identification
-    (``results/identify_<method>_<model>``), both stored beside the recording; the recording is read
-    once and H(f) computed once (the identification fits what ``processed/steps`` holds)."""
+def process_and_identify(path: Path, *, secondaries: bool = True) -> IdentificationResult:
+    """After a run: H(f) per step (``processed/steps``), then the listed identifications
+    (``identification.methods`` of the recording's configuration, ``station.run.methods``): the
+    primary's result (``results/identify_<method>_<model>``), stored beside the recording with every
+    method's outcome (``results/methods``); ``secondaries`` False: the primary only, the others left
+    pending (the daemon runs them as jobs of their own).  The recording is read once and H(f)
+    computed once (the expert estimator fits what ``processed/steps`` holds)."""
     rec = read_recording(path)
     response = checked_response(rec)
     process_recording(path, rec, response)
-    res = identify_recording(rec, response=response)
-    store_result(path, res)
-    return res
+    if secondaries:
+        return identify_all(path, rec, response)
+    return identify_primary(path, rec, response)[1]
 
 
 async def run_and_identify(cfg: StationConfig, request: RunRequest, out_dir: Path, *, sim: bool,

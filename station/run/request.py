@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from station.config import MAX_STEPS, MAX_TOP_MASS_KG, StationConfig
+from station.config import MAX_METHODS, MAX_STEPS, MAX_TOP_MASS_KG, MethodChoice, StationConfig, check_method_list
 from station.errors import LimitError
 from station.limits import StepRequest, check_steps, max_radius_m
 
@@ -35,11 +35,20 @@ class RunRequest(BaseModel):
     transducer_id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")
     top_mass_kg: float = Field(gt=0, le=MAX_TOP_MASS_KG, description="top mass in kg (without the adaption)")
     steps: list[StepSpec] = Field(min_length=1, max_length=MAX_STEPS)
+    methods: list[MethodChoice] | None = Field(
+        default=None, min_length=1, max_length=MAX_METHODS,
+        description="this run's identifications, ordered, the first being the primary result (default: the "
+        "configuration's identification.methods)")
 
     @field_validator("top_mass_kg", mode="before")
     @classmethod
     def _a_number(cls, v: object) -> object:
         return _number_only(v)
+
+    @field_validator("methods")
+    @classmethod
+    def _methods(cls, v: list[MethodChoice] | None) -> list[MethodChoice] | None:
+        return None if v is None else check_method_list(v)
 
 
 def _number_only(v: object) -> object:
@@ -83,6 +92,9 @@ def plan_run(cfg: StationConfig, request: RunRequest) -> Plan:
                          f"({cfg.transducer.id!r}, from the configuration)", field="transducer_id",
                          value=request.transducer_id, limit=cfg.transducer.id)
     eff = cfg.model_copy(update={"rig": cfg.rig.model_copy(update={"top_mass_kg": request.top_mass_kg})})
+    if request.methods is not None:  # stored with the recording's configuration: the worker reads it there
+        eff = eff.model_copy(update={"identification": eff.identification.model_copy(
+            update={"methods": list(request.methods)})})
     check_steps(eff, [StepRequest(s.crank_frequency_hz, s.crank_radius_m) for s in request.steps])
     steps = tuple(
         PlannedStep(i, s.crank_frequency_hz, s.crank_radius_m,

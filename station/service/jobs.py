@@ -13,9 +13,13 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections import OrderedDict
 from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
+from station.run.methods import SETTLED, MethodOutcome, write_outcomes
 from station.service import worker
 from station.service.artifacts import Artifacts
 from station.service.changes import Changes
@@ -27,6 +31,7 @@ log = logging.getLogger(__name__)
 
 MAX_JOB_ATTEMPTS = 3
 RECORD_RETRY_S = 5.0  # how often an outcome the database refused is written again
+MAX_TRACKED_OUTCOMES = 256  # runs whose method outcomes the daemon keeps in memory (RunStatus.methods)
 
 
 class JobQueue:
@@ -44,6 +49,8 @@ class JobQueue:
         self._dispatcher: asyncio.Task[None] | None = None
         self._tasks: set[asyncio.Task[None]] = set()
         self.unrecorded: dict[str, str] = {}  # run id -> the outcome the database has not taken yet, and why
+        # run id -> every listed method's outcome, for the runs this daemon identified (newest kept)
+        self.outcomes: OrderedDict[str, list[MethodOutcome]] = OrderedDict()
 
     def start(self) -> None:
         self._dispatcher = asyncio.create_task(self._dispatch(), name="job-dispatcher")
@@ -131,14 +138,64 @@ class JobQueue:
             await self._job_failed(job_id, run_id, f"{type(exc).__name__}: {exc}")
             return
         done = f"identified ({out['method']}, {out['model']}) in {out['wall_s']:.1f} s"
+        outcomes = [MethodOutcome.from_dict(d) for d in out.get("outcomes", [])]
+        rest = len(outcomes) - 1
+        later = f"; {rest} more method{'s' if rest > 1 else ''} to follow" if rest > 0 else ""
+        self.outcomes[run_id] = outcomes
+        while len(self.outcomes) > MAX_TRACKED_OUTCOMES:
+            self.outcomes.popitem(last=False)
 
-        row_values = {"state": "completed", "result_name": out["result_name"], "ended": time.time(), "message": done}
+        row_values = {"state": "completed", "result_name": out["result_name"], "ended": time.time(),
+                      "message": done + later}
 
-        def note_done(store: Store) -> None:
+        def note_primary(store: Store) -> None:  # the primary result is the run's: completed now
+            if rest <= 0:
+                store.finish_job(job_id, "done")
+            store.update_run(run_id, **row_values)
+        if not await self._record(run_id, f"{done}, result {out['result_name']}", note_primary, row_values):
+            return
+        log.info("run %s identified (%s)%s", run_id, out["result_name"], later)
+        if rest > 0:
+            await self._secondaries(job_id, run_id, path, outcomes, done)
+
+    async def _secondaries(self, job_id: int, run_id: str, path: Path, outcomes: list[MethodOutcome],
+                           done: str) -> None:
+        """The listed methods after the primary, one worker job each, without the recording's lock
+        (they only read it; the results page stays readable meanwhile).  A refusal, a failure or a
+        dead worker is that method's outcome: the run stays completed.  The job is done once every
+        method has an outcome (a daemon stopped before computes them again at its next start)."""
+        for i in range(1, len(outcomes)):
+            if self.closing.is_set():
+                return  # the job stays running in the database: requeued at the next start
+            outcomes[i] = replace(outcomes[i], status="running")
+            self.changes.changed(run_id)
+            try:
+                got = MethodOutcome.from_dict(await self.pool.run(worker.secondary_job, str(path), i))
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # a dead worker, an unpicklable answer: this method's outcome only
+                if self.closing.is_set():
+                    return
+                got = replace(outcomes[i], status="failed", reason=f"{type(exc).__name__}: {exc}")
+            outcomes[i] = got
+            try:
+                await asyncio.to_thread(write_outcomes, path, list(outcomes))
+            except Exception as exc:
+                log.error("run %s: the outcome of %s could not be stored: %s", run_id, got.label, exc)
+            log.info("run %s: %s %s%s", run_id, got.label, got.status, f" ({got.reason})" if got.reason else "")
+            self.changes.changed(run_id)
+        summary = ", ".join(f"{o.label} {o.status}" for o in outcomes[1:])
+
+        row_values = {"message": f"{done}; {summary}"}
+
+        def note_all(store: Store) -> None:
             store.finish_job(job_id, "done")
             store.update_run(run_id, **row_values)
-        if await self._record(run_id, f"{done}, result {out['result_name']}", note_done, row_values):
-            log.info("run %s identified (%s)", run_id, out["result_name"])
+        await self._record(run_id, f"all methods settled ({summary})", note_all, row_values)
+
+    def identifying(self, run_id: str) -> bool:
+        """True while a listed method of the run has no outcome yet (the daemon's own view)."""
+        return any(o.status not in SETTLED for o in self.outcomes.get(run_id, ()))
 
     async def _job_failed(self, job_id: int, run_id: str, error: str) -> None:
         log.error("run %s: identification failed: %s", run_id, error)

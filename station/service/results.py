@@ -12,6 +12,7 @@ import numpy as np
 from station.ident.result import IdentificationResult
 from station.recording import read_result
 from station.recording.stored import read_processed
+from station.run.methods import agreement, read_outcomes
 
 
 def finite(obj: Any) -> Any:
@@ -65,8 +66,34 @@ def load_results(path: Path, result_name: str) -> dict[str, Any]:
     out: dict[str, Any] = {"method": None, "model": None, "parameters": [], "fit": None, "identifiability": None,
                            "notes": [], "checks": [], "budget": {}, "assumptions": {}, "determined": {},
                            "covariance": None}
-    if doc is not None:
-        ident = IdentificationResult.from_dict(doc).to_dict()
-        out.update({k: ident[k] for k in out if k != "parameters"})
-        out["parameters"] = [{"name": name, **p} for name, p in ident["parameters"].items()]  # the API's order
-    return finite({**out, "frequency_response": steps, "skipped_steps": skipped, "units": units})
+    primary = None if doc is None else IdentificationResult.from_dict(doc)
+    if primary is not None:
+        out.update(_result_fields(primary, tuple(out)))
+    methods = method_results(path, primary)
+    return finite({**out, "frequency_response": steps, "skipped_steps": skipped, "units": units, "methods": methods})
+
+
+def _result_fields(res: IdentificationResult, keys: tuple[str, ...]) -> dict[str, Any]:
+    """``keys`` of the result's JSON form, ``parameters`` as a list in the model's order (the API's)."""
+    d = res.to_dict()
+    return {k: [{"name": n, **p} for n, p in d["parameters"].items()] if k == "parameters" else d[k]
+            for k in keys if k in d}
+
+
+METHOD_KEYS = ("parameters", "fit", "identifiability", "notes", "checks", "budget")
+
+
+def method_results(path: Path, primary: IdentificationResult | None) -> list[dict[str, Any]]:
+    """Every listed identification's outcome with its stored result and its agreement with the
+    primary (``station.run.methods``), in the listed order; [] when none were listed."""
+    out = []
+    for o in read_outcomes(path):
+        entry: dict[str, Any] = {**o.to_dict(), "agreement": {}}
+        doc = read_result(path, o.result_name) if o.status == "done" and o.result_name else None
+        if doc is not None:
+            res = IdentificationResult.from_dict(doc)
+            entry.update(_result_fields(res, METHOD_KEYS))
+            if primary is not None and not o.primary:
+                entry["agreement"] = agreement(primary, res)
+        out.append(entry)
+    return out

@@ -93,13 +93,30 @@ def _job(fn: Callable[..., T]) -> Callable[..., T]:
 
 @_job
 def identify_job(path: str) -> dict[str, Any]:
-    """H(f) per step, then the identification, stored beside the recording (station.run.calibrate)."""
-    from station.run.calibrate import process_and_identify
+    """H(f) per step, then the primary identification, stored beside the recording with every listed
+    method's outcome (the others ``pending``: ``secondary_job`` computes each; station.run.methods)."""
+    from station.ident.steps import checked_response
+    from station.recording import read_recording
+    from station.run.methods import identify_primary
+    from station.run.processing import process_recording
 
     t0 = time.perf_counter()
-    res = process_and_identify(Path(path))
+    rec = read_recording(Path(path))
+    response = checked_response(rec)
+    process_recording(Path(path), rec, response)
+    outcomes, res = identify_primary(Path(path), rec, response)
     return {"result_name": res.result_name, "method": res.method, "model": res.model,
-            "wall_s": time.perf_counter() - t0}
+            "wall_s": time.perf_counter() - t0, "outcomes": [o.to_dict() for o in outcomes]}
+
+
+@_job
+def secondary_job(path: str, index: int) -> dict[str, Any]:
+    """Listed identification ``index`` (>= 1) of the recording, its result stored beside it; its
+    outcome (``MethodOutcome.to_dict``): a refusal or failure is an outcome, never an exception."""
+    from station.recording import read_recording
+    from station.run.methods import identify_secondary
+
+    return identify_secondary(Path(path), read_recording(Path(path)), index).to_dict()
 
 
 @_job

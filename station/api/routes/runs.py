@@ -15,6 +15,7 @@ from station.api.schemas import (
     AbortOut,
     DiscrepancyOut,
     ErrorOut,
+    MethodStateOut,
     PlannedStepOut,
     RunAccepted,
     RunLinks,
@@ -27,6 +28,7 @@ from station.api.schemas import (
 )
 from station.errors import LimitError
 from station.report.names import PLOT_NAMES
+from station.run.methods import SETTLED, MethodOutcome
 from station.run.request import RunRequest
 from station.service.manager import RunStateError
 from station.service.results import load_results
@@ -66,14 +68,15 @@ def links(run_id: str) -> RunLinks:
                     recording=f"{base}/recording", abort=f"{base}/abort")
 
 
-def status_of(row: RunRow) -> RunStatus:
+def status_of(row: RunRow, methods: list[MethodOutcome] | None = None) -> RunStatus:
     steps = [PlannedStepOut(**{k: s[k] for k in PlannedStepOut.model_fields}) for s in row.plan.get("steps", [])]
     return RunStatus(id=row.id, state=row.state, transducer_id=row.transducer_id,
                      top_mass_kg=row.top_mass_kg, created=utc(row.created), started=utc(row.started),
                      ended=utc(row.ended), current_step=row.step, n_steps=row.n_steps, step_state=row.step_state,
                      progress=min(1.0, max(0.0, row.fraction)), samples=row.samples,
                      lost_samples=row.lost_samples, message=row.message, reason=row.reason,
-                     recording=row.recording, steps=steps, links=links(row.id))
+                     recording=row.recording, steps=steps, links=links(row.id),
+                     methods=[MethodStateOut.model_validate(o.to_dict()) for o in methods or ()])
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=RunAccepted, dependencies=[Writer],
@@ -96,16 +99,16 @@ async def start_run(body: RunRequest, runs: RunsDep, response: Response) -> RunA
 
 @router.get("", response_model=RunList, dependencies=[Reader], responses={**E401, **E422},
             summary="List runs, newest first")
-async def list_runs(runs: RunsDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+async def list_runs(runs: RunsDep, manager: ManagerDep, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
                     state: Annotated[list[RunState] | None, Query()] = None) -> RunList:
     rows = await runs.list_runs(limit=limit, states=list(state) if state else None)
-    return RunList(count=len(rows), runs=[status_of(r) for r in rows])
+    return RunList(count=len(rows), runs=[status_of(r, manager.jobs.outcomes.get(r.id)) for r in rows])
 
 
 @router.get("/{run_id}", response_model=RunStatus, dependencies=[Reader], responses={**E401, **E404, **E422},
             summary="A run's state and progress")
-async def get_run(run: RunDep) -> RunStatus:
-    return status_of(run)
+async def get_run(run: RunDep, manager: ManagerDep) -> RunStatus:
+    return status_of(run, manager.jobs.outcomes.get(run.id))
 
 
 @router.get("/{run_id}/events", response_class=EventSourceResponse, dependencies=[Reader],
@@ -113,18 +116,26 @@ async def get_run(run: RunDep) -> RunStatus:
 async def run_events(run: RunDep, manager: ManagerDep, runs: RunsDep,
                      request: Request) -> AsyncIterable[ServerSentEvent]:
     """Event `status` (data: the RunStatus JSON) on every change, at most a few per second; event
-    `end` with the final status once the run is completed, aborted, failed or interrupted."""
+    `result` (data: the MethodStateOut JSON) when a listed identification has its outcome, the
+    primary's first (the run is then completed and its results readable), the others as they
+    follow; event `end` with the final status once the run is completed (and every listed method has
+    its outcome), aborted, failed or interrupted."""
     run_id = run.id
     version = -1
     last: dict[str, Any] | None = None
+    told: set[tuple[str, str]] = set()  # methods whose outcome was sent
     while True:
         cur = manager.changes.version(run_id)
-        st = status_of(await runs.get(run_id))
+        st = status_of(await runs.get(run_id), manager.jobs.outcomes.get(run_id))
         data = st.model_dump(mode="json")
         if data != last:
             last = data
             yield ServerSentEvent(data=data, event="status", id=str(cur))
-        if st.state in FINAL_STATES:
+            for m in data["methods"]:
+                if m["status"] in SETTLED and (m["method"], m["model"]) not in told:
+                    told.add((m["method"], m["model"]))
+                    yield ServerSentEvent(data=m, event="result", id=str(cur))
+        if st.state in FINAL_STATES and not manager.jobs.identifying(run_id):
             yield ServerSentEvent(data=data, event="end", id=str(cur))
             return
         if manager.closing.is_set() or await request.is_disconnected():

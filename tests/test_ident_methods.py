@@ -1,0 +1,176 @@
+"""Several identifications per run (``identification.methods``): the expert estimator first, the
+paper's PSO+ (Eq. 11) beside it; a secondary method's refusal never fails the run.
+
+Truth: the simulator's configuration (k_f 2.91e7 N/m, b_f 17136 N*s/m, S 2e-3 V/N); recordings are
+synthesised by ``station.simulate`` (Eq. 3 integrated), not by the estimators under test."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from station.config import IdentificationConfig, MethodChoice, parse_config
+from station.errors import ConfigError
+from station.ident.result import Estimate, FitSummary, IdentificationResult
+from station.recording import read_recording, read_result
+from station.run.methods import STATUSES, agreement, identify_all, read_outcomes
+from station.run.request import RunRequest, plan_run
+from tests.conftest import station_dict
+from tests.ident_support import sim
+from tests.station_support import app_in_process, run_body, wait_state
+
+K, B, S = 2.91e7, 17136.0, 2e-3
+
+
+# ---------------------------------------------------------------------------------------- the list
+def test_default_is_fd_first_and_pso_plus_on_eq11_beside_it() -> None:
+    methods = IdentificationConfig().methods
+    assert [(m.method, m.model_key) for m in methods] == [("fd", "auto"), ("pso+", "h2")]
+    shipped = parse_config(station_dict()).identification.methods
+    assert [(m.method, m.model_key) for m in shipped] == [("fd", "auto"), ("pso+", "h2")]
+
+
+@pytest.mark.parametrize("methods, words", [
+    ([{"method": "rls", "model": "h1"}], "defined for the models h2"),
+    ([{"method": "fd", "model": "h2"}], "defined for the models auto, sdof, coupled"),
+    ([{"method": "fd"}, {"method": "pso+", "model": "h2"}, {"method": "pso+"}], "listed twice"),
+    ([{"method": "fd", "model": "auto"}, {"method": "fd", "model": "sdof"}], "either auto or explicit"),
+    ([], "at least 1"),
+    ([{"method": "lsq"}], "fd"),
+])
+def test_a_bad_method_list_is_refused_with_its_reason(methods: list[dict[str, Any]], words: str) -> None:
+    with pytest.raises(ConfigError, match=words):
+        parse_config(station_dict(identification={"methods": methods}))
+    with pytest.raises(ValueError, match=words):
+        RunRequest.model_validate({**run_body(), "methods": methods})
+
+
+def test_a_request_names_its_own_methods_and_the_recording_keeps_them() -> None:
+    cfg = parse_config(station_dict())
+    req = RunRequest.model_validate({**run_body(), "methods": [{"method": "pso", "model": "h2", "seed": 7},
+                                                              {"method": "fd"}]})
+    plan = plan_run(cfg, req)
+    assert plan.config.identification.methods == [MethodChoice(method="pso", model="h2", seed=7),
+                                                  MethodChoice(method="fd")]
+    assert plan.config.identification.swarm == cfg.identification.swarm  # the rest as configured
+    assert plan_run(cfg, RunRequest.model_validate(run_body())).config.identification.methods == \
+        cfg.identification.methods
+
+
+def test_method_status_literal_matches_the_outcomes() -> None:
+    from typing import get_args
+
+    from station.api.schemas import MethodStatus, ModelChoiceName
+    from station.config import ModelChoice
+
+    assert get_args(MethodStatus) == STATUSES
+    assert get_args(ModelChoiceName) == get_args(ModelChoice)
+
+
+# ---------------------------------------------------------------------------------------- agreement
+def _result(method: str, **params: tuple[float | None, float | None, str]) -> IdentificationResult:
+    ps = {n: Estimate(v, s, "N/m", v is not None, why) for n, (v, s, why) in params.items()}
+    return IdentificationResult(method, "sdof", ps, FitSummary(0.0, (0.0,), math.nan, 1))
+
+
+def test_agreement_is_the_difference_in_combined_standard_uncertainties() -> None:
+    fd = _result("fd", k_f=(100.0, 3.0, ""), b_f=(5.0, 1.0, ""), S=(1.0, 0.1, ""))
+    pso = _result("pso+", k_f=(108.0, 4.0, ""), b_f=(None, None, "not stable against the swarm seed"),
+                  S=(1.0, 0.0, ""))
+    a = agreement(fd, pso)
+    assert a["k_f"]["difference"] == pytest.approx(8.0) and a["k_f"]["combined_std"] == pytest.approx(5.0)
+    assert a["k_f"]["z"] == pytest.approx(1.6) and a["k_f"]["reason"] == ""
+    assert a["b_f"]["z"] is None and a["b_f"]["reason"] == "pso+ withholds it: not stable against the swarm seed"
+    assert a["S"]["z"] == pytest.approx(0.0)
+    assert agreement(pso, fd)["b_f"]["reason"].startswith("pso+ withholds it")
+
+
+# ---------------------------------------------------------------------------------------- one recording
+def test_a_refusing_secondary_method_leaves_the_primary_result(tmp_path: Path) -> None:
+    """1 s records: too short for the paper's protocol (200 + 400 points at 500 Hz), so PSO+ refuses."""
+    path = sim(tmp_path, ((10.0, 1e-3), (30.0, 1e-3)), record_s=0.6)
+    res = identify_all(path, read_recording(path))
+    assert res.method == "fd" and res.parameter("k_f").identifiable
+    fd, pso = read_outcomes(path)
+    assert (fd.method, fd.primary, fd.status, fd.result_name) == ("fd", True, "done", res.result_name)
+    assert fd.compute_s is not None and fd.compute_s > 0 and fd.cpu_s is not None
+    assert (pso.method, pso.model, pso.primary, pso.status) == ("pso+", "h2", False, "refused")
+    assert "the protocol needs 600" in pso.reason and pso.result_name is None and pso.seed == 0
+    assert read_result(path, "identify_pso+_h2") is None
+
+
+# ---------------------------------------------------------------------------------------- the daemon
+async def _events(c: httpx.AsyncClient, rid: str) -> list[tuple[str, dict[str, Any]]]:
+    out: list[tuple[str, dict[str, Any]]] = []
+    async with c.stream("GET", f"/runs/{rid}/events") as r:
+        name = ""
+        async for line in r.aiter_lines():
+            if line.startswith("event:"):
+                name = line.split(":", 1)[1].strip()
+            elif line.startswith("data:"):
+                out.append((name, json.loads(line.split(":", 1)[1])))
+                if name == "end":
+                    return out
+    return out
+
+
+@pytest.mark.slow
+def test_the_daemon_runs_each_listed_method_and_shows_them_side_by_side(tmp_path: Path) -> None:
+    """One run asks for fd, PSO+ (Eq. 11) and RLS with records long enough for the paper's protocol;
+    one run keeps the default list on short records (PSO+ refuses): both runs complete."""
+    methods = [{"method": "fd"}, {"method": "pso+", "model": "h2", "seed": 5}, {"method": "rls"}]
+
+    async def go() -> tuple[list, dict, list, dict, dict]:
+        async with app_in_process(tmp_path, workers=1) as (_, c):
+            body = {**run_body((10.0, 100.0), radius=1.5e-4, record_s=1.4), "methods": methods}
+            rid = (await c.post("/runs", json=body)).json()["id"]
+            events = await asyncio.wait_for(_events(c, rid), 120)
+            res = (await c.get(f"/runs/{rid}/results")).json()
+            short = (await c.post("/runs", json=run_body())).json()["id"]
+            events2 = await asyncio.wait_for(_events(c, short), 120)
+            res2 = (await c.get(f"/runs/{short}/results")).json()
+            st2 = await wait_state(c, short, ("completed",))
+            return events, res, events2, res2, st2
+    events, res, events2, res2, st2 = asyncio.run(go())
+
+    results = [d for n, d in events if n == "result"]
+    assert [(d["method"], d["status"]) for d in results] == [("fd", "done"), ("pso+", "done"), ("rls", "done")]
+    assert results[0]["primary"] and not results[1]["primary"]
+    assert events[-1][0] == "end" and events[-1][1]["state"] == "completed"
+    # the primary's result event comes with the run completed, before the others are done
+    first = next(i for i, (n, _) in enumerate(events) if n == "result")
+    assert events[first - 1][1]["state"] == "completed"
+    assert [m["status"] for m in events[first - 1][1]["methods"]][1:] in (["pending", "pending"],
+                                                                            ["running", "pending"])
+
+    assert res["method"] == "fd"
+    by = {m["method"]: m for m in res["methods"]}
+    assert [m["method"] for m in res["methods"]] == ["fd", "pso+", "rls"]
+    assert by["pso+"]["seed"] == 5 and by["pso+"]["result_model"] == "h2" and by["pso+"]["compute_s"] > 0
+    fd_k = {p["name"]: p for p in by["fd"]["parameters"]}["k_f"]
+    assert abs(fd_k["value"] - K) < 4 * fd_k["std"] + 0.02 * K  # the simulated truth
+    for m in ("pso+", "rls"):
+        assert isinstance(by[m]["checks"], list) and by[m]["identifiability"]["names"] == ["S", "k_f", "b_f"]
+        assert set(by[m]["agreement"]) == {"S", "k_f", "b_f"}
+        for name, a in by[m]["agreement"].items():  # a z, or why not: which method withholds it
+            withheld = [x for x in ("fd", m) if not {p["name"]: p for p in by[x]["parameters"]}[name]["identifiable"]]
+            if withheld:
+                assert a["z"] is None and a["reason"].startswith(f"{withheld[0]} withholds it: ")
+            else:
+                assert a["reason"] == "" and a["z"] == pytest.approx(a["difference"] / a["combined_std"])
+    rls_s = by["rls"]["agreement"]["S"]  # RLS determines S on one step: it agrees with fd's
+    assert rls_s["z"] is not None and abs(rls_s["z"]) < 4
+    assert by["fd"]["agreement"] == {}
+
+    # default list, short records: the paper's method refuses, the run is completed with fd's result
+    assert st2["state"] == "completed" and res2["method"] == "fd"
+    assert [(m["method"], m["status"]) for m in res2["methods"]] == [("fd", "done"), ("pso+", "refused")]
+    assert "the protocol needs" in res2["methods"][1]["reason"]
+    assert [(d["method"], d["status"]) for n, d in events2 if n == "result"] == [("fd", "done"),
+                                                                                ("pso+", "refused")]
