@@ -26,6 +26,7 @@ from tests.conftest import fast_dict
 
 TX, OTHER = "TX5K-0001", "TX12-0007"
 N_STABLE = 6
+FD_ONLY = {"methods": [{"method": "fd"}]}  # these runs list one method: one series (several: see below)
 
 
 def _set_attrs(path: Path, **attrs: str) -> None:
@@ -42,17 +43,17 @@ def history(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     """A recordings folder: N_STABLE runs of TX on successive days, then one with k_f 0.2 % higher
     (about 40 standard uncertainties), one of another transducer, an aborted run and a partial file."""
     folder = tmp_path_factory.mktemp("recordings")
-    d = fast_dict()
+    d = fast_dict(identification=FD_ONLY)
     stable = []
     for i in range(N_STABLE):
         p = simulate_run(parse_config(d, "fast"), folder, seed=100 + i)
         _set_attrs(p, start_time=_day(i))
         stable.append(p)
-    dd = fast_dict()
+    dd = fast_dict(identification=FD_ONLY)
     dd["simulation"]["truth"]["k_f"] *= 1.002
     drifted = simulate_run(parse_config(dd, "drift"), folder, seed=200)
     _set_attrs(drifted, start_time=_day(N_STABLE))
-    do = fast_dict()
+    do = fast_dict(identification=FD_ONLY)
     do["transducer"]["id"] = OTHER
     other = simulate_run(parse_config(do, "other"), folder, seed=300)
     _set_attrs(other, start_time=_day(2).replace("T09", "T08"))  # just before stable[2]
@@ -199,6 +200,36 @@ def test_summary_merges_by_run_id(tmp_path: Path) -> None:
     assert [f["run_id"] for f in doc["flagged"]] == ["r5"]
     doc = write_summaries([item(5, 100.2)], tmp_path)[TX]  # re-identified: replaces its row
     assert len(doc["runs"]) == 6 and doc["flagged"] == []
+
+
+def test_each_listed_method_is_its_own_drift_series(tmp_path: Path) -> None:
+    """fd drifts on run r5, PSO+ does not move: only fd's r5 is flagged; a method that refused a run
+    is a failed row of that method and leaves the other's series alone."""
+    def item(i: int, method: str, k_f: float | None, error: str = "") -> BatchItem:
+        p = {} if k_f is None else {"k_f": {"value": k_f, "std": 1.0, "unit": "N/m", "identifiable": True}}
+        return BatchItem(Path(f"r{i}.h5"), f"r{i}", TX, _day(i), "failed" if error else "ok", method,
+                         "sdof" if method == "fd" else "h2", p, error)
+    items = [item(i, "fd", 100.0 + 0.5 * (-1) ** i) for i in range(5)]
+    items += [item(i, "pso+", 200.0 + 0.5 * (-1) ** i) for i in range(5)]
+    items += [item(5, "fd", 120.0), item(5, "pso+", 200.2), item(6, "pso+", None, "record too short")]
+    doc = write_summaries(items, tmp_path)[TX]
+    assert [(f["run_id"], f["method"]) for f in doc["flagged"]] == [("r5", "fd")]
+    assert len(doc["runs"]) == 13
+    pso5 = next(r for r in doc["runs"] if (r["run_id"], r["method"]) == ("r5", "pso+"))
+    assert pso5["drift"]["k_f"]["n_history"] == 5 and not pso5["drift"]["k_f"]["flagged"]
+    doc = write_summaries([item(5, "fd", 100.2)], tmp_path)[TX]  # fd re-identified: its row only
+    assert len(doc["runs"]) == 13 and doc["flagged"] == []
+
+
+def test_a_recording_gives_one_item_per_listed_method(history: dict, tmp_path: Path) -> None:
+    from station.batch.worker import identify_listed
+
+    p = simulate_run(parse_config(fast_dict(), "listed"), tmp_path, seed=7)  # fd, then PSO+ (records too short)
+    fd, pso = identify_listed(p)
+    assert (fd.status, fd.method, fd.model) == ("ok", "fd", "sdof") and fd.parameters["k_f"]["identifiable"]
+    assert (pso.status, pso.method, pso.model) == ("failed", "pso+", "h2") and "the protocol needs" in pso.error
+    [only] = identify_listed(history["stable"][0])
+    assert only.method == "fd" and only.ok
 
 
 def test_progress_bar_lines_when_not_a_terminal() -> None:

@@ -103,6 +103,14 @@ def test_a_refusing_secondary_method_leaves_the_primary_result(tmp_path: Path) -
     assert (pso.method, pso.model, pso.primary, pso.status) == ("pso+", "h2", False, "refused")
     assert "the protocol needs 600" in pso.reason and pso.result_name is None and pso.seed == 0
     assert read_result(path, "identify_pso+_h2") is None
+    # the report shows both side by side: fd's values as the primary, PSO+ with its reason
+    from station.report.data import load_run
+    from station.report.html import methods_section
+
+    html = methods_section(load_run(path))
+    assert "Methods side by side" in html and "★ fd (auto → sdof)" in html
+    assert f'data-key="method.fd/auto.k_f" data-value="{res.parameter("k_f").value!r}"' in html
+    assert 'data-key="method.pso+/h2">' in html and "the protocol needs 600" in html
 
 
 # ---------------------------------------------------------------------------------------- the daemon

@@ -79,9 +79,12 @@ def split_jobs(paths: list[Path], workers: int, chunksize: int | None = None) ->
 def run_batch(paths: list[Path], *, workers: int = 2, executor: str = "local", progress: bool = False,
               method: str | None = None, model: str | None = None, store: bool = False,
               chunksize: int | None = None) -> list[BatchItem]:
-    """Re-identify ``paths`` (method/model as ``identify_recording``; default fd, auto) in parallel.
+    """Re-identify ``paths`` in parallel with ``method``/``model`` (as ``identify_recording``), or
+    without a method with each method the recording lists (``identification.methods``: one drift
+    series per method).
 
-    Returns one BatchItem per path, in order; a recording that fails gives a "failed" item.
+    Returns the BatchItems in path order (one per path and method); a recording or method that
+    fails gives a "failed" item.
     ``store``: also store each result beside its recording (``results/identify_<method>_<model>``).
     ``progress``: draw a progress bar on stderr.  StationError if the executor breaks down.
     """
@@ -109,5 +112,6 @@ def run_batch(paths: list[Path], *, workers: int = 2, executor: str = "local", p
             bar.close()
     items = [it for chunk in out if chunk is not None for it in chunk]
     failed = sum(not it.ok for it in items)
-    log.info("batch: %d recordings, %d failed (%s, %d workers)", len(items), failed, executor, workers)
+    log.info("batch: %d recordings, %d identifications, %d failed (%s, %d workers)", len(paths), len(items), failed,
+             executor, workers)
     return items

@@ -81,6 +81,12 @@ def _row(it: BatchItem) -> dict[str, Any]:
             "method": it.method, "model": it.model, "error": it.error, "parameters": it.parameters}
 
 
+def _key(row: dict[str, Any]) -> tuple[str, str]:
+    """A row per run and method: a re-identified run replaces its row of that method only (a run
+    identified before methods were listed, or that failed to read, has one row with method "")."""
+    return row["run_id"], row.get("method") or ""
+
+
 def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.\-]", "_", name) or "unknown"
 
@@ -92,7 +98,7 @@ def _atomic_write(path: Path, text: str) -> None:
 
 
 def _checked(rows: list[dict[str, Any]], k: float, min_history: int) -> list[dict[str, Any]]:
-    rows = sorted(rows, key=lambda r: (r["start_time"], r["run_id"]))
+    rows = sorted(rows, key=lambda r: (r["start_time"], r["run_id"], r.get("method") or ""))
     for r in rows:
         r["drift"] = {}
     for name, _unit in PARAMS:
@@ -128,9 +134,10 @@ def _csv(rows: list[dict[str, Any]]) -> str:
 
 def write_summaries(items: Iterable[BatchItem], out_dir: Path, *, k: float = K_DEFAULT,
                     min_history: int = MIN_HISTORY) -> dict[str, dict[str, Any]]:
-    """Merge the items into ``<out_dir>/<transducer>.json`` (rows keyed by run id: a re-identified
-    run replaces its earlier row), recompute the drift checks over the whole history, and write the
-    JSON and ``<transducer>.csv``.  Returns transducer id -> the JSON document written."""
+    """Merge the items into ``<out_dir>/<transducer>.json`` (rows keyed by run id and method: a
+    re-identified run replaces its earlier row of that method; each method is its own drift
+    series), recompute the drift checks over the whole history, and write the JSON and
+    ``<transducer>.csv``.  Returns transducer id -> the JSON document written."""
     out_dir.mkdir(parents=True, exist_ok=True)
     by_tx: dict[str, list[BatchItem]] = {}
     for it in items:
@@ -139,10 +146,10 @@ def write_summaries(items: Iterable[BatchItem], out_dir: Path, *, k: float = K_D
     for tx, its in sorted(by_tx.items()):
         jpath = out_dir / f"{_safe(tx)}.json"
         old = json.loads(jpath.read_text(encoding="utf-8")).get("runs", []) if jpath.exists() else []
-        rows = {r["run_id"]: {k_: v for k_, v in r.items() if k_ != "drift"} for r in old}
-        rows.update({it.run_id: _row(it) for it in its})
+        rows = {_key(r): {k_: v for k_, v in r.items() if k_ != "drift"} for r in old}
+        rows.update({_key(r): r for r in map(_row, its)})
         checked = _checked(list(rows.values()), k, min_history)
-        flagged = [{"run_id": r["run_id"], "start_time": r["start_time"], "parameter": name,
+        flagged = [{"run_id": r["run_id"], "start_time": r["start_time"], "method": r["method"], "parameter": name,
                     **{key: r["drift"][name][key] for key in ("value", "history_mean", "deviation", "u_c")}}
                    for r in checked for name, _u in PARAMS if (r["drift"].get(name) or {}).get("flagged")]
         doc = {"transducer_id": tx, "updated": datetime.now(UTC).isoformat(timespec="seconds"),

@@ -13,19 +13,34 @@ from pathlib import Path
 from station.batch.items import BatchItem
 from station.errors import StationError
 from station.ident.api import identify_recording, store_result
+from station.ident.protocol import PUBLISHED_SWARM, SwarmSize
 from station.recording import Recording, read_recording
+from station.run.methods import identification_of, swarm_of
 
 log = logging.getLogger(__name__)
 
 
-def identify_one(path: Path, method: str | None = None, model: str | None = None,
-                 store: bool = False) -> BatchItem:
-    """Identify one recording; every failure becomes a "failed" item (the batch goes on)."""
-    t0, c0 = time.perf_counter(), time.process_time()
-    rec: Recording | None = None
+def identify_listed(path: Path, store: bool = False) -> list[BatchItem]:
+    """Identify one recording with each method its configuration lists (``identification.methods``,
+    with their seeds and the swarm size): one item per method, each its own drift series; a method
+    that refuses or fails gives a "failed" item of that method (the others go on)."""
     try:
         rec = read_recording(path)
-        res = identify_recording(rec, method, model)
+    except Exception:  # the failure becomes the recording's one item
+        return [identify_one(path, store=store)]
+    ident = identification_of(rec)
+    return [identify_one(path, c.method, None if c.model_key == "auto" else c.model_key, store, rec=rec,
+                         seed=c.seed, swarm=swarm_of(ident)) for c in ident.methods]
+
+
+def identify_one(path: Path, method: str | None = None, model: str | None = None,
+                 store: bool = False, *, rec: Recording | None = None, seed: int = 0,
+                 swarm: SwarmSize = PUBLISHED_SWARM) -> BatchItem:
+    """Identify one recording; every failure becomes a "failed" item (the batch goes on)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        rec = rec or read_recording(path)
+        res = identify_recording(rec, method, model, seed=seed, swarm=swarm)
         stored = store_result(path, res) if store else ""
         return BatchItem(Path(path), rec.run_id, rec.transducer_id, rec.start_time, "ok", res.method, res.model,
                          {n: p.to_dict() for n, p in res.parameters.items()}, "", time.perf_counter() - t0, stored,
@@ -36,12 +51,16 @@ def identify_one(path: Path, method: str | None = None, model: str | None = None
         msg = str(exc) if isinstance(exc, StationError) else f"{type(exc).__name__}: {exc}"
         return BatchItem(Path(path), rec.run_id if rec else Path(path).name.split(".")[0],
                          rec.transducer_id if rec else "", rec.start_time if rec else "", "failed",
-                         error=msg, wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0)
+                         method or "", model or "", error=msg, wall_s=time.perf_counter() - t0,
+                         cpu_s=time.process_time() - c0)
 
 
 def identify_chunk(paths: list[Path], method: str | None = None, model: str | None = None,
                    store: bool = False) -> list[BatchItem]:
-    """identify_one over a chunk of recordings (fewer round trips when jobs are tiny)."""
+    """identify_one over a chunk of recordings (fewer round trips when jobs are tiny); without a
+    method, each recording's listed methods (``identify_listed``)."""
+    if method is None:
+        return [it for p in paths for it in identify_listed(p, store)]
     return [identify_one(p, method, model, store) for p in paths]
 
 

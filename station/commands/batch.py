@@ -26,8 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--executor", default="local", metavar="local|dask://HOST:PORT",
                    help="local process pool (default) or a Dask distributed scheduler")
     p.add_argument("--workers", type=int, default=2, help="processes of the local pool (default 2)")
-    p.add_argument("--method", choices=METHODS, default=None, help="identification method (default fd)")
-    p.add_argument("--model", choices=MODELS, default=None, help="model (default: auto for fd)")
+    p.add_argument("--method", choices=METHODS, default=None, help="identification method (default: each method the "
+                   "recording's identification.methods lists, one drift series per method)")
+    p.add_argument("--model", choices=MODELS, default=None, help="model (default: the method's own, auto for fd)")
     p.add_argument("--summary-dir", type=Path, default=None,
                    help="where <transducer>.json/.csv go (default: <recordings>/summary)")
     p.add_argument("--store", action="store_true", help="also store each result in its recording")

@@ -36,6 +36,7 @@ from station.ident.result import IdentificationResult
 from station.ident.steps import CheckedResponse, checked_response
 from station.recording import Recording, read_recording
 from station.recording.stored import read_processed, read_stored, results_version
+from station.run.methods import METHODS_RESULT
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -122,7 +123,13 @@ def read_groups(path: Path) -> tuple[dict[str, StoredResult], dict[str, Any] | N
 
 
 def choose_identification(results: dict[str, StoredResult]) -> StoredResult | None:
-    """The stored identification the report shows: first method of METHOD_PREFERENCE, latest written."""
+    """The stored identification the report shows: the primary of the listed methods (``results/methods``)
+    when it is stored, else the first method of METHOD_PREFERENCE, latest written."""
+    listed = results.get(METHODS_RESULT)
+    for o in (listed.payload.get("methods", []) if listed else []):
+        primary = results.get(str(o.get("result_name")))
+        if o.get("primary") and o.get("status") == "done" and primary is not None and "parameters" in primary.payload:
+            return primary
     for method in METHOD_PREFERENCE:
         found = [r for r in results.values() if r.name.startswith("identify_")
                  and r.payload.get("method") == method and "parameters" in r.payload]

@@ -16,7 +16,7 @@ from station.errors import StationError
 from station.ident.coverage import coverages
 from station.ident.frf import FrequencyResponse
 from station.ident.montecarlo import check_result
-from station.ident.result import estimates_from_dict
+from station.ident.result import IdentificationResult, estimates_from_dict
 from station.report.campaign import campaign_section
 from station.report.data import RunData, load_run
 from station.report.plots import PLOT_NAMES, render_plot
@@ -31,6 +31,7 @@ from station.report.quantities import (
 )
 from station.report.statement import uncertainty_statement
 from station.report.tables import PARAM_HEADERS, budget_table, esc, num, param_rows, table
+from station.run.methods import METHODS_RESULT, MethodOutcome, agreement
 
 log = logging.getLogger(__name__)
 MODELS = {
@@ -170,6 +171,45 @@ def mass_std(assumptions: dict) -> float:
     return math.hypot(*[float(u) if isinstance(u, int | float) else 0.0 for u in us])
 
 
+def methods_section(d: RunData) -> str:
+    """Every listed identification side by side (``results/methods``): value ± u per parameter, z
+    against the primary (difference in units of the combined standard uncertainty), why a method
+    withholds a value or gave none; empty for runs identified before methods were listed."""
+    listed = d.results.get(METHODS_RESULT)
+    outcomes = [MethodOutcome.from_dict(o) for o in (listed.payload.get("methods", []) if listed else [])]
+    if not outcomes:
+        return ""
+    names = list(d.ident.parameters)
+    rows = []
+    for o in outcomes:
+        stored = d.results.get(o.result_name or "") if o.status == "done" else None
+        res = IdentificationResult.from_dict(stored.payload) if stored is not None else None
+        label = f"{'★ ' if o.primary else ''}{esc(o.method)} ({esc(o.model)}"
+        label += f" → {esc(o.result_model)})" if o.result_model and o.result_model != o.model else ")"
+        row = [label, esc(o.status)]
+        if res is None:
+            row.append(f'<td colspan="{len(names)}" class="na" data-key="method.{esc(o.label)}">'
+                       f"{esc(o.reason or 'no result')}</td>")
+        else:
+            agree = {} if o.primary else agreement(d.ident, res)
+            for n in names:
+                p, a = res.parameters.get(n), agree.get(n)
+                if p is None or not p.identifiable or p.value is None:
+                    row.append(f'<td class="na" data-key="method.{esc(o.label)}.{esc(n)}">withheld: '
+                               f"{esc(p.reason if p else 'not in this model')}</td>")
+                    continue
+                z = "" if a is None else f" (z = {a['z']:.2f})" if a["z"] is not None else f" (no z: {a['reason']})"
+                row.append(f'<td data-key="method.{esc(o.label)}.{esc(n)}" data-value="{p.value!r}">'
+                           f"{esc(fmt_value(p.value, p.std))} ± {esc(fmt_unc(p.std))} {esc(p.unit)}{esc(z)}</td>")
+        row += [num("n/a" if o.compute_s is None else f"{o.compute_s:.2f}", o.compute_s), esc(o.seed)]
+        rows.append(row)
+    return ("<h2>Methods side by side</h2><p class=\"note\">Every identification listed for this run; ★ is the "
+            "primary, the result of this report. z: the difference from the primary in units of their combined "
+            "standard uncertainty sqrt(u² + u_primary²); |z| > 2 is a disagreement. A secondary method's refusal "
+            "or failure does not affect the primary result.</p>"
+            + table(["method (model)", "status", *[esc(n) for n in names], "time (s)", "seed"], rows, "methods"))
+
+
 def _sensitivity(d: RunData) -> str:
     r = d.response
     u_m = mass_std(d.ident.assumptions)
@@ -266,6 +306,6 @@ def render_report(recording_path: Path, monte_carlo: int = 0) -> str:
     body = [f"<h1>{esc(title)}</h1>",
             f'<p class="note">Generated {now} by sinecal {esc(__version__)} from {esc(path.name)}.</p>',
             _statement(d), _conditions(d), _model(d), _parameters(d), _monte_carlo(path, d, monte_carlo),
-            campaign_section(d), _sensitivity(d), _discrepancy(d), _plots(path)]
+            methods_section(d), campaign_section(d), _sensitivity(d), _discrepancy(d), _plots(path)]
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{esc(title)}</title>'
             f"<style>{CSS}</style></head><body>{''.join(body)}</body></html>\n")

@@ -231,6 +231,11 @@ function follow(id) {
     if (st.id === shownRun) showStatus(st);
   };
   source.addEventListener("status", onEvent);
+  source.addEventListener("result", async () => {  // a listed method has its outcome: refresh the comparison
+    if ($("#results").dataset.run !== id) return;  // the primary's results load with the completed status
+    const res = await api("GET", `/runs/${encodeURIComponent(id)}/results`);
+    if (res.ok && id === shownRun) showMethods(res.data.methods);
+  });
   source.addEventListener("end", (ev) => { onEvent(ev); source.close(); source = null; });
   source.onerror = () => { /* the browser reconnects by itself; a final state closes the stream */ };
 }
@@ -246,6 +251,41 @@ function structureText(assumptions, determined) {
   const alone = determined.transducer_stiffness_alone;
   if (alone) t += `; k_f alone ${alone.conditional_on}`;
   return t;
+}
+
+function showMethods(methods) {
+  // every listed identification side by side: values, z against the primary, why a value is withheld
+  const table = $("#methods");
+  const names = [];
+  for (const m of methods) for (const p of m.parameters) if (!names.includes(p.name)) names.push(p.name);
+  table.querySelector("thead").innerHTML = "<tr><th>method</th><th>status</th>" +
+    names.map((n) => `<th>${esc(n)}</th>`).join("") + "<th>time (s)</th><th>seed</th></tr>";
+  const tb = table.querySelector("tbody");
+  tb.innerHTML = "";
+  for (const m of methods) {
+    const tr = document.createElement("tr");
+    tr.dataset.method = `${m.method}/${m.model}`;
+    tr.dataset.status = m.status;
+    const model = m.result_model && m.result_model !== m.model ? `${m.model} → ${m.result_model}` : m.model;
+    let cells = `<td>${m.primary ? "★ " : ""}${esc(m.method)} (${esc(model)})</td><td class="state ${esc(m.status)}">${esc(m.status)}</td>`;
+    if (m.status !== "done") {
+      cells += `<td colspan="${names.length}" class="reason">${esc(m.reason || (m.status === "running" ? "computing…" : "waiting for a worker"))}</td>`;
+    } else {
+      const ps = Object.fromEntries(m.parameters.map((p) => [p.name, p]));
+      for (const n of names) {
+        const p = ps[n];
+        const a = (m.agreement || {})[n];
+        let c = !p ? "—" : p.identifiable ? `${fmtU(p.value, p.std)} ${esc(p.unit)}` : `withheld: ${esc(p.reason)}`;
+        if (a && a.z !== null) c += ` <span class="z">(z = ${a.z.toFixed(2)})</span>`;
+        else if (a && a.reason && p && p.identifiable) c += ` <span class="z">(no z: ${esc(a.reason)})</span>`;
+        cells += `<td data-param="${esc(n)}">${c}</td>`;
+      }
+    }
+    cells += `<td>${m.compute_s === null ? "—" : m.compute_s.toFixed(2)}</td><td>${m.seed}</td>`;
+    tr.innerHTML = cells;
+    tb.appendChild(tr);
+  }
+  table.hidden = !methods.length;
 }
 
 async function loadResults(id) {
@@ -302,6 +342,7 @@ async function loadResults(id) {
   if (d.report) { rl.href = d.report; rl.textContent = "calibration report"; } else { rl.removeAttribute("href"); rl.textContent = "report not available"; }
   $("#recording-link").href = `/runs/${encodeURIComponent(id)}/recording`;
   showCertificate(id);
+  showMethods(d.methods || []);
   $("#results").hidden = false;
   loadDiscrepancy(d.discrepancy);
 }
