@@ -1,4 +1,4 @@
-"""Benchmark of the multi-mass campaign (station.ident.campaign); prints JSON.
+"""Benchmark of the multi-mass campaign (station.ident.campaign.identify); prints JSON.
 
 1. Monte Carlo: N noise draws (seeds) of a campaign of three recordings of the simulated 5 kN
    transducer (config/sim-5kN.yaml, end mass 0.12 kg) with top masses 5, 15 and 25.717 kg (steps
@@ -28,7 +28,7 @@ import numpy as np
 import yaml
 
 from station.config import default_config_path, parse_config
-from station.ident.campaign import identify_campaign
+from station.ident.campaign.identify import identify_campaign
 from station.recording import read_recording
 from station.simulate import simulate_run
 

@@ -1,6 +1,6 @@
 """Benchmark of the identification package; prints JSON (medians of repeated runs).
 
-1. PSO+ with the whole swarm evaluated at once (station.ident.batchfilter) against the same swarm
+1. PSO+ with the whole swarm evaluated at once (station.ident.paper.batchfilter) against the same swarm
    whose fitness is a straightforward per-particle ``scipy.signal.lfilter`` loop, same process,
    same seed, at the paper's settings: Case I (150 particles, 1000 iterations) and Section 5.1
    (200 particles, 1000 iterations, Eq. 11, 200 points).
@@ -26,11 +26,11 @@ import numpy as np
 from scipy.signal import resample_poly
 
 from station.config import load_config
-from station.ident.api import identify_fd, identify_recording, model_for
-from station.ident.batchfilter import batch_mse
+from station.ident.identify import identify_fd, identify_recording, model_for
 from station.ident.models import DigitalTF
-from station.ident.protocol import paper_data
-from station.ident.pso import (
+from station.ident.paper.batchfilter import batch_mse
+from station.ident.paper.protocol import paper_data
+from station.ident.paper.pso import (
     CASE_I,
     SECTION5_H2,
     output_error_objective,

@@ -4,7 +4,7 @@ regenerated next to the published figures, plus our expert estimators on the sam
 Assumptions the paper leaves open (stated in the report): Cases I/II sample the input
 5 sin(2 pi 4 t) at 10 Hz for 100 points (with these, PSO reaches the published 1e-31 in ~850
 iterations); Section 5 resamples to 500 Hz; the Section 5 velocity limit and iteration counts are
-not given (see ``pso.SECTION5_H2``).  SNR = mean square of the clean output / noise variance.
+not given (see ``ident.paper.pso.SECTION5_H2``).  SNR = mean square of the clean output / noise variance.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 from scipy.signal import freqz, lfilter
 
-from station.ident.api import identify_fd, identify_recording
-from station.ident.protocol import PaperProtocol, paper_data
-from station.ident.pso import CASE_I, CASE_II, PsoResult, output_error_objective, run_pso
+from station.ident.identify import identify_fd, identify_recording
+from station.ident.paper.protocol import PaperProtocol, paper_data
+from station.ident.paper.pso import CASE_I, CASE_II, PsoResult, output_error_objective, run_pso
 from station.recording import read_recording
 
 log = logging.getLogger(__name__)
@@ -213,7 +213,7 @@ def explanations(t1: dict[str, Any], noise: dict[str, Any], sec5: dict[str, Any]
 
 def run_paper(out: str | Path = "recordings/paper", *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
     """Everything; PNGs into ``out``.  quick: 1 seed and fewer iterations (a few seconds)."""
-    from station.ident.plots import save_plots
+    from station.ident.paper.plots import save_plots
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

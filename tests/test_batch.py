@@ -19,7 +19,7 @@ from station.batch.progress import ProgressBar
 from station.cli import main
 from station.config import parse_config
 from station.errors import BadInputError
-from station.ident.api import identify_recording
+from station.ident.identify import identify_recording
 from station.recording import read_recording, read_result
 from station.simulate import simulate_run
 from tests.conftest import fast_dict

@@ -11,7 +11,7 @@ import pytest
 from scipy import stats
 
 from station.ident.coverage import coverage, effective_dof
-from station.ident.fdident import identify_fd
+from station.ident.fd.identify import identify_fd
 from station.ident.montecarlo import check_result
 from station.recording import read_recording
 from station.report.statement import uncertainty_statement

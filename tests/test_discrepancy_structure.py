@@ -24,8 +24,8 @@ from station.config import StationConfig, parse_config
 from station.discrepancy import analyse_recording
 from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import plan_steps, scenario_config
-from station.ident.api import identify_recording
-from station.ident.checks import screen_step
+from station.ident.identify import identify_recording
+from station.ident.response.gate import screen_step
 from station.interchange import export_run, import_run
 from station.recording import read_recording
 from station.simulate import simulate_run

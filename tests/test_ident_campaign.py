@@ -1,4 +1,4 @@
-"""Multi-mass campaign (station.ident.campaign) on recordings made by the project's simulator
+"""Multi-mass campaign (station.ident.campaign.identify) on recordings made by the project's simulator
 (station.simulate): the truth is the configuration, not the code under test."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 
 from station.cli import main
 from station.errors import BadInputError
-from station.ident.campaign import CampaignRefused, identify_campaign
+from station.ident.campaign.identify import CampaignRefused, identify_campaign
 from station.recording import read_recording, read_result
 from station.report.html import render_report
 from station.simulate import simulate_run
@@ -184,9 +184,9 @@ def test_cli_identifies_jointly_and_stores_in_every_recording(three: list[Path],
 def test_joint_fit_covariance_matches_the_scatter_and_the_cramer_rao_bound() -> None:
     """Complex Gaussian H(f) around Eq. 9 (drawn here, not by the code under test), 200 draws: the
     estimator is unbiased, its spread is the bound, and the covariance each fit reports matches it."""
-    from station.ident import jointfit as jf
-    from station.ident.frf import FrequencyResponse
+    from station.ident.campaign import jointfit as jf
     from station.ident.models import SdofModel
+    from station.ident.response.frf import FrequencyResponse
 
     theta = np.array([TRUTH["S"], END_MASS, TRUTH["k_f"], TRUTH["b_f"]])
     f = np.array([4.0, 20.0, 50.0, 100.0])

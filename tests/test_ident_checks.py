@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from station.cli import main
-from station.ident.api import identify_recording
-from station.ident.checks import IdentificationRefused
+from station.ident.identify import identify_recording
+from station.ident.response.gate import IdentificationRefused
 from station.recording import read_recording
 from tests.ident_support import ME, ML, PLAN, B, K, R, S, sim, via_csv
 
@@ -221,7 +221,7 @@ def test_a_channel_delay_is_covered_by_the_correlated_delay_term(tmp_path: Path)
 
 @pytest.mark.slow
 def test_report_and_results_show_checks_assumptions_and_budget(base: Path, tmp_path: Path) -> None:
-    from station.ident.api import store_result
+    from station.ident.identify import store_result
     from station.report.html import render_report
     from station.service.results import load_results
 

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from station.ident.crb import crb_stepped_sine
-from station.ident.frf import fit_frf, linear_start_sdof
 from station.ident.identifiability import correlations
 from station.ident.models import SdofModel
-from station.ident.sinefit import fit3, fit4
+from station.ident.response.frf import fit_frf, linear_start_sdof
+from station.ident.response.sinefit import fit3, fit4
 from station.ident.synthetic import stepped_sine
 
 M5 = SdofModel(0.12, 26.167)
@@ -80,8 +80,8 @@ def test_four_parameter_fit_finds_the_frequency() -> None:
 
 
 def test_oe_reported_uncertainty_matches_monte_carlo() -> None:
-    from station.ident.frf import step_response
     from station.ident.oe import StepSignal, fit_oe
+    from station.ident.response.frf import step_response
     est, rep = [], []
     for seed in range(60):
         steps = stepped_sine(M5, TH5, F, R, fs_hz=FS, duration_s=DUR, sigma_x_m=SX, sigma_u_V=SU, seed=seed)

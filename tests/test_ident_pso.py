@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from station.ident.batchfilter import batch_lfilter, batch_mse
-from station.ident.pso import CASE_I, PsoSettings, output_error_objective, output_error_objective_loop, run_pso
-from station.ident.rls import rls_h2
+from station.ident.paper.batchfilter import batch_lfilter, batch_mse
+from station.ident.paper.pso import CASE_I, PsoSettings, output_error_objective, output_error_objective_loop, run_pso
+from station.ident.paper.rls import rls_h2
 from station.paper import case_data
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from station.cli import main
-from station.ident.api import identify_recording
+from station.ident.identify import identify_recording
 from station.recording import read_recording, read_result
 from station.simulate import simulate_run
 from tests.conftest import station_config
@@ -122,8 +122,8 @@ def test_cli_rejects_missing_recording(tmp_path: Path) -> None:
 def test_reported_correlations_are_those_of_the_estimate(stepped: Path) -> None:
     """identifiability.correlations of identifiable parameters = the estimate's covariance, whose
     correlations the 200-draw Monte Carlo test checks (tests/test_ident_fd.py)."""
-    from station.ident.api import DEFAULT_POLICY, _fd_fit, _start, measured_response, model_for
     from station.ident.identifiability import correlations
+    from station.ident.identify import DEFAULT_POLICY, _fd_fit, _start, measured_response, model_for
 
     rec = read_recording(stepped)
     frf, _, _ = measured_response(rec)

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from station.cli import main
-from station.ident.api import identify_recording
-from station.ident.paperfit import _stability
+from station.ident.identify import identify_recording
+from station.ident.paper.identify import _stability
 from station.ident.structure import ADAPTER_COUPLING_RATIO, plausible_coupling
 from station.recording import read_recording
 from tests.ident_support import B, K, sim, via_csv

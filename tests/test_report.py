@@ -18,8 +18,8 @@ import pytest
 
 from station.config import default_config_path, load_config, parse_config
 from station.errors import RecordingFormatError
-from station.ident.api import identify_recording
 from station.ident.coverage import coverage
+from station.ident.identify import identify_recording
 from station.recording import read_recording, write_result
 from station.report import PLOT_NAMES, render_plot, render_report, render_report_pdf
 from station.report.data import load_run
@@ -243,7 +243,7 @@ def test_report_of_an_imported_run(sim_recording_one_radius: Path, tmp_path: Pat
 def test_traces_keep_their_step_numbers_when_the_gate_drops_a_step(sim_recording: Path, tmp_path: Path,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     import station.report.data as data
-    from station.ident.api import store_result
+    from station.ident.identify import store_result
 
     rec_path = _copy(sim_recording, tmp_path)
     first = read_recording(rec_path).steps[0]

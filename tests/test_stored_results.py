@@ -240,7 +240,7 @@ def test_a_recording_left_flagged_by_a_killed_in_place_write_is_repaired_at_star
 @pytest.mark.parametrize("method", ["fd", "oe"])
 def test_an_identification_round_trips_through_the_sidecar_with_its_covariance(sim_recording: Path, tmp_path: Path,
                                                                                method: str) -> None:
-    from station.ident.api import identify_recording, store_result
+    from station.ident.identify import identify_recording, store_result
     from station.ident.result import IdentificationResult
 
     rec = tmp_path / sim_recording.name

@@ -1,6 +1,6 @@
 """Request and response schemas of ``POST /campaigns`` (multi-mass joint identification).
 
-The response mirrors ``station.ident.campaignresult.CampaignResult.to_dict`` (the CLI's JSON)."""
+The response mirrors ``station.ident.campaign.result.CampaignResult.to_dict`` (the CLI's JSON)."""
 
 from __future__ import annotations
 

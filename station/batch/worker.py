@@ -12,8 +12,8 @@ from pathlib import Path
 
 from station.batch.items import BatchItem
 from station.errors import StationError
-from station.ident.api import identify_recording, store_result
-from station.ident.protocol import PUBLISHED_SWARM, SwarmSize
+from station.ident.identify import identify_recording, store_result
+from station.ident.paper.protocol import PUBLISHED_SWARM, SwarmSize
 from station.recording import Recording, read_recording
 from station.run.methods import identification_of, swarm_of
 

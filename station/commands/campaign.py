@@ -1,5 +1,5 @@
 """``station identify REC1 REC2 ...``: several recordings of one transducer with different top masses,
-identified jointly (S, m_e, k_f, b_f; ``station.ident.campaign``)."""
+identified jointly (S, m_e, k_f, b_f; ``station.ident.campaign.identify``)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import json
 from pathlib import Path
 
 from station.errors import BadInputError
-from station.ident.campaign import RESULT_NAME, CampaignRefused, identify_campaign
-from station.ident.campaignresult import CampaignResult
+from station.ident.campaign.identify import RESULT_NAME, CampaignRefused, identify_campaign
+from station.ident.campaign.result import CampaignResult
 from station.recording import read_recording, write_result
 
 

@@ -76,8 +76,8 @@ def format_text(res: IdentificationResult) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from station.ident.api import identify_recording, store_result
-    from station.ident.checks import IdentificationRefused
+    from station.ident.identify import identify_recording, store_result
+    from station.ident.response.gate import IdentificationRefused
     from station.recording import read_recording
 
     if args.more:

@@ -403,7 +403,7 @@ def _identify(rec: Recording) -> tuple[dict[str, Estimate], dict[str, Any]] | No
     uncertainties of a misfitting base model differ (identify inflates by the fundamental's
     chi^2/dof alone, which is the honest figure for k_f)."""
     try:
-        from station.ident.api import identify_recording
+        from station.ident.identify import identify_recording
 
         res = identify_recording(rec, "fd", "sdof")
         out = {}

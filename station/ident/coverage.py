@@ -4,7 +4,7 @@ GUM G.4: nu_eff = u_c^4 / sum_i (u_i^4 / nu_i) over the sources (Welch-Satterthw
 sources and a noise term resting on many samples with nu_i infinite; k is the t-distribution's
 (1 + p)/2 quantile at nu_eff (the normal one for infinite nu_eff), U = k u_c.  A budget entry is the
 stored form ``{"contributions": {source: u | None}, "combined": u_c, "unit": ..., "dof": {source:
-nu}}`` (``station.ident.budget.Budget.to_dict``); sources missing from ``dof`` are infinite.
+nu}}`` (``station.ident.fd.budget.Budget.to_dict``); sources missing from ``dof`` are infinite.
 """
 
 from __future__ import annotations

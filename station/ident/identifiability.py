@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from station.ident.frf import FrequencyResponse, whitened_jacobian
 from station.ident.models import Model
+from station.ident.response.frf import FrequencyResponse, whitened_jacobian
 from station.ident.result import Identifiability
 
 FloatArray = NDArray[np.float64]

@@ -1,5 +1,5 @@
 """GUM Supplement 1 Monte Carlo propagation of the frequency-domain estimate, a check of the linear
-budget (``station.ident.budget``).
+budget (``station.ident.fd.budget``).
 
 Each trial draws every source the budget propagates from its stated distribution (normal) and
 refits the model by the same weighted Levenberg-Marquardt (``frf.fit_frf``, started at the estimate):
@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from station.ident.frf import FrequencyResponse, fit_frf
 from station.ident.inputs import IdentInputs
 from station.ident.models import make_model
+from station.ident.response.frf import FrequencyResponse, fit_frf
 
 FloatArray = NDArray[np.float64]
 
@@ -147,7 +147,7 @@ def check_result(rec: Any, result: Any, *, frf: FrequencyResponse | None = None,
     from station.errors import StationError
     from station.ident.coverage import coverages
     from station.ident.inputs import inputs_for
-    from station.ident.steps import checked_response
+    from station.ident.response.checked import checked_response
     from station.ident.structure import chain_corrected
 
     if result.method != "fd" or not result.budget:

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from station.ident.models import Model
-from station.ident.sinefit import SineFit
+from station.ident.response.sinefit import SineFit
 
 FloatArray = NDArray[np.float64]
 

@@ -11,7 +11,7 @@ over a grid of r, how much misfit Eq. 9 would show if the truth were Eq. 8 with 
 and the fitted series behaviour: the weighted chi^2 of the best Eq. 9 fit to that Eq. 8 response
 (the non-centrality lambda), against the measured covariance of H (times the Birge factor when Eq. 9
 already misfits).  A coupling is *detectable* when the misfit check
-(chi^2/dof > 1 + 3 sqrt(2/dof), ``frf.fit_frf``) would fire with probability >= ``DETECTION_POWER``
+(chi^2/dof > 1 + 3 sqrt(2/dof), ``response.frf.fit_frf``) would fire with probability >= ``DETECTION_POWER``
 (non-central chi^2).  The undetectable couplings give the range of k_f (and b_f) alone; the
 softest of them is the lower bound on k_c this plan supports.
 
@@ -32,13 +32,13 @@ from scipy.optimize import least_squares
 from scipy.stats import ncx2
 
 from drivers.rig.params import DisplacementResonance
-from station.ident import frf as frfmod
 from station.ident.inputs import IdentInputs, MeasurementChain
 from station.ident.models import CoupledModel, SdofModel, make_model
+from station.ident.response import frf as frfmod
 from station.ident.result import Check, Estimate
 
 if TYPE_CHECKING:  # budget imports this module for the chain's resonance vectors
-    from station.ident.budget import Budget
+    from station.ident.fd.budget import Budget
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]

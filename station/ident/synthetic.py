@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from station.ident.frf import FrequencyResponse, assemble, step_response
 from station.ident.models import Model
+from station.ident.response.frf import FrequencyResponse, assemble, step_response
 
 FloatArray = NDArray[np.float64]
 

@@ -30,10 +30,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.errors import RecordingFormatError, StationError
-from station.ident.api import identify_recording
+from station.ident.identify import identify_recording
 from station.ident.models import Model, SdofModel, make_model
+from station.ident.response.checked import CheckedResponse, checked_response
 from station.ident.result import IdentificationResult
-from station.ident.steps import CheckedResponse, checked_response
 from station.recording import Recording, read_recording
 from station.recording.stored import read_processed, read_stored, results_version
 from station.run.methods import METHODS_RESULT

@@ -14,8 +14,8 @@ import numpy as np
 from station import __version__
 from station.errors import StationError
 from station.ident.coverage import coverages
-from station.ident.frf import FrequencyResponse
 from station.ident.montecarlo import check_result
+from station.ident.response.frf import FrequencyResponse
 from station.ident.result import IdentificationResult, estimates_from_dict
 from station.report.campaign import campaign_section
 from station.report.data import RunData, load_run

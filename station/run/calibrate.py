@@ -10,8 +10,8 @@ from typing import Any
 
 from drivers.clock import Clock
 from station.config import StationConfig
+from station.ident.response.checked import checked_response
 from station.ident.result import IdentificationResult
-from station.ident.steps import checked_response
 from station.recording import read_recording
 from station.run.methods import identify_all, identify_primary
 from station.run.procedure import Procedure, Progress, RunOutcome

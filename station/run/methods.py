@@ -28,12 +28,12 @@ from pydantic import ValidationError
 
 from station.config import IdentificationConfig, MethodChoice
 from station.errors import BadInputError
-from station.ident.protocol import SwarmSize
+from station.ident.paper.protocol import SwarmSize
 from station.ident.result import IdentificationResult
 from station.recording import Recording, read_result, write_result
 
 if TYPE_CHECKING:
-    from station.ident.steps import CheckedResponse  # scipy.optimize: not in the daemon
+    from station.ident.response.checked import CheckedResponse  # scipy.optimize: not in the daemon
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,7 @@ def identify_method(path: Path, rec: Recording, choice: MethodChoice, swarm: Swa
                     response: CheckedResponse | None = None) -> tuple[MethodOutcome, IdentificationResult | None]:
     """Identify ``rec`` (at ``path``) with one listed method and store its result beside it.  A
     secondary method's refusal or failure comes back as its outcome; the primary's is raised."""
-    from station.ident.api import identify_recording, store_result  # the estimators: in the worker only
+    from station.ident.identify import identify_recording, store_result  # the estimators: in the worker only
 
     t0, c0 = time.perf_counter(), time.process_time()
     base = MethodOutcome.pending(choice, primary)

@@ -28,7 +28,7 @@ from drivers.daq import DaqBridge
 from drivers.motor import MotorController, MotorStatus
 from station.config import config_to_yaml
 from station.environment import run_environment
-from station.ident.sinefit import fit3, fit4
+from station.ident.response.sinefit import fit3, fit4
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id
 from station.recording.writer import DiskFullError, is_disk_full
 from station.run.acquisition import Acquisition, AcquisitionError

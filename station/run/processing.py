@@ -1,6 +1,6 @@
 """H(f) per step stored beside the recording as ``processed/steps``: the identification's own frequency response.
 
-There is one producer of H(f): ``station.ident.steps.checked_response``, the sine fits of the raw
+There is one producer of H(f): ``station.ident.response.checked.checked_response``, the sine fits of the raw
 record windows (IEEE 1057 fits at the crank frequency found by a four-parameter fit of the
 displacement, harmonics as nuisance terms) behind the identification's plausibility checks.  What
 ``processed/steps`` holds, what the daemon's results and the report show, and what the parameters were
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from station.errors import StationError
-from station.ident.steps import CheckedResponse, checked_response
+from station.ident.response.checked import CheckedResponse, checked_response
 from station.recording import Recording, read_recording, write_result
 
 log = logging.getLogger(__name__)
@@ -75,7 +75,7 @@ def process_recording(path: str | Path, rec: Recording | None = None,
         if c.step is not None and c.step not in cr.used and c.severity != "info":
             why.setdefault(c.step, c.message)
     skipped = [{"step": i, "reason": r} for i, r in sorted(why.items())]
-    payload = {"producer": "station.ident.steps.checked_response (sine fits of the raw record windows)",
+    payload = {"producer": "station.ident.response.checked.checked_response (sine fits of the raw record windows)",
                "skipped": skipped,
                "units": {"frequency_hz": "Hz", "H": "V/(m/s^2)", "H_cov": "(V/(m/s^2))^2",
                          "displacement_amplitude_m": "m", "force_amplitude_V": "V", "t_center_s": "s",

@@ -95,7 +95,7 @@ def _job(fn: Callable[..., T]) -> Callable[..., T]:
 def identify_job(path: str) -> dict[str, Any]:
     """H(f) per step, then the primary identification, stored beside the recording with every listed
     method's outcome (the others ``pending``: ``secondary_job`` computes each; station.run.methods)."""
-    from station.ident.steps import checked_response
+    from station.ident.response.checked import checked_response
     from station.recording import read_recording
     from station.run.methods import identify_primary
     from station.run.processing import process_recording
@@ -177,11 +177,11 @@ def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
 
 @_job
 def campaign_job(paths: list[str]) -> dict[str, Any]:
-    """The joint identification of several recordings (``station.ident.campaign``):
+    """The joint identification of several recordings (``station.ident.campaign.identify``):
     ``{"result": CampaignResult.to_dict()}``, or ``{"refused": message}`` for recordings that cannot
     be one campaign (a plain message: an exception's own fields need not survive the pickling)."""
     from station.errors import BadInputError
-    from station.ident.campaign import identify_campaign
+    from station.ident.campaign.identify import identify_campaign
     from station.recording import read_recording
 
     try:

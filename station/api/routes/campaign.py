@@ -1,5 +1,5 @@
 """/campaigns: several completed runs of one transducer with different top masses, identified
-jointly (S, m_e, k_f, b_f; ``station.ident.campaign``)."""
+jointly (S, m_e, k_f, b_f; ``station.ident.campaign.identify``)."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep) ->
     result is also stored beside every run's recording (`<run>.results/results.campaign.h5`), where
     the run's report shows it.  Top masses too alike to separate S from m_e give status
     `conditional` or `refused` with the named check `end_mass_separation`, not an error."""
-    from station.ident.campaign import RESULT_NAME
+    from station.ident.campaign.identify import RESULT_NAME
 
     out = await manager.artifacts.campaign(list(body.runs))
     if "refused" in out:

@@ -28,14 +28,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
-from station.ident.frf import FrequencyResponse, _ratio_cov, whitened_jacobian
 from station.ident.identifiability import Policy, assess
 from station.ident.models import DigitalTF, Model
-from station.ident.protocol import PUBLISHED_SWARM, PaperData, PaperProtocol, SwarmSize, paper_data, testing_mse
-from station.ident.pso import SECTION5_H1, SECTION5_H2, PsoSettings, identify_digital
+from station.ident.paper.protocol import PUBLISHED_SWARM, PaperData, PaperProtocol, SwarmSize, paper_data, testing_mse
+from station.ident.paper.pso import SECTION5_H1, SECTION5_H2, PsoSettings, identify_digital
+from station.ident.paper.rls import rls_h2
+from station.ident.response.frf import FrequencyResponse, _ratio_cov, whitened_jacobian
+from station.ident.response.sinefit import fit3
 from station.ident.result import FitSummary, Identifiability, IdentificationResult, estimated_covariance, estimates
-from station.ident.rls import rls_h2
-from station.ident.sinefit import fit3
 from station.ident.structure import MIN_PLAUSIBLE_COUPLING_RATIO, plausible_coupling
 from station.recording import Recording
 

@@ -1,4 +1,4 @@
-"""Frozen result types of a multi-mass campaign (``campaign.identify_campaign``) and their JSON form.
+"""Frozen result types of a multi-mass campaign (``campaign.identify.identify_campaign``) and their JSON form.
 
 JSON (``station identify REC1 REC2 ... --json``, ``POST /campaigns``): ``status`` ('separated',
 'conditional' or 'refused'), ``parameters`` {S, m_e, k_f, b_f: value, std, unit, identifiable[,

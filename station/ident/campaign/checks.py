@@ -1,4 +1,4 @@
-"""The named checks and the uncertainty budget of a multi-mass campaign (``campaign``).
+"""The named checks and the uncertainty budget of a multi-mass campaign (``campaign.identify``).
 
 * ``end_mass_separation``: can the load masses separate S from m_e?  From the combined covariance
   of (S, m_e, k_f, b_f) (noise, load masses, measurement chain: ``campaign_budget``), the relative
@@ -17,16 +17,16 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
-from station.ident import jointfit as jf
-from station.ident.frf import FrequencyResponse, fit_frf
+from station.ident.campaign import jointfit as jf
 from station.ident.inputs import MeasurementChain
 from station.ident.models import SdofModel
+from station.ident.response.frf import FrequencyResponse, fit_frf
 from station.ident.result import Check
 from station.ident.structure import resonance_vectors
 from station.recording import Recording
 
 if TYPE_CHECKING:
-    from station.ident.campaign import CampaignPolicy
+    from station.ident.campaign.identify import CampaignPolicy
 
 FloatArray = NDArray[np.float64]
 
@@ -79,7 +79,7 @@ def consistency(recs: list[Recording], own: list[FloatArray], policy: CampaignPo
 def campaign_budget(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], fit: jf.JointFit, separated: bool,
                     chain: MeasurementChain, m_e_prior: jf.MassPrior | None) -> tuple[FloatArray, dict[str, Any]]:
     """Covariance (4, 4) of (S, m_e, k_f, b_f) and the GUM budget per parameter (sources as the
-    single-recording ``budget``).  noise, load_mass and (conditional case) end_mass: the Fisher
+    single-recording ``fd.budget``).  noise, load_mass and (conditional case) end_mass: the Fisher
     information built up term by term (each contribution the covariance it adds; the noise term
     Birge-scaled when the fit was inflated).  chain_gain, chain_phase, chain_delay, chain_resonance:
     sensitivity coefficients

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from station.ident.models import Model, SdofModel
-from station.ident.sinefit import SineFit, estimate_frequency, fit_channels
+from station.ident.response.sinefit import SineFit, estimate_frequency, fit_channels
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]

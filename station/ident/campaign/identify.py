@@ -5,7 +5,7 @@ national institutes separate the end mass m_e from the sensitivity S with severa
 
 1. Inputs: every recording of the same transducer (``transducer_id``) and the same nominal
    sensitivity of the force signal (one S for all), each run once; otherwise refused.
-2. H(f) per recording through the single-recording plausibility gate (``steps.checked_response``:
+2. H(f) per recording through the single-recording plausibility gate (``response.checked.checked_response``:
    steps left out, polarity), its load mass with its standard uncertainty and the measurement
    chain (``inputs.inputs_for``).
 3. Joint weighted LM of (S, m_e, k_f, b_f) and the load masses (``jointfit``).
@@ -32,8 +32,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.errors import BadInputError
-from station.ident import jointfit as jf
-from station.ident.campaigncheck import (
+from station.ident.campaign import jointfit as jf
+from station.ident.campaign.checks import (
     campaign_budget,
     consistency,
     end_mass_plausibility,
@@ -41,13 +41,13 @@ from station.ident.campaigncheck import (
     own_fits,
     separation,
 )
-from station.ident.campaignresult import CampaignRecording, CampaignResult
-from station.ident.checks import IdentificationRefused
-from station.ident.frf import FrequencyResponse
+from station.ident.campaign.result import CampaignRecording, CampaignResult
 from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.models import SdofModel
+from station.ident.response.checked import checked_response
+from station.ident.response.frf import FrequencyResponse
+from station.ident.response.gate import IdentificationRefused
 from station.ident.result import Check, Covariance, Estimate
-from station.ident.steps import checked_response
 from station.ident.structure import chain_corrected, coupling_bound, structure_statement
 from station.recording import Recording
 

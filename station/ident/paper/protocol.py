@@ -21,7 +21,7 @@ from station.errors import BadInputError
 from station.recording import Recording, Step
 
 if TYPE_CHECKING:
-    from station.ident.pso import PsoSettings
+    from station.ident.paper.pso import PsoSettings
 
 FloatArray = NDArray[np.float64]
 

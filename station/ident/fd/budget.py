@@ -37,9 +37,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from station.ident.frf import FrequencyResponse, _whiteners
 from station.ident.inputs import IdentInputs
 from station.ident.models import Model, make_model
+from station.ident.response.frf import FrequencyResponse, _whiteners
 from station.ident.structure import resonance_vectors
 
 FloatArray = NDArray[np.float64]

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.errors import BadInputError
-from station.ident import frf as frfmod
+from station.ident.response import frf as frfmod
 from station.ident.result import Check
 
 FloatArray = NDArray[np.float64]

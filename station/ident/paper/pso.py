@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
-from station.ident.batchfilter import batch_mse
+from station.ident.paper.batchfilter import batch_mse
 
 FloatArray = NDArray[np.float64]
 BatchFitness = Callable[[FloatArray], FloatArray]

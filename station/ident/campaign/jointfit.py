@@ -7,7 +7,7 @@ Parameters p = (S [V/N], m_e [kg], k_f [N/m], b_f [N s/m], m_l,1 ... m_l,R [kg])
 are weighed, not known exactly: each enters as a parameter with a prior observation
 (m_l,r^weighed - m_l,r) / u_r, so their standard uncertainties u_r propagate into S, m_e, k_f, b_f
 (u_r = 0 holds m_l,r fixed).  chi^2(p) = sum_r sum_i r_ri^T C_ri^-1 r_ri + sum_r prior_r^2 with
-r_ri = (Re, Im)(H_r(f_i; p) - H_ri), C_ri the covariance of the measured H (``frf``).
+r_ri = (Re, Im)(H_r(f_i; p) - H_ri), C_ri the covariance of the measured H (``response.frf``).
 
 With one load mass Eq. 9 depends on S M, k_f / M and b_f / M only (three numbers for four
 parameters: S, m_e confounded).  Each recording fixes its M_r = m_e + m_l,r up to a scale common to
@@ -17,7 +17,7 @@ two recordings fit any two stated masses (a mass error goes into m_e); from thre
 each other.
 
 Covariance: Gauss-Markov (J^T J)^-1 of the whitened Jacobian at the estimate (Cramér-Rao bound for
-Gaussian H), scaled by chi^2/dof when that is significantly above 1 (Birge ratio), as ``frf.fit_frf``.
+Gaussian H), scaled by chi^2/dof when that is significantly above 1 (Birge ratio), as ``response.frf.fit_frf``.
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from station.ident.frf import FrequencyResponse, _whiteners, fit_frf, linear_start_sdof
 from station.ident.models import SdofModel
+from station.ident.response.frf import FrequencyResponse, _whiteners, fit_frf, linear_start_sdof
 
 FloatArray = NDArray[np.float64]
 NAMES = ("S", "m_e", "k_f", "b_f")
@@ -211,7 +211,7 @@ def data_sensitivity(frfs: list[FrequencyResponse], priors: list[MassPrior], p: 
                      scale: FloatArray, free4: NDArray[np.bool_],
                      m_e_std: float | None = None) -> Callable[[list[NDArray[np.complex128]]], FloatArray]:
     """First-order response of (S, m_e, k_f, b_f) to a systematic change dH_r of the measured H of
-    every recording (GUM sensitivity coefficients, as ``budget``): d theta = -(J^T J)^-1 J^T [W dH; 0]
+    every recording (GUM sensitivity coefficients, as ``fd.budget``): d theta = -(J^T J)^-1 J^T [W dH; 0]
     with J the whitened Jacobian of ``fit_joint``'s problem at p (load-mass priors, and an end-mass
     prior of std m_e_std when m_e is free but not in free4's sense of separated).  free4: which of
     the four are estimated.  Returns a function of the list of dH_r (each (n_f,) complex)."""

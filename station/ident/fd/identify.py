@@ -1,9 +1,9 @@
 """``identify_fd``: the frequency-domain estimator on a recording, with its inputs checked, its
 assumptions stated and a GUM budget per parameter.
 
-Flow: inputs (masses, chain: ``inputs``) -> plausibility gate and H(f) (``steps``, ``checks``) ->
+Flow: inputs (masses, chain: ``inputs``) -> plausibility gate and H(f) (``response.checked``, ``response.gate``) ->
 start on 1/H -> weighted LM of the structurally identifiable parameters (Eq. 9, Eq. 8 when the
-data demand and determine it) -> budget (``budget``) -> per parameter: value with its combined
+data demand and determine it) -> budget (``fd.budget``) -> per parameter: value with its combined
 standard uncertainty; flag 'poorly_determined' when that is above ``Policy.max_rel_std`` of the
 value; null only when the data cannot determine it (structurally, or relative uncertainty > 1);
 flag 'conditional' when the end mass is assumed.  Reasons are computed at the estimate.
@@ -17,15 +17,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from station.ident import frf as frfmod
-from station.ident.budget import Budget, uncertainty_budget
-from station.ident.checks import sensitivity_check
-from station.ident.fdcore import fd_fit, start_values, summary_fd
+from station.ident.fd.budget import Budget, uncertainty_budget
+from station.ident.fd.core import fd_fit, start_values, summary_fd
 from station.ident.identifiability import Policy, effect_text
 from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.models import CoupledModel, Model, SdofModel, make_model
+from station.ident.response import frf as frfmod
+from station.ident.response.checked import CheckedResponse, checked_response
+from station.ident.response.gate import sensitivity_check
 from station.ident.result import Check, Estimate, IdentificationResult, estimated_covariance
-from station.ident.steps import CheckedResponse, checked_response
 from station.ident.structure import apply_structure, chain_corrected, coupling_suspected, resonance_suspected
 from station.recording import Recording
 

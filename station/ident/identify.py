@@ -16,19 +16,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.errors import BadInputError
-from station.ident import frf as frfmod
-from station.ident.fdcore import fd_fit as _fd_fit
-from station.ident.fdcore import start_values
-from station.ident.fdcore import start_values as _start
-from station.ident.fdident import identify_fd
+from station.ident.fd.core import fd_fit as _fd_fit
+from station.ident.fd.core import start_values
+from station.ident.fd.core import start_values as _start
+from station.ident.fd.identify import identify_fd
 from station.ident.identifiability import Policy
 from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.models import Model, SdofModel, make_model
 from station.ident.names import METHODS, MODELS
 from station.ident.oe import fit_oe
-from station.ident.protocol import PUBLISHED_SWARM, PaperProtocol, SwarmSize
+from station.ident.paper.protocol import PUBLISHED_SWARM, PaperProtocol, SwarmSize
+from station.ident.response import frf as frfmod
+from station.ident.response.checked import CheckedResponse, checked_response, measured_response
 from station.ident.result import FitSummary, IdentificationResult, estimated_covariance, estimates
-from station.ident.steps import CheckedResponse, checked_response, measured_response
 from station.ident.structure import structure_statement
 from station.recording import Recording, write_result
 
@@ -138,7 +138,7 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     if method == "rls" and form != "h2":
         raise BadInputError("RLS (Eq. 17) is defined for H2 (Eq. 11) only")
     inputs = inputs or inputs_for(rec)
-    from station.ident.paperfit import identify_paper_method  # scipy.signal: only for the paper's methods
+    from station.ident.paper.identify import identify_paper_method  # scipy.signal: only for the paper's methods
 
     # the same gate: only steps that passed, each at its measured frequency (a = -w^2 s, Eq. 2)
     cr = checked_response(rec, inputs)

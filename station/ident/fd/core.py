@@ -1,6 +1,6 @@
 """Core of the frequency-domain estimator: start values, the weighted fit of the structurally
-identifiable parameters with the estimate's covariance, and the fit summary (``frf`` has the
-sine fits and the LM; ``fdident`` the whole estimator with checks and budget)."""
+identifiable parameters with the estimate's covariance, and the fit summary (``response.frf`` has
+H(f) and the LM; ``fd.identify`` the whole estimator with checks and budget)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from station.ident import frf as frfmod
 from station.ident.identifiability import Policy, assess, correlations
 from station.ident.models import Model, SdofModel
 from station.ident.oe import StepSignal
+from station.ident.response import frf as frfmod
 from station.ident.result import FitSummary, Identifiability
 
 FloatArray = NDArray[np.float64]

@@ -6,10 +6,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from station.ident import frf as frfmod
-from station.ident.checks import run_checks, screen_step
 from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.oe import StepSignal
+from station.ident.response import frf as frfmod
+from station.ident.response.gate import run_checks, screen_step
 from station.ident.result import Check
 from station.recording import Recording
 
@@ -32,7 +32,7 @@ class CheckedResponse:
 
 def checked_response(rec: Recording, inputs: IdentInputs | None = None,
                      n_harmonics: int = 3) -> CheckedResponse:
-    """Screen every step (``checks.screen_step``), then the run (``checks.run_checks``; raises
+    """Screen every step (``gate.screen_step``), then the run (``gate.run_checks``; raises
     ``IdentificationRefused``), and assemble H(f) of the steps left."""
     inputs = inputs or inputs_for(rec)
     fs = rec.sample_rate_hz
