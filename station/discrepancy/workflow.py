@@ -263,8 +263,11 @@ def analyse(data: RigData, max_effects: int = 4, recording: str = "",
         notes.append(f"structure: {structure.message}")
     if data.end_mass_kg <= 0:
         notes.append("no end mass in the recording: m_e = 0 assumed, coupling not testable")
+    # k_f alone undetermined with a coupling on top, and no coupling among the ties (whose proposal
+    # would separate it): propose for k_f under the coupling model first
+    coupling_tied = any("coupling_compliance" in e.tied for e in added)
     proposal = next_run(data, current, added, context, alpha=ALPHA, margin=AMBIGUOUS_BIC,
-                        coupled=None if structure is None or structure.k_f_alone_range is not None
+                        coupled=None if structure is None or structure.k_f_alone_range is not None or coupling_tied
                         else structure.coupled)
     return DiscrepancyResult(
         recording=recording, base_gap=base.gap_V, final_gap=current.gap_V, noise_floor_V=floor,
