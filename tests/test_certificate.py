@@ -93,6 +93,7 @@ def test_issue_needs_a_second_person_who_may_approve_and_is_immutable(stored: Pa
     text = _pdf_text(first.path("pdf").read_bytes())
     assert "SC-2026-0001" in text and "A. Approver (approver)" in text and "DRAFT" not in text
     assert read_issued(first.folder, first.number).record["sha256"] == first.record["sha256"]
+    assert b"<dcc:uniqueIdentifier>SC-2026-0001</dcc:uniqueIdentifier>" in first.path("xml").read_bytes()
     _, html = draft(rec, TECH)
     assert "DRAFT" in html  # drafts stay drafts whatever was issued
     # a correction is a new certificate that says what it replaces; the old one stays as issued
@@ -141,6 +142,8 @@ def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None
             assert number in html and "DRAFT" not in html
             pdf = await c.get(ok.json()["pdf"])
             assert pdf.headers["content-type"] == "application/pdf" and number in _pdf_text(pdf.content)
+            xml = await c.get(f"/runs/{rid}/certificate.xml")
+            assert xml.status_code == 200 and f"<dcc:uniqueIdentifier>{number}<".encode() in xml.content
             listed = (await c.get("/certificates", params={"transducer": "TX5K-0001"})).json()["certificates"]
             assert [x["number"] for x in listed] == [number]
             assert (await c.get("/certificates", params={"transducer": "OTHER"})).json()["certificates"] == []

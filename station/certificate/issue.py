@@ -27,6 +27,8 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from station.certificate.content import Approval, certificate_content
+from station.certificate.dcc import build_dcc
+from station.certificate.dcc import validate as validate_dcc
 from station.certificate.register import (
     FOLDER,
     CertificateError,
@@ -152,15 +154,19 @@ def issue(recording: Path, *, prepared_by: str, approver: str, replaces: str | N
                             replaces, reason)
         content = {**content, "approval": {**content["approval"], **approval.__dict__}}
         html = certificate_html(content).encode()
+        xml = build_dcc(content)
+        if cc.dcc_schema:
+            validate_dcc(xml, cc.dcc_schema)  # refused before anything is written
         pdf = html_to_pdf(html.decode())
         record = {"number": number, "transducer_id": content["item"]["transducer_id"],
                   "run_id": content["run"]["run_id"], "recording": recording.name,
                   "issued_at": approval.issued_at, "prepared_by": prepared_by, "approved_by": approver,
                   "replaces": replaces, "reason": reason, "content": content,
                   "sha256": {"content": canonical_hash(content), "html": hashlib.sha256(html).hexdigest(),
-                             "pdf": hashlib.sha256(pdf).hexdigest()}}
+                             "pdf": hashlib.sha256(pdf).hexdigest(), "xml": hashlib.sha256(xml).hexdigest()}}
         _write_once(folder / f"{number}.html", html)
         _write_once(folder / f"{number}.pdf", pdf)
+        _write_once(folder / f"{number}.xml", xml)
         _write_once(folder / f"{number}.json", json.dumps(record, indent=1, ensure_ascii=False).encode())
         if replaces:
             _write_once(folder / f"{replaces}.replaced", json.dumps({"replaced_by": number, "reason": reason}).encode())

@@ -52,7 +52,7 @@ def read_issued(folder: Path, number: str) -> Issued:
     it = Issued(number, record, folder)
     sha = record.get("sha256") or {}
     checks = {"content": canonical_hash(record.get("content")),
-              **{ext: hashlib.sha256(it.path(ext).read_bytes()).hexdigest() for ext in ("html", "pdf")
+              **{ext: hashlib.sha256(it.path(ext).read_bytes()).hexdigest() for ext in ("html", "pdf", "xml")
                  if it.path(ext).exists()}}
     bad = [k for k, v in checks.items() if sha.get(k) != v]
     if bad:

@@ -1,0 +1,218 @@
+"""The issued certificate as a PTB Digital Calibration Certificate (DCC, XML, schema 3.3.0).
+
+Built from the same content as the HTML and PDF (``content.certificate_content``), never from a new
+computation.  Mapping (docs/certificate.md): administrativeData: dccSoftware (sinecal and its
+version), coreData (country, language, the certificate number as uniqueIdentifier, the run's begin
+and end, the place, the issue date), items (the transducer, its id as the customer's identification),
+calibrationLaboratory, respPersons (who prepared it; the approver as main signer), customer,
+statements (the results relate only to the item; the assumptions; the uncertainty statement);
+measurementResults/measurementResult: usedMethods (stepped sine on a crank rig, model, estimator),
+measuringEquipments (the reference standards with their certificates and due dates),
+influenceConditions (temperature and humidity), results: each identified parameter and each
+determined quantity as ``si:real`` with ``si:expandedMU`` (U, k, p), and H(f) as a list of
+``si:realListXMLList`` quantities (frequency, |S_dyn| and phase with their U).  Units in D-SI syntax
+(``DSI_UNITS``).  ``validate`` checks a DCC against an XML Schema (``certificate.dcc_schema``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from station import __version__
+from station.certificate.register import CertificateError
+
+DCC_NS = "https://ptb.de/dcc"
+SI_NS = "https://ptb.de/si"
+XSI_NS = "http://www.w3.org/2001/XMLSchema-instance"
+SCHEMA_VERSION = "3.3.0"
+LANG = "en"
+DSI_UNITS = {"V/N": r"\volt\newton\tothe{-1}", "N/m": r"\newton\metre\tothe{-1}",
+             "N*s/m": r"\newton\second\metre\tothe{-1}", "kg": r"\kilogram", "Hz": r"\hertz", "1": r"\one",
+             "V*s^2/m": r"\volt\second\tothe{2}\metre\tothe{-1}", "deg": r"\degree", "degC": r"\degreecelsius",
+             "%": r"\percent", "m": r"\metre"}
+
+
+def dsi(unit: str) -> str:
+    """The D-SI form of a station unit string (CertificateError for one without a mapping)."""
+    try:
+        return DSI_UNITS[unit]
+    except KeyError:
+        raise CertificateError(f"no D-SI unit for {unit!r}") from None
+
+
+def _num(x: float) -> str:
+    return repr(float(x))
+
+
+def build_dcc(content: dict[str, Any]) -> bytes:
+    """The DCC of an issued certificate's content (UTF-8 XML bytes)."""
+    from lxml import etree
+
+    D, S = f"{{{DCC_NS}}}", f"{{{SI_NS}}}"
+
+    def el(parent: Any, tag: str, text: str | None = None, **attrib: str) -> Any:
+        e = etree.SubElement(parent, tag, attrib)
+        if text is not None:
+            e.text = text
+        return e
+
+    def text_block(parent: Any, tag: str, *lines: str) -> Any:
+        e = el(parent, D + tag)
+        for line in lines:
+            el(e, D + "content", line, lang=LANG)
+        return e
+
+    def location(parent: Any, lines: list[str]) -> None:
+        loc = el(parent, D + "location")
+        text_block(loc, "further", *(lines or ["not stated"]))
+
+    def real(parent: Any, value: float, unit: str, U: float | None = None, k: float | None = None,
+             p: float | None = None, label: str | None = None) -> None:
+        r = el(parent, S + "real")
+        if label:
+            el(r, S + "label", label)
+        el(r, S + "value", _num(value))
+        el(r, S + "unit", dsi(unit))
+        if U is not None and k is not None and p is not None:
+            mu = el(el(r, S + "measurementUncertaintyUnivariate"), S + "expandedMU")
+            el(mu, S + "valueExpandedMU", _num(U))
+            el(mu, S + "coverageFactor", _num(k))
+            el(mu, S + "coverageProbability", _num(p))
+
+    def real_list(parent: Any, values: list[float], unit: str, U: list[float], k: float, p: float,
+                  label: str) -> None:
+        r = el(parent, S + "realListXMLList")
+        el(r, S + "labelXMLList", label)
+        el(r, S + "valueXMLList", " ".join(_num(v) for v in values))
+        el(r, S + "unitXMLList", dsi(unit))
+        mu = el(el(r, S + "measurementUncertaintyUnivariateXMLList"), S + "expandedMUXMLList")
+        el(mu, S + "valueExpandedMUXMLList", " ".join(_num(u) for u in U))
+        el(mu, S + "coverageFactorXMLList", _num(k))
+        el(mu, S + "coverageProbabilityXMLList", _num(p))
+
+    a, run, item = content["approval"], content["run"], content["item"]
+    if a["status"] != "issued" or not a["number"]:
+        raise CertificateError("only an issued certificate has a DCC")
+    root = etree.Element(D + "digitalCalibrationCertificate", nsmap={"dcc": DCC_NS, "si": SI_NS, "xsi": XSI_NS})
+    root.set("schemaVersion", SCHEMA_VERSION)
+    root.set(f"{{{XSI_NS}}}schemaLocation", f"{DCC_NS} {DCC_NS}/v{SCHEMA_VERSION}/dcc.xsd")
+    adm = el(root, D + "administrativeData")
+    sw = el(el(adm, D + "dccSoftware"), D + "software")
+    text_block(sw, "name", "sinecal calibration station")
+    el(sw, D + "release", f"v{__version__}")  # the DCC rules want a letter before the version
+    el(sw, D + "type", "application")
+    core = el(adm, D + "coreData")
+    el(core, D + "countryCodeISO3166_1", content.get("country", "DE"))
+    el(core, D + "usedLangCodeISO639_1", LANG)
+    el(core, D + "mandatoryLangCodeISO639_1", LANG)
+    el(core, D + "uniqueIdentifier", a["number"])
+    el(core, D + "beginPerformanceDate", run["start_time"][:10])
+    el(core, D + "endPerformanceDate", (run["end_time"] or run["start_time"])[:10])
+    el(core, D + "performanceLocation", "laboratory")
+    el(core, D + "issueDate", a["issued_at"][:10])
+    it = el(el(adm, D + "items"), D + "item")
+    text_block(it, "name", f"force transducer {item['transducer_id']}")
+    text_block(el(it, D + "manufacturer"), "name", "not stated")
+    ident = el(el(it, D + "identifications"), D + "identification")
+    el(ident, D + "issuer", "customer")
+    el(ident, D + "value", item["transducer_id"])
+    text_block(ident, "name", "transducer id")
+    lab = el(el(adm, D + "calibrationLaboratory"), D + "contact")
+    text_block(lab, "name", content["laboratory"]["name"])
+    location(lab, content["laboratory"]["address"])
+    persons = el(adm, D + "respPersons")
+    for name, role, main in ((a["prepared_by"], "prepared", False), (a["approved_by"], a["approver_role"], True)):
+        rp = el(persons, D + "respPerson")
+        text_block(el(rp, D + "person"), "name", name)
+        el(rp, D + "role", role)
+        if main:
+            el(rp, D + "mainSigner", "true")
+    cust = el(adm, D + "customer")
+    customer = content["customer"] or {"name": "not stated", "address": []}
+    text_block(cust, "name", customer["name"])
+    location(cust, customer["address"])
+    statements = el(adm, D + "statements")
+    masses = content["assumptions"]["masses"]
+    declarations = [content["relates_only"], *content["statement"],
+                    *(f"assumption: {m['name']} = {m['value']} kg ({m['source']})" for m in masses)]
+    if content["assumptions"]["structure"]:
+        declarations.append("model structure: " + content["assumptions"]["structure"])
+    if a.get("replaces"):
+        declarations.append(f"This certificate replaces certificate {a['replaces']}, which is withdrawn: {a['reason']}")
+    for d in declarations:
+        text_block(el(statements, D + "statement"), "declaration", d)
+
+    mr = el(el(root, D + "measurementResults"), D + "measurementResult")
+    text_block(mr, "name", "dynamic calibration of a force transducer")
+    um = el(el(mr, D + "usedMethods"), D + "usedMethod")
+    m = content["method"]
+    text_block(um, "name", m["name"])
+    text_block(um, "description", f"model {m['model']}: {m['model_text']}",
+               f"estimator {m['estimator']}: {m['estimator_text']}")
+    if content["standards"]:
+        eqs = el(mr, D + "measuringEquipments")
+        for s in content["standards"]:
+            eq = el(eqs, D + "measuringEquipment")
+            text_block(eq, "name", s["name"])
+            trace = f"; {s['traceability']}" if s["traceability"] else ""
+            text_block(eq, "description", f"kind {s['kind']}; calibration certificate {s['certificate_id']}, "
+                                           f"due {s['due_date']}{trace}")
+            eid = el(el(eq, D + "identifications"), D + "identification")
+            el(eid, D + "issuer", "calibrationLaboratory")
+            el(eid, D + "value", s["id"])
+    env = content["environment"]
+    if env:
+        infl = el(mr, D + "influenceConditions")
+        for key, std, unit, name in (("temperature_c", "temperature_std_c", "degC", "air temperature"),
+                                     ("relative_humidity_pct", "relative_humidity_std_pct", "%", "relative humidity")):
+            if env.get(key) is None:
+                continue
+            ic = el(infl, D + "influenceCondition")
+            text_block(ic, "name", name)
+            text_block(ic, "description", str(env.get("source", "")))
+            q = el(el(ic, D + "data"), D + "quantity")
+            real(q, env[key], unit, 2 * env[std], 2.0, 0.95)
+    results = el(mr, D + "results")
+    for r in content["results"]:
+        if r.get("U") is None:
+            continue
+        res = el(results, D + "result")
+        text_block(res, "name", f"{r['name']}: {r['meaning']}")
+        q = el(el(res, D + "data"), D + "quantity", refType=f"sinecal_{r['name']}")
+        real(q, r["value"], r["unit"], r["U"], r["k"], r["p"], label=r["name"])
+    pts = content["response"]
+    if pts:
+        res = el(results, D + "result")
+        text_block(res, "name", "dynamic sensitivity S_dyn(f) = -H(f)/M")
+        lst = el(el(res, D + "data"), D + "list")
+        k = float(content["response_k"])
+        for label, key, unit, ukey in (("frequency", "f_hz", "Hz", None),
+                                       ("magnitude", "magnitude", "V/N", "U_magnitude"),
+                                       ("phase", "phase_deg", "deg", "U_phase_deg")):
+            q = el(lst, D + "quantity")
+            text_block(q, "name", label)
+            vals = [p[key] for p in pts]
+            if ukey is None:
+                r = el(q, S + "realListXMLList")
+                el(r, S + "labelXMLList", label)
+                el(r, S + "valueXMLList", " ".join(_num(v) for v in vals))
+                el(r, S + "unitXMLList", dsi(unit))
+            else:
+                real_list(q, vals, unit, [p[ukey] for p in pts], k, 0.9545, label)
+    return bytes(etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True))
+
+
+def validate(xml: bytes, schema_path: str | Path) -> None:
+    """Validate a DCC against the XML Schema at ``schema_path`` (lxml); CertificateError naming the
+    first problems when it is invalid or the schema cannot be read."""
+    from lxml import etree
+
+    try:
+        schema = etree.XMLSchema(etree.parse(str(schema_path)))
+    except (OSError, etree.XMLSchemaParseError, etree.XMLSyntaxError) as e:
+        raise CertificateError(f"the DCC schema {schema_path} cannot be used: {e}") from None
+    doc = etree.fromstring(xml)
+    if not schema.validate(doc):
+        errs = "; ".join(f"line {e.line}: {e.message}" for e in list(schema.error_log)[:3])
+        raise CertificateError(f"the DCC does not validate against {Path(schema_path).name}: {errs}")
