@@ -7,6 +7,7 @@ and the allowed range.  All quantities are SI; the unit is part of every field n
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_type_hints
 
@@ -72,6 +73,9 @@ class TransducerConfig(_Model):
     end_mass_kg: float | None = Field(default=None, gt=0, le=100)
     end_mass_std_kg: float | None = Field(default=None, ge=0, le=100, description="standard uncertainty "
                                           "of end_mass_kg (default: 5 % of it, station.ident.inputs)")
+    type: str = Field(default="", max_length=128, description="make and model")
+    serial: str = Field(default="", max_length=128, description="serial number")
+    owner: str = Field(default="", max_length=256, description="owner or customer")
 
 
 class MotorSection(_Model):
@@ -178,6 +182,36 @@ class DevicesConfig(_Model):
     daq_baudrate: int = Field(default=3_000_000, ge=9600, le=50_000_000)
     crank_radius_m: float = Field(default=0.01, gt=0, le=1.0,
                                   description="radius the crank is set to by hand (real rig)")
+
+
+StandardKind = Literal["displacement_sensor", "masses", "daq", "conditioner"]
+
+
+class StandardConfig(_Model):
+    """A reference standard the station's measurements trace to (seeds the register)."""
+
+    id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")
+    kind: StandardKind
+    description: str = Field(default="", max_length=256)
+    certificate_id: str = Field(min_length=1, max_length=128)
+    issuer: str = Field(min_length=1, max_length=256)
+    due_date: dt.date = Field(description="calibration due date (ISO, e.g. 2027-06-30)")
+    uncertainty: float = Field(ge=0, le=1e6, description="the standard uncertainty it contributes, in "
+                               "uncertainty_unit")
+    uncertainty_unit: str = Field(min_length=1, max_length=32, description="e.g. m, kg, V/V, relative")
+
+
+class LabSection(_Model):
+    """Users, reference standards, the register's seed."""
+
+    overdue_standards: Literal["refuse", "warn"] = Field(
+        default="refuse", description="a run with a reference standard past its due date is refused, or "
+        "started with a warning in its record")
+    session_minutes: float = Field(default=480.0, ge=1, le=7 * 24 * 60, description="a page login expires "
+                                   "after this")
+    standards: list[StandardConfig] = Field(default_factory=list, max_length=64,
+                                            description="reference standards entered into the register at "
+                                            "start-up when not there yet")
 
 
 class ServiceSection(_Model):
@@ -349,6 +383,7 @@ class StationConfig(_Model):
     devices: DevicesConfig = DevicesConfig()
     simulation: SimulationConfig | None = None
     service: ServiceSection = ServiceSection()
+    lab: LabSection = LabSection()
 
     @model_validator(mode="after")
     def _drive_profile(self) -> StationConfig:

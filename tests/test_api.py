@@ -351,7 +351,7 @@ def test_busy_rig_409_abort_and_results_states(tmp_path: Path) -> None:
         r = await c.post(f"/runs/{rid}/abort")
         assert r.status_code == 202 and r.json()["id"] == rid
         st = await wait_state(c, rid, FINAL)
-        assert st["state"] == "aborted" and st["reason"] == "aborted by operator"
+        assert st["state"] == "aborted" and st["reason"] == "aborted by admin"
         assert (await c.post(f"/runs/{rid}/abort")).status_code == 409
         res = await c.get(f"/runs/{rid}/results")
         assert res.status_code == 409 and "aborted" in res.json()["detail"]

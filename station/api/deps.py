@@ -1,5 +1,9 @@
-"""Typed dependencies: settings, the run manager and the services it holds (runs, artifacts),
-authorisation, a run looked up by id.
+"""Typed dependencies: settings, the run manager, who makes the request and what they may do, a run
+looked up by id.
+
+Who: a bearer token (the configured ``STATION_TOKEN``/``service.token`` acts for the administrator
+``admin``; tokens issued to users act for them) or the page's session cookie (HttpOnly, expiring).
+Looking either up reads the database through the read pool (never on the event loop).
 
 All are ``async def``: they are cheap, and FastAPI would run plain functions in its thread pool
 (a thread hop per dependency and request, which shows in the status latency under load)."""
@@ -7,20 +11,25 @@ All are ``async def``: they are cheap, and FastAPI would run plain functions in 
 from __future__ import annotations
 
 import secrets
+from collections.abc import Awaitable, Callable
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Path, Request, Security, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from station.lab import users
+from station.lab.users import AuthError, Permission, Principal, Role, User
 from station.service.artifacts import Artifacts
-from station.service.manager import RunManager, RunNotFoundError
+from station.service.manager import TOKEN_USER, RunManager, RunNotFoundError
 from station.service.runs import Runs
 from station.service.settings import ServiceSettings, is_loopback
-from station.service.store import RunRow
+from station.service.store import RunRow, Store
 
-bearer = HTTPBearer(auto_error=False, description="the station token (service.token or STATION_TOKEN)")
+bearer = HTTPBearer(auto_error=False, description="an API token: the station's (service.token or STATION_TOKEN, "
+                    "acting for the administrator 'admin') or one issued to a user (POST /users/{name}/tokens)")
 
 RUN_ID_PATTERN = r"^[A-Za-z0-9_.\-]{1,128}$"
+SESSION_COOKIE = "station_session"
 
 
 async def get_settings(request: Request) -> ServiceSettings:
@@ -48,25 +57,105 @@ ArtifactsDep = Annotated[Artifacts, Depends(get_artifacts)]  # recordings and wh
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Security(bearer)]
 
 
-def _token_ok(creds: HTTPAuthorizationCredentials | None, settings: ServiceSettings) -> bool:
-    return creds is not None and secrets.compare_digest(creds.credentials.encode(), settings.token.encode())
+def station_token(token: str, settings: ServiceSettings) -> Principal | None:
+    """The configured token's principal (the administrator ``admin``), without the database."""
+    if secrets.compare_digest(token.encode(), settings.token.encode()):
+        return Principal(User(TOKEN_USER, Role.ADMIN), "token")
+    return None
 
 
-async def require_token(creds: Credentials, settings: SettingsDep) -> None:
-    """Endpoints that move the rig or change state: the bearer token, always."""
-    if not _token_ok(creds, settings):
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED,
-                            "a valid bearer token is required (Authorization: Bearer <token>)",
-                            headers={"WWW-Authenticate": "Bearer"})
+def token_lookup(token: str, settings: ServiceSettings) -> Callable[[Store], Principal | None]:
+    """A function of the store giving the token's user (None: not a token of this station)."""
+    def find(store: Store) -> Principal | None:
+        if (who := station_token(token, settings)) is not None:
+            return who
+        user = users.user_of_token(store, token)
+        return None if user is None or user.disabled else Principal(user, "token")
+    return find
 
 
-async def read_access(request: Request, creds: Credentials, settings: SettingsDep) -> None:
-    """Reading is open to clients on loopback; others need the token."""
+def credentials_of(headers: dict[str, str]) -> tuple[str | None, str | None]:
+    """(bearer token, session cookie) of a request's headers (lower-case names)."""
+    auth = headers.get("authorization", "")
+    scheme, _, cred = auth.partition(" ")
+    token = cred.strip() if scheme.lower() == "bearer" and cred.strip() else None
+    session = None
+    for part in headers.get("cookie", "").split(";"):
+        k, _, v = part.strip().partition("=")
+        if k == SESSION_COOKIE and v:
+            session = v
+    return token, session
+
+
+async def authenticate(manager: RunManager | None, settings: ServiceSettings, token: str | None,
+                       session: str | None) -> Principal | None:
+    """Who the credentials belong to; None without credentials; AuthError (with the reason) for
+    credentials that are wrong, ended or expired."""
+    if token is not None and (who := station_token(token, settings)) is not None:
+        return who
+    if manager is None and (token or session):
+        raise AuthError("the station daemon is starting; try again")
+    if token is not None:
+        assert manager is not None
+        who = await manager.db.read(token_lookup(token, settings))
+        if who is None:
+            raise AuthError("the bearer token is not valid for this station (check STATION_TOKEN or ask an "
+                            "administrator for a token)")
+        return who
+    if session is not None:
+        assert manager is not None
+        return await manager.db.read(lambda store: users.session_user(store, session))
+    return None
+
+
+async def principal(request: Request, creds: Credentials, settings: SettingsDep) -> Principal | None:
+    _, session = credentials_of({"cookie": request.headers.get("cookie", "")})
+    try:
+        who = await authenticate(getattr(request.app.state, "manager", None), settings,
+                                 creds.credentials if creds else None, session)
+    except AuthError as exc:
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, str(exc), headers={"WWW-Authenticate": "Bearer"}) from None
+    return who
+
+
+PrincipalDep = Annotated[Principal | None, Depends(principal)]
+
+
+def _same_site(request: Request) -> None:
+    """A page session's change must come from the station's own page (the cookie is SameSite=Strict
+    too): the browser's Sec-Fetch-Site and Origin say where a request comes from."""
+    site = request.headers.get("sec-fetch-site")
+    origin = request.headers.get("origin")
+    if (site is not None and site not in ("same-origin", "none")) or \
+            (origin is not None and origin.split("://", 1)[-1] != request.headers.get("host", "")):
+        raise HTTPException(status.HTTP_403_FORBIDDEN, "cross-site request refused; use the station's own page")
+
+
+def require(perm: Permission) -> Callable[..., Awaitable[Principal]]:
+    """A dependency: the request's user, who must hold ``perm`` (401 without credentials, 403 with
+    a role that does not grant it)."""
+    async def check(request: Request, who: PrincipalDep) -> Principal:
+        if who is None:
+            raise HTTPException(status.HTTP_401_UNAUTHORIZED,
+                                "log in on the page, or send a bearer token (Authorization: Bearer <token>)",
+                                headers={"WWW-Authenticate": "Bearer"})
+        if not who.user.may(perm):
+            roles = ", ".join(str(r) for r, g in users.GRANTS.items() if perm in g)
+            raise HTTPException(status.HTTP_403_FORBIDDEN, f"user {who.name} ({who.user.role}) may not do this: "
+                                f"it needs the '{perm}' permission ({roles})")
+        if who.via == "session":
+            _same_site(request)
+        return who
+    return check
+
+
+async def read_access(request: Request, who: PrincipalDep) -> None:
+    """Reading is open to clients on loopback; others need a token or a page session."""
     client = request.client.host if request.client else ""
-    if is_loopback(client) or _token_ok(creds, settings):
+    if is_loopback(client) or who is not None:
         return
-    raise HTTPException(status.HTTP_401_UNAUTHORIZED, "reading from outside this machine needs the bearer token",
-                        headers={"WWW-Authenticate": "Bearer"})
+    raise HTTPException(status.HTTP_401_UNAUTHORIZED, "reading from outside this machine needs a login or a "
+                        "bearer token", headers={"WWW-Authenticate": "Bearer"})
 
 
 RunId = Annotated[str, Path(pattern=RUN_ID_PATTERN, description="run id as returned by POST /runs")]
@@ -80,5 +169,9 @@ async def get_run(run_id: RunId, runs: RunsDep) -> RunRow:
 
 
 RunDep = Annotated[RunRow, Depends(get_run)]
+require_token = require(Permission.RUN)  # the name older routes use
 Writer = Depends(require_token)
 Reader = Depends(read_access)
+Operator = Annotated[Principal, Depends(require_token)]
+Approver = Annotated[Principal, Depends(require(Permission.APPROVE))]
+Admin = Annotated[Principal, Depends(require(Permission.ADMIN))]

@@ -1,7 +1,8 @@
 """What every request passes before any route sees it (pure ASGI, no body buffering by the framework):
 
 * a request body is read only from an authenticated client: a POST/PUT/PATCH that carries a body
-  without the valid bearer token is answered 401 before a byte of it is read (the emergency stop
+  without a valid bearer token or page session is answered 401 before a byte of it is read, except
+  the login itself (whose body is the credential; bounded like any other); the emergency stop
   needs no token and reads no body; every other endpoint that takes a body computes or stores);
 * a body that is not JSON by its ``Content-Type`` (form, multipart, text/plain, octet-stream, ...)
   is answered 415 unread: every body the API takes is JSON, and a browser can send the other types
@@ -25,6 +26,7 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 OPEN_POSTS = ("/stop",)  # accepted without the token; their bodies are never read
+LOGIN_POSTS = ("/login",)  # the body is the credential: read (bounded, JSON only) without one
 QUOTE_CHARS = 120  # at most this much of a header value is quoted back
 
 
@@ -43,16 +45,27 @@ async def _answer(send: Send, status: int, detail: Any, headers: list[tuple[byte
     await send({"type": "http.response.body", "body": body})
 
 
+Authenticate = Callable[[dict[bytes, bytes]], Awaitable[str | None]]
+
+
 class BodyGuard:
-    def __init__(self, app: ASGIApp, *, token: str, max_body_bytes: int) -> None:
+    """``authenticate(headers)``: None for a request with valid credentials (a token or a page
+    session), else the reason it is refused; without it, only ``token`` is accepted."""
+
+    def __init__(self, app: ASGIApp, *, token: str, max_body_bytes: int,
+                 authenticate: Authenticate | None = None) -> None:
         self.app = app
         self._token = f"Bearer {token}".encode()
         self.max_body_bytes = max_body_bytes
+        self._authenticate = authenticate
 
-    def _authorised(self, headers: dict[bytes, bytes]) -> bool:
+    async def _refusal(self, headers: dict[bytes, bytes]) -> str | None:
+        if self._authenticate is not None:
+            return await self._authenticate(headers)
         auth = headers.get(b"authorization", b"")
         scheme, _, cred = auth.partition(b" ")
-        return scheme.lower() == b"bearer" and secrets.compare_digest(b"Bearer " + cred.strip(), self._token)
+        ok = scheme.lower() == b"bearer" and secrets.compare_digest(b"Bearer " + cred.strip(), self._token)
+        return None if ok else "a valid bearer token is required (Authorization: Bearer <token>)"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
@@ -71,9 +84,9 @@ class BodyGuard:
         if path in OPEN_POSTS or not has_body:
             await self.app(scope, receive, send)  # the route's own dependencies decide (no body to read)
             return
-        if not self._authorised(headers):
-            await _answer(send, 401, "a valid bearer token is required (Authorization: Bearer <token>); "
-                          "the request body was not read", [(b"www-authenticate", b"Bearer")])
+        refusal = None if path in LOGIN_POSTS else await self._refusal(headers)
+        if refusal is not None:
+            await _answer(send, 401, f"{refusal}; the request body was not read", [(b"www-authenticate", b"Bearer")])
             return
         ctype = headers.get(b"content-type", b"")
         if not is_json_type(ctype):

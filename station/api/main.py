@@ -26,10 +26,14 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from station import __version__
+from station.api.deps import authenticate, credentials_of
 from station.api.guard import BodyGuard
-from station.api.routes import campaign, certificates, proposal, runs, system
+from station.api.routes import campaign, certificates, lab, proposal, runs, system
 from station.certificate.register import CertificateError, CertificateNotFoundError
 from station.errors import StationError
+from station.lab.integrity import RecordingTamperedError
+from station.lab.register import RegisterError, UnknownEntryError
+from station.lab.users import AuthError, ForbiddenError, UnknownUserError, UserError
 from station.service.errors import DatabaseBusyError, ResultNotStoredError
 from station.service.manager import (
     EStopLatchedError,
@@ -100,7 +104,9 @@ def install_error_handlers(app: FastAPI) -> None:
     statuses: list[tuple[type[Exception], int]] = [
         (RunNotFoundError, 404), (ResultNotStoredError, 404), (RunStateError, 409), (RigBusyError, 409),
         (EStopLatchedError, 409), (RigUnavailableError, 503), (DatabaseBusyError, 503),
-        (CertificateNotFoundError, 404), (CertificateError, 409)]
+        (CertificateNotFoundError, 404), (CertificateError, 409),
+        (AuthError, 401), (ForbiddenError, 403), (UnknownEntryError, 404), (RegisterError, 409),
+        (UnknownUserError, 404), (UserError, 409), (RecordingTamperedError, 409)]
     for cls, code in statuses:
         def handler(request: Request, exc: Exception, code: int = code) -> JSONResponse:
             return _error(code, exc)
@@ -186,13 +192,26 @@ def create_app(settings: ServiceSettings, *,
                            allowed_hosts=["127.0.0.1", "localhost", "::1", "[::1]"])
     install_error_handlers(app)
     # outermost: authenticate and bound a request body before anything reads it
-    app.add_middleware(BodyGuard, token=settings.token, max_body_bytes=settings.config.service.max_body_bytes)
+    async def body_refusal(headers: dict[bytes, bytes]) -> str | None:
+        manager = getattr(app.state, "manager", None)
+        if manager is None:
+            return "the station daemon is starting"
+        token, session = credentials_of({k.decode("latin-1"): v.decode("latin-1") for k, v in headers.items()})
+        if token is None and session is None:
+            return "log in on the page, or send a bearer token (Authorization: Bearer <token>)"
+        try:
+            return None if await authenticate(manager, settings, token, session) else "not authenticated"
+        except AuthError as exc:
+            return str(exc)
+    app.add_middleware(BodyGuard, token=settings.token, max_body_bytes=settings.config.service.max_body_bytes,
+                       authenticate=body_refusal)
     app.add_middleware(StartupFailureLine)
     app.include_router(runs.router)
     app.include_router(certificates.router)
     app.include_router(campaign.router)
     app.include_router(proposal.router)
     app.include_router(system.router)
+    app.include_router(lab.router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
 
     @app.get("/", include_in_schema=False)

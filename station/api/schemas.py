@@ -364,7 +364,8 @@ class AcknowledgeIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid", strict=True)
 
-    operator: str = Field(min_length=1, max_length=64, description="the operator's name or initials")
+    operator: str = Field(default="", max_length=64, description="the operator at the rig, if not the user "
+                          "who acknowledges (who acknowledges is the logged-in user or the token's)")
     note: str = Field(default="", max_length=500, description="e.g. what was checked before the restart")
 
 

@@ -66,7 +66,7 @@ class RunAborted(RuntimeError):
     """An operator (or the emergency stop) aborted the run."""
 
 
-StepState = Literal["", "ramping", "settling", "recording", "done", "aborted", "failed", "interrupted"]
+StepState = Literal["", "ramping", "settling", "recording", "done", "stopping", "aborted", "failed", "interrupted"]
 """Where the step on the rig is (the last three: the run ended there)."""
 
 

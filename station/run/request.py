@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -39,6 +40,8 @@ class RunRequest(BaseModel):
         default=None, min_length=1, max_length=MAX_METHODS,
         description="this run's identifications, ordered, the first being the primary result (default: the "
         "configuration's identification.methods)")
+    standards: list[str] | None = Field(default=None, max_length=32, description="ids of the reference "
+                                        "standards used (register); default: those marked in use")
 
     @field_validator("top_mass_kg", mode="before")
     @classmethod
@@ -75,13 +78,15 @@ class Plan:
 
     config: StationConfig
     steps: tuple[PlannedStep, ...]
+    provenance: dict[str, Any] = field(default_factory=dict)  # who, the register's records (station.lab)
 
     def to_dict(self) -> dict[str, object]:
         return {"kind": "stepped_sine", "transducer_id": self.config.transducer.id,
                 "top_mass_kg": self.config.rig.top_mass_kg,
                 "steps": [s.__dict__ for s in self.steps],
                 "units": {"crank_frequency_hz": "Hz", "crank_radius_m": "m", "settle_s": "s",
-                          "record_s": "s", "top_mass_kg": "kg"}}
+                          "record_s": "s", "top_mass_kg": "kg"},
+                **({"provenance": self.provenance} if self.provenance else {})}
 
 
 def plan_run(cfg: StationConfig, request: RunRequest) -> Plan:

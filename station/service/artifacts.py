@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from station.lab.integrity import check_recording
 from station.recording.stored import results_version
 from station.report.names import PLOT_NAMES
 from station.service import worker
@@ -116,8 +117,16 @@ class Artifacts:
         return await self._cached((run_id, f"plot:{name}:{hash(version)}"),
                                   lambda: self._locked_job(run_id, worker.plot_job, str(path), name))
 
+    async def verified(self, row: RunRow, *, required: bool = False) -> str:
+        """The recording's SHA-256, checked against the one stored when it was closed
+        (RecordingTamperedError naming the file on a mismatch; ``required``: a run recorded before
+        hashes were stored is refused too).  What a report or a certificate reads first."""
+        return await asyncio.to_thread(check_recording, self.recording_path(row), row.recording_sha256,
+                                       required=required)
+
     async def report(self, run_id: str) -> str:
         path = await self._completed_path(run_id)
+        await self.verified(await self._get_row(run_id))
         version = await asyncio.to_thread(results_version, path)
         return await self._cached((run_id, f"report:{hash(version)}"),
                                   lambda: self._locked_job(run_id, worker.report_job, str(path)))

@@ -19,6 +19,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from station.lab import audit
 from station.run.methods import SETTLED, MethodOutcome, write_outcomes
 from station.service import worker
 from station.service.artifacts import Artifacts
@@ -152,6 +153,8 @@ class JobQueue:
             if rest <= 0:
                 store.finish_job(job_id, "done")
             store.update_run(run_id, **row_values)
+            audit.append(store, audit.SYSTEM, audit.RUN_IDENTIFIED, run_id,
+                         {"result": out["result_name"], "method": out["method"], "model": out["model"]})
         if not await self._record(run_id, f"{done}, result {out['result_name']}", note_primary, row_values):
             return
         log.info("run %s identified (%s)%s", run_id, out["result_name"], later)

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any
 
+from station.lab import audit
 from station.service.db import DbAccess
-from station.service.store import EStopRow
+from station.service.store import EStopRow, Store
 
 log = logging.getLogger(__name__)
 
@@ -43,18 +45,31 @@ class EStopLatch:
     def latched(self) -> bool:
         return bool(self._open)
 
-    def trip(self, source: str, detail: str) -> None:
-        """Latch now; the database's record follows (retried until it is taken)."""
+    def trip(self, source: str, detail: str, who: str | Callable[[Store], str] = audit.SYSTEM) -> None:
+        """Latch now; the database's record and the audit entry follow (retried until taken).
+        ``who``: the user who asked for the stop, or a function that finds them in the database when
+        the record is written (never before the stop: the stop waits on nothing)."""
         log.warning("emergency stop latched (source %s): %s", source, detail)
         raised = time.time()
         self._open.append(EStopRow(0, raised, source, detail, None, None, ""))
-        self.db.post(lambda store: store.raise_estop(source, detail, raised))
+
+        def record(store: Store) -> None:
+            row = store.raise_estop(source, detail, raised)
+            name = who(store) if callable(who) else who
+            audit.append(store, name, audit.ESTOP_RAISED, "station", {"estop": row.id, "source": source,
+                                                                      "detail": detail})
+        self.db.post(record)
 
     async def acknowledge(self, by: str, note: str = "") -> list[EStopRow]:
         """Record the acknowledgement (DatabaseBusyError if the database cannot take it now: the
         latch stays) and release the stops it covers."""
         covered = list(self._open)
-        rows = await self.db.call(lambda store: store.acknowledge_estops(by, note))
+        def ack(store: Store) -> list[EStopRow]:
+            rows = store.acknowledge_estops(by, note)
+            audit.append(store, by, audit.ESTOP_ACKNOWLEDGED, "station",
+                         {"note": note, "estops": [r.id for r in rows]})
+            return rows
+        rows = await self.db.call(ack)
         self._open = [r for r in self._open if r not in covered]
         if rows:
             self._last_ack = (rows[-1].acknowledged or time.time(), by)

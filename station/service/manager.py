@@ -16,6 +16,7 @@ import threading
 import time
 from typing import Any
 
+from station.lab import audit, register, users
 from station.recording.repair import FolderCheck, check_folder
 from station.service import worker
 from station.service.artifacts import Artifacts
@@ -55,6 +56,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+TOKEN_USER = "admin"  # the configured token (STATION_TOKEN, service.token) acts for this administrator
+
 
 class RunManager:
     """Everything the API needs, for the daemon's lifetime: ``start`` then ``close``."""
@@ -92,6 +95,7 @@ class RunManager:
         self.runs.web_loop = asyncio.get_running_loop()
         self.folder_check = await asyncio.to_thread(check_folder, self.settings.recordings_dir)
         self.recover()  # before anything is served: nothing else waits on the loop yet
+        self.seed_lab()
         self.latch.load()
         self.db.start()
         await asyncio.to_thread(self.disk.ensure_reserve)
@@ -139,6 +143,32 @@ class RunManager:
         """Start-up: runs cut off by the end of the previous daemon become ``interrupted`` (their
         partial recordings recovered), jobs left running go back to the queue."""
         return recover(self.store, self.settings.recordings_dir, MAX_JOB_ATTEMPTS)
+
+    def seed_lab(self) -> None:
+        """Start-up: the configuration's transducer and standards into the register (when missing),
+        the user the configured token acts for, and the record of a database upgrade."""
+        register.seed(self.store, self.cfg)
+        users.ensure_user(self.store, TOKEN_USER, users.Role.ADMIN)
+        if self.store.upgraded_from is not None:
+            audit.append(self.store, audit.SYSTEM, audit.DATABASE_UPGRADED, str(self.settings.database.name),
+                         {"from_schema": self.store.upgraded_from, "backup": str(self.store.backup)})
+
+    async def approve(self, run_id: str, approver: users.User, note: str) -> dict[str, Any]:
+        """The second person's approval of a completed run for its certificate: an approver who did
+        not start the run, on a recording whose SHA-256 is the one stored when it was closed."""
+        if not approver.may(users.Permission.APPROVE):
+            raise users.ForbiddenError(f"user {approver.name} ({approver.role}) may not approve; an approver does")
+        row = await self.runs.get(run_id)
+        if row.state != "completed":
+            raise RunStateError(f"run {run_id} is {row.state}: only a completed run can be approved")
+        if row.operator == approver.name:
+            raise users.ForbiddenError(f"run {run_id} was started by {approver.name}: a second person approves it")
+        sha = await self.artifacts.verified(row, required=True)
+        details = {"note": note, "sha256": sha, "operator": row.operator, "recording": row.recording}
+        entry = await self.db.call(lambda store: audit.append(store, approver.name, audit.CERTIFICATE_APPROVED,
+                                                              run_id, details))
+        return {"run_id": run_id, "approved_by": approver.name, "audit_id": entry, **details}
+
 
     def _on_acquired(self, run_id: str) -> None:
         self.jobs.wake()

@@ -19,6 +19,8 @@ from pathlib import Path
 from typing import Any
 
 from station.config import StationConfig
+from station.lab import audit, register
+from station.lab.integrity import sha256_file
 from station.recording import new_run_id
 from station.run.procedure import Procedure, Progress, RunOutcome
 from station.run.request import Plan, RunRequest, plan_run
@@ -35,7 +37,7 @@ from station.service.errors import (
 )
 from station.service.latch import EStopLatch
 from station.service.riglink import DriveCheck, RigLink
-from station.service.store import RunRow
+from station.service.store import RunRow, Store
 
 log = logging.getLogger(__name__)
 
@@ -108,12 +110,16 @@ class Runs:
     def active(self) -> LiveRun | None:
         return next(iter(self.live.values()), None)
 
-    async def submit(self, request: RunRequest) -> RunRow:
-        """Check and queue a run (202); raises LimitError (422), RigBusyError (409),
+    async def submit(self, request: RunRequest, who: str = audit.SYSTEM) -> RunRow:
+        """Check and queue a run (202) for user ``who``; raises LimitError (422), RegisterError (422:
+        a transducer or standard not registered, a standard overdue), RigBusyError (409),
         RigUnavailableError (503)."""
         if self.closing.is_set():
             raise RigUnavailableError("the daemon is shutting down")
-        plan = plan_run(self.cfg, request)
+        setup = await self.db.read(lambda store: register.run_setup(store, self.cfg, request.transducer_id,
+                                                                      request.standards))
+        plan = plan_run(setup.config(self.cfg), request)
+        plan = dataclasses.replace(plan, provenance={"operator": who, **setup.to_dict()})
         cur = self.active()
         if cur is not None:
             raise RigBusyError(cur.row.id, cur.row.state)
@@ -131,11 +137,21 @@ class Runs:
         row = RunRow(id=run_id, state="queued", transducer_id=request.transducer_id,
                      top_mass_kg=request.top_mass_kg, request_json=request.model_dump_json(),
                      plan_json=json.dumps(plan.to_dict()), created=time.time(), n_steps=len(plan.steps),
-                     message="waiting for the rig")
+                     message="waiting for the rig" + "".join(f"; WARNING: {w}" for w in setup.warnings),
+                     operator=who, transducer_json=json.dumps(setup.transducer.to_dict()),
+                     standards_json=setup.standards_json())
         live = LiveRun(row, plan, rig)
         self.live[run_id] = live  # holds the rig while the database takes the row
+
+        def insert(store: Store) -> None:
+            with store.transaction() as db:
+                store.insert_run(row, db)
+                audit.record(db, who, audit.RUN_STARTED, run_id,
+                             {"transducer_id": row.transducer_id, "top_mass_kg": row.top_mass_kg,
+                              "steps": [[s.crank_frequency_hz, s.crank_radius_m] for s in plan.steps],
+                              "standards": [s.id for s in setup.standards], "warnings": list(setup.warnings)})
         try:
-            await self.db.call(lambda store: store.insert_run(row))  # DatabaseBusyError: not queued (503)
+            await self.db.call(insert)  # DatabaseBusyError: not queued (503)
         except BaseException:
             self.live.pop(run_id, None)
             raise
@@ -173,6 +189,11 @@ class Runs:
             self._finish(live, "failed", f"{type(exc).__name__}: {exc}")
             return
         name = outcome.path.name
+        sha = await self._hash(outcome.path)
+        self._update(live, recording_sha256=sha)
+        self.db.post(lambda store: audit.append(store, audit.SYSTEM, audit.RUN_ENDED, run_id,
+                                                {"exit_status": outcome.exit_status, "recording": name,
+                                                 "sha256": sha, "reason": outcome.reason}))
         if outcome.exit_status == "completed":
             self._update(live, recording=name, lost_samples=outcome.lost_samples, state="identifying",
                          fraction=1.0, message="acquisition completed; identification queued")
@@ -194,6 +215,15 @@ class Runs:
             self._update(live, recording=name, lost_samples=outcome.lost_samples)
             self._finish(live, state, reason)
         self._check_drive(live)
+
+    @staticmethod
+    async def _hash(path: Path) -> str | None:
+        """The closed recording's SHA-256 (None, logged, if it cannot be read)."""
+        try:
+            return await asyncio.to_thread(sha256_file, path)
+        except OSError as exc:
+            log.error("recording %s: SHA-256 not taken (%s)", path.name, exc)
+            return None
 
     def _check_drive(self, live: LiveRun) -> None:
         """The procedure read the drive back after its stop: a crank still turning latches."""
@@ -255,12 +285,13 @@ class Runs:
         """To the database's writer: written when the database takes it (locked, disk full: later)."""
         self.db.update_run(run_id, values)
 
-    async def abort(self, run_id: str, reason: str = "aborted by operator") -> RunRow:
+    async def abort(self, run_id: str, reason: str = "aborted by operator", who: str = audit.SYSTEM) -> RunRow:
         live = self.live.get(run_id)
         if live is None:
             row = await self.get(run_id)
             raise RunStateError(f"run {run_id} is {row.state}: only a queued or running run can be aborted")
         self._abort(live, reason)
+        self.db.post(lambda store: audit.append(store, who, audit.RUN_ABORTED, run_id, {"reason": reason}))
         self._update(live, message=f"aborting: {live.abort_reason}")
         return live.row
 
@@ -272,7 +303,8 @@ class Runs:
         if proc is not None:
             self.link.thread.call_soon(proc.abort, live.abort_reason)
 
-    async def emergency_stop(self, source: str = "api") -> StopReport:
+    async def emergency_stop(self, source: str = "api",
+                             who: str | Callable[[Store], str] = "anonymous") -> StopReport:
         """Abort every run on the rig, command an emergency stop on the motor right away, latch (no
         run starts until an operator acknowledges it), then read the drive back until it reports
         standstill: a crank still turning after its bound latches a fault of its own (``drive``).
@@ -289,7 +321,7 @@ class Runs:
         finally:
             self._stopping -= 1
         log.warning("EMERGENCY STOP (%s): %s (aborted runs: %s)", source, detail, aborted or "none")
-        self.latch.trip(source, detail + (f"; aborted runs: {', '.join(aborted)}" if aborted else ""))
+        self.latch.trip(source, detail + (f"; aborted runs: {', '.join(aborted)}" if aborted else ""), who)
         check = await self.link.verify_standstill("the emergency stop") if ok else None
         if check is not None and check.standstill is False:
             self.latch.trip("drive", f"{check.describe()}; use the hardware emergency stop")
@@ -297,7 +329,7 @@ class Runs:
             detail = f"{detail}; {check.describe()}"
         return StopReport(bool(check is not None and check.standstill), aborted, detail, ok, check)
 
-    async def acknowledge(self, by: str, note: str = "") -> AckReport:
+    async def acknowledge(self, by: str, note: str = "") -> AckReport:  # by: the user (audited by the latch)
         """An operator acknowledges the emergency stop: the controller's latched fault is reset (and
         read back) and the latch released; refused while the controller still reports a fault."""
         ok, detail = await self.link.reset_faults()

@@ -9,19 +9,21 @@ may lose the last few, never corrupt the file).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sqlite3
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Literal, get_args
 
+from station.lab.schema import upgrade
 from station.run.procedure import StepState
 
 READ_BUSY_TIMEOUT_S = 2.0  # the read connection's wait for a lock (an exclusive one of another process)
-SCHEMA_VERSION = 2  # 2: the emergency-stop latch (estops)
+SCHEMA_VERSION = 3  # 2: the emergency-stop latch (estops); 3: the lab (register, users, audit; station.lab.schema)
 
 RunState = Literal["queued", "running", "identifying", "completed", "aborted", "failed", "interrupted"]
 RUN_STATES: tuple[RunState, ...] = get_args(RunState)
@@ -49,7 +51,11 @@ CREATE TABLE IF NOT EXISTS runs (
     message TEXT NOT NULL DEFAULT '',
     reason TEXT NOT NULL DEFAULT '',
     recording TEXT,
-    result_name TEXT
+    result_name TEXT,
+    operator TEXT NOT NULL DEFAULT '',
+    transducer_json TEXT NOT NULL DEFAULT '{}',
+    standards_json TEXT NOT NULL DEFAULT '[]',
+    recording_sha256 TEXT
 );
 CREATE INDEX IF NOT EXISTS runs_state ON runs(state);
 CREATE INDEX IF NOT EXISTS runs_created ON runs(created);
@@ -101,6 +107,10 @@ class RunRow:
     reason: str = ""
     recording: str | None = None
     result_name: str | None = None
+    operator: str = ""  # the user who started the run ('' in databases from before the lab tables)
+    transducer_json: str = "{}"  # the register's record of the transducer as the run used it
+    standards_json: str = "[]"  # the reference standards the run used, as recorded then
+    recording_sha256: str | None = None  # of the closed recording (station.lab.integrity)
 
     @property
     def request(self) -> dict[str, Any]:
@@ -138,6 +148,11 @@ class EStopRow:
 
 
 _RUN_COLS = tuple(f.name for f in fields(RunRow))
+
+
+def _split(script: str) -> list[str]:
+    """A schema script as single statements (run one by one inside the upgrade's transaction)."""
+    return [s.strip() for s in script.split(";") if s.strip()]
 _JOB_COLS = tuple(f.name for f in fields(JobRow))
 
 
@@ -161,8 +176,23 @@ class Store:
             raise sqlite3.OperationalError(f"{self.path}: database schema {version} is newer than this "
                                            f"software's ({SCHEMA_VERSION})")
         with self._lock:
-            self._db.executescript(_SCHEMA)
-            self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+            # an older station's database: a copy is kept as it was (<name>.v<N>.bak), then it is upgraded
+            self.upgraded_from: int | None = version if 0 < version < SCHEMA_VERSION else None
+            self.backup: Path | None = None
+            if self.upgraded_from is not None:
+                self.backup = self.path.with_name(f"{self.path.name}.v{version}.bak")
+                if not self.backup.exists():
+                    self._db.execute("VACUUM INTO ?", (str(self.backup),))
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                for stmt in _split(_SCHEMA):
+                    self._db.execute(stmt)
+                upgrade(self._db)
+                self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
         self._rlock = threading.Lock()
         self._rdb = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None,
                                     timeout=READ_BUSY_TIMEOUT_S)
@@ -187,13 +217,36 @@ class Store:
         except sqlite3.Error:
             return False
 
+    # ------------------------------------------------------------------ any statement (station.lab)
+    @contextlib.contextmanager
+    def transaction(self) -> Iterator[sqlite3.Connection]:
+        """The write connection inside one IMMEDIATE transaction (committed at the end, rolled back
+        on an exception): a change and its audit record are taken together or not at all."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._db
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+
+    def query(self, sql: str, args: Sequence[Any] = ()) -> list[dict[str, Any]]:
+        """Rows of a read-only statement, as dicts."""
+        with self._rlock:
+            return [dict(r) for r in self._rdb.execute(sql, tuple(args)).fetchall()]
+
     # ------------------------------------------------------------------ runs
-    def insert_run(self, run: RunRow) -> None:
+    def insert_run(self, run: RunRow, db: sqlite3.Connection | None = None) -> None:
+        """Insert a run's row (on ``db``, a connection of a transaction already held, if given)."""
         cols = ", ".join(_RUN_COLS)
         marks = ", ".join("?" for _ in _RUN_COLS)
+        sql, args = f"INSERT INTO runs ({cols}) VALUES ({marks})", tuple(getattr(run, c) for c in _RUN_COLS)
+        if db is not None:
+            db.execute(sql, args)
+            return
         with self._lock:
-            self._db.execute(f"INSERT INTO runs ({cols}) VALUES ({marks})",
-                             tuple(getattr(run, c) for c in _RUN_COLS))
+            self._db.execute(sql, args)
 
     def update_run(self, run_id: str, **values: Any) -> None:
         bad = set(values) - set(_RUN_COLS) - {"id"}
@@ -220,6 +273,13 @@ class Store:
         args.append(int(limit))
         with self._rlock:
             rows = self._rdb.execute(q, args).fetchall()
+        return [RunRow(**dict(r)) for r in rows]
+
+    def list_runs_of(self, transducer_id: str, limit: int = 500) -> list[RunRow]:
+        """The newest ``limit`` runs of one transducer, newest first."""
+        with self._rlock:
+            rows = self._rdb.execute("SELECT * FROM runs WHERE transducer_id = ? ORDER BY created DESC, id DESC "
+                                     "LIMIT ?", (transducer_id, int(limit))).fetchall()
         return [RunRow(**dict(r)) for r in rows]
 
     # ------------------------------------------------------------------ jobs

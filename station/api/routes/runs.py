@@ -10,7 +10,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, StreamingResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 
-from station.api.deps import ArtifactsDep, ManagerDep, Reader, RunDep, RunsDep, Writer
+from station.api.deps import ArtifactsDep, ManagerDep, Operator, Reader, RunDep, RunsDep, Writer
 from station.api.schemas import (
     AbortOut,
     DiscrepancyOut,
@@ -27,6 +27,7 @@ from station.api.schemas import (
     utc,
 )
 from station.errors import LimitError
+from station.lab.register import RegisterError, UnknownEntryError
 from station.report.names import PLOT_NAMES
 from station.run.methods import SETTLED, MethodOutcome
 from station.run.request import RunRequest
@@ -79,20 +80,26 @@ def status_of(row: RunRow, methods: list[MethodOutcome] | None = None) -> RunSta
                      methods=[MethodStateOut.model_validate(o.to_dict()) for o in methods or ()])
 
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=RunAccepted, dependencies=[Writer],
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=RunAccepted,
              responses={**E401, **E422, **BODY_ERRORS,
                         409: {"model": ErrorOut, "description": "another run holds the rig"},
                         503: {"model": ErrorOut, "description": "the rig is not connected"}},
              summary="Start a calibration run")
-async def start_run(body: RunRequest, runs: RunsDep, response: Response) -> RunAccepted:
-    """Check the request against the rig and transducer limits, then queue it on the rig.  Step
-    fields other than frequency and radius default to the configured plan's."""
+async def start_run(body: RunRequest, runs: RunsDep, response: Response, who: Operator) -> RunAccepted:
+    """Check the request against the register (the transducer, any registered one; the reference
+    standards, named or those in use, none past its due date) and the rig and transducer limits,
+    then queue it on the rig.  Step fields other than frequency and radius default to the
+    configured plan's.  Steps are numbered from 0 in `loc` (as in the body's list)."""
     try:
-        row = await runs.submit(body)
+        row = await runs.submit(body, who.name)
     except LimitError as exc:  # the field to change, in the request body
         loc = ["body", *(["steps", exc.step] if exc.step is not None else []), exc.field]
         raise RequestValidationError([{"type": "limit_error", "loc": loc, "msg": str(exc),
                                        "input": exc.value}]) from None
+    except RegisterError as exc:
+        field = "transducer_id" if isinstance(exc, UnknownEntryError) and "transducer" in str(exc) else "standards"
+        raise RequestValidationError([{"type": "register_error", "loc": ["body", field], "msg": str(exc),
+                                       "input": getattr(body, field)}]) from None
     response.headers["Location"] = f"/runs/{row.id}"
     return RunAccepted(id=row.id, state=row.state, links=links(row.id))
 
@@ -221,8 +228,8 @@ async def compute_discrepancy(run: RunDep, artifacts: ArtifactsDep, max_effects:
 
 
 @router.post("/{run_id}/abort", status_code=status.HTTP_202_ACCEPTED, response_model=AbortOut,
-             dependencies=[Writer], responses={**E401, **E404, **E409, **E422, **BODY_ERRORS}, summary="Abort a run")
-async def abort_run(run: RunDep, runs: RunsDep) -> AbortOut:
+             responses={**E401, **E404, **E409, **E422, **BODY_ERRORS}, summary="Abort a run")
+async def abort_run(run: RunDep, runs: RunsDep, who: Operator) -> AbortOut:
     """The crank ramps down, the recording is closed with the reason; the run ends `aborted`."""
-    row = await runs.abort(run.id, "aborted by operator")
+    row = await runs.abort(run.id, f"aborted by {who.name}", who.name)
     return AbortOut(id=row.id, state=row.state, detail="abort requested; the crank ramps down")

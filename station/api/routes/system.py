@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Body, Depends, HTTPException, Request, status
 
-from station.api.deps import ManagerDep, Reader, RunsDep, SettingsDep, Writer
+from station.api.deps import ManagerDep, Operator, Reader, RunsDep, SettingsDep, credentials_of, token_lookup
 from station.api.routes.runs import BODY_ERRORS
 from station.api.schemas import (
     AcknowledgeIn,
@@ -21,7 +22,11 @@ from station.api.schemas import (
     StopOut,
 )
 from station.config import MAX_STEPS, MAX_TOP_MASS_KG
+from station.lab import users
+from station.lab.users import AuthError
 from station.limits import force_limit_N
+from station.service.settings import ServiceSettings
+from station.service.store import Store
 
 router = APIRouter(tags=["station"])
 
@@ -47,7 +52,7 @@ SameSite = Depends(not_cross_site)
 @router.post("/stop", response_model=StopOut, dependencies=[SameSite],
              responses={403: {"model": ErrorOut, "description": "sent by another web site's page"}},
              summary="Emergency stop (always accepted, except from another web site)")
-async def emergency_stop(runs: RunsDep, request: Request) -> StopOut:
+async def emergency_stop(runs: RunsDep, settings: SettingsDep, request: Request) -> StopOut:
     """Aborts every run on the rig and commands an emergency stop on the motor controller at once.
     Accepted with or without a token or a run: stopping is never unsafe (only a request another web
     site's page makes the browser send is refused).  Nothing on the way waits for the database.
@@ -57,21 +62,41 @@ async def emergency_stop(runs: RunsDep, request: Request) -> StopOut:
     operator acknowledges it (`POST /stop/acknowledge`); a drive still turning latches too (source
     `drive`) and shows in `/health`."""
     source = "page" if request.headers.get("x-station-client") == "page" else "api"
-    rep = await runs.emergency_stop(source)
+    rep = await runs.emergency_stop(source, _who_stopped(request, settings))
     drive = DriveOut.model_validate(rep.drive.to_dict()) if rep.drive is not None else None
     return StopOut(motor_stopped=rep.motor_stopped, stop_commanded=rep.commanded, drive=drive,
                    aborted_runs=rep.aborted_runs, detail=rep.detail)
 
 
-@router.post("/stop/acknowledge", response_model=AcknowledgeOut, dependencies=[Writer, SameSite],
+def _who_stopped(request: Request, settings: ServiceSettings) -> Callable[[Store], str]:
+    """Who asked for the stop, looked up when the stop's record is written (after the stop, by the
+    database's writer): a user's name, or ``anonymous`` without valid credentials."""
+    token, session = credentials_of({k: request.headers.get(k, "") for k in ("authorization", "cookie")})
+
+    def find(store: Store) -> str:
+        try:
+            if token is not None:
+                who = token_lookup(token, settings)(store)
+                return who.name if who is not None else "anonymous (wrong token)"
+            if session is not None:
+                return users.session_user(store, session).name
+        except AuthError:
+            return "anonymous (session ended)"
+        return "anonymous"
+    return find
+
+
+@router.post("/stop/acknowledge", response_model=AcknowledgeOut, dependencies=[SameSite],
              responses={**BODY_ERRORS, 401: {"model": ErrorOut}, 403: {"model": ErrorOut},
                         409: {"model": ErrorOut, "description": "the motor controller still reports a fault"}},
              summary="Acknowledge the emergency stop (runs may start again)")
-async def acknowledge_stop(manager: ManagerDep, body: Annotated[AcknowledgeIn, Body()]) -> AcknowledgeOut:
+async def acknowledge_stop(manager: ManagerDep, body: Annotated[AcknowledgeIn, Body()],
+                           who: Operator) -> AcknowledgeOut:
     """An operator confirms the rig is safe: the motor controller's latched fault is reset and read
     back, and the acknowledgement (who, when, note) is recorded in the database and the log.
     Refused (409) while the controller still reports a fault, e.g. the crank still turning."""
-    rep = await manager.runs.acknowledge(body.operator, body.note)
+    note = body.note if body.operator in ("", who.name) else f"operator at the rig: {body.operator}; {body.note}"
+    rep = await manager.runs.acknowledge(who.name, note.strip("; "))
     return AcknowledgeOut(acknowledged=rep.acknowledged, by=rep.by, at=datetime.now(UTC), detail=rep.detail,
                           latched=manager.latch.latched)
 

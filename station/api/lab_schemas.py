@@ -1,0 +1,165 @@
+"""Request and response schemas of the lab's endpoints: the register, users and sessions, the audit
+trail, approvals and a transducer's history."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from station.api.schemas import OutModel
+from station.config import StandardKind
+from station.lab.users import MIN_PASSWORD, NAME_PATTERN, Role
+
+ID_PATTERN = r"^[A-Za-z0-9_.\-]{1,64}$"
+
+
+class _In(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+class TransducerIn(_In):
+    """A transducer's nominal data (N, V/N, kg) and who owns it."""
+
+    type: str = Field(default="", max_length=128, description="make and model")
+    serial: str = Field(default="", max_length=128)
+    capacity_N: float = Field(gt=0, le=1e7, description="N")
+    sensitivity_V_per_N: float = Field(gt=0, le=1.0, description="nominal bridge output, V/N")
+    end_mass_kg: float | None = Field(default=None, gt=0, le=100, description="kg")
+    end_mass_std_kg: float | None = Field(default=None, ge=0, le=100, description="standard uncertainty, kg")
+    owner: str = Field(default="", max_length=256, description="owner or customer")
+
+
+class TransducerOut(TransducerIn):
+    id: str
+    updated: float = Field(description="UNIX s")
+    updated_by: str
+
+
+class StandardIn(_In):
+    """A reference standard: its calibration certificate and the uncertainty it contributes."""
+
+    kind: StandardKind
+    description: str = Field(default="", max_length=256)
+    certificate_id: str = Field(min_length=1, max_length=128)
+    issuer: str = Field(min_length=1, max_length=256)
+    due_date: str = Field(pattern=r"^\d{4}-\d{2}-\d{2}$", description="calibration due date (ISO, YYYY-MM-DD)")
+    uncertainty: float = Field(ge=0, le=1e6, description="standard uncertainty, in uncertainty_unit")
+    uncertainty_unit: str = Field(min_length=1, max_length=32)
+    in_use: bool = Field(default=True, description="used by runs that name no standards")
+
+
+    @field_validator("due_date")
+    @classmethod
+    def _a_date(cls, v: str) -> str:
+        dt.date.fromisoformat(v)  # ValueError: e.g. 2027-02-30
+        return v
+
+
+class StandardOut(OutModel):
+    id: str
+    kind: str
+    description: str
+    certificate_id: str
+    issuer: str
+    due_date: str
+    uncertainty: float
+    uncertainty_unit: str
+    in_use: bool
+    overdue: bool
+    updated: float
+    updated_by: str
+
+
+class RegisterOut(OutModel):
+    mounted: str | None = Field(description="id of the transducer mounted on the station")
+    transducers: list[TransducerOut]
+    standards: list[StandardOut]
+    overdue_policy: str = Field(description="refuse or warn (lab.overdue_standards)")
+
+
+class MountIn(_In):
+    transducer_id: str = Field(pattern=ID_PATTERN)
+
+
+class LoginIn(_In):
+    name: str = Field(min_length=1, max_length=64)
+    password: str = Field(min_length=1, max_length=256)
+
+
+class UserOut(OutModel):
+    name: str
+    role: Role
+    disabled: bool
+    permissions: list[str]
+
+
+class MeOut(OutModel):
+    user: UserOut | None = Field(description="None: not logged in (reading on loopback is open)")
+    via: str | None = Field(default=None, description="token or session")
+    expires: float | None = Field(default=None, description="the session's end, UNIX s")
+
+
+class UserIn(_In):
+    role: Role = Field(strict=False, description="technician, approver or admin")
+    password: str | None = Field(default=None, min_length=MIN_PASSWORD, max_length=256,
+                                 description="a new password (at least 10 characters); unchanged if absent")
+    disabled: bool = False
+
+
+class UserPath(_In):
+    name: str = Field(pattern=NAME_PATTERN)
+
+
+class TokenIn(_In):
+    label: str = Field(default="", max_length=128, description="what the token is for (a CI job, a script)")
+
+
+class TokenOut(OutModel):
+    user: str
+    label: str
+    token: str = Field(description="shown once; only its hash is stored")
+
+
+class AuditEntryOut(OutModel):
+    id: int
+    at: float = Field(description="UNIX s")
+    who: str
+    action: str
+    target: str
+    details: dict[str, Any]
+
+
+class AuditOut(OutModel):
+    count: int
+    entries: list[AuditEntryOut]
+
+
+class ApproveIn(_In):
+    note: str = Field(default="", max_length=500)
+
+
+class ApprovalOut(OutModel):
+    run_id: str
+    approved_by: str
+    audit_id: int
+    note: str
+    sha256: str
+    operator: str
+    recording: str | None
+
+
+class IntegrityOut(OutModel):
+    run_id: str
+    recording: str
+    sha256: str
+    stored: bool = Field(description="a SHA-256 was stored when the recording was closed (and matches)")
+
+
+class HistoryOut(OutModel):
+    transducer: TransducerOut
+    runs: list[dict[str, Any]] = Field(description="oldest first: run id, state, created (UNIX s), operator, "
+                                       "standards, parameters {S, k_f, b_f: value, std, unit}, approvals, drift")
+    flagged: list[dict[str, Any]] = Field(description="values flagged as drift against earlier calibrations")
+    units: dict[str, str]

@@ -1,0 +1,185 @@
+"""The lab: /login, /logout, /me, /users, /register, /audit, /transducers/{id}/history,
+/runs/{id}/approve and /runs/{id}/integrity."""
+
+from __future__ import annotations
+
+import asyncio
+import datetime as dt
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Query, Request, Response
+
+from station.api.deps import SESSION_COOKIE, Admin, Approver, ManagerDep, Operator, PrincipalDep, Reader, RunDep
+from station.api.lab_schemas import (
+    ID_PATTERN,
+    ApprovalOut,
+    ApproveIn,
+    AuditEntryOut,
+    AuditOut,
+    HistoryOut,
+    IntegrityOut,
+    LoginIn,
+    MeOut,
+    MountIn,
+    RegisterOut,
+    StandardIn,
+    StandardOut,
+    TokenIn,
+    TokenOut,
+    TransducerIn,
+    TransducerOut,
+    UserIn,
+    UserOut,
+)
+from station.api.routes.runs import BODY_ERRORS, E401, E404, E409, E422, Responses
+from station.api.schemas import ErrorOut
+from station.lab import audit, history, register, users
+from station.lab.users import NAME_PATTERN, Principal
+from station.service.errors import RunStateError
+from station.service.store import Store
+
+router = APIRouter(tags=["lab"])
+E403: Responses = {403: {"model": ErrorOut, "description": "the user's role does not allow this"}}
+EntryId = Annotated[str, Path(pattern=ID_PATTERN)]
+UserName = Annotated[str, Path(pattern=NAME_PATTERN)]
+
+
+def _me(who: Principal | None) -> MeOut:
+    if who is None:
+        return MeOut(user=None)
+    return MeOut(user=UserOut.model_validate(who.user.to_dict()), via=who.via, expires=who.expires)
+
+
+# ---------------------------------------------------------------------------------------------- sessions
+@router.post("/login", response_model=MeOut, responses={401: {"model": ErrorOut}, **E422, **BODY_ERRORS},
+             summary="Log in on the page (sets an HttpOnly session cookie)")
+async def login(body: LoginIn, manager: ManagerDep, response: Response) -> MeOut:
+    """A wrong name or password is refused alike (401).  The session expires after
+    `lab.session_minutes`; the cookie is HttpOnly and SameSite=Strict."""
+    minutes = manager.cfg.lab.session_minutes
+    text, user, expires = await manager.db.call(lambda s: users.login(s, body.name, body.password, minutes))
+    response.set_cookie(SESSION_COOKIE, text, max_age=int(minutes * 60), httponly=True, samesite="strict", path="/")
+    return MeOut(user=UserOut.model_validate(user.to_dict()), via="session", expires=expires)
+
+
+@router.post("/logout", response_model=MeOut, summary="End the page session")
+async def logout(request: Request, manager: ManagerDep, response: Response) -> MeOut:
+    session = request.cookies.get(SESSION_COOKIE)
+    if session:
+        await manager.db.call(lambda s: users.logout(s, session))
+    response.delete_cookie(SESSION_COOKIE, path="/")
+    return MeOut(user=None)
+
+
+@router.get("/me", response_model=MeOut, responses={401: {"model": ErrorOut}}, summary="Who am I")
+async def me(who: PrincipalDep) -> MeOut:
+    """The logged-in user (or the token's); 401 with the reason for a wrong token or an expired
+    session; `user: null` without credentials."""
+    return _me(who)
+
+
+# ---------------------------------------------------------------------------------------------- users
+@router.get("/users", response_model=list[UserOut], responses={**E401, **E403}, summary="The users (admin)")
+async def list_users(manager: ManagerDep, who: Admin) -> list[UserOut]:
+    return [UserOut.model_validate(u.to_dict()) for u in await manager.db.read(users.users)]
+
+
+@router.put("/users/{name}", response_model=UserOut, responses={**E401, **E403, **E409, **E422, **BODY_ERRORS},
+            summary="Add or change a user (admin)")
+async def put_user(name: UserName, body: UserIn, manager: ManagerDep, who: Admin) -> UserOut:
+    """Role, password (hashed with scrypt; at least 10 characters), disabled (ends the user's sessions)."""
+    u = await manager.db.call(lambda s: users.put_user(s, name, body.role, who.name, password=body.password,
+                                                       disabled=body.disabled))
+    return UserOut.model_validate(u.to_dict())
+
+
+@router.post("/users/{name}/tokens", response_model=TokenOut, status_code=201,
+             responses={**E401, **E403, **E404, **E422, **BODY_ERRORS}, summary="Issue an API token for a user (admin)")
+async def issue_token(name: UserName, body: TokenIn, manager: ManagerDep, who: Admin) -> TokenOut:
+    text = await manager.db.call(lambda s: users.issue_token(s, name, body.label, who.name))
+    return TokenOut(user=name, label=body.label, token=text)
+
+
+# ---------------------------------------------------------------------------------------------- register
+def _standard_out(s: register.Standard, today: dt.date) -> StandardOut:
+    return StandardOut(**s.to_dict(), overdue=s.overdue(today))
+
+
+@router.get("/register", response_model=RegisterOut, dependencies=[Reader], responses=E401,
+            summary="Transducers, reference standards, the mounted transducer")
+async def get_register(manager: ManagerDep) -> RegisterOut:
+    def read(s: Store) -> RegisterOut:
+        today = dt.date.today()
+        return RegisterOut(mounted=register.mounted(s),
+                           transducers=[TransducerOut(**t.to_dict()) for t in register.transducers(s)],
+                           standards=[_standard_out(x, today) for x in register.standards(s)],
+                           overdue_policy=manager.cfg.lab.overdue_standards)
+    return await manager.db.read(read)
+
+
+@router.put("/register/transducers/{entry_id}", response_model=TransducerOut,
+            responses={**E401, **E403, **E422, **BODY_ERRORS}, summary="Add or change a transducer (admin)")
+async def put_transducer(entry_id: EntryId, body: TransducerIn, manager: ManagerDep, who: Admin) -> TransducerOut:
+    t = register.Transducer(id=entry_id, **body.model_dump())
+    return TransducerOut(**(await manager.db.call(lambda s: register.put_transducer(s, t, who.name))).to_dict())
+
+
+@router.put("/register/standards/{entry_id}", response_model=StandardOut,
+            responses={**E401, **E403, **E422, **BODY_ERRORS}, summary="Add or change a reference standard (admin)")
+async def put_standard(entry_id: EntryId, body: StandardIn, manager: ManagerDep, who: Admin) -> StandardOut:
+    st = register.Standard(id=entry_id, **body.model_dump())
+    out = await manager.db.call(lambda s: register.put_standard(s, st, who.name))
+    return _standard_out(out, dt.date.today())
+
+
+@router.post("/register/mount", response_model=TransducerOut,
+             responses={**E401, **E403, **E404, **E422, **BODY_ERRORS},
+             summary="Choose the transducer mounted on the station")
+async def mount(body: MountIn, manager: ManagerDep, who: Operator) -> TransducerOut:
+    """The page's form defaults to it; a run may name any registered transducer."""
+    t = await manager.db.call(lambda s: register.mount(s, body.transducer_id, who.name))
+    return TransducerOut(**t.to_dict())
+
+
+# ---------------------------------------------------------------------------------------------- audit
+@router.get("/audit", response_model=AuditOut, dependencies=[Reader], responses={**E401, **E422},
+            summary="The audit trail, newest first")
+async def get_audit(manager: ManagerDep, target: Annotated[str | None, Query(max_length=128)] = None,
+                    action: Annotated[str | None, Query(max_length=64, description="exact, or a prefix "
+                                                        "ending in '.' (e.g. run.)")] = None,
+                    who: Annotated[str | None, Query(max_length=64)] = None,
+                    before_id: Annotated[int | None, Query(ge=1)] = None,
+                    limit: Annotated[int, Query(ge=1, le=1000)] = 200) -> AuditOut:
+    rows = await manager.db.read(lambda s: audit.entries(s, target=target, action=action, who=who,
+                                                         before_id=before_id, limit=limit))
+    return AuditOut(count=len(rows), entries=[AuditEntryOut(**e.to_dict()) for e in rows])
+
+
+# ---------------------------------------------------------------------------------------------- runs
+@router.post("/runs/{run_id}/approve", response_model=ApprovalOut, tags=["runs"],
+             responses={**E401, **E403, **E404, **E409, **E422, **BODY_ERRORS},
+             summary="Approve a completed run for its certificate (an approver, not who ran it)")
+async def approve(run: RunDep, body: ApproveIn, manager: ManagerDep, who: Approver) -> ApprovalOut:
+    """The second person's approval: refused (403) for the user who started the run, (409) for a
+    run not completed or a recording whose SHA-256 differs from the one stored at closing."""
+    return ApprovalOut(**await manager.approve(run.id, who.user, body.note))
+
+
+@router.get("/runs/{run_id}/integrity", response_model=IntegrityOut, tags=["runs"], dependencies=[Reader],
+            responses={**E401, **E404, **E409}, summary="Check the recording against its SHA-256 stored at closing")
+async def integrity(run: RunDep, manager: ManagerDep) -> IntegrityOut:
+    if not run.recording:
+        raise RunStateError(f"run {run.id} has no recording")
+    sha = await manager.artifacts.verified(run)
+    return IntegrityOut(run_id=run.id, recording=run.recording, sha256=sha, stored=run.recording_sha256 is not None)
+
+
+@router.get("/transducers/{entry_id}/history", response_model=HistoryOut, dependencies=[Reader],
+            responses={**E401, **E404}, summary="A transducer's runs, results, approvals and drift")
+async def transducer_history(entry_id: EntryId, manager: ManagerDep,
+                             limit: Annotated[int, Query(ge=1, le=2000)] = 500) -> HistoryOut:
+    t, rows = await manager.db.read(lambda s: (register.transducer(s, entry_id), history.runs_of(s, entry_id, limit)))
+    ids = [r.id for r in rows]
+    approved = await manager.db.read(lambda s: history.approvals(s, ids))
+    doc = await asyncio.to_thread(history.history, rows, manager.settings.recordings_dir, approved)
+    return HistoryOut(transducer=TransducerOut(**t.to_dict()), **doc)
