@@ -54,7 +54,7 @@ def check_steps(cfg: StationConfig, steps: list[StepRequest]) -> None:
     fr, rr = cfg.rig.crank_frequency_hz, cfg.rig.crank_radius_m
     limit = force_limit_N(cfg)
     for i, s in enumerate(steps):
-        where = f"step {i} ({s.crank_frequency_hz:g} Hz, {s.crank_radius_m:g} m)"
+        where = f"step {i + 1} ({s.crank_frequency_hz:g} Hz, {s.crank_radius_m:g} m)"  # people count from 1
         if not (math.isfinite(s.crank_frequency_hz) and fr.contains(s.crank_frequency_hz)):
             raise LimitError(f"{where}: crank frequency {s.crank_frequency_hz:g} Hz is outside the rig's "
                              f"range [{fr.min:g}, {fr.max:g}] Hz", step=i, field="crank_frequency_hz",

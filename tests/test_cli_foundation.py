@@ -127,7 +127,7 @@ def test_simulate_defaults_to_the_configs_recordings_dir(tmp_path: Path, fast_co
                                                "allowed: value > 0 and <= 500"),
     (lambda d: d["plan"]["steps"][0].update(speed=3), "plan.steps.0.speed: unknown key (received 3)"),
     (lambda d: d["plan"]["steps"][2].update(crank_radius_m=0.001),
-     "step 2 (100 Hz, 0.001 m): peak force 10635 N exceeds the limit 4000 N"),
+     "step 3 (100 Hz, 0.001 m): peak force 10635 N exceeds the limit 4000 N"),
     (lambda d: d["plan"]["steps"][0].update(crank_frequency_hz=0.5),
      "crank frequency 0.5 Hz is outside the rig's range [1, 100] Hz"),
     (lambda d: d.pop("simulation"), "the configuration has no 'simulation' section"),

@@ -314,7 +314,7 @@ def test_limits_refuse_the_step_and_name_it(cfg5k: StationConfig, freq: float, r
     steps = [StepRequest(4.0, 0.01), StepRequest(freq, radius)]
     with pytest.raises(LimitError) as exc:
         check_steps(cfg5k, steps)
-    assert str(exc.value).startswith(f"step 1 ({freq:g} Hz, {radius:g} m)")
+    assert str(exc.value).startswith(f"step 2 ({freq:g} Hz, {radius:g} m)")  # counted from 1
     assert fragment in str(exc.value)
 
 

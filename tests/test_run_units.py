@@ -126,7 +126,7 @@ def test_unsafe_requests_are_refused_with_the_step_and_limit_named() -> None:
     plan = plan_run(CFG, ok)
     assert len(plan.steps) == len(CFG.plan.steps)
     bad = ok.model_copy(update={"steps": [*ok.steps, StepSpec(crank_frequency_hz=90.0, crank_radius_m=0.01)]})
-    with pytest.raises(LimitError, match=r"step 5 \(90 Hz, 0.01 m\): peak force .* exceeds the limit 4000 N"):
+    with pytest.raises(LimitError, match=r"step 6 \(90 Hz, 0.01 m\): peak force .* exceeds the limit 4000 N"):
         plan_run(CFG, bad)
     with pytest.raises(LimitError, match=r"crank frequency 150 Hz is outside the rig's range \[1, 100\] Hz"):
         plan_run(CFG, ok.model_copy(update={"steps": [StepSpec(crank_frequency_hz=150, crank_radius_m=1e-4)]}))

@@ -11,8 +11,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from tests.station_support import TOKEN, Daemon, run_body
-from tests.web_support import ARGS, CHROMIUM, sync_api
+from tests.station_support import Daemon, run_body
+from tests.web_support import ARGS, CHROMIUM, log_in, sync_api
 
 pytestmark = pytest.mark.slow  # a real daemon, a real run and a real browser: the end-to-end layer
 
@@ -46,11 +46,6 @@ def page(browser: object, daemon: Daemon) -> Iterator[object]:
     assert errors == [], errors  # no JavaScript error on the page
 
 
-def _save_token(page: object) -> None:
-    page.fill("#token", TOKEN)  # type: ignore[attr-defined]
-    page.click("#token-save")  # type: ignore[attr-defined]
-
-
 def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon: Daemon) -> None:
     pg = page
     # the limits are shown, the form is prefilled with the station's transducer and plan
@@ -60,7 +55,7 @@ def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon:
     assert "4000 N" in pg.inner_text("#hint-force")
     assert pg.input_value("#transducer_id") == "TX5K-0001"
     assert pg.is_visible("#estop")
-    _save_token(pg)
+    log_in(pg, daemon)
     pg.fill("#frequencies", "10, 20")
     pg.fill("#radius_mm", "1")
     rows = pg.locator("#plan-check tbody tr")
@@ -103,10 +98,10 @@ def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon:
     pg.wait_for_selector(f"#runs a:has-text('{run_id}')", timeout=10_000)
 
 
-def test_unsafe_input_is_refused_with_the_field_named(page: object) -> None:
+def test_unsafe_input_is_refused_with_the_field_named(page: object, daemon: Daemon) -> None:
     pg = page
     pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
-    _save_token(pg)
+    log_in(pg, daemon)
     pg.fill("#frequencies", "10, 60")
     pg.fill("#radius_mm", "10")
     assert "radius too large" in pg.locator("#plan-check tbody tr").nth(1).inner_text()
@@ -115,18 +110,17 @@ def test_unsafe_input_is_refused_with_the_field_named(page: object) -> None:
     err.wait_for(timeout=10_000)
     pg.wait_for_function("document.querySelector(\".err[data-for='crank_radius_m']\").textContent.length > 0")
     text = err.inner_text()
-    assert "steps.1.crank_radius_m" in text and "peak force" in text
+    assert "step 2 crank_radius_m" in text and "peak force" in text  # steps counted from 1 for people
     assert "#/runs/" not in pg.url
 
 
-def test_without_token_the_page_asks_for_it_and_emergency_stop_works(page: object, daemon: Daemon) -> None:
+def test_without_login_the_page_says_so_and_emergency_stop_works(page: object, daemon: Daemon) -> None:
     pg = page
     pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
-    pg.evaluate("localStorage.removeItem('sinecal-token')")
     pg.fill("#frequencies", "10")
     pg.fill("#radius_mm", "1")
     pg.click("#start")
-    pg.wait_for_function("document.querySelector('#form-msg').textContent.includes('token')")
+    pg.wait_for_function("document.querySelector('#form-msg').textContent.includes('log in')")
     # a run started elsewhere is stopped from the page
     rid = daemon.start_run(freqs=(10.0,), record_s=30.0)
     daemon.wait_state(rid, ("running",))
@@ -139,13 +133,13 @@ def test_without_token_the_page_asks_for_it_and_emergency_stop_works(page: objec
     assert "page" in pg.inner_text("#latch") and pg.is_disabled("#start")
     r = daemon.c().post("/runs", json=run_body(freqs=(10.0,)))
     assert r.status_code == 409 and "latched" in r.json()["detail"]
-    pg.evaluate(f"localStorage.setItem('sinecal-token', '{TOKEN}')")
-    pg.fill("#ack-operator", "web tester")
+    log_in(pg, daemon)
+    pg.fill("#ack-note", "crank checked")
     pg.click("#ack")
     pg.wait_for_selector("#latch", state="hidden", timeout=15_000)
-    assert "acknowledged by web tester" in pg.inner_text("#banner")
+    assert "acknowledged by tina" in pg.inner_text("#banner")
     h = daemon.c().get("/health").json()
-    assert not h["estop"]["latched"] and h["estop"]["last_acknowledged_by"] == "web tester"
+    assert not h["estop"]["latched"] and h["estop"]["last_acknowledged_by"] == "tina"
 
 
 def test_a_drive_that_does_not_stop_is_shown_on_the_page(browser: object, tmp_path: pytest.TempPathFactory) -> None:
@@ -174,10 +168,9 @@ def test_a_drive_that_does_not_stop_is_shown_on_the_page(browser: object, tmp_pa
                 pg.wait_for_selector("#drive-fault", timeout=15_000)
                 assert "DRIVE DOES NOT STOP" in pg.inner_text("#health") and pg.is_disabled("#start")
                 emu.ignore_stops(False)  # repaired: the page's acknowledgement is taken, the fault goes
-                pg.evaluate(f"localStorage.setItem('sinecal-token', '{TOKEN}')")
-                pg.fill("#ack-operator", "web tester")
+                log_in(pg, d)
                 pg.click("#ack")
                 pg.wait_for_selector("#drive-fault", state="detached", timeout=15_000)
-                assert "acknowledged by web tester" in pg.inner_text("#banner")
+                assert "acknowledged by tina" in pg.inner_text("#banner")
             finally:
                 ctx.close()

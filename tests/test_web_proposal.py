@@ -14,8 +14,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from tests.station_support import TOKEN, Daemon, Seed, daemon_config
-from tests.web_support import ARGS, CHROMIUM, sync_api
+from tests.station_support import Daemon, Seed, daemon_config
+from tests.web_support import ARGS, CHROMIUM, log_in, sync_api
 
 K_F, B_F = 2.91e7, 17136.0  # the truth of config/sim-5kN.yaml (N/m, N*s/m)
 TIE_STEPS = (3.0, 5.036, 8.455, 14.193, 23.827, 40.0)
@@ -67,8 +67,7 @@ def test_run_the_proposed_steps_with_one_click(page: object, daemon: Daemon) -> 
     assert want[: len(TIE_STEPS)] == [(f, 0.00125) for f in TIE_STEPS]
     assert [(s["crank_frequency_hz"], s["crank_radius_m"]) for s in api["request"]["steps"]] == want
     # the page shows the proposal under the analysis and runs it with one click
-    pg.fill("#token", TOKEN)  # type: ignore[attr-defined]
-    pg.click("#token-save")  # type: ignore[attr-defined]
+    log_in(pg, daemon)
     pg.goto(f"{daemon.url}/#/runs/{rid}")  # type: ignore[attr-defined]
     pg.wait_for_selector("#run-proposal", timeout=90_000)  # type: ignore[attr-defined]
     rows = pg.locator("#proposal tbody tr")  # type: ignore[attr-defined]

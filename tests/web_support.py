@@ -24,4 +24,18 @@ if os.environ.get("CI"):
 else:
     sync_api = pytest.importorskip("playwright.sync_api")
 
-__all__ = ["ARGS", "CHROMIUM", "sync_api"]
+__all__ = ["ARGS", "CHROMIUM", "log_in", "sync_api"]
+
+PASSWORDS = {"tina": "tina-secret-pw", "anton": "anton-secret-pw"}
+ROLES = {"tina": "technician", "anton": "approver"}
+
+
+def log_in(page: object, daemon: object, name: str = "tina") -> None:
+    """Make user ``name`` (technician tina, approver anton) with the daemon's admin token, then log
+    in on the page as a person would (the session cookie is the page's only credential)."""
+    r = daemon.c().put(f"/users/{name}", json={"role": ROLES[name], "password": PASSWORDS[name]})  # type: ignore[attr-defined]
+    assert r.status_code == 200, r.text
+    page.fill("#login-name", name)  # type: ignore[attr-defined]
+    page.fill("#login-password", PASSWORDS[name])  # type: ignore[attr-defined]
+    page.click("#login")  # type: ignore[attr-defined]
+    page.wait_for_selector("#me:not([hidden])", timeout=10_000)  # type: ignore[attr-defined]

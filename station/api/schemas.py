@@ -103,7 +103,8 @@ class RunStatus(OutModel):
     ended: datetime | None
     current_step: int | None = Field(description="index of the step on the rig (0-based), None before the first")
     n_steps: int
-    step_state: StepState = Field(description="where the step on the rig is; aborted, failed or interrupted: "
+    step_state: StepState = Field(description="where the step on the rig is; stopping: every step is recorded "
+                                  "and the crank ramps down to standstill; aborted, failed or interrupted: "
                                   "the run ended there")
     progress: float = Field(ge=0, le=1, description="fraction of the acquisition done")
     samples: int = Field(description="samples acquired so far")
@@ -116,6 +117,8 @@ class RunStatus(OutModel):
     methods: list[MethodStateOut] = Field(default=[], description="the listed identifications of a run this "
                                           "daemon identified since it started, as they go (the stored ones: "
                                           "GET /runs/{id}/results)")
+    operator: str = Field(default="", description="the user who started the run ('' before users existed)")
+    standards: list[str] = Field(default_factory=list, description="ids of the reference standards the run used")
 
 
 class RunList(OutModel):

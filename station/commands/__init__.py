@@ -15,4 +15,5 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.serve",
     "station.commands.ack",
     "station.commands.batch",
+    "station.commands.lab",
 )

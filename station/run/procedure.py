@@ -87,7 +87,7 @@ class Progress:
     def fraction(self) -> float:
         if not self.n_steps or self.step is None:
             return 0.0
-        order = {"ramping": 0.1, "settling": 0.3, "recording": 0.6, "done": 1.0}
+        order = {"ramping": 0.1, "settling": 0.3, "recording": 0.6, "done": 1.0, "stopping": 1.0}
         if self.step_state not in order:  # stopped early (aborted, failed): the steps recorded before
             return min(1.0, self.step / self.n_steps)
         return min(1.0, (self.step + order[self.step_state]) / self.n_steps)
@@ -255,6 +255,7 @@ class Procedure:
             self._report(state="running")
             for step in self.plan.steps:
                 await self._step(step, writer)
+            self._report(step_state="stopping", message="all steps recorded; the crank ramps down to standstill")
             await self._ramp_to(0.0)
         except RunAborted as exc:
             status, reason = "aborted", str(exc)
@@ -342,7 +343,7 @@ class Procedure:
                         extra={"crank_angle_rad_at_start": st.crank_angle_rad,
                                "actual_speed_hz_at_start": st.actual_speed_hz,
                                "settle_s": step.settle_s, "record_s": step.record_s})
-        self._report(step_state="done", message=f"step {step.index} recorded")
+        self._report(step_state="done", message=f"step {step.index + 1} of {len(self.plan.steps)} recorded")
 
     async def _wait_standstill(self, timeout_s: float = 30.0) -> MotorStatus:
         """A run starts only with the crank at rest (e.g. still coasting down after an e-stop)."""

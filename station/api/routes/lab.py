@@ -62,7 +62,7 @@ async def login(body: LoginIn, manager: ManagerDep, response: Response) -> MeOut
     return MeOut(user=UserOut.model_validate(user.to_dict()), via="session", expires=expires)
 
 
-@router.post("/logout", response_model=MeOut, summary="End the page session")
+@router.post("/logout", response_model=MeOut, responses={**E401, **BODY_ERRORS}, summary="End the page session")
 async def logout(request: Request, manager: ManagerDep, response: Response) -> MeOut:
     session = request.cookies.get(SESSION_COOKIE)
     if session:

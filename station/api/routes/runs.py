@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import AsyncIterable
 from typing import Annotated, Any
 
@@ -77,7 +78,8 @@ def status_of(row: RunRow, methods: list[MethodOutcome] | None = None) -> RunSta
                      progress=min(1.0, max(0.0, row.fraction)), samples=row.samples,
                      lost_samples=row.lost_samples, message=row.message, reason=row.reason,
                      recording=row.recording, steps=steps, links=links(row.id),
-                     methods=[MethodStateOut.model_validate(o.to_dict()) for o in methods or ()])
+                     methods=[MethodStateOut.model_validate(o.to_dict()) for o in methods or ()], operator=row.operator,
+                     standards=[s.get("id", "") for s in json.loads(row.standards_json or "[]")])
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=RunAccepted,

@@ -7,11 +7,11 @@ const FINAL = ["completed", "aborted", "failed", "interrupted"];
 let station = null;
 let source = null;      // EventSource of the run on screen
 let shownRun = null;
+let me = null;          // the logged-in user ({name, role, permissions}) or null
+let register = null;    // GET /register
 
 const $ = (sel) => document.querySelector(sel);
 const esc = (s) => String(s ?? "").replace(/[&<>"']/g, (c) => ({"&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;"}[c]));
-
-function token() { return localStorage.getItem("sinecal-token") || ""; }
 
 function banner(text, kind) {
   const b = $("#banner");
@@ -21,22 +21,68 @@ function banner(text, kind) {
 }
 
 async function api(method, path, body) {
-  const headers = {"Accept": "application/json", "X-Station-Client": "page"};
-  if (token()) headers["Authorization"] = "Bearer " + token();
+  const headers = {"Accept": "application/json", "X-Station-Client": "page"};  // the session cookie goes along
   if (body !== undefined) headers["Content-Type"] = "application/json";
   const r = await fetch(path, {method, headers, body: body === undefined ? undefined : JSON.stringify(body)});
   let data = null;
   const ct = r.headers.get("content-type") || "";
   if (ct.includes("json")) data = await r.json();
+  if (r.status === 401 && me && path !== "/login") { me = null; showMe(); }  // the session ended
   return {status: r.status, ok: r.ok, data};
 }
+
+// what a refusal says, with what to do: the API's reason (401: log in; 403: the role)
+function refusal(res, action) {
+  if (res.status === 401) return `${action}: ${detailText(res.data)}` + (me ? "" : " (log in at the top of the page)");
+  return `${action} refused (${res.status}): ${detailText(res.data)}`;
+}
+
+const may = (perm) => !!(me && me.permissions.includes(perm));
 
 function detailText(data) {
   if (!data) return "";
   if (typeof data.detail === "string") return data.detail;
-  if (Array.isArray(data.detail)) return data.detail.map((e) => (e.loc || []).slice(1).join(".") + ": " + e.msg).join("; ");
+  if (Array.isArray(data.detail)) return data.detail.map((e) => locText(e.loc) + ": " + e.msg).join("; ");
   return JSON.stringify(data);
 }
+
+// a field's place in the request, for people: steps count from 1 ("step 2.crank_radius_m")
+function locText(loc) {
+  const l = (loc || []).slice(1);
+  const i = l.indexOf("steps");
+  if (i >= 0 && typeof l[i + 1] === "number") return `step ${l[i + 1] + 1}` + (l[i + 2] ? " " + l.slice(i + 2).join(".") : "");
+  return l.join(".");
+}
+
+// ------------------------------------------------------------------------------------------ login
+function showMe() {
+  $("#login-form").hidden = !!me;
+  $("#me").hidden = !me;
+  if (me) $("#me-name").textContent = `${me.name} (${me.role})`;
+  const ap = $("#approve");
+  if (ap) ap.disabled = !may("approve");
+}
+
+async function loadMe() {
+  const r = await api("GET", "/me");
+  me = r.ok && r.data.user ? r.data.user : null;
+  if (r.status === 401) banner(`${detailText(r.data)}`, "");
+  showMe();
+}
+
+$("#login-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  const r = await api("POST", "/login", {name: $("#login-name").value.trim(), password: $("#login-password").value});
+  $("#login-password").value = "";
+  if (r.ok) { me = r.data.user; banner("", ""); showMe(); route(); }
+  else banner(refusal(r, "log in"), "");
+});
+
+$("#logout").addEventListener("click", async () => {
+  await api("POST", "/logout");
+  me = null;
+  showMe();
+});
 
 // value ± std, both to the precision of 2 significant digits of the uncertainty
 function fmtU(v, s) {
@@ -83,18 +129,10 @@ function showLatch(e) {
 }
 
 $("#ack").addEventListener("click", async () => {
-  const operator = $("#ack-operator").value.trim();
-  if (!operator) { banner("acknowledge: enter the operator's name or initials", ""); return; }
-  const r = await api("POST", "/stop/acknowledge", {operator});
+  const r = await api("POST", "/stop/acknowledge", {note: $("#ack-note").value.trim()});
   if (r.ok) banner(`emergency stop acknowledged by ${r.data.by}: ${r.data.detail}`, "info");
-  else banner(`not acknowledged (${r.status}): ${detailText(r.data)}`, "");
+  else banner(refusal(r, "acknowledge"), "");
   refreshHealth();
-});
-
-$("#token-form").addEventListener("submit", (ev) => {
-  ev.preventDefault();
-  localStorage.setItem("sinecal-token", $("#token").value.trim());
-  $("#token-state").textContent = token() ? "saved" : "";
 });
 
 $("#estop").addEventListener("click", async () => {
@@ -111,8 +149,13 @@ $("#estop").addEventListener("click", async () => {
 });
 
 // ------------------------------------------------------------------------------------------ form
-function frequencies() {
-  return $("#frequencies").value.split(/[,;\s]+/).filter((s) => s.length).map(Number);
+const numbers = (text) => text.split(/[,;\s]+/).filter((s) => s.length).map(Number);
+function frequencies() { return numbers($("#frequencies").value); }
+// the radius of each step in m: one value per step, or one for all
+function radii() {
+  const r = numbers($("#radius_mm").value).map((x) => x / 1000);
+  const n = frequencies().length;
+  return r.length === 1 ? Array(n).fill(r[0]) : Array.from({length: n}, (_, i) => (i < r.length ? r[i] : NaN));
 }
 
 function maxRadiusM(f, topMass) {
@@ -127,9 +170,10 @@ function checkPlan() {
   const tb = $("#plan-check tbody");
   tb.innerHTML = "";
   const m = Number($("#top_mass_kg").value);
-  const r = Number($("#radius_mm").value) / 1000;
+  const rs = radii();
   const L = station.limits;
   frequencies().forEach((f, i) => {
+    const r = rs[i];
     const rmax = maxRadiusM(f, m);
     const M = m + L.moving_mass_without_top_kg;
     const peak = M * (G + r * (2 * Math.PI * f) ** 2);
@@ -137,40 +181,77 @@ function checkPlan() {
     const ok = inRange && r >= L.crank_radius_m.min && r <= rmax;
     const tr = document.createElement("tr");
     if (!ok) tr.className = "bad";
-    tr.innerHTML = `<td>${i}</td><td>${esc(f)}</td><td>${rmax > 0 ? (rmax * 1000).toPrecision(3) : "none"}</td>` +
-      `<td>${Number.isFinite(peak) ? peak.toFixed(0) : "—"}</td><td>${ok ? "ok" : (inRange ? "radius too large" : "frequency outside the rig's range")}</td>`;
+    const why = !inRange ? `frequency outside the rig's range ${L.crank_frequency_hz.min}–${L.crank_frequency_hz.max} Hz`
+      : !Number.isFinite(r) ? "no radius for this step" : r < L.crank_radius_m.min ? "radius below the rig's minimum" : "radius too large";
+    tr.innerHTML = `<td>${i + 1}</td><td>${esc(f)}</td><td>${Number.isFinite(r) ? (r * 1000).toPrecision(3) : "—"}</td>` +
+      `<td>${rmax > 0 ? (rmax * 1000).toPrecision(3) : "none"}</td>` +
+      `<td>${Number.isFinite(peak) ? peak.toFixed(0) : "—"}</td><td>${ok ? "ok" : why}</td>`;
     tb.appendChild(tr);
   });
 }
 
 function showLimits() {
   const L = station.limits;
-  $("#transducer_id").value = station.transducer_id;
-  $("#hint-transducer").textContent = `mounted: ${station.transducer_id} (capacity ${station.capacity_N} N)`;
   $("#top_mass_kg").value = station.default_top_mass_kg;
   $("#hint-mass").textContent = `moving mass = top mass + ${L.moving_mass_without_top_kg.toFixed(3)} kg (adaption and end mass)`;
   $("#frequencies").value = station.default_steps.map((s) => s.crank_frequency_hz).join(", ");
   $("#hint-frequency").textContent = `rig range ${L.crank_frequency_hz.min}–${L.crank_frequency_hz.max} Hz, 1–200 steps`;
-  $("#radius_mm").value = Math.min(...station.default_steps.map((s) => s.crank_radius_m)) * 1000;
-  $("#hint-radius").textContent = `rig range ${L.crank_radius_m.min * 1000}–${L.crank_radius_m.max * 1000} mm`;
+  // the configuration's plan: a radius per step (large at low frequencies, where the force allows it)
+  $("#radius_mm").value = station.default_steps.map((s) => +(s.crank_radius_m * 1000).toPrecision(4)).join(", ");
+  $("#hint-radius").textContent = `rig range ${L.crank_radius_m.min * 1000}–${L.crank_radius_m.max * 1000} mm; ` +
+    "each step's maximum is in the table below";
   $("#hint-force").textContent = `Peak force M·(g + r·ω²) must stay below ${L.peak_force_limit_N.toFixed(0)} N; ` +
     `each step records ${station.default_record_s} s after ${station.default_settle_s} s settling.`;
-  $("#station-name").textContent = `${station.name} · ${station.transducer_id}`;
+  $("#station-name").textContent = station.name;
   $("#sim-badge").hidden = !station.simulated;
   checkPlan();
 }
+
+// the register: the transducer select (the mounted one chosen) and the standards in use
+async function loadRegister() {
+  const r = await api("GET", "/register");
+  if (!r.ok) return;
+  register = r.data;
+  const sel = $("#transducer_id");
+  const keep = sel.value;
+  sel.innerHTML = register.transducers.map((t) => `<option value="${esc(t.id)}">${esc(t.id)}${t.id === register.mounted ? " (mounted)" : ""}` +
+    ` — ${esc(t.type || "")} ${t.capacity_N} N${t.owner ? ", " + esc(t.owner) : ""}</option>`).join("");
+  sel.value = keep && register.transducers.some((t) => t.id === keep) ? keep : (register.mounted || "");
+  transducerHint();
+  $("#standards").innerHTML = register.standards.map((s) => `<label class="std${s.overdue ? " bad" : ""}">` +
+    `<input type="checkbox" value="${esc(s.id)}"${s.in_use ? " checked" : ""}> ${esc(s.id)} (${esc(s.kind)}, ${esc(s.certificate_id)}, ` +
+    `due ${esc(s.due_date)}${s.overdue ? " — OVERDUE" : ""})</label>`).join("") || '<span class="hint">none registered</span>';
+}
+
+function transducerHint() {
+  const t = register && register.transducers.find((x) => x.id === $("#transducer_id").value);
+  $("#hint-transducer").innerHTML = t ? `capacity ${t.capacity_N} N, ${t.sensitivity_V_per_N} V/N` +
+    (t.end_mass_kg ? `, end mass ${t.end_mass_kg} kg` : "") + ` · <a href="#/transducers/${encodeURIComponent(t.id)}">history</a>` : "";
+}
+$("#transducer_id").addEventListener("change", transducerHint);
+
+$("#mount").addEventListener("click", async () => {
+  const r = await api("POST", "/register/mount", {transducer_id: $("#transducer_id").value});
+  if (r.ok) { banner(`${r.data.id} is recorded as mounted`, "info"); loadRegister(); }
+  else banner(refusal(r, "mount"), "");
+});
 
 ["#frequencies", "#radius_mm", "#top_mass_kg"].forEach((s) => $(s).addEventListener("input", checkPlan));
 
 $("#run-form").addEventListener("submit", async (ev) => {
   ev.preventDefault();
   document.querySelectorAll("#run-form .err").forEach((e) => { e.textContent = ""; });
-  const r = Number($("#radius_mm").value) / 1000;
+  const rs = radii();
   const body = {
-    transducer_id: $("#transducer_id").value.trim(),
+    transducer_id: $("#transducer_id").value,
     top_mass_kg: Number($("#top_mass_kg").value),
-    steps: frequencies().map((f) => ({crank_frequency_hz: f, crank_radius_m: r})),
+    steps: frequencies().map((f, i) => ({crank_frequency_hz: f, crank_radius_m: rs[i]})),
+    standards: [...document.querySelectorAll("#standards input:checked")].map((c) => c.value),
   };
+  if (rs.some((r) => !Number.isFinite(r))) {
+    document.querySelector('#run-form .err[data-for="crank_radius_m"]').textContent = "give one radius per step, or one for all";
+    return;
+  }
   $("#start").disabled = true;
   try {
     const res = await api("POST", "/runs", body);
@@ -182,12 +263,11 @@ $("#run-form").addEventListener("submit", async (ev) => {
       for (const e of res.data.detail) {
         const field = [...(e.loc || [])].reverse().find((x) => typeof x === "string") || "";
         const slot = document.querySelector(`#run-form .err[data-for="${field}"]`);
-        (slot || $("#form-msg")).textContent = `${(e.loc || []).slice(1).join(".")}: ${e.msg}`;
+        (slot || $("#form-msg")).textContent = `${locText(e.loc)}: ${e.msg}`;
       }
       return;
     }
-    $("#form-msg").textContent = res.status === 401 ? "enter the station token (top of the page) to start runs"
-      : `${res.status}: ${detailText(res.data)}`;
+    $("#form-msg").textContent = refusal(res, "start");
   } finally {
     $("#start").disabled = false;
   }
@@ -201,6 +281,7 @@ async function refreshRuns() {
   for (const r of res.data.runs) {
     const tr = document.createElement("tr");
     tr.innerHTML = `<td><a href="#/runs/${esc(r.id)}">${esc(r.id)}</a></td><td class="state ${esc(r.state)}">${esc(r.state)}</td>` +
+      `<td><a href="#/transducers/${encodeURIComponent(r.transducer_id)}">${esc(r.transducer_id)}</a></td>` +
       `<td>${r.steps.map((s) => s.crank_frequency_hz).join(", ")} Hz</td><td>${new Date(r.created).toLocaleString()}</td><td>${r.lost_samples}</td>`;
     tb.appendChild(tr);
   }
@@ -210,8 +291,10 @@ async function refreshRuns() {
 function showStatus(st) {
   $("#run-state").textContent = st.state;
   $("#run-state").className = "state " + st.state;
-  $("#run-step").textContent = st.current_step === null ? "" :
+  const stopping = st.state === "running" && st.step_state === "stopping";
+  $("#run-step").textContent = st.current_step === null ? "" : stopping ? "all steps recorded; the crank ramps down to standstill" :
     `step ${st.current_step + 1}/${st.n_steps} (${st.steps[st.current_step].crank_frequency_hz} Hz) ${st.step_state}`;
+  $("#run-history").href = `#/transducers/${encodeURIComponent(st.transducer_id)}`;
   $("#run-progress").value = st.progress;
   $("#run-samples").textContent = st.samples;
   $("#run-lost").textContent = st.lost_samples;
@@ -325,7 +408,7 @@ async function loadResults(id) {
   fb.innerHTML = "";
   for (const s of d.frequency_response) {
     const tr = document.createElement("tr");
-    tr.innerHTML = `<td>${s.index}</td><td>${s.frequency_hz.toFixed(4)}</td><td>${fmtU(s.H_magnitude, s.H_magnitude_std)}</td>` +
+    tr.innerHTML = `<td>${s.index + 1}</td><td>${s.frequency_hz.toFixed(4)}</td><td>${fmtU(s.H_magnitude, s.H_magnitude_std)}</td>` +
       `<td>${fmtU(s.H_phase_deg, s.H_phase_std_deg)}</td><td>${s.n_samples}</td>`;
     fb.appendChild(tr);
   }
@@ -344,6 +427,7 @@ async function loadResults(id) {
   showCertificate(id);
   showMethods(d.methods || []);
   $("#results").hidden = false;
+  loadApprovals(id);
   loadDiscrepancy(d.discrepancy);
 }
 
@@ -362,12 +446,12 @@ async function loadDiscrepancy(url) {
   const box = $("#discrepancy");
   box.textContent = "loading…";
   let res = await api("GET", url);
-  if (res.status === 404 && token()) {  // not computed yet: computing and storing it needs the token
+  if (res.status === 404 && may("run")) {  // not computed yet: computing and storing it needs a login
     box.textContent = "analysing…";
     res = await api("POST", url);
   }
   if (!res.ok) {
-    box.textContent = res.status === 404 ? "not analysed yet: enter the station token (top of the page) to analyse this run"
+    box.textContent = res.status === 404 ? "not analysed yet: log in (top of the page) to analyse this run"
       : `not available: ${detailText(res.data)}`;
     return;
   }
@@ -410,8 +494,7 @@ async function runProposal(id) {
     if (!p.ok || !p.data.request) { msg.textContent = p.ok ? "nothing to run" : detailText(p.data); return; }
     const res = await api("POST", "/runs", p.data.request);
     if (res.status === 202) { location.hash = `#/runs/${res.data.id}`; return; }
-    msg.textContent = res.status === 401 ? "enter the station token (top of the page) to start runs"
-      : `${res.status}: ${detailText(res.data)}`;
+    msg.textContent = refusal(res, "start");
   } finally {
     const b = $("#run-proposal");
     if (b) b.disabled = false;
@@ -420,14 +503,95 @@ async function runProposal(id) {
 
 $("#abort").addEventListener("click", async () => {
   const res = await api("POST", `/runs/${encodeURIComponent(shownRun)}/abort`);
-  if (!res.ok) banner(res.status === 401 ? "enter the station token to abort runs (or use EMERGENCY STOP)" : detailText(res.data));
+  if (!res.ok) banner(refusal(res, "abort") + " (the EMERGENCY STOP needs no login)");
 });
+
+// ------------------------------------------------------------------------------------------ approval
+async function loadApprovals(id) {
+  const r = await api("GET", `/audit?target=${encodeURIComponent(id)}&action=certificate.approved`);
+  const list = r.ok ? r.data.entries : [];
+  $("#approvals").textContent = list.length ? list.map((e) => `approved by ${e.who} ${utcText(e.at)}` + (e.details.note ? ` (${e.details.note})` : "")).join("; ") + ". "
+    : "not approved yet. ";
+  $("#approve").disabled = !may("approve");
+  $("#approve").title = may("approve") ? "approve as " + me.name : "an approver (not who ran it) approves";
+}
+
+$("#approve").addEventListener("click", async () => {
+  const r = await api("POST", `/runs/${encodeURIComponent(shownRun)}/approve`, {note: $("#approve-note").value.trim()});
+  $("#approve-msg").textContent = r.ok ? "" : refusal(r, "approve");
+  if (r.ok) loadApprovals(shownRun);
+});
+
+const utcText = (t) => new Date(t * 1000).toISOString().replace("T", " ").slice(0, 19);
+
+// ------------------------------------------------------------------------------------------ register, history, audit
+async function showRegister() {
+  await loadRegister();
+  if (!register) return;
+  $("#reg-transducers tbody").innerHTML = register.transducers.map((t) => `<tr><td><a href="#/transducers/${encodeURIComponent(t.id)}">${esc(t.id)}</a></td>` +
+    `<td>${esc(t.type)}</td><td>${esc(t.serial)}</td><td>${t.capacity_N}</td><td>${t.sensitivity_V_per_N}</td>` +
+    `<td>${t.end_mass_kg === null ? "—" : fmtU(t.end_mass_kg, t.end_mass_std_kg)}</td><td>${esc(t.owner)}</td>` +
+    `<td>${t.id === register.mounted ? "mounted" : ""}</td></tr>`).join("");
+  $("#reg-standards tbody").innerHTML = register.standards.map((s) => `<tr${s.overdue ? ' class="bad"' : ""}><td>${esc(s.id)}</td><td>${esc(s.kind)}</td>` +
+    `<td>${esc(s.certificate_id)}</td><td>${esc(s.issuer)}</td><td>${esc(s.due_date)}${s.overdue ? " OVERDUE" : ""}</td>` +
+    `<td>${s.uncertainty} ${esc(s.uncertainty_unit)}</td><td>${s.in_use ? "yes" : "no"}</td></tr>`).join("");
+  $("#reg-policy").textContent = `A run with a standard past its due date is ${register.overdue_policy === "refuse" ? "refused" : "started with a warning"}. ` +
+    "Administrators change the register with PUT /register/... or `station register`.";
+}
+
+// k_f (or S) over time with its standard uncertainty, as an SVG: one point per completed run
+function historyPlot(runs, name, unit) {
+  const pts = runs.map((r) => [r.created, (r.parameters[name] || {}).value, (r.parameters[name] || {}).std, (r.drift[name] || {}).flagged])
+    .filter((p) => p[1] !== null && p[1] !== undefined);
+  if (!pts.length) return `<p class="small">no identified ${esc(name)} yet</p>`;
+  const W = 600, H = 220, pad = 50;
+  const t0 = Math.min(...pts.map((p) => p[0])), t1 = Math.max(...pts.map((p) => p[0]));
+  const lo = Math.min(...pts.map((p) => p[1] - (p[2] || 0))), hi = Math.max(...pts.map((p) => p[1] + (p[2] || 0)));
+  const x = (t) => pad + (t1 > t0 ? (t - t0) / (t1 - t0) : 0.5) * (W - 2 * pad);
+  const y = (v) => H - pad / 2 - (hi > lo ? (v - lo) / (hi - lo) : 0.5) * (H - pad);
+  const marks = pts.map((p) => `<line x1="${x(p[0])}" x2="${x(p[0])}" y1="${y(p[1] - (p[2] || 0))}" y2="${y(p[1] + (p[2] || 0))}" stroke="#555"/>` +
+    `<circle cx="${x(p[0])}" cy="${y(p[1])}" r="4" fill="${p[3] ? "#c00" : "#06c"}"><title>${utcText(p[0])}: ${fmtU(p[1], p[2])} ${unit}</title></circle>`).join("");
+  return `<svg viewBox="0 0 ${W} ${H}" width="100%" role="img" aria-label="${esc(name)} over time" class="hist-svg">` +
+    `<text x="4" y="14" font-size="12">${esc(name)} (${esc(unit)}) ± u; red: drift flagged</text>` +
+    `<text x="4" y="${H - 4}" font-size="11">${utcText(t0).slice(0, 10)}</text><text x="${W - 80}" y="${H - 4}" font-size="11">${utcText(t1).slice(0, 10)}</text>` +
+    `<text x="4" y="${y(hi) + 4}" font-size="10">${hi.toPrecision(4)}</text><text x="4" y="${y(lo)}" font-size="10">${lo.toPrecision(4)}</text>` +
+    marks + "</svg>";
+}
+
+async function showHistory(id) {
+  $("#hist-id").textContent = id;
+  const r = await api("GET", `/transducers/${encodeURIComponent(id)}/history`);
+  if (!r.ok) { $("#hist-transducer").textContent = detailText(r.data); return; }
+  const d = r.data, t = d.transducer;
+  $("#hist-transducer").textContent = `${t.type} ${t.serial} · ${t.capacity_N} N · ${t.owner} · ${d.runs.length} runs`;
+  $("#hist-plot").innerHTML = historyPlot(d.runs, "k_f", d.units.k_f) + historyPlot(d.runs, "S", d.units.S);
+  $("#hist-flagged").textContent = d.flagged.length ? "drift flagged: " + d.flagged.map((f) => `${f.run_id} ${f.parameter}`).join(", ")
+    : "no drift flagged against earlier calibrations (the nightly batch's rule: |x − mean| > 3 u_c, after 3 runs)";
+  const cell = (r, n) => { const p = r.parameters[n]; return p && p.value !== null ? fmtU(p.value, p.std) : "—"; };
+  $("#hist-runs tbody").innerHTML = d.runs.slice().reverse().map((r) => `<tr><td><a href="#/runs/${esc(r.run_id)}">${esc(r.run_id)}</a></td>` +
+    `<td class="state ${esc(r.state)}">${esc(r.state)}</td><td>${esc(r.operator)}</td><td>${cell(r, "S")}</td><td>${cell(r, "k_f")}</td><td>${cell(r, "b_f")}</td>` +
+    `<td>${Object.entries(r.drift).filter(([, c]) => c.flagged).map(([n]) => n).join(", ") || "—"}</td>` +
+    `<td>${r.approvals.map((a) => esc(a.by)).join(", ") || "—"}</td></tr>`).join("");
+}
+
+async function showAudit() {
+  const r = await api("GET", "/audit?limit=200");
+  if (!r.ok) return;
+  $("#audit tbody").innerHTML = r.data.entries.map((e) => `<tr><td>${e.id}</td><td>${utcText(e.at)}</td><td>${esc(e.who)}</td>` +
+    `<td>${esc(e.action)}</td><td>${esc(e.target)}</td><td class="details">${esc(JSON.stringify(e.details))}</td></tr>`).join("");
+}
 
 // ------------------------------------------------------------------------------------------ routing
 async function route() {
-  const m = location.hash.match(/^#\/runs\/([^/]+)$/);
-  $("#view-home").hidden = !!m;
-  $("#view-run").hidden = !m;
+  const h = location.hash;
+  const m = h.match(/^#\/runs\/([^/]+)$/);
+  const th = h.match(/^#\/transducers\/([^/]+)$/);
+  const view = m ? "run" : th ? "history" : h === "#/register" ? "register" : h === "#/audit" ? "audit" : "home";
+  for (const v of ["home", "run", "history", "register", "audit"]) $(`#view-${v}`).hidden = v !== view;
+  if (view !== "run") { shownRun = null; if (source) { source.close(); source = null; } }
+  if (view === "history") return showHistory(decodeURIComponent(th[1]));
+  if (view === "register") return showRegister();
+  if (view === "audit") return showAudit();
   if (m) {
     const id = decodeURIComponent(m[1]);
     shownRun = id;
@@ -438,19 +602,18 @@ async function route() {
     const res = await api("GET", `/runs/${encodeURIComponent(id)}`);
     if (!res.ok) { $("#run-message").textContent = detailText(res.data); return; }
     showStatus(res.data);
+    $("#run-who").textContent = res.data.operator ? `started by ${res.data.operator}` : "";
     if (!FINAL.includes(res.data.state)) follow(id);
   } else {
-    shownRun = null;
-    if (source) { source.close(); source = null; }
     refreshRuns();
   }
 }
 
 async function init() {
-  $("#token").value = token();
-  $("#token-state").textContent = token() ? "saved" : "";
+  await loadMe();
   station = (await api("GET", "/station")).data;
   showLimits();
+  await loadRegister();
   window.addEventListener("hashchange", route);
   await route();
   refreshHealth();
