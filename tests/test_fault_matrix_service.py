@@ -74,24 +74,25 @@ def test_stop_latches_until_an_operator_acknowledges(tmp_path: Path, caplog: pyt
             assert await m.link.motor_fault() == (2, "emergency_stop")
             h = (await c.get("/health")).json()
             assert h["status"] == "degraded" and h["estop"]["latched"] and h["estop"]["source"] == "page"
-            # acknowledging needs the token, names the operator, and is recorded
+            # acknowledging needs a user (the token's: admin); the operator named at the rig goes in the note
             assert (await c.post("/stop/acknowledge", json={"operator": "ab"}, headers={"Authorization": ""})
                     ).status_code == 401
-            assert (await c.post("/stop/acknowledge", json={"operator": ""})).status_code == 422
+            assert (await c.post("/stop/acknowledge", json={"operator": "x" * 65})).status_code == 422
             r = await c.post("/stop/acknowledge", json={"operator": "A. Tech", "note": "crank checked"})
             assert r.status_code == 200 and r.json()["acknowledged"] and not r.json()["latched"], r.text
             rows = estops(m)
-            assert len(rows) == 1 and rows[0]["source"] == "page" and rows[0]["acknowledged_by"] == "A. Tech"
-            assert rows[0]["acknowledged"] >= rows[0]["raised"] and rows[0]["note"] == "crank checked"
+            assert len(rows) == 1 and rows[0]["source"] == "page" and rows[0]["acknowledged_by"] == "admin"
+            assert rows[0]["acknowledged"] >= rows[0]["raised"]
+            assert rows[0]["note"] == "operator at the rig: A. Tech; crank checked"
             assert await m.link.motor_fault() is None
             h = (await c.get("/health")).json()
-            assert h["status"] == "ok" and not h["estop"]["latched"] and h["estop"]["last_acknowledged_by"] == "A. Tech"
+            assert h["status"] == "ok" and not h["estop"]["latched"] and h["estop"]["last_acknowledged_by"] == "admin"
             rid2 = await start(c, freqs=(10.0,))
             assert (await wait_state(c, rid2))["state"] == "identifying"
     with caplog.at_level("WARNING"):
         asyncio.run(go())
     text = caplog.text
-    assert "emergency stop latched (source page)" in text and "acknowledged by A. Tech" in text
+    assert "emergency stop latched (source page)" in text and "acknowledged by admin" in text and "A. Tech" in text
 
 
 def test_controller_estop_fault_latches_and_a_fault_at_start_is_not_cleared(tmp_path: Path) -> None:

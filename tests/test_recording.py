@@ -576,7 +576,7 @@ def test_simulation_is_reproducible_by_seed(tmp_path: Path, sim_recording: Path,
 def test_simulation_beyond_the_limits_writes_nothing(tmp_path: Path, fast_config_dict: dict[str, Any]) -> None:
     fast_config_dict["plan"]["steps"][1]["crank_radius_m"] = 0.01  # 30 Hz x 10 mm: ~9 kN > 4 kN
     out = tmp_path / "out"
-    with pytest.raises(LimitError, match=r"step 1 \(30 Hz, 0.01 m\): peak force"):
+    with pytest.raises(LimitError, match=r"step 2 \(30 Hz, 0.01 m\): peak force"):
         simulate_run(parse_config(fast_config_dict), out)
     assert not out.exists() or not any(out.iterdir())
 

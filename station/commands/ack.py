@@ -17,7 +17,8 @@ from station.errors import BadInputError, StationError
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("ack", help="acknowledge a latched emergency stop on the station daemon")
-    p.add_argument("--operator", required=True, help="your name or initials (recorded)")
+    p.add_argument("--operator", default="", help="the operator at the rig, if not the token's user (recorded "
+                   "in the note; who acknowledges is the token's user)")
     p.add_argument("--note", default="", help="what was checked (recorded)")
     p.add_argument("--url", default="http://127.0.0.1:8080", help="the daemon (default http://127.0.0.1:8080)")
     p.set_defaults(handler=run)
