@@ -34,6 +34,12 @@ def lab_config(rec: Path, **lab: Any) -> dict[str, Any]:
     return d
 
 
+async def identified(manager: Any, rid: str) -> None:
+    """Record the run's identification as the worker does (these tests run no worker process)."""
+    manager.db.update_run(rid, {"state": "completed", "result_name": "x"})
+    assert await asyncio.to_thread(manager.db.flush, 5.0)
+
+
 async def login(app: Any, name: str) -> httpx.AsyncClient:
     c = asgi_client(app, token=False)
     r = await c.post("/login", json={"name": name, "password": PW[name]})
@@ -81,8 +87,7 @@ def test_a_scripted_day_is_in_the_audit_trail(tmp_path: Path) -> None:
             prov = (start.get("body") or start)["plan"]["provenance"]
             assert prov["operator"] == "tina" and prov["transducer"]["serial"] == "SN-42"
             assert [s["certificate_id"] for s in prov["standards"]] == ["DKD-K-123/2026", "M-88"]  # by kind
-            # identification as the worker records it (no worker process in this test)
-            manager.store.update_run(rid, state="completed", result_name="x")
+            await identified(manager, rid)
 
             assert (await tina.post(f"/runs/{rid}/approve", json={})).status_code == 403
             stop = await asgi_client(app, token=False).post("/stop")
@@ -186,7 +191,7 @@ def test_a_tampered_recording_is_refused_naming_the_file(tmp_path: Path) -> None
             path.write_bytes(bytes(data))
             r = await c.get(f"/runs/{rid}/integrity")
             assert r.status_code == 409 and path.name in r.json()["detail"] and "changed" in r.json()["detail"]
-            manager.store.update_run(rid, state="completed", result_name="x")
+            await identified(manager, rid)
             await c.put("/users/anton", json={"role": "approver", "password": PW["anton"]})
             anton = await login(c._transport.app, "anton")  # type: ignore[attr-defined]
             r = await anton.post(f"/runs/{rid}/approve", json={})
