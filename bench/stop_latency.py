@@ -21,7 +21,7 @@ After each stop the bench waits for the drive's standstill (the daemon's answer 
 acknowledges the stop as an operator would.  Everything is bounded in time; the daemon and the
 emulator are ended at the close.  Target: <= 100 ms in every case.
 
-Usage: python bench/stop_latency.py [--repeats 3] [--connections 20000]
+Usage: python bench/stop_latency.py [--repeats 3] [--connections 20000] [--cases idle,idle_connections,...]
 """
 
 from __future__ import annotations
@@ -264,6 +264,7 @@ def measure(name: str, d: Daemon, emu: SimRigProcess, repeats: int,
     return {"case": name, "repeats": repeats, "stops_reaching_the_drive": len(lat),
             "latency_ms_median": round(statistics.median(lat), 2) if lat else None,
             "latency_ms_max": round(max(lat), 2) if lat else None,
+            "latency_ms_each": [round(x, 2) for x in lat],
             "http_answer_ms_median": round(statistics.median(s["http_ms"] for s in samples), 1),
             "motor_stopped": [s["motor_stopped"] for s in samples],
             "errors": [s["error"] for s in samples if s["error"]],
@@ -286,6 +287,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--connections", type=int, default=20_000)
+    ap.add_argument("--cases", default="idle,run_recording,database_locked,idle_connections,disk_full",
+                    help="comma-separated cases to run (default: all)")
     ap.add_argument("--daemon-tree", type=Path, default=None,
                     help="run the daemon from this source tree (e.g. an older version as the baseline)")
     args = ap.parse_args()
@@ -333,12 +336,15 @@ def main() -> int:
                 ("idle_connections", connections, False)]
             if why_no_tmpfs is None:
                 cases.append(("disk_full", full, True))
+            wanted = set(args.cases.split(","))
             for name, around, with_run in cases:
+                if name not in wanted:
+                    continue
                 if time.monotonic() - started > DEADLINE_S:
                     out["cases"].append({"case": name, "skipped": "the bench's time limit"})
                     continue
                 out["cases"].append(measure(name, d, emu, args.repeats, around, with_run))
-            if why_no_tmpfs is not None:
+            if why_no_tmpfs is not None and "disk_full" in wanted:
                 out["cases"].append({"case": "disk_full", "skipped": f"no tmpfs could be mounted: {why_no_tmpfs}"})
             text = d.log_path.read_text(errors="replace")
             out["daemon_log"] = {"lines": text.count("\n"), "too_many_open_files": text.count("Too many open files"),
