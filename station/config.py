@@ -232,6 +232,9 @@ class ServiceSection(_Model):
     max_connections: int = Field(default=1000, ge=16, le=100_000,
                                  description="open HTTP connections at most (kept below the open-files "
                                  "limit); beyond it the oldest idle ones are closed for new clients")
+    render_at_start: bool = Field(default=True, description="start the render worker (plots, report) with the "
+                                  "daemon, so that the first results page does not wait for a process start; "
+                                  "false: on first use")
     header_timeout_s: float = Field(default=10.0, ge=1.0, le=300.0,
                                     description="a connection that sends no complete request head within this "
                                     "after opening or after its last response is closed, s")

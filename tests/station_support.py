@@ -44,9 +44,10 @@ ON_RIG_DONE = (*FINAL, "identifying")
 
 
 def daemon_config(data_dir: Path, **service: Any) -> dict[str, Any]:
-    """The daemon tests' configuration as parsed YAML (recordings and database in ``data_dir``)."""
+    """The daemon tests' configuration as parsed YAML (recordings and database in ``data_dir``; the
+    render worker starts on first use unless ``render_at_start=True``)."""
     return fast_dict(steps=((10.0, 0.001), (20.0, 0.001)), acceleration_hz_per_s=50.0, recordings_dir=data_dir,
-                     service=service or None)
+                     service={"render_at_start": False, **service})
 
 
 def run_body(freqs: tuple[float, ...] = (10.0, 20.0), radius: float = 0.001, **step: Any) -> dict[str, Any]:
@@ -136,11 +137,8 @@ async def running_app(rec_dir: Path, *, config: dict[str, Any] | None = None, wo
         def __init__(self, settings: ServiceSettings) -> None:
             super().__init__(settings, connector=virtual_rig)
 
-        async def _warm_render_pool(self) -> None:
-            if render:
-                await super()._warm_render_pool()
-
     d = config if config is not None else daemon_config(rec_dir, **service)
+    d.setdefault("service", {})["render_at_start"] = render
     if min_free_mb is not None:
         d["station"]["min_free_mb"] = min_free_mb
     settings = build_settings(parse_config(d), sim=True, workers=workers, env={"STATION_TOKEN": TOKEN})

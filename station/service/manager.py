@@ -101,7 +101,8 @@ class RunManager:
         await asyncio.to_thread(self.disk.ensure_reserve)
         await self.link.connect()
         self.jobs.start()
-        self._warm = asyncio.create_task(self._warm_render_pool(), name="render-warm-up")
+        if self.cfg.service.render_at_start:
+            self._warm = asyncio.create_task(self._warm_render_pool(), name="render-warm-up")
 
     async def _warm_render_pool(self) -> None:
         """Start the render worker and load the plotting modules early (the first results page
