@@ -11,7 +11,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from tests.station_support import Daemon, run_body
+from tests.station_support import Daemon, daemon_config, run_body
 from tests.web_support import ARGS, CHROMIUM, log_in, sync_api
 
 pytestmark = pytest.mark.slow  # a real daemon, a real run and a real browser: the end-to-end layer
@@ -20,7 +20,10 @@ pytestmark = pytest.mark.slow  # a real daemon, a real run and a real browser: t
 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    with Daemon(tmp_path_factory.mktemp("web")) as d:
+    tmp = tmp_path_factory.mktemp("web")
+    cfg = daemon_config(tmp / "recordings")
+    cfg["plan"]["record_s"] = 1.4  # long enough for the paper's protocol: PSO+ gives its result beside fd's
+    with Daemon(tmp, config=cfg) as d:
         yield d
 
 
@@ -78,6 +81,16 @@ def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon:
     structure = pg.inner_text("#res-structure")
     assert "stiff coupling" in structure and "series stiffness" in structure, structure
     assert pg.locator("#frf tbody tr").count() == 2
+    # the listed methods side by side: fd (primary) at once, the paper's PSO+ once its worker job is done
+    pg.wait_for_selector("#methods tr[data-method='pso+/h2'][data-status='done']", timeout=60_000)
+    fd_row, pso_row = "#methods tr[data-method='fd/auto']", "#methods tr[data-method='pso+/h2']"
+    assert pg.inner_text(f"{fd_row} td:first-child").startswith("★ fd")
+    assert "±" in pg.inner_text(f"{fd_row} td[data-param='k_f']")
+    for name in ("S", "k_f", "b_f"):  # a value with its z against fd, or why PSO+ withholds it
+        cell = pg.inner_text(f"{pso_row} td[data-param='{name}']")
+        assert ("±" in cell and "z" in cell) or cell.startswith("withheld: "), (name, cell)
+    results = daemon.c().get(f"/runs/{run_id}/results").json()
+    assert [(m["method"], m["status"]) for m in results["methods"]] == [("fd", "done"), ("pso+", "done")]
     assert pg.inner_text("#run-lost") == "0"
     # the plots load (or the page says why there are none); the report and recording are linked
     imgs = pg.locator("#plots img")

@@ -6,6 +6,7 @@ const G = 9.80665;
 const FINAL = ["completed", "aborted", "failed", "interrupted"];
 let station = null;
 let source = null;      // EventSource of the run on screen
+let methodsSeq = 0;     // the latest request for the methods table (an older answer never overwrites it)
 let shownRun = null;
 let me = null;          // the logged-in user ({name, role, permissions}) or null
 let register = null;    // GET /register
@@ -315,9 +316,9 @@ function follow(id) {
   };
   source.addEventListener("status", onEvent);
   source.addEventListener("result", async () => {  // a listed method has its outcome: refresh the comparison
-    if ($("#results").dataset.run !== id) return;  // the primary's results load with the completed status
+    const seq = ++methodsSeq;
     const res = await api("GET", `/runs/${encodeURIComponent(id)}/results`);
-    if (res.ok && id === shownRun) showMethods(res.data.methods);
+    if (res.ok && id === shownRun && seq === methodsSeq) showMethods(res.data.methods);
   });
   source.addEventListener("end", (ev) => { onEvent(ev); source.close(); source = null; });
   source.onerror = () => { /* the browser reconnects by itself; a final state closes the stream */ };
@@ -373,6 +374,7 @@ function showMethods(methods) {
 
 async function loadResults(id) {
   if ($("#results").dataset.run === id) return;
+  const seq = ++methodsSeq;
   const res = await api("GET", `/runs/${encodeURIComponent(id)}/results`);
   if (!res.ok) { $("#run-message").textContent = detailText(res.data); return; }
   const d = res.data;
@@ -425,7 +427,7 @@ async function loadResults(id) {
   if (d.report) { rl.href = d.report; rl.textContent = "calibration report"; } else { rl.removeAttribute("href"); rl.textContent = "report not available"; }
   $("#recording-link").href = `/runs/${encodeURIComponent(id)}/recording`;
   showCertificate(id);
-  showMethods(d.methods || []);
+  if (seq === methodsSeq) showMethods(d.methods || []);  // a later 'result' event's answer is newer
   $("#results").hidden = false;
   loadApprovals(id);
   loadDiscrepancy(d.discrepancy);
