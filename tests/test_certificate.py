@@ -148,4 +148,6 @@ def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None
             assert [x["number"] for x in listed] == [number]
             assert (await c.get("/certificates", params={"transducer": "OTHER"})).json()["certificates"] == []
             assert (await c.get("/certificates/SC-1999-0001.html")).status_code == 404
+            rp = await c.get(f"/runs/{rid}/report.pdf")
+            assert rp.headers["content-type"] == "application/pdf" and "Uncertainty statement" in _pdf_text(rp.content)
     asyncio.run(go())

@@ -23,7 +23,8 @@ def certificate_html(content: dict[str, Any]) -> str:
 
 def html_to_pdf(html: str) -> bytes:
     """PDF bytes of an HTML page (WeasyPrint; A4 from the page's @page rule)."""
+    # one line per layout step otherwise (the import parses its own stylesheets)
+    logging.getLogger("weasyprint.progress").setLevel(logging.WARNING)
     from weasyprint import HTML  # heavy: loaded on first use
 
-    logging.getLogger("weasyprint.progress").setLevel(logging.WARNING)  # one line per layout step otherwise
     return bytes(HTML(string=html).write_pdf())

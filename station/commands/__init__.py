@@ -12,6 +12,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.calibrate",
     "station.commands.discrepancy",
     "station.commands.certificate",
+    "station.commands.report",
     "station.commands.serve",
     "station.commands.ack",
     "station.commands.batch",

@@ -50,7 +50,11 @@ METHODS = {
 CSS = """body{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}
 table{border-collapse:collapse;margin:.5em 0 1.2em}td,th{border:1px solid #bbb;padding:3px 8px;text-align:left}
 th{background:#eee}td.num{text-align:right;font-family:monospace}.na{color:#a33}.note{color:#555;font-size:90%}
-img{max-width:100%;border:1px solid #ddd;margin:.5em 0}h2{border-bottom:2px solid #ccc;padding-bottom:2px}"""
+img{max-width:100%;border:1px solid #ddd;margin:.5em 0}h2{border-bottom:2px solid #ccc;padding-bottom:2px}
+@page{size:A4 landscape;margin:12mm}
+@media print{body{max-width:none;margin:0;font-size:8pt}table{width:100%;table-layout:auto}
+td,th{padding:1px 3px;overflow-wrap:anywhere}td.num{white-space:nowrap}img{max-width:100%;page-break-inside:avoid}
+tr{page-break-inside:avoid}}"""
 
 
 def _conditions(d: RunData) -> str:

@@ -131,6 +131,14 @@ class Artifacts:
         return await self._cached((run_id, f"report:{hash(version)}"),
                                   lambda: self._locked_job(run_id, worker.report_job, str(path)))
 
+    async def report_pdf(self, run_id: str) -> bytes:
+        """The report's HTML page as PDF (rendered in the render worker, cached like the page)."""
+        path = await self._completed_path(run_id)
+        version = await asyncio.to_thread(results_version, path)
+        out: bytes = await self._cached((run_id, f"report.pdf:{hash(version)}"),
+                                        lambda: self._locked_job(run_id, worker.report_pdf_job, str(path)))
+        return out
+
     async def certificate(self, run_id: str, ext: str) -> bytes:
         """The run's certificate (the issued one, else the draft) as html, pdf or xml."""
         path = await self._completed_path(run_id)

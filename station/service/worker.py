@@ -145,6 +145,13 @@ def report_job(path: str) -> str:
 
 
 @_job
+def report_pdf_job(path: str) -> bytes:
+    from station.report.pdf import render_report_pdf
+
+    return render_report_pdf(Path(path))
+
+
+@_job
 def certificate_job(path: str, ext: str) -> bytes:
     """The run's certificate (issued, else its draft) as html, pdf or xml bytes."""
     from station.certificate.issue import run_document

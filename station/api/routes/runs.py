@@ -187,6 +187,14 @@ async def run_report(run: RunDep, artifacts: ArtifactsDep) -> HTMLResponse:
     return HTMLResponse(await artifacts.report(run.id))
 
 
+@router.get("/{run_id}/report.pdf", response_class=Response, dependencies=[Reader],
+            responses={200: {"content": {"application/pdf": {"schema": BINARY}}, "description": "PDF"},
+                       **NON_JSON_ERRORS},
+            summary="The calibration report as PDF (the same page through the HTML-to-PDF engine)")
+async def run_report_pdf(run: RunDep, artifacts: ArtifactsDep) -> Response:
+    return Response(await artifacts.report_pdf(run.id), media_type="application/pdf")
+
+
 @router.get("/{run_id}/recording", response_class=StreamingResponse, dependencies=[Reader],
             responses={200: {"content": {"application/x-hdf5": {"schema": BINARY}},
                              "description": "the HDF5 recording"},

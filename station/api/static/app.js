@@ -426,6 +426,7 @@ async function loadResults(id) {
   const rl = $("#report-link");
   if (d.report) { rl.href = d.report; rl.textContent = "calibration report"; } else { rl.removeAttribute("href"); rl.textContent = "report not available"; }
   $("#recording-link").href = `/runs/${encodeURIComponent(id)}/recording`;
+  $("#report-pdf-link").href = `/runs/${encodeURIComponent(id)}/report.pdf`;
   showCertificate(id);
   if (seq === methodsSeq) showMethods(d.methods || []);  // a later 'result' event's answer is newer
   $("#results").hidden = false;
