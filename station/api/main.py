@@ -172,6 +172,29 @@ def _operation_id(route: APIRoute) -> str:
     return route.name
 
 
+def install_docs(app: FastAPI) -> None:
+    """Swagger UI at /docs and ReDoc at /redoc, their assets served from the ``fastapi-offline``
+    package (Swagger UI 5, which reads OpenAPI 3.1) under /docs-assets."""
+    import fastapi_offline
+    from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+
+    assets = Path(fastapi_offline.__file__).resolve().parent / "static"
+    app.mount("/docs-assets", StaticFiles(directory=assets), name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    async def swagger() -> Response:
+        return get_swagger_ui_html(openapi_url="/openapi.json", title="sinecal station: API",
+                                   swagger_js_url="/docs-assets/swagger-ui-bundle.js",
+                                   swagger_css_url="/docs-assets/swagger-ui.css",
+                                   swagger_favicon_url="/docs-assets/favicon.png")
+
+    @app.get("/redoc", include_in_schema=False)
+    async def redoc() -> Response:
+        return get_redoc_html(openapi_url="/openapi.json", title="sinecal station: API",
+                              redoc_js_url="/docs-assets/redoc.standalone.js",
+                              redoc_favicon_url="/docs-assets/favicon.png", with_google_fonts=False)
+
+
 def create_app(settings: ServiceSettings, *,
                manager_factory: Callable[[ServiceSettings], RunManager] | None = None) -> FastAPI:
     @asynccontextmanager
@@ -184,8 +207,10 @@ def create_app(settings: ServiceSettings, *,
         finally:
             await manager.close()
 
+    # the API's pages (/docs, /redoc) load their scripts from this daemon, never from a CDN: a lab
+    # network is often isolated (install_docs)
     app = FastAPI(title="sinecal station", version=__version__, description=DESCRIPTION, lifespan=lifespan,
-                  generate_unique_id_function=_operation_id)
+                  generate_unique_id_function=_operation_id, docs_url=None, redoc_url=None)
     app.state.settings = settings
     if settings.loopback_only:  # refuse other Host headers (DNS rebinding against the open reads)
         app.add_middleware(TrustedHostMiddleware,
@@ -213,6 +238,7 @@ def create_app(settings: ServiceSettings, *,
     app.include_router(system.router)
     app.include_router(lab.router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    install_docs(app)
 
     @app.get("/", include_in_schema=False)
     async def index() -> FileResponse:

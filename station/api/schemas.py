@@ -401,6 +401,8 @@ class AbortOut(OutModel):
 class MotorLink(OutModel):
     connected: bool
     watchdog_error: str | None
+    link_error: str | None = Field(default=None, description="why the motor controller cannot be reached "
+                                   "(None: reachable, or the failure is the DAQ's)")
 
 
 class DaqLink(OutModel):

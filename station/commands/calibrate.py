@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from station.errors import BadInputError
+from station.errors import BadInputError, StationError
 
 if TYPE_CHECKING:
     from station.run.procedure import Progress
@@ -64,6 +64,8 @@ class _Bar:
 
 
 def run(args: argparse.Namespace) -> int:
+    from drivers.daq.link import DaqLinkError
+    from drivers.motor.errors import MotorCommunicationError
     from station.commands.identify import format_text
     from station.config import default_config_path, load_config
     from station.run.calibrate import run_and_identify
@@ -81,8 +83,15 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise BadInputError(f"recordings folder {out}: cannot create it ({exc.strerror})") from None
     with InstanceLock.acquire(out, "station calibrate"):  # not beside a daemon's live run
-        result = asyncio.run(run_and_identify(cfg, request, out, sim=args.sim,
-                                              on_progress=_Bar(cfg.daq.sample_rate_hz)))
+        try:
+            result = asyncio.run(run_and_identify(cfg, request, out, sim=args.sim,
+                                                  on_progress=_Bar(cfg.daq.sample_rate_hz)))
+        except (MotorCommunicationError, DaqLinkError) as exc:
+            dev = cfg.devices
+            where = (f"the motor controller at {dev.motor_url}" if isinstance(exc, MotorCommunicationError)
+                     else f"the DAQ bridge at {dev.daq_port}")
+            raise StationError(f"cannot reach {where} ({exc}); check that it is powered and connected "
+                               "(devices.* in the configuration), or add --sim for the simulated rig") from None
     sys.stderr.write("\n")
     if args.json:
         print(json.dumps(result.to_json(), indent=2))

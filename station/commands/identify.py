@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("identify", help="identify stiffness, damping and sensitivity from a recording")
-    p.add_argument("recording", type=Path, help="HDF5 recording of a run")
+    p.add_argument("recording", type=Path, nargs="?", default=None, help="HDF5 recording of a run")
     p.add_argument("more", type=Path, nargs="*", metavar="RECORDING",
                    help="further recordings of the same transducer with other top masses: all are identified "
                         "jointly (multi-mass campaign: S, m_e, k_f, b_f; method fd, model sdof)")
@@ -80,6 +80,9 @@ def run(args: argparse.Namespace) -> int:
     from station.ident.response.gate import IdentificationRefused
     from station.recording import read_recording
 
+    if args.recording is None:
+        raise BadInputError("name the recording to identify, e.g. `station identify recordings/<run id>.h5` "
+                            "(the runs are in the configuration's station.recordings_dir)")
     if args.more:
         from station.commands.campaign import run_campaign
 

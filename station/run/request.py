@@ -117,7 +117,12 @@ def default_request(cfg: StationConfig, frequencies_hz: list[float] | None = Non
                           steps=[StepSpec(**s.model_dump()) for s in cfg.plan.steps])
     r_cap = min(cfg.plan.steps[0].crank_radius_m, cfg.rig.crank_radius_m.max)
     steps = []
+    fr = cfg.rig.crank_frequency_hz
     for i, f in enumerate(frequencies_hz):
+        if not fr.contains(f):
+            raise LimitError(f"{f:g} Hz: outside the rig's crank frequency range [{fr.min:g}, {fr.max:g}] Hz "
+                             "(rig.crank_frequency_hz)", step=i, field="crank_frequency_hz", value=f,
+                             limit=(fr.min, fr.max))
         r = min(r_cap, 0.9 * max_radius_m(cfg, f))  # 10 % margin below the force limit
         if r < cfg.rig.crank_radius_m.min:
             raise LimitError(f"{f:g} Hz: no crank radius within [{cfg.rig.crank_radius_m.min:g}, "

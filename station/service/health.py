@@ -47,9 +47,10 @@ def health(link: RigLink, database: dict[str, Any], pool: worker.WorkerPool, lat
     a job outcome it has not taken yet, and why), no emergency stop latched and room on the
     recordings disk."""
     rig = link.rig
+    dev = link.error_device  # a connection failure is shown under its device only (both if unknown)
     links = rig.health() if rig is not None else {
-        "motor": {"connected": False, "watchdog_error": None},
-        "daq": {"link_error": link.error}, "simulated": sim}
+        "motor": {"connected": False, "watchdog_error": None, "link_error": link.error if dev != "daq" else None},
+        "daq": {"link_error": link.error if dev != "motor" else None}, "simulated": sim}
     unrecorded = dict(unrecorded or {})
     rig_ok = rig is not None and link.healthy(rig)
     estop = latch.state()

@@ -29,6 +29,18 @@ def default_connector(cfg: StationConfig, sim: bool) -> contextlib.AbstractAsync
     return connect(cfg, sim=sim)
 
 
+def _device_of(exc: BaseException) -> str | None:
+    """Which device a connection failure is of, by the driver's exception type."""
+    from drivers.daq.link import DaqLinkError
+    from drivers.motor.errors import MotorError
+
+    if isinstance(exc, MotorError):
+        return "motor"
+    if isinstance(exc, DaqLinkError | OSError) or type(exc).__module__.startswith("drivers.daq"):
+        return "daq"
+    return None
+
+
 class RigLink:
     """Holds the connected rig (``rig``, None while not connected; ``error`` says why)."""
 
@@ -40,6 +52,7 @@ class RigLink:
         self.thread = thread or RigThread()
         self.rig: ConnectedRig | None = None
         self.error: str | None = None
+        self.error_device: str | None = None  # "motor", "daq" or None (unknown) for ``error``
         self._stack: contextlib.AsyncExitStack | None = None
         self._lock: asyncio.Lock | None = None  # created on the rig loop
         self.drive: DriveCheck | None = None  # the last read-back after a stop
@@ -62,6 +75,7 @@ class RigLink:
             except Exception as exc:
                 await stack.aclose()
                 self.error = f"{type(exc).__name__}: {exc}"
+                self.error_device = _device_of(exc)
                 log.error("cannot connect to the rig: %s", self.error)
                 return None
             self._stack, self.error = stack, None
