@@ -98,7 +98,7 @@ def test_health_reports_each_device_link(tmp_path: Path) -> None:
     h = in_app(rec_dir, go, token=False, workers=1)
     assert h["status"] == "ok"
     assert h["rig"]["connected"] and h["rig"]["simulated"]
-    assert h["rig"]["motor"] == {"connected": True, "watchdog_error": None}
+    assert h["rig"]["motor"] == {"connected": True, "watchdog_error": None, "link_error": None}
     assert h["rig"]["daq"] == {"link_error": None}
     assert h["database"] == {"ok": True, "journal_mode": "wal", "pending_writes": 0, "error": None}
     assert h["worker"]["processes"] == 1
