@@ -63,6 +63,22 @@ def test_a_request_names_its_own_methods_and_the_recording_keeps_them() -> None:
         cfg.identification.methods
 
 
+def test_the_api_refuses_a_bad_list_at_its_field_and_runs_a_good_one(tmp_path: Path) -> None:
+    async def go() -> tuple[httpx.Response, dict[str, Any]]:
+        async with app_in_process(tmp_path) as (_, c):  # no worker: the run stops at identifying
+            bad = await c.post("/runs", json={**run_body(), "methods": [{"method": "rls", "model": "h1"}]})
+            body = {**run_body((10.0,), record_s=0.2), "methods": [{"method": "pso", "seed": 3}]}
+            good = await c.post("/runs", json=body)
+            assert good.status_code == 202, good.text
+            return bad, await wait_state(c, good.json()["id"], ("identifying",))
+    bad, st = asyncio.run(go())
+    assert bad.status_code == 422
+    [err] = bad.json()["detail"]
+    assert err["loc"][:3] == ["body", "methods", 0] and "defined for the models h2" in err["msg"]
+    rec = read_recording(tmp_path / st["recording"])  # the request's list is in the recording's configuration
+    assert rec.config["identification"]["methods"] == [{"method": "pso", "seed": 3}]
+
+
 def test_method_status_literal_matches_the_outcomes() -> None:
     from typing import get_args
 

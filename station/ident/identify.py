@@ -120,7 +120,7 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
                        inputs: IdentInputs | None = None, swarm: SwarmSize = PUBLISHED_SWARM) -> IdentificationResult:
     """Identify the transducer from a recording.
 
-    response: its checked H(f) if already computed (used by 'fd'); inputs: masses and chain,
+    response: its checked H(f) if already computed (used by 'fd' and the paper's methods); inputs: masses and chain,
     default ``inputs_for(rec)``.  Default method: 'fd' (the efficient estimator for stepped-sine
     data, at the Cramér-Rao bound; with a single frequency it reports what is not identifiable);
     default model: 'auto' for fd (Eq. 9, Eq. 8 when the data demand and determine it), 'sdof' for
@@ -141,7 +141,7 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     from station.ident.paper.identify import identify_paper_method  # scipy.signal: only for the paper's methods
 
     # the same gate: only steps that passed, each at its measured frequency (a = -w^2 s, Eq. 2)
-    cr = checked_response(rec, inputs)
+    cr = response or checked_response(rec, inputs)
     f_of = dict(zip(cr.used, cr.frf.f_hz, strict=True))
     checked = replace(rec, steps=[replace(st, crank_frequency_hz=float(f_of[st.index]))
                                   for st in rec.steps if st.index in f_of])

@@ -114,7 +114,7 @@ def identify_method(path: Path, rec: Recording, choice: MethodChoice, swarm: Swa
     try:
         model = None if choice.model_key == "auto" else choice.model_key  # fd's own choice of Eq. 9 / Eq. 8
         res = identify_recording(rec, choice.method, model, seed=choice.seed, swarm=swarm,
-                                 response=response if choice.method == "fd" else None)
+                                 response=response)
         store_result(path, res)
     except BadInputError as exc:
         if primary:
@@ -193,7 +193,8 @@ def identify_all(path: Path, rec: Recording, response: CheckedResponse | None = 
     """Every listed method, one after the other (``station calibrate``; the daemon runs each in its
     own worker job): the primary's result, every outcome stored."""
     outcomes, res = identify_primary(path, rec, response)
-    for i in range(1, len(outcomes)):
-        outcomes[i] = identify_secondary(path, rec, i)
+    ident = identification_of(rec)
+    for i in range(1, len(outcomes)):  # the H(f) computed once serves every method here
+        outcomes[i] = identify_method(path, rec, ident.methods[i], swarm_of(ident), primary=False, response=response)[0]
         write_outcomes(path, outcomes)
     return res
