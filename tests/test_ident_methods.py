@@ -129,6 +129,29 @@ def test_a_refusing_secondary_method_leaves_the_primary_result(tmp_path: Path) -
     assert 'data-key="method.pso+/h2">' in html and "the protocol needs 600" in html
 
 
+def test_a_failing_secondary_method_is_its_outcome_not_the_runs(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """An estimator that raises (a bug, not a refusal) beside fd: fd's result stands, the failure is
+    named; the same exception in the primary is raised (the run fails)."""
+    import station.ident.identify as ident_mod
+
+    real = ident_mod.identify_recording
+
+    def flaky(rec: Any, method: str | None = None, *a: Any, **kw: Any) -> IdentificationResult:
+        if method == "pso+":
+            raise FloatingPointError("overflow in the swarm")
+        return real(rec, method, *a, **kw)
+    monkeypatch.setattr(ident_mod, "identify_recording", flaky)
+    path = sim(tmp_path, ((10.0, 1e-3), (30.0, 1e-3)), record_s=0.6)
+    assert identify_all(path, read_recording(path)).method == "fd"
+    fd, pso = read_outcomes(path)
+    assert fd.status == "done" and (pso.status, pso.reason) == ("failed", "FloatingPointError: overflow in the swarm")
+    edit = {"methods": [{"method": "pso+"}, {"method": "fd"}]}
+    path2 = sim(tmp_path / "b", ((10.0, 1e-3),), record_s=0.3, edit=lambda d: d["identification"].update(edit))
+    with pytest.raises(FloatingPointError):
+        identify_all(path2, read_recording(path2))
+
+
 # ---------------------------------------------------------------------------------------- the daemon
 async def _events(c: httpx.AsyncClient, rid: str) -> list[tuple[str, dict[str, Any]]]:
     out: list[tuple[str, dict[str, Any]]] = []
