@@ -80,7 +80,8 @@ def test_four_parameter_fit_finds_the_frequency() -> None:
 
 
 def test_oe_reported_uncertainty_matches_monte_carlo() -> None:
-    from station.ident.oe import StepSignal, fit_oe
+    from station.ident.oe import fit_oe
+    from station.ident.response.checked import StepSignal
     from station.ident.response.frf import step_response
     est, rep = [], []
     for seed in range(60):

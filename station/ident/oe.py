@@ -24,20 +24,9 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from station.ident.models import Model
-from station.ident.response.sinefit import SineFit
+from station.ident.response.checked import StepSignal
 
 FloatArray = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class StepSignal:
-    """One step for OE: t (N,) in s, force u (N,) in V, and the displacement fit (frequency, time
-    origin) with harmonic phasors X_h in m, shape (n_h,) complex (index 0 = fundamental)."""
-
-    t: FloatArray
-    u: FloatArray
-    fit_x: SineFit
-    X_h: NDArray[np.complex128]
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ from numpy.typing import NDArray
 
 from station.ident.identifiability import Policy, assess, correlations
 from station.ident.models import Model, SdofModel
-from station.ident.oe import StepSignal
 from station.ident.response import frf as frfmod
+from station.ident.response.checked import StepSignal
 from station.ident.result import FitSummary, Identifiability
 
 FloatArray = NDArray[np.float64]

@@ -5,13 +5,28 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import NDArray
 
 from station.ident.inputs import IdentInputs, inputs_for
-from station.ident.oe import StepSignal
 from station.ident.response import frf as frfmod
 from station.ident.response.gate import run_checks, screen_step
+from station.ident.response.sinefit import SineFit
 from station.ident.result import Check
 from station.recording import Recording
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class StepSignal:
+    """The signals of one step the gate kept, for the time-domain fits (OE): t (N,) in s, force
+    u (N,) in V, the displacement fit (frequency, time origin) and its harmonic phasors X_h in m,
+    shape (n_h,) complex (index 0 = fundamental)."""
+
+    t: FloatArray
+    u: FloatArray
+    fit_x: SineFit
+    X_h: NDArray[np.complex128]
 
 
 @dataclass(frozen=True)
