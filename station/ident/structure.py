@@ -344,7 +344,7 @@ def resonance_suspected(frf: frfmod.FrequencyResponse, sdof: SdofModel, theta: F
     dof = 2 * frf.f_hz.size - 5
     if dof < 1 or sdof_dof < 1:
         return None
-    W = frfmod._whiteners(frf.cov)
+    W = frfmod.whiteners(frf.cov)
     f_max = float(np.max(frf.f_hz))
 
     def resid(q: FloatArray) -> FloatArray:

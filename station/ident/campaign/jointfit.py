@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from station.ident.models import SdofModel
-from station.ident.response.frf import FrequencyResponse, _whiteners, fit_frf, linear_start_sdof
+from station.ident.response.frf import FrequencyResponse, fit_frf, linear_start_sdof, whiteners
 
 FloatArray = NDArray[np.float64]
 NAMES = ("S", "m_e", "k_f", "b_f")
@@ -88,7 +88,7 @@ def _response_and_jacobian(p: FloatArray, m_l: float, f_hz: FloatArray) -> tuple
 
 def _system(frfs: list[FrequencyResponse], priors: list[MassPrior], cov_of: list[FloatArray] | None = None):
     """Whitened residual and Jacobian functions of the scaled parameters x = p / scale."""
-    W = [_whiteners(f.cov if cov_of is None else cov_of[i]) for i, f in enumerate(frfs)]
+    W = [whiteners(f.cov if cov_of is None else cov_of[i]) for i, f in enumerate(frfs)]
     R = len(frfs)
     held = [pr.std <= 0 for pr in priors]
 
@@ -226,7 +226,7 @@ def data_sensitivity(frfs: list[FrequencyResponse], priors: list[MassPrior], p: 
         free[1] = True
     Js = J[:, free] * scale[free][None, :]
     pinv = np.linalg.pinv(Js)
-    W = [_whiteners(f.cov) for f in frfs]
+    W = [whiteners(f.cov) for f in frfs]
     n_data = sum(2 * f.f_hz.size for f in frfs)
 
     def apply(dH: list[NDArray[np.complex128]]) -> FloatArray:

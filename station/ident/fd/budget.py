@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 
 from station.ident.inputs import IdentInputs
 from station.ident.models import Model, make_model
-from station.ident.response.frf import FrequencyResponse, _whiteners
+from station.ident.response.frf import FrequencyResponse, whiteners
 from station.ident.structure import resonance_vectors
 
 FloatArray = NDArray[np.float64]
@@ -97,7 +97,7 @@ def _stack(dH: NDArray[np.complex128]) -> FloatArray:
 
 def _projector(model: Model, theta: FloatArray, frf: FrequencyResponse, free: NDArray[np.bool_]) -> FloatArray:
     """P (n_free, 2 n_f) mapping a stacked dH of the data to d theta of the free parameters."""
-    W = _whiteners(frf.cov)
+    W = whiteners(frf.cov)
     Wb = np.zeros((2 * W.shape[0], 2 * W.shape[0]))
     for i, w in enumerate(W):
         Wb[2 * i:2 * i + 2, 2 * i:2 * i + 2] = w

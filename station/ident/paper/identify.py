@@ -33,7 +33,7 @@ from station.ident.models import DigitalTF, Model
 from station.ident.paper.protocol import PUBLISHED_SWARM, PaperData, PaperProtocol, SwarmSize, paper_data, testing_mse
 from station.ident.paper.pso import SECTION5_H1, SECTION5_H2, PsoSettings, identify_digital
 from station.ident.paper.rls import rls_h2
-from station.ident.response.frf import FrequencyResponse, _ratio_cov, whitened_jacobian
+from station.ident.response.frf import FrequencyResponse, ratio_cov, whitened_jacobian
 from station.ident.response.sinefit import fit3
 from station.ident.result import FitSummary, Identifiability, IdentificationResult, estimated_covariance, estimates
 from station.ident.structure import MIN_PLAUSIBLE_COUPLING_RATIO, plausible_coupling
@@ -94,7 +94,7 @@ def step_frf(data: PaperData) -> FrequencyResponse:
     t = np.arange(data.x_id.size) * data.T
     fa = fit3(np.asarray(t, dtype=np.float64), data.x_id, data.f_hz)
     fu = fit3(np.asarray(t, dtype=np.float64), data.y_id, data.f_hz, t_center_s=fa.t_center_s)
-    H, C = _ratio_cov(fu.phasor, fu.phasor_cov, fa.phasor, fa.phasor_cov)
+    H, C = ratio_cov(fu.phasor, fu.phasor_cov, fa.phasor, fa.phasor_cov)
     return FrequencyResponse(np.array([data.f_hz]), np.array([H]), C[None], np.array([fu.residual_rms]),
                              np.array([fu.offset]))
 

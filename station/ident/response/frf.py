@@ -40,8 +40,9 @@ class FrequencyResponse:
     force_offset_V: FloatArray
 
 
-def _ratio_cov(U: complex, Cu: FloatArray, A: complex, Ca: FloatArray) -> tuple[complex, FloatArray]:
-    """H = U/A and cov(Re H, Im H) by the delta method (U, A independent)."""
+def ratio_cov(U: complex, Cu: FloatArray, A: complex, Ca: FloatArray) -> tuple[complex, FloatArray]:
+    """H = U/A of two phasors (covariances Cu, Ca (2, 2) of their real and imaginary parts) and
+    cov(Re H, Im H) (2, 2) by the delta method (U, A independent)."""
     def cmul(z: complex) -> FloatArray:  # real 2x2 matrix of multiplication by z
         return np.array([[z.real, -z.imag], [z.imag, z.real]])
     H = U / A
@@ -61,7 +62,7 @@ def step_response(t: FloatArray, x_m: FloatArray, u_V: FloatArray, f_nominal_hz:
     fit_x, fit_u = fit_channels(t, np.column_stack([x_m, u_V]), f, t_center_s=tc, n_harmonics=n_harmonics)
     fit_x = replace(fit_x, frequency_std_hz=f_std)
     w2 = (2 * np.pi * fit_x.frequency_hz) ** 2
-    H, C = _ratio_cov(fit_u.phasor, fit_u.phasor_cov, -w2 * fit_x.phasor, w2**2 * fit_x.phasor_cov)
+    H, C = ratio_cov(fit_u.phasor, fit_u.phasor_cov, -w2 * fit_x.phasor, w2**2 * fit_x.phasor_cov)
     return H, C, fit_x, fit_u
 
 
@@ -102,8 +103,9 @@ class FrfFit:
     inflated: bool
 
 
-def _whiteners(cov: FloatArray) -> FloatArray:
-    """W_i with W_i C_i W_i^T = I (inverse Cholesky), shape (n, 2, 2)."""
+def whiteners(cov: FloatArray) -> FloatArray:
+    """Whiteners of the per-frequency covariances cov (n, 2, 2) of (Re H, Im H): W_i with
+    W_i C_i W_i^T = I (inverse Cholesky), shape (n, 2, 2); every weighted fit of H(f) uses them."""
     return np.array([np.linalg.inv(np.linalg.cholesky(C)) for C in cov])
 
 
@@ -112,7 +114,7 @@ def whitened_jacobian(model: Model, theta: FloatArray, frf: FrequencyResponse,
     """d(whitened residual)/d(theta/scale), shape (2 n_f, n_theta); scale defaults to theta
     (then d/d(ln theta)).  A parameter near 0 needs a typical value as scale, or its column
     vanishes and a covariance computed from it becomes conditional on it."""
-    W = _whiteners(frf.cov if cov is None else cov)
+    W = whiteners(frf.cov if cov is None else cov)
     Jc = model.jacobian(theta, frf.f_hz) * (theta if scale is None else scale)[None, :]
     Jr = np.stack([Jc.real, Jc.imag], axis=1)  # (n_f, 2, n_theta)
     return np.einsum("fij,fjk->fik", W, Jr).reshape(-1, theta.size)
@@ -126,7 +128,7 @@ def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
     that S may be negative for an inverted channel; its sign is kept)."""
     theta0 = np.asarray(theta0, float)
     free = np.ones(theta0.size, bool) if free is None else np.asarray(free, bool)
-    W = _whiteners(frf.cov)
+    W = whiteners(frf.cov)
 
     def theta_of(p: FloatArray) -> FloatArray:
         th = theta0.copy()
