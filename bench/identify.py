@@ -26,7 +26,9 @@ import numpy as np
 from scipy.signal import resample_poly
 
 from station.config import load_config
-from station.ident.identify import identify_fd, identify_recording, model_for
+from station.ident.fd.identify import identify_fd
+from station.ident.identify import identify_recording
+from station.ident.inputs import model_for
 from station.ident.models import DigitalTF
 from station.ident.paper.batchfilter import batch_mse
 from station.ident.paper.protocol import paper_data

@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 from scipy.signal import freqz, lfilter
 
-from station.ident.identify import identify_fd, identify_recording
+from station.ident.fd.identify import identify_fd
+from station.ident.identify import identify_recording
 from station.ident.paper.protocol import PaperProtocol, paper_data
 from station.ident.paper.pso import CASE_I, CASE_II, PsoResult, output_error_objective, run_pso
 from station.recording import read_recording

@@ -122,13 +122,15 @@ def test_cli_rejects_missing_recording(tmp_path: Path) -> None:
 def test_reported_correlations_are_those_of_the_estimate(stepped: Path) -> None:
     """identifiability.correlations of identifiable parameters = the estimate's covariance, whose
     correlations the 200-draw Monte Carlo test checks (tests/test_ident_fd.py)."""
-    from station.ident.identifiability import correlations
-    from station.ident.identify import DEFAULT_POLICY, _fd_fit, _start, measured_response, model_for
+    from station.ident.fd.core import fd_fit, start_values
+    from station.ident.identifiability import Policy, correlations
+    from station.ident.inputs import model_for
+    from station.ident.response.checked import checked_response
 
     rec = read_recording(stepped)
-    frf, _, _ = measured_response(rec)
+    frf = checked_response(rec).frf
     model = model_for(rec, "sdof")
-    fit, rep = _fd_fit(frf, model, _start(frf, model), DEFAULT_POLICY)
+    fit, rep = fd_fit(frf, model, start_values(frf, model), Policy())
     assert all(rep.identifiable)
     np.testing.assert_allclose(np.array(rep.correlations), correlations(fit.cov), atol=1e-12)
     assert identify_recording(rec).identifiability.correlations == rep.correlations

@@ -8,103 +8,23 @@ digital forms 'h2' (Eq. 11, maps to sdof) and 'h1' (Eq. 10, maps to coupled).
 
 from __future__ import annotations
 
-import logging
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-from numpy.typing import NDArray
-
 from station.errors import BadInputError
-from station.ident.fd.core import fd_fit as _fd_fit
-from station.ident.fd.core import start_values
-from station.ident.fd.core import start_values as _start
 from station.ident.fd.identify import identify_fd
 from station.ident.identifiability import Policy
-from station.ident.inputs import IdentInputs, inputs_for
-from station.ident.models import Model, SdofModel, make_model
+from station.ident.inputs import IdentInputs, inputs_for, model_for
 from station.ident.names import METHODS, MODELS
-from station.ident.oe import fit_oe
+from station.ident.oe import identify_oe
 from station.ident.paper.protocol import PUBLISHED_SWARM, PaperProtocol, SwarmSize
-from station.ident.response import frf as frfmod
-from station.ident.response.checked import CheckedResponse, checked_response, measured_response
-from station.ident.result import FitSummary, IdentificationResult, estimated_covariance, estimates
+from station.ident.response.checked import CheckedResponse, checked_response
+from station.ident.result import IdentificationResult
 from station.ident.structure import structure_statement
 from station.recording import Recording, write_result
 
-__all__ = [
-    "METHODS",
-    "MODELS",
-    "_fd_fit",
-    "_start",
-    "identify_fd",
-    "identify_oe",
-    "identify_recording",
-    "measured_response",
-    "model_for",
-    "store_result",
-]
-
-FloatArray = NDArray[np.float64]
-log = logging.getLogger(__name__)
 DEFAULT_POLICY = Policy()
 DEFAULT_PROTOCOL = PaperProtocol()
-
-
-def model_for(rec: Recording, key: str, inputs: IdentInputs | None = None) -> Model:
-    """The model with the recording's masses (m_l load mass, m_e end mass; an unknown end mass is
-    the assumed one of ``inputs``, 0 by default, and the result is then conditional on it)."""
-    inputs = inputs or inputs_for(rec)
-    if not inputs.end_mass_given and key in ("coupled", "h1"):
-        raise BadInputError(f"{rec.path}: the coupled model needs the end mass, which is not recorded")
-    return make_model(key, inputs.m_e, inputs.m_l)
-
-
-def identify_oe(rec: Recording, model_key: str = "sdof", policy: Policy = DEFAULT_POLICY,
-                inputs: IdentInputs | None = None) -> IdentificationResult:
-    """Time-domain output error on the raw force samples, started from the FD estimate."""
-    inputs = inputs or inputs_for(rec)
-    cr = checked_response(rec, inputs)
-    frf, sigs, notes = cr.frf, cr.sigs, []
-    model = model_for(rec, "coupled" if model_key in ("coupled", "h1") else "sdof", inputs)
-    fd = identify_fd(rec, model.key, policy, inputs=inputs)
-    ok = np.array(fd.identifiability.identifiable) if fd.identifiability else np.ones(len(model.names), bool)
-    sd = model_for(rec, "sdof", inputs)
-    assert isinstance(sd, SdofModel)
-    th0 = frfmod.fit_frf(frf, sd, start_values(frf, sd, cr.sign)).theta
-    if model.key == "coupled":
-        th0 = np.r_[th0, 10 * th0[1], 0.1 * th0[2]]
-        if not ok[3]:
-            model, ok, th0 = sd, ok[:3], th0[:3]
-    fit = fit_oe(sigs, model, th0, free=ok)
-    rep = fd.identifiability
-    ident = tuple(bool(v) for v in ok)
-    reasons = rep.reasons[: len(ident)] if rep else ("",) * len(ident)
-    params = estimates(model.names, model.units, fit.theta, fit.cov, ident, reasons)
-    covariance = estimated_covariance(params, model.names, fit.cov)  # correlations of the OE fit
-    budget = {}
-    for name, p in params.items():  # OE's own noise term, the systematic terms of the FD budget
-        b = fd.budget.get(name)
-        if p.identifiable and name in fd.parameters and not fd.parameter(name).identifiable:
-            params[name] = fd.parameter(name)  # withheld by the FD result's structure (e.g. coupling_suspected)
-            continue
-        if b is None or not p.identifiable or p.std is None:
-            continue
-        c = {**b["contributions"], "noise": p.std}
-        comb = float(np.sqrt(sum(v * v for v in c.values() if v is not None)))
-        budget[name] = {**b, "contributions": c, "combined": comb}
-        fdp = fd.parameter(name)
-        params[name] = replace(p, std=comb, flag=fdp.flag, reason=fdp.reason if fdp.flag else p.reason)
-    if covariance is not None:  # the same correlations at the combined standard uncertainties
-        covariance = estimated_covariance(params, covariance.names, covariance.array)
-    if len(params) < len(fd.parameters):
-        params.update({n: p for n, p in fd.parameters.items() if n not in params})
-        notes.append("k_c, b_c not identifiable: OE fit in the stiff-coupling limit (Eq. 9)")
-    summary = FitSummary(fit.mse, tuple(float(v) for v in fit.residual_rms_V), float("nan"),
-                         int(sum(s.t.size for s in sigs)))
-    return IdentificationResult("oe", fd.model, params, summary, rep, tuple(notes),
-                                {"offsets_V": fit.offsets_V.tolist()}, fd.checks, budget, fd.assumptions,
-                                fd.determined, covariance)
 
 
 def store_result(path: str | Path, res: IdentificationResult) -> str:

@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from drivers.rig.params import DisplacementResonance
 from station.errors import BadInputError
+from station.ident.models import Model, make_model
 
 DEFAULT_END_MASS_REL_STD = 0.05
 DEFAULT_RESONANCE_REL_STD = 0.05
@@ -174,3 +175,12 @@ def inputs_for(rec: Any, *, assumed_end_mass_kg: float | None = None,
             raise BadInputError(f"{rec.path}: measurement chain: {exc.errors()[0]['msg']} "
                                 f"(received {raw!r})") from None
     return IdentInputs(end, load, chain, given)
+
+
+def model_for(rec: Any, key: str, inputs: IdentInputs | None = None) -> Model:
+    """The model with the recording's masses (m_l load mass, m_e end mass; an unknown end mass is
+    the assumed one of ``inputs``, 0 by default, and the result is then conditional on it)."""
+    inputs = inputs or inputs_for(rec)
+    if not inputs.end_mass_given and key in ("coupled", "h1"):
+        raise BadInputError(f"{rec.path}: the coupled model needs the end mass, which is not recorded")
+    return make_model(key, inputs.m_e, inputs.m_l)

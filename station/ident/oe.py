@@ -17,14 +17,21 @@ not the force, limits the accuracy.
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from station.ident.models import Model
-from station.ident.response.checked import StepSignal
+from station.ident.fd.core import start_values
+from station.ident.fd.identify import identify_fd
+from station.ident.identifiability import Policy
+from station.ident.inputs import IdentInputs, inputs_for, model_for
+from station.ident.models import Model, SdofModel
+from station.ident.response import frf as frfmod
+from station.ident.response.checked import StepSignal, checked_response
+from station.ident.result import FitSummary, IdentificationResult, estimated_covariance, estimates
+from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
 
@@ -107,3 +114,50 @@ def fit_oe(steps: list[StepSignal], model: Model, theta0: FloatArray,
     edges = np.cumsum([0] + [st.t.size for st in steps])
     rms = np.array([np.sqrt(np.mean(r[a:b] ** 2)) for a, b in itertools.pairwise(edges)])
     return OeFit(theta, cov, sol.x[nf:], rms, float(np.mean(r**2)), J[:, :nf] / np.sqrt(s2))
+
+
+def identify_oe(rec: Recording, model_key: str = "sdof", policy: Policy | None = None,
+                inputs: IdentInputs | None = None) -> IdentificationResult:
+    """Time-domain output error on the raw force samples, started from the FD estimate."""
+    inputs = inputs or inputs_for(rec)
+    cr = checked_response(rec, inputs)
+    frf, sigs, notes = cr.frf, cr.sigs, []
+    model = model_for(rec, "coupled" if model_key in ("coupled", "h1") else "sdof", inputs)
+    fd = identify_fd(rec, model.key, policy, inputs=inputs, response=cr)  # one checked H(f)
+    ok = np.array(fd.identifiability.identifiable) if fd.identifiability else np.ones(len(model.names), bool)
+    sd = model_for(rec, "sdof", inputs)
+    assert isinstance(sd, SdofModel)
+    th0 = frfmod.fit_frf(frf, sd, start_values(frf, sd, cr.sign)).theta
+    if model.key == "coupled":
+        th0 = np.r_[th0, 10 * th0[1], 0.1 * th0[2]]
+        if not ok[3]:
+            model, ok, th0 = sd, ok[:3], th0[:3]
+    fit = fit_oe(sigs, model, th0, free=ok)
+    rep = fd.identifiability
+    ident = tuple(bool(v) for v in ok)
+    reasons = rep.reasons[: len(ident)] if rep else ("",) * len(ident)
+    params = estimates(model.names, model.units, fit.theta, fit.cov, ident, reasons)
+    covariance = estimated_covariance(params, model.names, fit.cov)  # correlations of the OE fit
+    budget = {}
+    for name, p in params.items():  # OE's own noise term, the systematic terms of the FD budget
+        b = fd.budget.get(name)
+        if p.identifiable and name in fd.parameters and not fd.parameter(name).identifiable:
+            params[name] = fd.parameter(name)  # withheld by the FD result's structure (e.g. coupling_suspected)
+            continue
+        if b is None or not p.identifiable or p.std is None:
+            continue
+        c = {**b["contributions"], "noise": p.std}
+        comb = float(np.sqrt(sum(v * v for v in c.values() if v is not None)))
+        budget[name] = {**b, "contributions": c, "combined": comb}
+        fdp = fd.parameter(name)
+        params[name] = replace(p, std=comb, flag=fdp.flag, reason=fdp.reason if fdp.flag else p.reason)
+    if covariance is not None:  # the same correlations at the combined standard uncertainties
+        covariance = estimated_covariance(params, covariance.names, covariance.array)
+    if len(params) < len(fd.parameters):
+        params.update({n: p for n, p in fd.parameters.items() if n not in params})
+        notes.append("k_c, b_c not identifiable: OE fit in the stiff-coupling limit (Eq. 9)")
+    summary = FitSummary(fit.mse, tuple(float(v) for v in fit.residual_rms_V), float("nan"),
+                         int(sum(s.t.size for s in sigs)))
+    return IdentificationResult("oe", fd.model, params, summary, rep, tuple(notes),
+                                {"offsets_V": fit.offsets_V.tolist()}, fd.checks, budget, fd.assumptions,
+                                fd.determined, covariance)

@@ -73,10 +73,3 @@ def checked_response(rec: Recording, inputs: IdentInputs | None = None,
     checks += more
     return CheckedResponse(frfmod.assemble([items[i] for i in used]), [sigs[i] for i in used], used,
                            checks, sign)
-
-
-def measured_response(rec: Recording, n_harmonics: int = 3) -> tuple[frfmod.FrequencyResponse,
-                                                                     list[StepSignal], list[str]]:
-    """H(f) from every usable step, the per-step signals for OE, and notes on what was left out."""
-    cr = checked_response(rec, n_harmonics=n_harmonics)
-    return cr.frf, cr.sigs, cr.notes
