@@ -18,7 +18,7 @@ softest of them is the lower bound on k_c this plan supports.
 **Displacement chain.**  A displacement sensor with its own resonance f_r (damping ratio p) reads
 x_m = H_s x_b, H_s = w_r^2 / (w_r^2 - w^2 + 2 j p w_r w) (``drivers.rig.params.DisplacementResonance``),
 so the measured H(f) is H / H_s.  When the chain states a resonance, ``chain_corrected`` multiplies
-H(f) by H_s and ``resonance_vectors`` give the budget's ``chain_resonance`` source (u(f_r), u(p)).
+H(f) by H_s; ``fd.budget.resonance_vectors`` give the budget's ``chain_resonance`` source (u(f_r), u(p)).
 """
 
 from __future__ import annotations
@@ -37,11 +37,10 @@ from station.ident.models import CoupledModel, SdofModel, make_model
 from station.ident.response import frf as frfmod
 from station.ident.result import Check, Estimate
 
-if TYPE_CHECKING:  # budget imports this module for the chain's resonance vectors
+if TYPE_CHECKING:
     from station.ident.fd.budget import Budget
 
 FloatArray = NDArray[np.float64]
-ComplexArray = NDArray[np.complex128]
 DETECTION_POWER = 0.95
 # couplings tried: k_c = (1 + x) k_s, x within 1e-2 ... 1e6 (x -> 0: all the compliance in the coupling)
 _X_MIN, _X_MAX = 1e-2, 1e6
@@ -66,21 +65,6 @@ def chain_corrected(frf: frfmod.FrequencyResponse, chain: MeasurementChain) -> f
     R = np.array([[[z.real, -z.imag], [z.imag, z.real]] for z in hs])
     cov = np.einsum("fij,fjk,flk->fil", R, frf.cov, R)
     return frfmod.FrequencyResponse(frf.f_hz, frf.H * hs, cov, frf.force_rms_residual_V, frf.force_offset_V)
-
-
-def resonance_vectors(H: ComplexArray, f_hz: FloatArray,
-                      chain: MeasurementChain) -> list[tuple[ComplexArray, float]]:
-    """The budget's chain_resonance source: dH = H d ln H_s / d q times u(q), q = f_r and p
-    (correlated across frequencies); empty for a flat chain."""
-    res = chain.displacement_resonance
-    if res is None:
-        return []
-    f = np.asarray(f_hz, float)
-    r = f / res.resonance_hz
-    den = 1.0 - r * r + 2j * res.damping * r
-    dln_dfr = (-2.0 * r * r + 2j * res.damping * r) / den / res.resonance_hz  # d ln H_s / d f_r
-    dln_dp = -2j * r / den
-    return [(H * dln_dfr, chain.resonance_std_hz), (H * dln_dp, float(chain.displacement_damping_std))]
 
 
 # ---- coupling -----------------------------------------------------------------------------------

@@ -1,4 +1,5 @@
-"""The named checks and the uncertainty budget of a multi-mass campaign (``campaign.identify``).
+"""The named checks of a multi-mass campaign (``campaign.identify``), their thresholds
+(``CampaignPolicy``) and the campaign's uncertainty budget.
 
 * ``end_mass_separation``: can the load masses separate S from m_e?  From the combined covariance
   of (S, m_e, k_f, b_f) (noise, load masses, measurement chain: ``campaign_budget``), the relative
@@ -11,24 +12,36 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
 from station.ident.campaign import jointfit as jf
+from station.ident.fd.budget import resonance_vectors
 from station.ident.inputs import MeasurementChain
 from station.ident.models import SdofModel
 from station.ident.response.frf import FrequencyResponse, fit_frf
 from station.ident.result import Check
-from station.ident.structure import resonance_vectors
 from station.recording import Recording
 
-if TYPE_CHECKING:
-    from station.ident.campaign.identify import CampaignPolicy
-
 FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class CampaignPolicy:
+    """Decision thresholds.  distinct_sigma: load masses closer than this many combined standard
+    uncertainties count as one; max_S_rel_std, poor_S_rel_std: relative standard uncertainty of S
+    (measurement chain included) above which S and m_e are refused / flagged as poorly separated;
+    consistency_p_warn, consistency_p_refuse: p-values of the consistency tests (warning / refusal)."""
+
+    distinct_sigma: float = 3.0
+    max_S_rel_std: float = 0.01
+    poor_S_rel_std: float = 1e-3
+    consistency_p_warn: float = 1e-3
+    consistency_p_refuse: float = 1e-6
 
 
 def own_fits(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], theta: FloatArray) -> list[FloatArray]:

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import itertools
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 from station.errors import BadInputError
 from station.ident.campaign import jointfit as jf
 from station.ident.campaign.checks import (
+    CampaignPolicy,
     campaign_budget,
     consistency,
     end_mass_plausibility,
@@ -54,20 +55,6 @@ from station.recording import Recording
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
 RESULT_NAME = "campaign"  # stored as result "campaign" beside every recording of a campaign
-
-
-@dataclass(frozen=True)
-class CampaignPolicy:
-    """Decision thresholds.  distinct_sigma: load masses closer than this many combined standard
-    uncertainties count as one; max_S_rel_std, poor_S_rel_std: relative standard uncertainty of S
-    (measurement chain included) above which S and m_e are refused / flagged as poorly separated;
-    consistency_p_warn, consistency_p_refuse: p-values of the consistency tests (warning / refusal)."""
-
-    distinct_sigma: float = 3.0
-    max_S_rel_std: float = 0.01
-    poor_S_rel_std: float = 1e-3
-    consistency_p_warn: float = 1e-3
-    consistency_p_refuse: float = 1e-6
 
 
 class CampaignRefused(IdentificationRefused):

@@ -37,10 +37,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from station.ident.inputs import IdentInputs
+from station.ident.inputs import IdentInputs, MeasurementChain
 from station.ident.models import Model, make_model
 from station.ident.response.frf import FrequencyResponse, whiteners
-from station.ident.structure import resonance_vectors
 
 FloatArray = NDArray[np.float64]
 SOURCES = ("noise", "chain_gain", "chain_phase", "chain_delay", "chain_resonance", "end_mass", "load_mass",
@@ -89,6 +88,21 @@ class Budget:
             if self.dof:
                 out[n]["dof"] = dict(self.dof)
         return out
+
+
+def resonance_vectors(H: NDArray[np.complex128], f_hz: FloatArray,
+                      chain: MeasurementChain) -> list[tuple[NDArray[np.complex128], float]]:
+    """The budget's chain_resonance source: dH = H d ln H_s / d q times u(q), q = f_r and p
+    (correlated across frequencies); empty for a flat chain."""
+    res = chain.displacement_resonance
+    if res is None:
+        return []
+    f = np.asarray(f_hz, float)
+    r = f / res.resonance_hz
+    den = 1.0 - r * r + 2j * res.damping * r
+    dln_dfr = (-2.0 * r * r + 2j * res.damping * r) / den / res.resonance_hz  # d ln H_s / d f_r
+    dln_dp = -2j * r / den
+    return [(H * dln_dfr, chain.resonance_std_hz), (H * dln_dp, float(chain.displacement_damping_std))]
 
 
 def _stack(dH: NDArray[np.complex128]) -> FloatArray:
