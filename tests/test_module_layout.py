@@ -1,0 +1,104 @@
+"""The package layout's rules, read from the source (``docs/architecture.md``, Layers): no module
+imports another module's private (``_name``) helper, and the modules of ``station`` and of ``drivers``
+import each other without a circle (every import counts: top-level, in a function, under TYPE_CHECKING)."""
+
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _modules(package: str) -> dict[str, Path]:
+    out = {}
+    for p in sorted((ROOT / package.replace(".", "/")).rglob("*.py")):
+        name = ".".join(p.relative_to(ROOT).with_suffix("").parts)
+        out[name.removesuffix(".__init__")] = p
+    return out
+
+
+def _imports(path: Path) -> list[tuple[str, list[str]]]:
+    """(module, imported names) of every import statement in the file."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.append((node.module, [a.name for a in node.names]))
+        elif isinstance(node, ast.Import):
+            out.extend((a.name, []) for a in node.names)
+    return out
+
+
+def private_imports(packages: tuple[str, ...]) -> list[str]:
+    found = []
+    for package in packages:
+        for name, path in _modules(package).items():
+            for module, names in _imports(path):
+                if module.split(".")[0] not in ("station", "drivers"):
+                    continue
+                found += [f"{name}: from {module} import {n}" for n in names
+                          if n.startswith("_") and not n.startswith("__")]
+    return found
+
+
+def import_cycles(package: str) -> list[list[str]]:
+    """Strongly connected components (more than one module) of the package's import graph."""
+    mods = _modules(package)
+    graph: dict[str, set[str]] = {m: set() for m in mods}
+    for m, path in mods.items():
+        for module, names in _imports(path):
+            for target in (module, *(f"{module}.{n}" for n in names)):
+                if target in mods and target != m:
+                    graph[m].add(target)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles: list[list[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return cycles
+
+
+def test_no_private_helper_is_imported_across_modules() -> None:
+    assert private_imports(("station", "drivers")) == []
+
+
+@pytest.mark.parametrize("package", ["station", "drivers"])
+def test_modules_import_each_other_without_a_circle(package: str) -> None:
+    assert import_cycles(package) == []
+
+
+def test_the_rules_see_what_they_forbid(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A private import and a circle written on purpose are found (the checks can fail)."""
+    pkg = tmp_path / "station" / "ident"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from station.ident.b import _helper\n")
+    (pkg / "b.py").write_text("def f():\n    from station.ident import a\n")
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    assert private_imports(("station",)) == ["station.ident.a: from station.ident.b import _helper"]
+    assert import_cycles("station.ident") == [["station.ident.a", "station.ident.b"]]
