@@ -71,6 +71,7 @@ def test_station_calibrate_sim_over_the_wire(tmp_path: Path) -> None:
     (the identification against the truth is the in-process test's job, on the same code)."""
     d = _config()
     d["plan"].update({"record_s": 1.0})
+    d["rig"]["acceleration_hz_per_s"] = 100.0  # the drive's fastest ramp: the ramps are not what this is about
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text(yaml.safe_dump(d))
     res = subprocess.run([sys.executable, "-m", "station.cli", "calibrate", "--sim", "--config", str(cfg),
