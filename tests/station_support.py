@@ -76,6 +76,7 @@ def seed_runs(config: dict[str, Any], seeds: Sequence[Seed]) -> list[str]:
 
     ``config``: the daemon's configuration as parsed YAML.  The recordings are simulated from the
     physics (``station.simulate``), not by the code under test."""
+    from station.lab.integrity import sha256_file
     from station.run.calibrate import process_and_identify
     from station.run.request import RunRequest, plan_run
     from station.service.settings import build_settings
@@ -106,7 +107,7 @@ def seed_runs(config: dict[str, Any], seeds: Sequence[Seed]) -> list[str]:
                 ended=now, step=len(plan.steps) - 1, step_state="done", fraction=1.0,
                 samples=int(sum(st.record_s for st in plan.steps) * cfg.daq.sample_rate_hz),
                 message="identified (seeded)" if s.identified else "acquisition completed; identification queued",
-                recording=path.name, result_name=result_name))
+                recording=path.name, result_name=result_name, recording_sha256=sha256_file(path)))
             if not s.identified:
                 store.enqueue_job(path.stem)
             ids.append(path.stem)

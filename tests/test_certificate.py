@@ -123,6 +123,7 @@ def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None
     import asyncio
 
     from tests.station_support import Seed, app_in_process, daemon_config, seed_runs
+    from tests.test_lab import PW, login
 
     rec = tmp_path / "recordings"
     [rid] = seed_runs(daemon_config(rec), [Seed()])
@@ -133,13 +134,21 @@ def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None
             assert r.status_code == 200 and "DRAFT" in r.text and r.headers["content-type"].startswith("text/html")
             assert (await c.get(f"/runs/{rid}/certificate.xml")).status_code == 404
             assert (await c.get(f"/runs/{rid}/certificate.doc")).status_code == 422
-            bad = await c.post(f"/runs/{rid}/certificate", json={"prepared_by": APPROVER, "approver": TECH})
-            assert bad.status_code == 409 and "may not approve" in bad.json()["detail"]
-            ok = await c.post(f"/runs/{rid}/certificate", json={"prepared_by": TECH, "approver": APPROVER})
+            # the approver is who authenticates, never a name in the body; an admin may not approve
+            assert (await c.post(f"/runs/{rid}/certificate", json={"prepared_by": TECH})).status_code == 403
+            app = c._transport.app  # type: ignore[attr-defined]
+            assert (await c.put("/users/anton", json={"role": "approver", "password": PW["anton"]})).status_code == 200
+            anton = await login(app, "anton")
+            assert (await anton.post(f"/runs/{rid}/certificate", json={"approver": "x"})).status_code == 422
+            bad = await anton.post(f"/runs/{rid}/certificate", json={"prepared_by": "anton"})
+            assert bad.status_code in (403, 409) and "second person" in bad.json()["detail"]
+            ok = await anton.post(f"/runs/{rid}/certificate", json={"prepared_by": TECH})
             assert ok.status_code == 201, ok.text
             number = ok.json()["number"]
             html = (await c.get(f"/runs/{rid}/certificate.html")).text
-            assert number in html and "DRAFT" not in html
+            assert number in html and "DRAFT" not in html and "anton (approver)" in html
+            audit = (await c.get("/audit")).json()
+            assert "certificate" in str(audit)
             pdf = await c.get(ok.json()["pdf"])
             assert pdf.headers["content-type"] == "application/pdf" and number in _pdf_text(pdf.content)
             xml = await c.get(f"/runs/{rid}/certificate.xml")

@@ -501,12 +501,13 @@ class StationOut(OutModel):
 
 
 class CertificateIssueIn(BaseModel):
-    """Issue a run's certificate: who prepared it and who approves it (a second person whose role is
-    approver or admin); a correction names the certificate it replaces and why."""
+    """Issue a run's certificate: the approver is the authenticated user (an approver who did not
+    run it); prepared_by defaults to the run's operator; a correction names the certificate it
+    replaces and why."""
 
     model_config = ConfigDict(extra="forbid")
-    prepared_by: str = Field(min_length=1, max_length=100)
-    approver: str = Field(min_length=1, max_length=100)
+    prepared_by: str | None = Field(None, min_length=1, max_length=100, description="default: the run's operator")
+    note: str = Field("", max_length=500, description="the approval's note (audit trail)")
     replaces: str | None = Field(None, pattern=r"^[A-Za-z0-9\-]{1,40}$")
     reason: str = Field("", max_length=500)
 

@@ -72,9 +72,24 @@ def _result(name: str, value: float | None, budget_entry: dict[str, Any] | None,
             "text": fmt_value(value, c.u), "u_text": fmt_unc(c.u), "U_text": fmt_unc(c.U), "k_text": f"{c.k:.3g}"}
 
 
-def certificate_content(path: str | Path, approval: Approval | None = None) -> dict[str, Any]:
+def register_standards(standards: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The lab register's records of the run's reference standards (``station.lab.register.Standard``
+    as the run stored them) in the certificate's form."""
+    return [{"name": s.get("description") or f"{s.get('kind', 'standard')} {s.get('id', '')}",
+             "kind": str(s.get("kind", "")), "id": str(s.get("id", "")),
+             "certificate_id": str(s.get("certificate_id", "")), "due_date": str(s.get("due_date", "")),
+             "traceability": "; ".join(x for x in (f"certificate issued by {s['issuer']}" if s.get("issuer") else "",
+                                                   f"u = {s['uncertainty']:g} {s.get('uncertainty_unit', '')}"
+                                                   if isinstance(s.get("uncertainty"), int | float) else "") if x)}
+            for s in standards]
+
+
+def certificate_content(path: str | Path, approval: Approval | None = None,
+                        register: dict[str, Any] | None = None) -> dict[str, Any]:
     """Everything the certificate states, as plain data (JSON-able): the input of the HTML template,
-    the DCC and the content hash of an issued certificate."""
+    the DCC and the content hash of an issued certificate.  register: the lab register's records as
+    the run used them (``{"transducer": {...}, "standards": [...]}``; the daemon's runs carry them),
+    which take the place of the configuration's standards and add the item's type, serial and owner."""
     d = load_run(path)
     approval = approval or Approval()
     cc = _cert_config(d)
@@ -114,13 +129,19 @@ def certificate_content(path: str | Path, approval: Approval | None = None) -> d
               for n, b in ident.budget.items()]
     tr_cfg = cfg.get("transducer")
     tr: dict[str, Any] = tr_cfg if isinstance(tr_cfg, dict) else {}
+    reg = register or {}
+    reg_tr = reg.get("transducer") if isinstance(reg.get("transducer"), dict) else {}
+    assert isinstance(reg_tr, dict)
+    standards = register_standards(reg["standards"]) if reg.get("standards") else [
+        s.model_dump() for s in cc.standards]
     return {
         "approval": asdict(approval),
         "laboratory": cc.laboratory.model_dump(), "customer": None if cc.customer is None else cc.customer.model_dump(),
         "place": cc.place,
         "item": {"transducer_id": rec.transducer_id, "capacity_N": rec.capacity_N,
                  "nominal_sensitivity_V_per_N": tr.get("sensitivity_V_per_N"),
-                 "signal_sensitivity_V_per_N": rec.sensitivity_V_per_N},
+                 "signal_sensitivity_V_per_N": rec.sensitivity_V_per_N,
+                 **{k: str(reg_tr.get(k) or "") for k in ("type", "serial", "owner")}},
         "run": {"run_id": rec.run_id, "recording": Path(path).name, "start_time": rec.start_time,
                 "end_time": rec.end_time, "exit_status": rec.exit_status, "source": rec.source,
                 "software_version": rec.software_version,
@@ -129,7 +150,7 @@ def certificate_content(path: str | Path, approval: Approval | None = None) -> d
                    "estimator": ident.method, "estimator_text": METHODS.get(ident.method, ""),
                    "model": ident.model, "model_text": MODELS.get(ident.model, ""), "result": d.ident_source},
         "environment": _environment(d),
-        "standards": [s.model_dump() for s in cc.standards],
+        "standards": standards, "standards_source": "register" if reg.get("standards") else "configuration",
         "results": results, "response": response, "response_k": k_points,
         "budget": {"sources": budget_sources, "rows": budget},
         "coverage": {n: c.to_dict() for n, c in coverages(ident.budget).items()},

@@ -71,9 +71,19 @@ def folder_of(recording: Path) -> Path:
     return Path(recording).resolve().parent / FOLDER
 
 
-def draft(recording: Path, prepared_by: str = "") -> tuple[dict[str, Any], str]:
+@dataclass(frozen=True)
+class MappingRoles:
+    """UserRoles from a mapping name -> role (the daemon passes the authenticated approver's)."""
+
+    roles: dict[str, str]
+
+    def role_of(self, name: str) -> str | None:
+        return self.roles.get(name)
+
+
+def draft(recording: Path, prepared_by: str = "", register: dict[str, Any] | None = None) -> tuple[dict[str, Any], str]:
     """(content, HTML) of the draft certificate of a recording's stored identification."""
-    content = certificate_content(recording, Approval(prepared_by=prepared_by))
+    content = certificate_content(recording, Approval(prepared_by=prepared_by), register)
     return content, certificate_html(content)
 
 
@@ -115,7 +125,8 @@ def _next_number(folder: Path, prefix: str, year: int) -> str:
 
 
 def issue(recording: Path, *, prepared_by: str, approver: str, replaces: str | None = None, reason: str = "",
-          roles: UserRoles | None = None, now: datetime | None = None) -> Issued:
+          roles: UserRoles | None = None, now: datetime | None = None,
+          register: dict[str, Any] | None = None) -> Issued:
     """Issue the certificate of a recording's stored identification (module docstring); refused with
     a CertificateError when the approver may not approve, approves their own work, a reference
     standard was overdue at the calibration, the result was not stored, or ``replaces`` is unknown,
@@ -134,7 +145,7 @@ def issue(recording: Path, *, prepared_by: str, approver: str, replaces: str | N
     if replaces and not reason:
         raise CertificateError("a replacing certificate says why (reason)")
     now = now or datetime.now(UTC)
-    content = certificate_content(recording, Approval(prepared_by=prepared_by))
+    content = certificate_content(recording, Approval(prepared_by=prepared_by), register)
     if "not stored" in content["method"]["result"]:
         raise CertificateError("no identification is stored with this recording: identify it first")
     day = content["run"]["start_time"][:10]
@@ -173,7 +184,7 @@ def issue(recording: Path, *, prepared_by: str, approver: str, replaces: str | N
     return Issued(number, record, folder)
 
 
-def run_document(recording: Path, ext: str) -> bytes:
+def run_document(recording: Path, ext: str, register: dict[str, Any] | None = None) -> bytes:
     """A run's certificate: the latest issued one of its run that has not been replaced, else its
     draft rendered now (HTML or PDF; a draft has no DCC)."""
     recording = Path(recording)
@@ -183,5 +194,5 @@ def run_document(recording: Path, ext: str) -> bytes:
         return issued_file(folder, str(mine[-1]["number"]), ext)
     if ext == "xml":
         raise CertificateNotFoundError("a draft has no Digital Calibration Certificate: issue the certificate first")
-    _, html = draft(recording)
+    _, html = draft(recording, register=register)
     return html.encode() if ext == "html" else html_to_pdf(html)

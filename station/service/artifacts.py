@@ -139,17 +139,27 @@ class Artifacts:
                                         lambda: self._locked_job(run_id, worker.report_pdf_job, str(path)))
         return out
 
+    async def _register(self, run_id: str) -> dict[str, Any]:
+        """The lab register's records as the run used them (transducer, standards)."""
+        import json
+
+        row = await self._get_row(run_id)
+        return {"transducer": json.loads(row.transducer_json or "{}"),
+                "standards": json.loads(row.standards_json or "[]")}
+
     async def certificate(self, run_id: str, ext: str) -> bytes:
         """The run's certificate (the issued one, else the draft) as html, pdf or xml."""
         path = await self._completed_path(run_id)
-        out: bytes = await self._locked_job(run_id, worker.certificate_job, str(path), ext)
+        out: bytes = await self._locked_job(run_id, worker.certificate_job, str(path), ext,
+                                            await self._register(run_id))
         return out
 
-    async def issue_certificate(self, run_id: str, prepared_by: str, approver: str, replaces: str | None,
-                                reason: str) -> dict[str, Any]:
+    async def issue_certificate(self, run_id: str, prepared_by: str, approver: str, roles: dict[str, str],
+                                replaces: str | None, reason: str) -> dict[str, Any]:
+        """Issue the run's certificate (the approval's checks made by the caller: RunManager.approve)."""
         path = await self._completed_path(run_id)
-        out: dict[str, Any] = await self._locked_job(run_id, worker.issue_job, str(path), prepared_by, approver,
-                                                     replaces, reason)
+        out: dict[str, Any] = await self._locked_job(run_id, worker.issue_job, str(path), prepared_by, approver, roles,
+                                                     replaces, reason, await self._register(run_id))
         return out
 
     async def certificates(self, transducer_id: str | None) -> list[dict[str, Any]]:

@@ -152,20 +152,23 @@ def report_pdf_job(path: str) -> bytes:
 
 
 @_job
-def certificate_job(path: str, ext: str) -> bytes:
+def certificate_job(path: str, ext: str, register: dict[str, Any]) -> bytes:
     """The run's certificate (issued, else its draft) as html, pdf or xml bytes."""
     from station.certificate.issue import run_document
 
-    return run_document(Path(path), ext)
+    return run_document(Path(path), ext, register)
 
 
 @_job
-def issue_job(path: str, prepared_by: str, approver: str, replaces: str | None, reason: str) -> dict[str, Any]:
-    """Issue the run's certificate; its listing entry."""
-    from station.certificate.issue import issue
+def issue_job(path: str, prepared_by: str, approver: str, roles: dict[str, str], replaces: str | None, reason: str,
+              register: dict[str, Any]) -> dict[str, Any]:
+    """Issue the run's certificate (roles: of the authenticated approver and the operator); its
+    listing entry."""
+    from station.certificate.issue import MappingRoles, issue
     from station.certificate.register import list_issued
 
-    it = issue(Path(path), prepared_by=prepared_by, approver=approver, replaces=replaces, reason=reason)
+    it = issue(Path(path), prepared_by=prepared_by, approver=approver, replaces=replaces, reason=reason,
+               roles=MappingRoles(roles), register=register)
     return next(c for c in list_issued(it.folder) if c["number"] == it.number)
 
 

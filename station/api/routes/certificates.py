@@ -7,10 +7,10 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Path, Query, Response
 
-from station.api.deps import ArtifactsDep, Reader, RunDep, Writer
+from station.api.deps import Approver, ArtifactsDep, ManagerDep, Reader, RunDep
 from station.api.routes.runs import BODY_ERRORS, E401, E404, E409, E422, E503, NON_JSON_ERRORS
 from station.api.schemas import CertificateIssueIn, CertificateList, CertificateOut
-from station.certificate.register import MEDIA
+from station.certificate.register import MEDIA, CertificateError
 
 router = APIRouter(tags=["certificates"])
 Ext = Literal["html", "pdf", "xml"]
@@ -32,14 +32,21 @@ async def run_certificate(run: RunDep, artifacts: ArtifactsDep, ext: Ext) -> Res
     return Response(await artifacts.certificate(run.id, ext), media_type=MEDIA[ext])
 
 
-@router.post("/runs/{run_id}/certificate", response_model=CertificateOut, status_code=201, dependencies=[Writer],
+@router.post("/runs/{run_id}/certificate", response_model=CertificateOut, status_code=201,
              responses={**E401, **E404, **E409, **E422, **E503, **BODY_ERRORS},
              summary="Issue the run's certificate (approval by a second person)")
-async def issue_certificate(run: RunDep, artifacts: ArtifactsDep, body: CertificateIssueIn) -> CertificateOut:
-    """Numbers the run's certificate and stores it, immutable, with its hashes; 409 when the approver
-    may not approve, approves their own work, a standard was overdue, or `replaces` cannot be replaced."""
-    return _out(await artifacts.issue_certificate(run.id, body.prepared_by, body.approver, body.replaces,
-                                                  body.reason))
+async def issue_certificate(run: RunDep, artifacts: ArtifactsDep, manager: ManagerDep, who: Approver,
+                            body: CertificateIssueIn) -> CertificateOut:
+    """The authenticated approver approves the run (`POST /runs/{id}/approve`'s checks: an approver
+    who did not run it, the recording's SHA-256 as stored at closing; audit trail) and issues its
+    certificate: numbered, stored immutable with its hashes, with the register's transducer and
+    standards as the run used them.  409 when a standard was overdue or `replaces` cannot be replaced."""
+    prepared = body.prepared_by or run.operator
+    if not prepared:
+        raise CertificateError("the run has no recorded operator: say who prepared the certificate (prepared_by)")
+    await manager.approve(run.id, who.user, body.note or f"certificate of run {run.id}")
+    roles = {prepared: "operator", who.name: str(who.user.role)}
+    return _out(await artifacts.issue_certificate(run.id, prepared, who.name, roles, body.replaces, body.reason))
 
 
 @router.get("/certificates", response_model=CertificateList, dependencies=[Reader], responses={**E401, **E422},

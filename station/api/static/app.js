@@ -440,7 +440,8 @@ function showCertificate(id) {
   for (const ext of ["html", "pdf", "xml"]) $(`#cert-${ext}`).href = `${base}.${ext}`;
   $("#cert-form").onsubmit = async (ev) => {
     ev.preventDefault();
-    const res = await api("POST", base, {prepared_by: $("#cert-prepared").value.trim(), approver: $("#cert-approver").value.trim()});
+    const prepared = $("#cert-prepared").value.trim();
+    const res = await api("POST", base, prepared ? {prepared_by: prepared} : {});
     $("#cert-msg").textContent = res.ok ? `issued ${res.data.number}` : (detailText(res.data) || `refused (${res.status})`);
   };
 }
