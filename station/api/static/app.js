@@ -567,7 +567,8 @@ async function showHistory(id) {
   const r = await api("GET", `/transducers/${encodeURIComponent(id)}/history`);
   if (!r.ok) { $("#hist-transducer").textContent = detailText(r.data); return; }
   const d = r.data, t = d.transducer;
-  $("#hist-transducer").textContent = `${t.type} ${t.serial} · ${t.capacity_N} N · ${t.owner} · ${d.runs.length} runs`;
+  $("#hist-transducer").textContent = [t.type, t.serial && `serial ${t.serial}`, `${t.capacity_N} N`, t.owner,
+    `${d.runs.length} runs`].filter(Boolean).join(" · ");
   $("#hist-plot").innerHTML = historyPlot(d.runs, "k_f", d.units.k_f) + historyPlot(d.runs, "S", d.units.S);
   $("#hist-flagged").textContent = d.flagged.length ? "drift flagged: " + d.flagged.map((f) => `${f.run_id} ${f.parameter}`).join(", ")
     : "no drift flagged against earlier calibrations (the nightly batch's rule: |x − mean| > 3 u_c, after 3 runs)";
