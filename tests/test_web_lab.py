@@ -56,7 +56,8 @@ def test_choose_run_history_approve_audit(browser: object, daemon: Daemon, tmp_p
     log_in(pg, daemon, "tina")
     pg.wait_for_selector("#transducer_id option[value='TX5K-0002']", state="attached")
     # the form's plan is the configuration's, a radius per step
-    assert pg.input_value("#radius_mm") == "1, 1" and pg.locator("#plan-check tbody tr").nth(0).inner_text().startswith("1")
+    assert pg.input_value("#radius_mm") == "1, 1"
+    assert pg.locator("#plan-check tbody tr").nth(0).inner_text().startswith("1")  # steps counted from 1
     pg.select_option("#transducer_id", "TX5K-0002")
     pg.click("#mount")
     pg.wait_for_function("document.querySelector('#banner').textContent.includes('TX5K-0002 is recorded as mounted')")
