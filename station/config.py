@@ -221,6 +221,9 @@ class ServiceSection(_Model):
 
     host: str = Field(default="127.0.0.1", min_length=1, description="listen address (loopback by default)")
     port: int = Field(default=8080, ge=0, le=65535, description="TCP port (0: any free port)")
+    stop_port: int | None = Field(default=None, ge=0, le=65535,
+                                  description="TCP port of the stop port (POST /stop on a listener of its own, "
+                                  "same host); unset: port + 1 (none when port is 0); 0: none")
     token: str | None = Field(default=None, min_length=8, max_length=256, pattern=r"^[\x21-\x7e]+$", repr=False,
                               description="bearer token for the endpoints that move the rig or change state")
     database: str = Field(default="station.db", min_length=1,

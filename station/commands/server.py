@@ -8,6 +8,7 @@ from types import FrameType
 
 import uvicorn
 
+from station.commands.stopport import StopPort, stop_port_of
 from station.service.settings import ServiceSettings
 
 log = logging.getLogger("station.serve")
@@ -22,6 +23,7 @@ class StationServer(uvicorn.Server):
         super().__init__(config)
         self.settings = settings
         self.on_listening = on_listening
+        self.stop_port: StopPort | None = None
 
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
         manager = getattr(self.config.app.state, "manager", None) if hasattr(self.config.app, "state") else None
@@ -39,3 +41,26 @@ class StationServer(uvicorn.Server):
                          "simulated" if self.settings.sim else "real devices")
                 if self.on_listening is not None:
                     self.on_listening(host, port)
+        if self.started and self.stop_port is None:
+            self._start_stop_port()
+
+    def _start_stop_port(self) -> None:
+        """The stop port (``service.stop_port``), once the app's manager runs; a port that cannot be
+        bound is logged as an error (the main port's ``POST /stop`` still stops)."""
+        bound = [s.getsockname()[1] for server in self.servers for s in server.sockets]
+        port = stop_port_of(self.settings, int(bound[0]) if bound else self.settings.port)
+        manager = getattr(getattr(self.config.app, "state", None), "manager", None)
+        if port is None or manager is None:
+            return
+        try:
+            self.stop_port = StopPort(manager, self.settings, self.settings.host, port,
+                                      page_port=int(bound[0]) if bound else None,
+                                      header_timeout_s=min(5.0, self.settings.config.service.header_timeout_s)).start()
+        except OSError as exc:
+            log.error("the stop port %d cannot be opened (%s): POST /stop on the main port only", port, exc)
+
+    async def shutdown(self, sockets: list | None = None) -> None:
+        if self.stop_port is not None:
+            self.stop_port.close()
+            self.stop_port = None
+        await super().shutdown(sockets)

@@ -96,6 +96,7 @@ class Runs:
         self._on_acquired = on_acquired
         self.live: dict[str, LiveRun] = {}
         self._stopping = 0  # emergency stops being commanded (not latched yet): no run may start meanwhile
+        self._stopping_lock = threading.Lock()
         self.loop_thread = threading.get_ident()
         self.web_loop: asyncio.AbstractEventLoop | None = None
 
@@ -315,11 +316,13 @@ class Runs:
         for live in list(self.live.values()):
             self._abort(live, "emergency stop")
             aborted.append(live.row.id)
-        self._stopping += 1
+        with self._stopping_lock:  # the stop port's thread gives stops too
+            self._stopping += 1
         try:
             ok, detail = await self.link.emergency_stop()
         finally:
-            self._stopping -= 1
+            with self._stopping_lock:
+                self._stopping -= 1
         log.warning("EMERGENCY STOP (%s): %s (aborted runs: %s)", source, detail, aborted or "none")
         self.latch.trip(source, detail + (f"; aborted runs: {', '.join(aborted)}" if aborted else ""), who)
         check = await self.link.verify_standstill("the emergency stop") if ok else None

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
 from typing import Annotated
 
@@ -25,25 +25,35 @@ from station.config import MAX_STEPS, MAX_TOP_MASS_KG
 from station.lab import users
 from station.lab.users import AuthError
 from station.limits import force_limit_N
+from station.service.runs import StopReport
 from station.service.settings import ServiceSettings
 from station.service.store import Store
 
 router = APIRouter(tags=["station"])
 
 
+def cross_site_refusal(site: str | None, origin: str | None, host: str,
+                       page_origins: tuple[str, ...] = ()) -> str | None:
+    """Why a request another web site's page made the browser send is refused (None: it is not
+    one): browsers mark it with ``Sec-Fetch-Site: cross-site``/``same-site`` and an ``Origin`` that
+    is not this station's (``host``, or one of ``page_origins``: ``host:port`` of the station's own
+    page when it is served on another port).  API clients and curl (neither header) pass."""
+    own = origin is not None and origin.split("://", 1)[-1] in (host, *page_origins)
+    if site is not None and site not in ("same-origin", "none") and not (site == "same-site" and own):
+        return (f"cross-site request refused (Sec-Fetch-Site: {site}); use the station's own page, an API client "
+                "or the hardware emergency stop")
+    if origin is not None and not own:
+        return f"cross-site request refused: Origin {origin} is not this station ({host})"
+    return None
+
+
 async def not_cross_site(request: Request) -> None:
-    """A request another web site's page makes the browser send is refused: browsers mark it with
-    ``Sec-Fetch-Site: cross-site``/``same-site`` and an ``Origin`` that is not this station's.
+    """A request another web site's page makes the browser send is refused (:func:`cross_site_refusal`).
     The station's own page (same origin), API clients and curl (neither header) pass."""
-    site = request.headers.get("sec-fetch-site")
-    origin = request.headers.get("origin")
-    host = request.headers.get("host", "")
-    if site is not None and site not in ("same-origin", "none"):
-        raise HTTPException(status.HTTP_403_FORBIDDEN, f"cross-site request refused (Sec-Fetch-Site: {site}); "
-                            "use the station's own page, an API client or the hardware emergency stop")
-    if origin is not None and origin.split("://", 1)[-1] != host:
-        raise HTTPException(status.HTTP_403_FORBIDDEN, f"cross-site request refused: Origin {origin} is not "
-                            f"this station ({host})")
+    why = cross_site_refusal(request.headers.get("sec-fetch-site"), request.headers.get("origin"),
+                             request.headers.get("host", ""))
+    if why is not None:
+        raise HTTPException(status.HTTP_403_FORBIDDEN, why)
 
 
 SameSite = Depends(not_cross_site)
@@ -62,16 +72,21 @@ async def emergency_stop(runs: RunsDep, settings: SettingsDep, request: Request)
     operator acknowledges it (`POST /stop/acknowledge`); a drive still turning latches too (source
     `drive`) and shows in `/health`."""
     source = "page" if request.headers.get("x-station-client") == "page" else "api"
-    rep = await runs.emergency_stop(source, _who_stopped(request, settings))
+    return stop_answer(await runs.emergency_stop(source, who_stopped(request.headers, settings)))
+
+
+def stop_answer(rep: StopReport) -> StopOut:
+    """The answer to a stop (the main port's and the stop port's alike)."""
     drive = DriveOut.model_validate(rep.drive.to_dict()) if rep.drive is not None else None
     return StopOut(motor_stopped=rep.motor_stopped, stop_commanded=rep.commanded, drive=drive,
                    aborted_runs=rep.aborted_runs, detail=rep.detail)
 
 
-def _who_stopped(request: Request, settings: ServiceSettings) -> Callable[[Store], str]:
-    """Who asked for the stop, looked up when the stop's record is written (after the stop, by the
-    database's writer): a user's name, or ``anonymous`` without valid credentials."""
-    token, session = credentials_of({k: request.headers.get(k, "") for k in ("authorization", "cookie")})
+def who_stopped(headers: Mapping[str, str], settings: ServiceSettings) -> Callable[[Store], str]:
+    """Who asked for the stop (``headers``: the request's, lower-case names), looked up when the
+    stop's record is written (after the stop, by the database's writer): a user's name, or
+    ``anonymous`` without valid credentials."""
+    token, session = credentials_of({k: headers.get(k, "") for k in ("authorization", "cookie")})
 
     def find(store: Store) -> str:
         try:

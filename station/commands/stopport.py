@@ -1,0 +1,247 @@
+"""The stop port: a listening socket of its own for the emergency stop (used by ``station serve``).
+
+The web side's port can be crowded (thousands of idle connections queue in the kernel's accept
+backlog and each costs its loop time to accept and to close); a stop sent there waits behind them.
+This listener shares nothing with the web side: its own socket (``service.stop_port``), its own
+thread and event loop, a small HTTP/1.1 reader of its own, its own connection cap, and no
+database.  It answers:
+
+* ``POST /stop``: the very same stop as the main port's ``POST /stop``
+  (:meth:`station.service.runs.Runs.emergency_stop`: abort the runs, the controller's emergency
+  stop through the rig thread, the in-memory latch, the drive read back) and the same answer
+  (:class:`station.api.schemas.StopOut`); the same cross-site rule, where the station's own page
+  on the main port counts as this station;
+* ``GET /stop``: what is known without asking anyone (the latch, the drive's last reading).
+
+Bounds: a request head of at most :data:`MAX_HEAD_BYTES` within ``header_timeout_s`` of opening;
+the body, if any, is never read (the stop takes none); every answer closes its connection; beyond
+``max_connections`` open connections the oldest one still sending its head is closed for each new
+one, so a stop always gets in.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import json
+import logging
+import socket
+import threading
+from typing import TYPE_CHECKING, Any
+from urllib.parse import parse_qs, urlsplit
+
+from station.api.routes.system import cross_site_refusal, stop_answer, who_stopped
+
+if TYPE_CHECKING:
+    from station.service.manager import RunManager
+    from station.service.settings import ServiceSettings
+
+log = logging.getLogger("station.stopport")
+
+MAX_HEAD_BYTES = 8192  # request line and headers
+MAX_HEADERS = 64
+MAX_CONNECTIONS = 32
+REASONS = {200: "OK", 400: "Bad Request", 403: "Forbidden", 404: "Not Found", 405: "Method Not Allowed",
+           408: "Request Timeout", 431: "Request Header Fields Too Large", 500: "Internal Server Error"}
+
+
+class BadRequest(Exception):
+    def __init__(self, status: int, detail: str) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+
+
+def parse_head(head: bytes) -> tuple[str, str, dict[str, str]]:
+    """(method, target, headers with lower-case names) of a request head (ending in a blank line);
+    :class:`BadRequest` for anything that is not HTTP/1.x."""
+    try:
+        text = head.decode("latin-1")
+    except UnicodeDecodeError:  # pragma: no cover - latin-1 decodes every byte
+        raise BadRequest(400, "the request head is not text") from None
+    lines = text.split("\r\n")
+    parts = lines[0].split(" ")
+    if len(parts) != 3 or not parts[2].startswith("HTTP/1.") or not parts[0].isalpha():
+        raise BadRequest(400, f"not an HTTP/1.x request line: {lines[0][:80]!r}")
+    headers: dict[str, str] = {}
+    for line in lines[1:]:
+        if not line:
+            continue
+        name, sep, value = line.partition(":")
+        if not sep or not name or name != name.strip() or len(headers) >= MAX_HEADERS:
+            raise BadRequest(400, f"malformed header line: {line[:80]!r}")
+        key = name.lower()
+        if key in headers and key in ("host", "origin", "content-length"):
+            raise BadRequest(400, f"header {name} given twice")
+        headers[key] = value.strip()
+    if "transfer-encoding" in headers:
+        raise BadRequest(400, "the stop takes no body (Transfer-Encoding refused)")
+    length = headers.get("content-length", "0")
+    if not length.isdigit():
+        raise BadRequest(400, f"Content-Length {length[:40]!r} is not a number")
+    return parts[0], parts[1], headers
+
+
+class StopPort:
+    """The stop port's listener; ``start()`` binds and serves on a thread of its own, ``close()``."""
+
+    def __init__(self, manager: RunManager, settings: ServiceSettings, host: str, port: int, *,
+                 page_port: int | None = None, header_timeout_s: float = 5.0,
+                 max_connections: int = MAX_CONNECTIONS) -> None:
+        self.manager = manager
+        self.settings = settings
+        self.host = host
+        self.port = port  # the bound port once started
+        self.page_port = page_port  # the main port: the station's own page comes from there
+        self.header_timeout_s = header_timeout_s
+        self.max_connections = max_connections
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._server: asyncio.Server | None = None
+        self._reading: collections.OrderedDict[int, asyncio.StreamWriter] = collections.OrderedDict()
+        self._open = 0
+        self.evicted = 0
+
+    # ------------------------------------------------------------------ lifetime
+    def start(self) -> StopPort:
+        """Bind (OSError if the port is taken) and serve on the ``stop-port`` thread."""
+        sock = socket.create_server((self.host, self.port), family=socket.AF_INET6 if ":" in self.host
+                                    else socket.AF_INET, backlog=64, reuse_port=False)
+        self.port = int(sock.getsockname()[1])
+        ready = threading.Event()
+        failure: list[BaseException] = []
+
+        def main() -> None:
+            loop = asyncio.new_event_loop()
+            self.loop = loop
+            try:
+                self._server = loop.run_until_complete(
+                    asyncio.start_server(self._serve, sock=sock, limit=MAX_HEAD_BYTES))
+            except BaseException as exc:  # pragma: no cover - start_server on a bound socket
+                failure.append(exc)
+                ready.set()
+                loop.close()
+                return
+            ready.set()
+            try:
+                loop.run_forever()
+            finally:
+                self._server.close()
+                pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
+                for t in pending:
+                    t.cancel()
+                if pending:
+                    loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+                loop.close()
+
+        self._thread = threading.Thread(target=main, name="stop-port", daemon=True)
+        self._thread.start()
+        ready.wait()
+        if failure:
+            raise failure[0]
+        log.info("stop port: POST http://%s:%d/stop (a listener of its own)",
+                 f"[{self.host}]" if ":" in self.host else self.host, self.port)
+        return self
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        loop, thread = self.loop, self._thread
+        if loop is None or thread is None:
+            return
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(loop.stop)
+        thread.join(timeout_s)
+        self._thread = None
+        self.loop = None
+
+    # ------------------------------------------------------------------ connections
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        key = id(writer)
+        self._open += 1
+        while self._open > self.max_connections and self._reading:  # the oldest still reading make room
+            _, oldest = self._reading.popitem(last=False)
+            self.evicted += 1
+            oldest.transport.abort()
+        self._reading[key] = writer
+        try:
+            try:
+                async with asyncio.timeout(self.header_timeout_s):
+                    head = await reader.readuntil(b"\r\n\r\n")
+            except TimeoutError:
+                await self._answer(writer, 408, {"detail": f"no complete request head within "
+                                                           f"{self.header_timeout_s:g} s"})
+                return
+            except asyncio.LimitOverrunError:
+                await self._answer(writer, 431, {"detail": f"request head larger than {MAX_HEAD_BYTES} bytes"})
+                return
+            except (asyncio.IncompleteReadError, ConnectionError):
+                return
+            self._reading.pop(key, None)  # a request in progress is never evicted
+            try:
+                method, target, headers = parse_head(head)
+            except BadRequest as exc:
+                await self._answer(writer, exc.status, {"detail": exc.detail})
+                return
+            status, body, extra = await self._handle(method, target, headers)
+            await self._answer(writer, status, body, extra)
+        except Exception:
+            log.exception("stop port: a request failed")
+            with contextlib.suppress(Exception):
+                await self._answer(writer, 500, {"detail": "internal error; use the hardware emergency stop"})
+        finally:
+            self._reading.pop(key, None)
+            self._open -= 1
+            writer.close()
+
+    async def _answer(self, writer: asyncio.StreamWriter, status: int, body: dict[str, Any],
+                      extra: list[tuple[str, str]] | None = None) -> None:
+        data = json.dumps(body).encode()
+        head = [f"HTTP/1.1 {status} {REASONS.get(status, 'Error')}", "Content-Type: application/json",
+                f"Content-Length: {len(data)}", "Connection: close", "Cache-Control: no-store",
+                *(f"{k}: {v}" for k, v in extra or [])]
+        writer.write(("\r\n".join(head) + "\r\n\r\n").encode("latin-1") + data)
+        with contextlib.suppress(Exception):
+            async with asyncio.timeout(self.header_timeout_s):
+                await writer.drain()
+
+    # ------------------------------------------------------------------ requests
+    def _page_origins(self, host: str) -> tuple[str, ...]:
+        """``host:port`` of the station's own page (the main port) as seen through ``host``."""
+        if self.page_port is None:
+            return ()
+        name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
+        return (f"{name}:{self.page_port}",)
+
+    async def _handle(self, method: str, target: str, headers: dict[str, str]
+                      ) -> tuple[int, dict[str, Any], list[tuple[str, str]]]:
+        url = urlsplit(target)
+        if url.path != "/stop":
+            return 404, {"detail": "the stop port serves POST /stop and GET /stop only"}, []
+        host = headers.get("host", "")
+        origin = headers.get("origin")
+        why = cross_site_refusal(headers.get("sec-fetch-site"), origin, host, self._page_origins(host))
+        if why is not None:
+            return 403, {"detail": why}, []
+        cors = [("Access-Control-Allow-Origin", origin), ("Vary", "Origin")] if origin is not None else []
+        if method == "GET":
+            link = self.manager.link
+            drive = link.drive.to_dict() if link.drive is not None else None
+            latch = self.manager.latch.state()
+            estop = {k: latch[k] for k in ("latched", "since", "source", "detail", "count")}
+            return 200, {"estop": estop, "drive": drive}, cors
+        if method != "POST":
+            return 405, {"detail": f"method {method[:16]} not allowed: POST /stop or GET /stop"}, [
+                ("Allow", "GET, POST")]
+        client = parse_qs(url.query).get("client", [""])[0]
+        source = "page" if client == "page" or headers.get("x-station-client") == "page" else "api"
+        rep = await self.manager.runs.emergency_stop(source, who_stopped(headers, self.settings))
+        return 200, stop_answer(rep).model_dump(mode="json"), cors
+
+
+def stop_port_of(settings: ServiceSettings, bound_port: int) -> int | None:
+    """The stop port to listen on: ``service.stop_port``; unset: the main port + 1 (none when the main
+    port is chosen by the system); 0: none."""
+    wanted = settings.config.service.stop_port
+    if wanted is None:
+        return bound_port + 1 if settings.port and bound_port < 65535 else None
+    return wanted or None

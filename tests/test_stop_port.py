@@ -1,0 +1,142 @@
+"""The stop port: a listener of its own for ``POST /stop`` (its socket, its thread and loop).
+
+The app runs in process on the simulated rig's virtual clock; the stop port is the real listener
+on loopback, spoken to with raw HTTP/1.1 over TCP.  Times are not asserted (bench/stop_latency.py
+measures them)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import socket
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import uvicorn
+
+from station.commands.connections import ConnectionBounds
+from station.commands.stopport import MAX_HEAD_BYTES, StopPort, parse_head
+from tests.station_support import app_in_process, run_body, start, wait_state
+
+PAGE_PORT = 8080  # the main port the stop port names as the station's page (not listened on in these tests)
+
+
+@contextlib.asynccontextmanager
+async def stop_port(m: Any, **kw: Any) -> AsyncIterator[StopPort]:
+    port = await asyncio.to_thread(StopPort(m, m.settings, "127.0.0.1", 0, page_port=PAGE_PORT, **kw).start)
+    try:
+        yield port
+    finally:
+        await asyncio.to_thread(port.close)
+
+
+async def raw(port: int, request: bytes) -> tuple[int, dict[str, str], dict[str, Any]]:
+    """Send ``request`` as it is; (status, headers, JSON body) of the answer (the port closes it)."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    try:
+        writer.write(request)
+        await writer.drain()
+        data = await asyncio.wait_for(reader.read(), 30.0)
+    finally:
+        writer.close()
+    head, _, body = data.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    headers = {k.lower(): v.strip() for k, _, v in (line.partition(":") for line in lines[1:])}
+    return int(lines[0].split(" ")[1]), headers, json.loads(body)
+
+
+def req(method: str, port: int, *headers: str, path: str = "/stop") -> bytes:
+    return "\r\n".join([f"{method} {path} HTTP/1.1", f"Host: 127.0.0.1:{port}", *headers, "", ""]).encode()
+
+
+def test_the_head_parser_takes_http1_and_refuses_the_rest() -> None:
+    method, target, headers = parse_head(b"POST /stop?client=page HTTP/1.1\r\nHost: a:1\r\nOrigin:  x \r\n\r\n")
+    assert (method, target, headers) == ("POST", "/stop?client=page", {"host": "a:1", "origin": "x"})
+    for bad in (b"POST /stop\r\n\r\n", b"\x16\x03\x01 TLS HTTP/1.1\r\n\r\n", b"POST /stop HTTP/2\r\n\r\n",
+                b"POST /stop HTTP/1.1\r\nno colon\r\n\r\n", b"POST /stop HTTP/1.1\r\nHost: a\r\nHost: b\r\n\r\n",
+                b"POST /stop HTTP/1.1\r\nContent-Length: -1\r\n\r\n",
+                b"POST /stop HTTP/1.1\r\nTransfer-Encoding: chunked\r\n\r\n"):
+        with pytest.raises(Exception, match=r"request line|header|Content-Length|no body"):
+            parse_head(bad)
+
+
+def test_stop_port_stops_the_drive_and_refuses_bad_and_cross_site_requests_without_effect(tmp_path: Path) -> None:
+    async def go() -> None:
+        async with app_in_process(tmp_path / "rec") as (m, c), stop_port(m) as sp:
+            p = sp.port
+            refused = [
+                (b"GARBAGE\r\n\r\n", 400),
+                (req("POST", p, "X-Big: " + "a" * (MAX_HEAD_BYTES + 10)), 431),
+                (req("POST", p, "Transfer-Encoding: chunked"), 400),
+                (req("POST", p, "Origin: http://evil.example", "Sec-Fetch-Site: cross-site"), 403),
+                (req("POST", p, "Origin: http://127.0.0.1:9999", "Sec-Fetch-Site: same-site"), 403),
+                (req("POST", p, "Sec-Fetch-Site: cross-site"), 403),
+                (req("POST", p, path="/runs"), 404),
+                (req("PUT", p), 405),
+            ]
+            for request, want in refused:
+                status, _, body = await raw(p, request)
+                assert status == want, (request[:60], body)
+                assert body["detail"]
+            assert not m.latch.latched and await m.link.motor_fault() is None  # no effect
+            status, _, body = await raw(p, req("GET", p))
+            assert status == 200 and body["estop"]["latched"] is False
+
+            rid = await start(c, freqs=(10.0,), record_s=120.0)
+            await wait_state(c, rid, ("running",), "recording")
+            # the station's own page (the main port's origin: same site, another port)
+            status, headers, body = await raw(p, req("POST", p, f"Origin: http://127.0.0.1:{PAGE_PORT}",
+                                                     "Sec-Fetch-Site: same-site", path="/stop?client=page"))
+            assert status == 200, body
+            assert headers["access-control-allow-origin"] == f"http://127.0.0.1:{PAGE_PORT}"
+            assert body["stop_commanded"] and body["motor_stopped"] and body["aborted_runs"] == [rid], body
+            assert body["drive"]["standstill"] and body["drive"]["speed_hz"] == 0.0
+            assert await m.link.motor_fault() == (2, "emergency_stop")  # the drive has it
+            st = await wait_state(c, rid, ("aborted",))
+            assert "emergency stop" in st["message"]
+            # the same latch as the main port's stop: shown there and here, refusing runs
+            h = (await c.get("/health")).json()
+            assert h["estop"]["latched"] and h["estop"]["source"] == "page"
+            assert (await c.post("/runs", json=run_body(freqs=(10.0,)))).status_code == 409
+            status, _, body = await raw(p, req("GET", p))
+            assert body["estop"]["latched"] and body["drive"]["standstill"] is True
+    asyncio.run(go())
+
+
+@pytest.mark.slow  # ~3 s: a real uvicorn main port, a few hundred idle connections on it and a flood on the stop port
+def test_stop_port_stops_past_idle_connections_on_the_main_port_and_its_own(tmp_path: Path) -> None:
+    async def go() -> None:
+        async with app_in_process(tmp_path / "rec") as (m, c), stop_port(m, max_connections=16) as sp:
+            bounds = ConnectionBounds(max_connections=64, header_timeout_s=10.0)
+            with socket.socket() as s:
+                s.bind(("127.0.0.1", 0))
+                main_port = int(s.getsockname()[1])
+            app = c._transport.app  # type: ignore[attr-defined]
+            server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=main_port, http=bounds.protocol(),
+                                                   lifespan="off", log_config=None))
+            serving = asyncio.create_task(server.serve())
+            while not server.started:
+                await asyncio.sleep(0.02)
+            idle: list[socket.socket] = []
+            try:
+                rid = await start(c, freqs=(10.0,), record_s=120.0)
+                await wait_state(c, rid, ("running",), "recording")
+                for _ in range(300):
+                    idle.append(socket.create_connection(("127.0.0.1", main_port)))
+                for _ in range(40):  # more idle ones than the stop port's own cap
+                    idle.append(socket.create_connection(("127.0.0.1", sp.port)))
+                await asyncio.sleep(0.2)
+                status, _, body = await raw(sp.port, req("POST", sp.port))
+                assert status == 200 and body["stop_commanded"] and body["aborted_runs"] == [rid], body
+                assert await m.link.motor_fault() == (2, "emergency_stop")
+                assert sp.evicted >= 40 - 16
+                assert (await wait_state(c, rid, ("aborted",)))["state"] == "aborted"
+            finally:
+                for s in idle:
+                    s.close()
+                server.should_exit = True
+                await serving
+    asyncio.run(go())
