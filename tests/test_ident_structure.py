@@ -17,7 +17,7 @@ import pytest
 
 from station.cli import main
 from station.ident.identify import identify_recording
-from station.ident.paper.identify import _stability
+from station.ident.paper.identify import seed_stability
 from station.ident.structure import ADAPTER_COUPLING_RATIO, plausible_coupling
 from station.recording import read_recording
 from tests.ident_support import B, K, sim, via_csv
@@ -133,10 +133,10 @@ def test_a_swarm_answer_counts_only_when_stable_and_physical() -> None:
     assert not plausible_coupling(np.array([2e-3, kf, 17136.0, 10 * kf, -5.0]))
     theta, std = np.array([2e-3, kf, 17136.0]), np.array([1e-6, 1e4, 10.0])
     names = ("S", "k_f", "b_f")
-    assert _stability("h2", theta, std, {1: theta + std, 2: theta - 2 * std}, names) == ["", "", ""]
-    out = _stability("h2", theta, std, {1: theta * np.array([1.0, 1.08, 1.0])}, names)
+    assert seed_stability("h2", theta, std, {1: theta + std, 2: theta - 2 * std}, names) == ["", "", ""]
+    out = seed_stability("h2", theta, std, {1: theta * np.array([1.0, 1.08, 1.0])}, names)
     assert out[0] == out[2] == "" and "seed 1" in out[1]
-    bad = _stability("h2", theta, std, {2: theta * np.array([1.0, -1.0, 1.0])}, names)
+    bad = seed_stability("h2", theta, std, {2: theta * np.array([1.0, -1.0, 1.0])}, names)
     assert all("seed 2" in r and "non-physical" in r for r in bad)
 
 

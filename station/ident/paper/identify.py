@@ -70,8 +70,8 @@ def _physical(form: str, theta: FloatArray) -> str:
     return ""
 
 
-def _stability(form: str, theta: FloatArray, std: FloatArray, others: dict[int, FloatArray],
-               names: tuple[str, ...]) -> list[str]:
+def seed_stability(form: str, theta: FloatArray, std: FloatArray, others: dict[int, FloatArray],
+                   names: tuple[str, ...]) -> list[str]:
     """Per parameter, '' when every other swarm run gives a physical answer within 3 std of theta."""
     out = [""] * theta.size
     bad_runs = {s: why for s, th in others.items() if (why := _physical(form, th))}
@@ -159,7 +159,7 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
                     others[s] = model.from_digital(DigitalTF(bs, as_, data.T))
         extra["stability_seeds"] = sorted(others)
         extra["theta_other_seeds"] = {str(k): [float(v) for v in th] for k, th in others.items()}
-    unstable = _stability(form, theta, std, others, model.names) if others else [""] * theta.size
+    unstable = seed_stability(form, theta, std, others, model.names) if others else [""] * theta.size
     reasons = [r or (why and f"withheld: the answer is {why}") or unstable[i] if rep.identifiable[i] else r
                for i, r in enumerate(rep.reasons)]
     rep = replace(rep, identifiable=tuple(r == "" for r in reasons), reasons=tuple(reasons))
