@@ -34,6 +34,7 @@ GENERATOR_CONFIG = """
 content_type_overrides:
   image/png: application/octet-stream
   application/x-hdf5: application/octet-stream
+  application/pdf: application/octet-stream
 post_hooks: []
 """
 
@@ -73,6 +74,10 @@ def test_closed_sets_are_enumerations_and_results_are_typed(tmp_path: Path) -> N
         "image/png": {"schema": binary}}
     assert paths["/runs/{run_id}/recording"]["get"]["responses"]["200"]["content"] == {
         "application/x-hdf5": {"schema": binary}}
+    assert paths["/runs/{run_id}/report.pdf"]["get"]["responses"]["200"]["content"] == {
+        "application/pdf": {"schema": binary}}
+    assert paths["/runs/{run_id}/certificate.{ext}"]["get"]["responses"]["200"]["content"]["application/pdf"] == {
+        "schema": binary}
     assert paths["/runs"]["post"]["operationId"] == "start_run"  # readable names in generated clients
 
 

@@ -8,13 +8,14 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Path, Query, Response
 
 from station.api.deps import Approver, ArtifactsDep, ManagerDep, Reader, RunDep
-from station.api.routes.runs import BODY_ERRORS, E401, E404, E409, E422, E503, NON_JSON_ERRORS
+from station.api.routes.runs import BINARY, BODY_ERRORS, E401, E404, E409, E422, E503, NON_JSON_ERRORS
 from station.api.schemas import CertificateIssueIn, CertificateList, CertificateOut
 from station.certificate.register import MEDIA, CertificateError
 
 router = APIRouter(tags=["certificates"])
 Ext = Literal["html", "pdf", "xml"]
-DOCS: dict[int | str, dict[str, Any]] = {200: {"content": {m.split(";")[0]: {"schema": {"type": "string"}}
+DOCS: dict[int | str, dict[str, Any]] = {200: {"content": {m.split(";")[0]: {"schema": BINARY if "pdf" in m
+                                                                    else {"type": "string"}}
                                                          for m in MEDIA.values()},
                                                "description": "the certificate in the asked form"}}
 
