@@ -17,11 +17,16 @@ minus the time just before the bench sent ``POST /stop``.  Cases, each ``--repea
   opened just before the stop (no request on any of them).  Also reported: how many the daemon kept
   open (its descriptors) and its log lines about open files.
 
+Each case is measured for each ``--via``: ``main`` sends ``POST /stop`` to the daemon's web port (a
+new connection each time), ``stop_port`` to its stop port (``service.stop_port``: a listener of its
+own, with its own thread and loop); the flood of ``idle_connections`` is on the web port either way.
+
 After each stop the bench waits for the drive's standstill (the daemon's answer says it), then
 acknowledges the stop as an operator would.  Everything is bounded in time; the daemon and the
 emulator are ended at the close.  Target: <= 100 ms in every case.
 
 Usage: python bench/stop_latency.py [--repeats 3] [--connections 20000] [--cases idle,idle_connections,...]
+       [--via main,stop_port]
 """
 
 from __future__ import annotations
@@ -77,6 +82,11 @@ class Daemon:
         self.cfg_path.write_text(yaml.safe_dump(cfg))
         self.log_path = tmp / "daemon.log"
         self.port = _free_port()
+        self.stop_port: int | None = None
+        if tree is None:  # this version has the stop port
+            self.stop_port = _free_port()
+            cfg.setdefault("service", {})["stop_port"] = self.stop_port
+            self.cfg_path.write_text(yaml.safe_dump(cfg))
         env = {**os.environ, "STATION_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
         if tree is not None:  # another version of the station (a baseline), with its shipped YAML package
             env["PYTHONPATH"] = f"{tree}{os.pathsep}{tree / '.dev'}"
@@ -89,6 +99,8 @@ class Daemon:
         # the stop goes on a new connection each time, as a page's first press or an API client's would
         self.stop_client = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=60.0,
                                         limits=httpx.Limits(max_keepalive_connections=0))
+        self.stop_port_client = httpx.Client(base_url=f"http://127.0.0.1:{self.stop_port}", timeout=60.0,
+                                             limits=httpx.Limits(max_keepalive_connections=0))
         deadline = time.monotonic() + 60.0
         while True:
             if self.proc.poll() is not None:
@@ -114,6 +126,7 @@ class Daemon:
     def close(self) -> None:
         self.client.close()
         self.stop_client.close()
+        self.stop_port_client.close()
         self.proc.terminate()
         try:
             self.proc.wait(30)
@@ -234,10 +247,11 @@ def idle_connections(port: int, n: int, limit_s: float = 60.0) -> Iterator[tuple
                 h.kill()
 
 
-def one_stop(d: Daemon, emu: SimRigProcess) -> dict[str, Any]:
+def one_stop(d: Daemon, emu: SimRigProcess, via: str) -> dict[str, Any]:
+    client = d.stop_port_client if via == "stop_port" else d.stop_client
     t0 = time.monotonic()
     try:
-        r = d.stop_client.post("/stop")
+        r = client.post("/stop")
         status, body = r.status_code, r.json()
     except httpx.HTTPError as exc:
         status, body = None, {"error": f"{type(exc).__name__}: {exc}"}
@@ -248,20 +262,21 @@ def one_stop(d: Daemon, emu: SimRigProcess) -> dict[str, Any]:
 
 
 def measure(name: str, d: Daemon, emu: SimRigProcess, repeats: int,
-            around: Callable[[], contextlib.AbstractContextManager[dict[str, Any]]], with_run: bool) -> dict[str, Any]:
+            around: Callable[[], contextlib.AbstractContextManager[dict[str, Any]]], with_run: bool,
+            via: str) -> dict[str, Any]:
     samples = []
     extra: dict[str, Any] = {}
     for _ in range(repeats):
         if with_run:
             start_run(d)
         with around() as info:
-            s = one_stop(d, emu)
+            s = one_stop(d, emu, via)
         extra.update(info)
         samples.append(s)
         wait_rig_free(d)
         acknowledge(d)
     lat = [s["latency_ms"] for s in samples if s["latency_ms"] is not None]
-    return {"case": name, "repeats": repeats, "stops_reaching_the_drive": len(lat),
+    return {"case": name, "via": via, "repeats": repeats, "stops_reaching_the_drive": len(lat),
             "latency_ms_median": round(statistics.median(lat), 2) if lat else None,
             "latency_ms_max": round(max(lat), 2) if lat else None,
             "latency_ms_each": [round(x, 2) for x in lat],
@@ -289,6 +304,8 @@ def main() -> int:
     ap.add_argument("--connections", type=int, default=20_000)
     ap.add_argument("--cases", default="idle,run_recording,database_locked,idle_connections,disk_full",
                     help="comma-separated cases to run (default: all)")
+    ap.add_argument("--via", default="main,stop_port",
+                    help="where the stop is sent: main (the web port), stop_port (its own listener), or both")
     ap.add_argument("--daemon-tree", type=Path, default=None,
                     help="run the daemon from this source tree (e.g. an older version as the baseline)")
     args = ap.parse_args()
@@ -343,7 +360,11 @@ def main() -> int:
                 if time.monotonic() - started > DEADLINE_S:
                     out["cases"].append({"case": name, "skipped": "the bench's time limit"})
                     continue
-                out["cases"].append(measure(name, d, emu, args.repeats, around, with_run))
+                for via in args.via.split(","):
+                    if via == "stop_port" and d.stop_port is None:
+                        out["cases"].append({"case": name, "via": via, "skipped": "this daemon has no stop port"})
+                        continue
+                    out["cases"].append(measure(name, d, emu, args.repeats, around, with_run, via))
             if why_no_tmpfs is not None and "disk_full" in wanted:
                 out["cases"].append({"case": "disk_full", "skipped": f"no tmpfs could be mounted: {why_no_tmpfs}"})
             text = d.log_path.read_text(errors="replace")

@@ -6,6 +6,7 @@ measures them)."""
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import contextlib
 import json
@@ -17,6 +18,7 @@ from typing import Any
 import pytest
 import uvicorn
 
+from station.commands import stop as stop_command
 from station.commands.connections import ConnectionBounds
 from station.commands.stopport import MAX_HEAD_BYTES, StopPort, parse_head
 from tests.station_support import app_in_process, run_body, start, wait_state
@@ -103,6 +105,10 @@ def test_stop_port_stops_the_drive_and_refuses_bad_and_cross_site_requests_witho
             assert (await c.post("/runs", json=run_body(freqs=(10.0,)))).status_code == 409
             status, _, body = await raw(p, req("GET", p))
             assert body["estop"]["latched"] and body["drive"]["standstill"] is True
+            # `station stop` goes to the stop port (the main port here listens nowhere)
+            args = argparse.Namespace(url="http://127.0.0.1:9", stop_port=p)
+            assert await asyncio.to_thread(stop_command.run, args) == 0
+            assert m.latch.state()["count"] == 2
     asyncio.run(go())
 
 

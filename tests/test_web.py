@@ -141,6 +141,7 @@ def test_without_login_the_page_says_so_and_emergency_stop_works(page: object, d
     pg.wait_for_selector("#banner:not([hidden])")
     assert "EMERGENCY STOP" in pg.inner_text("#banner") and rid in pg.inner_text("#banner")
     assert daemon.wait_state(rid)["state"] == "aborted"
+    assert "stop port: POST /stop (origin http://127.0.0.1:" in daemon.log()  # the page used the stop port
     # the stop latches: the page shows it, and an operator with the token acknowledges it there
     pg.wait_for_selector("#latch:not([hidden])", timeout=15_000)
     assert "page" in pg.inner_text("#latch") and pg.is_disabled("#start")

@@ -498,6 +498,8 @@ class StationOut(OutModel):
     default_record_s: float
     default_steps: list[dict[str, float]]
     token_required: list[str] = Field(description="endpoints that need the bearer token")
+    stop_port: int | None = Field(default=None, description="the stop port: POST /stop on a listener of its own "
+                                  "(same host; null: none)")
 
 
 class CertificateIssueIn(BaseModel):

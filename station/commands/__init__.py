@@ -15,6 +15,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.report",
     "station.commands.serve",
     "station.commands.ack",
+    "station.commands.stop",
     "station.commands.batch",
     "station.commands.lab",
 )

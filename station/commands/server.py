@@ -8,7 +8,7 @@ from types import FrameType
 
 import uvicorn
 
-from station.commands.stopport import StopPort, stop_port_of
+from station.commands.stopport import StopPort
 from station.service.settings import ServiceSettings
 
 log = logging.getLogger("station.serve")
@@ -48,7 +48,7 @@ class StationServer(uvicorn.Server):
         """The stop port (``service.stop_port``), once the app's manager runs; a port that cannot be
         bound is logged as an error (the main port's ``POST /stop`` still stops)."""
         bound = [s.getsockname()[1] for server in self.servers for s in server.sockets]
-        port = stop_port_of(self.settings, int(bound[0]) if bound else self.settings.port)
+        port = self.settings.stop_port
         manager = getattr(getattr(self.config.app, "state", None), "manager", None)
         if port is None or manager is None:
             return

@@ -222,7 +222,9 @@ class StopPort:
         why = cross_site_refusal(headers.get("sec-fetch-site"), origin, host, self._page_origins(host))
         if why is not None:
             return 403, {"detail": why}, []
-        cors = [("Access-Control-Allow-Origin", origin), ("Vary", "Origin")] if origin is not None else []
+        # the station's own page may read the answer (and sends its session: who stopped is recorded)
+        cors = [("Access-Control-Allow-Origin", origin), ("Access-Control-Allow-Credentials", "true"),
+                ("Vary", "Origin")] if origin is not None else []
         if method == "GET":
             link = self.manager.link
             drive = link.drive.to_dict() if link.drive is not None else None
@@ -232,16 +234,9 @@ class StopPort:
         if method != "POST":
             return 405, {"detail": f"method {method[:16]} not allowed: POST /stop or GET /stop"}, [
                 ("Allow", "GET, POST")]
+        log.warning("stop port: POST /stop (origin %s)", (origin or "none")[:80])
         client = parse_qs(url.query).get("client", [""])[0]
         source = "page" if client == "page" or headers.get("x-station-client") == "page" else "api"
         rep = await self.manager.runs.emergency_stop(source, who_stopped(headers, self.settings))
         return 200, stop_answer(rep).model_dump(mode="json"), cors
 
-
-def stop_port_of(settings: ServiceSettings, bound_port: int) -> int | None:
-    """The stop port to listen on: ``service.stop_port``; unset: the main port + 1 (none when the main
-    port is chosen by the system); 0: none."""
-    wanted = settings.config.service.stop_port
-    if wanted is None:
-        return bound_port + 1 if settings.port and bound_port < 65535 else None
-    return wanted or None

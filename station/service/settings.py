@@ -38,6 +38,15 @@ class ServiceSettings:
     def loopback_only(self) -> bool:
         return is_loopback(self.host)
 
+    @property
+    def stop_port(self) -> int | None:
+        """The stop port to listen on: ``service.stop_port``; unset: ``port`` + 1 (none when the
+        port is chosen by the system); 0: none."""
+        wanted = self.config.service.stop_port
+        if wanted is None:
+            return self.port + 1 if 0 < self.port < 65535 else None
+        return wanted or None
+
 
 def is_loopback(host: str) -> bool:
     if host == "localhost":

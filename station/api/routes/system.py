@@ -139,4 +139,5 @@ async def station_info(settings: SettingsDep) -> StationOut:
         default_settle_s=cfg.plan.settle_s, default_record_s=cfg.plan.record_s,
         default_steps=[{"crank_frequency_hz": s.crank_frequency_hz, "crank_radius_m": s.crank_radius_m}
                        for s in cfg.plan.steps],
-        token_required=["POST /runs", "POST /runs/{id}/abort", "POST /stop/acknowledge", "POST /campaigns"])
+        token_required=["POST /runs", "POST /runs/{id}/abort", "POST /stop/acknowledge", "POST /campaigns"],
+        stop_port=settings.stop_port)

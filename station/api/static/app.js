@@ -136,9 +136,23 @@ $("#ack").addEventListener("click", async () => {
   refreshHealth();
 });
 
+// the stop goes to the daemon's stop port first (a listener of its own, not crowded by other
+// clients), then, if that cannot be reached or is not the station's, to this page's own port
+async function stopPortStop() {
+  if (!station || !station.stop_port) return null;
+  try {
+    const r = await fetch(`${location.protocol}//${location.hostname}:${station.stop_port}/stop?client=page`,
+                          {method: "POST", credentials: "include"});
+    const data = await r.json();
+    return r.ok && typeof data.stop_commanded === "boolean" ? {status: r.status, ok: r.ok, data} : null;
+  } catch (e) {
+    return null;
+  }
+}
+
 $("#estop").addEventListener("click", async () => {
   try {
-    const r = await api("POST", "/stop");
+    const r = (await stopPortStop()) || (await api("POST", "/stop"));
     const d = r.data || {};
     const turning = d.drive && d.drive.standstill === false ? " - THE CRANK STILL TURNS: use the hardware emergency stop" : "";
     banner(`EMERGENCY STOP: ${d.detail || r.status}` + (d.aborted_runs && d.aborted_runs.length ? ` (aborted ${d.aborted_runs.join(", ")})` : "") + turning,
