@@ -4,6 +4,7 @@ and k from the t-distribution; the GUM Supplement 1 Monte Carlo check agrees wit
 from __future__ import annotations
 
 import copy
+import itertools
 import math
 from pathlib import Path
 
@@ -78,3 +79,12 @@ def test_monte_carlo_agrees_with_the_linear_budget(identified) -> None:  # type:
         assert abs(p.u_mc - p.u_linear) < 4 * se_u + 0.05 * p.u_linear, p
         se_end = 2.7 * p.u_linear / math.sqrt(n)  # of a 2.5 % quantile of a normal sample
         assert p.d_low < p.delta + 3 * se_end and p.d_high < p.delta + 3 * se_end, p
+
+
+def test_the_fit_stores_its_convergence(identified) -> None:  # type: ignore[no-untyped-def]
+    """The frequency-domain fit's χ² per Levenberg–Marquardt iteration (the convergence plot's data):
+    from the linear start down to the final χ², never up, ending at the χ² the result states."""
+    _, res = identified
+    hist = res.extra["cost_history"]
+    assert len(hist) >= 2 and all(b <= a * (1 + 1e-12) for a, b in itertools.pairwise(hist))
+    assert hist[-1] / res.extra["dof"] == pytest.approx(res.fit.chi2_per_dof, rel=1e-9)

@@ -7,9 +7,9 @@
 * ``timefit``: force signal and the model's prediction over three periods of (up to) four steps;
 * ``residuals``: residual RMS of every step (whole record window) against frequency, and the
   residual over ten periods around the centre of (up to) four steps;
-* ``convergence``: Gbest MSE per iteration of the stored PSO/PSO+ identifications (paper Eq. 15);
-  else an iteration history if a stored result exposes one (``extra.cost_history``); else a figure
-  saying that no iterative method was run.
+* ``convergence``: Gbest MSE per iteration of the stored PSO/PSO+ identifications (paper Eq. 15),
+  else the stored fit's χ² per Levenberg–Marquardt iteration (``extra.cost_history``: fd stores
+  it, from the linear start to the final χ²); else a figure saying that no iterative method was run.
 
 Every figure is FIG_SIZE_PX pixels, rendered deterministically (no timestamps in the PNG).
 """
@@ -181,10 +181,20 @@ def _convergence(d: RunData, fig: Figure) -> None:
     if hist_runs:
         ax = fig.subplots()
         for r in hist_runs:
-            ax.semilogy(np.asarray(r.payload["extra"]["cost_history"], float), "o-", label=r.name)
-        ax.set(xlabel="iteration", ylabel="cost")
+            ex = r.payload["extra"]
+            hist = np.asarray(ex["cost_history"], float)
+            dof = ex.get("dof")
+            final = hist[-1]
+            gap = np.maximum(hist - final, 1e-16 * max(final, 1e-300))  # what each iteration had left to gain
+            per = f", final χ²/dof {final / dof:.3g}" if isinstance(dof, int) and dof > 0 else ""
+            ax.semilogy(np.arange(hist.size), gap, "o-",
+                        label=f"{r.name}: χ² {hist[0]:.6g} at the start → {final:.6g} after {hist.size - 1} "
+                              f"iteration(s){per}")
+        ax.set(xlabel="Levenberg–Marquardt iteration (0: the linear start on 1/H)",
+               ylabel="χ² − final χ² (weighted H(f) residual)")
+        ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-        _title(fig, d, "Convergence of the iterative fit")
+        _title(fig, d, "Convergence of the frequency-domain fit")
         return
     _placeholder(fig, d, "No iterative method was run on this recording.\n\n"
                  f"The identification shown ({d.ident.method}, {d.ident.model}) stores no "

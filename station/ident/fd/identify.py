@@ -190,7 +190,8 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
                             f"conditional on an assumed m_e = {inputs.m_e:g} kg; the data determine S (m_l + m_e), "
                             "the loaded natural frequency and the damping ratio (see 'determined')",
                             {"assumed_end_mass_kg": inputs.m_e}))
-    extra = {"m_e_kg": model.m_e, "m_l_kg": model.m_l, "f_hz": frf.f_hz.tolist(), "H_abs": np.abs(frf.H).tolist(),
+    extra = {"cost_history": list(fit.history), "dof": fit.dof,
+             "m_e_kg": model.m_e, "m_l_kg": model.m_l, "f_hz": frf.f_hz.tolist(), "H_abs": np.abs(frf.H).tolist(),
              "H_phase_rad": np.angle(frf.H).tolist(),
              "H_std": np.sqrt(np.trace(frf.cov, axis1=1, axis2=2) / 2).tolist(), "steps_used": cr.used}
     return IdentificationResult("fd", model.key, params, summary_fd(frf, fit, cr.sigs), rep,

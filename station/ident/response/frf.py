@@ -92,7 +92,9 @@ def linear_start_sdof(frf: FrequencyResponse, model: SdofModel) -> FloatArray:
 @dataclass(frozen=True)
 class FrfFit:
     """Weighted LM result: theta (n,), cov (n, n), chi2, dof, whitened Jacobian (2m, n) in
-    parameter-relative units (d r / d ln theta), residual H_model - H (m,) complex."""
+    parameter-relative units (d r / d ln theta), residual H_model - H (m,) complex; history: the
+    weighted chi^2 at the start and at each Levenberg-Marquardt iteration (each Jacobian evaluation),
+    ending with the final chi^2."""
 
     theta: FloatArray
     cov: FloatArray
@@ -101,6 +103,7 @@ class FrfFit:
     jac_rel: FloatArray
     residual: ComplexArray
     inflated: bool
+    history: tuple[float, ...] = ()
 
 
 def whiteners(cov: FloatArray) -> FloatArray:
@@ -135,11 +138,17 @@ def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
         th[free] = theta0[free] * np.exp(p)
         return th
 
+    history: list[float] = []
+    last: list[float] = []
+
     def resid(p: FloatArray) -> FloatArray:
         d = model.response(theta_of(p), frf.f_hz) - frf.H
-        return np.einsum("fij,fj->fi", W, np.column_stack([d.real, d.imag])).ravel()
+        r = np.einsum("fij,fj->fi", W, np.column_stack([d.real, d.imag])).ravel()
+        last[:] = [float(r @ r)]
+        return r
 
     def jac(p: FloatArray) -> FloatArray:
+        history.extend(last)  # the cost at the point the iteration starts from
         return whitened_jacobian(model, theta_of(p), frf)[:, free]
 
     n_res = 2 * frf.f_hz.size
@@ -159,4 +168,4 @@ def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
     idx = np.nonzero(free)[0]
     cov[np.ix_(idx, idx)] = cov_rel * np.outer(theta[idx], theta[idx])
     return FrfFit(theta, cov, chi2, dof, whitened_jacobian(model, theta, frf),
-                  model.response(theta, frf.f_hz) - frf.H, inflated)
+                  model.response(theta, frf.f_hz) - frf.H, inflated, (*history[:-1], chi2))
