@@ -147,11 +147,16 @@ def test_web_page_and_assets_are_served(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_run_goes_through_its_states_live(completed: dict) -> None:
     names = [n for n, _ in completed["events"]]
-    states = [d["state"] for _, d in completed["events"]]
+    status = [d for n, d in completed["events"] if n != "result"]  # status and end: the RunStatus
+    states = [d["state"] for d in status]
     assert names[-1] == "end" and states[-1] == "completed"
+    # each listed identification's outcome: fd's result, then the paper's PSO+ refusing 0.5 s records
+    results = [(d["method"], d["status"]) for n, d in completed["events"] if n == "result"]
+    assert results == [("fd", "done"), ("pso+", "refused")]
+    assert names.index("result") < names.index("end")
     assert "running" in states and "identifying" in states
     assert states.index("running") < states.index("identifying") < states.index("completed")
-    running = [d for _, d in completed["events"] if d["state"] == "running"]
+    running = [d for d in status if d["state"] == "running"]
     assert {d["current_step"] for d in running} >= {0, 1}
     assert {"ramping", "settling", "recording"} <= {d["step_state"] for d in running}
     fractions = [d["progress"] for d in running]

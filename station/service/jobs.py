@@ -142,7 +142,9 @@ class JobQueue:
         outcomes = [MethodOutcome.from_dict(d) for d in out.get("outcomes", [])]
         rest = len(outcomes) - 1
         later = f"; {rest} more method{'s' if rest > 1 else ''} to follow" if rest > 0 else ""
-        self.outcomes[run_id] = outcomes
+        # the primary shows as done (event 'result') only once the run is completed in the database;
+        # meanwhile it is 'running', so that the event stream does not end before the others follow
+        self.outcomes[run_id] = [replace(outcomes[0], status="running"), *outcomes[1:]] if outcomes else []
         while len(self.outcomes) > MAX_TRACKED_OUTCOMES:
             self.outcomes.popitem(last=False)
 
@@ -157,6 +159,8 @@ class JobQueue:
                          {"result": out["result_name"], "method": out["method"], "model": out["model"]})
         if not await self._record(run_id, f"{done}, result {out['result_name']}", note_primary, row_values):
             return
+        self.outcomes[run_id] = outcomes
+        self.changes.changed(run_id)
         log.info("run %s identified (%s)%s", run_id, out["result_name"], later)
         if rest > 0:
             await self._secondaries(job_id, run_id, path, outcomes, done)
