@@ -23,6 +23,7 @@ RUN_ABORTED = "run.aborted"
 RUN_ENDED = "run.ended"
 RUN_IDENTIFIED = "run.identified"
 RESULT_REIDENTIFIED = "result.reidentified"
+RESULT_STORED = "result.stored"  # an analysis stored beside a recording (model gap, campaign)
 ESTOP_RAISED = "estop.raised"
 ESTOP_ACKNOWLEDGED = "estop.acknowledged"
 CERTIFICATE_APPROVED = "certificate.approved"

@@ -11,16 +11,18 @@ from fastapi import APIRouter
 from fastapi.exceptions import RequestValidationError
 
 from station.api.campaign_schemas import CampaignOut, CampaignRequest
-from station.api.deps import ManagerDep, Writer
+from station.api.deps import ManagerDep, Operator
 from station.api.routes.runs import BODY_ERRORS
 from station.api.schemas import ErrorOut, ValidationErrorOut
+from station.lab import audit
 from station.recording import write_result
 from station.service.results import finite
+from station.service.store import Store
 
 router = APIRouter(prefix="/campaigns", tags=["campaigns"])
 
 
-@router.post("", response_model=CampaignOut, dependencies=[Writer],
+@router.post("", response_model=CampaignOut,
              responses={**BODY_ERRORS, 401: {"model": ErrorOut, "description": "bearer token missing or wrong"},
                         404: {"model": ErrorOut, "description": "no such run"},
                         409: {"model": ErrorOut, "description": "a run is not completed"},
@@ -29,7 +31,7 @@ router = APIRouter(prefix="/campaigns", tags=["campaigns"])
                                              "transducers or nominal sensitivities, a run twice, mixed polarity)"},
                         503: {"model": ErrorOut, "description": "a recording cannot be read right now"}},
              summary="Identify runs with different top masses jointly (S, end mass m_e, k_f, b_f)")
-async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep) -> CampaignOut:
+async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep, who: Operator) -> CampaignOut:
     """Reads each run's recording and fits Eq. 9 to all of them at once, the end mass m_e a
     parameter, in a worker process (like every computation of the station).  With `store` the
     result is also stored beside every run's recording (`<run>.results/results.campaign.h5`), where
@@ -51,4 +53,10 @@ async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep) ->
             path = manager.artifacts.recording_path(await manager.runs.get(run_id))
             await asyncio.to_thread(write_result, path, RESULT_NAME, payload)
         stored = f"<run>.results/results.{RESULT_NAME}.h5"
+        runs = list(body.runs)
+
+        def record(store: Store) -> None:
+            for run_id in runs:
+                audit.append(store, who.name, audit.RESULT_STORED, run_id, {"kind": "campaign", "runs": runs})
+        manager.db.post(record)
     return CampaignOut.model_validate({**data, "runs": list(body.runs), "stored_as": stored})

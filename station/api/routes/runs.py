@@ -11,7 +11,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, StreamingResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 
-from station.api.deps import ArtifactsDep, ManagerDep, Operator, Reader, RunDep, RunsDep, Writer
+from station.api.deps import ArtifactsDep, ManagerDep, Operator, Reader, RunDep, RunsDep
 from station.api.schemas import (
     AbortOut,
     DiscrepancyOut,
@@ -28,6 +28,7 @@ from station.api.schemas import (
     utc,
 )
 from station.errors import LimitError
+from station.lab import audit
 from station.lab.register import RegisterError, UnknownEntryError
 from station.report.names import PLOT_NAMES
 from station.run.methods import SETTLED, MethodOutcome
@@ -226,15 +227,19 @@ async def run_discrepancy(run: RunDep, artifacts: ArtifactsDep, max_effects: Max
     return DiscrepancyOut.model_validate(finite(await artifacts.stored_discrepancy(run.id, max_effects)))
 
 
-@router.post("/{run_id}/discrepancy", response_model=DiscrepancyOut, dependencies=[Writer],
+@router.post("/{run_id}/discrepancy", response_model=DiscrepancyOut,
              responses={**E401, **E404, **E409, **E422, **E503, **BODY_ERRORS},
              summary="Compute and store the model-gap analysis of the run")
-async def compute_discrepancy(run: RunDep, artifacts: ArtifactsDep, max_effects: MaxEffects = 4) -> DiscrepancyOut:
+async def compute_discrepancy(run: RunDep, artifacts: ArtifactsDep, manager: ManagerDep, who: Operator,
+                              max_effects: MaxEffects = 4) -> DiscrepancyOut:
     """Runs the analysis in a worker process and stores it beside the recording (replacing an
-    earlier one), where `GET`, the proposal and the report read it."""
+    earlier one), where `GET`, the proposal and the report read it; the audit trail records who."""
     from station.service.results import finite
 
-    return DiscrepancyOut.model_validate(finite(await artifacts.discrepancy(run.id, max_effects)))
+    out = await artifacts.discrepancy(run.id, max_effects)
+    manager.db.post(lambda s: audit.append(s, who.name, audit.RESULT_STORED, run.id,
+                                           {"kind": "discrepancy", "max_effects": max_effects}))
+    return DiscrepancyOut.model_validate(finite(out))
 
 
 @router.post("/{run_id}/abort", status_code=status.HTTP_202_ACCEPTED, response_model=AbortOut,
