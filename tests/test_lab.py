@@ -97,6 +97,10 @@ def test_a_scripted_day_is_in_the_audit_trail(tmp_path: Path) -> None:
             assert r.status_code == 200, r.text
             assert r.json()["approved_by"] == "anton" and r.json()["sha256"] == row.recording_sha256
 
+            hist = (await tina.get("/transducers/TX5K-0002/history")).json()
+            assert [(r["run_id"], r["operator"], [a["by"] for a in r["approvals"]]) for r in hist["runs"]] == \
+                [(rid, "tina", ["anton"])]
+            assert hist["transducer"]["owner"] == "ACME Weighing" and hist["certificates"] == []
             await asyncio.to_thread(manager.db.flush, 5.0)
             trail = (await admin.get("/audit?limit=1000")).json()["entries"]
             seen = [(e["who"], e["action"], e["target"]) for e in reversed(trail)]

@@ -162,4 +162,6 @@ class HistoryOut(OutModel):
     runs: list[dict[str, Any]] = Field(description="oldest first: run id, state, created (UNIX s), operator, "
                                        "standards, parameters {S, k_f, b_f: value, std, unit}, approvals, drift")
     flagged: list[dict[str, Any]] = Field(description="values flagged as drift against earlier calibrations")
+    certificates: list[dict[str, Any]] = Field(default_factory=list, description="issued certificates, oldest "
+                                               "first: number, run_id, issued_at, approved_by, replaces, replaced_by")
     units: dict[str, str]

@@ -175,11 +175,12 @@ async def integrity(run: RunDep, manager: ManagerDep) -> IntegrityOut:
 
 
 @router.get("/transducers/{entry_id}/history", response_model=HistoryOut, dependencies=[Reader],
-            responses={**E401, **E404}, summary="A transducer's runs, results, approvals and drift")
+            responses={**E401, **E404}, summary="A transducer's runs, results, approvals, certificates and drift")
 async def transducer_history(entry_id: EntryId, manager: ManagerDep,
                              limit: Annotated[int, Query(ge=1, le=2000)] = 500) -> HistoryOut:
     t, rows = await manager.db.read(lambda s: (register.transducer(s, entry_id), history.runs_of(s, entry_id, limit)))
     ids = [r.id for r in rows]
     approved = await manager.db.read(lambda s: history.approvals(s, ids))
     doc = await asyncio.to_thread(history.history, rows, manager.settings.recordings_dir, approved)
-    return HistoryOut(transducer=TransducerOut(**t.to_dict()), **doc)
+    certs = await manager.artifacts.certificates(entry_id)
+    return HistoryOut(transducer=TransducerOut(**t.to_dict()), certificates=certs, **doc)

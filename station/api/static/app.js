@@ -590,7 +590,9 @@ async function showHistory(id) {
   $("#hist-runs tbody").innerHTML = d.runs.slice().reverse().map((r) => `<tr><td><a href="#/runs/${esc(r.run_id)}">${esc(r.run_id)}</a></td>` +
     `<td class="state ${esc(r.state)}">${esc(r.state)}</td><td>${esc(r.operator)}</td><td>${cell(r, "S")}</td><td>${cell(r, "k_f")}</td><td>${cell(r, "b_f")}</td>` +
     `<td>${Object.entries(r.drift).filter(([, c]) => c.flagged).map(([n]) => n).join(", ") || "—"}</td>` +
-    `<td>${r.approvals.map((a) => esc(a.by)).join(", ") || "—"}</td></tr>`).join("");
+    `<td>${r.approvals.map((a) => esc(a.by)).join(", ") || "—"}</td>` +
+    `<td>${d.certificates.filter((c) => c.run_id === r.run_id).map((c) => `<a href="/certificates/${encodeURIComponent(c.number)}.html">${esc(c.number)}</a>` +
+      (c.replaced_by ? ` (replaced by ${esc(c.replaced_by)})` : "")).join(", ") || "—"}</td></tr>`).join("");
 }
 
 async function showAudit() {
