@@ -117,6 +117,9 @@ class Problem:
         self.valid_d = np.zeros(data.Rd.shape[:2], dtype=bool)
         # its noise enters the force rows (errors in variables); the same weights for every model
         self.eiv = _whitening(data, self.Wf)
+        # the residual E W_f (c_f - m) as E W_f c_f - (E W_f) m: one product per evaluation
+        self.EW = np.einsum("sij,sjk->sik", self.eiv, self.Wf)
+        self.EWc = np.einsum("sij,sj->si", self.EW, data.cf)
 
     def to_value(self, q: Param, u: float) -> float:
         c, s = self.centre[q.name], self.scale[q.name]
@@ -152,9 +155,10 @@ class Problem:
         return wf, wd, m, md
 
     def residual(self, u: Sequence[float] | FloatArray) -> FloatArray:
-        wf, wd, _, _ = self.whitened(self.values(u))
-        wf = np.einsum("sij,sj->si", self.eiv, wf)
-        return np.concatenate([wf[self.valid_f], wd[self.valid_d]])
+        """The EIV-whitened force residual rows (the model takes the measured motion as its input:
+        no displacement rows, ``valid_d``)."""
+        m, _, _ = predict(self.data, self.values(u), self.effects)
+        return (self.EWc - np.einsum("sij,sj->si", self.EW, m))[self.valid_f]
 
     def n_obs(self) -> int:
         return int(self.valid_f.sum() + self.valid_d.sum())

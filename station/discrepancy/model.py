@@ -27,6 +27,7 @@ Output: model coefficients in the force slots (n, n_f) and displacement-harmonic
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -78,6 +79,43 @@ def _nonlinear_output(F0: float, Fk: ComplexArray, S: float, q: float, c: float,
     return V[:, 0].real / N_GRID, 2.0 * V[:, 1 : K + 1] / N_GRID
 
 
+@dataclass(frozen=True)
+class _Drive:
+    """What ``predict`` needs of a data set that no parameter changes: harmonic frequencies f_k (Hz)
+    and Om (rad/s), s = j Om, s^2 (n, K_MAX), the measured motion D (n, K_MAX) and its displacement
+    slots md (n, n_d)."""
+
+    f: FloatArray
+    Om: FloatArray
+    s: ComplexArray
+    s2: ComplexArray
+    D: ComplexArray
+    md: FloatArray
+
+
+_DRIVE: dict[int, tuple[RigData, _Drive]] = {}
+
+
+def _drive(data: RigData) -> _Drive:
+    """``_Drive`` once per data set (a frozen ``RigData``: the thousands of model evaluations of one
+    analysis share it; the few most recent are kept)."""
+    hit = _DRIVE.get(id(data))
+    if hit is not None and hit[0] is data:
+        return hit[1]
+    Om = 2 * np.pi * data.f_hz[:, None] * np.arange(1, K_MAX + 1)[None, :]
+    s = np.asarray(1j * Om, dtype=np.complex128)
+    D = measured_motion(data)  # the frame motion as recorded drives the model (``eiv``)
+    md = np.zeros((data.n_steps, 2 * (K_MAX - 1)))
+    md[:, 0::2], md[:, 1::2] = D[:, 1:].real, -D[:, 1:].imag
+    out = _Drive(Om / (2 * np.pi), Om, s, s * s, D, md)
+    for a in (out.f, out.Om, out.s, out.s2, out.D, out.md):
+        a.flags.writeable = False
+    if len(_DRIVE) >= 4:
+        _DRIVE.clear()
+    _DRIVE[id(data)] = (data, out)
+    return out
+
+
 def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
             ) -> tuple[FloatArray, FloatArray, ComplexArray]:
     """Model coefficients (force (n, n_f), displacement harmonics (n, n_d)) and V_1/X_1 (n,).
@@ -85,17 +123,15 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     p: physical parameters by name (S V/N, k_f N/m, b_f N s/m, offset_V V, and the effects' own);
     effects: names of the effects switched on (value: the low-pass order, else ignored)."""
     n, K = data.n_steps, K_MAX
-    kk = np.arange(1, K + 1)[None, :]
-    Om = 2 * np.pi * data.f_hz[:, None] * kk
-    s = np.asarray(1j * Om, dtype=np.complex128)
-    D = measured_motion(data)  # the frame motion as recorded drives the model (``eiv``)
+    dr = _drive(data)
+    Om, s, D = dr.Om, dr.s, dr.D
     x = D * np.exp(1j * Om * p["delay_s"]) if "channel_delay" in effects else D
     if "displacement_resonance" in effects:  # the recorded motion is H_s x_b: the frame's is D / H_s
-        x = x / DisplacementResonance(p["sensor_resonance_hz"], p["sensor_damping"]).response(Om / (2 * np.pi))
+        x = x / DisplacementResonance(p["sensor_resonance_hz"], p["sensor_damping"]).response(dr.f)
     t = Transducer(k_f=p["k_f"], b_f=p["b_f"], m_e=data.end_mass_kg, m_l=data.load_mass_kg,
                    sensitivity_V_per_N=p["S"], capacity_N=data.capacity_N)
     cpl = CouplingCompliance(p["k_c"], p["b_c"]) if "coupling_compliance" in effects else None
-    Gk = spring_force_per_acceleration(t, cpl, Om / (2 * np.pi)) * s**2
+    Gk = spring_force_per_acceleration(t, cpl, dr.f) * dr.s2
     Fk = Gk * x
     F0 = -data.total_mass_kg * G
     if "transducer_nonlinearity" in effects:
@@ -136,6 +172,4 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
         curv = beta * h**2
     m[:, 2 * K], m[:, 2 * K + 1], m[:, 2 * K + 2] = dc, slope, curv
     m[:, 2 * K + 3 :: 2], m[:, 2 * K + 4 :: 2] = W.real, -W.imag
-    md = np.zeros((n, 2 * (K - 1)))
-    md[:, 0::2], md[:, 1::2] = D[:, 1:].real, -D[:, 1:].imag
-    return m, md, h1
+    return m, dr.md, h1
