@@ -1,7 +1,9 @@
 """The next run that settles a tie: planned-step weights against a real decomposition, proposed
-steps within the rig's limits under every tied model, and end to end on the simulated rig: a
-coupling compliance (k_c = 2 k_f) on a 3-40 Hz plan ties with a delay and a low-pass; running the
-proposed steps names the coupling and recovers k_f within 3 standard uncertainties."""
+steps within the rig's limits under every tied model, and end to end over the rig path: a coupling
+compliance (k_c = 2 k_f) on a 3-40 Hz plan ties with a delay and a low-pass; running the proposed
+steps names the coupling and recovers k_f within 3 standard uncertainties.  The same scenario's tie,
+its proposal and the proposed run on the physics path (``station.simulate``, then sinecal-csv) are
+tests/test_discrepancy_structure.py's (one analysis shared by its tests)."""
 
 from __future__ import annotations
 
@@ -94,29 +96,6 @@ def _truth_ok(rep: Any, cfg: StationConfig) -> None:
     for name, true in (("k_f", t.k_f), ("b_f", t.b_f)):
         est = rep.parameters_after[name]
         assert abs(est.value - true) <= 3 * est.std, (name, est.value, est.std, true)
-
-
-@pytest.mark.slow
-def test_the_proposed_run_resolves_the_coupling_delay_tie(tmp_path: Path) -> None:
-    """Physics path (``station.simulate``): tie -> proposal -> run the proposal -> coupling, k_f."""
-    cfg = tie_config()
-    rep = analyse_recording(simulate_run(cfg, tmp_path / "tie", seed=SEED))
-    # the tie this test is about: coupling, a low-pass and a (negative, so unphysical: never named) delay
-    assert rep.effects and {"channel_delay", "coupling_compliance"} <= set(rep.effects[0].tied)
-    assert rep.effects[0].name != "channel_delay", rep.effects[0].evidence
-    prop = rep.proposal
-    assert prop is not None and prop.measure == "delta_chi2"
-    assert {"channel_delay", "coupling_compliance"} <= set(prop.separates)
-    assert prop.current < 10 < prop.expected_information_gain
-    assert prop.run_steps[: len(cfg.plan.steps)] == tuple((s.crank_frequency_hz, s.crank_radius_m)
-                                                          for s in cfg.plan.steps)
-    check_steps(cfg, [StepRequest(f, r) for f, r in prop.run_steps])
-    js = rep.to_json()["proposal"]
-    assert js["steps"][0] == {"crank_frequency_hz": prop.steps[0][0], "crank_radius_m": prop.steps[0][1]}
-    follow = tie_config(steps=[{"crank_frequency_hz": f, "crank_radius_m": r} for f, r in prop.run_steps])
-    after = analyse_recording(simulate_run(follow, tmp_path / "after", seed=SEED + 100))
-    _truth_ok(after, follow)
-    assert after.proposal is None  # nothing left to settle
 
 
 @pytest.mark.slow

@@ -27,6 +27,7 @@ from station.discrepancy.scenarios import plan_steps, scenario_config
 from station.ident.identify import identify_recording
 from station.ident.response.gate import screen_step
 from station.interchange import export_run, import_run
+from station.limits import StepRequest, check_steps
 from station.recording import read_recording
 from station.simulate import simulate_run
 
@@ -257,19 +258,49 @@ def test_a_refusal_under_json_is_a_json_document(tmp_path: Path, capsys: pytest.
 # -- end to end: tie -> proposal -> the proposed run recorded elsewhere -> sinecal-csv v2 -> named --
 
 @pytest.mark.slow
-def test_the_proposed_run_recorded_elsewhere_and_imported_names_the_coupling(
-        coupling_2kf: tuple[StationConfig, DiscrepancyResult], tmp_path: Path) -> None:
-    _, rep = coupling_2kf
+def test_the_tie_gets_a_proposal_within_the_rig_limits(coupling_2kf: tuple[StationConfig, DiscrepancyResult]
+                                                       ) -> None:
+    """The tie this scenario is about (coupling, a low-pass and a negative, so never named, delay) gets
+    a next run: the planned steps first, then steps that separate coupling and delay, all within the
+    rig's limits (the station's own refusal rule)."""
+    cfg, rep = coupling_2kf
+    assert rep.effects and {"channel_delay", "coupling_compliance"} <= set(rep.effects[0].tied)
+    assert rep.effects[0].name != "channel_delay", rep.effects[0].evidence
     prop = rep.proposal
-    assert prop is not None and "coupling_compliance" in prop.separates, rep.proposal_note
+    assert prop is not None and prop.measure == "delta_chi2", rep.proposal_note
+    assert {"channel_delay", "coupling_compliance"} <= set(prop.separates)
+    assert prop.current < 10 < prop.expected_information_gain
+    assert prop.run_steps[: len(cfg.plan.steps)] == tuple((s.crank_frequency_hz, s.crank_radius_m)
+                                                          for s in cfg.plan.steps)
+    check_steps(cfg, [StepRequest(f, r) for f, r in prop.run_steps])
+    js = rep.to_json()["proposal"]
+    assert js["steps"][0] == {"crank_frequency_hz": prop.steps[0][0], "crank_radius_m": prop.steps[0][1]}
     assert len({r for _, r in prop.run_steps}) > 1  # a radius per step: what v1 could not carry
+
+
+@pytest.fixture(scope="module")
+def follow_up(coupling_2kf: tuple[StationConfig, DiscrepancyResult], tmp_path_factory: pytest.TempPathFactory
+              ) -> tuple[list[tuple[float, float]], Path, DiscrepancyResult]:
+    """The proposed steps recorded on another rig (simulated), exported as sinecal-csv, imported and
+    analysed: (the proposal's run steps, the exported RUN.yaml, the analysis)."""
+    _, rep = coupling_2kf
+    assert rep.proposal is not None, rep.proposal_note
+    run_steps = list(rep.proposal.run_steps)
+    tmp = tmp_path_factory.mktemp("follow")
     follow = plan_3_40({"coupling_compliance": {"k_c": 2.0 * KF, "b_c": 0.5 * BF}},
-                       steps=[{"crank_frequency_hz": f, "crank_radius_m": r} for f, r in prop.run_steps])
-    elsewhere = export_run(simulate_run(follow, tmp_path / "rig", seed=102), tmp_path / "lab")
+                       steps=[{"crank_frequency_hz": f, "crank_radius_m": r} for f, r in run_steps])
+    elsewhere = export_run(simulate_run(follow, tmp / "rig", seed=102), tmp / "lab")
+    return run_steps, elsewhere, analyse_recording(import_run(elsewhere, tmp / "imported"))
+
+
+@pytest.mark.slow
+def test_the_proposed_run_recorded_elsewhere_and_imported_names_the_coupling(
+        follow_up: tuple[list[tuple[float, float]], Path, DiscrepancyResult]) -> None:
+    run_steps, elsewhere, after = follow_up
     doc = yaml.safe_load(elsewhere.read_text(encoding="utf-8"))
-    assert doc["format_version"] == 2 and [s["crank_radius_m"] for s in doc["steps"]] == [r for _, r in prop.run_steps]
-    after = analyse_recording(import_run(elsewhere, tmp_path / "imported"))
-    assert [e.name for e in after.effects][:1] == ["coupling_compliance"], [e.evidence for e in after.effects]
+    assert doc["format_version"] == 2 and [s["crank_radius_m"] for s in doc["steps"]] == [r for _, r in run_steps]
+    assert [e.name for e in after.effects] == ["coupling_compliance"], [e.evidence for e in after.effects]
     covered(after, "after the proposed steps")
     k = after.parameters_after["k_f"]
     assert abs(k.value - KF) <= 3 * k.std and k.std < 0.02 * KF  # determined, not just covered
+    assert after.proposal is None, after.proposal  # nothing left to settle
