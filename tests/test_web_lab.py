@@ -101,6 +101,27 @@ def test_choose_run_history_approve_audit(browser: object, daemon: Daemon, tmp_p
         assert re.search(rf"{who}\s+{re.escape(what)}", text), (who, what)
     pg.screenshot(path=str(out / "lab-audit.png"), full_page=True)
     ctx.close()
+
+    # an administrator enters a reference standard on the page; it is there for the next run
+    ctx = browser.new_context(viewport={"width": 1200, "height": 1000})  # type: ignore[attr-defined]
+    pg = ctx.new_page()
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.goto(daemon.url + "/")
+    log_in(pg, daemon, "ada")
+    pg.goto(f"{daemon.url}/#/register")
+    pg.wait_for_selector("#reg-admin:not([hidden])", timeout=10_000)
+    form = "#std-form"
+    for name, value in (("id", "LVDT-7"), ("certificate_id", "DKD-K-123/2026"), ("issuer", "DKD lab 12"),
+                        ("due_date", "2027-06-30"), ("uncertainty", "2e-7"), ("uncertainty_unit", "m")):
+        pg.fill(f"{form} [name={name}]", value)
+    pg.click(f"{form} button")
+    pg.wait_for_selector("#reg-standards td:has-text('LVDT-7')", timeout=10_000)
+    assert "2027-06-30" in pg.inner_text("#reg-standards")
+    pg.screenshot(path=str(out / "lab-register.png"), full_page=True)
+    ctx.close()
+    std = daemon.c().get("/register").json()["standards"]
+    assert [(s["id"], s["due_date"], s["uncertainty"], s["updated_by"]) for s in std] == \
+        [("LVDT-7", "2027-06-30", 2e-7, "ada")]
     assert errors == [], errors
 
 

@@ -26,12 +26,12 @@ else:
 
 __all__ = ["ARGS", "CHROMIUM", "log_in", "sync_api"]
 
-PASSWORDS = {"tina": "tina-secret-pw", "anton": "anton-secret-pw"}
-ROLES = {"tina": "technician", "anton": "approver"}
+PASSWORDS = {"tina": "tina-secret-pw", "anton": "anton-secret-pw", "ada": "ada-secret-pw1"}
+ROLES = {"tina": "technician", "anton": "approver", "ada": "admin"}
 
 
 def log_in(page: object, daemon: object, name: str = "tina") -> None:
-    """Make user ``name`` (technician tina, approver anton) with the daemon's admin token, then log
+    """Make user ``name`` (technician tina, approver anton, administrator ada) with the daemon's admin token, then log
     in on the page as a person would (the session cookie is the page's only credential)."""
     r = daemon.c().put(f"/users/{name}", json={"role": ROLES[name], "password": PASSWORDS[name]})  # type: ignore[attr-defined]
     assert r.status_code == 200, r.text

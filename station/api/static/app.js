@@ -553,9 +553,37 @@ async function showRegister() {
   $("#reg-standards tbody").innerHTML = register.standards.map((s) => `<tr${s.overdue ? ' class="bad"' : ""}><td>${esc(s.id)}</td><td>${esc(s.kind)}</td>` +
     `<td>${esc(s.certificate_id)}</td><td>${esc(s.issuer)}</td><td>${esc(s.due_date)}${s.overdue ? " OVERDUE" : ""}</td>` +
     `<td>${s.uncertainty} ${esc(s.uncertainty_unit)}</td><td>${s.in_use ? "yes" : "no"}</td></tr>`).join("");
+  $("#reg-admin").hidden = !may("admin");
   $("#reg-policy").textContent = `A run with a standard past its due date is ${register.overdue_policy === "refuse" ? "refused" : "started with a warning"}. ` +
-    "Administrators change the register with PUT /register/... or `station register`.";
+    "Administrators change the register below (or PUT /register/..., `station register`).";
 }
+
+// the administrators' forms: PUT the entry, then show the register again
+function formBody(form, numbers) {
+  const d = Object.fromEntries(new FormData(form).entries());
+  const id = d.id;
+  delete d.id;
+  for (const k of numbers) d[k] = d[k] === "" || d[k] === undefined ? null : Number(d[k]);
+  for (const k of Object.keys(d)) if (d[k] === null && !["end_mass_kg", "end_mass_std_kg"].includes(k)) delete d[k];
+  return [id, d];
+}
+
+$("#std-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  const [id, d] = formBody(ev.target, ["uncertainty"]);
+  d.in_use = ev.target.in_use.checked;
+  const r = await api("PUT", `/register/standards/${encodeURIComponent(id)}`, d);
+  $("#reg-msg").textContent = r.ok ? `standard ${id} saved` : refusal(r, "save");
+  if (r.ok) showRegister();
+});
+
+$("#tx-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  const [id, d] = formBody(ev.target, ["capacity_N", "sensitivity_V_per_N", "end_mass_kg", "end_mass_std_kg"]);
+  const r = await api("PUT", `/register/transducers/${encodeURIComponent(id)}`, d);
+  $("#reg-msg").textContent = r.ok ? `transducer ${id} saved` : refusal(r, "save");
+  if (r.ok) showRegister();
+});
 
 // k_f (or S) over time with its standard uncertainty, as an SVG: one point per completed run
 function historyPlot(runs, name, unit) {
