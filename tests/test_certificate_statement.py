@@ -88,3 +88,24 @@ def test_the_fit_stores_its_convergence(identified) -> None:  # type: ignore[no-
     hist = res.extra["cost_history"]
     assert len(hist) >= 2 and all(b <= a * (1 + 1e-12) for a, b in itertools.pairwise(hist))
     assert hist[-1] / res.extra["dof"] == pytest.approx(res.fit.chi2_per_dof, rel=1e-9)
+
+
+def test_conditions_entered_with_the_run_request_reach_the_start_document() -> None:
+    """Temperature and humidity entered with a run request are the run's (its configuration, from which
+    the procedure writes the start document); without them the simulated room sensor reads."""
+    from station.config import parse_config
+    from station.environment import run_environment
+    from station.run.request import RunRequest, default_request, plan_run
+    from tests.conftest import station_dict
+
+    cfg = parse_config(station_dict())
+    body = default_request(cfg).model_dump(exclude_none=True)
+    plan = plan_run(cfg, RunRequest.model_validate({**body, "environment": {"temperature_c": 22.5,
+                                                                              "relative_humidity_pct": 38}}))
+    env = run_environment(plan.config)
+    assert env is not None and env["source"] == "entered with the run"
+    assert (env["temperature_c"], env["relative_humidity_pct"]) == (22.5, 38)
+    sensed = run_environment(plan_run(cfg, RunRequest.model_validate(body)).config)
+    assert sensed is not None and sensed["source"] == "simulated room sensor"
+    with pytest.raises(ValueError):
+        RunRequest.model_validate({**body, "environment": {"temperature_c": 500}})

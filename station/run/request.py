@@ -7,7 +7,15 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from station.config import MAX_METHODS, MAX_STEPS, MAX_TOP_MASS_KG, MethodChoice, StationConfig, check_method_list
+from station.config import (
+    MAX_METHODS,
+    MAX_STEPS,
+    MAX_TOP_MASS_KG,
+    EnvironmentConfig,
+    MethodChoice,
+    StationConfig,
+    check_method_list,
+)
 from station.errors import LimitError
 from station.limits import StepRequest, check_steps, max_radius_m
 
@@ -42,6 +50,10 @@ class RunRequest(BaseModel):
         "configuration's identification.methods)")
     standards: list[str] | None = Field(default=None, max_length=32, description="ids of the reference "
                                         "standards used (register); default: those marked in use")
+    environment: EnvironmentConfig | None = Field(
+        default=None, description="air temperature (degC) and relative humidity (%) during the run, entered by the "
+        "technician; stored in the recording's start document and stated on the certificate (default: the "
+        "configuration's environment, or the simulated rig's room sensor)")
 
     @field_validator("top_mass_kg", mode="before")
     @classmethod
@@ -97,6 +109,8 @@ def plan_run(cfg: StationConfig, request: RunRequest) -> Plan:
                          f"({cfg.transducer.id!r}, from the configuration)", field="transducer_id",
                          value=request.transducer_id, limit=cfg.transducer.id)
     eff = cfg.model_copy(update={"rig": cfg.rig.model_copy(update={"top_mass_kg": request.top_mass_kg})})
+    if request.environment is not None:  # the recording's start document takes it (station.environment)
+        eff = eff.model_copy(update={"environment": request.environment})
     if request.methods is not None:  # stored with the recording's configuration: the worker reads it there
         eff = eff.model_copy(update={"identification": eff.identification.model_copy(
             update={"methods": list(request.methods)})})
