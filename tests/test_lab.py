@@ -245,3 +245,35 @@ def test_a_database_of_the_previous_release_is_upgraded_without_losing_runs(tmp_
     new = sqlite3.connect(rec / "station.db")
     assert new.execute("PRAGMA user_version").fetchone()[0] == 3
     new.close()
+
+
+def test_the_command_line_manages_users_and_the_register(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    import yaml
+
+    from station.cli import main
+
+    cfg = tmp_path / "station.yaml"
+    cfg.write_text(yaml.safe_dump(lab_config(tmp_path / "rec")))
+    monkeypatch.setenv("STATION_PASSWORD", "tina-secret-pw")
+    assert main(["users", "add", "tina", "--role", "technician", "--config", str(cfg)]) == 0
+    assert main(["register", "standard", "DAQ-1", "--kind", "daq", "--certificate", "C-9", "--issuer", "PTB",
+                 "--due-date", "2031-02-28", "--uncertainty", "1e-4", "--unit", "relative", "--config", str(cfg)]) == 0
+    assert main(["register", "transducer", "TX-9", "--capacity-N", "2000", "--sensitivity-V-per-N", "1e-6",
+                 "--config", str(cfg)]) == 0
+    assert main(["register", "mount", "TX-9", "--config", str(cfg)]) == 0
+    capsys.readouterr()
+    assert main(["register", "list", "--json", "--config", str(cfg)]) == 0
+    reg = json.loads(capsys.readouterr().out)
+    assert reg["mounted"] == "TX-9" and {s["id"] for s in reg["standards"]} == {"LVDT-7", "MASS-SET-2", "DAQ-1"}
+    # bad input: one line saying what is wrong, nothing written
+    assert main(["register", "standard", "X", "--kind", "daq", "--certificate", "C", "--issuer", "I",
+                 "--due-date", "31.12.2030", "--uncertainty", "1", "--unit", "m", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--due-date '31.12.2030': expected an ISO date" in err[0]
+    store = Store(tmp_path / "rec" / "station.db")
+    who = {e.who for e in audit.entries(store)}
+    assert any(w.startswith("cli:") for w in who) and users.get_user(store, "tina") is not None
+    store.close()
