@@ -189,18 +189,29 @@ def user_of_token(store: Store, text: str) -> User | None:
 
 
 # ---------------------------------------------------------------------------------------------- sessions
-def login(store: Store, name: str, password: str, minutes: float) -> tuple[str, User, float]:
-    """Check the password; a new session (its cookie text, the user, its end in UNIX s).  A wrong
-    name or password is refused alike, and audited."""
+def check_login(store: Store, name: str, password: str) -> User | None:
+    """The user if the name and password are right (read only: the scrypt check runs where this is
+    called, never in the database's writer); None for a wrong name or password alike."""
     rows = store.query("SELECT * FROM users WHERE name = ?", (name,))
-    ok = bool(rows) and bool(rows[0]["password"]) and not rows[0]["disabled"] and \
-        check_password(password, rows[0]["password"])
-    if not ok:
-        if not rows:
-            check_password(password, hash_password("x" * MIN_PASSWORD))  # the same time as a real check
-        audit.append(store, name[:64] or "?", audit.LOGIN_REFUSED, f"user:{name[:64]}")
-        raise AuthError("wrong user name or password (ask an administrator if you have none or forgot it)")
-    user = _user(rows[0])
+    if not rows:
+        check_password(password, hash_password("x" * MIN_PASSWORD))  # the same time as a real check
+        return None
+    r = rows[0]
+    if not r["password"] or r["disabled"] or not check_password(password, r["password"]):
+        return None
+    return _user(r)
+
+
+REFUSED = "wrong user name or password (ask an administrator if you have none or forgot it)"
+
+
+def refuse_login(store: Store, name: str) -> None:
+    """Audit a refused login (the name as given, at most 64 characters)."""
+    audit.append(store, name[:64] or "?", audit.LOGIN_REFUSED, f"user:{name[:64]}")
+
+
+def open_session(store: Store, user: User, minutes: float) -> tuple[str, float]:
+    """A new page session for ``user``: its cookie text and its end (UNIX s); audited."""
     text = secrets.token_urlsafe(32)
     now = time.time()
     expires = now + minutes * 60.0
@@ -208,6 +219,17 @@ def login(store: Store, name: str, password: str, minutes: float) -> tuple[str, 
         db.execute("INSERT INTO sessions (hash, user, created, expires) VALUES (?, ?, ?, ?)",
                    (secret_hash(text), user.name, now, expires))
         audit.record(db, user.name, audit.LOGIN, f"user:{user.name}", {"expires": expires}, at=now)
+    return text, expires
+
+
+def login(store: Store, name: str, password: str, minutes: float) -> tuple[str, User, float]:
+    """Check the password and open a session (both in the caller's thread: for the command line and
+    tests; the daemon checks in its read pool and writes through its writer).  AuthError if refused."""
+    user = check_login(store, name, password)
+    if user is None:
+        refuse_login(store, name)
+        raise AuthError(REFUSED)
+    text, expires = open_session(store, user, minutes)
     return text, user, expires
 
 
