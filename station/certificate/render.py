@@ -16,9 +16,14 @@ def _env() -> Environment:
         ["html", "j2"]), undefined=StrictUndefined, trim_blocks=True, lstrip_blocks=True)
 
 
+def render_template(name: str, **values: Any) -> str:
+    """A template of ``station/certificate/templates`` rendered (autoescaped) with ``values``."""
+    return _env().get_template(name).render(**values)
+
+
 def certificate_html(content: dict[str, Any]) -> str:
     """The certificate page of ``content.certificate_content(...)``."""
-    return _env().get_template("certificate.html.j2").render(c=content)
+    return render_template("certificate.html.j2", c=content)
 
 
 def html_to_pdf(html: str) -> bytes:

@@ -1,4 +1,5 @@
-"""The calibration report of a run as one self-contained HTML page (plots embedded as base64 PNG,
+"""The calibration report of a run as one self-contained HTML page (Jinja2 template report.html.j2 of
+station/certificate/templates, the certificates' engine; plots embedded as base64 PNG,
 styles inline, no external assets).  Layout and definitions: docs/report.md."""
 
 from __future__ import annotations
@@ -10,8 +11,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+from markupsafe import Markup
 
 from station import __version__
+from station.certificate.render import render_template
 from station.errors import StationError
 from station.ident.coverage import coverages
 from station.ident.montecarlo import check_result
@@ -307,9 +310,9 @@ def render_report(recording_path: Path, monte_carlo: int = 0) -> str:
     d = load_run(path)
     now = datetime.now(UTC).isoformat(timespec="seconds")
     title = f"Calibration report: {d.rec.transducer_id}, run {d.rec.run_id}"
-    body = [f"<h1>{esc(title)}</h1>",
-            f'<p class="note">Generated {now} by sinecal {esc(__version__)} from {esc(path.name)}.</p>',
-            _statement(d), _conditions(d), _model(d), _parameters(d), _monte_carlo(path, d, monte_carlo),
-            methods_section(d), campaign_section(d), _sensitivity(d), _discrepancy(d), _plots(path)]
-    return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{esc(title)}</title>'
-            f"<style>{CSS}</style></head><body>{''.join(body)}</body></html>\n")
+    sections = [_statement(d), _conditions(d), _model(d), _parameters(d), _monte_carlo(path, d, monte_carlo),
+                methods_section(d), campaign_section(d), _sensitivity(d), _discrepancy(d), _plots(path)]
+    # the page skeleton is the certificates' template engine's (station.certificate.render); the
+    # sections are HTML built (and escaped) here
+    return render_template("report.html.j2", title=title, css=Markup(CSS), generated=now, version=__version__,
+                           source=path.name, sections=sections) + "\n"
