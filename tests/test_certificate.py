@@ -160,3 +160,27 @@ def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None
             rp = await c.get(f"/runs/{rid}/report.pdf")
             assert rp.headers["content-type"] == "application/pdf" and "Uncertainty statement" in _pdf_text(rp.content)
     asyncio.run(go())
+
+
+@pytest.mark.slow
+def test_cli_issues_and_writes_the_three_forms(stored: Path, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """`station certificate` in process: a refused approver (exit 1, the reason on stderr), an issue,
+    the issued HTML, PDF and DCC written, the register listed."""
+    import json
+
+    from station.cli import main
+
+    rec = _copy(stored, tmp_path)
+    assert main(["certificate", str(rec), "--issue", "--prepared-by", APPROVER, "--approver", TECH]) == 1
+    out = tmp_path / "out"
+    out.mkdir()
+    assert main(["certificate", str(rec), "--issue", "--prepared-by", TECH, "--approver", APPROVER,
+                 "--html", str(out / "c.html"), "--pdf", str(out / "c.pdf"), "--xml", str(out / "c.xml")]) == 0
+    number = re.search(r"SC-\d{4}-0001", (out / "c.html").read_text()).group(0)  # type: ignore[union-attr]
+    assert number in _pdf_text((out / "c.pdf").read_bytes())
+    assert f"<dcc:uniqueIdentifier>{number}</dcc:uniqueIdentifier>" in (out / "c.xml").read_text()
+    capsys.readouterr()
+    assert main(["certificate", str(rec), "--list", "--json"]) == 0
+    listed = json.loads(capsys.readouterr().out)["certificates"]
+    assert [c["number"] for c in listed] == [number]
