@@ -172,9 +172,31 @@ def gap_of(data: RigData, wf: FloatArray, m: FloatArray) -> tuple[float, FloatAr
     return float(math.sqrt(e.sum() / data.n_samples.sum())), np.sqrt(e / data.n_samples)
 
 
+_FITS: dict[int, tuple[RigData, dict[tuple[object, ...], ModelFit]]] = {}
+
+
 def fit_model(data: RigData, effects: Mapping[str, int], start: Mapping[str, float],
               max_nfev: int = 400) -> ModelFit:
-    """Levenberg-Marquardt (trust-region) fit of base + effects from ``start`` (physical values)."""
+    """Levenberg-Marquardt (trust-region) fit of base + effects from ``start`` (physical values).
+
+    The fit is a function of its arguments: one analysis asks for the same fit several times (the
+    ties, the proposal and the swap test refit the same reduced model and its candidates), so the
+    fits of the few most recent data sets are kept and given again (frozen, never modified)."""
+    key = (tuple(effects.items()), tuple(sorted(start.items())), max_nfev)
+    hit = _FITS.get(id(data))
+    if hit is not None and hit[0] is data and key in hit[1]:
+        return hit[1][key]
+    fit = _fit_model(data, effects, start, max_nfev)
+    if hit is None or hit[0] is not data:
+        if len(_FITS) >= 4:
+            del _FITS[next(iter(_FITS))]  # the oldest data set
+        hit = _FITS[id(data)] = (data, {})
+    hit[1][key] = fit
+    return fit
+
+
+def _fit_model(data: RigData, effects: Mapping[str, int], start: Mapping[str, float],
+               max_nfev: int) -> ModelFit:
     prob = Problem(data, effects, start)
     lo, hi = prob.bounds()
     u0 = np.clip(np.zeros(len(prob.params)), lo, hi)
