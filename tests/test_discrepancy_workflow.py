@@ -94,6 +94,7 @@ def test_each_catalogue_effect_is_named_estimated_and_removed(name: str, seed: i
         assert rep.parameters_before["k_f"].value != pytest.approx(rep.parameters_after["k_f"].value, rel=1e-3)
 
 
+@pytest.mark.slow  # over 2 s of CPU per case (two full analyses)
 @pytest.mark.parametrize("seed", (3, 4))
 def test_no_effect_names_nothing(seed: int, tmp_path: Path) -> None:
     rep = analyse_recording(simulate_scenario({}, tmp_path, seed=seed))
@@ -218,6 +219,7 @@ def test_clipped_step_is_left_out_and_reported_not_named(tmp_path: Path) -> None
     assert 5 not in rep.steps and rep.final_gap <= 1.5 * rep.noise_floor_V
 
 
+@pytest.mark.slow  # over 2 s of CPU per case (two full analyses)
 @pytest.mark.parametrize("seed", (101, 202))
 def test_crank_harmonics_are_a_check_of_the_drive(seed: int, tmp_path: Path) -> None:
     """A slider crank's displacement harmonics drive the force model as recorded: nothing is named,
