@@ -135,7 +135,26 @@ class Daemon:
             self.proc.wait()
 
 
-def start_run(d: Daemon) -> str:
+def start_run(d: Daemon, tries: int = 3) -> str:
+    """A run in its record window; a run that fails before it (e.g. the motor's watchdog expired on a
+    machine too loaded to refresh it in time) is acknowledged and started again, ``tries`` times."""
+    for k in range(tries):
+        try:
+            return _start_run(d)
+        except RunFailedEarly as exc:
+            print(f"retrying the run: {exc}", file=sys.stderr)
+            wait_rig_free(d)
+            acknowledge(d)
+            if k == tries - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
+class RunFailedEarly(RuntimeError):
+    pass
+
+
+def _start_run(d: Daemon) -> str:
     body = {"transducer_id": "TX5K-0001", "top_mass_kg": 25.717,
             "steps": [{"crank_frequency_hz": 10.0, "crank_radius_m": RADIUS_M, "record_s": 120.0}]}
     r = d.call("POST", "/runs", json=body)
@@ -148,7 +167,7 @@ def start_run(d: Daemon) -> str:
         if st["state"] == "running" and st["step_state"] == "recording":
             return rid
         if st["state"] not in ("queued", "running"):
-            raise RuntimeError(f"run ended before recording: {st}")
+            raise RunFailedEarly(f"run ended before recording: {st['state']}: {st['message']}")
         time.sleep(0.1)
     raise RuntimeError("the run did not reach its record window in 60 s")
 
