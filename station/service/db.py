@@ -235,8 +235,11 @@ class DbAccess:
                     self._cond.wait(pause)
                 pause = min(RETRY_MAX_S, pause * 2)
                 continue
-            except Exception as exc:  # a programming error: report it to the caller, never block the queue
-                log.exception("database write failed")
+            except Exception as exc:  # the caller's refusal or a programming error: never block the queue
+                if w.future is None:  # nobody waits for it: the log is the only place it can show
+                    log.exception("database write failed")
+                else:  # the waiting caller gets it and answers for it (e.g. a 404 for an unknown user)
+                    log.debug("database write refused: %s", exc, exc_info=True)
                 with self._cond:
                     self._queue.popleft()
                     self._head_since = None

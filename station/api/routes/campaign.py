@@ -12,7 +12,7 @@ from fastapi.exceptions import RequestValidationError
 
 from station.api.campaign_schemas import CampaignOut, CampaignRequest
 from station.api.deps import ManagerDep, Operator
-from station.api.routes.runs import BODY_ERRORS
+from station.api.routes.runs import BODY_ERRORS, E403
 from station.api.schemas import ErrorOut, ValidationErrorOut
 from station.lab import audit
 from station.recording import write_result
@@ -23,7 +23,7 @@ router = APIRouter(prefix="/campaigns", tags=["campaigns"])
 
 
 @router.post("", response_model=CampaignOut,
-             responses={**BODY_ERRORS, 401: {"model": ErrorOut, "description": "bearer token missing or wrong"},
+             responses={**BODY_ERRORS, **E403, 401: {"model": ErrorOut, "description": "bearer token missing or wrong"},
                         404: {"model": ErrorOut, "description": "no such run"},
                         409: {"model": ErrorOut, "description": "a run is not completed"},
                         422: {"model": ValidationErrorOut,

@@ -8,7 +8,7 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Path, Query, Response
 
 from station.api.deps import Approver, ArtifactsDep, ManagerDep, Reader, RunDep
-from station.api.routes.runs import BINARY, BODY_ERRORS, E401, E404, E409, E422, E503, NON_JSON_ERRORS
+from station.api.routes.runs import BINARY, BODY_ERRORS, E401, E403, E404, E409, E422, E503, NON_JSON_ERRORS
 from station.api.schemas import CertificateIssueIn, CertificateList, CertificateOut
 from station.certificate.register import MEDIA, CertificateError
 
@@ -34,7 +34,7 @@ async def run_certificate(run: RunDep, artifacts: ArtifactsDep, ext: Ext) -> Res
 
 
 @router.post("/runs/{run_id}/certificate", response_model=CertificateOut, status_code=201,
-             responses={**E401, **E404, **E409, **E422, **E503, **BODY_ERRORS},
+             responses={**E401, **E403, **E404, **E409, **E422, **E503, **BODY_ERRORS},
              summary="Issue the run's certificate (approval by a second person)")
 async def issue_certificate(run: RunDep, artifacts: ArtifactsDep, manager: ManagerDep, who: Approver,
                             body: CertificateIssueIn) -> CertificateOut:

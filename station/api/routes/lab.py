@@ -31,7 +31,7 @@ from station.api.lab_schemas import (
     UserIn,
     UserOut,
 )
-from station.api.routes.runs import BODY_ERRORS, E401, E404, E409, E422, Responses
+from station.api.routes.runs import BODY_ERRORS, E401, E403, E404, E409, E422
 from station.api.schemas import ErrorOut
 from station.lab import audit, history, register, users
 from station.lab.users import NAME_PATTERN, Principal
@@ -39,7 +39,6 @@ from station.service.errors import RunStateError
 from station.service.store import Store
 
 router = APIRouter(tags=["lab"])
-E403: Responses = {403: {"model": ErrorOut, "description": "the user's role does not allow this"}}
 EntryId = Annotated[str, Path(pattern=ID_PATTERN)]
 UserName = Annotated[str, Path(pattern=NAME_PATTERN)]
 

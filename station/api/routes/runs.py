@@ -43,6 +43,7 @@ router = APIRouter(prefix="/runs", tags=["runs"])
 Responses = dict[int | str, dict[str, Any]]  # a route's documented responses, by status
 
 E401: Responses = {401: {"model": ErrorOut, "description": "bearer token missing or wrong"}}
+E403: Responses = {403: {"model": ErrorOut, "description": "the role may not do this, or cross-site"}}
 E404: Responses = {404: {"model": ErrorOut, "description": "no such run"}}
 E409: Responses = {409: {"model": ErrorOut, "description": "the run is not in a state that allows this"}}
 E422: Responses = {422: {"model": ValidationErrorOut,
@@ -84,7 +85,7 @@ def status_of(row: RunRow, methods: list[MethodOutcome] | None = None) -> RunSta
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=RunAccepted,
-             responses={**E401, **E422, **BODY_ERRORS,
+             responses={**E401, **E403, **E422, **BODY_ERRORS,
                         409: {"model": ErrorOut, "description": "another run holds the rig"},
                         503: {"model": ErrorOut, "description": "the rig is not connected"}},
              summary="Start a calibration run")
@@ -228,7 +229,7 @@ async def run_discrepancy(run: RunDep, artifacts: ArtifactsDep, max_effects: Max
 
 
 @router.post("/{run_id}/discrepancy", response_model=DiscrepancyOut,
-             responses={**E401, **E404, **E409, **E422, **E503, **BODY_ERRORS},
+             responses={**E401, **E403, **E404, **E409, **E422, **E503, **BODY_ERRORS},
              summary="Compute and store the model-gap analysis of the run")
 async def compute_discrepancy(run: RunDep, artifacts: ArtifactsDep, manager: ManagerDep, who: Operator,
                               max_effects: MaxEffects = 4) -> DiscrepancyOut:
@@ -243,7 +244,7 @@ async def compute_discrepancy(run: RunDep, artifacts: ArtifactsDep, manager: Man
 
 
 @router.post("/{run_id}/abort", status_code=status.HTTP_202_ACCEPTED, response_model=AbortOut,
-             responses={**E401, **E404, **E409, **E422, **BODY_ERRORS}, summary="Abort a run")
+             responses={**E401, **E403, **E404, **E409, **E422, **BODY_ERRORS}, summary="Abort a run")
 async def abort_run(run: RunDep, runs: RunsDep, who: Operator) -> AbortOut:
     """The crank ramps down, the recording is closed with the reason; the run ends `aborted`."""
     row = await runs.abort(run.id, f"aborted by {who.name}", who.name)
