@@ -463,14 +463,16 @@ def test_a_daemon_that_cannot_start_says_why_in_one_line(tmp_path: Path) -> None
 # --------------------------------------------------------------------------------------- orphaned worker
 _POOL_PARENT = """
 import sys, time
+sys.path.insert(0, sys.argv[2])  # the repository, for tests.worker_support (the worker gets this path too)
 from station.service import worker
+from tests.worker_support import busy_sleep
 pool = worker.WorkerPool("identification", 1)
 ex = pool._get()
 fut = ex.submit(time.sleep, 0.0)
 print(" ".join(map(str, pool.pids())), flush=True)
 if sys.argv[1] != "starting":
-    fut.result()  # the worker is up; then a 1 s job
-    ex.submit(time.sleep, 1.0)
+    fut.result()  # the worker is up; then a 4 s job (a job, not a bare call: only a job keeps an
+    ex.submit(busy_sleep, 4.0)  # orphaned worker alive until it is done)
     time.sleep(0.5)
     print("ready", flush=True)
 time.sleep(600)
@@ -489,12 +491,13 @@ def _alive(pid: int) -> bool:
 def test_workers_die_with_their_daemon(when: str, tmp_path: Path) -> None:
     """| orphaned worker | a daemon killed while a worker starts leaves the worker alive (parent PID 1,
     143 MB, 14 min later) |  (the daemon here: a process with the daemon's WorkerPool, killed -9)"""
-    parent = subprocess.Popen([sys.executable, "-c", _POOL_PARENT, when], stdout=subprocess.PIPE, cwd=tmp_path)
+    parent = subprocess.Popen([sys.executable, "-c", _POOL_PARENT, when, str(Path(__file__).resolve().parent.parent)],
+                              stdout=subprocess.PIPE, cwd=tmp_path)
     assert parent.stdout is not None
     pids = [int(p) for p in parent.stdout.readline().split()]
     if when != "starting":
         assert parent.stdout.readline() == b"ready\n"
-    parent.kill()  # while the worker still imports (starting) or runs a 1 s job (busy)
+    parent.kill()  # while the worker still imports (starting) or runs its 4 s job (busy)
     parent.wait()
     assert pids and (when == "starting" or all(_alive(p) for p in pids))
     deadline = time.monotonic() + 20.0
