@@ -31,8 +31,8 @@ def _counts(tail: str) -> dict[str, int]:
     return {k: int(v) for v, k in re.findall(r"(\d+) (passed|failed|skipped|deselected|errors?|xfailed)", tail)}
 
 
-def run_suite(marker: str | None, repeat: int) -> dict[str, Any]:
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
+def run_suite(marker: str | None, repeat: int, workers: int = 2) -> dict[str, Any]:
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *(["-n", str(workers)] if workers else [])]
     if marker:
         cmd += ["-m", marker]
     times, cpu, last = [], [], ""
@@ -45,7 +45,8 @@ def run_suite(marker: str | None, repeat: int) -> dict[str, Any]:
         r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         cpu.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
         last = res.stdout.strip().splitlines()[-1] if res.stdout.strip() else res.stderr[-500:]
-    return {"command": " ".join(["pytest", "-q", *(["-m", marker] if marker else [])]),
+    return {"command": " ".join(["pytest", "-q", *(["-n", str(workers)] if workers else []),
+                                 *(["-m", marker] if marker else [])]),
             "wall_s_median": round(statistics.median(times), 1), "wall_s_runs": [round(t, 1) for t in times],
             "cpu_s_median": round(statistics.median(cpu), 1),
             "counts": _counts(last), "summary": last,
@@ -56,10 +57,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=1, help="runs per figure (median)")
     ap.add_argument("--fast-only", action="store_true", help="only the fast subset")
+    ap.add_argument("--workers", type=int, default=2, help="pytest-xdist workers, as the README (0: one)")
     args = ap.parse_args()
-    out: dict[str, Any] = {"cpus": os.cpu_count(), "fast": run_suite("not slow", args.repeat)}
+    out: dict[str, Any] = {"cpus": os.cpu_count(), "fast": run_suite("not slow", args.repeat, args.workers)}
     if not args.fast_only:
-        out["full"] = run_suite(None, args.repeat)
+        out["full"] = run_suite(None, args.repeat, args.workers)
     print(json.dumps(out, indent=2))
 
 
