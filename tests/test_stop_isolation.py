@@ -93,6 +93,42 @@ def test_writes_wait_in_order_for_a_locked_database_and_a_bounded_call_changes_n
     store.close()
 
 
+def test_a_stop_from_another_thread_during_an_acknowledgement_stays_latched(tmp_path: Path) -> None:
+    """The acknowledgement waits on the database (here write-locked by another process); a stop that
+    arrives meanwhile from another thread (the stop port's) is not covered by it and stays latched."""
+    import threading
+
+    from station.service.latch import EStopLatch
+
+    store = Store(tmp_path / "station.db")
+    db = DbAccess(store).start()
+    latch = EStopLatch(db)
+    latch.trip("operator", "first stop")
+    assert db.flush(10.0)
+    lock = WriteLock(store.path)
+
+    async def go() -> None:
+        ack = asyncio.ensure_future(latch.acknowledge("tech"))
+        await asyncio.sleep(0.2)  # the acknowledgement waits for the database
+        assert not ack.done()
+        t = threading.Thread(target=latch.trip, args=("stop_port", "second stop"))
+        t.start()
+        t.join()
+        lock.release()
+        rows = await ack
+        assert [r.detail for r in rows] == ["first stop"]
+    try:
+        asyncio.run(go())
+    finally:
+        lock.release()
+    assert latch.latched and latch.state()["detail"] == "second stop"
+    assert "second stop" in (latch.refusal() or "")
+    assert db.flush(10.0)
+    assert [r.detail for r in store.open_estops()] == ["second stop"]
+    assert db.close() == 0
+    store.close()
+
+
 # ------------------------------------------------------------------------------------ database locked
 def test_stop_reaches_the_drive_while_another_process_holds_the_database_write_lock(tmp_path: Path) -> None:
     async def go() -> None:

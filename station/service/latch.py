@@ -10,6 +10,7 @@ acknowledgement is refused while the database cannot record it."""
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 from datetime import UTC, datetime
@@ -32,6 +33,7 @@ class EStopLatch:
     def __init__(self, db: DbAccess) -> None:
         self.db = db
         self._open: list[EStopRow] = []
+        self._open_lock = threading.Lock()  # trips come from the rig thread and the stop port's thread too
         self._last_ack: tuple[float, str] | None = None  # (when, by)
 
     def load(self) -> None:
@@ -51,7 +53,8 @@ class EStopLatch:
         the record is written (never before the stop: the stop waits on nothing)."""
         log.warning("emergency stop latched (source %s): %s", source, detail)
         raised = time.time()
-        self._open.append(EStopRow(0, raised, source, detail, None, None, ""))
+        with self._open_lock:
+            self._open.append(EStopRow(0, raised, source, detail, None, None, ""))
 
         def record(store: Store) -> None:
             row = store.raise_estop(source, detail, raised)
@@ -63,14 +66,17 @@ class EStopLatch:
     async def acknowledge(self, by: str, note: str = "") -> list[EStopRow]:
         """Record the acknowledgement (DatabaseBusyError if the database cannot take it now: the
         latch stays) and release the stops it covers."""
-        covered = list(self._open)
+        with self._open_lock:
+            covered = list(self._open)
+
         def ack(store: Store) -> list[EStopRow]:
             rows = store.acknowledge_estops(by, note)
             audit.append(store, by, audit.ESTOP_ACKNOWLEDGED, "station",
                          {"note": note, "estops": [r.id for r in rows]})
             return rows
         rows = await self.db.call(ack)
-        self._open = [r for r in self._open if r not in covered]
+        with self._open_lock:  # a stop tripped meanwhile (on another thread) stays latched
+            self._open = [r for r in self._open if r not in covered]
         if rows:
             self._last_ack = (rows[-1].acknowledged or time.time(), by)
             log.warning("emergency stop acknowledged by %s (%d stop(s) since %s)%s", by, len(rows),
