@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs, urlsplit
 
 from station.api.routes.system import cross_site_refusal, stop_answer, who_stopped
+from station.service.rigthread import close_loop
 
 if TYPE_CHECKING:
     from station.service.manager import RunManager
@@ -128,12 +129,7 @@ class StopPort:
                 loop.run_forever()
             finally:
                 self._server.close()
-                pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
-                for t in pending:
-                    t.cancel()
-                if pending:
-                    loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
-                loop.close()
+                close_loop(loop)
 
         self._thread = threading.Thread(target=main, name="stop-port", daemon=True)
         self._thread.start()

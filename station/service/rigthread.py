@@ -21,6 +21,16 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 
+def close_loop(loop: asyncio.AbstractEventLoop) -> None:
+    """After ``run_forever`` returned on a thread's own loop: cancel what is left, let it end, close."""
+    pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
+    for t in pending:
+        t.cancel()
+    if pending:
+        loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+    loop.close()
+
+
 class RigThread:
     """A daemon thread running an asyncio loop until ``stop``."""
 
@@ -42,12 +52,7 @@ class RigThread:
             try:
                 loop.run_forever()
             finally:
-                pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
-                for t in pending:
-                    t.cancel()
-                if pending:
-                    loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
-                loop.close()
+                close_loop(loop)
 
         self._thread = threading.Thread(target=main, name=self.name, daemon=True)
         self._thread.start()
