@@ -46,15 +46,17 @@ STEPS = [StepSpec(crank_frequency_hz=f, crank_radius_m=0.001) for f in (10.0, 20
 
 def run_with(tmp_path: Path, when: Callable[[Progress], bool] | None, act: Callable[[ConnectedRig, Procedure], None],
              steps: list[StepSpec] = STEPS, *, wire: bool = False,
-             cfg: StationConfig = CFG) -> tuple[object, ConnectedRig, dict[str, float]]:
+             cfg: StationConfig = CFG, clock: VirtualClock | None = None,
+             ) -> tuple[object, ConnectedRig, dict[str, float]]:
     """Run a procedure on the simulated rig; ``act`` fires once when ``when(progress)`` is true.
     Returns the outcome, the rig (closed) and the motor state seen right after the run.
-    ``wire``: over Modbus TCP and a pty in real time; else in-process on a virtual clock."""
+    ``wire``: over Modbus TCP and a pty in real time; else in-process on a virtual clock (``clock``,
+    a new one by default)."""
     plan = plan_run(cfg, RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg, steps=steps))
 
     async def go() -> tuple[object, ConnectedRig, dict[str, float]]:
         async with connect(plan.config, sim=True, first_radius_m=steps[0].crank_radius_m,
-                           sim_clock=None if wire else VirtualClock()) as rig:
+                           sim_clock=None if wire else clock or VirtualClock()) as rig:
             fired = False
             proc: Procedure
 
@@ -123,6 +125,25 @@ def test_motor_fault_stops_the_run(tmp_path: Path) -> None:
     assert "motor fault 3 (overcurrent)" in outcome.reason
     assert motor["speed_hz"] == 0.0
     assert recording_after(outcome).exit_status == "failed"
+
+
+def test_a_run_and_its_stop_never_hold_the_virtual_clock(tmp_path: Path) -> None:
+    """Every wait of the procedure, the stop's read-back and the shutdown steps included, is one the
+    clock sees: no task holds it while it waits on another one.  With a hold of 30 s a stall would
+    be released (counted) only after 30 s of real time; none is."""
+    clock = VirtualClock(hold_s=30.0)
+    procs: list[Procedure] = []
+
+    def fault(rig: ConnectedRig, proc: Procedure) -> None:
+        procs.append(proc)
+        rig.sim.motor.inject_fault(3)
+    outcome, _, motor = run_with(tmp_path, lambda p: p.step == 1 and p.step_state == "settling", fault,
+                                 clock=clock)
+    assert outcome.exit_status == "failed" and motor["speed_hz"] == 0.0
+    # the drive was read back to standstill (a stalled clock lets the read-back's time-out run out first)
+    check = procs[0].drive_check
+    assert check is not None and check.standstill is True, check
+    assert clock.released == 0
 
 
 def test_emergency_stop_mid_step_is_an_abort_and_the_crank_stops(tmp_path: Path) -> None:

@@ -412,8 +412,9 @@ class Procedure:
         ramp = min(self.plan.config.rig.acceleration_hz_per_s, motor.map.device.stop_deceleration_hz_per_s)
         bound = motor.stop_time_bound_s(motor.map.device.max_frequency_hz, ramp) + 2.0
         try:
-            self.drive_check = await asyncio.wait_for(
-                read_back_standstill(motor, f"the stop of run {self.run_id} ({status})", ramp), bound)
+            async with asyncio.timeout(bound):  # in this task (wait_for would run it in another one)
+                self.drive_check = await read_back_standstill(
+                    motor, f"the stop of run {self.run_id} ({status})", ramp)
         except TimeoutError:
             log.error("run %s: the drive did not answer its read-back within %.1f s", self.run_id, bound)
             return
@@ -433,7 +434,8 @@ class Procedure:
     async def _quiet(aw: Awaitable[object]) -> bool:
         """Await ``aw``; log and swallow errors (used on the shutdown path). True on success."""
         try:
-            await asyncio.wait_for(aw, 3.0)
+            async with asyncio.timeout(3.0):
+                await aw
             return True
         except Exception as exc:
             log.warning("shutdown step failed: %s", exc)
