@@ -19,7 +19,6 @@ from drivers.daq.protocol import (
     SampleBlock,
     SampleGap,
     StreamDecoder,
-    UsbLinkBudget,
     link_budget,
     usb_link_budget,
 )
@@ -44,7 +43,6 @@ __all__ = [
     "StreamEvent",
     "StreamStalled",
     "StreamSummary",
-    "UsbLinkBudget",
     "link_budget",
     "usb_link_budget",
 ]

@@ -308,15 +308,14 @@ class DaqBridge:
             if hw is None or hw.link_bytes_per_s is None:
                 raise DaqLinkBudgetError("a usb-cdc DAQ link is checked against the throughput the bridge "
                                          "reports (HW? link_bytes_per_s=): expected it, got none")
-            usb = usb_link_budget(rate_hz, hw.link_bytes_per_s, frame_samples)
-            if not usb.ok:
-                raise DaqLinkBudgetError(usb.message())
-            return
-        baud = getattr(self._link, "baudrate", None)
-        if isinstance(baud, int):
+            budget = usb_link_budget(rate_hz, hw.link_bytes_per_s, frame_samples)
+        else:
+            baud = getattr(self._link, "baudrate", None)
+            if not isinstance(baud, int):
+                return  # a link without a baud rate (a socket): nothing to budget
             budget = link_budget(rate_hz, baud, frame_samples)
-            if not budget.ok:
-                raise DaqLinkBudgetError(budget.message())
+        if not budget.ok:
+            raise DaqLinkBudgetError(budget.message())
 
     def configure(self, *, rate_hz: float = 20_000.0, frame_samples: int = DEFAULT_FRAME_SAMPLES,
                   range_disp_V: float = 10.0, range_force_V: float = 10.0,

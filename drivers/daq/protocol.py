@@ -47,56 +47,64 @@ BITS_PER_CHAR = 10  # the DAQ serial link is 8N1: start bit, 8 data bits, stop b
 LINK_KINDS = ("uart", "usb-cdc")
 
 
+def frame_bytes_of(frame_samples: int) -> int:
+    """Bytes of an un-escaped sample packet of ``frame_samples`` samples per channel: header (11 B),
+    4 B per sample pair (two i16), CRC (4 B); without the SLIP END bytes."""
+    return SAMPLE_HEADER.size + 4 * frame_samples + CRC_SIZE
+
+
 @dataclass(frozen=True)
 class LinkBudget:
-    """Can a serial link of ``baudrate`` Bd carry ``rate_hz`` x 2 channels in frames of ``frame_samples``?
+    """Can a DAQ link that sustains ``capacity_bytes_per_s`` carry ``rate_hz`` x 2 channels in frames
+    of ``frame_samples``?  One budget in bytes per second for both link kinds (``LINK_KINDS``):
+
+    - ``uart``: ``baudrate`` Bd at :data:`BITS_PER_CHAR` bits per byte (8N1 framing), so the capacity
+      is ``baudrate / 10`` B/s (:func:`link_budget`);
+    - ``usb-cdc``: no baud rate and no start/stop bits; the capacity is the throughput the bridge
+      reports in its ``HW?`` reply (:func:`usb_link_budget`); ``baudrate`` is None.
 
     ``frame_bytes``: un-escaped sample packet (11 + 4 x frame); ``worst_wire_bytes``: on the wire if
-    SLIP escaped every byte, plus the two END bytes (2 x frame_bytes + 2); ``required_baud``: what
-    the worst case needs at 10 bits per byte (the link is lossless for *any* sample values at or below
-    it); ``nominal_baud``: the same without escapes (no 0xC0/0xDB bytes); ``margin`` = baudrate /
-    required_baud (>= 1 is carried).
+    SLIP escaped every byte, plus the two END bytes (2 x frame_bytes + 2); ``required_bytes_per_s``:
+    what the worst case needs (the link is lossless for *any* sample values at or below it);
+    ``nominal_bytes_per_s``: the same without escapes (no 0xC0/0xDB bytes); ``margin`` = capacity /
+    required (>= 1 is carried).  ``rate_hz`` is the rate the bridge's ADC delivers (``rate_exact``).
     """
 
     rate_hz: float
     frame_samples: int
-    baudrate: int
-    frame_bytes: int
-    worst_wire_bytes: int
-    required_baud: float
-    nominal_baud: float
-
-    @property
-    def margin(self) -> float:
-        return self.baudrate / self.required_baud
-
-    @property
-    def ok(self) -> bool:
-        return self.margin >= 1.0
-
-    def message(self) -> str:
-        """What the link needs and what it has, e.g. for a refused configuration."""
-        return (f"a DAQ link of {self.baudrate} Bd cannot carry {self.rate_hz:g} Hz x 2 channels: "
-                f"expected at least {self.required_baud:,.0f} Bd (frames of {self.frame_samples} samples = "
-                f"{self.frame_bytes} bytes, {self.worst_wire_bytes} on the wire if SLIP escapes every byte, "
-                f"{BITS_PER_CHAR} bits per byte; {self.nominal_baud:,.0f} Bd without escapes), "
-                f"received {self.baudrate} Bd; largest rate at {self.baudrate} Bd: "
-                f"{self.rate_hz * self.margin:,.0f} Hz")
-
-
-@dataclass(frozen=True)
-class UsbLinkBudget:
-    """Can a USB-CDC link that sustains ``capacity_bytes_per_s`` (the bridge's own figure, ``HW?``)
-    carry ``rate_hz`` x 2 channels?  A CDC link has no baud rate and no start/stop bits: the budget
-    is bytes per second, worst case (every byte escaped) as for a UART.  ``rate_hz`` is the rate the
-    bridge's ADC actually delivers (``rate_exact``)."""
-
-    rate_hz: float
-    frame_samples: int
+    kind: str
     capacity_bytes_per_s: float
-    frame_bytes: int
-    worst_wire_bytes: int
-    required_bytes_per_s: float
+    baudrate: int | None = None
+
+    @property
+    def frame_bytes(self) -> int:
+        return frame_bytes_of(self.frame_samples)
+
+    @property
+    def worst_wire_bytes(self) -> int:
+        return 2 * self.frame_bytes + 2
+
+    @property
+    def frames_per_s(self) -> float:
+        return self.rate_hz / self.frame_samples
+
+    @property
+    def required_bytes_per_s(self) -> float:
+        return self.frames_per_s * self.worst_wire_bytes
+
+    @property
+    def nominal_bytes_per_s(self) -> float:
+        return self.frames_per_s * (self.frame_bytes + 2)
+
+    @property
+    def required_baud(self) -> float:
+        """The worst case in Bd at :data:`BITS_PER_CHAR` bits per byte (a UART's figure)."""
+        return self.required_bytes_per_s * BITS_PER_CHAR
+
+    @property
+    def nominal_baud(self) -> float:
+        """The case without escapes in Bd at :data:`BITS_PER_CHAR` bits per byte (a UART's figure)."""
+        return self.nominal_bytes_per_s * BITS_PER_CHAR
 
     @property
     def margin(self) -> float:
@@ -107,30 +115,30 @@ class UsbLinkBudget:
         return self.margin >= 1.0
 
     def message(self) -> str:
-        return (f"a USB-CDC DAQ link sustaining {self.capacity_bytes_per_s:,.0f} B/s (as the bridge reports) "
-                f"cannot carry {self.rate_hz:g} Hz x 2 channels: expected at least "
-                f"{self.required_bytes_per_s:,.0f} B/s (frames of {self.frame_samples} samples = "
-                f"{self.frame_bytes} bytes, {self.worst_wire_bytes} on the wire if SLIP escapes every byte), "
-                f"received {self.capacity_bytes_per_s:,.0f} B/s; largest rate: "
-                f"{self.rate_hz * self.margin:,.0f} Hz")
-
-
-def usb_link_budget(rate_hz: float, capacity_bytes_per_s: float,
-                    frame_samples: int = DEFAULT_FRAME_SAMPLES) -> UsbLinkBudget:
-    """The :class:`UsbLinkBudget` of a configuration (rate in Hz per channel, capacity in B/s)."""
-    frame_bytes = SAMPLE_HEADER.size + 4 * frame_samples + CRC_SIZE
-    worst = 2 * frame_bytes + 2
-    return UsbLinkBudget(rate_hz, frame_samples, capacity_bytes_per_s, frame_bytes, worst,
-                         rate_hz / frame_samples * worst)
+        """What the link needs and what it has, e.g. for a refused configuration."""
+        frames = (f"frames of {self.frame_samples} samples = {self.frame_bytes} bytes, "
+                  f"{self.worst_wire_bytes} on the wire if SLIP escapes every byte")
+        largest = f"{self.rate_hz * self.margin:,.0f} Hz"
+        if self.baudrate is None:
+            have = f"{self.capacity_bytes_per_s:,.0f} B/s"
+            return (f"a USB-CDC DAQ link sustaining {have} (as the bridge reports) cannot carry "
+                    f"{self.rate_hz:g} Hz x 2 channels: expected at least {self.required_bytes_per_s:,.0f} B/s "
+                    f"({frames}), received {have}; largest rate: {largest}")
+        return (f"a DAQ link of {self.baudrate} Bd cannot carry {self.rate_hz:g} Hz x 2 channels: "
+                f"expected at least {self.required_baud:,.0f} Bd ({frames}, {BITS_PER_CHAR} bits per byte; "
+                f"{self.nominal_baud:,.0f} Bd without escapes), received {self.baudrate} Bd; "
+                f"largest rate at {self.baudrate} Bd: {largest}")
 
 
 def link_budget(rate_hz: float, baudrate: int, frame_samples: int = DEFAULT_FRAME_SAMPLES) -> LinkBudget:
-    """The :class:`LinkBudget` of a configuration (rate in Hz per channel, link in Bd)."""
-    frame_bytes = SAMPLE_HEADER.size + 4 * frame_samples + CRC_SIZE
-    worst = 2 * frame_bytes + 2
-    frames_per_s = rate_hz / frame_samples
-    return LinkBudget(rate_hz, frame_samples, baudrate, frame_bytes, worst,
-                      frames_per_s * worst * BITS_PER_CHAR, frames_per_s * (frame_bytes + 2) * BITS_PER_CHAR)
+    """The :class:`LinkBudget` of a UART (rate in Hz per channel, link in Bd, 8N1: 10 bits per byte)."""
+    return LinkBudget(rate_hz, frame_samples, "uart", baudrate / BITS_PER_CHAR, baudrate)
+
+
+def usb_link_budget(rate_hz: float, capacity_bytes_per_s: float,
+                    frame_samples: int = DEFAULT_FRAME_SAMPLES) -> LinkBudget:
+    """The :class:`LinkBudget` of a USB-CDC link (rate in Hz per channel, the bridge's throughput in B/s)."""
+    return LinkBudget(rate_hz, frame_samples, "usb-cdc", capacity_bytes_per_s)
 
 
 class DaqProtocolError(ValueError):
@@ -295,7 +303,7 @@ class StreamDecoder:
         if not 0 < frame_samples <= MAX_FRAME_SAMPLES:
             raise ValueError(f"frame_samples: expected 1..{MAX_FRAME_SAMPLES}, got {frame_samples}")
         self.frame_samples = frame_samples
-        self._packet_len = SAMPLE_HEADER.size + 4 * frame_samples + CRC_SIZE
+        self._packet_len = frame_bytes_of(frame_samples)
         self.next_seq = 0
         self.stats = DecoderStats()
         self._held: tuple[int, bytes] | None = None  # (frame index, payload) of an unconfirmed jump
@@ -365,7 +373,7 @@ class StreamDecoder:
         self.stats.bytes += len(data)
         chunks = (self._pending + data).split(END_BYTE)
         self._pending = chunks.pop()
-        if len(self._pending) > 2 * (SAMPLE_HEADER.size + 4 * MAX_FRAME_SAMPLES + CRC_SIZE):
+        if len(self._pending) > 2 * frame_bytes_of(MAX_FRAME_SAMPLES):
             self._offset += len(self._pending)
             self._error(out, "length", len(self._pending), "no END byte in an over-long run: discarded")
             self._pending = b""
