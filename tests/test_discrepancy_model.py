@@ -10,7 +10,7 @@ import pytest
 
 from station.discrepancy.catalogue import CATALOGUE
 from station.discrepancy.data import prepare
-from station.discrepancy.decompose import _fit, _harmonic_cols, robust_sigma
+from station.discrepancy.decompose import fit_channel, harmonic_columns, robust_sigma
 from station.discrepancy.fit import Problem
 from station.discrepancy.scenarios import draw_scenario, scenario_config
 from station.recording import read_recording
@@ -22,9 +22,9 @@ def test_residual_identity_for_any_model_coefficients() -> None:
     rng = np.random.default_rng(11)
     n, fs = 4000, 20_000.0
     tau = (np.arange(n) - (n - 1) / 2) / fs
-    B = np.hstack([_harmonic_cols(tau, [37.3, 74.6, 50.0]), np.column_stack([np.ones(n), tau * 10])])
+    B = np.hstack([harmonic_columns(tau, [37.3, 74.6, 50.0]), np.column_stack([np.ones(n), tau * 10])])
     y = B @ rng.normal(size=B.shape[1]) + rng.normal(scale=0.1, size=n)
-    fit = _fit(B, y)
+    fit = fit_channel(B, y)
     for _ in range(5):
         m = rng.normal(size=B.shape[1])
         direct = float(np.sum((y - B @ m) ** 2))

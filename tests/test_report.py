@@ -68,7 +68,7 @@ def test_plots_are_pngs_of_the_stated_size_and_deterministic(sim_recording: Path
         assert len(png) > 10_000, f"{name}: suspiciously small PNG"
     first = {n: render_plot(sim_recording, n) for n in PLOT_NAMES}
     from station.report import data as data_mod
-    data_mod._load.cache_clear()  # render again from the file: same bytes
+    data_mod.cached_run_data.cache_clear()  # render again from the file: same bytes
     assert {n: render_plot(sim_recording, n) for n in PLOT_NAMES} == first
     assert len(set(first.values())) == len(PLOT_NAMES), "two plots gave the same image"
 
@@ -83,13 +83,13 @@ def test_plots_differ_between_recordings(sim_recording: Path, sim_recording_one_
 def test_plots_reuse_the_loaded_recording(full_recording: Path) -> None:
     """The recording is read and fitted once for all plots (render times are measured in bench/,
     not asserted here)."""
-    from station.report.data import _load
+    from station.report.data import cached_run_data
     render_plot(full_recording, "bode")  # load and fit once (cached)
-    misses = _load.cache_info().misses
+    misses = cached_run_data.cache_info().misses
     for name in PLOT_NAMES:
         render_plot(full_recording, name)
-    assert _load.cache_info().misses == misses
-    assert _load.cache_info().hits >= len(PLOT_NAMES)
+    assert cached_run_data.cache_info().misses == misses
+    assert cached_run_data.cache_info().hits >= len(PLOT_NAMES)
 
 
 def test_unknown_plot_and_unusable_recordings(sim_recording: Path, tmp_path: Path) -> None:
@@ -275,7 +275,7 @@ def test_traces_keep_their_step_numbers_when_the_gate_drops_a_step(sim_recording
             assert t.f_hz == pytest.approx(s.crank_frequency_hz, rel=1e-3)
             assert t.t_s.size == s.end_sample - s.start_sample
 
-    data._load.cache_clear()
+    data.cached_run_data.cache_clear()
     shown(load_run(rec_path))  # nothing stored: computed once from the raw windows
     process_recording(rec_path)
     res = identify_recording(rec)

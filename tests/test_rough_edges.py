@@ -41,8 +41,8 @@ def test_cli_errors_are_one_line_with_the_fix(argv: list[str], says: str, capsys
 def test_a_connection_failure_is_named_under_its_device() -> None:
     from drivers.daq.link import DaqLinkError
     from drivers.motor.errors import MotorLinkError
-    from station.service.riglink import _device_of
+    from station.service.riglink import device_of
 
-    assert _device_of(MotorLinkError("<connect>", "link to modbus-tcp://127.0.0.1:502 lost")) == "motor"
-    assert _device_of(DaqLinkError("/dev/ttyACM0: no such device")) == "daq"
-    assert _device_of(RuntimeError("?")) is None
+    assert device_of(MotorLinkError("<connect>", "link to modbus-tcp://127.0.0.1:502 lost")) == "motor"
+    assert device_of(DaqLinkError("/dev/ttyACM0: no such device")) == "daq"
+    assert device_of(RuntimeError("?")) is None

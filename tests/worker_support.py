@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import time
 
-from station.service.worker import _job
+from station.service.worker import worker_job
 
 
-@_job
+@worker_job
 def busy_sleep(seconds: float) -> None:
     """Sleep ``seconds`` (s) as a job: a worker orphaned meanwhile finishes it, then exits."""
     time.sleep(seconds)

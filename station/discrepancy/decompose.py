@@ -129,8 +129,9 @@ def windows_of(rec: Recording) -> list[StepWindow]:
     return out
 
 
-def _harmonic_cols(tau: FloatArray, freqs_hz: list[float]) -> FloatArray:
-    """Columns cos, sin (N, 2 m) of the m frequencies (Hz) at times tau (s)."""
+def harmonic_columns(tau: FloatArray, freqs_hz: list[float]) -> FloatArray:
+    """Basis columns of m sine lines: (N, 2 m) array, cos then sin of each of the m frequencies
+    ``freqs_hz`` (Hz) at the N times ``tau`` (s, (N,)); column 2 i is cos(2 pi f_i tau)."""
     w = 2 * np.pi * np.asarray(freqs_hz)
     arg = np.multiply.outer(tau, w)
     out = np.empty((tau.size, 2 * w.size))
@@ -198,8 +199,11 @@ def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: Floa
     return f, std
 
 
-def _fit(B: FloatArray, y: FloatArray) -> ChannelFit:
-    """LS by the normal equations: B^T B = R^T R (R upper triangular), c = (B^T B)^-1 B^T y."""
+def fit_channel(B: FloatArray, y: FloatArray) -> ChannelFit:
+    """Least-squares fit of one channel's N samples ``y`` (N,) (m or V) on the basis ``B`` (N, n_b), by
+    the normal equations: B^T B = R^T R (R upper triangular), c = (B^T B)^-1 B^T y.  The returned
+    :class:`ChannelFit` gives the residual of any other coefficients m without the samples:
+    ||y - B m||^2 = ssr + ||R (c - m)||^2 (the model-gap fits rely on it)."""
     R = np.asarray(np.linalg.cholesky(B.T @ B).T, dtype=np.float64)
     c = np.asarray(np.linalg.solve(R, np.linalg.solve(R.T, B.T @ y)), dtype=np.float64)
     r = y - B @ c
@@ -236,8 +240,8 @@ def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int
         else:
             merge.append(0)
             mains_f.append(nu)
-    mains = _harmonic_cols(tau, mains_f) if mains_f else np.zeros((n, 0))
-    extra = _harmonic_cols(tau, list(extra_hz)) if extra_hz else np.zeros((n, 0))
+    mains = harmonic_columns(tau, mains_f) if mains_f else np.zeros((n, 0))
+    extra = harmonic_columns(tau, list(extra_hz)) if extra_hz else np.zeros((n, 0))
     nuisance = np.hstack([mains, extra])
     # the crank frequency is common to both channels: inverse-variance mean of the two 4-par fits,
     # started from the displacement's spectral peak within +-20 % of the nominal frequency
@@ -249,9 +253,9 @@ def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int
     f, f_std = (wd * fd + wu * fu) / (wd + wu), 1 / math.sqrt(wd + wu)
     poly = np.column_stack([np.ones(n), tau / half, (tau / half) ** 2])
     harm = _harmonics_of(tau, f, K)
-    force = _fit(np.hstack([extra, harm, poly, mains]), w.force_V)
+    force = fit_channel(np.hstack([extra, harm, poly, mains]), w.force_V)
     amp = tuple(float(np.hypot(force.coef[2 * j], force.coef[2 * j + 1])) for j in range(len(extra_hz)))
-    disp = _fit(np.hstack([harm[:, :2], poly, mains, harm[:, 2:]]), w.displacement_m)
+    disp = fit_channel(np.hstack([harm[:, :2], poly, mains, harm[:, 2:]]), w.displacement_m)
     Rinv = np.linalg.inv(disp.R)
     cov = disp.sigma**2 * (Rinv @ Rinv.T)[:2, :2]
     T = np.array([[1.0, 0.0], [0.0, -1.0]])  # (a, b) -> (Re, Im) of a - j b

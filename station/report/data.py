@@ -221,7 +221,13 @@ def _fitted_traces(cr: CheckedResponse, curve: ModelCurve | None) -> tuple[StepT
 
 
 @lru_cache(maxsize=4)
-def _load(path_str: str, _mtime_ns: int, _size: int, _results: tuple[tuple[str, int], ...]) -> RunData:
+def cached_run_data(path_str: str, mtime_ns: int, size_bytes: int,
+                    results_versions: tuple[tuple[str, int], ...]) -> RunData:
+    """The cache behind :func:`load_run`: RunData of the recording at the resolved ``path_str``, keyed
+    by the file's modification time (ns), size (bytes) and stored results' versions
+    (:func:`~station.recording.stored.results_version`), so that a changed file is read again.  Call
+    :func:`load_run`; ``cached_run_data.cache_clear()`` drops the (up to 4) cached runs and
+    ``cached_run_data.cache_info()`` counts hits and misses."""
     path = Path(path_str)
     results, proc = read_groups(path)
     rec = read_recording(path)
@@ -266,4 +272,4 @@ def load_run(path: str | Path) -> RunData:
         st = p.stat()
     except OSError:
         raise RecordingFormatError(f"{path}: no such recording") from None
-    return _load(str(p), st.st_mtime_ns, st.st_size, results_version(p))
+    return cached_run_data(str(p), st.st_mtime_ns, st.st_size, results_version(p))

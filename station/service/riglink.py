@@ -29,8 +29,9 @@ def default_connector(cfg: StationConfig, sim: bool) -> contextlib.AbstractAsync
     return connect(cfg, sim=sim)
 
 
-def _device_of(exc: BaseException) -> str | None:
-    """Which device a connection failure is of, by the driver's exception type."""
+def device_of(exc: BaseException) -> str | None:
+    """Which device (``"motor"`` or ``"daq"``) a connection failure ``exc`` is of, by the driver's
+    exception type; None when it is neither driver's (the health then shows it under both devices)."""
     from drivers.daq.link import DaqLinkError
     from drivers.motor.errors import MotorError
 
@@ -75,7 +76,7 @@ class RigLink:
             except Exception as exc:
                 await stack.aclose()
                 self.error = f"{type(exc).__name__}: {exc}"
-                self.error_device = _device_of(exc)
+                self.error_device = device_of(exc)
                 log.error("cannot connect to the rig: %s", self.error)
                 return None
             self._stack, self.error = stack, None

@@ -78,7 +78,12 @@ def _init_worker(level: int, daemon_pid: int) -> None:
     threading.Thread(target=_watch_parent, args=(daemon_pid,), daemon=True, name="parent-watch").start()
 
 
-def _job(fn: Callable[..., T]) -> Callable[..., T]:
+def worker_job(fn: Callable[..., T]) -> Callable[..., T]:
+    """Decorate a module-level function as a job of the daemon's worker processes: while it runs the
+    worker counts as busy (the parent-watch leaves it alone); a worker whose daemon died meanwhile
+    finishes the job, then exits (nobody is left to take the result).  A job must be importable by
+    module and name (a spawned worker unpickles it so)."""
+
     @functools.wraps(fn)
     def wrapper(*args: Any, **kw: Any) -> T:
         _busy.set()
@@ -91,7 +96,7 @@ def _job(fn: Callable[..., T]) -> Callable[..., T]:
     return wrapper
 
 
-@_job
+@worker_job
 def identify_job(path: str) -> dict[str, Any]:
     """H(f) per step, then the primary identification, stored beside the recording with every listed
     method's outcome (the others ``pending``: ``secondary_job`` computes each; station.run.methods)."""
@@ -109,7 +114,7 @@ def identify_job(path: str) -> dict[str, Any]:
             "wall_s": time.perf_counter() - t0, "outcomes": [o.to_dict() for o in outcomes]}
 
 
-@_job
+@worker_job
 def secondary_job(path: str, index: int) -> dict[str, Any]:
     """Listed identification ``index`` (>= 1) of the recording, its result stored beside it; its
     outcome (``MethodOutcome.to_dict``): a refusal or failure is an outcome, never an exception."""
@@ -119,14 +124,14 @@ def secondary_job(path: str, index: int) -> dict[str, Any]:
     return identify_secondary(Path(path), read_recording(Path(path)), index).to_dict()
 
 
-@_job
+@worker_job
 def warm_up_job() -> None:
     """Load the plotting and report modules (the first results page would otherwise wait for them)."""
     import station.report.html
     import station.report.plots  # noqa: F401
 
 
-@_job
+@worker_job
 def plot_job(path: str, name: str) -> bytes | None:
     """PNG bytes of plot ``name``; None for an unknown name."""
     from station.report.plots import render_plot
@@ -137,21 +142,21 @@ def plot_job(path: str, name: str) -> bytes | None:
         return None
 
 
-@_job
+@worker_job
 def report_job(path: str) -> str:
     from station.report.html import render_report
 
     return str(render_report(Path(path)))
 
 
-@_job
+@worker_job
 def report_pdf_job(path: str) -> bytes:
     from station.report.pdf import render_report_pdf
 
     return render_report_pdf(Path(path))
 
 
-@_job
+@worker_job
 def certificate_job(path: str, ext: str, register: dict[str, Any]) -> bytes:
     """The run's certificate (issued, else its draft) as html, pdf or xml bytes."""
     from station.certificate.issue import run_document
@@ -159,7 +164,7 @@ def certificate_job(path: str, ext: str, register: dict[str, Any]) -> bytes:
     return run_document(Path(path), ext, register)
 
 
-@_job
+@worker_job
 def issue_job(path: str, prepared_by: str, approver: str, roles: dict[str, str], replaces: str | None, reason: str,
               register: dict[str, Any]) -> dict[str, Any]:
     """Issue the run's certificate (roles: of the authenticated approver and the operator); its
@@ -172,7 +177,7 @@ def issue_job(path: str, prepared_by: str, approver: str, roles: dict[str, str],
     return next(c for c in list_issued(it.folder) if c["number"] == it.number)
 
 
-@_job
+@worker_job
 def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
     """Compute the model-gap analysis of a recording and store it beside it as result ``discrepancy``
     (everything, ``to_dict``, with the ``max_effects`` used: where ``station discrepancy --save``
@@ -185,7 +190,7 @@ def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
     return rep.to_json()
 
 
-@_job
+@worker_job
 def campaign_job(paths: list[str]) -> dict[str, Any]:
     """The joint identification of several recordings (``station.ident.campaign.identify``):
     ``{"result": CampaignResult.to_dict()}``, or ``{"refused": message}`` for recordings that cannot
