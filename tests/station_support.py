@@ -21,13 +21,14 @@ import json
 import os
 import signal
 import socket
+import sqlite3
 import subprocess
 import sys
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import httpx
 import yaml
@@ -36,9 +37,15 @@ from station.config import StationConfig, parse_config
 from station.service.store import RunRow, Store
 from tests.conftest import fast_dict
 
+if TYPE_CHECKING:
+    from station.service.manager import RunManager
+
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 T = TypeVar("T")
+# The tests' users: name -> password and role (made with the admin token, then logged in as each).
+PASSWORDS = {"tina": "tina-secret-pw", "anton": "anton-secret-pw", "ada": "ada-secret-pw1"}
+ROLES = {"tina": "technician", "anton": "approver", "ada": "admin"}
 FINAL = ("completed", "aborted", "failed", "interrupted")
 ON_RIG_DONE = (*FINAL, "identifying")
 
@@ -152,6 +159,27 @@ def asgi_client(app: Any, *, token: bool = True, client: str = "127.0.0.1") -> h
     """A client of the app in this process (with the token unless ``token=False``), calling from ``client``."""
     t = httpx.ASGITransport(app=app, client=(client, 40000))
     return httpx.AsyncClient(transport=t, base_url="http://127.0.0.1", headers=AUTH if token else None, timeout=60)
+
+
+async def login(app: Any, name: str) -> httpx.AsyncClient:
+    """A client of the app in this process logged in as user ``name`` (made beforehand with its
+    :data:`PASSWORDS` entry), by its session cookie, not the token; the cookie is HttpOnly, SameSite=Strict."""
+    c = asgi_client(app, token=False)
+    r = await c.post("/login", json={"name": name, "password": PASSWORDS[name]})
+    assert r.status_code == 200, r.text
+    assert "httponly" in r.headers["set-cookie"].lower() and "samesite=strict" in r.headers["set-cookie"].lower()
+    return c
+
+
+def estops(m: RunManager) -> list[dict[str, Any]]:
+    """The emergency stops in the database, once the daemon's writer has taken what it queued."""
+    assert m.db.flush(5.0), m.db.last_error
+    db = sqlite3.connect(m.settings.database)
+    db.row_factory = sqlite3.Row
+    try:
+        return [dict(r) for r in db.execute("SELECT * FROM estops ORDER BY id")]
+    finally:
+        db.close()
 
 
 @contextlib.asynccontextmanager

@@ -22,6 +22,7 @@ import pytest
 import yaml
 
 from station.recording import read_recording, read_stored
+from tests.recording_support import killed_in_place_write, small_recording
 from tests.station_support import (
     AUTH,
     FINAL,
@@ -35,7 +36,6 @@ from tests.station_support import (
     start,
     wait_state,
 )
-from tests.test_stored_results import killed_in_place_write, small_recording
 
 T = TypeVar("T")
 

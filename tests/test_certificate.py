@@ -122,8 +122,7 @@ def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None
     register per transducer, the issued forms."""
     import asyncio
 
-    from tests.station_support import Seed, app_in_process, daemon_config, seed_runs
-    from tests.test_lab import PW, login
+    from tests.station_support import PASSWORDS, Seed, app_in_process, daemon_config, login, seed_runs
 
     rec = tmp_path / "recordings"
     [rid] = seed_runs(daemon_config(rec), [Seed()])
@@ -137,7 +136,8 @@ def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None
             # the approver is who authenticates, never a name in the body; an admin may not approve
             assert (await c.post(f"/runs/{rid}/certificate", json={"prepared_by": TECH})).status_code == 403
             app = c._transport.app  # type: ignore[attr-defined]
-            assert (await c.put("/users/anton", json={"role": "approver", "password": PW["anton"]})).status_code == 200
+            user = {"role": "approver", "password": PASSWORDS["anton"]}
+            assert (await c.put("/users/anton", json=user)).status_code == 200
             anton = await login(app, "anton")
             assert (await anton.post(f"/runs/{rid}/certificate", json={"approver": "x"})).status_code == 422
             bad = await anton.post(f"/runs/{rid}/certificate", json={"prepared_by": "anton"})

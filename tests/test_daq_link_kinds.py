@@ -15,10 +15,9 @@ from drivers.daq.bridge import parse_hardware
 from drivers.sim.clock import VirtualClock
 from drivers.sim.daq_emulator import DaqEmulator
 from drivers.sim.daq_inprocess import ClockedDaqLink
-from drivers.sim.pty import open_pty
 from station.config import parse_config
 from station.errors import ConfigError
-from tests.test_daq_stream import CounterSource
+from tests.daq_support import CounterSource, emulator_on_pty
 
 
 def inprocess(**emu: object) -> tuple[DaqEmulator, DaqBridge]:
@@ -70,12 +69,8 @@ def test_the_recorded_rate_is_the_one_the_adc_delivers() -> None:
 
 @pytest.fixture
 def usb_bridge() -> Iterator[tuple[DaqEmulator, str]]:
-    pty = open_pty()
-    emu = DaqEmulator(pty.master, CounterSource(), lambda: 0.0, link="usb-cdc", link_bytes_per_s=200_000.0,
-                      on_close=pty.forget_master).start()
-    yield emu, pty.path
-    emu.close()
-    pty.close()
+    with emulator_on_pty(crank_hz=0.0, link="usb-cdc", link_bytes_per_s=200_000.0) as bridge:
+        yield bridge
 
 
 def test_usb_cdc_budget_is_the_bridges_throughput_not_the_baud_rate(usb_bridge: tuple[DaqEmulator, str]) -> None:
@@ -123,7 +118,7 @@ def test_a_run_over_a_usb_cdc_link_records_what_the_bridge_reported(tmp_path) ->
     import h5py
 
     from station.run.request import StepSpec
-    from tests.test_run_faults import run_with, small_config
+    from tests.run_support import run_with, small_config
 
     d = small_config(record_s=0.5)
     d.setdefault("devices", {}).update({"daq_link": "usb-cdc", "daq_baudrate": 9600})

@@ -22,34 +22,16 @@ from drivers.rig.presets import paper_5kN_physics
 from drivers.sim.daq_emulator import DaqEmulator
 from drivers.sim.daq_source import RigSource
 from drivers.sim.pty import open_pty
-
-
-class CounterSource:
-    """Displacement = running sample counter (mod 2^16), force = its negative: every sample is checkable."""
-
-    def __init__(self) -> None:
-        self.k = 0
-
-    def configure(self, rate_hz: float, range_disp_V: float, range_force_V: float) -> None:
-        return None
-
-    def advance(self, n: int, f_end_hz: float) -> tuple[np.ndarray, np.ndarray]:
-        d = (np.arange(self.k, self.k + n) % 65536).astype(np.uint16).view(np.int16)
-        self.k += n
-        return d, (-d.astype(np.int32)).astype(np.int16)
+from tests.daq_support import emulator_on_pty
 
 
 @pytest.fixture
 def rig_pty(request: pytest.FixtureRequest) -> Iterator[tuple[DaqEmulator, DaqBridge]]:
-    source = getattr(request, "param", None) or CounterSource()
-    pty = open_pty()
-    emu = DaqEmulator(pty.master, source, lambda: 20.0, seed=3, on_close=pty.forget_master).start()
-    daq = DaqBridge(stall_timeout_s=0.3)
-    daq.connect(SerialLink(pty.path))
-    yield emu, daq
-    daq.close()
-    emu.close()
-    pty.close()
+    with emulator_on_pty(getattr(request, "param", None), seed=3) as (emu, path):
+        daq = DaqBridge(stall_timeout_s=0.3)
+        daq.connect(SerialLink(path))
+        yield emu, daq
+        daq.close()
 
 
 def collect(daq: DaqBridge, seconds: float) -> list:

@@ -34,19 +34,15 @@ from drivers.motor import (
 )
 from drivers.sim import SimRig
 from drivers.sim.daq_emulator import DaqEmulator
-from drivers.sim.pty import open_pty
-from tests.test_daq_stream import CounterSource
+from tests.daq_support import emulator_on_pty
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 @pytest.fixture
 def bridge_pty() -> Iterator[tuple[DaqEmulator, str]]:
-    pty = open_pty()
-    emu = DaqEmulator(pty.master, CounterSource(), lambda: 20.0, seed=3, on_close=pty.forget_master).start()
-    yield emu, pty.path
-    emu.close()
-    pty.close()
+    with emulator_on_pty(seed=3) as bridge:
+        yield bridge
 
 
 _KILLED_STATION = """

@@ -16,7 +16,6 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import h5py
 import httpx
@@ -36,21 +35,11 @@ from tests.station_support import (
     Daemon,
     app_in_process,
     daemon_config,
+    estops,
     run_body,
     start,
     wait_state,
 )
-
-
-def estops(m: RunManager) -> list[dict[str, Any]]:
-    """The emergency stops in the database, once the daemon's writer has taken what it queued."""
-    assert m.db.flush(5.0), m.db.last_error
-    db = sqlite3.connect(m.settings.database)
-    db.row_factory = sqlite3.Row
-    try:
-        return [dict(r) for r in db.execute("SELECT * FROM estops ORDER BY id")]
-    finally:
-        db.close()
 
 
 # ---------------------------------------------------------------------------------------- row 1

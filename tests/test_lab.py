@@ -10,12 +10,20 @@ import sqlite3
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 
 from station.lab import audit, users
 from station.service.store import Store
-from tests.station_support import ON_RIG_DONE, app_in_process, asgi_client, daemon_config, run_body, wait_state
+from tests.station_support import (
+    ON_RIG_DONE,
+    PASSWORDS,
+    app_in_process,
+    asgi_client,
+    daemon_config,
+    login,
+    run_body,
+    wait_state,
+)
 
 STANDARDS = [
     {"id": "LVDT-7", "kind": "displacement_sensor", "certificate_id": "DKD-K-123/2026", "issuer": "DKD lab 12",
@@ -23,7 +31,6 @@ STANDARDS = [
     {"id": "MASS-SET-2", "kind": "masses", "certificate_id": "M-88", "issuer": "PTB", "due_date": "2099-01-31",
      "uncertainty": 5e-5, "uncertainty_unit": "kg"},
 ]
-PW = {"tina": "tina-secret-pw", "anton": "anton-secret-pw"}
 OTHER = {"type": "HBM U9C", "serial": "SN-42", "capacity_N": 5000.0, "sensitivity_V_per_N": 2e-6,
          "end_mass_kg": 0.1, "end_mass_std_kg": 0.002, "owner": "ACME Weighing"}
 
@@ -40,14 +47,6 @@ async def identified(manager: Any, rid: str) -> None:
     assert await asyncio.to_thread(manager.db.flush, 5.0)
 
 
-async def login(app: Any, name: str) -> httpx.AsyncClient:
-    c = asgi_client(app, token=False)
-    r = await c.post("/login", json={"name": name, "password": PW[name]})
-    assert r.status_code == 200, r.text
-    assert "httponly" in r.headers["set-cookie"].lower() and "samesite=strict" in r.headers["set-cookie"].lower()
-    return c
-
-
 @pytest.mark.slow
 def test_a_scripted_day_is_in_the_audit_trail(tmp_path: Path) -> None:
     """Admin adds users and a transducer; the technician mounts it, runs it, stops and acknowledges;
@@ -58,7 +57,7 @@ def test_a_scripted_day_is_in_the_audit_trail(tmp_path: Path) -> None:
         async with app_in_process(rec, config=lab_config(rec)) as (manager, admin):
             app = admin._transport.app  # type: ignore[attr-defined]
             for name, role in (("tina", "technician"), ("anton", "approver")):
-                r = await admin.put(f"/users/{name}", json={"role": role, "password": PW[name]})
+                r = await admin.put(f"/users/{name}", json={"role": role, "password": PASSWORDS[name]})
                 assert r.status_code == 200, r.text
             assert (await admin.put("/register/transducers/TX5K-0002", json=OTHER)).status_code == 200
             reg = (await admin.get("/register")).json()
@@ -126,7 +125,7 @@ def test_credentials_are_refused_with_the_reason(tmp_path: Path) -> None:
     async def go() -> None:
         async with app_in_process(rec, config=lab_config(rec, session_minutes=5)) as (manager, admin):
             app = admin._transport.app  # type: ignore[attr-defined]
-            await admin.put("/users/tina", json={"role": "technician", "password": PW["tina"]})
+            await admin.put("/users/tina", json={"role": "technician", "password": PASSWORDS["tina"]})
             anon = asgi_client(app, token=False)
             r = await anon.post("/login", json={"name": "tina", "password": "wrong-password"})
             assert r.status_code == 401 and "wrong user name or password" in r.json()["detail"]
@@ -143,7 +142,8 @@ def test_credentials_are_refused_with_the_reason(tmp_path: Path) -> None:
             assert r.status_code == 401 and "expired" in r.json()["detail"]
             # the password is stored as a scrypt hash, never in clear
             pw = manager.store.query("SELECT password FROM users WHERE name = 'tina'")[0]["password"]
-            assert pw.startswith("scrypt$") and PW["tina"] not in pw and users.check_password(PW["tina"], pw)
+            secret = PASSWORDS["tina"]
+            assert pw.startswith("scrypt$") and secret not in pw and users.check_password(secret, pw)
             # a token issued to a user acts for that user
             tok = (await admin.post("/users/tina/tokens", json={"label": "ci"})).json()["token"]
             me = (await anon.get("/me", headers={"Authorization": f"Bearer {tok}"})).json()
@@ -196,7 +196,7 @@ def test_a_tampered_recording_is_refused_naming_the_file(tmp_path: Path) -> None
             r = await c.get(f"/runs/{rid}/integrity")
             assert r.status_code == 409 and path.name in r.json()["detail"] and "changed" in r.json()["detail"]
             await identified(manager, rid)
-            await c.put("/users/anton", json={"role": "approver", "password": PW["anton"]})
+            await c.put("/users/anton", json={"role": "approver", "password": PASSWORDS["anton"]})
             anton = await login(c._transport.app, "anton")  # type: ignore[attr-defined]
             r = await anton.post(f"/runs/{rid}/approve", json={})
             assert r.status_code == 409 and path.name in r.json()["detail"]

@@ -23,29 +23,18 @@ from station.errors import ConfigError, LimitError, RecordingFormatError, Statio
 from station.recording import (
     ChannelSpec,
     RecordingWriter,
-    RunMetadata,
     new_run_id,
     read_recording,
     recover_partial,
 )
 from station.simulate import simulate_run
+from tests.recording_support import FLOAT_CHANNELS, FS, run_metadata
 
-FS = 20_000.0
 COUNT_CHANNELS = (
     ChannelSpec("displacement", "i2", "count", "m", scale=6.103515625e-07, volts_per_count=3.0517578125e-4),
     ChannelSpec("force", "i2", "count", "V", scale=3.0517578125e-4, offset=-0.25,
                 volts_per_count=3.0517578125e-4),
 )
-FLOAT_CHANNELS = (ChannelSpec("displacement", "f8", "m", "m", scale=1.0),
-                  ChannelSpec("force", "f8", "V", "V", scale=1.0))
-
-
-def _meta(run_id: str = "20250101T000000-TX-1-abcdef", **kw: Any) -> RunMetadata:
-    fields: dict[str, Any] = dict(run_id=run_id, transducer_id="TX-1", source="calibrate", sample_rate_hz=FS,
-                                  load_mass_kg=26.167, end_mass_kg=0.12, sensitivity_V_per_N=0.002,
-                                  capacity_N=5000.0, config_yaml="transducer:\n  id: TX-1  # µ-test\n")
-    fields.update(kw)
-    return RunMetadata(**fields)
 
 
 def _counts(n0: int, n: int, mod: int = 30_000) -> np.ndarray:
@@ -68,7 +57,7 @@ def _iso(text: str) -> datetime:
 @pytest.fixture
 def written(tmp_path: Path) -> tuple[Path, int]:
     """A completed recording with 3 blocks of ADC codes, 2 steps, a lost-sample report and an event."""
-    w = RecordingWriter(tmp_path, _meta(), COUNT_CHANNELS, plan={"kind": "test", "steps": [1, 2]},
+    w = RecordingWriter(tmp_path, run_metadata(), COUNT_CHANNELS, plan={"kind": "test", "steps": [1, 2]},
                         chunk_samples=1000)
     assert w.partial_path.exists() and not w.final_path.exists()
     n = 0
@@ -211,7 +200,7 @@ def test_read_recording_in_physical_units(written: tuple[Path, int]) -> None:
 
 
 def test_unknown_end_mass_is_stored_as_nan(tmp_path: Path) -> None:
-    w = RecordingWriter(tmp_path, _meta(end_mass_kg=None), FLOAT_CHANNELS)
+    w = RecordingWriter(tmp_path, run_metadata(end_mass_kg=None), FLOAT_CHANNELS)
     w.append(np.zeros(10), np.ones(10))
     path = w.finish("completed")
     with h5py.File(path, "r") as f:
@@ -228,7 +217,7 @@ def test_new_run_ids_are_unique_and_sortable() -> None:
 
 @pytest.mark.parametrize("status", ["aborted", "failed", "interrupted"])
 def test_other_exit_statuses_and_reason(tmp_path: Path, status: str) -> None:
-    w = RecordingWriter(tmp_path, _meta(), FLOAT_CHANNELS)
+    w = RecordingWriter(tmp_path, run_metadata(), FLOAT_CHANNELS)
     w.append(np.arange(5.0), np.arange(5.0))
     path = w.finish(status, reason="operator pressed stop")
     rec = read_recording(path)
@@ -238,7 +227,7 @@ def test_other_exit_statuses_and_reason(tmp_path: Path, status: str) -> None:
 
 
 def test_unknown_exit_status_is_refused_and_the_run_can_still_finish(tmp_path: Path) -> None:
-    w = RecordingWriter(tmp_path, _meta(), FLOAT_CHANNELS)
+    w = RecordingWriter(tmp_path, run_metadata(), FLOAT_CHANNELS)
     w.append(np.arange(5.0), np.arange(5.0))
     with pytest.raises(ValueError, match="exit status must be one of"):
         w.finish("done")
@@ -247,7 +236,7 @@ def test_unknown_exit_status_is_refused_and_the_run_can_still_finish(tmp_path: P
 
 
 def test_unequal_blocks_are_refused(tmp_path: Path) -> None:
-    w = RecordingWriter(tmp_path, _meta(), FLOAT_CHANNELS)
+    w = RecordingWriter(tmp_path, run_metadata(), FLOAT_CHANNELS)
     w.append(np.arange(4.0), np.arange(4.0))
     with pytest.raises(ValueError, match="equal 1-D blocks"):
         w.append(np.arange(5.0), np.arange(4.0))
@@ -265,13 +254,13 @@ def test_existing_recording_is_never_overwritten(tmp_path: Path, suffix: str) ->
     existing = tmp_path / f"{run_id}{suffix}"
     existing.write_bytes(b"an earlier run")
     with pytest.raises(StationError, match="refusing to overwrite existing recording"):
-        RecordingWriter(tmp_path, _meta(run_id), FLOAT_CHANNELS)
+        RecordingWriter(tmp_path, run_metadata(run_id), FLOAT_CHANNELS)
     assert existing.read_bytes() == b"an earlier run"
     assert [p.name for p in tmp_path.iterdir()] == [existing.name]
 
 
 def test_writer_creates_the_output_folder(tmp_path: Path) -> None:
-    w = RecordingWriter(tmp_path / "a" / "b", _meta(), FLOAT_CHANNELS)
+    w = RecordingWriter(tmp_path / "a" / "b", run_metadata(), FLOAT_CHANNELS)
     assert w.partial_path.parent == tmp_path / "a" / "b"
     w.abandon()
 
@@ -279,7 +268,7 @@ def test_writer_creates_the_output_folder(tmp_path: Path) -> None:
 # -- abandoned and truncated files -----------------------------------------------------------------
 
 def test_abandoned_run_reads_as_interrupted_and_recovers(tmp_path: Path) -> None:
-    w = RecordingWriter(tmp_path, _meta(), COUNT_CHANNELS)
+    w = RecordingWriter(tmp_path, run_metadata(), COUNT_CHANNELS)
     w.append(_counts(0, 3000), _counts(0, 3000))
     w.add_step(crank_frequency_hz=4.0, crank_radius_m=0.01, start_sample=0, end_sample=3000)
     w.abandon()
@@ -321,7 +310,7 @@ def test_crash_between_stop_record_and_rename(tmp_path: Path, written: tuple[Pat
 
 def test_channel_cut_short_and_step_beyond_the_data(tmp_path: Path) -> None:
     """A crash can leave one channel a block shorter and a step whose window was never flushed."""
-    w = RecordingWriter(tmp_path, _meta(), FLOAT_CHANNELS)
+    w = RecordingWriter(tmp_path, run_metadata(), FLOAT_CHANNELS)
     w.append(np.arange(1000.0), -np.arange(1000.0))
     w.add_step(crank_frequency_hz=5.0, crank_radius_m=0.01, start_sample=0, end_sample=800)
     w.add_step(crank_frequency_hz=6.0, crank_radius_m=0.01, start_sample=800, end_sample=1000)
@@ -338,7 +327,7 @@ def test_channel_cut_short_and_step_beyond_the_data(tmp_path: Path) -> None:
 
 
 def test_document_cut_in_the_middle_is_dropped(tmp_path: Path) -> None:
-    w = RecordingWriter(tmp_path, _meta(), FLOAT_CHANNELS)
+    w = RecordingWriter(tmp_path, run_metadata(), FLOAT_CHANNELS)
     w.add_step(crank_frequency_hz=5.0, crank_radius_m=0.01, start_sample=0, end_sample=0)
     w.document("event", {"message": "x" * 100})
     w.abandon()
@@ -351,7 +340,7 @@ def test_recover_refuses_other_files_and_never_overwrites(tmp_path: Path, writte
     path, _ = written
     with pytest.raises(StationError, match=r"only \*\.h5\.partial files are recovered"):
         recover_partial(path)
-    w = RecordingWriter(tmp_path / "other", _meta(), FLOAT_CHANNELS)
+    w = RecordingWriter(tmp_path / "other", run_metadata(), FLOAT_CHANNELS)
     w.append(np.arange(3.0), np.arange(3.0))
     w.abandon()
     shutil.copy(path, w.final_path)  # a complete file of the same name exists already

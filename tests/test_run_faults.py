@@ -14,9 +14,8 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import h5py
 import numpy as np
@@ -27,55 +26,12 @@ from drivers.motor.controller import MotorController
 from drivers.motor.transport import ModbusTransport
 from drivers.sim.clock import VirtualClock
 from drivers.sim.rig import SimRigProcess
-from station.config import StationConfig, load_config, parse_config
+from station.config import load_config, parse_config
 from station.recording import read_recording
-from station.run.procedure import Procedure, Progress
-from station.run.request import RunRequest, StepSpec, plan_run
-from station.run.rig import ConnectedRig, connect
-from tests.conftest import station_dict
+from station.run.procedure import Procedure
+from station.run.rig import ConnectedRig
 from tests.disk_support import mounted_tmpfs
-
-
-def small_config(**plan: Any) -> dict:
-    return station_dict(**{"settle_s": 0.2, "record_s": 1.0, "acceleration_hz_per_s": 50.0, **plan})
-
-
-CFG = parse_config(small_config())
-STEPS = [StepSpec(crank_frequency_hz=f, crank_radius_m=0.001) for f in (10.0, 20.0, 30.0)]
-
-
-def run_with(tmp_path: Path, when: Callable[[Progress], bool] | None, act: Callable[[ConnectedRig, Procedure], None],
-             steps: list[StepSpec] = STEPS, *, wire: bool = False,
-             cfg: StationConfig = CFG, clock: VirtualClock | None = None,
-             ) -> tuple[object, ConnectedRig, dict[str, float]]:
-    """Run a procedure on the simulated rig; ``act`` fires once when ``when(progress)`` is true.
-    Returns the outcome, the rig (closed) and the motor state seen right after the run.
-    ``wire``: over Modbus TCP and a pty in real time; else in-process on a virtual clock (``clock``,
-    a new one by default)."""
-    plan = plan_run(cfg, RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg, steps=steps))
-
-    async def go() -> tuple[object, ConnectedRig, dict[str, float]]:
-        async with connect(plan.config, sim=True, first_radius_m=steps[0].crank_radius_m,
-                           sim_clock=None if wire else clock or VirtualClock()) as rig:
-            fired = False
-            proc: Procedure
-
-            def progress(p: Progress) -> None:
-                nonlocal fired
-                if not fired and when is not None and when(p):
-                    fired = True
-                    act(rig, proc)
-            proc = Procedure(plan, rig, tmp_path, on_progress=progress)
-            outcome = await proc.execute()
-            assert fired or when is None, "the fault was never injected"
-            # the motor after the run, from the emulator's own model (no driver in between)
-            deadline = rig.clock.monotonic() + 10
-            while rig.sim.motor.speed_hz() != 0 and rig.clock.monotonic() < deadline:
-                await rig.clock.asleep(0.05)
-            snap = rig.sim.motor.snapshot()
-            motor = {"speed_hz": rig.sim.motor.speed_hz(), "enabled": float(snap.enabled)}
-            return outcome, rig, motor
-    return asyncio.run(go())
+from tests.run_support import run_with, small_config
 
 
 def recording_after(outcome: object) -> object:

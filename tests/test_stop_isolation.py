@@ -28,8 +28,16 @@ from station.service.db import DbAccess
 from station.service.errors import DatabaseBusyError
 from station.service.store import RunRow, Store
 from tests.disk_support import fill_disk, mounted_tmpfs
-from tests.station_support import FINAL, Daemon, app_in_process, daemon_config, run_body, start, wait_state
-from tests.test_fault_matrix_service import estops
+from tests.station_support import (
+    FINAL,
+    Daemon,
+    app_in_process,
+    daemon_config,
+    estops,
+    run_body,
+    start,
+    wait_state,
+)
 
 NOT_THE_BUSY_TIMEOUT_S = 5.0  # the database's busy timeout is 10 s: a stop faster than this did not wait for it
 

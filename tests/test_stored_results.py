@@ -21,15 +21,7 @@ from station.errors import StationError
 from station.recording import RecordingWriter, read_recording, read_result, read_stored, write_result
 from station.recording.stored import ResultWriteError, read_processed, result_path, sidecar_dir, stale_temporaries
 from tests.disk_support import mounted_tmpfs
-from tests.test_recording import FLOAT_CHANNELS, _meta
-
-
-def small_recording(folder: Path, n: int = 4000) -> Path:
-    w = RecordingWriter(folder, _meta(), FLOAT_CHANNELS, chunk_samples=1000, min_free_bytes=0)
-    t = np.arange(n) / 20_000.0
-    w.append(1e-3 * np.sin(2 * np.pi * 10 * t), 0.1 * np.cos(2 * np.pi * 10 * t))
-    w.add_step(crank_frequency_hz=10.0, crank_radius_m=0.001, start_sample=0, end_sample=n)
-    return w.finish("completed")
+from tests.recording_support import FLOAT_CHANNELS, killed_in_place_write, run_metadata, small_recording
 
 
 def _digest(p: Path) -> str:
@@ -94,7 +86,7 @@ def test_result_names_are_plain(rec: Path, name: str) -> None:
 
 
 def test_results_only_for_complete_recordings(tmp_path: Path) -> None:
-    w = RecordingWriter(tmp_path, _meta(), FLOAT_CHANNELS)
+    w = RecordingWriter(tmp_path, run_metadata(), FLOAT_CHANNELS)
     w.abandon()
     with pytest.raises(StationError, match="only for complete recordings"):
         write_result(w.partial_path, "fit", {})
@@ -189,21 +181,6 @@ def test_a_full_disk_while_results_are_written_loses_nothing(tmp_path: Path) -> 
 
 
 # -- recordings damaged by the old in-place writes -------------------------------------------------
-
-def killed_in_place_write(rec: Path) -> None:
-    """What the old scheme left: a process killed while it held the recording open for writing."""
-    pid = os.fork()
-    if pid == 0:  # pragma: no cover - the child is killed
-        try:
-            f = h5py.File(rec, "r+")
-            g = f.require_group("results").create_group("identify_fd_sdof")
-            g.attrs["json"] = json.dumps({"k_f": 1.0})
-            f.flush()
-            os.kill(os.getpid(), signal.SIGKILL)
-        finally:
-            os._exit(1)
-    os.waitpid(pid, 0)
-
 
 def test_a_recording_left_flagged_by_a_killed_in_place_write_is_repaired_at_start(tmp_path: Path) -> None:
     from station.recording.repair import check_folder
