@@ -7,7 +7,7 @@ Session-scoped recordings are shared: tests must not modify them (copy them into
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -134,3 +134,13 @@ def sim_recording_one_radius(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A completed simulated recording with a single crank radius (read-only: do not modify)."""
     out = tmp_path_factory.mktemp("sim1r")
     return simulate_run(parse_config(fast_dict(steps=ONE_RADIUS), "fast-1r"), out, seed=7)
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    """Debian's headless Chromium driven by Playwright, one per test module (``tests/web_support.py``;
+    the page tests import it, which skips them where it says)."""
+    from tests.web_support import chromium
+
+    with chromium() as b:
+        yield b

@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import pytest
 
 from tests.station_support import Daemon, daemon_config, run_body
-from tests.web_support import ARGS, CHROMIUM, log_in, sync_api
+from tests.web_support import log_in, open_page
 
 pytestmark = pytest.mark.slow  # a real daemon, a real run and a real browser: the end-to-end layer
 
@@ -27,26 +27,10 @@ def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
         yield d
 
 
-@pytest.fixture(scope="module")
-def browser() -> Iterator[object]:
-    with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
-        try:
-            yield b
-        finally:
-            b.close()
-
-
 @pytest.fixture
 def page(browser: object, daemon: Daemon) -> Iterator[object]:
-    ctx = browser.new_context()  # type: ignore[attr-defined]
-    pg = ctx.new_page()
-    errors: list[str] = []
-    pg.on("pageerror", lambda e: errors.append(str(e)))
-    pg.goto(daemon.url + "/")
-    yield pg
-    ctx.close()
-    assert errors == [], errors  # no JavaScript error on the page
+    with open_page(browser, daemon.url + "/") as pg:  # and no JavaScript error on the page
+        yield pg
 
 
 def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon: Daemon) -> None:
@@ -172,10 +156,7 @@ def test_a_drive_that_does_not_stop_is_shown_on_the_page(browser: object, tmp_pa
             rid = d.start_run(freqs=(10.0,), record_s=60.0)
             d.wait_state(rid, ("running",), step_state="recording")
             emu.ignore_stops()
-            ctx = browser.new_context()  # type: ignore[attr-defined]
-            try:
-                pg = ctx.new_page()
-                pg.goto(d.url + "/")
+            with open_page(browser, d.url + "/", no_errors=False) as pg:
                 pg.click("#estop")
                 pg.wait_for_selector("#banner:not([hidden])", timeout=15_000)
                 assert "THE CRANK STILL TURNS" in pg.inner_text("#banner")
@@ -186,5 +167,3 @@ def test_a_drive_that_does_not_stop_is_shown_on_the_page(browser: object, tmp_pa
                 pg.click("#ack")
                 pg.wait_for_selector("#drive-fault", state="detached", timeout=15_000)
                 assert "acknowledged by tina" in pg.inner_text("#banner")
-            finally:
-                ctx.close()

@@ -15,7 +15,7 @@ from collections.abc import Iterator
 import pytest
 
 from tests.station_support import Daemon, Seed, daemon_config
-from tests.web_support import ARGS, CHROMIUM, log_in, sync_api
+from tests.web_support import log_in, open_page
 
 K_F, B_F = 2.91e7, 17136.0  # the truth of config/sim-5kN.yaml (N/m, N*s/m)
 TIE_STEPS = (3.0, 5.036, 8.455, 14.193, 23.827, 40.0)
@@ -32,18 +32,9 @@ def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
 
 
 @pytest.fixture
-def page(daemon: Daemon) -> Iterator[object]:
-    with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
-        pg = b.new_page()
-        errors: list[str] = []
-        pg.on("pageerror", lambda e: errors.append(str(e)))
-        pg.goto(daemon.url + "/")
-        try:
-            yield pg
-        finally:
-            b.close()
-        assert errors == [], errors
+def page(browser: object, daemon: Daemon) -> Iterator[object]:
+    with open_page(browser, daemon.url + "/") as pg:  # and no JavaScript error on the page
+        yield pg
 
 
 @pytest.mark.slow

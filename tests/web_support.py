@@ -6,10 +6,15 @@ is not set; under CI the browser tests must run.
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
+
+from tests.station_support import PASSWORDS, ROLES
 
 CHROMIUM = Path("/usr/bin/chromium")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -24,10 +29,37 @@ if os.environ.get("CI"):
 else:
     sync_api = pytest.importorskip("playwright.sync_api")
 
-__all__ = ["ARGS", "CHROMIUM", "log_in", "sync_api"]
 
-PASSWORDS = {"tina": "tina-secret-pw", "anton": "anton-secret-pw", "ada": "ada-secret-pw1"}
-ROLES = {"tina": "technician", "anton": "approver", "ada": "admin"}
+__all__ = ["ARGS", "CHROMIUM", "chromium", "log_in", "open_page", "sync_api"]
+
+
+@contextlib.contextmanager
+def chromium() -> Iterator[Any]:
+    """Debian's Chromium, headless, launched by Playwright (the ``browser`` fixture of tests/conftest.py
+    holds one per test module); closed on leaving."""
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@contextlib.contextmanager
+def open_page(browser: Any, url: str, *, no_errors: bool = True, **context: Any) -> Iterator[Any]:
+    """A page at ``url`` in a new browser context of its own (``context``: Playwright's
+    ``new_context`` options, e.g. ``viewport``); the context is closed on leaving, and then (with
+    ``no_errors``) no JavaScript error may have happened on the page."""
+    ctx = browser.new_context(**context)
+    errors: list[str] = []
+    try:
+        pg = ctx.new_page()
+        pg.on("pageerror", lambda e: errors.append(str(e)))
+        pg.goto(url)
+        yield pg
+    finally:
+        ctx.close()
+    assert not no_errors or errors == [], errors
 
 
 def log_in(page: object, daemon: object, name: str = "tina") -> None:
