@@ -1,6 +1,9 @@
 """The package layout's rules, read from the source (``docs/architecture.md``, Layers): no module
-imports another module's private (``_name``) helper, and the modules of ``station`` and of ``drivers``
-import each other without a circle (every import counts: top-level, in a function, under TYPE_CHECKING)."""
+imports another module's private (``_name``) helper, the tests included (a test goes through the
+public name, or the helper gets one); a test module never imports another test module (what tests
+share lives in ``tests/*_support.py`` or ``tests/conftest.py``); and the modules of ``station`` and of
+``drivers`` import each other without a circle (every import counts: top-level, in a function, under
+TYPE_CHECKING)."""
 
 from __future__ import annotations
 
@@ -33,14 +36,35 @@ def _imports(path: Path) -> list[tuple[str, list[str]]]:
 
 
 def private_imports(packages: tuple[str, ...]) -> list[str]:
+    """``module: from X import _name`` for each private name of station, drivers or tests that a
+    module of ``packages`` imports."""
     found = []
     for package in packages:
         for name, path in _modules(package).items():
             for module, names in _imports(path):
-                if module.split(".")[0] not in ("station", "drivers"):
+                if module.split(".")[0] not in ("station", "drivers", "tests"):
                     continue
                 found += [f"{name}: from {module} import {n}" for n in names
                           if n.startswith("_") and not n.startswith("__")]
+    return found
+
+
+def imports_of_test_modules(package: str = "tests") -> list[str]:
+    """``module: imports T`` for each test module T (``test_*``) of ``package`` that another module of
+    it imports (``from tests.test_x import ...``, ``import tests.test_x``, ``from tests import test_x``)."""
+    found = []
+    for name, path in _modules(package).items():
+        for module, names in _imports(path):
+            hit = set()
+            for target in (module, *(f"{module}.{n}" for n in names)):
+                parts = target.split(".")
+                if parts[0] != package:
+                    continue
+                for i, part in enumerate(parts[1:], start=2):
+                    if part.startswith("test_"):
+                        hit.add(".".join(parts[:i]))
+                        break
+            found += [f"{name}: imports {t}" for t in sorted(hit) if t != name]
     return found
 
 
@@ -87,6 +111,11 @@ def test_no_private_helper_is_imported_across_modules() -> None:
     assert private_imports(("station", "drivers")) == []
 
 
+def test_tests_use_public_names_and_share_through_support_modules() -> None:
+    assert private_imports(("tests",)) == []
+    assert imports_of_test_modules("tests") == []
+
+
 @pytest.mark.parametrize("package", ["station", "drivers"])
 def test_modules_import_each_other_without_a_circle(package: str) -> None:
     assert import_cycles(package) == []
@@ -99,6 +128,13 @@ def test_the_rules_see_what_they_forbid(tmp_path: Path, monkeypatch: pytest.Monk
     (pkg / "__init__.py").write_text("")
     (pkg / "a.py").write_text("from station.ident.b import _helper\n")
     (pkg / "b.py").write_text("def f():\n    from station.ident import a\n")
+    tests = tmp_path / "tests"
+    tests.mkdir()
+    (tests / "test_x.py").write_text("def test_x():\n    from station.ident.b import _helper\n")
+    (tests / "test_y.py").write_text("from tests.test_x import test_x\nfrom tests import test_x as t\n")
+    (tests / "y_support.py").write_text("from tests.conftest import station_dict\n")  # allowed
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
     assert private_imports(("station",)) == ["station.ident.a: from station.ident.b import _helper"]
     assert import_cycles("station.ident") == [["station.ident.a", "station.ident.b"]]
+    assert private_imports(("tests",)) == ["tests.test_x: from station.ident.b import _helper"]
+    assert imports_of_test_modules("tests") == ["tests.test_y: imports tests.test_x"] * 2
