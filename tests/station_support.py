@@ -31,8 +31,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import httpx
+import uvicorn
 import yaml
 
+from station.commands.connections import ConnectionBounds
 from station.config import StationConfig, parse_config
 from station.service.store import RunRow, Store
 from tests.conftest import fast_dict
@@ -244,6 +246,26 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+@contextlib.asynccontextmanager
+async def served_on_a_socket(app: Any, bounds: ConnectionBounds) -> AsyncIterator[int]:
+    """The in-process ``app`` served by uvicorn on a free loopback port in this event loop, with the
+    daemon's connection ``bounds`` (cap and header timeout); yields the port; stopped on leaving."""
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=bounds.protocol(),
+                                           lifespan="off", log_config=None))
+    serving = asyncio.create_task(server.serve())
+    try:
+        while not server.started:
+            if serving.done():
+                await serving  # it could not start: its error, not a wait for ever
+                raise RuntimeError(f"uvicorn did not start on port {port}")
+            await asyncio.sleep(0.02)
+        yield port
+    finally:
+        server.should_exit = True
+        await serving
 
 
 class Daemon:

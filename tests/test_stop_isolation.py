@@ -20,7 +20,6 @@ from pathlib import Path
 
 import httpx
 import pytest
-import uvicorn
 
 from drivers.sim import SimRigProcess
 from station.commands.connections import ConnectionBounds, RepeatFilter
@@ -35,6 +34,7 @@ from tests.station_support import (
     daemon_config,
     estops,
     run_body,
+    served_on_a_socket,
     start,
     wait_state,
 )
@@ -204,26 +204,14 @@ def test_stop_reaches_the_drive_on_a_full_disk_and_its_record_follows(tmp_path: 
 
 
 # ------------------------------------------------------------------------------------ idle connections
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.mark.slow  # ~5 s: a run, its live stream, the flood, the header timeout
 def test_stop_is_served_past_hundreds_of_idle_connections_and_a_trickling_one(tmp_path: Path) -> None:
     """The cap closes the oldest idle connections, never the page's live event stream; the header
     timeout closes a connection that trickles a request head."""
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec") as (m, c):
-            bounds = ConnectionBounds(max_connections=64, header_timeout_s=1.0)
-            port = _free_port()
-            app = c._transport.app  # type: ignore[attr-defined]
-            server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=bounds.protocol(),
-                                                   lifespan="off", log_config=None))
-            serving = asyncio.create_task(server.serve())
-            while not server.started:
-                await asyncio.sleep(0.02)
+        bounds = ConnectionBounds(max_connections=64, header_timeout_s=1.0)
+        async with app_in_process(tmp_path / "rec") as (m, c), \
+                served_on_a_socket(c._transport.app, bounds) as port:  # type: ignore[attr-defined]
             idle = []
             url = f"http://127.0.0.1:{port}"
             try:
@@ -263,8 +251,6 @@ def test_stop_is_served_past_hundreds_of_idle_connections_and_a_trickling_one(tm
             finally:
                 for s in idle:
                     s.close()
-                server.should_exit = True
-                await serving
     asyncio.run(go())
 
 

@@ -16,12 +16,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import uvicorn
 
 from station.commands import stop as stop_command
 from station.commands.connections import ConnectionBounds
 from station.commands.stopport import MAX_HEAD_BYTES, StopPort, parse_head
-from tests.station_support import app_in_process, run_body, start, wait_state
+from tests.station_support import app_in_process, run_body, served_on_a_socket, start, wait_state
 
 PAGE_PORT = 8080  # the main port the stop port names as the station's page (not listened on in these tests)
 
@@ -115,17 +114,9 @@ def test_stop_port_stops_the_drive_and_refuses_bad_and_cross_site_requests_witho
 @pytest.mark.slow  # ~3 s: a real uvicorn main port, a few hundred idle connections on it and a flood on the stop port
 def test_stop_port_stops_past_idle_connections_on_the_main_port_and_its_own(tmp_path: Path) -> None:
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec") as (m, c), stop_port(m, max_connections=16) as sp:
-            bounds = ConnectionBounds(max_connections=64, header_timeout_s=10.0)
-            with socket.socket() as s:
-                s.bind(("127.0.0.1", 0))
-                main_port = int(s.getsockname()[1])
-            app = c._transport.app  # type: ignore[attr-defined]
-            server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=main_port, http=bounds.protocol(),
-                                                   lifespan="off", log_config=None))
-            serving = asyncio.create_task(server.serve())
-            while not server.started:
-                await asyncio.sleep(0.02)
+        bounds = ConnectionBounds(max_connections=64, header_timeout_s=10.0)
+        async with app_in_process(tmp_path / "rec") as (m, c), stop_port(m, max_connections=16) as sp, \
+                served_on_a_socket(c._transport.app, bounds) as main_port:  # type: ignore[attr-defined]
             idle: list[socket.socket] = []
             try:
                 rid = await start(c, freqs=(10.0,), record_s=120.0)
@@ -143,6 +134,4 @@ def test_stop_port_stops_past_idle_connections_on_the_main_port_and_its_own(tmp_
             finally:
                 for s in idle:
                     s.close()
-                server.should_exit = True
-                await serving
     asyncio.run(go())
