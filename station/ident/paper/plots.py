@@ -16,6 +16,14 @@ from scipy.signal import lfilter
 from station.ident.models import SdofModel
 
 
+def _save(fig: Any, path: Path) -> Path:
+    """Lay the figure out, write it to ``path`` as a 100 dpi PNG, free it; returns ``path``."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def _convergence(out: Path, t1: dict[str, Any]) -> list[Path]:
     paths = []
     for case, t in t1.items():
@@ -28,11 +36,7 @@ def _convergence(out: Path, t1: dict[str, Any]) -> list[Path]:
         ax[1].plot(runs["pso+"].fitness_history, label="PSO+ exp(-MSE) (Eq. 16)")
         ax[1].set(xlabel="iteration", ylabel="fitness", title=f"Case {case}: PSO+ fitness as plotted")
         ax[1].legend()
-        fig.tight_layout()
-        p = out / f"case{case}_convergence.png"
-        fig.savefig(p, dpi=100)
-        plt.close(fig)
-        paths.append(p)
+        paths.append(_save(fig, out / f"case{case}_convergence.png"))
     return paths
 
 
@@ -45,11 +49,7 @@ def _noise(out: Path, noise: dict[str, Any]) -> Path:
     ax.semilogy(snr, [r["paper_mse"] for r in rows], "s:", label="paper Fig. 15")
     ax.set(xlabel="SNR (dB)", ylabel="MSE", title="Section 4.2 noise study")
     ax.legend()
-    fig.tight_layout()
-    p = out / "noise_study.png"
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
-    return p
+    return _save(fig, out / "noise_study.png")
 
 
 def _section5(out: Path, sec5: dict[str, Any]) -> list[Path]:
@@ -74,11 +74,7 @@ def _section5(out: Path, sec5: dict[str, Any]) -> list[Path]:
         ax[1].plot(ff, np.abs(model.response(th, ff)) / static, label="FD fit (Eq. 9)")
         ax[1].set(xlabel="f (Hz)", ylabel="relative gain", title=f"{name}: expert FD fit")
         ax[1].legend()
-        fig.tight_layout()
-        p = out / f"section5_{name}.png"
-        fig.savefig(p, dpi=100)
-        plt.close(fig)
-        paths.append(p)
+        paths.append(_save(fig, out / f"section5_{name}.png"))
     return paths
 
 
