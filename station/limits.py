@@ -1,10 +1,17 @@
-"""Rig and transducer limits, checked before anything moves."""
+"""Rig, transducer and drive limits, checked before anything moves.
+
+The drive's limits are those its profile declares (the ranges of its set-point and ramp registers,
+``drivers.motor.profile``), read from the profile the configuration names (``rig.motor.profile``):
+the number lives there once, and a plan beyond it is refused here rather than by the drive mid-run.
+"""
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
+from drivers.motor.profile import DriveProfile, load_profile
 from station.config import StationConfig
 from station.errors import LimitError
 
@@ -45,13 +52,40 @@ def force_limit_N(cfg: StationConfig) -> float:
     return cfg.rig.peak_force_fraction * cfg.transducer.capacity_N
 
 
+@functools.lru_cache(maxsize=16)
+def drive_profile(name_or_path: str) -> DriveProfile:
+    """The drive profile a configuration names (parsed once per process; it was validated when the
+    configuration was loaded)."""
+    return load_profile(name_or_path)
+
+
+def check_drive(cfg: StationConfig) -> None:
+    """Refuse (:class:`LimitError`, a configuration field) a configuration that asks the drive for
+    what its profile does not declare: ``rig.acceleration_hz_per_s`` outside the ramp rates the
+    profile's ramp register(s) take."""
+    profile = drive_profile(cfg.rig.motor.profile)
+    dev, acc = profile.device, cfg.rig.acceleration_hz_per_s
+    if profile.ramp is None:  # the drive keeps its own ramp: nothing is written, nothing to refuse
+        return
+    if not dev.min_ramp_hz_per_s <= acc <= dev.max_ramp_hz_per_s:
+        regs = ", ".join(profile.ramp.registers)
+        raise LimitError(f"rig.acceleration_hz_per_s {acc:g} Hz/s is outside what drive profile "
+                         f"{profile.name!r} takes ({dev.min_ramp_hz_per_s:.3g}..{dev.max_ramp_hz_per_s:.3g} Hz/s, "
+                         f"register {regs}); change the configuration, nothing was moved",
+                         field="rig.acceleration_hz_per_s", value=acc,
+                         limit=(dev.min_ramp_hz_per_s, dev.max_ramp_hz_per_s), in_config=True)
+
+
 def check_steps(cfg: StationConfig, steps: list[StepRequest]) -> None:
     """Refuse the whole run at the first step that breaks a limit: a :class:`LimitError` naming the
     step, the field to change, its value and the limit (a peak force beyond the limit names the
-    radius, and the largest radius allowed at that frequency)."""
+    radius, and the largest radius allowed at that frequency; a crank frequency names the rig's
+    range, or the drive profile's set-point range where that is narrower)."""
     if not steps:
         raise LimitError("a run needs at least one step", field="steps", value=0, limit=1)
     fr, rr = cfg.rig.crank_frequency_hz, cfg.rig.crank_radius_m
+    profile = drive_profile(cfg.rig.motor.profile)
+    dev = profile.device
     limit = force_limit_N(cfg)
     for i, s in enumerate(steps):
         where = f"step {i + 1} ({s.crank_frequency_hz:g} Hz, {s.crank_radius_m:g} m)"  # people count from 1
@@ -59,6 +93,11 @@ def check_steps(cfg: StationConfig, steps: list[StepRequest]) -> None:
             raise LimitError(f"{where}: crank frequency {s.crank_frequency_hz:g} Hz is outside the rig's "
                              f"range [{fr.min:g}, {fr.max:g}] Hz", step=i, field="crank_frequency_hz",
                              value=s.crank_frequency_hz, limit=(fr.min, fr.max))
+        if not dev.min_frequency_hz <= s.crank_frequency_hz <= dev.max_frequency_hz:
+            raise LimitError(f"{where}: crank frequency {s.crank_frequency_hz:g} Hz is outside what drive profile "
+                             f"{profile.name!r} can be set to ({dev.min_frequency_hz:g}..{dev.max_frequency_hz:g} Hz, "
+                             f"register {profile.setpoint})", step=i, field="crank_frequency_hz",
+                             value=s.crank_frequency_hz, limit=(dev.min_frequency_hz, dev.max_frequency_hz))
         if not (math.isfinite(s.crank_radius_m) and rr.contains(s.crank_radius_m)):
             raise LimitError(f"{where}: crank radius {s.crank_radius_m:g} m is outside the rig's "
                              f"range [{rr.min:g}, {rr.max:g}] m", step=i, field="crank_radius_m",

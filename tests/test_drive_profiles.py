@@ -34,10 +34,10 @@ from drivers.sim.motor_image import MotorRegisterImage
 from drivers.sim.motor_inprocess import InProcessTransport
 from drivers.sim.motor_model import FAULT_ESTOP, MotorModel
 from station.config import parse_config
-from station.errors import ConfigError
+from station.errors import ConfigError, LimitError
 from station.recording import read_recording
 from station.run.procedure import Procedure
-from station.run.request import RunRequest, StepSpec, plan_run
+from station.run.request import Plan, PlannedStep, RunRequest, StepSpec, plan_run
 from station.run.rig import connect
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -311,7 +311,14 @@ def test_steps_beyond_the_drives_range_are_refused_before_anything_moves(tmp_pat
     cfg = parse_config(d, "test.yaml")
     steps = [StepSpec(crank_frequency_hz=s.crank_frequency_hz, crank_radius_m=s.crank_radius_m)
              for s in cfg.plan.steps]
-    plan = plan_run(cfg, RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg, steps=steps))
+    refused = r"step 2 \(90 Hz.*drive profile 'toshiba-vf-s11' can be set to \(0..80 Hz"
+    with pytest.raises(LimitError, match=refused) as exc:
+        plan_run(cfg, RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg, steps=steps))
+    e = exc.value
+    assert (e.step, e.field, e.value, e.limit) == (1, "crank_frequency_hz", 90.0, (0, 80))
+    # the procedure refuses such a plan too, should one reach it by another way than plan_run
+    plan = Plan(cfg, tuple(PlannedStep(i, s.crank_frequency_hz, s.crank_radius_m, 0.1, 0.5)
+                           for i, s in enumerate(cfg.plan.steps)))
 
     async def go() -> object:
         async with connect(plan.config, sim=True, first_radius_m=0.002, sim_clock=VirtualClock()) as rig:

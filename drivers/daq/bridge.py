@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 from drivers.daq.link import ByteLink, DaqLinkError
 from drivers.daq.protocol import (
+    CHANNELS,
     DEFAULT_FRAME_SAMPLES,
     LINK_KINDS,
     DecoderStats,
@@ -330,7 +331,7 @@ class DaqBridge:
             self._check_budget(rate_hz, frame_samples)
         kv = _parse_kv(self.command(f"CONF rate={rate_hz:g} frame={frame_samples} "
                                     f"range_disp={range_disp_V:g} "
-                                    f"range_force={range_force_V:g} channels=disp,force"))
+                                    f"range_force={range_force_V:g} channels={','.join(CHANNELS)}"))
         try:
             asked = float(kv["rate"])
             exact = float(kv.get("rate_exact", kv["rate"]))  # a bridge without rate_exact: its rate is exact

@@ -45,6 +45,7 @@ BITS_PER_CHAR = 10  # the DAQ serial link is 8N1: start bit, 8 data bits, stop b
 # a UART (the budget is the host port's baud rate) or a native USB-CDC port (the baud rate is
 # ignored; the budget is the throughput the bridge reports in its HW? reply)
 LINK_KINDS = ("uart", "usb-cdc")
+CHANNELS = ("disp", "force")  # the channels the station streams, in frame order (CONF channels=)
 
 
 def frame_bytes_of(frame_samples: int) -> int:

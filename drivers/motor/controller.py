@@ -181,15 +181,16 @@ class MotorController:
         self._setpoint_hz = hz
 
     async def set_ramp(self, hz_per_s: float) -> None:
-        """Acceleration ramp in Hz/s (magnitude), within the drive's range (0 < ramp <= max).  A ramp
+        """Acceleration ramp in Hz/s (magnitude), within the drive's range (min <= ramp <= max, > 0).  A ramp
         parameter is written only when it changes (it may live in EEPROM)."""
         ramp = self.profile.ramp
         if ramp is None:
             log.info("profile %s has no ramp parameter: the drive keeps its own ramp", self.profile.name)
             return
         dev = self.profile.device
-        if not 0 < hz_per_s <= dev.max_ramp_hz_per_s:
-            raise MotorValueError(f"ramp: expected 0..{dev.max_ramp_hz_per_s:g} Hz/s, got {hz_per_s!r} Hz/s")
+        if not (0 < hz_per_s <= dev.max_ramp_hz_per_s and hz_per_s >= dev.min_ramp_hz_per_s):
+            raise MotorValueError(f"ramp: expected {dev.min_ramp_hz_per_s:g}..{dev.max_ramp_hz_per_s:g} Hz/s "
+                                  f"(drive profile {self.profile.name!r}), got {hz_per_s!r} Hz/s")
         value = hz_per_s if ramp.form == "rate" else dev.max_frequency_hz / hz_per_s
         for name in ramp.registers:
             await self.set_parameter(name, value)

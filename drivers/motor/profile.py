@@ -13,6 +13,7 @@ come from any path.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -55,6 +56,7 @@ class DeviceDefaults:
     min_frequency_hz: float = 0.0
     default_ramp_hz_per_s: float = 5.0
     max_ramp_hz_per_s: float = 100.0
+    min_ramp_hz_per_s: float = 0.0  # the slowest ramp the ramp register(s) take (0: any positive one)
     stop_deceleration_hz_per_s: float = 50.0
     default_watchdog_timeout_s: float = 1.0
     reference_frequency_hz: float | None = None  # 100 % of a normalised set point (e.g. SINAMICS P2000)
@@ -340,6 +342,15 @@ def _role(doc: dict[str, Any], key: str, regs: Mapping[str, Register], src: str,
     return str(name)
 
 
+def _ramp_rates(reg: Register, form: str, max_frequency_hz: float) -> tuple[float, float]:
+    """The ramp rates (Hz/s) a ramp register takes: its range as such (``rate``), or the maximum
+    frequency over its range of times (``time_to_max``; no shortest time: no fastest rate)."""
+    lo, hi = reg.valid_range()
+    if form == "rate":
+        return lo, hi
+    return (max_frequency_hz / hi if hi > 0 else math.inf), (max_frequency_hz / lo if lo > 0 else math.inf)
+
+
 _TOP_KEYS = {"profile", "description", "sources", "transport", "device", "registers", "setpoint", "speed",
              "angle", "revolutions", "max_frequency", "ramp", "status", "faults", "commands", "watchdog"}
 
@@ -383,7 +394,7 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
 
     # ramp
     ramp: RampSpec | None = None
-    max_ramp = 100.0
+    min_ramp, max_ramp = 0.0, 100.0
     if doc.get("ramp") is not None:
         rd = doc["ramp"]
         expect(isinstance(rd, dict) and set(rd) == {"registers", "form"}, f"{src}: ramp",
@@ -397,13 +408,17 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
         if ramp.form == "rate":
             expect(first.max is not None, f"{src}: registers.{first.name}.max", "a declared limit", first.max)
             assert first.max is not None
-            max_ramp = first.max
         else:
             expect(first.min is not None and first.min > 0, f"{src}: registers.{first.name}.min",
                    "the shortest ramp time (> 0 s)", first.min)
             assert first.min is not None
-            max_ramp = sp.max / first.min
+        # the ramp rates every ramp register takes (Hz/s): a rate as such, a time as max. frequency / time
+        rates = [_ramp_rates(regs[r], ramp.form, sp.max) for r in ramp.registers]
+        min_ramp, max_ramp = max(0.0, *(lo for lo, _ in rates)), min(hi for _, hi in rates)
+        expect(min_ramp <= max_ramp, f"{src}: ramp.registers", "ranges sharing at least one ramp rate",
+               rates)
     device = DeviceDefaults(max_frequency_hz=sp.max, min_frequency_hz=sp.min, max_ramp_hz_per_s=max_ramp,
+                            min_ramp_hz_per_s=min_ramp,
                             **{k: float(v) for k, v in dev_doc.items()})
 
     # status

@@ -20,6 +20,7 @@ import numpy as np
 
 from drivers.clock import REAL_CLOCK, Clock
 from drivers.daq.protocol import (
+    CHANNELS,
     END_BYTE,
     PKT_COMMAND,
     DaqProtocolError,
@@ -54,10 +55,12 @@ class DaqEmulator:
                  seed: int = 0, fifo_bytes: int = 1 << 20, tick_s: float = 0.005,
                  on_close: Callable[[], None] | None = None, clock: Clock = REAL_CLOCK,
                  adc_clock_hz: float | None = None, link: str = "uart",
-                 link_bytes_per_s: float | None = None) -> None:
+                 link_bytes_per_s: float | None = None, adc_bits: int = 16) -> None:
         """``adc_clock_hz``: the emulated ADC's rate is ``adc_clock_hz / N`` for a whole N (the
         achievable rate nearest the asked one, reported as ``rate_exact``); None: every rate is exact.
-        ``link``/``link_bytes_per_s``: what ``HW?`` reports (``usb-cdc`` needs the throughput)."""
+        ``link``/``link_bytes_per_s``: what ``HW?`` reports (``usb-cdc`` needs the throughput);
+        ``adc_bits``: the resolution ``HW?`` reports (that of the source's converter)."""
+        self.adc_bits = adc_bits
         self.fd = -1 if fd is None else fd
         self.adc_clock_hz = adc_clock_hz
         self.link = link
@@ -70,7 +73,7 @@ class DaqEmulator:
         self._on_close = on_close
         self._rng = np.random.default_rng(seed)
         self.config: dict[str, str] = {"rate": "20000", "rate_exact": self._exact_text(20000.0), "frame": "256",
-                                       "range_disp": "10", "range_force": "10", "channels": "disp,force"}
+                                       "range_disp": "10", "range_force": "10", "channels": ",".join(CHANNELS)}
         self._lock = threading.Lock()
         self._out = bytearray()
         self._cmd_buf = b""
@@ -184,7 +187,7 @@ class DaqEmulator:
             return f"OK {IDENTITY}"
         if cmd == "HW?":
             clock = self.adc_clock_hz if self.adc_clock_hz is not None else RATE_LIMITS_HZ[1]
-            text = (f"OK HW adc=EMULATED bits=16 channels=disp,force clock_hz={clock:g} "
+            text = (f"OK HW adc=EMULATED bits={self.adc_bits} channels={','.join(CHANNELS)} clock_hz={clock:g} "
                     f"rate_min={RATE_LIMITS_HZ[0]:g} rate_max={RATE_LIMITS_HZ[1]:g} link={self.link}")
             return text + ("" if self.link_bytes_per_s is None else f" link_bytes_per_s={self.link_bytes_per_s:g}")
         if cmd == "STAT?":
@@ -252,7 +255,7 @@ class DaqEmulator:
                     value = f"{float(value):.10g}"
                     lim = f"{RANGES_V[0]}..{RANGES_V[1]} V"
                 else:
-                    ok, lim = value == "disp,force", "disp,force"
+                    ok, lim = value == ",".join(CHANNELS), ",".join(CHANNELS)
             except ValueError:
                 ok, lim = False, "a number"
             if ok and key == "rate" and abs(self._exact_rate(float(value)) - float(value)) > 0.01 * float(value):

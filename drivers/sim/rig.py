@@ -92,6 +92,8 @@ class SimRig:
         self._fifo = fifo_bytes
         self._daq_kind = daq_link
         self._daq_bps = daq_link_bytes_per_s if daq_link == "usb-cdc" else None
+        # the bridge reports the resolution its source's converter quantises at
+        self._adc_bits = self.source.physics.adc.bits if isinstance(self.source, RigSource) else 16
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._pty: Pty | None = None
@@ -118,7 +120,7 @@ class SimRig:
                 self.source.set_phase(self.motor.snapshot().angle_rad % (2 * math.pi))
             self.daq = DaqEmulator(None, self.source, self.motor.speed_hz, seed=self._seed,
                                    fifo_bytes=self._fifo, clock=self.clock, link=self._daq_kind,
-                                   link_bytes_per_s=self._daq_bps).start()
+                                   link_bytes_per_s=self._daq_bps, adc_bits=self._adc_bits).start()
             log.info("sim rig: in-process (no wire)")
             return self
         ready = threading.Event()
@@ -138,7 +140,8 @@ class SimRig:
             self.source.set_phase(self.motor.snapshot().angle_rad % (2 * math.pi))
         self.daq = DaqEmulator(self._pty.master, self.source, self.motor.speed_hz, seed=self._seed,
                                fifo_bytes=self._fifo, on_close=self._pty.forget_master,
-                               link=self._daq_kind, link_bytes_per_s=self._daq_bps).start()
+                               link=self._daq_kind, link_bytes_per_s=self._daq_bps,
+                               adc_bits=self._adc_bits).start()
         assert self._modbus.tcp_address is not None
         self.addresses = SimRigAddresses(self._modbus.tcp_address, self._modbus.rtu_path, self._pty.path)
         log.info("sim rig: %s", self.addresses)

@@ -55,6 +55,13 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
                     settings.host)
     log.info("recordings: %s; database: %s; %d identification worker(s)", settings.recordings_dir,
              settings.database, settings.workers)
+    from station.errors import LimitError
+    from station.limits import check_drive
+
+    try:  # the page and the API still serve (results, stop); each run is refused with this, at its field
+        check_drive(settings.config)
+    except LimitError as exc:
+        log.error("every run will be refused: %s", exc)
     from station.commands.connections import (
         ConnectionBounds,
         connection_cap,

@@ -17,7 +17,7 @@ from station.config import (
     check_method_list,
 )
 from station.errors import LimitError
-from station.limits import StepRequest, check_steps, max_radius_m
+from station.limits import StepRequest, check_drive, check_steps, max_radius_m
 
 
 class StepSpec(BaseModel):
@@ -103,7 +103,8 @@ class Plan:
 
 def plan_run(cfg: StationConfig, request: RunRequest) -> Plan:
     """Check a request before anything moves; raises :class:`LimitError` naming the offending step,
-    field, value and limit (once: callers map it, e.g. the API to a 422 at that field)."""
+    field, value and limit (once: callers map it, e.g. the API to a 422 at that field), also where
+    the configuration asks the drive for more than its profile declares (``check_drive``)."""
     if request.transducer_id != cfg.transducer.id:
         raise LimitError(f"transducer_id {request.transducer_id!r} is not the one mounted on this station "
                          f"({cfg.transducer.id!r}, from the configuration)", field="transducer_id",
@@ -114,6 +115,7 @@ def plan_run(cfg: StationConfig, request: RunRequest) -> Plan:
     if request.methods is not None:  # stored with the recording's configuration: the worker reads it there
         eff = eff.model_copy(update={"identification": eff.identification.model_copy(
             update={"methods": list(request.methods)})})
+    check_drive(eff)
     check_steps(eff, [StepRequest(s.crank_frequency_hz, s.crank_radius_m) for s in request.steps])
     steps = tuple(
         PlannedStep(i, s.crank_frequency_hz, s.crank_radius_m,

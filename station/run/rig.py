@@ -25,6 +25,7 @@ from drivers.motor.transport import ModbusTransport, RegisterTransport, transpor
 from drivers.rig.params import RigPhysics
 from drivers.sim.rig import SimRig
 from station.config import StationConfig, to_rig_physics
+from station.run.hardware import check_daq_hardware
 from station.run.procedure import FixedRadius, RadiusActuator
 from station.run.request import Plan
 
@@ -66,15 +67,18 @@ class ConnectedRig:
                 "simulated": self.simulated}
 
 
-async def _connect_drivers(profile: DriveProfile, motor_transport: RegisterTransport,
+async def _connect_drivers(cfg: StationConfig, profile: DriveProfile, motor_transport: RegisterTransport,
                            open_daq: Callable[[], ByteLink],
                            clock: Clock = REAL_CLOCK) -> tuple[MotorController, DaqBridge]:
+    """Both drivers connected, and the configuration checked against what the DAQ bridge reports
+    (:func:`~station.run.hardware.check_daq_hardware`); nothing is written to the drive here."""
     motor = MotorController(profile, clock=clock)
     await motor.connect(motor_transport)
     daq = DaqBridge()
     try:
         daq.connect(open_daq())  # stops a stream left running, drains, checks idle
         hw = daq.hardware or daq.read_hardware()
+        check_daq_hardware(cfg, hw)
     except BaseException:
         daq.close()
         with contextlib.suppress(Exception):
@@ -109,14 +113,14 @@ async def connect(cfg: StationConfig, *, sim: bool, seed: int | None = None,
             if sim_clock is not None:
                 rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, wire=False, clock=clock,
                              profile=profile, daq_link=cfg.devices.daq_link).start()
-                motor, daq = await _connect_drivers(profile, rig.motor_transport(), rig.daq_link, clock)
+                motor, daq = await _connect_drivers(cfg, profile, rig.motor_transport(), rig.daq_link, clock)
                 desc = "simulated rig (in-process, no wire)"
             else:
                 rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, rtu=False, profile=profile,
                              daq_link=cfg.devices.daq_link).start()
                 host, port = rig.addresses.modbus_tcp
                 motor, daq = await _connect_drivers(
-                    profile, ModbusTransport.tcp(host, port, device_id=profile.transport.unit_id),
+                    cfg, profile, ModbusTransport.tcp(host, port, device_id=profile.transport.unit_id),
                     lambda: SerialLink(rig.addresses.daq, baudrate=cfg.devices.daq_baudrate,
                                        kind=cfg.devices.daq_link))
                 desc = f"simulated rig (Modbus TCP {host}:{port}, DAQ {rig.addresses.daq})"
@@ -128,7 +132,7 @@ async def connect(cfg: StationConfig, *, sim: bool, seed: int | None = None,
                                            baudrate=t.baudrate, parity=t.parity, stopbits=t.stopbits,
                                            inter_frame_delay_s=t.inter_frame_delay_s)
             motor, daq = await _connect_drivers(
-                profile, transport, lambda: SerialLink(dev.daq_port, baudrate=dev.daq_baudrate, kind=dev.daq_link))
+                cfg, profile, transport, lambda: SerialLink(dev.daq_port, baudrate=dev.daq_baudrate, kind=dev.daq_link))
             actuator = FixedRadius(dev.crank_radius_m)
             desc = f"rig (motor {profile.name} at {dev.motor_url}, DAQ {dev.daq_port})"
         if rig is not None:

@@ -35,6 +35,9 @@ def device_of(exc: BaseException) -> str | None:
     from drivers.daq.link import DaqLinkError
     from drivers.motor.errors import MotorError
 
+    device = getattr(exc, "device", None)  # HardwareMismatchError names its device
+    if isinstance(device, str):
+        return device
     if isinstance(exc, MotorError):
         return "motor"
     if isinstance(exc, DaqLinkError | OSError) or type(exc).__module__.startswith("drivers.daq"):

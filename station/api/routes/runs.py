@@ -96,9 +96,8 @@ async def start_run(body: RunRequest, runs: RunsDep, response: Response, who: Op
     configured plan's.  Steps are numbered from 0 in `loc` (as in the body's list)."""
     try:
         row = await runs.submit(body, who.name)
-    except LimitError as exc:  # the field to change, in the request body
-        loc = ["body", *(["steps", exc.step] if exc.step is not None else []), exc.field]
-        raise RequestValidationError([{"type": "limit_error", "loc": loc, "msg": str(exc),
+    except LimitError as exc:  # the field to change: in the request body, or the station's configuration
+        raise RequestValidationError([{"type": "limit_error", "loc": exc.loc, "msg": str(exc),
                                        "input": exc.value}]) from None
     except RegisterError as exc:
         field = "transducer_id" if isinstance(exc, UnknownEntryError) and "transducer" in str(exc) else "standards"
