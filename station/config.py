@@ -100,7 +100,9 @@ class RigConfig(_Model):
     peak_force_fraction: float = Field(default=0.8, gt=0, le=1.0,
                                        description="peak force limit as a fraction of capacity")
     acceleration_hz_per_s: float = Field(default=10.0, gt=0, le=200.0,
-                                         description="crank-frequency ramp rate")
+                                         description="crank-frequency ramp rate in Hz/s; a run is refused "
+                                         "when it is planned unless the drive profile's ramp register takes "
+                                         "it (sinecal-crank: 0.01..100 Hz/s; docs/drive-profiles.md)")
 
     @property
     def load_mass_kg(self) -> float:

@@ -70,7 +70,7 @@ def check_drive(cfg: StationConfig) -> None:
     if not dev.min_ramp_hz_per_s <= acc <= dev.max_ramp_hz_per_s:
         regs = ", ".join(profile.ramp.registers)
         raise LimitError(f"rig.acceleration_hz_per_s {acc:g} Hz/s is outside what drive profile "
-                         f"{profile.name!r} takes ({dev.min_ramp_hz_per_s:.3g}..{dev.max_ramp_hz_per_s:.3g} Hz/s, "
+                         f"{profile.name!r} takes ({dev.min_ramp_hz_per_s:.4g}..{dev.max_ramp_hz_per_s:.4g} Hz/s, "
                          f"register {regs}); change the configuration, nothing was moved",
                          field="rig.acceleration_hz_per_s", value=acc,
                          limit=(dev.min_ramp_hz_per_s, dev.max_ramp_hz_per_s), in_config=True)

@@ -21,7 +21,7 @@ import yaml
 
 import station.run.rig as rigmod
 from drivers.daq.bridge import parse_hardware
-from drivers.motor import load_profile
+from drivers.motor import load_profile, shipped_profiles
 from drivers.sim.clock import VirtualClock
 from drivers.sim.rig import SimRig
 from station.cli import main
@@ -53,7 +53,7 @@ def test_a_ramp_the_drive_profile_does_not_take_is_refused_at_plan_time(profile:
     assert (e.field, e.value, e.limit, e.in_config) == ("rig.acceleration_hz_per_s", acc, (lo, hi), True)
     assert e.loc == ["config", "rig", "acceleration_hz_per_s"]
     assert f"rig.acceleration_hz_per_s {acc:g} Hz/s" in str(e) and repr(name) in str(e)
-    assert f"{lo:.3g}..{hi:.3g} Hz/s" in str(e)
+    assert f"{lo:.4g}..{hi:.4g} Hz/s" in str(e)
 
 
 def test_the_shipped_crank_drive_refuses_ramps_above_100_hz_per_s() -> None:
@@ -178,7 +178,7 @@ def test_a_link_kind_that_disagrees_with_the_bridge_is_refused_at_connect(monkey
 @pytest.mark.parametrize(("hw", "field", "reported"), [
     ("bits=16 channels=force,temp clock_hz=1e6 rate_min=1000 rate_max=100000", "channels", "force,temp"),
     ("bits=16 channels=disp,force clock_hz=1e6 rate_min=1000 rate_max=10000", "daq.sample_rate_hz", (1000.0, 10000.0)),
-    ("bits=24 channels=disp,force clock_hz=1e6 rate_min=1000 rate_max=100000", "daq.adc_bits", 24),
+    ("bits=12 channels=disp,force clock_hz=1e6 rate_min=1000 rate_max=100000", "daq.adc_bits", 12),
 ])
 def test_each_disagreement_with_the_bridges_hw_reply_names_both_values(hw: str, field: str, reported: object) -> None:
     cfg = parse_config(fast_dict(), "test")
@@ -187,5 +187,20 @@ def test_each_disagreement_with_the_bridges_hw_reply_names_both_values(hw: str, 
         check_daq_hardware(cfg, parse_hardware("ACME,BRIDGE,1,1.0", f"OK HW adc=X {hw} link=uart"))
     assert exc.value.field == field and exc.value.reported == reported
     assert str(exc.value).startswith(f"{field} is ")
-    check_daq_hardware(cfg, parse_hardware("ACME,BRIDGE,1,1.0", "OK HW adc=X bits=16 channels=disp,force "
-                                           "clock_hz=1e6 rate_min=1000 rate_max=20000 link=uart"))  # at the limit
+    # at the rate limit, and a 24-bit converter (the firmware's ADS131M02) whose frames carry 16-bit codes
+    check_daq_hardware(cfg, parse_hardware("ACME,BRIDGE,1,1.0", "OK HW adc=ADS131M02 bits=24 channels=disp,force "
+                                           "clock_hz=1e6 rate_min=1000 rate_max=20000 link=uart"))
+
+
+def test_the_drive_profiles_documented_ranges_are_the_profiles_own() -> None:
+    """docs/drive-profiles.md's table of set-point and ramp ranges, read back against each profile."""
+    text = (Path(__file__).resolve().parent.parent / "docs" / "drive-profiles.md").read_text(encoding="utf-8")
+    profiles = shipped_profiles()
+    rows = {m[0]: m[1:] for m in (
+        [c.strip().strip("`") for c in ln.strip("|").split("|")] for ln in text.splitlines()
+        if ln.startswith("| `") and ln.rstrip().endswith("Hz/s |"))}
+    assert sorted(rows) == sorted(profiles)
+    for name, (setpoint, ramps) in rows.items():
+        dev = load_profile(name).device
+        assert setpoint == f"{dev.min_frequency_hz:g}..{dev.max_frequency_hz:g} Hz", name
+        assert ramps == f"{dev.min_ramp_hz_per_s:.4g}..{dev.max_ramp_hz_per_s:.4g} Hz/s", name

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from drivers.daq.link import ByteLink, DaqLinkError
 from drivers.daq.protocol import (
     CHANNELS,
+    CODE_BITS,
     DEFAULT_FRAME_SAMPLES,
     LINK_KINDS,
     DecoderStats,
@@ -101,6 +102,12 @@ class DaqHardware:
     rate_max_hz: float
     link: str
     link_bytes_per_s: float | None
+
+    @property
+    def code_bits(self) -> int:
+        """Resolution of the codes the frames carry: the converter's, at most :data:`CODE_BITS` (a
+        wider converter's codes are rounded to 16 bits)."""
+        return min(self.adc_bits, CODE_BITS)
 
     def as_attrs(self) -> dict[str, str | float | int]:
         """Flat attributes for a recording (units in the names)."""

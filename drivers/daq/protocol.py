@@ -32,6 +32,7 @@ SAMPLE_HEADER = struct.Struct("<BIH")  # type, seq, count
 CRC_SIZE = 4
 MAX_FRAME_SAMPLES = 4096
 SAMPLE_DTYPE = np.dtype("<i2")
+CODE_BITS = 8 * SAMPLE_DTYPE.itemsize  # frames carry 16-bit codes (a wider converter's rounded to them)
 SEQ_MODULUS = 1 << 32  # the u32 sequence number wraps 0xFFFFFFFF -> 0 (docs/daq-protocol.md, section 3)
 # a forward jump of up to this many frames is a gap at once; a longer one must be confirmed by the
 # next frame (seq + 1) before it is believed: one valid frame far ahead cannot derail the stream

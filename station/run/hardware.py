@@ -23,11 +23,13 @@ def _mismatch(field: str, configured: object, reported: object, what: str) -> Ha
 
 def check_daq_hardware(cfg: StationConfig, hw: DaqHardware) -> None:
     """Raise :class:`HardwareMismatchError` at the first disagreement of ``cfg`` with the bridge's
-    ``hw``: the ADC resolution (``daq.adc_bits``), the channels the station streams (displacement and
+    ``hw``: the resolution of its codes (``daq.adc_bits``: the converter's, at most the 16 bits the
+    frames carry), the channels the station streams (displacement and
     force), the link kind (``devices.daq_link``) and the sample rate (``daq.sample_rate_hz`` within
     the bridge's ``rate_min``..``rate_max``)."""
-    if cfg.daq.adc_bits != hw.adc_bits:
-        raise _mismatch("daq.adc_bits", cfg.daq.adc_bits, hw.adc_bits, f"bits={hw.adc_bits} ({hw.adc})")
+    if cfg.daq.adc_bits != hw.code_bits:
+        wider = f", codes rounded to {hw.code_bits} bits" if hw.code_bits != hw.adc_bits else ""
+        raise _mismatch("daq.adc_bits", cfg.daq.adc_bits, hw.code_bits, f"bits={hw.adc_bits} ({hw.adc}{wider})")
     missing = [c for c in CHANNELS if c not in hw.channels]
     if missing:
         raise _mismatch("channels", ",".join(CHANNELS), ",".join(hw.channels),

@@ -206,9 +206,9 @@ class Procedure:
         daq_cfg = await asyncio.to_thread(daq.configure, rate_hz=cfg.daq.sample_rate_hz,
                                           range_disp_V=cfg.daq.displacement_range_V,
                                           range_force_V=cfg.daq.force_range_V)
-        # the quantisation step of the converter the bridge reports (connect refused a configuration
-        # that disagrees with it); the configured resolution only for a bridge that reported none
-        bits = daq.hardware.adc_bits if daq.hardware is not None else cfg.daq.adc_bits
+        # the quantisation step of the codes of the converter the bridge reports (connect refused a
+        # configuration that disagrees with it); the configured resolution only for a bridge that reported none
+        bits = daq.hardware.code_bits if daq.hardware is not None else cfg.daq.adc_bits
         lsb = 2.0 / 2**bits
         meta = RunMetadata(
             run_id=self.run_id, transducer_id=cfg.transducer.id, source="calibrate",
