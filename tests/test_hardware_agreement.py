@@ -166,6 +166,28 @@ def test_adc_bits_that_disagree_with_the_bridge_are_refused_at_connect(monkeypat
     assert not rig.image.writes and not rig.image.commands_seen and not rig.motor.snapshot().enabled
 
 
+def test_the_daemon_with_such_a_configuration_runs_nothing_and_says_why(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """The daemon's rig stays unconnected: /health names the disagreement under the DAQ, a run is 503."""
+    real = rigmod.to_rig_physics
+    monkeypatch.setattr(rigmod, "to_rig_physics", lambda cfg: dataclasses.replace(
+        real(cfg), adc=dataclasses.replace(real(cfg).adc, bits=16)))
+    rigs = _Rigs(monkeypatch)
+    d = daemon_config(tmp_path)
+    d["daq"] = {**d.get("daq", {}), "adc_bits": 14}
+
+    async def go() -> None:
+        async with app_in_process(tmp_path, config=d) as (_, c):
+            h = (await c.get("/health")).json()
+            assert h["status"] == "degraded" and not h["rig"]["connected"]
+            assert "daq.adc_bits is 14 but the DAQ bridge reports bits=16" in h["rig"]["daq"]["link_error"]
+            assert h["rig"]["motor"]["link_error"] is None
+            assert (await c.post("/runs", json=run_body())).status_code == 503
+
+    asyncio.run(go())
+    assert rigs.made and all(not r.image.writes and not r.image.commands_seen for r in rigs.made)
+
+
 def test_a_link_kind_that_disagrees_with_the_bridge_is_refused_at_connect(monkeypatch: pytest.MonkeyPatch) -> None:
     rigs = _Rigs(monkeypatch, daq_link="usb-cdc")  # the bridge is on its USB port; the configuration says uart
     e = _connect_refused(station_config(fast=True))

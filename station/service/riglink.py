@@ -30,8 +30,9 @@ def default_connector(cfg: StationConfig, sim: bool) -> contextlib.AbstractAsync
 
 
 def device_of(exc: BaseException) -> str | None:
-    """Which device (``"motor"`` or ``"daq"``) a connection failure ``exc`` is of, by the driver's
-    exception type; None when it is neither driver's (the health then shows it under both devices)."""
+    """Which device (``"motor"`` or ``"daq"``) a connection failure ``exc`` is of: the one a
+    :class:`~station.errors.HardwareMismatchError` names, else by the driver's exception type; None
+    when it is neither driver's (the health then shows it under both devices)."""
     from drivers.daq.link import DaqLinkError
     from drivers.motor.errors import MotorError
 
