@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from drivers.motor.profile import DriveProfile, load_profile
@@ -59,45 +60,48 @@ def drive_profile(name_or_path: str) -> DriveProfile:
     return load_profile(name_or_path)
 
 
-def check_drive(cfg: StationConfig) -> None:
-    """Refuse (:class:`LimitError`, a configuration field) a configuration that asks the drive for
-    what its profile does not declare: ``rig.acceleration_hz_per_s`` outside the ramp rates the
-    profile's ramp register(s) take."""
+def check_drive(cfg: StationConfig, steps: Sequence[StepRequest] = ()) -> None:
+    """Refuse (:class:`LimitError`) what the drive profile ``cfg`` names does not declare: the
+    configuration's ``rig.acceleration_hz_per_s`` outside the ramp rates its ramp register(s) take (a
+    configuration field), then a step's crank frequency outside its set-point range."""
     profile = drive_profile(cfg.rig.motor.profile)
     dev, acc = profile.device, cfg.rig.acceleration_hz_per_s
-    if profile.ramp is None:  # the drive keeps its own ramp: nothing is written, nothing to refuse
-        return
-    if not dev.min_ramp_hz_per_s <= acc <= dev.max_ramp_hz_per_s:
+    # a drive without a ramp parameter keeps its own ramp: nothing is written, nothing to refuse
+    if profile.ramp is not None and not dev.min_ramp_hz_per_s <= acc <= dev.max_ramp_hz_per_s:
         regs = ", ".join(profile.ramp.registers)
         raise LimitError(f"rig.acceleration_hz_per_s {acc:g} Hz/s is outside what drive profile "
                          f"{profile.name!r} takes ({dev.min_ramp_hz_per_s:.4g}..{dev.max_ramp_hz_per_s:.4g} Hz/s, "
                          f"register {regs}); change the configuration, nothing was moved",
                          field="rig.acceleration_hz_per_s", value=acc,
                          limit=(dev.min_ramp_hz_per_s, dev.max_ramp_hz_per_s), in_config=True)
+    for i, s in enumerate(steps):
+        if not dev.min_frequency_hz <= s.crank_frequency_hz <= dev.max_frequency_hz:
+            raise LimitError(f"{_where(i, s)}: crank frequency {s.crank_frequency_hz:g} Hz is outside what drive "
+                             f"profile {profile.name!r} can be set to ({dev.min_frequency_hz:g}.."
+                             f"{dev.max_frequency_hz:g} Hz, register {profile.setpoint})", step=i,
+                             field="crank_frequency_hz", value=s.crank_frequency_hz,
+                             limit=(dev.min_frequency_hz, dev.max_frequency_hz))
+
+
+def _where(i: int, s: StepRequest) -> str:
+    return f"step {i + 1} ({s.crank_frequency_hz:g} Hz, {s.crank_radius_m:g} m)"  # people count from 1
 
 
 def check_steps(cfg: StationConfig, steps: list[StepRequest]) -> None:
     """Refuse the whole run at the first step that breaks a limit: a :class:`LimitError` naming the
     step, the field to change, its value and the limit (a peak force beyond the limit names the
-    radius, and the largest radius allowed at that frequency; a crank frequency names the rig's
-    range, or the drive profile's set-point range where that is narrower)."""
+    radius, and the largest radius allowed at that frequency).  What the drive takes is
+    :func:`check_drive`'s."""
     if not steps:
         raise LimitError("a run needs at least one step", field="steps", value=0, limit=1)
     fr, rr = cfg.rig.crank_frequency_hz, cfg.rig.crank_radius_m
-    profile = drive_profile(cfg.rig.motor.profile)
-    dev = profile.device
     limit = force_limit_N(cfg)
     for i, s in enumerate(steps):
-        where = f"step {i + 1} ({s.crank_frequency_hz:g} Hz, {s.crank_radius_m:g} m)"  # people count from 1
+        where = _where(i, s)
         if not (math.isfinite(s.crank_frequency_hz) and fr.contains(s.crank_frequency_hz)):
             raise LimitError(f"{where}: crank frequency {s.crank_frequency_hz:g} Hz is outside the rig's "
                              f"range [{fr.min:g}, {fr.max:g}] Hz", step=i, field="crank_frequency_hz",
                              value=s.crank_frequency_hz, limit=(fr.min, fr.max))
-        if not dev.min_frequency_hz <= s.crank_frequency_hz <= dev.max_frequency_hz:
-            raise LimitError(f"{where}: crank frequency {s.crank_frequency_hz:g} Hz is outside what drive profile "
-                             f"{profile.name!r} can be set to ({dev.min_frequency_hz:g}..{dev.max_frequency_hz:g} Hz, "
-                             f"register {profile.setpoint})", step=i, field="crank_frequency_hz",
-                             value=s.crank_frequency_hz, limit=(dev.min_frequency_hz, dev.max_frequency_hz))
         if not (math.isfinite(s.crank_radius_m) and rr.contains(s.crank_radius_m)):
             raise LimitError(f"{where}: crank radius {s.crank_radius_m:g} m is outside the rig's "
                              f"range [{rr.min:g}, {rr.max:g}] m", step=i, field="crank_radius_m",

@@ -115,8 +115,9 @@ def plan_run(cfg: StationConfig, request: RunRequest) -> Plan:
     if request.methods is not None:  # stored with the recording's configuration: the worker reads it there
         eff = eff.model_copy(update={"identification": eff.identification.model_copy(
             update={"methods": list(request.methods)})})
-    check_drive(eff)
-    check_steps(eff, [StepRequest(s.crank_frequency_hz, s.crank_radius_m) for s in request.steps])
+    asked = [StepRequest(s.crank_frequency_hz, s.crank_radius_m) for s in request.steps]
+    check_steps(eff, asked)
+    check_drive(eff, asked)
     steps = tuple(
         PlannedStep(i, s.crank_frequency_hz, s.crank_radius_m,
                     cfg.plan.settle_s if s.settle_s is None else s.settle_s,
