@@ -18,6 +18,7 @@ from station.ident.inputs import IdentInputs, inputs_for, model_for
 from station.ident.names import METHODS, MODELS
 from station.ident.oe import identify_oe
 from station.ident.paper.protocol import PUBLISHED_SWARM, PaperProtocol, SwarmSize
+from station.ident.paper.rls_uncertainty import RLS_BUDGET_NOTE, rls_assumptions
 from station.ident.response.checked import CheckedResponse, checked_response
 from station.ident.result import IdentificationResult
 from station.ident.structure import structure_statement
@@ -70,9 +71,13 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     statement = structure_statement(form, form == "h2", inputs)
     statement["displacement_chain"]["note"] = (  # the swarm runs on the raw samples of one step
         "the paper's methods take the displacement samples as recorded: no chain correction is applied")
-    budget = {n: {"contributions": {"noise": p.std}, "combined": p.std, "unit": p.unit}
+    terms = res.extra.get("budget_terms") or {}
+    budget = {n: {"contributions": terms.get(n) or {"noise": p.std}, "combined": p.std, "unit": p.unit}
               for n, p in res.parameters.items() if p.identifiable and p.std is not None}
-    notes = (*res.notes, "budget: the noise of the step's steady-state gain and phase only; the paper's methods "
+    notes = (*res.notes, RLS_BUDGET_NOTE if method == "rls" else
+             "budget: the noise of the step's steady-state gain and phase only; the paper's methods "
              "state no systematic terms")
-    return replace(res, assumptions={**inputs.to_dict(), "structure": statement}, checks=tuple(cr.checks),
+    extra_assumptions = {"rls_uncertainty": rls_assumptions()} if method == "rls" else {}
+    return replace(res, assumptions={**inputs.to_dict(), "structure": statement, **extra_assumptions},
+                   checks=tuple(cr.checks),
                    budget=budget, notes=notes)

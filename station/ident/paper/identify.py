@@ -32,7 +32,8 @@ from station.ident.identifiability import Policy, assess
 from station.ident.models import DigitalTF, Model
 from station.ident.paper.protocol import PUBLISHED_SWARM, PaperData, PaperProtocol, SwarmSize, paper_data, testing_mse
 from station.ident.paper.pso import SECTION5_H1, SECTION5_H2, PsoSettings, identify_digital
-from station.ident.paper.rls import rls_h2
+from station.ident.paper.rls import RlsResult, rls_h2
+from station.ident.paper.rls_uncertainty import DYNAMICS_TERM, NOISE_TERM, rls_uncertainty
 from station.ident.response.frf import FrequencyResponse, ratio_cov, whitened_jacobian
 from station.ident.response.sinefit import fit3
 from station.ident.result import FitSummary, Identifiability, IdentificationResult, estimated_covariance, estimates
@@ -118,6 +119,22 @@ def steady_state_uncertainty(model: Model, theta: FloatArray, data: PaperData,
     return cov, replace(rep, identifiable=tuple(r == "" for r in reasons), reasons=tuple(reasons))
 
 
+def _rls_budget(model: Model, theta: FloatArray, data: PaperData, r: RlsResult, cov_noise: FloatArray,
+                rep: Identifiability, extra: dict) -> FloatArray:
+    """The covariance the station states for RLS: the steady-state noise term plus
+    ``unidentified_dynamics`` (``rls_uncertainty``); the terms per parameter go to extra['budget_terms']."""
+    unc = rls_uncertainty(model, theta, data, r, step_frf(data), rep.identifiable)
+    cov = cov_noise + unc.cov_dynamics
+    extra["budget_terms"] = {
+        n: {NOISE_TERM: float(np.sqrt(max(cov_noise[i, i], 0.0))),
+            DYNAMICS_TERM: float(np.sqrt(max(unc.cov_dynamics[i, i], 0.0)))}
+        for i, n in enumerate(model.names) if rep.identifiable[i]}
+    extra["rls_estimator_std"] = {n: float(np.sqrt(max(unc.cov_estimator[i, i], 0.0)))
+                                  for i, n in enumerate(model.names)}
+    extra["newey_west_lags"] = unc.lags
+    return cov
+
+
 def identify_paper_method(rec: Recording, method: str, form: str, model: Model, *, seed: int = 0,
                           protocol: PaperProtocol = DEFAULT_PROTOCOL,
                           policy: Policy = DEFAULT_POLICY, swarm: SwarmSize = PUBLISHED_SWARM) -> IdentificationResult:
@@ -129,9 +146,10 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
     others: dict[int, FloatArray] = {}
     settings = swarm.applied(replace(SECTION5_H2 if form == "h2" else SECTION5_H1,
                                      variant="pso+" if method == "pso+" else "pso"))
+    rls: RlsResult | None = None
     if method == "rls":
-        r = rls_h2(data.x_id, data.y_id)
-        b, a = r.b, r.a
+        rls = rls_h2(data.x_id, data.y_id)
+        b, a = rls.b, rls.a
     else:
         b, a, pres = _swarm(form, data, settings, seed)
         extra.update(seed=seed, iterations_to_converge=pres.iterations_to_converge,
@@ -149,6 +167,8 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
         cov = np.full((theta.size, theta.size), np.nan)
         rep = Identifiability(model.names, float("inf"), (), (False,) * theta.size,
                               ("coefficients do not map to physical parameters",) * theta.size)
+    if rls is not None and np.all(np.isfinite(theta)):
+        cov = _rls_budget(model, theta, data, rls, cov, rep, extra)
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     why = _physical(form, theta) if np.all(np.isfinite(theta)) else ""
     if method != "rls" and not why and any(rep.identifiable):  # only a verdict to confirm costs reruns

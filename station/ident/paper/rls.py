@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
+NEWEY_WEST_LAGS = 2  # the equation error is the output noise through A(q), a 2nd-order MA
 
 
 @dataclass(frozen=True)
@@ -52,3 +53,26 @@ def rls_h2(x: FloatArray, y: FloatArray, *, delta: float = 1e6, lam: float = 1.0
     b0 = th[2]
     return RlsResult(th, P, hist, np.array([b0, 2 * b0, b0]), np.array([1.0, th[0], th[1]]),
                      float(np.mean(np.square(errs))) if errs else float("nan"))
+
+
+def regressors(x: FloatArray, y: FloatArray) -> FloatArray:
+    """Phi (M-2, 3) of Eq. 17, rows k = 2..M-1."""
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    return np.column_stack([-y[1:-1], -y[:-2], x[2:] + 2 * x[1:-1] + x[:-2]])
+
+
+def rls_covariance(x: FloatArray, y: FloatArray, r: RlsResult, *, lags: int = NEWEY_WEST_LAGS) -> FloatArray:
+    """Covariance (3, 3) of ``r.theta`` as the estimator it is: the sandwich P Omega P with the final RLS
+    matrix P = (Phi^T Phi + I / delta)^-1 (its start P0 = delta I acts as a ridge: at one sine frequency
+    Phi^T Phi has an eigenvalue near 1/delta, so P, not (Phi^T Phi)^-1, is what shapes theta) and
+    Omega the Newey-West (Bartlett, ``lags``) estimate of sum phi_k e_k e_j phi_j^T from the final
+    equation errors e = y - Phi theta, which are coloured (the output noise filtered by A(q)) and
+    not of one variance.  A white-noise sigma^2 P on such residuals misstates it."""
+    phi = regressors(x, y)
+    g = phi * (np.asarray(y, float)[2:] - phi @ r.theta)[:, None]
+    omega = g.T @ g
+    for lag in range(1, min(lags, g.shape[0] - 1) + 1):
+        c = g[lag:].T @ g[:-lag]
+        omega += (1.0 - lag / (lags + 1)) * (c + c.T)
+    return np.asarray(r.P @ omega @ r.P, dtype=np.float64)
