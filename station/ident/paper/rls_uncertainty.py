@@ -90,5 +90,6 @@ def rls_assumptions(lags: int = NEWEY_WEST_LAGS) -> dict[str, str]:
                                   "reaches the determined S through Eq. 9 at the step's measured H(f)"),
         "rests_on": ("output noise stationary over the identification window and correlated over at most "
                      f"~{lags} samples after resampling; the equation-error (ARX) bias small against the "
-                     "stated uncertainty (measured: 0.1 % in k_f against its 6 % scatter on clean runs)"),
+                     "stated uncertainty (measured on 100 clean simulated 4 Hz runs: k_f +3.3 % +- 0.7 % "
+                     "against its 7 % scatter, S +1.5e-5 +- 0.5e-5 relative, 0.35 of its stated u)"),
     }
