@@ -23,7 +23,9 @@ SOURCE_TEXT = {"noise": "the measurement noise propagated through the fit",
                "chain_delay": "the time skew between the channels",
                "chain_resonance": "the stated displacement-sensor resonance the response was corrected for",
                "end_mass": "the end mass m_e", "load_mass": "the load mass m_l (top mass and adaption)",
-               "radius": "the crank radius (the frame motion is the measured displacement)"}
+               "radius": "the crank radius (the frame motion is the measured displacement)",
+               "unidentified_dynamics": ("the stiffness and damping one frequency leaves undetermined, as uncertain "
+                                         "as the estimator has them (RLS)")}
 MASSES = (("end_mass", "end_mass_kg", "end mass m_e"), ("load_mass", "load_mass_kg", "load mass m_l"))
 
 
