@@ -31,7 +31,7 @@ from station.run.hardware import check_daq_hardware
 from station.run.request import default_request, plan_run
 from station.run.rig import connect
 from tests.conftest import fast_dict, station_config
-from tests.station_support import app_in_process, daemon_config, run_body, wait_state
+from tests.station_support import Daemon, app_in_process, daemon_config, run_body, wait_state
 
 
 def _ramp_case(profile: str, beyond: str) -> tuple[str, float, tuple[float, float]]:
@@ -82,6 +82,9 @@ def test_the_api_answers_422_at_the_configuration_field_and_writes_nothing_to_th
             assert rig is not None and rig.sim is not None
             assert not rig.sim.image.writes and not rig.sim.image.commands_seen  # nothing reached the drive
             assert not rig.sim.motor.snapshot().enabled
+            drive = (await c.get("/station")).json()["limits"]["drive"]  # the limits the page can show
+            assert drive == {"profile": "sinecal-crank", "crank_frequency_hz": {"min": 0.0, "max": 100.0},
+                             "acceleration_hz_per_s": {"min": 0.01, "max": hi}}
 
     asyncio.run(go())
 
@@ -226,3 +229,19 @@ def test_the_drive_profiles_documented_ranges_are_the_profiles_own() -> None:
         dev = load_profile(name).device
         assert setpoint == f"{dev.min_frequency_hz:g}..{dev.max_frequency_hz:g} Hz", name
         assert ramps == f"{dev.min_ramp_hz_per_s:.4g}..{dev.max_ramp_hz_per_s:.4g} Hz/s", name
+
+
+@pytest.mark.slow
+def test_station_serve_says_it_once_in_its_log_and_refuses_every_run(tmp_path: Path) -> None:
+    """A real ``station serve --sim`` with a ramp its drive does not take: one log line at start, the
+    page and API serve, each run is 422 at the configuration field, the drive is never enabled."""
+    hi = load_profile("sinecal-crank").device.max_ramp_hz_per_s
+    d = daemon_config(tmp_path / "recordings")
+    d["rig"]["acceleration_hz_per_s"] = hi * 1.2
+    with Daemon(tmp_path, workers=0, config=d) as daemon:
+        r = daemon.c().post("/runs", json=run_body())
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["config", "rig", "acceleration_hz_per_s"]
+        assert daemon.c().get("/health").json()["rig"]["connected"]
+        lines = [ln for ln in daemon.log().splitlines() if "every run will be refused" in ln]
+        assert len(lines) == 1 and f"rig.acceleration_hz_per_s {hi * 1.2:g} Hz/s" in lines[0], daemon.log()[-2000:]
+        assert "'sinecal-crank'" in lines[0]

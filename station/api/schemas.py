@@ -477,6 +477,14 @@ class RangeOut(OutModel):
     max: float
 
 
+class DriveLimitsOut(OutModel):
+    """What the configured drive profile declares (its set-point and ramp registers' ranges)."""
+
+    profile: str
+    crank_frequency_hz: RangeOut = Field(description="the set point's range, Hz")
+    acceleration_hz_per_s: RangeOut = Field(description="the ramp rates its ramp register(s) take, Hz/s")
+
+
 class LimitsOut(OutModel):
     crank_frequency_hz: RangeOut
     crank_radius_m: RangeOut
@@ -485,6 +493,7 @@ class LimitsOut(OutModel):
     top_mass_kg: RangeOut
     steps: RangeOut
     acceleration_hz_per_s: float
+    drive: DriveLimitsOut = Field(description="the drive's own limits; a plan beyond them is refused (422)")
 
 
 class StationOut(OutModel):

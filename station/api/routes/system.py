@@ -13,6 +13,7 @@ from station.api.routes.runs import BODY_ERRORS
 from station.api.schemas import (
     AcknowledgeIn,
     AcknowledgeOut,
+    DriveLimitsOut,
     DriveOut,
     ErrorOut,
     HealthOut,
@@ -24,7 +25,7 @@ from station.api.schemas import (
 from station.config import MAX_STEPS, MAX_TOP_MASS_KG
 from station.lab import users
 from station.lab.users import AuthError
-from station.limits import force_limit_N
+from station.limits import drive_profile, force_limit_N
 from station.service.runs import StopReport
 from station.service.settings import ServiceSettings
 from station.service.store import Store
@@ -127,6 +128,7 @@ async def health(manager: ManagerDep) -> HealthOut:
 async def station_info(settings: SettingsDep) -> StationOut:
     cfg = settings.config
     rig = cfg.rig
+    drive = drive_profile(rig.motor.profile)
     return StationOut(
         name=cfg.station.name, transducer_id=cfg.transducer.id, capacity_N=cfg.transducer.capacity_N,
         default_top_mass_kg=rig.top_mass_kg, simulated=settings.sim,
@@ -135,7 +137,13 @@ async def station_info(settings: SettingsDep) -> StationOut:
                          peak_force_limit_N=force_limit_N(cfg),
                          moving_mass_without_top_kg=rig.adaption_mass_kg + (cfg.transducer.end_mass_kg or 0.0),
                          top_mass_kg=RangeOut(min=0.0, max=MAX_TOP_MASS_KG), steps=RangeOut(min=1, max=MAX_STEPS),
-                         acceleration_hz_per_s=rig.acceleration_hz_per_s),
+                         acceleration_hz_per_s=rig.acceleration_hz_per_s,
+                         drive=DriveLimitsOut(
+                             profile=drive.name,
+                             crank_frequency_hz=RangeOut(min=drive.device.min_frequency_hz,
+                                                         max=drive.device.max_frequency_hz),
+                             acceleration_hz_per_s=RangeOut(min=drive.device.min_ramp_hz_per_s,
+                                                            max=drive.device.max_ramp_hz_per_s))),
         default_settle_s=cfg.plan.settle_s, default_record_s=cfg.plan.record_s,
         default_steps=[{"crank_frequency_hz": s.crank_frequency_hz, "crank_radius_m": s.crank_radius_m}
                        for s in cfg.plan.steps],
