@@ -254,6 +254,14 @@ class EnvironmentConfig(_Model):
     relative_humidity_pct: float | None = Field(default=None, ge=0, le=100)
     relative_humidity_std_pct: float = Field(default=3.0, ge=0, le=50)
 
+    @classmethod
+    def accepted_range(cls, name: str) -> tuple[float, float]:
+        """(min, max) a field accepts, inclusive, in its unit (the bounds declared above)."""
+        meta = cls.model_fields[name].metadata
+        lo = next(float(m.ge) for m in meta if getattr(m, "ge", None) is not None)
+        hi = next(float(m.le) for m in meta if getattr(m, "le", None) is not None)
+        return lo, hi
+
 
 class ReferenceStandard(_Model):
     """A reference standard the calibration uses (displacement sensor, masses, DAQ/conditioner):

@@ -288,6 +288,17 @@ class MethodResultOut(MethodStateOut):
                                                "result (empty for the primary and for a method without result)")
 
 
+class EnvironmentOut(OutModel):
+    """The conditions the run's recording stored (its start document): air temperature in degC,
+    relative humidity in %, their standard uncertainties, and where they came from."""
+
+    temperature_c: float | None
+    temperature_std_c: float | None
+    relative_humidity_pct: float | None
+    relative_humidity_std_pct: float | None
+    source: str = Field(description="'entered with the run' or 'simulated room sensor'")
+
+
 class RunResults(OutModel):
     id: str
     state: RunState
@@ -317,6 +328,8 @@ class RunResults(OutModel):
     report: str = Field(description="URL of the calibration report (HTML)")
     discrepancy: str = Field(description="URL of the model-gap analysis")
     lost_samples: int
+    environment: EnvironmentOut | None = Field(default=None, description="the conditions the recording stored "
+                                               "(null: none were entered or measured)")
     methods: list[MethodResultOut] = Field(default=[], description="every listed identification side by side, "
                                            "the primary first (the top-level fields are the primary's); empty for "
                                            "runs identified before methods were listed")
@@ -496,6 +509,17 @@ class LimitsOut(OutModel):
     drive: DriveLimitsOut = Field(description="the drive's own limits; a plan beyond them is refused (422)")
 
 
+class EnvironmentFormOut(OutModel):
+    """What a run request's ``environment`` accepts and what a run states when it is left out."""
+
+    temperature_c: RangeOut = Field(description="accepted air temperature, degC")
+    relative_humidity_pct: RangeOut = Field(description="accepted relative humidity, %")
+    default_temperature_c: float | None = Field(description="the configuration's environment (null: none)")
+    default_relative_humidity_pct: float | None = Field(description="the configuration's environment (null: none)")
+    otherwise: str = Field(description="what a run states without entered or configured values: "
+                           "'simulated room sensor' or 'not recorded'")
+
+
 class StationOut(OutModel):
     name: str
     transducer_id: str
@@ -509,6 +533,7 @@ class StationOut(OutModel):
     token_required: list[str] = Field(description="endpoints that need the bearer token")
     stop_port: int | None = Field(default=None, description="the stop port: POST /stop on a listener of its own "
                                   "(same host; null: none)")
+    environment: EnvironmentFormOut | None = Field(default=None, description="the run request's room conditions")
 
 
 class CertificateIssueIn(BaseModel):

@@ -19,6 +19,7 @@ from typing import Any
 
 from station.config import CertificateConfig
 from station.ident.coverage import coverage, coverages
+from station.recording import start_metadata
 from station.report.data import RunData, load_run
 from station.report.html import METHODS, MODELS, mass_std
 from station.report.quantities import fmt_unc, fmt_value, measured_sensitivity, range_text, structure_sentence
@@ -54,8 +55,7 @@ def _cert_config(d: RunData) -> CertificateConfig:
 
 
 def _environment(d: RunData) -> dict[str, Any] | None:
-    start = next((doc for doc in d.rec.documents if doc.get("kind") == "start"), {})
-    env = (start.get("metadata") or {}).get("environment")
+    env = start_metadata(d.rec.documents).get("environment")
     return env if isinstance(env, dict) else None
 
 

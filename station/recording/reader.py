@@ -141,6 +141,20 @@ def read_recording(path: str | Path) -> Recording:
         )
 
 
+def read_documents(path: str | Path) -> list[dict[str, Any]]:
+    """The recording's documents (start, descriptors, stop) without loading its samples."""
+    f, _ = open_recording(Path(path))
+    with f:
+        return _parse_documents(bytes(f["documents"][...]) if "documents" in f else b"")
+
+
+def start_metadata(documents: list[dict[str, Any]]) -> dict[str, Any]:
+    """The start document's ``metadata`` ({} when there is none)."""
+    start = next((d for d in documents if d.get("kind") == "start"), {})
+    meta = start.get("metadata")
+    return meta if isinstance(meta, dict) else {}
+
+
 def _parse_documents(raw: bytes) -> list[dict[str, Any]]:
     """JSON-lines documents; a last line cut off by a crash is dropped."""
     out = []

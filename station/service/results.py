@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from station.ident.result import IdentificationResult
-from station.recording import read_result
+from station.recording import read_documents, read_result, start_metadata
 from station.recording.stored import read_processed
 from station.run.methods import agreement, read_outcomes
 
@@ -70,7 +70,9 @@ def load_results(path: Path, result_name: str) -> dict[str, Any]:
     if primary is not None:
         out.update(_result_fields(primary, tuple(out)))
     methods = method_results(path, primary)
-    return finite({**out, "frequency_response": steps, "skipped_steps": skipped, "units": units, "methods": methods})
+    env = start_metadata(read_documents(path)).get("environment")
+    return finite({**out, "frequency_response": steps, "skipped_steps": skipped, "units": units, "methods": methods,
+                   "environment": env if isinstance(env, dict) else None})
 
 
 def _result_fields(res: IdentificationResult, keys: tuple[str, ...]) -> dict[str, Any]:

@@ -15,6 +15,7 @@ from station.api.schemas import (
     AcknowledgeOut,
     DriveLimitsOut,
     DriveOut,
+    EnvironmentFormOut,
     ErrorOut,
     HealthOut,
     LimitsOut,
@@ -22,7 +23,7 @@ from station.api.schemas import (
     StationOut,
     StopOut,
 )
-from station.config import MAX_STEPS, MAX_TOP_MASS_KG
+from station.config import MAX_STEPS, MAX_TOP_MASS_KG, EnvironmentConfig, StationConfig
 from station.lab import users
 from station.lab.users import AuthError
 from station.limits import drive_profile, force_limit_N
@@ -148,4 +149,18 @@ async def station_info(settings: SettingsDep) -> StationOut:
         default_steps=[{"crank_frequency_hz": s.crank_frequency_hz, "crank_radius_m": s.crank_radius_m}
                        for s in cfg.plan.steps],
         token_required=["POST /runs", "POST /runs/{id}/abort", "POST /stop/acknowledge", "POST /campaigns"],
-        stop_port=settings.stop_port)
+        stop_port=settings.stop_port, environment=environment_form(cfg))
+
+
+def environment_form(cfg: StationConfig) -> EnvironmentFormOut:
+    """The run form's room conditions: the accepted ranges and the configuration's defaults."""
+    env = cfg.environment
+
+    def accepted(name: str) -> RangeOut:
+        lo, hi = EnvironmentConfig.accepted_range(name)
+        return RangeOut(min=lo, max=hi)
+
+    return EnvironmentFormOut(
+        temperature_c=accepted("temperature_c"), relative_humidity_pct=accepted("relative_humidity_pct"),
+        default_temperature_c=env.temperature_c, default_relative_humidity_pct=env.relative_humidity_pct,
+        otherwise="simulated room sensor" if cfg.simulation is not None else "not recorded")

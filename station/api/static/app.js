@@ -217,9 +217,43 @@ function showLimits() {
     "each step's maximum is in the table below";
   $("#hint-force").textContent = `Peak force M·(g + r·ω²) must stay below ${L.peak_force_limit_N.toFixed(0)} N; ` +
     `each step records ${station.default_record_s} s after ${station.default_settle_s} s settling.`;
+  showEnvironmentInputs(station.environment);
   $("#station-name").textContent = station.name;
   $("#sim-badge").hidden = !station.simulated;
   checkPlan();
+}
+
+// the room conditions: the API's accepted ranges as the inputs' min/max; empty = the configuration's
+const ENV_INPUTS = [["temperature_c", "#hint-temperature", "°C"], ["relative_humidity_pct", "#hint-humidity", "%"]];
+function showEnvironmentInputs(env) {
+  if (!env) return;
+  for (const [name, hint, unit] of ENV_INPUTS) {
+    const input = $(`#${name}`);
+    input.min = env[name].min;
+    input.max = env[name].max;
+    const dflt = env[`default_${name}`];
+    $(hint).textContent = `${env[name].min} to ${env[name].max} ${unit}; empty: ` + (dflt !== null
+      ? `the configuration's ${dflt} ${unit}` : env.otherwise === "not recorded" ? "not recorded (none configured)"
+      : `the ${env.otherwise} (none configured)`);
+  }
+}
+
+// the request's environment: the entered values, or null when both are empty (the configuration's)
+function environmentBody() {
+  const env = {};
+  for (const [name] of ENV_INPUTS) {
+    const input = $(`#${name}`);
+    if (input.validity.badInput) throw Object.assign(new Error("not a number"), {field: name});
+    if (input.value.trim() !== "") env[name] = Number(input.value);
+  }
+  return Object.keys(env).length ? env : null;
+}
+
+function environmentText(env) {
+  if (!env) return "room conditions: not recorded";
+  const q = (v, u, unit) => (v === null || v === undefined ? "not given" : `${fmtU(v, u)} ${unit}`);
+  return `room conditions: air ${q(env.temperature_c, env.temperature_std_c, "°C")}, ` +
+    `relative humidity ${q(env.relative_humidity_pct, env.relative_humidity_std_pct, "%")} (${env.source})`;
 }
 
 // the register: the transducer select (the mounted one chosen) and the standards in use
@@ -265,6 +299,13 @@ $("#run-form").addEventListener("submit", async (ev) => {
   };
   if (rs.some((r) => !Number.isFinite(r))) {
     document.querySelector('#run-form .err[data-for="crank_radius_m"]').textContent = "give one radius per step, or one for all";
+    return;
+  }
+  try {
+    const env = environmentBody();
+    if (env) body.environment = env;
+  } catch (e) {
+    document.querySelector(`#run-form .err[data-for="${e.field}"]`).textContent = "not a number";
     return;
   }
   $("#start").disabled = true;
@@ -405,6 +446,7 @@ async function loadResults(id) {
   const em = (d.assumptions || {}).end_mass_kg;
   $("#res-assumptions").textContent = em ? `end mass m_e = ${em.value} kg (${em.source}` +
     (em.std === null ? ": assumed, no uncertainty; S, k_f, b_f are conditional on it)" : `, u = ${em.std} kg)`) : "";
+  $("#res-environment").textContent = environmentText(d.environment);
   $("#res-structure").textContent = structureText(d.assumptions || {}, d.determined || {});
   const tb = $("#params tbody");
   tb.innerHTML = "";
