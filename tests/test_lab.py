@@ -153,6 +153,36 @@ def test_credentials_are_refused_with_the_reason(tmp_path: Path) -> None:
     asyncio.run(go())
 
 
+def test_the_users_list_names_each_last_change_and_the_rules_are_published(tmp_path: Path) -> None:
+    """GET /users: each user's last change (when, by whom) from the trail; GET /users/policy: the roles
+    with their permissions and the password rule the API applies; both for administrators only."""
+    rec = tmp_path / "rec"
+
+    async def go() -> None:
+        async with app_in_process(rec, config=lab_config(rec)) as (manager, admin):
+            app = admin._transport.app  # type: ignore[attr-defined]
+            pol = (await admin.get("/users/policy")).json()
+            assert {r["name"]: r["permissions"] for r in pol["roles"]} == \
+                {str(r): sorted(str(p) for p in users.GRANTS[r]) for r in users.Role}
+            short = "x" * (pol["min_password"] - 1)
+            assert (await admin.put("/users/tina", json={"role": "technician", "password": short})).status_code == 422
+            await admin.put("/users/tina", json={"role": "technician", "password": PASSWORDS["tina"]})
+            await admin.put("/users/ada", json={"role": "admin", "password": PASSWORDS["ada"]})
+            ada = await login(app, "ada")
+            assert (await ada.put("/users/tina", json={"role": "approver"})).status_code == 200
+            rows = {u["name"]: u for u in (await ada.get("/users")).json()}
+            last = audit.entries(manager.store, target="user:tina", action=audit.USER_CHANGED, limit=1)[0]
+            assert (rows["tina"]["role"], rows["tina"]["changed"], rows["tina"]["changed_by"]) == \
+                ("approver", last.at, "ada")
+            assert rows["ada"]["changed_by"] == "admin"  # the station token's administrator
+            tina = await login(app, "tina")
+            for path in ("/users", "/users/policy"):
+                assert (await tina.get(path)).status_code == 403
+            for c in (ada, tina):
+                await c.aclose()
+    asyncio.run(go())
+
+
 @pytest.mark.parametrize("policy", ["refuse", "warn"])
 def test_a_standard_past_its_due_date_refuses_or_warns(tmp_path: Path, policy: str) -> None:
     rec = tmp_path / "rec"

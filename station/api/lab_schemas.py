@@ -95,6 +95,26 @@ class UserOut(OutModel):
     permissions: list[str]
 
 
+class UserRowOut(UserOut):
+    """A user in the administrators' list, with the last change of the account (audit trail)."""
+
+    changed: float | None = Field(default=None, description="the last change (role, password, disabled), UNIX s")
+    changed_by: str | None = Field(default=None, description="who made the last change")
+
+
+class RoleOut(OutModel):
+    name: Role
+    permissions: list[str]
+
+
+class UsersPolicyOut(OutModel):
+    """The rules a user's record must meet (the page shows them beside its fields)."""
+
+    roles: list[RoleOut] = Field(description="the closed set of roles (one per user) and what each allows")
+    min_password: int = Field(description="a password's least length, characters")
+    name_pattern: str = Field(description="a user name's pattern (regular expression)")
+
+
 class MeOut(OutModel):
     user: UserOut | None = Field(description="None: not logged in (reading on loopback is open)")
     via: str | None = Field(default=None, description="token or session")

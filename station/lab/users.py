@@ -124,6 +124,13 @@ def users(store: Store) -> list[User]:
     return [_user(r) for r in store.query("SELECT * FROM users ORDER BY name")]
 
 
+def last_changes(store: Store) -> dict[str, tuple[float, str]]:
+    """Each user's last change from the audit trail (``user.changed``): name -> (UNIX s, by whom)."""
+    rows = store.query("SELECT a.target, a.at, a.who FROM audit a JOIN (SELECT max(id) AS id FROM audit "
+                       "WHERE action = ? GROUP BY target) m ON a.id = m.id", (audit.USER_CHANGED,))
+    return {str(r["target"]).removeprefix("user:"): (float(r["at"]), str(r["who"])) for r in rows}
+
+
 def get_user(store: Store, name: str) -> User | None:
     rows = store.query("SELECT * FROM users WHERE name = ?", (name,))
     return _user(rows[0]) if rows else None

@@ -22,6 +22,7 @@ from station.api.lab_schemas import (
     MeOut,
     MountIn,
     RegisterOut,
+    RoleOut,
     StandardIn,
     StandardOut,
     TokenIn,
@@ -30,6 +31,8 @@ from station.api.lab_schemas import (
     TransducerOut,
     UserIn,
     UserOut,
+    UserRowOut,
+    UsersPolicyOut,
 )
 from station.api.routes.runs import BODY_ERRORS, E401, E403, E404, E409, E422
 from station.api.schemas import ErrorOut
@@ -83,9 +86,24 @@ async def me(who: PrincipalDep) -> MeOut:
 
 
 # ---------------------------------------------------------------------------------------------- users
-@router.get("/users", response_model=list[UserOut], responses={**E401, **E403}, summary="The users (admin)")
-async def list_users(manager: ManagerDep, who: Admin) -> list[UserOut]:
-    return [UserOut.model_validate(u.to_dict()) for u in await manager.db.read(users.users)]
+@router.get("/users", response_model=list[UserRowOut], responses={**E401, **E403}, summary="The users (admin)")
+async def list_users(manager: ManagerDep, who: Admin) -> list[UserRowOut]:
+    """Each user with the last change of the account (when, by whom; from the audit trail)."""
+    def read(s: Store) -> list[UserRowOut]:
+        changed = users.last_changes(s)
+        rows = []
+        for u in users.users(s):
+            at, by = changed.get(u.name, (None, None))
+            rows.append(UserRowOut.model_validate({**u.to_dict(), "changed": at, "changed_by": by}))
+        return rows
+    return await manager.db.read(read)
+
+
+@router.get("/users/policy", response_model=UsersPolicyOut, responses={**E401, **E403},
+            summary="The roles and the rules for names and passwords (admin)")
+async def users_policy(who: Admin) -> UsersPolicyOut:
+    return UsersPolicyOut(roles=[RoleOut(name=r, permissions=sorted(str(p) for p in users.GRANTS[r]))
+                                 for r in users.Role], min_password=users.MIN_PASSWORD, name_pattern=NAME_PATTERN)
 
 
 @router.put("/users/{name}", response_model=UserOut, responses={**E401, **E403, **E409, **E422, **BODY_ERRORS},
