@@ -28,7 +28,7 @@ async function api(method, path, body) {
   let data = null;
   const ct = r.headers.get("content-type") || "";
   if (ct.includes("json")) data = await r.json();
-  if (r.status === 401 && me && path !== "/login") { me = null; showMe(); }  // the session ended
+  if (r.status === 401 && me && path !== "/login") { me = null; showMe(); dropSession(); }  // the session ended
   return {status: r.status, ok: r.ok, data};
 }
 
@@ -60,14 +60,20 @@ function showMe() {
   $("#login-form").hidden = !!me;
   $("#me").hidden = !me;
   if (me) $("#me-name").textContent = `${me.name} (${me.role})`;
+  $("#nav-users").hidden = !may("admin");
+  if (!may("admin")) hideUsers();
   const ap = $("#approve");
   if (ap) ap.disabled = !may("approve");
 }
 
+// an ended or expired session's cookie (HttpOnly: only the server can drop it) would have every
+// later request refused, reading too: log out to drop it
+async function dropSession() { await api("POST", "/logout"); }
+
 async function loadMe() {
   const r = await api("GET", "/me");
   me = r.ok && r.data.user ? r.data.user : null;
-  if (r.status === 401) banner(`${detailText(r.data)}`, "");
+  if (r.status === 401) { banner(`${detailText(r.data)}`, ""); await dropSession(); }
   showMe();
 }
 
@@ -83,6 +89,7 @@ $("#logout").addEventListener("click", async () => {
   await api("POST", "/logout");
   me = null;
   showMe();
+  route();
 });
 
 // value ± std, both to the precision of 2 significant digits of the uncertainty
@@ -672,17 +679,128 @@ async function showAudit() {
     `<td>${esc(e.action)}</td><td>${esc(e.target)}</td><td class="details">${esc(JSON.stringify(e.details))}</td></tr>`).join("");
 }
 
+// ------------------------------------------------------------------------------------------ users (administrators)
+// The section exists for a user with the admin permission only (the API refuses everyone else).
+// Nothing secret stays in the page: a password field is emptied once sent, an issued token is shown
+// until "done" (or leaving the view, logging out) and never logged.
+function clearToken() {
+  $("#token-text").textContent = "";
+  $("#token-copied").textContent = "";
+  $("#token-shown").hidden = true;
+}
+
+function hideUsers() {
+  $("#view-users").hidden = true;
+  $("#users tbody").innerHTML = "";
+  $("#user-password").value = "";
+  clearToken();
+}
+
+// a refusal shown at its field: 422 at the field its loc names, other refusals by what they are about
+function showRefusal(form, res, action, fields, about) {
+  for (const e of form.querySelectorAll(".err")) e.textContent = "";
+  if (res.ok) return;
+  const put = (field, text) => {
+    const el = form.querySelector(`.err[data-for="${fields[field] || form.id}"]`);
+    el.textContent = (el.textContent ? el.textContent + "; " : "") + text;
+  };
+  if (res.status === 422 && Array.isArray(res.data && res.data.detail)) {
+    for (const e of res.data.detail) put(String((e.loc || []).slice(-1)[0]), e.msg);
+  } else {
+    put(about(detailText(res.data)), refusal(res, action));
+  }
+}
+
+async function showUsers() {
+  clearToken();
+  const [p, r] = await Promise.all([api("GET", "/users/policy"), api("GET", "/users")]);
+  if (!p.ok || !r.ok) { $("#users-msg").textContent = refusal(p.ok ? r : p, "list the users"); return; }
+  const policy = p.data;
+  const picked = ($("#user-roles input:checked") || {}).value;
+  $("#user-roles").innerHTML = "<legend>role</legend>" + policy.roles.map((ro) =>
+    `<label title="${esc(ro.permissions.join(", "))}"><input type="radio" name="role" value="${esc(ro.name)}"` +
+    `${ro.name === picked ? " checked" : ""}> ${esc(ro.name)}</label>`).join("");
+  $("#users-roles").textContent = "One role per user: " + policy.roles.map((ro) => `${ro.name} may ${ro.permissions.join(", ")}`).join("; ") +
+    `. Names: lower-case letters, digits, '_', '.', '-', starting with a letter, at most 32 characters.`;
+  $("#user-password-rule").textContent = `at least ${policy.min_password} characters; empty: the password stays as it is`;
+  $("#users tbody").innerHTML = r.data.map((u) => `<tr data-user="${esc(u.name)}"${u.disabled ? ' class="bad"' : ""}><td>${esc(u.name)}</td>` +
+    `<td>${esc(u.role)}</td><td>${u.disabled ? "disabled" : "active"}</td>` +
+    `<td>${u.changed ? `${utcText(u.changed)} by ${esc(u.changed_by)}` : "—"}</td>` +
+    `<td><button type="button" class="user-edit" data-user="${esc(u.name)}">change</button></td></tr>`).join("");
+  const keep = $("#token-user").value;
+  $("#token-user").innerHTML = r.data.map((u) => `<option${u.disabled ? " disabled" : ""}>${esc(u.name)}</option>`).join("");
+  if (r.data.some((u) => u.name === keep && !u.disabled)) $("#token-user").value = keep;
+  for (const b of document.querySelectorAll(".user-edit")) b.addEventListener("click", () => {
+    const u = r.data.find((x) => x.name === b.dataset.user);
+    $("#user-name").value = u.name;
+    for (const i of document.querySelectorAll("#user-roles input")) i.checked = i.value === u.role;
+    $("#user-disabled").checked = u.disabled;
+    $("#user-password").value = "";
+    $("#user-password").focus();
+  });
+}
+
+$("#user-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  const form = ev.target;
+  const name = $("#user-name").value.trim();
+  const role = $("#user-roles input:checked");
+  const body = {role: role ? role.value : null, disabled: $("#user-disabled").checked};
+  if ($("#user-password").value) body.password = $("#user-password").value;
+  $("#user-password").value = "";  // sent once, never kept
+  const fields = {name: "name", role: "role", password: "password", disabled: "disabled"};
+  if (!name) { showRefusal(form, {ok: false, status: 422, data: {detail: [{loc: ["path", "name"], msg: "a user name is needed"}]}}, "", fields, () => ""); return; }
+  const r = await api("PUT", `/users/${encodeURIComponent(name)}`, body);
+  showRefusal(form, r, "save the user", fields, (t) => t.startsWith("user name") ? "name" : t.includes("password") ? "password" : "");
+  if (r.ok) {
+    $("#users-msg").textContent = `user ${r.data.name} saved: ${r.data.role}, ${r.data.disabled ? "disabled" : "active"}`;
+    showUsers();
+  }
+});
+
+$("#token-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  clearToken();
+  const user = $("#token-user").value;
+  const fields = {name: "user", label: "label"};
+  if (!user) { showRefusal(ev.target, {ok: false, status: 422, data: {detail: [{loc: ["path", "name"], msg: "choose a user"}]}}, "", fields, () => ""); return; }
+  const r = await api("POST", `/users/${encodeURIComponent(user)}/tokens`, {label: $("#token-label").value});
+  showRefusal(ev.target, r, "issue the token", fields, (t) => t.startsWith("no user") ? "name" : "");
+  if (!r.ok) return;
+  $("#token-text").textContent = r.data.token;
+  $("#token-shown").hidden = false;
+  $("#users-msg").textContent = `token issued for ${r.data.user}` + (r.data.label ? ` (${r.data.label})` : "");
+  $("#token-label").value = "";
+});
+
+$("#token-copy").addEventListener("click", async () => {
+  const text = $("#token-text").textContent;
+  try {
+    await navigator.clipboard.writeText(text);
+    $("#token-copied").textContent = "copied";
+  } catch {  // no clipboard permission: select it for Ctrl+C
+    getSelection().selectAllChildren($("#token-text"));
+    $("#token-copied").textContent = "selected: copy it with Ctrl+C";
+  }
+});
+
+$("#token-done").addEventListener("click", clearToken);
+
 // ------------------------------------------------------------------------------------------ routing
 async function route() {
   const h = location.hash;
   const m = h.match(/^#\/runs\/([^/]+)$/);
   const th = h.match(/^#\/transducers\/([^/]+)$/);
-  const view = m ? "run" : th ? "history" : h === "#/register" ? "register" : h === "#/audit" ? "audit" : "home";
+  const users = h === "#/users" && may("admin");  // nobody else sees the section
+  const view = m ? "run" : th ? "history" : h === "#/register" ? "register" : h === "#/audit" ? "audit" : users ? "users" : "home";
   for (const v of ["home", "run", "history", "register", "audit"]) $(`#view-${v}`).hidden = v !== view;
+  if (view === "users") $("#view-users").hidden = false;
+  else hideUsers();
   if (view !== "run") { shownRun = null; if (source) { source.close(); source = null; } }
   if (view === "history") return showHistory(decodeURIComponent(th[1]));
   if (view === "register") return showRegister();
   if (view === "audit") return showAudit();
+  if (view === "users") return showUsers();
   if (m) {
     const id = decodeURIComponent(m[1]);
     shownRun = id;

@@ -1,0 +1,111 @@
+"""An administrator manages the users on the page, in a real headless Chromium against a real daemon:
+adds a technician (a refused password shown at its field), issues them an API token (shown once),
+the technician logs in and sees what the role allows and no users section, the administrator disables
+them and their next request is refused; the audit trail records each change, without secrets."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.station_support import Daemon
+from tests.web_support import log_in, open_page
+
+pytestmark = pytest.mark.slow  # a real daemon and a browser
+
+NEW_PASSWORD = "tomas-secret-pw"
+
+
+@pytest.fixture
+def daemon(tmp_path: Path) -> Iterator[Daemon]:
+    with Daemon(tmp_path) as d:
+        yield d
+
+
+def test_admin_adds_issues_token_and_disables_a_user(browser: object, daemon: Daemon) -> None:
+    console: list[str] = []
+    with open_page(browser, daemon.url + "/") as admin:
+        admin.on("console", lambda m: console.append(m.text))
+        log_in(admin, daemon, "ada")
+        admin.wait_for_selector("#nav-users:not([hidden])")
+        admin.goto(daemon.url + "/#/users")
+        admin.wait_for_selector("#users tr[data-user='ada']", timeout=10_000)
+        assert [admin.get_attribute(f"#user-roles input >> nth={i}", "value") for i in range(3)] == \
+            ["technician", "approver", "admin"]  # the closed set the API publishes
+        assert "at least 10 characters" in admin.inner_text("#user-password-rule")
+
+        # the API's refusal of a short password is shown at the password field, and nothing is saved
+        admin.fill("#user-name", "tomas")
+        admin.check("#user-roles input[value='technician']")
+        admin.fill("#user-password", "short")
+        admin.click("#user-save")
+        admin.wait_for_function("document.querySelector('#user-form .err[data-for=password]').textContent !== ''")
+        assert "10 characters" in admin.inner_text("#user-form .err[data-for=password]")
+        assert admin.input_value("#user-password") == ""  # the page keeps no password
+        assert "tomas" not in [u["name"] for u in daemon.c().get("/users").json()]
+
+        admin.fill("#user-password", NEW_PASSWORD)
+        admin.click("#user-save")
+        row = "#users tr[data-user='tomas']"
+        admin.wait_for_selector(row, timeout=10_000)
+        assert admin.inner_text("#user-form .err[data-for=password]") == ""
+        cells = admin.locator(f"{row} td").all_inner_texts()
+        assert cells[:3] == ["tomas", "technician", "active"] and cells[3].endswith("by ada"), cells
+
+        # a token for tomas, shown once with the warning; gone from the page after "done"
+        admin.select_option("#token-user", "tomas")
+        admin.fill("#token-label", "nightly script")
+        admin.click("#token-issue")
+        admin.wait_for_selector("#token-shown:not([hidden])")
+        token = admin.inner_text("#token-text").strip()
+        assert token.startswith("sct_") and "not shown again" in admin.inner_text("#token-shown")
+        admin.click("#token-done")
+        assert admin.is_hidden("#token-shown") and token not in admin.content()
+        me = httpx.get(daemon.url + "/me", headers={"Authorization": f"Bearer {token}"}, timeout=10)
+        assert me.status_code == 200 and me.json()["user"]["name"] == "tomas", me.text
+
+        # tomas logs in: a technician's page (run form, no register editing), no users section
+        with open_page(browser, daemon.url + "/") as tech:
+            tech.fill("#login-name", "tomas")
+            tech.fill("#login-password", NEW_PASSWORD)
+            tech.click("#login")
+            tech.wait_for_selector("#me:not([hidden])", timeout=10_000)
+            assert tech.inner_text("#me-name") == "tomas (technician)"
+            assert tech.is_hidden("#nav-users") and tech.is_visible("#start")
+            tech.goto(daemon.url + "/#/users")
+            tech.wait_for_selector("#view-home:not([hidden])")
+            assert tech.is_hidden("#view-users") and tech.locator("#users tbody tr").count() == 0
+            assert tech.evaluate("fetch('/users').then((r) => r.status)") == 403  # the API refuses too
+            tech.goto(daemon.url + "/#/register")
+            tech.wait_for_selector("#reg-transducers tbody tr", timeout=10_000)
+            assert tech.is_hidden("#reg-admin")
+
+            # the administrator disables tomas; the next request of tomas's page is refused
+            admin.click(f"{row} .user-edit")
+            assert admin.input_value("#user-name") == "tomas"
+            assert admin.is_checked("#user-roles input[value='technician']")
+            admin.check("#user-disabled")
+            admin.click("#user-save")
+            admin.wait_for_selector(f"{row}.bad", timeout=10_000)
+            assert admin.locator(f"{row} td").nth(2).inner_text() == "disabled"
+            tech.reload()
+            tech.wait_for_function("document.querySelector('#banner').textContent.includes('session was ended')",
+                                   timeout=10_000)
+            assert tech.is_visible("#login-form") and tech.is_hidden("#me")
+        assert httpx.get(daemon.url + "/me", headers={"Authorization": f"Bearer {token}"},
+                         timeout=10).status_code == 401  # a disabled user's token too
+
+        # the audit trail (API and page): each change by ada, no password or token in it
+        admin.goto(daemon.url + "/#/audit")
+        admin.wait_for_selector("#audit td:has-text('user.token_issued')", timeout=10_000)
+        assert "user:tomas" in admin.inner_text("#audit")
+    trail = daemon.c().get("/audit", params={"target": "user:tomas"}).json()["entries"][::-1]
+    mine = [(e["who"], e["action"], e["details"].get("disabled")) for e in trail if e["who"] == "ada"]
+    assert mine == [("ada", "user.changed", False), ("ada", "user.token_issued", None), ("ada", "user.changed", True)]
+    assert [e["action"] for e in trail if e["who"] == "tomas"] == ["user.login"]
+    assert trail[0]["details"]["password_changed"] is True and trail[-1]["details"]["password_changed"] is False
+    for secret in (token, NEW_PASSWORD):
+        assert secret not in str(trail) and not any(secret in line for line in console)
