@@ -215,10 +215,14 @@ def test_modbus_rtu_local_echo_is_read_back_and_discarded(modbus_rig: SimRig) ->
     """
     url = modbus_rig.addresses.modbus_rtu_url
     assert url is not None
-    policy = LinkPolicy(timeout_s=0.3, retries=0, reconnect_attempts=2)
+    # no retries, so every read counts; a reply that comes is quick, so the time-out only bounds the
+    # reads expected to fail (a loaded machine can delay a good reply past 0.3 s: 2 s for those)
+    ok_policy = LinkPolicy(timeout_s=2.0, retries=0, reconnect_attempts=2)
+    failing_policy = LinkPolicy(timeout_s=0.3, retries=0, reconnect_attempts=2)
 
     async def reads(echo: bool, n: int) -> int:
         motor = MotorController()
+        policy = ok_policy if echo else failing_policy
         await motor.connect(transport_from_url(url + ("&echo=1" if echo else ""), policy=policy))
         ok = 0
         for _ in range(n):
