@@ -67,7 +67,7 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     checked = replace(rec, steps=[replace(st, crank_frequency_hz=float(f_of[st.index]))
                                   for st in rec.steps if st.index in f_of])
     res = identify_paper_method(checked, method, form, model_for(rec, form, inputs), seed=seed,
-                                protocol=protocol, policy=policy)
+                                protocol=protocol, policy=policy, swarm=swarm)
     statement = structure_statement(form, form == "h2", inputs)
     statement["displacement_chain"]["note"] = (  # the swarm runs on the raw samples of one step
         "the paper's methods take the displacement samples as recorded: no chain correction is applied")
@@ -75,8 +75,9 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     budget = {n: {"contributions": terms.get(n) or {"noise": p.std}, "combined": p.std, "unit": p.unit}
               for n, p in res.parameters.items() if p.identifiable and p.std is not None}
     notes = (*res.notes, RLS_BUDGET_NOTE if method == "rls" else
-             "budget: the noise of the step's steady-state gain and phase only; the paper's methods "
-             "state no systematic terms")
+             "budget: the noise of the step's steady-state gain and phase only (the swarm states no "
+             "uncertainty of the parameters one frequency leaves undetermined, so a parameter whose "
+             "uncertainty rests on them is withheld); the paper's methods state no systematic terms")
     extra_assumptions = {"rls_uncertainty": rls_assumptions()} if method == "rls" else {}
     return replace(res, assumptions={**inputs.to_dict(), "structure": statement, **extra_assumptions},
                    checks=tuple(cr.checks),
