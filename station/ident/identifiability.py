@@ -133,3 +133,30 @@ def assess(model: Model, theta: FloatArray, frf: FrequencyResponse, policy: Poli
     rep = Identifiability(names, cond, tuple(tuple(float(c) for c in row) for row in corr),
                           tuple(bool(b) for b in identifiable), tuple(reasons))
     return rep, ok
+
+
+def carried_to_determined(model: Model, theta: FloatArray, frf: FrequencyResponse, determined: tuple[bool, ...],
+                          cov_undetermined: FloatArray) -> FloatArray:
+    """The uncertainty of the parameters the data do not determine, carried to those they do at
+    fixed H(f): d_ok = -pinv(J_ok) J_nk d_nk (J the whitened Jacobian of H at ``frf``'s
+    frequencies), so cov_ok = D C_nk D^T; shape (n, n), zero outside the determined block.
+
+    A determined parameter's noise-only covariance (J_ok^T J_ok)^-1 is conditional on the others held
+    at the estimate; this is the term that removes the condition.  cov_undetermined (n, n): the
+    estimator's own covariance of all parameters (only its undetermined block is read).  Where that
+    is unknown (non-finite) the determined parameters that depend on it get NaN: their uncertainty
+    cannot be stated, and the caller must withhold them rather than state the conditional one."""
+    ok = np.asarray(determined, dtype=bool)
+    n = theta.size
+    out = np.zeros((n, n))
+    if not (ok.any() and (~ok).any()):
+        return out
+    J = whitened_jacobian(model, theta, frf, scale=np.ones(n))
+    D = -np.linalg.pinv(J[:, ok]) @ J[:, ~ok]
+    C = np.asarray(cov_undetermined, dtype=np.float64)[np.ix_(~ok, ~ok)]
+    if np.all(np.isfinite(C)):
+        out[np.ix_(ok, ok)] = D @ C @ D.T
+    else:
+        idx = np.flatnonzero(ok)[np.any(D != 0, axis=1)]
+        out[idx, idx] = np.nan
+    return out

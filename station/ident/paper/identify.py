@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
-from station.ident.identifiability import Policy, assess
+from station.ident.identifiability import Policy, assess, carried_to_determined
 from station.ident.models import DigitalTF, Model
 from station.ident.paper.protocol import PUBLISHED_SWARM, PaperData, PaperProtocol, SwarmSize, paper_data, testing_mse
 from station.ident.paper.pso import SECTION5_H1, SECTION5_H2, PsoSettings, identify_digital
@@ -119,6 +119,18 @@ def steady_state_uncertainty(model: Model, theta: FloatArray, data: PaperData,
     return cov, replace(rep, identifiable=tuple(r == "" for r in reasons), reasons=tuple(reasons))
 
 
+def withhold_unstated(rep: Identifiability, cov: FloatArray, names: tuple[str, ...]) -> Identifiability:
+    """A determined parameter whose stated covariance is not finite is withheld: its uncertainty
+    rests on parameters the step does not determine, and the estimator gives no uncertainty of
+    them (``identifiability.carried_to_determined``); the noise-only u would understate it."""
+    others = ", ".join(n for n, ok in zip(names, rep.identifiable, strict=True) if not ok)
+    reasons = [r or (f"withheld: its uncertainty rests on {others}, which one frequency does not determine "
+                     "and the estimator states no uncertainty of (the noise of the step alone would "
+                     "understate it)" if not np.isfinite(cov[i, i]) else "")
+               for i, r in enumerate(rep.reasons)]
+    return replace(rep, identifiable=tuple(r == "" for r in reasons), reasons=tuple(reasons))
+
+
 def _rls_budget(model: Model, theta: FloatArray, data: PaperData, r: RlsResult, cov_noise: FloatArray,
                 rep: Identifiability, extra: dict) -> FloatArray:
     """The covariance the station states for RLS: the steady-state noise term plus
@@ -163,12 +175,17 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
     extra["theta_from_coefficients"] = [float(v) for v in theta]
     if np.all(np.isfinite(theta)):
         cov, rep = steady_state_uncertainty(model, theta, data, policy)
+        if rls is not None:
+            cov = _rls_budget(model, theta, data, rls, cov, rep, extra)
+        else:  # the swarm states no uncertainty of what the step leaves undetermined
+            cov = cov + carried_to_determined(model, theta, step_frf(data), rep.identifiable,
+                                              np.full_like(cov, np.nan))
+        rep = withhold_unstated(rep, cov, model.names)
+        cov = np.where(np.isfinite(cov), cov, 0.0)
     else:
         cov = np.full((theta.size, theta.size), np.nan)
         rep = Identifiability(model.names, float("inf"), (), (False,) * theta.size,
                               ("coefficients do not map to physical parameters",) * theta.size)
-    if rls is not None and np.all(np.isfinite(theta)):
-        cov = _rls_budget(model, theta, data, rls, cov, rep, extra)
     std = np.sqrt(np.clip(np.diag(cov), 0, None))
     why = _physical(form, theta) if np.all(np.isfinite(theta)) else ""
     if method != "rls" and not why and any(rep.identifiable):  # only a verdict to confirm costs reruns

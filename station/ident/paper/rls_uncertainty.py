@@ -17,10 +17,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from station.ident.identifiability import carried_to_determined
 from station.ident.models import DigitalTF, Model
 from station.ident.paper.protocol import PaperData
 from station.ident.paper.rls import NEWEY_WEST_LAGS, RlsResult, rls_covariance
-from station.ident.response.frf import FrequencyResponse, whitened_jacobian
+from station.ident.response.frf import FrequencyResponse
 
 FloatArray = NDArray[np.float64]
 DYNAMICS_TERM = "unidentified_dynamics"
@@ -58,18 +59,12 @@ def coefficient_jacobian(model: Model, theta_c: FloatArray, T: float) -> FloatAr
 def rls_uncertainty(model: Model, theta: FloatArray, data: PaperData, r: RlsResult, frf: FrequencyResponse,
                     determined: tuple[bool, ...], *, lags: int = NEWEY_WEST_LAGS) -> RlsUncertainty:
     """The ``unidentified_dynamics`` term: RLS's covariance of the parameters the step does not
-    determine, carried to those it does at fixed H(f) (d_ok = -pinv(J_ok) J_nk d_nk, J the whitened
-    Jacobian of H at the step frequency)."""
+    determine, carried to those it does at fixed H(f) (``identifiability.carried_to_determined``);
+    NaN on a determined parameter when RLS's covariance is not finite (then it is withheld)."""
     with np.errstate(all="ignore"):
         G = coefficient_jacobian(model, r.theta, data.T)
         cov_est = G @ rls_covariance(data.x_id, data.y_id, r, lags=lags) @ G.T
-    ok = np.asarray(determined, dtype=bool)
-    n = theta.size
-    cov_dyn = np.zeros((n, n))
-    if ok.any() and (~ok).any() and np.all(np.isfinite(cov_est)):
-        J = whitened_jacobian(model, theta, frf, scale=np.ones(n))
-        D = -np.linalg.pinv(J[:, ok]) @ J[:, ~ok]
-        cov_dyn[np.ix_(ok, ok)] = D @ cov_est[np.ix_(~ok, ~ok)] @ D.T
+    cov_dyn = carried_to_determined(model, theta, frf, determined, cov_est)
     return RlsUncertainty(cov_dyn, cov_est, lags)
 
 

@@ -1,0 +1,73 @@
+"""What the station states for the paper's swarm (PSO/PSO+): never S with a noise-only u that rests
+on parameters the step does not determine.
+
+Truth from the simulator (``tests.ident_support.sim``: Eq. 3 integrated, not the estimator).  On the
+shipped 4 Hz step the swarm's Eq. 11 coefficients map to a negative k_f (withheld as non-physical)
+and Eq. 10 is structurally undetermined, so nothing is reported today (``bench/pso_uncertainty.py``
+measures it over 20 seeds).  The swarm states no uncertainty of the k_f and b_f it lands on, so
+should it ever land on physical ones, S would carry a u conditional on them: such an S is withheld
+(``identifiability.carried_to_determined`` with an unknown covariance).  The case is built by
+handing the swarm's place RLS's physical coefficients on a step where that u misses the truth.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from station.ident.identify import identify_recording
+from station.ident.inputs import inputs_for, model_for
+from station.ident.models import DigitalTF
+from station.ident.paper import identify as paper_identify
+from station.ident.paper.protocol import paper_data
+from station.ident.paper.pso import SECTION5_H2, PsoResult
+from station.ident.paper.rls import rls_h2
+from station.recording import read_recording
+from tests.ident_support import S, sim
+
+STEP = ((4.0, 0.01),)
+
+
+def test_a_swarm_answer_that_determines_s_but_not_k_f_is_withheld_not_stated_with_the_noise_u(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    rec = read_recording(sim(tmp_path, STEP, seed=10, record_s=1.5))
+    data = paper_data(rec)
+    r = rls_h2(data.x_id, data.y_id)
+
+    def physical_swarm(form: str, d: object, settings: object, seed: int) -> tuple:
+        mse = np.zeros(2)
+        return r.b, r.a, PsoResult(np.zeros(3), 0.0, mse, mse, 0, SECTION5_H2, seed, np.zeros(2, dtype=np.int64))
+
+    monkeypatch.setattr(paper_identify, "_swarm", physical_swarm)
+    model = model_for(rec, "h2", inputs_for(rec))
+    theta = model.from_digital(DigitalTF(r.b, r.a, data.T))
+    assert theta[1] > 0 and theta[2] >= 0  # a physical answer, the same for every swarm seed
+    cov_noise, rep = paper_identify.steady_state_uncertainty(model, theta, data, paper_identify.DEFAULT_POLICY)
+    assert rep.identifiable == (True, False, False)  # S determined by the step, k_f and b_f not
+    assert abs(theta[0] - S) / np.sqrt(cov_noise[0, 0]) > 3  # what a noise-only statement would miss by
+
+    res = identify_recording(rec, "pso+", "h2")
+    p = res.parameters["S"]
+    assert not p.identifiable and p.value is None
+    assert "k_f, b_f" in (p.reason or "") and "does not determine" in (p.reason or "")
+    assert "S" not in res.budget
+    assert not any(q.identifiable for q in res.parameters.values())
+
+
+def test_with_the_undetermined_parameters_known_exactly_the_carried_term_is_zero(tmp_path: Path) -> None:
+    """The same function carries RLS's covariance: a zero covariance of k_f, b_f adds nothing, and
+    RLS's own adds a positive term to S only."""
+    from station.ident.identifiability import carried_to_determined
+    from station.ident.paper.identify import step_frf
+
+    rec = read_recording(sim(tmp_path, STEP, seed=10, record_s=1.5))
+    data = paper_data(rec)
+    model = model_for(rec, "h2", inputs_for(rec))
+    r = rls_h2(data.x_id, data.y_id)
+    theta = model.from_digital(DigitalTF(r.b, r.a, data.T))
+    frf = step_frf(data)
+    assert not np.any(carried_to_determined(model, theta, frf, (True, False, False), np.zeros((3, 3))))
+    c = carried_to_determined(model, theta, frf, (True, False, False), np.diag([0.0, (0.07 * theta[1]) ** 2, 0.0]))
+    assert c[0, 0] > 0 and not np.any(c[1:]) and not np.any(c[:, 1:])
+    unknown = carried_to_determined(model, theta, frf, (True, False, False), np.full((3, 3), np.nan))
+    assert np.isnan(unknown[0, 0])
