@@ -14,6 +14,11 @@ A swarm's answer is a draw: a parameter is called identifiable only when it is a
 * physically plausible in every run: positive stiffnesses, non-negative dampings, and for Eq. 10
   a coupling not far softer than the transducer (``structure.plausible_coupling``).
 
+* stated with an uncertainty that is not conditional on what the step does not determine: the swarm
+  states no uncertainty of the parameters one frequency leaves undetermined, so a parameter that
+  depends on them at fixed H(f) is withheld (``identifiability.carried_to_determined``; RLS carries
+  its own covariance of them instead, ``rls_uncertainty``).
+
 Otherwise it is withheld with the reason.  The swarm itself (Eq. 12-16, Section 5.1 settings) is
 as published; the value reported is the caller's seed's.
 """
@@ -180,7 +185,8 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
         else:  # the swarm states no uncertainty of what the step leaves undetermined
             cov = cov + carried_to_determined(model, theta, step_frf(data), rep.identifiable,
                                               np.full_like(cov, np.nan))
-        rep = withhold_unstated(rep, cov, model.names)
+        if not _physical(form, theta):  # a non-physical answer is withheld as such (below)
+            rep = withhold_unstated(rep, cov, model.names)
         cov = np.where(np.isfinite(cov), cov, 0.0)
     else:
         cov = np.full((theta.size, theta.size), np.nan)
