@@ -71,3 +71,17 @@ def test_with_the_undetermined_parameters_known_exactly_the_carried_term_is_zero
     assert c[0, 0] > 0 and not np.any(c[1:]) and not np.any(c[:, 1:])
     unknown = carried_to_determined(model, theta, frf, (True, False, False), np.full((3, 3), np.nan))
     assert np.isnan(unknown[0, 0])
+
+
+def test_a_small_swarm_lands_on_a_physical_answer_and_its_s_is_withheld_for_its_unstated_u(tmp_path: Path) -> None:
+    """The tests' swarm size (24 x 60) reaches the paper's method (it used to be ignored) and gives a
+    physical Eq. 11 answer on the 4 Hz step; the step determines S, but S rests on k_f, b_f."""
+    from station.ident.paper.protocol import SwarmSize
+
+    rec = read_recording(sim(tmp_path, STEP, seed=3, record_s=1.5))
+    res = identify_recording(rec, "pso+", "h2", swarm=SwarmSize(24, 60))
+    assert (res.extra["n_particles"], res.extra["n_iterations"]) == (24, 60)
+    th = res.extra["theta_from_coefficients"]
+    assert th[1] > 0 and th[2] >= 0
+    reason = res.parameters["S"].reason or ""
+    assert not res.parameters["S"].identifiable and "rests on k_f, b_f" in reason, reason
