@@ -11,8 +11,8 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import Callable
-from typing import Protocol
+from collections.abc import Callable, Coroutine
+from typing import Any, Protocol
 
 
 class Clock(Protocol):
@@ -39,6 +39,12 @@ class Clock(Protocol):
         """Something a :meth:`wait_for` predicate looks at has changed."""
         ...
 
+    def start_task(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
+        """Start ``coro`` as a task of the running event loop, counted as awake from now until it
+        first waits on this clock (a task that keeps something alive on a timer, e.g. the drive's
+        watchdog, must not have the time it keeps run past before its first step)."""
+        ...
+
 
 class RealClock:
     """Wall-clock time: ``time.monotonic`` and real sleeps."""
@@ -62,6 +68,9 @@ class RealClock:
     def notify(self) -> None:
         with self._cond:
             self._cond.notify_all()
+
+    def start_task(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
+        return asyncio.create_task(coro, name=name)
 
 
 REAL_CLOCK = RealClock()

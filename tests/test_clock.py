@@ -177,3 +177,28 @@ def test_a_participant_out_of_sight_slows_time_to_real_time_without_deadlock() -
     assert virtual <= real + 0.1 + 1e-9  # at most one tick ahead of real time
     assert clock.monotonic() == pytest.approx(10.0)  # and no deadlock: the ticker finished
     assert clock.released >= 1
+
+
+@pytest.mark.parametrize("started_on_the_clock", [True, False])
+def test_a_task_started_on_the_clock_runs_before_time_moves(started_on_the_clock: bool) -> None:
+    """A task started with ``start_task`` is awake until it first waits: its caller's wait cannot let
+    time jump past it, even while the loop is busy before the task's first step (the drive's watchdog
+    keeper, started just before the procedure sleeps).  A plain ``asyncio.create_task`` is unknown to
+    the clock until then, and time runs past it: its first step sees the caller's wake-up time."""
+    clock = VirtualClock(start_s=0.0, hold_s=10.0)
+    first_step_at: list[float] = []
+
+    async def keeper() -> None:
+        first_step_at.append(clock.monotonic())
+        await clock.asleep(1.0)
+
+    async def go() -> None:
+        asyncio.get_running_loop().call_soon(time.sleep, 0.5)  # the loop busy before the task's first step
+        task = (clock.start_task(keeper(), "keeper") if started_on_the_clock
+                else asyncio.create_task(keeper()))
+        await clock.asleep(10.0)
+        task.cancel()  # (awaiting its end would hold the clock: this task does not wait on it meanwhile)
+        await asyncio.gather(task, return_exceptions=True)
+
+    asyncio.run(go())
+    assert first_step_at == ([0.0] if started_on_the_clock else [10.0])

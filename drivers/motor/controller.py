@@ -363,7 +363,7 @@ class MotorController:
                     self.watchdog_error = exc
                 await self.clock.asleep(period_s)
 
-        self._wd_task = asyncio.create_task(keeper(), name="motor-watchdog")
+        self._wd_task = self.clock.start_task(keeper(), "motor-watchdog")
 
     async def stop_watchdog(self) -> None:
         if self._wd_task is not None:

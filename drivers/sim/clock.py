@@ -26,7 +26,7 @@ import contextlib
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -130,6 +130,18 @@ class VirtualClock:
                 part = self._participant(th, th.is_alive)
             part.wake, part.woke_real = None, time.monotonic()
             self._ensure_pacer()
+
+    def start_task(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
+        """Start ``coro`` as a task, a participant awake from now: time stands still until it first
+        waits on the clock (or ``hold_s`` of real time passed).  Without this, the caller's next
+        wait could let time jump ahead before the new task ran at all (a watchdog keeper started
+        just before the caller sleeps: the drive's watchdog expired in virtual time)."""
+        task = asyncio.create_task(coro, name=name)
+        with self._cond:
+            part = self._participant(task, lambda: not task.done())
+            part.wake, part.woke_real = None, time.monotonic()
+            self._ensure_pacer()
+        return task
 
     # ------------------------------------------------------------------ by hand
     def advance(self, seconds: float) -> None:
