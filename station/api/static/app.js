@@ -421,7 +421,7 @@ function showMethods(methods) {
       for (const n of names) {
         const p = ps[n];
         const a = (m.agreement || {})[n];
-        let c = !p ? "—" : p.identifiable ? `${fmtU(p.value, p.std)} ${esc(p.unit)}` : `withheld: ${esc(p.reason)}`;
+        let c = !p ? "—" : p.identifiable ? `${fmtU(p.value, p.std)} ${esc(p.unit)}` : (/^withheld\b/.test(p.reason) ? esc(p.reason) : `withheld: ${esc(p.reason)}`);
         if (a && a.z !== null) c += ` <span class="z">(z = ${a.z.toFixed(2)})</span>`;
         else if (a && a.reason && p && p.identifiable) c += ` <span class="z">(no z: ${esc(a.reason)})</span>`;
         cells += `<td data-param="${esc(n)}">${c}</td>`;
