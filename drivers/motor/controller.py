@@ -188,7 +188,7 @@ class MotorController:
             log.info("profile %s has no ramp parameter: the drive keeps its own ramp", self.profile.name)
             return
         dev = self.profile.device
-        if not (0 < hz_per_s <= dev.max_ramp_hz_per_s and hz_per_s >= dev.min_ramp_hz_per_s):
+        if not (hz_per_s > 0 and dev.min_ramp_hz_per_s <= hz_per_s <= dev.max_ramp_hz_per_s):
             raise MotorValueError(f"ramp: expected {dev.min_ramp_hz_per_s:g}..{dev.max_ramp_hz_per_s:g} Hz/s "
                                   f"(drive profile {self.profile.name!r}), got {hz_per_s!r} Hz/s")
         value = hz_per_s if ramp.form == "rate" else dev.max_frequency_hz / hz_per_s

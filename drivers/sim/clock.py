@@ -122,14 +122,11 @@ class VirtualClock:
         task = None
         with contextlib.suppress(RuntimeError):
             task = asyncio.current_task()
-        with self._cond:
-            if task is not None:
-                part = self._participant(task, lambda: not task.done())
-            else:
-                th = threading.current_thread()
-                part = self._participant(th, th.is_alive)
-            part.wake, part.woke_real = None, time.monotonic()
-            self._ensure_pacer()
+        if task is not None:
+            self._awake(task, lambda: not task.done())
+        else:
+            th = threading.current_thread()
+            self._awake(th, th.is_alive)
 
     def start_task(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
         """Start ``coro`` as a task, a participant awake from now: time stands still until it first
@@ -137,11 +134,15 @@ class VirtualClock:
         wait could let time jump ahead before the new task ran at all (a watchdog keeper started
         just before the caller sleeps: the drive's watchdog expired in virtual time)."""
         task = asyncio.create_task(coro, name=name)
+        self._awake(task, lambda: not task.done())
+        return task
+
+    def _awake(self, key: object, alive: Callable[[], bool]) -> None:
+        """Register ``key`` (a task or a thread; ``alive`` tells when it is gone) as awake now."""
         with self._cond:
-            part = self._participant(task, lambda: not task.done())
+            part = self._participant(key, alive)
             part.wake, part.woke_real = None, time.monotonic()
             self._ensure_pacer()
-        return task
 
     # ------------------------------------------------------------------ by hand
     def advance(self, seconds: float) -> None:
