@@ -20,11 +20,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from functools import lru_cache
 from dataclasses import dataclass
+from functools import lru_cache
+from typing import Union
 
 import numpy as np
 from scipy import stats
+
+Values = Union[Sequence[float], np.ndarray]
 
 SHEWHART_PROBABILITY = 0.9973  # two-sided coverage of the normal ±3σ
 EWMA_LAMBDA = 0.2
@@ -70,7 +73,7 @@ class Chart:
                 "points": [p.__dict__ | {} for p in self.points]}
 
 
-def _finite(values: Sequence[float]) -> np.ndarray:
+def _finite(values: Values) -> np.ndarray:
     x = np.asarray(values, dtype=float)
     if x.ndim != 1 or x.size == 0:
         raise ValueError("a control chart needs a non-empty series of values")
@@ -79,7 +82,7 @@ def _finite(values: Sequence[float]) -> np.ndarray:
     return x
 
 
-def reference_statistics(values: Sequence[float], uncertainties: Sequence[float] | None = None,
+def reference_statistics(values: Values, uncertainties: Values | None = None,
                          reference: int | None = None) -> tuple[float, float, int]:
     """Centre, s and the number of reference values: the first ``reference`` values (all by default).
     s is the larger of their standard deviation and their root-mean-square stated uncertainty."""
@@ -97,7 +100,7 @@ def reference_statistics(values: Sequence[float], uncertainties: Sequence[float]
     return float(np.mean(ref)), s, n
 
 
-def shewhart(values: Sequence[float], *, uncertainties: Sequence[float] | None = None,
+def shewhart(values: Values, *, uncertainties: Values | None = None,
              reference: int | None = None, probability: float = SHEWHART_PROBABILITY) -> Chart:
     """Shewhart chart of individual values with t-limits (see the module)."""
     x = _finite(values)
@@ -109,8 +112,8 @@ def shewhart(values: Sequence[float], *, uncertainties: Sequence[float] | None =
                  1.0 - probability)
 
 
-def ewma(values: Sequence[float], *, target: float | None = None, s: float | None = None,
-         uncertainties: Sequence[float] | None = None, reference: int | None = None,
+def ewma(values: Values, *, target: float | None = None, s: float | None = None,
+         uncertainties: Values | None = None, reference: int | None = None,
          lam: float = EWMA_LAMBDA, L: float = EWMA_L, exact: bool = False) -> Chart:
     """EWMA chart (see the module).  target and s default to the reference values' mean and s."""
     if not 0 < lam <= 1:

@@ -14,7 +14,7 @@ Times are in days unless the caller uses another unit consistently.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -175,7 +175,7 @@ def _u_total(fit: DriftFit, u0: float, t: float) -> float:
     return math.sqrt(u0**2 + fit.s_yx**2 + fit.u_predict(t) ** 2)
 
 
-def _first_crossing(f, t_max: float) -> float:  # type: ignore[no-untyped-def]
+def _first_crossing(f: Callable[[float], float], t_max: float) -> float:
     """The smallest t in (0, t_max] where f(t) >= 0 (f continuous), NaN if none."""
     grid = np.linspace(0.0, t_max, 2001)
     vals = np.array([f(x) for x in grid])
