@@ -22,12 +22,11 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Union
 
 import numpy as np
 from scipy import stats
 
-Values = Union[Sequence[float], np.ndarray]
+Values = Sequence[float] | np.ndarray
 
 SHEWHART_PROBABILITY = 0.9973  # two-sided coverage of the normal ±3σ
 EWMA_LAMBDA = 0.2
