@@ -185,3 +185,41 @@ class HistoryOut(OutModel):
     certificates: list[dict[str, Any]] = Field(default_factory=list, description="issued certificates, oldest "
                                                "first: number, run_id, issued_at, approved_by, replaces, replaced_by")
     units: dict[str, str]
+    trends: dict[str, Any] | None = Field(
+        default=None, description="per parameter (S, k_f, b_f, f_0): the points, Shewhart and EWMA charts with "
+        "their limits and false-alarm rate, as-found comparisons with the previous as-left value, drift risk at "
+        "the next due date and the intervals methods A3, S2 and variables recommend (docs/batch.md)")
+    out_of_control: list[dict[str, Any]] = Field(default_factory=list,
+                                                 description="every chart's out-of-control points")
+
+
+class PolicyIn(_In):
+    """A transducer's policy: relative tolerances per parameter, the assigned interval, the check
+    transducer mark."""
+
+    tolerances: dict[str, float] = Field(default_factory=dict, max_length=4,
+                                         description="relative, per parameter (S, k_f, b_f, f_0), e.g. {\"S\": 0.005}")
+    interval_days: float | None = Field(default=None, ge=1, le=3660, description="assigned interval, d")
+    check_standard: bool = Field(default=False, description="the transducer that stays on the rig")
+
+
+class PolicyOut(PolicyIn):
+    transducer_id: str
+    updated: float = Field(description="UNIX s")
+    updated_by: str
+
+
+class AsLeftIn(_In):
+    """An adjustment after a calibration: the value set in the user's instrument."""
+
+    parameter: str = Field(pattern=r"^(S|k_f|b_f|f_0)$")
+    value: float = Field(allow_inf_nan=False)
+    unit: str = Field(max_length=32)
+    note: str = Field(default="", max_length=1000)
+
+
+class AsLeftOut(AsLeftIn):
+    run_id: str
+    transducer_id: str
+    at: float = Field(description="UNIX s")
+    by: str

@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import Any
 
 from station.batch.summary import PARAMS, drift_checks
-from station.lab import audit
+from station.lab import audit, trends
+from station.lab.policy import AsLeft, Policy
 from station.recording.stored import read_result
 from station.service.store import RunRow, Store
 
@@ -47,8 +48,34 @@ def parameters_of(path: Path, result_name: str | None) -> dict[str, dict[str, An
             for n, p in params.items() if n in PARAM_NAMES and isinstance(p, dict)}
 
 
-def history(rows: list[RunRow], recordings_dir: Path, approved: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
-    """The history document (reads the results beside the recordings: call it off the event loop)."""
+def series_of(rows: list[RunRow], entries: list[dict[str, Any]]) -> dict[str, tuple[str, list[trends.Point]]]:
+    """The completed runs' values per parameter (S, k_f, b_f and f_0 from k_f with the end mass of the
+    register's record the run used), time-ordered, for the trends."""
+    out: dict[str, tuple[str, list[trends.Point]]] = {}
+    for r, e in zip(rows, entries, strict=True):
+        if e["state"] != "completed":
+            continue
+        params = e["parameters"]
+        for name, unit in PARAMS:
+            p = params.get(name) or {}
+            if isinstance(p.get("value"), (int, float)) and isinstance(p.get("std"), (int, float)):
+                out.setdefault(name, (unit, []))[1].append(trends.Point(r.id, r.created, p["value"], p["std"]))
+        k = params.get("k_f") or {}
+        record = json.loads(r.transducer_json or "{}")
+        if isinstance(k.get("value"), (int, float)) and isinstance(k.get("std"), (int, float)):
+            f0 = trends.natural_frequency(k["value"], k["std"], record.get("end_mass_kg"),
+                                          record.get("end_mass_std_kg"))
+            if f0 is not None:
+                out.setdefault("f_0", ("Hz", []))[1].append(trends.Point(r.id, r.created, *f0))
+    return out
+
+
+def history(rows: list[RunRow], recordings_dir: Path, approved: dict[str, list[dict[str, Any]]],
+            policy: Policy | None = None, as_left: dict[str, dict[str, AsLeft]] | None = None,
+            **chart_options: float) -> dict[str, Any]:
+    """The history document (reads the results beside the recordings: call it off the event loop).
+    With the transducer's ``policy`` (and its adjustments), it carries the trends: control charts,
+    as-found comparisons, drift risk and interval recommendations (``station.lab.trends``)."""
     entries: list[dict[str, Any]] = []
     for r in rows:
         params = parameters_of(recordings_dir / r.recording, r.result_name) if r.recording else {}
@@ -67,4 +94,8 @@ def history(rows: list[RunRow], recordings_dir: Path, approved: dict[str, list[d
             if check.flagged:
                 flagged.append({"run_id": e["run_id"], "parameter": name, "deviation": check.deviation,
                                 "u_c": check.u_c})
-    return {"runs": entries, "flagged": flagged, "units": dict(PARAMS)}
+    doc: dict[str, Any] = {"runs": entries, "flagged": flagged, "units": dict(PARAMS)}
+    if policy is not None:
+        doc["trends"] = trends.transducer_trends(series_of(rows, entries), policy, as_left or {}, **chart_options)
+        doc["out_of_control"] = trends.out_of_control(doc["trends"])
+    return doc

@@ -71,6 +71,23 @@ STATEMENTS = (
         action TEXT NOT NULL,
         target TEXT NOT NULL DEFAULT '',
         details TEXT NOT NULL DEFAULT '{}')""",
+    """CREATE TABLE IF NOT EXISTS transducer_policy (
+        transducer_id TEXT PRIMARY KEY,
+        tolerances_json TEXT NOT NULL DEFAULT '{}',
+        interval_days REAL,
+        check_standard INTEGER NOT NULL DEFAULT 0,
+        updated REAL NOT NULL,
+        updated_by TEXT NOT NULL)""",
+    """CREATE TABLE IF NOT EXISTS as_left (
+        run_id TEXT NOT NULL,
+        transducer_id TEXT NOT NULL,
+        parameter TEXT NOT NULL,
+        value REAL NOT NULL,
+        unit TEXT NOT NULL,
+        note TEXT NOT NULL DEFAULT '',
+        at REAL NOT NULL,
+        by TEXT NOT NULL,
+        PRIMARY KEY (run_id, parameter))""",
     "CREATE INDEX IF NOT EXISTS audit_target ON audit(target, id)",
     "CREATE INDEX IF NOT EXISTS runs_transducer ON runs(transducer_id, created)",
     """CREATE TRIGGER IF NOT EXISTS audit_no_update BEFORE UPDATE ON audit

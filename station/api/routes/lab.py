@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import datetime as dt
+import time
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request, Response
@@ -14,6 +15,8 @@ from station.api.lab_schemas import (
     ID_PATTERN,
     ApprovalOut,
     ApproveIn,
+    AsLeftIn,
+    AsLeftOut,
     AuditEntryOut,
     AuditOut,
     HistoryOut,
@@ -21,6 +24,8 @@ from station.api.lab_schemas import (
     LoginIn,
     MeOut,
     MountIn,
+    PolicyIn,
+    PolicyOut,
     RegisterOut,
     RoleOut,
     StandardIn,
@@ -36,7 +41,7 @@ from station.api.lab_schemas import (
 )
 from station.api.routes.runs import BODY_ERRORS, E401, E403, E404, E409, E422
 from station.api.schemas import ErrorOut
-from station.lab import audit, history, register, users
+from station.lab import audit, history, policy, register, users
 from station.lab.users import NAME_PATTERN, Principal
 from station.service.errors import RunStateError
 from station.service.store import Store
@@ -199,10 +204,35 @@ async def integrity(run: RunDep, manager: ManagerDep) -> IntegrityOut:
 @router.get("/transducers/{entry_id}/history", response_model=HistoryOut, dependencies=[Reader],
             responses={**E401, **E404}, summary="A transducer's runs, results, approvals, certificates and drift")
 async def transducer_history(entry_id: EntryId, manager: ManagerDep,
-                             limit: Annotated[int, Query(ge=1, le=2000)] = 500) -> HistoryOut:
+                             limit: Annotated[int, Query(ge=1, le=2000)] = 500,
+                             lam: Annotated[float, Query(gt=0, le=1, description="EWMA weight λ")] = 0.2,
+                             L: Annotated[float, Query(gt=0, le=6, description="EWMA limit factor")] = 3.0,
+                             ) -> HistoryOut:
     t, rows = await manager.db.read(lambda s: (register.transducer(s, entry_id), history.runs_of(s, entry_id, limit)))
     ids = [r.id for r in rows]
-    approved = await manager.db.read(lambda s: history.approvals(s, ids))
-    doc = await asyncio.to_thread(history.history, rows, manager.settings.recordings_dir, approved)
+    approved, pol, left = await manager.db.read(lambda s: (history.approvals(s, ids), policy.policy(s, entry_id),
+                                                           policy.as_left_of(s, entry_id)))
+    doc = await asyncio.to_thread(history.history, rows, manager.settings.recordings_dir, approved, pol, left,
+                                  lam=lam, L=L)
     certs = await manager.artifacts.certificates(entry_id)
     return HistoryOut(transducer=TransducerOut(**t.to_dict()), certificates=certs, **doc)
+
+
+@router.put("/register/transducers/{entry_id}/policy", response_model=PolicyOut,
+            responses={**E401, **E403, **E404, **E409, **E422, **BODY_ERRORS},
+            summary="Set a transducer's tolerances, assigned interval and check-transducer mark (admin)")
+async def put_policy(entry_id: EntryId, body: PolicyIn, manager: ManagerDep, who: Admin) -> PolicyOut:
+    def write(s: Store) -> policy.Policy:
+        register.transducer(s, entry_id)  # 404 for an unknown one
+        return policy.put_policy(s, policy.Policy(entry_id, dict(body.tolerances), body.interval_days,
+                                                  body.check_standard), who.name)
+    return PolicyOut(**(await manager.db.call(write)).to_dict())
+
+
+@router.post("/runs/{run_id}/as-left", response_model=AsLeftOut, tags=["runs"],
+             responses={**E401, **E403, **E404, **E409, **E422, **BODY_ERRORS},
+             summary="Record an adjustment after a calibration (the as-left value set in the user's instrument)")
+async def as_left(run: RunDep, body: AsLeftIn, manager: ManagerDep, who: Approver) -> AsLeftOut:
+    a = policy.AsLeft(run.id, run.transducer_id, body.parameter, body.value, body.unit, body.note,
+                      time.time(), who.name)
+    return AsLeftOut(**(await manager.db.call(lambda s: policy.record_as_left(s, a))).to_dict())
