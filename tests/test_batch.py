@@ -198,8 +198,11 @@ def test_summary_merges_by_run_id(tmp_path: Path) -> None:
     doc = write_summaries([item(5, 120.0)], tmp_path)[TX]
     assert [r["run_id"] for r in doc["runs"]] == [f"r{i}" for i in range(6)]
     assert [f["run_id"] for f in doc["flagged"]] == ["r5"]
+    # the control charts judge the newest run against the earlier ones
+    assert {(o["chart"], o["run_id"]) for o in doc["out_of_control"]} == {("shewhart", "r5"), ("ewma", "r5")}
+    assert doc["charts"]["fd"]["k_f"]["shewhart"]["reference"] == 5
     doc = write_summaries([item(5, 100.2)], tmp_path)[TX]  # re-identified: replaces its row
-    assert len(doc["runs"]) == 6 and doc["flagged"] == []
+    assert len(doc["runs"]) == 6 and doc["flagged"] == [] and doc["out_of_control"] == []
 
 
 def test_each_listed_method_is_its_own_drift_series(tmp_path: Path) -> None:

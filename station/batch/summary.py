@@ -132,6 +132,32 @@ def _csv(rows: list[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
+def _charts(rows: list[dict[str, Any]]) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Shewhart and EWMA charts (``station.trend.charts``, default λ, L; the first up to 10 values, never
+    the newest, set the limits) per method and parameter over the rows identified, and their out-of-control points."""
+    from station.trend import charts
+
+    out: dict[str, Any] = {}
+    late: list[dict[str, Any]] = []
+    for method in sorted({r["method"] for r in rows if r["status"] == "ok"}):
+        for name, _unit in PARAMS:
+            sel = [r for r in rows if r["status"] == "ok" and r["method"] == method
+                   and isinstance((r["parameters"].get(name) or {}).get("value"), (int, float))
+                   and isinstance((r["parameters"].get(name) or {}).get("std"), (int, float))]
+            if len(sel) < 3:
+                continue
+            x = [r["parameters"][name]["value"] for r in sel]
+            u = [r["parameters"][name]["std"] for r in sel]
+            ref = min(len(x) - 1, 10)  # the limits come from earlier values, never from the newest
+            doc: dict[str, Any] = {"runs": [r["run_id"] for r in sel],
+                   "shewhart": charts.shewhart(x, uncertainties=u, reference=ref).to_dict(),
+                   "ewma": charts.ewma(x, uncertainties=u, reference=ref).to_dict()}
+            out.setdefault(method, {})[name] = doc
+            late += [{"method": method, "parameter": name, "chart": kind, "run_id": sel[i]["run_id"]}
+                     for kind in ("shewhart", "ewma") for i in doc[kind]["out_of_control"]]
+    return out, late
+
+
 def write_summaries(items: Iterable[BatchItem], out_dir: Path, *, k: float = K_DEFAULT,
                     min_history: int = MIN_HISTORY) -> dict[str, dict[str, Any]]:
     """Merge the items into ``<out_dir>/<transducer>.json`` (rows keyed by run id and method: a
@@ -157,6 +183,7 @@ def write_summaries(items: Iterable[BatchItem], out_dir: Path, *, k: float = K_D
                         "text": "|x - m| > k u_c, u_c^2 = max(u^2, s^2) + max(sum u_i^2 / n^2, s^2 / n); "
                                 "history = earlier unflagged runs of the same method"},
                "units": dict(PARAMS), "flagged": flagged, "runs": checked}
+        doc["charts"], doc["out_of_control"] = _charts(checked)
         _atomic_write(jpath, json.dumps(doc, indent=1))
         _atomic_write(out_dir / f"{_safe(tx)}.csv", _csv(checked))
         written[tx] = doc

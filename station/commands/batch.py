@@ -85,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
             for f in d["flagged"]:
                 print(f"  DRIFT {f['parameter']} in run {f['run_id']}: {f['value']:.6g}, history mean "
                       f"{f['history_mean']:.6g}, deviation {f['deviation']:.3g} > {args.k:g} x {f['u_c']:.3g}")
+            for o in d.get("out_of_control", []):
+                print(f"  OUT OF CONTROL {o['parameter']} ({o['method']}, {o['chart']} chart) in run {o['run_id']}")
     for tx, d in docs.items():
         if d["flagged"]:
             log.warning("batch: drift flagged for %s (%d value(s))", tx, len(d["flagged"]))

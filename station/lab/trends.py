@@ -134,7 +134,7 @@ def transducer_trends(series: dict[str, tuple[str, list[Point]]], pol: Policy,
         if len(points) >= MIN_CHART:
             values = [p.value for p in points]
             us = [p.u for p in points]
-            ref = min(len(points), REFERENCE)
+            ref = min(len(points) - 1, REFERENCE)  # limits from earlier values, never the newest
             doc["shewhart"] = charts.shewhart(values, uncertainties=us, reference=ref).to_dict()
             doc["ewma"] = charts.ewma(values, uncertainties=us, reference=ref, lam=lam, L=L).to_dict()
         else:
