@@ -653,6 +653,49 @@ function historyPlot(runs, name, unit) {
     marks + "</svg>";
 }
 
+// a control chart (EWMA statistic or the values of a Shewhart chart) with its limits: red points are out of control
+function chartPlot(name, unit, chart, points) {
+  const W = 600, H = 200, pad = 50;
+  const pts = chart.points;
+  const ys = pts.flatMap((p) => [p.statistic, p.lower, p.upper]).concat(points.flatMap((p) => [p.value - p.u, p.value + p.u]));
+  const lo = Math.min(...ys), hi = Math.max(...ys);
+  const x = (i) => pad + (pts.length > 1 ? i / (pts.length - 1) : 0.5) * (W - 2 * pad);
+  const y = (v) => H - pad / 2 - (hi > lo ? (v - lo) / (hi - lo) : 0.5) * (H - pad);
+  const path = (key) => pts.map((p, i) => `${i ? "L" : "M"}${x(i)},${y(p[key])}`).join(" ");
+  const bars = chart.kind === "shewhart" ? points.map((p, i) => `<line x1="${x(i)}" x2="${x(i)}" y1="${y(p.value - p.u)}" y2="${y(p.value + p.u)}" stroke="#555"/>`).join("") : "";
+  const dots = pts.map((p, i) => `<circle cx="${x(i)}" cy="${y(p.statistic)}" r="4" fill="${p.out_of_control ? "#c00" : "#06c"}">` +
+    `<title>${esc(points[i].run_id)}: ${p.statistic.toPrecision(6)} ${esc(unit)}${p.out_of_control ? " (out of control)" : ""}</title></circle>`).join("");
+  const what = chart.kind === "ewma" ? `EWMA (λ ${chart.parameters.lambda}, limits ±${chart.parameters.L} s)` : `values ± u, limits ±${chart.parameters.k.toFixed(2)} s (t, ${chart.parameters.dof} degrees of freedom)`;
+  return `<svg viewBox="0 0 ${W} ${H}" width="100%" role="img" aria-label="${esc(name)} control chart" class="hist-svg">` +
+    `<text x="4" y="14" font-size="12">${esc(name)} (${esc(unit)}): ${esc(what)}; false alarms ${(100 * chart.false_alarm_rate).toFixed(2)} % per point</text>` +
+    `<path d="${path("upper")}" stroke="#c60" fill="none" stroke-dasharray="4 3"/><path d="${path("lower")}" stroke="#c60" fill="none" stroke-dasharray="4 3"/>` +
+    `<line x1="${pad}" x2="${W - pad}" y1="${y(chart.centre)}" y2="${y(chart.centre)}" stroke="#999"/>` +
+    bars + (chart.kind === "ewma" ? `<path d="${path("statistic")}" stroke="#06c" fill="none"/>` : "") + dots +
+    `<text x="4" y="${y(hi) + 4}" font-size="10">${hi.toPrecision(5)}</text><text x="4" y="${y(lo)}" font-size="10">${lo.toPrecision(5)}</text></svg>`;
+}
+
+// the trends: charts of each parameter, the latest as-found, drift risk and the intervals each method recommends
+function trendSection(trends) {
+  if (!trends) return "";
+  const units = { S: "V/N", k_f: "N/m", b_f: "N·s/m", f_0: "Hz" };
+  const names = { S: "sensitivity S", k_f: "stiffness k_f", b_f: "damping b_f", f_0: "natural frequency f_0 (with its end mass)" };
+  let html = `<p class="small">${trends.policy.check_standard ? "<strong>check transducer</strong> · " : ""}assigned interval: ${trends.policy.interval_days ? trends.policy.interval_days + " d" : "none"} · ${esc(trends.note)}</p>`;
+  for (const [name, p] of Object.entries(trends.parameters)) {
+    const unit = units[name] || p.unit;
+    html += `<h3>${esc(names[name] || name)}</h3>`;
+    if (p.ewma) html += chartPlot(name, unit, p.ewma, p.points) + chartPlot(name, unit, p.shewhart, p.points);
+    else html += `<p class="small">${esc(p.charts_note || "")}</p>`;
+    const last = p.as_found[p.as_found.length - 1];
+    if (last) html += `<p class="small">as found in ${esc(last.run_id)}: ${fmtU(last.difference, last.u)} ${esc(unit)} against the ${esc(last.as_left_source)} value of ${esc(last.previous_run_id)}` +
+      (last.in_tolerance === undefined ? "" : last.in_tolerance ? " (in tolerance)" : " (<strong>out of tolerance</strong>)") + "</p>";
+    const risk = p.drift_risk || {};
+    if (risk.probability_out_of_tolerance !== undefined) html += `<p class="small">drift ${fmtU(risk.slope_per_day, risk.u_slope_per_day)} ${esc(unit)}/d; probability of being out of tolerance at the next due date: ${(100 * risk.probability_out_of_tolerance).toFixed(1)} %</p>`;
+    const iv = Object.entries(p.intervals || {}).filter(([, r]) => r && r.interval_days !== undefined);
+    if (iv.length) html += `<p class="small">recommended intervals (for a person to decide): ` + iv.map(([m, r]) => `${esc(m)} ${Number(r.interval_days).toFixed(0)} d`).join(", ") + "</p>";
+  }
+  return html;
+}
+
 async function showHistory(id) {
   $("#hist-id").textContent = id;
   const r = await api("GET", `/transducers/${encodeURIComponent(id)}/history`);
@@ -661,6 +704,7 @@ async function showHistory(id) {
   $("#hist-transducer").textContent = [t.type, t.serial && `serial ${t.serial}`, `${t.capacity_N} N`, t.owner,
     `${d.runs.length} runs`].filter(Boolean).join(" · ");
   $("#hist-plot").innerHTML = historyPlot(d.runs, "k_f", d.units.k_f) + historyPlot(d.runs, "S", d.units.S);
+  $("#hist-trends").innerHTML = trendSection(d.trends);
   $("#hist-flagged").textContent = d.flagged.length ? "drift flagged: " + d.flagged.map((f) => `${f.run_id} ${f.parameter}`).join(", ")
     : "no drift flagged against earlier calibrations (the nightly batch's rule: |x − mean| > 3 u_c, after 3 runs)";
   const cell = (r, n) => { const p = r.parameters[n]; return p && p.value !== null ? fmtU(p.value, p.std) : "—"; };
