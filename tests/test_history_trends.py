@@ -27,15 +27,15 @@ def _transducer(store: Store) -> None:
 
 
 def _runs(store: Store, rec: Path, n: int, *, drift_per_day: float = 0.0, step_at: int | None = None,
-          seed: int = 5, days: float = 30.0) -> list[str]:
-    """n completed runs ``days`` apart whose S drifts (relative per day) or steps by 3 u at ``step_at``."""
+          seed: int = 5, days: float = 30.0, step_u: float = 3.0) -> list[str]:
+    """n completed runs ``days`` apart whose S drifts (relative per day) or steps by ``step_u`` u at ``step_at``."""
     rng = np.random.default_rng(seed)
     t0 = 1.7e9
     ids = []
     for i in range(n):
         rid = f"run{i:03d}"
         at = t0 + i * days * DAY_S
-        s = S0 * (1 + drift_per_day * i * days) + (3 * U_REL * S0 if step_at is not None and i >= step_at else 0.0)
+        s = S0 * (1 + drift_per_day * i * days) + (step_u * U_REL * S0 if step_at is not None and i >= step_at else 0.0)
         s += rng.normal(0, U_REL * S0)
         k = K0 * (1 + rng.normal(0, 3e-3))
         b = B0 * (1 + rng.normal(0, 3e-3))
@@ -186,3 +186,14 @@ def test_the_api_sets_the_policy_records_an_adjustment_and_serves_the_trends(tmp
             assert (await admin.get(f"/transducers/{TX}/history", params={"lam": 2})).status_code == 422
 
     asyncio.run(go())
+
+
+def test_an_out_of_control_check_transducer_holds_the_certificates_since_its_last_good_point(lab) -> None:
+    store, rec = lab
+    ids = _runs(store, rec, 14, step_at=13, step_u=8.0)
+    assert history.check_hold(store, rec) is None  # not marked as the check transducer yet
+    policy.put_policy(store, policy.Policy(TX, {}, None, True), "admin")
+    hold = history.check_hold(store, rec)
+    assert hold is not None and hold.run_id == ids[13] and hold.parameter == "S"
+    assert hold.since == pytest.approx(1.7e9 + 12 * 30 * DAY_S)
+    assert "held for review" in hold.reason

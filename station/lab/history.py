@@ -5,7 +5,7 @@ and drift of each parameter against the earlier calibrations (the nightly batch'
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -99,3 +99,37 @@ def history(rows: list[RunRow], recordings_dir: Path, approved: dict[str, list[d
         doc["trends"] = trends.transducer_trends(series_of(rows, entries), policy, as_left or {}, **chart_options)
         doc["out_of_control"] = trends.out_of_control(doc["trends"])
     return doc
+
+
+@dataclass(frozen=True)
+class CheckHold:
+    """The check transducer out of control: certificates of runs started after ``since`` (UNIX s, its
+    last good point) are held for review until a later check point is in control again."""
+
+    transducer_id: str
+    since: float
+    run_id: str
+    parameter: str
+    reason: str
+
+
+def check_hold(store: Store, recordings_dir: Path) -> CheckHold | None:
+    """Whether a check transducer's newest point is out of control on any chart (S, k_f, b_f, f_0)."""
+    from station.lab import policy as pol
+
+    for tx in pol.check_transducers(store):
+        rows = runs_of(store, tx)
+        doc = history(rows, recordings_dir, {}, pol.policy(store, tx), pol.as_left_of(store, tx))
+        for name, p in doc["trends"]["parameters"].items():
+            pts = p["points"]
+            if not pts:
+                continue
+            newest = len(pts) - 1
+            if any(newest in (p.get(kind) or {}).get("out_of_control", []) for kind in ("shewhart", "ewma")):
+                bad = {i for kind in ("shewhart", "ewma") for i in (p.get(kind) or {}).get("out_of_control", [])}
+                good = [i for i in range(newest) if i not in bad]
+                since = pts[good[-1]]["at"] if good else pts[0]["at"]
+                return CheckHold(tx, since, pts[newest]["run_id"], name,
+                                 f"the check transducer {tx} is out of control ({name}, run {pts[newest]['run_id']}): "
+                                 "certificates of runs made since its last good check are held for review")
+    return None
