@@ -184,6 +184,9 @@ def test_the_api_sets_the_policy_records_an_adjustment_and_serves_the_trends(tmp
             assert h["trends"]["policy"]["check_standard"] is True
             assert any(p["parameter"] == "S" for p in h["out_of_control"])
             assert (await admin.get(f"/transducers/{TX}/history", params={"lam": 2})).status_code == 422
+            # the check transducer is out of control: a run made since its last good point is not approved
+            r = await anton.post(f"/runs/{ids[-1]}/approve", json={"note": "ok"})
+            assert r.status_code == 409 and "held for review" in r.text
 
     asyncio.run(go())
 

@@ -38,7 +38,7 @@ from station.service.recovery import recover
 from station.service.riglink import RigConnector, RigLink, default_connector
 from station.service.runs import AckReport, LiveRun, Runs, StopReport
 from station.service.settings import ServiceSettings
-from station.service.store import FINAL_STATES, Store
+from station.service.store import FINAL_STATES, RunRow, Store
 
 __all__ = [
     "MAX_JOB_ATTEMPTS",
@@ -164,12 +164,22 @@ class RunManager:
             raise RunStateError(f"run {run_id} is {row.state}: only a completed run can be approved")
         if row.operator == approver.name:
             raise users.ForbiddenError(f"run {run_id} was started by {approver.name}: a second person approves it")
+        await self.check_not_held(row)
         sha = await self.artifacts.verified(row, required=True)
         details = {"note": note, "sha256": sha, "operator": row.operator, "recording": row.recording}
         entry = await self.db.call(lambda store: audit.append(store, approver.name, audit.CERTIFICATE_APPROVED,
                                                               run_id, details))
         return {"run_id": run_id, "approved_by": approver.name, "audit_id": entry, **details}
 
+
+    async def check_not_held(self, row: RunRow) -> None:
+        """Refuse (RunStateError) to approve a run made since the check transducer's last good point
+        while its newest check is out of control (station.lab.history.check_hold)."""
+        from station.lab.history import check_hold
+
+        hold = await self.db.read(lambda s: check_hold(s, self.settings.recordings_dir))
+        if hold is not None and row.created > hold.since:
+            raise RunStateError(f"run {row.id} is held for review: {hold.reason}")
 
     def _on_acquired(self, run_id: str) -> None:
         self.jobs.wake()
