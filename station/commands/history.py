@@ -85,7 +85,7 @@ def _text(doc: dict[str, Any]) -> str:
                          "out of tolerance at the due date with probability "
                          f"{risk['probability_out_of_tolerance']:.1%}")
         for method, r in (p.get("intervals") or {}).items():
-            if isinstance(r, dict) and "interval_days" in r:
+            if isinstance(r, dict) and isinstance(r.get("interval_days"), (int, float)):
                 lines.append(f"  interval by {method}: {_fmt(r['interval_days'])} d (a recommendation)")
     return "\n".join(lines)
 

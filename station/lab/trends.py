@@ -107,9 +107,16 @@ def _intervals(found: list[dict[str, Any]], pol: Policy, tol: float | None,
         y0 = adjusted_last if adjusted_last is not None else last.value
         v = intervals.variables([f["days"] for f in found], [f["difference"] for f in found], u0=last.u, y0=y0,
                                 order=1, limits=(y0 - tol * abs(y0), y0 + tol * abs(y0)), confidence=CONFIDENCE)
-        out["variables"] = {"interval_days": v.reliability_interval, "drift_per_day": v.fit.coefficients[0],
-                            "u_drift_per_day": math.sqrt(v.fit.covariance[0][0]), "s_yx": v.fit.s_yx,
-                            "confidence": CONFIDENCE}
+        var: dict[str, Any] = {"drift_per_day": v.fit.coefficients[0], "s_yx": v.fit.s_yx,
+                               "u_drift_per_day": math.sqrt(v.fit.covariance[0][0]), "confidence": CONFIDENCE}
+        horizon = 10 * max(f["days"] for f in found)
+        if math.isnan(v.reliability_interval):
+            var["note"] = f"the confidence bound stays within the tolerance for {horizon:.0f} d (10x the longest gap)"
+        elif v.reliability_interval == 0:
+            var["note"] = "the confidence bound is outside the tolerance already at the as-left value"
+        else:
+            var["interval_days"] = v.reliability_interval
+        out["variables"] = var
     else:
         out["variables"] = {"note": "the variables method needs at least 3 as-found comparisons"}
     out["reliability_target"] = RELIABILITY_TARGET

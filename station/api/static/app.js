@@ -690,7 +690,7 @@ function trendSection(trends) {
       (last.in_tolerance === undefined ? "" : last.in_tolerance ? " (in tolerance)" : " (<strong>out of tolerance</strong>)") + "</p>";
     const risk = p.drift_risk || {};
     if (risk.probability_out_of_tolerance !== undefined) html += `<p class="small">drift ${fmtU(risk.slope_per_day, risk.u_slope_per_day)} ${esc(unit)}/d; probability of being out of tolerance at the next due date: ${(100 * risk.probability_out_of_tolerance).toFixed(1)} %</p>`;
-    const iv = Object.entries(p.intervals || {}).filter(([, r]) => r && r.interval_days !== undefined);
+    const iv = Object.entries(p.intervals || {}).filter(([, r]) => r && typeof r.interval_days === "number");
     if (iv.length) html += `<p class="small">recommended intervals (for a person to decide): ` + iv.map(([m, r]) => `${esc(m)} ${Number(r.interval_days).toFixed(0)} d`).join(", ") + "</p>";
   }
   return html;
