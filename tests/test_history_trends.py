@@ -9,48 +9,12 @@ import json
 import math
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from station.lab import audit, history, policy, register
+from station.lab import audit, history, policy
 from station.lab.trends import DAY_S, natural_frequency
-from station.recording.stored import write_result
-from station.service.store import RunRow, Store
-
-TX = "TX-CHECK-1"
-S0, K0, B0 = 2.0e-3, 2.91e7, 17136.0
-U_REL = 2.8e-4
-
-
-def _transducer(store: Store) -> None:
-    register.put_transducer(store, register.Transducer(TX, 5000.0, 2e-3, 0.12, 0.006, "check", "SN1"), "admin")
-
-
-def _runs(store: Store, rec: Path, n: int, *, drift_per_day: float = 0.0, step_at: int | None = None,
-          seed: int = 5, days: float = 30.0, step_u: float = 3.0) -> list[str]:
-    """n completed runs ``days`` apart whose S drifts (relative per day) or steps by ``step_u`` u at ``step_at``."""
-    rng = np.random.default_rng(seed)
-    t0 = 1.7e9
-    ids = []
-    for i in range(n):
-        rid = f"run{i:03d}"
-        at = t0 + i * days * DAY_S
-        s = S0 * (1 + drift_per_day * i * days) + (step_u * U_REL * S0 if step_at is not None and i >= step_at else 0.0)
-        s += rng.normal(0, U_REL * S0)
-        k = K0 * (1 + rng.normal(0, 3e-3))
-        b = B0 * (1 + rng.normal(0, 3e-3))
-        name = f"{rid}.h5"
-        (rec / name).write_bytes(b"not read by the history")
-        write_result(rec / name, "identify_fd_sdof", {"parameters": {
-            "S": {"value": s, "std": U_REL * S0, "unit": "V/N"},
-            "k_f": {"value": k, "std": 3e-3 * K0, "unit": "N/m"},
-            "b_f": {"value": b, "std": 3e-3 * B0, "unit": "N*s/m"}}})
-        tj = json.dumps(register.transducer(store, TX).to_dict())
-        store.insert_run(RunRow(id=rid, state="completed", transducer_id=TX, top_mass_kg=25.717, request_json="{}",
-                                plan_json="{}", created=at, n_steps=3, recording=name,
-                                result_name="identify_fd_sdof", operator="tina", transducer_json=tj))
-        ids.append(rid)
-    return ids
+from station.service.store import Store
+from tests.history_support import K0, S0, TX, U_REL, add_runs, add_transducer
 
 
 def _doc(store: Store, rec: Path, **kw: float) -> dict:
@@ -64,14 +28,14 @@ def lab(tmp_path: Path):
     rec = tmp_path / "rec"
     rec.mkdir()
     store = Store(rec / "station.db")
-    _transducer(store)
+    add_transducer(store)
     yield store, rec
     store.close()
 
 
 def test_a_step_in_s_is_out_of_control_and_a_stable_k_f_is_not(lab) -> None:
     store, rec = lab
-    _runs(store, rec, 16, step_at=10)
+    add_runs(store, rec, 16, step_at=10)
     doc = _doc(store, rec)
     t = doc["trends"]["parameters"]
     assert set(t) == {"S", "k_f", "b_f", "f_0"}
@@ -90,7 +54,7 @@ def test_a_step_in_s_is_out_of_control_and_a_stable_k_f_is_not(lab) -> None:
 
 def test_as_found_against_the_recorded_as_left_value_and_the_intervals(lab) -> None:
     store, rec = lab
-    ids = _runs(store, rec, 12, drift_per_day=1e-3 / 30, days=30.0)  # 0.1 % a month
+    ids = add_runs(store, rec, 12, drift_per_day=1e-3 / 30, days=30.0)  # 0.1 % a month
     policy.put_policy(store, policy.Policy(TX, {"S": 0.005}, 365.0), "admin")
     # the user set S = 1.001·S0 in the instrument after run 5: run 6's as-found is judged against it
     policy.record_as_left(store, policy.AsLeft(ids[5], TX, "S", 1.001 * S0, "V/N", "gain set", 1.8e9, "anton"))
@@ -112,7 +76,7 @@ def test_as_found_against_the_recorded_as_left_value_and_the_intervals(lab) -> N
 
 def test_bad_policy_and_adjustments_are_refused(lab) -> None:
     store, rec = lab
-    ids = _runs(store, rec, 2)
+    ids = add_runs(store, rec, 2)
     with pytest.raises(policy.PolicyError, match="relative"):
         policy.put_policy(store, policy.Policy(TX, {"S": 5.0}), "admin")
     with pytest.raises(policy.PolicyError, match="no tolerance can be set"):
@@ -134,8 +98,8 @@ def test_station_history_prints_the_charts_and_sets_the_policy(tmp_path: Path, c
 
     cfg.write_text(yaml.safe_dump(daemon_config(rec)))
     store = Store(rec / "station.db")
-    _transducer(store)
-    ids = _runs(store, rec, 14, step_at=10)
+    add_transducer(store)
+    ids = add_runs(store, rec, 14, step_at=10)
     store.close()
     assert main(["history", TX, "--config", str(cfg), "--tolerance", "S=0.005", "--interval-days", "30",
                  "--check-standard", "yes"]) == 0
@@ -161,8 +125,8 @@ def test_the_api_sets_the_policy_records_an_adjustment_and_serves_the_trends(tmp
     async def go() -> None:
         async with app_in_process(rec) as (manager, admin):
             def seed(s: Store) -> list[str]:
-                _transducer(s)
-                return _runs(s, rec, 16, step_at=10)
+                add_transducer(s)
+                return add_runs(s, rec, 16, step_at=10)
             ids = await manager.db.call(seed)
             r = await admin.put(f"/register/transducers/{TX}/policy",
                                 json={"tolerances": {"S": 0.005}, "interval_days": 30, "check_standard": True})
@@ -193,7 +157,7 @@ def test_the_api_sets_the_policy_records_an_adjustment_and_serves_the_trends(tmp
 
 def test_an_out_of_control_check_transducer_holds_the_certificates_since_its_last_good_point(lab) -> None:
     store, rec = lab
-    ids = _runs(store, rec, 14, step_at=13, step_u=8.0)
+    ids = add_runs(store, rec, 14, step_at=13, step_u=8.0)
     assert history.check_hold(store, rec) is None  # not marked as the check transducer yet
     policy.put_policy(store, policy.Policy(TX, {}, None, True), "admin")
     hold = history.check_hold(store, rec)
