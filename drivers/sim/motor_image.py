@@ -56,6 +56,7 @@ class MotorRegisterImage:
         self._stored: dict[str, float] = {}
         self._history: list[tuple[str, int, float]] = []  # (register, raw value, time) of command writes
         self._command_regs = profile.commands.registers
+        self._triggers = self._command_triggers()
         self.writes: Counter[str] = Counter()
         self.commands_seen: list[str] = []
         # a drive with a ``run`` command is switched on by ``enable`` and follows the set point on ``run``
@@ -63,6 +64,7 @@ class MotorRegisterImage:
         self.switched_on = False
         # called with (register name, value, time.monotonic()) for every register a write applied
         self.observers: list[Callable[[str, float, float], None]] = []
+        self.locked: set[str] = set()  # test hook: registers whose writes the drive answers but does not keep
         self._reboot_until = -math.inf  # model time until which the drive reboots (answers nothing)
         self._silent = False  # the write being applied gets no reply (the drive started rebooting)
         self.reboots = 0
@@ -73,6 +75,23 @@ class MotorRegisterImage:
         if profile.watchdog.drive_default_s is not None:
             model.play_drive_defaults(profile.watchdog.drive_default_s)
         self._apply_settings()
+
+    def _command_triggers(self) -> dict[str, tuple[str, int]]:
+        """For a drive with one register per command (``model: registers``): the word each command
+        acts on, the last (register, value) of its sequence that no other sequence writes (the GS2's
+        EF = 1 stops it whatever follows); a command without one is matched as a whole sequence."""
+        cmds = self.profile.commands
+        if cmds.kind != "registers":
+            return {}
+        pairs = {c: [(s.register, s.value) for s in seq if s.register != self.profile.setpoint]
+                 for c, seq in cmds.sequences.items()}
+        out = {}
+        for c, mine in pairs.items():
+            others = {pair for o, theirs in pairs.items() if o != c for pair in theirs}
+            unique = [pair for pair in mine if pair not in others]
+            if unique:
+                out[c] = unique[-1]
+        return out
 
     # ------------------------------------------------------------------------------ the drive's settings
     def _holds(self, role_prefix: str) -> bool:
@@ -260,6 +279,11 @@ class MotorRegisterImage:
                 continue
             # the set point is no command register: a sequence's set-point steps are not in the history
             steps = tuple(s for s in self.profile.commands.sequences[command] if s.register != self.profile.setpoint)
+            trigger = self._triggers.get(command)
+            if trigger is not None:  # one register per command: the drive acts on that word alone
+                if (now_hist[-1][0], now_hist[-1][1]) == trigger and (best is None or len(steps) > best[0]):
+                    best = (len(steps), command)
+                continue
             n = len(steps)
             if n == 0:
                 continue
@@ -282,7 +306,9 @@ class MotorRegisterImage:
         try:
             if rewrite_refresh:
                 model.refresh_watchdog()  # a drive that counts received process data (the V20's F72)
-            if name == p.setpoint:
+            if name in self.locked:
+                log.info("motor emulator: write %s=%s answered but not kept (locked)", name, value)
+            elif name == p.setpoint:
                 if self._holds("setpoint_source"):
                     model.set_setpoint(value)
                 else:
