@@ -173,12 +173,11 @@ def test_a_drive_that_does_not_hold_a_safety_setting_is_never_enabled(
 
 def test_the_station_refuses_a_run_on_a_drive_whose_upper_limit_is_too_low(tmp_path: Path) -> None:
     """Through the run procedure: the run fails before anything moves, naming UL and its value."""
-    from tests.test_drive_profiles import calibration_config
-
     from station.config import parse_config
     from station.run.procedure import Procedure
     from station.run.request import RunRequest, StepSpec, plan_run
     from station.run.rig import connect
+    from tests.test_drive_profiles import calibration_config
 
     cfg = parse_config(calibration_config("toshiba-vf-s11"), "test.yaml")
     steps = [StepSpec(crank_frequency_hz=s.crank_frequency_hz, crank_radius_m=s.crank_radius_m)
