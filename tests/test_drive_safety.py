@@ -9,7 +9,7 @@ on the virtual clock, except where the wire itself is the point (a command word 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -23,34 +23,13 @@ from drivers.motor import (
     MotorTimeoutError,
     load_profile,
 )
-from drivers.motor.profile import DriveProfile
 from drivers.sim.clock import VirtualClock
 from drivers.sim.motor_image import MotorRegisterImage
 from drivers.sim.motor_inprocess import InProcessTransport
 from drivers.sim.motor_model import MotorModel
+from tests.test_drive_profiles import drive as factory_drive  # the emulated drive, as it leaves the factory
 
 REAL = ["toshiba-vf-s11", "automationdirect-gs2", "siemens-sinamics-v20", "cia402-modbus"]
-
-Body = Callable[[MotorController, MotorModel, MotorRegisterImage, VirtualClock], Awaitable[None]]
-
-
-def factory_drive(profile: DriveProfile, body: Body, *, arm: bool = False) -> MotorRegisterImage:
-    """Run ``body`` against the profile's emulated drive as it leaves the factory (virtual clock)."""
-    clock = VirtualClock()
-    model = MotorModel(profile.device, clock=clock.monotonic)
-    image = MotorRegisterImage(profile, model)
-
-    async def go() -> None:
-        motor = MotorController(profile, clock=clock)
-        await motor.connect(InProcessTransport(image))
-        if arm:
-            await motor.arm()
-        await body(motor, model, image, clock)
-        await motor.close()
-
-    asyncio.run(go())
-    return image
-
 
 def written(image: MotorRegisterImage) -> list[tuple[str, float, float]]:
     """Every register write the drive applied from now on: (register, value, model time)."""
@@ -230,6 +209,7 @@ def test_the_vf_s11_reset_is_sent_once_and_the_drive_is_restored_after_its_reboo
     p = load_profile("toshiba-vf-s11")
 
     async def body(motor: MotorController, model: MotorModel, image: MotorRegisterImage, clock: VirtualClock) -> None:
+        await motor.arm()
         await motor.set_ramp(50.0)
         await motor.enable()
         await motor.set_frequency(20.0)
@@ -252,7 +232,7 @@ def test_the_vf_s11_reset_is_sent_once_and_the_drive_is_restored_after_its_reboo
         await motor.enable()  # the restored drive runs again
         assert (await motor.wait_for_speed(10.0, timeout_s=5.0)).flags["enabled"]
 
-    factory_drive(p, body, arm=True)
+    factory_drive(p, body)
 
 
 def test_the_vf_s11_acc_dec_follow_the_fh_the_drive_holds() -> None:
@@ -277,6 +257,7 @@ def test_the_gs2_stop_and_reset_leave_run_off_and_speed_zero() -> None:
     p = load_profile("automationdirect-gs2")
 
     async def body(motor: MotorController, model: MotorModel, image: MotorRegisterImage, clock: VirtualClock) -> None:
+        await motor.arm()
         t = motor.transport
 
         async def raw(register: str, value: int) -> None:
@@ -304,13 +285,14 @@ def test_the_gs2_stop_and_reset_leave_run_off_and_speed_zero() -> None:
         assert st.fault_code == 0 and model.speed_hz() == 0.0
         assert await motor.read("run_command") == 0 and await motor.read("speed_reference") == 0
 
-    factory_drive(p, body, arm=True)
+    factory_drive(p, body)
 
 
 def test_the_gs2_direction_is_written_on_enable_and_read_back() -> None:
     p = load_profile("automationdirect-gs2")
 
     async def body(motor: MotorController, model: MotorModel, image: MotorRegisterImage, clock: VirtualClock) -> None:
+        await motor.arm()
         image.set_panel("direction_command", 1)  # reverse, left over from the panel
         await motor.enable()
         assert await motor.read("direction_command") == 0 and model.snapshot().enabled
@@ -320,7 +302,7 @@ def test_the_gs2_direction_is_written_on_enable_and_read_back() -> None:
         with pytest.raises(MotorStateError, match=r"direction_command.*wrote 0, read back 1"):
             await motor.enable()
 
-    factory_drive(p, body, arm=True)
+    factory_drive(p, body)
 
 
 # ------------------------------------------------------------------------------------------ sent once
