@@ -349,3 +349,30 @@ def test_a_command_word_is_sent_once_a_set_point_may_be_sent_again() -> None:
         server.close()
 
     asyncio.run(run())
+
+
+@pytest.mark.slow
+def test_the_vf_s11_reset_over_modbus_tcp_gets_no_reply_is_not_resent_and_the_drive_comes_back() -> None:
+    """On the wire (the emulator's Modbus TCP server, real time): the reset frame gets no reply while
+    the drive reboots; the driver does not send it again, waits out the reboot and restores the drive."""
+    from drivers.sim.rig import SimRig
+
+    p = load_profile("toshiba-vf-s11")
+    with SimRig(seed=3, profile=p, rtu=False) as rig:
+        log = written(rig.image)
+
+        async def run() -> None:
+            motor = MotorController(p)
+            await motor.connect(ModbusTransport.tcp(*rig.addresses.modbus_tcp,
+                                                    policy=LinkPolicy(timeout_s=0.5, retries=2)))
+            await motor.arm()
+            rig.motor.emergency_stop()  # the drive's E trip, at standstill
+            await motor.reset_faults()
+            st = await motor.check_standstill()
+            assert st.fault_code == 0
+            await motor.close()
+
+        asyncio.run(run())
+        assert rig.image.reboots == 1 and rig.modbus_faults.dropped >= 1
+        assert [v for n, v, _ in log if n == "command"] == [0xE000, 0xC000]
+        assert rig.image.write_requests["command"] == 2  # the reset and the restore: nothing sent again

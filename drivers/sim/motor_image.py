@@ -43,7 +43,8 @@ class _Refused(Exception):
 class MotorRegisterImage:
     """Reads produce the live state; writes command the model.  Thread-safe through the model.
 
-    ``writes`` counts the accepted writes per register (an EEPROM-backed register's wear)."""
+    ``writes`` counts the accepted writes per register (an EEPROM-backed register's wear),
+    ``write_requests`` every write that arrived, answered or not (a command sent twice shows here)."""
 
     def __init__(self, profile: DriveProfile, model: MotorModel) -> None:
         self.map = profile
@@ -58,6 +59,7 @@ class MotorRegisterImage:
         self._command_regs = profile.commands.registers
         self._triggers = self._command_triggers()
         self.writes: Counter[str] = Counter()
+        self.write_requests: Counter[str] = Counter()  # every write that arrived, answered or not
         self.commands_seen: list[str] = []
         # a drive with a ``run`` command is switched on by ``enable`` and follows the set point on ``run``
         self._two_stage = "run" in profile.commands.sequences
@@ -234,6 +236,7 @@ class MotorRegisterImage:
                 return ILLEGAL_ADDRESS
             regs.append(entry[0])
             a += entry[0].words
+        self.write_requests.update(reg.name for reg in regs)
         if self._rebooting():
             return NO_REPLY
         self._any_request()
