@@ -307,15 +307,15 @@ def test_a_profile_whose_watchdog_is_off_is_refused(tmp_path: Path) -> None:
 def test_steps_beyond_the_drives_range_are_refused_before_anything_moves(tmp_path: Path) -> None:
     d = calibration_config("toshiba-vf-s11")
     d["rig"]["crank_frequency_hz"]["max"] = 100.0
-    d["plan"]["steps"][1].update(crank_frequency_hz=90.0, crank_radius_m=0.0002)  # the VF-S11's FH is 80 Hz
+    d["plan"]["steps"][1].update(crank_frequency_hz=60.0, crank_radius_m=0.0002)  # the VF-S11 profile's 50 Hz
     cfg = parse_config(d, "test.yaml")
     steps = [StepSpec(crank_frequency_hz=s.crank_frequency_hz, crank_radius_m=s.crank_radius_m)
              for s in cfg.plan.steps]
-    refused = r"step 2 \(90 Hz.*drive profile 'toshiba-vf-s11' can be set to \(0..80 Hz"
+    refused = r"step 2 \(60 Hz.*drive profile 'toshiba-vf-s11' can be set to \(0..50 Hz"
     with pytest.raises(LimitError, match=refused) as exc:
         plan_run(cfg, RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg, steps=steps))
     e = exc.value
-    assert (e.step, e.field, e.value, e.limit) == (1, "crank_frequency_hz", 90.0, (0, 80))
+    assert (e.step, e.field, e.value, e.limit) == (1, "crank_frequency_hz", 60.0, (0, 50))
     # the procedure refuses such a plan too, should one reach it by another way than plan_run
     plan = Plan(cfg, tuple(PlannedStep(i, s.crank_frequency_hz, s.crank_radius_m, 0.1, 0.5)
                            for i, s in enumerate(cfg.plan.steps)))
@@ -329,16 +329,30 @@ def test_steps_beyond_the_drives_range_are_refused_before_anything_moves(tmp_pat
 
     outcome = asyncio.run(go())
     assert outcome.exit_status == "failed"  # type: ignore[attr-defined]
-    assert "expected within what drive profile 'toshiba-vf-s11' can be set to (0..80 Hz)" in outcome.reason  # type: ignore[attr-defined]
+    assert "expected within what drive profile 'toshiba-vf-s11' can be set to (0..50 Hz)" in outcome.reason  # type: ignore[attr-defined]
 
 
 # ------------------------------------------------------------------------------ byte-exact frames
 class EchoModbusServer:
-    """A loopback Modbus TCP peer that records each request and answers FC 06/16 as a drive does."""
+    """A loopback Modbus TCP peer that records each request and answers FC 03/06/16 as a drive does,
+    from a plain register store (``preset``: wire address -> word, the settings made on the panel)."""
 
-    def __init__(self) -> None:
+    def __init__(self, preset: dict[int, int] | None = None) -> None:
         self.requests: list[str] = []
         self.arrivals: list[float] = []  # time.monotonic() of each request's first byte
+        self.regs: dict[int, int] = dict(preset or {})
+
+    def _answer(self, body: bytes) -> bytes:
+        fc, addr, qty = body[1], int.from_bytes(body[2:4], "big"), int.from_bytes(body[4:6], "big")
+        if fc == 0x06:
+            self.regs[addr] = qty
+            return body
+        if fc == 0x10:
+            for i in range(qty):
+                self.regs[addr + i] = int.from_bytes(body[7 + 2 * i: 9 + 2 * i], "big")
+            return body[:6]
+        words = b"".join(self.regs.get(addr + i, 0).to_bytes(2, "big") for i in range(qty))
+        return body[:2] + bytes([len(words)]) + words
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
@@ -347,7 +361,7 @@ class EchoModbusServer:
                 self.arrivals.append(time.monotonic())
                 body = await reader.readexactly(int.from_bytes(head[4:6], "big"))
                 self.requests.append(body.hex(" ").upper())
-                reply = body if body[1] == 0x06 else body[:6]
+                reply = self._answer(body)
                 writer.write(head[:4] + len(reply).to_bytes(2, "big") + reply)
                 await writer.drain()
         except asyncio.IncompleteReadError:
@@ -366,8 +380,8 @@ FRAMES = {
     "sinecal-crank": ["01 06 00 01 07 D0", "01 06 00 00 00 01"],
     # FA01 in 0.01 Hz; FA00 = command priority | frequency priority | run
     "toshiba-vf-s11": ["01 06 FA 01 07 D0", "01 06 FA 00 C4 00"],
-    # 0x091A in 0.1 Hz; 0x091B run = 1
-    "automationdirect-gs2": ["01 06 09 1A 00 C8", "01 06 09 1B 00 01"],
+    # 0x091A in 0.1 Hz; 0x091C direction forward, 0x091B run = 1, then the direction read back
+    "automationdirect-gs2": ["01 06 09 1A 00 C8", "01 06 09 1C 00 00", "01 06 09 1B 00 01", "01 03 09 1C 00 01"],
     # HSW 40101 (wire 100): 20/50 x 16384 = 6553.6 -> 6554; STW1 40100 (wire 99): OFF1 then ON
     "siemens-sinamics-v20": ["01 06 00 64 19 9A", "01 06 00 63 04 7E", "01 06 00 63 04 7F"],
     # 0x60FF int32 in 0.1 rev/min (20 rev/s = 12000), high word first, FC 16; mode 3, then 6 -> 7 -> F
@@ -376,22 +390,51 @@ FRAMES = {
 }
 
 
+# the settings a commissioning engineer makes on the panel (wire address -> word) for the checked ones
+PANEL = {"toshiba-vf-s11": {0x0011: 8000, 0x0012: 5000},  # FH 80 Hz, UL 50 Hz
+         "siemens-sinamics-v20": {15: 5000}}              # P2000 (40016) 50 Hz
+
+
 @pytest.mark.parametrize("name", PROFILES)
 def test_command_and_set_point_frames_are_byte_exact(name: str) -> None:
     p = load_profile(name)
-    fake = EchoModbusServer()
+    fake = EchoModbusServer(PANEL.get(name))
+    armed = 0
 
     async def run() -> None:
+        nonlocal armed
         async with fake as (host, port):
             motor = MotorController(p, clock=VirtualClock())
             await motor.connect(ModbusTransport.tcp(host, port, device_id=p.transport.unit_id,
                                                     policy=LinkPolicy(timeout_s=1.0)))
+            await motor.arm()
+            armed = len(fake.requests)
             await motor.set_frequency(20.0)
             await motor.enable()
             await motor.close()
 
     asyncio.run(run())
-    assert fake.requests == FRAMES[name]
+    assert fake.requests[armed:] == FRAMES[name]
+
+
+def test_the_gs2_is_armed_on_the_wire_as_its_manual_says() -> None:
+    """Each safety parameter read, written where it differs from the factory setting, read back:
+    P9.04 = 1, P9.03 = 1, P3.00 = 3, P4.00 = 5 (P1.00 is already 0: not written), P9.05 = 1.0 s."""
+    fake = EchoModbusServer({0x0905: 5})  # the factory P9.05 = 0.5 s; everything else 0
+
+    async def run() -> dict[str, float]:
+        async with fake as (host, port):
+            motor = MotorController(load_profile("automationdirect-gs2"), clock=VirtualClock())
+            await motor.connect(ModbusTransport.tcp(host, port, policy=LinkPolicy(timeout_s=1.0)))
+            found = await motor.arm()
+            await motor.close()
+            return found
+
+    found = asyncio.run(run())
+    writes = [r for r in fake.requests if r[3:5] == "06"]
+    assert writes == ["01 06 09 04 00 01", "01 06 09 03 00 01", "01 06 03 00 00 03", "01 06 04 00 00 05",
+                      "01 06 09 05 00 0A"]
+    assert found == {"P9.04": 1, "P9.03": 1, "P3.00": 3, "P4.00": 5, "P1.00": 0, "P9.05": 1.0}
 
 
 def test_status_decoding_of_each_drive() -> None:

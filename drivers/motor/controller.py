@@ -13,6 +13,11 @@ Usage (asyncio)::
 The station must refresh the drive's watchdog: call :meth:`refresh_watchdog` at least every
 watchdog time-out (or run :meth:`start_watchdog`); otherwise the drive stops the motor.  Commands
 (enable, stop, quick stop, fault reset) are the profile's write sequences with their hold times.
+Before the first enable of a connection the profile's safety settings (communication-loss stop, command
+source, stop method, the frequency the scaling rests on) are armed and read back (:meth:`arm`); a drive
+that does not hold them is not enabled (:class:`MotorSafetyError` naming the parameter).  A command word
+is sent once: only the registers the profile lists in ``transport.retry_writes`` are sent again after a
+time-out.
 """
 
 from __future__ import annotations
@@ -26,7 +31,15 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from drivers.clock import REAL_CLOCK, Clock
-from drivers.motor.errors import MotorError, MotorFaultError, MotorStateError, MotorValueError
+from drivers.motor.errors import (
+    MotorCommunicationError,
+    MotorError,
+    MotorExceptionReplyError,
+    MotorFaultError,
+    MotorSafetyError,
+    MotorStateError,
+    MotorValueError,
+)
 from drivers.motor.profile import PSEUDO_ESTOP, PSEUDO_FAULT, CommandStep, DriveProfile, load_profile
 from drivers.motor.transport import RegisterTransport
 
@@ -97,6 +110,14 @@ class MotorController:
         self._setpoint_hz = 0.0
         self.watchdog_error: MotorError | None = None
         self.eeprom_writes: Counter[str] = Counter()
+        self.armed: dict[str, float] = {}  # parameter -> value read back by arm() (empty: not armed)
+        self._armed = False
+        self._ramp_reference_hz: float | None = None  # the drive's maximum frequency, read back
+        self._last_words: dict[str, list[int]] = {}  # the last words written to each register
+        # a command sequence, a set point and a watchdog rewrite never interleave (the emergency stop
+        # takes no lock: it never waits for anything)
+        self._io = asyncio.Lock()
+        self._watchdog_set_s: float | None = None  # the time-out set_watchdog_timeout() last set
 
     @property
     def transport(self) -> RegisterTransport:
@@ -109,6 +130,9 @@ class MotorController:
         await transport.open()
         self._t = transport
         self.eeprom_writes.clear()
+        self.armed, self._armed, self._ramp_reference_hz = {}, False, None
+        self._watchdog_set_s = None
+        self._last_words.clear()
         log.info("motor controller (%s) connected via %s", self.profile.name, transport.description)
 
     async def close(self) -> None:
@@ -144,7 +168,9 @@ class MotorController:
                     "since connect: refused (an EEPROM wears out; it is written when its value changes, "
                     "never in a loop)")
             self.eeprom_writes[name] += 1
-        await self.transport.write(reg.address, words, name)
+        self._last_words[name] = list(words)
+        retry = name in self.profile.transport.retry_writes
+        await self.transport.write(reg.address, words, name, retry=retry)
 
     async def set_parameter(self, name: str, value: float) -> bool:
         """Set a parameter: an EEPROM-backed one is read first and written only if it differs (to its
@@ -156,19 +182,97 @@ class MotorController:
         await self.write(name, value)
         return True
 
-    async def _run(self, *commands: str) -> None:
-        """Carry out commands of the profile's command model in turn, step by step with their hold times."""
+    async def _run(self, *commands: str, lock: bool = True) -> None:
+        """Carry out commands of the profile's command model in turn, step by step with their hold times
+        (each word sent once), then read back the steps marked ``verify``.  ``lock=False`` (the
+        emergency stop): without waiting for a set point or a watchdog refresh under way."""
+        if lock:
+            async with self._io:
+                await self._steps(commands)
+        else:
+            await self._steps(commands)
+
+    async def _steps(self, commands: tuple[str, ...]) -> None:
         seqs = self.profile.commands.sequences
         steps: list[CommandStep] = [step for c in commands if c in seqs for step in seqs[c]]
         for i, step in enumerate(steps):
-            await self._write_words(step.register, self.profile[step.register].words_of_raw(step.value))
+            reg = self.profile[step.register]
+            await self._write_words(step.register, reg.words_of_raw(step.value))
+            if step.register == self.profile.setpoint:
+                self._setpoint_hz = reg.decode(reg.words_of_raw(step.value))
             if step.hold_s > 0 and i < len(steps) - 1:
                 await self.clock.asleep(step.hold_s)
+        for step in steps:
+            if step.verify:
+                reg = self.profile[step.register]
+                raw = reg.decode_raw(await self.transport.read(reg.address, reg.words, f"{reg.name} (read back)",
+                                                               reg.read_function))
+                if raw != step.value:
+                    raise MotorStateError(f"register {reg.name!r}: wrote {step.value}, read back {raw} "
+                                          f"(drive profile {self.profile.name!r}): the drive did not take it")
 
+    # --------------------------------------------------------------- safety settings
+    async def arm(self) -> dict[str, float]:
+        """Arm the drive's safety settings and read each back: the profile's ``safety`` list (a ``set``
+        setting is written when the drive holds another value, once; a ``check`` setting is only
+        read) and the communication watchdog's time-out.  Returns {parameter: value read back}.
+
+        Raises :class:`MotorSafetyError` naming the first parameter that does not hold its required
+        value; until then the drive is not enabled (:meth:`enable` arms first)."""
+        p = self.profile
+        self._armed = False
+        found: dict[str, float] = {}
+        for s in p.safety:
+            reg = p[s.register]
+            value = await self.read(s.register)
+            if s.how == "set" and not s.holds(value, reg.scale):
+                assert s.value is not None
+                log.warning("drive %s: %s is %g, setting it to %s", p.name, s.parameter, value, s.required())
+                await self.write(s.register, s.value)
+                value = await self.read(s.register)
+                if not s.holds(value, reg.scale):
+                    raise MotorSafetyError(p.name, s.parameter, s.register, s.required(),
+                                           f"wrote {s.value:g}, read back {value:g}",
+                                           "the drive does not keep it (parameter lock? set it on its panel)")
+            if not s.holds(value, reg.scale):
+                raise MotorSafetyError(p.name, s.parameter, s.register, s.required(), f"read back {value:g}",
+                                       "set it on the drive's panel (the station only checks it)")
+            found[s.parameter] = value
+        wd = p.watchdog
+        want = self._watchdog_set_s  # a time-out the caller chose on this connection, else the profile's
+        if not want:
+            await self.ensure_watchdog()
+            want = wd.timeout_s
+        value = await self.read(wd.register)
+        name = wd.parameter or wd.register
+        if abs(value - want) > 0.5 * abs(p[wd.register].scale):
+            raise MotorSafetyError(p.name, name, wd.register, f"{want:g} s (the communication time-out)",
+                                   f"read back {value:g} s", "the drive does not keep it")
+        found[name] = value
+        self.armed, self._armed = found, True
+        log.info("drive %s armed: %s", p.name, ", ".join(f"{k} = {v:g}" for k, v in found.items()))
+        return found
+
+    async def _ramp_reference(self) -> float:
+        """The frequency a ramp time runs to (Hz): the drive's maximum frequency read back where the
+        profile has its register (the VF-S11's FH), else the set point's maximum."""
+        p = self.profile
+        if p.max_frequency is None:
+            return p.device.max_frequency_hz
+        if self._ramp_reference_hz is None:
+            fh = await self.read(p.max_frequency)
+            if not fh > 0:
+                raise MotorSafetyError(p.name, p.max_frequency, p.max_frequency, "> 0 Hz", f"read back {fh:g}",
+                                       "the ramp times cannot be scaled")
+            self._ramp_reference_hz = fh
+        return self._ramp_reference_hz
     # --------------------------------------------------------------- commands
     async def enable(self) -> None:
         """Enable the drive: it follows the set point (the watchdog starts counting).  The profile's
-        ``enable`` sequence, then its ``run`` sequence where it has one."""
+        ``enable`` sequence, then its ``run`` sequence where it has one; the safety settings are armed
+        and read back first, once per connection (:meth:`arm`, :class:`MotorSafetyError`)."""
+        if not self._armed:
+            await self.arm()
         await self._run("enable", "run")
 
     async def disable(self) -> None:
@@ -177,8 +281,9 @@ class MotorController:
 
     async def set_frequency(self, hz: float) -> None:
         """Crank-frequency set point in Hz; checked against the register's range before sending."""
-        await self.write(self.profile.setpoint, hz)
-        self._setpoint_hz = hz
+        async with self._io:
+            await self.write(self.profile.setpoint, hz)
+            self._setpoint_hz = hz
 
     async def set_ramp(self, hz_per_s: float) -> None:
         """Acceleration ramp in Hz/s (magnitude), within the drive's range (min <= ramp <= max, > 0).  A ramp
@@ -191,7 +296,7 @@ class MotorController:
         if not (hz_per_s > 0 and dev.min_ramp_hz_per_s <= hz_per_s <= dev.max_ramp_hz_per_s):
             raise MotorValueError(f"ramp: expected {dev.min_ramp_hz_per_s:g}..{dev.max_ramp_hz_per_s:g} Hz/s "
                                   f"(drive profile {self.profile.name!r}), got {hz_per_s!r} Hz/s")
-        value = hz_per_s if ramp.form == "rate" else dev.max_frequency_hz / hz_per_s
+        value = hz_per_s if ramp.form == "rate" else await self._ramp_reference() / hz_per_s
         for name in ramp.registers:
             await self.set_parameter(name, value)
 
@@ -207,15 +312,30 @@ class MotorController:
             raise MotorStateError("watchdog_timeout: expected a timeout > 0 s while the drive is enabled, "
                                   "got 0 (the watchdog cannot be switched off while enabled)")
         await self.set_parameter(name, seconds)
+        self._watchdog_set_s = seconds
 
     async def ensure_watchdog(self) -> None:
         """Set the drive's communication watchdog to the profile's time-out (written only if it differs)."""
         await self.set_watchdog_timeout(self.profile.watchdog.timeout_s)
 
     async def refresh_watchdog(self) -> None:
-        """Refresh the drive's watchdog: write the next rolling counter value to its refresh register,
-        or, where every valid request refreshes it, read the status word."""
-        refresh = self.profile.watchdog.refresh
+        """Refresh the drive's watchdog the way the drive counts it: write the next rolling counter
+        value to its refresh register; rewrite the last value of a process-data register (a drive
+        that counts only received set points or command words); or, where every valid request
+        refreshes it, read the status word."""
+        wd = self.profile.watchdog
+        refresh = wd.refresh
+        if wd.rewrite is not None:
+            reg = self.profile[wd.rewrite]
+            async with self._io:
+                words = self._last_words.get(reg.name)
+                if words is None:
+                    words = await self.transport.read(reg.address, reg.words, f"{reg.name} (watchdog refresh)",
+                                                      reg.read_function)
+                await self.transport.write(reg.address, words, f"{reg.name} (watchdog refresh)",
+                                           retry=reg.name in self.profile.transport.retry_writes)
+                self._last_words[reg.name] = list(words)
+            return
         if refresh is None:
             reg = self.profile[self.profile.status.register]
             await self.transport.read(reg.address, reg.words, f"{reg.name} (watchdog refresh)", reg.read_function)
@@ -229,12 +349,50 @@ class MotorController:
         await self.disable()
 
     async def emergency_stop(self) -> None:
-        """Emergency (quick) stop: latched; the drive decelerates at its stop ramp.  Clear with reset_faults."""
-        await self._run("quick_stop")
+        """Emergency (quick) stop: latched; the drive decelerates at its stop ramp.  Clear with reset_faults.
+
+        Waits for nothing under way.  A drive that must not be told twice (``repeat_quick_stop: false``:
+        the VF-S11 reboots) is read first and not told again while its quick stop is latched."""
+        if not self.profile.commands.repeat_quick_stop:
+            try:
+                st = await self.read_status()
+            except MotorError as exc:
+                log.warning("status before the quick stop unreadable (%s): sending it", exc)
+            else:
+                if st.estop_latched:
+                    log.info("drive %s: quick stop already latched, not sent again", self.profile.name)
+                    return
+        await self._run("quick_stop", lock=False)
 
     async def reset_faults(self) -> None:
-        """Clear latched faults (the drive refuses while the crank still turns)."""
-        await self._run("fault_reset")
+        """Clear latched faults (the drive refuses while the crank still turns).
+
+        A drive whose reset reboots it (``commands.reset_reboot_s``, the VF-S11) is sent the reset once
+        (no reply is expected), left to reboot, read until it answers again (within another reboot
+        time), then given back the set point and the stopped command word its reboot cleared."""
+        reboot = self.profile.commands.reset_reboot_s
+        if reboot <= 0:
+            await self._run("fault_reset")
+            return
+        try:
+            await self._run("fault_reset")
+        except MotorExceptionReplyError:
+            raise  # refused (e.g. the crank still turns): no reboot
+        except MotorCommunicationError as exc:
+            log.info("drive %s: no reply to the fault reset, as when it reboots (%s)", self.profile.name, exc)
+        await self.clock.asleep(reboot)
+        deadline = self.clock.monotonic() + reboot
+        while True:
+            try:
+                await self.read_status()
+                break
+            except MotorCommunicationError:
+                if self.clock.monotonic() > deadline:
+                    raise
+                await self.clock.asleep(0.2)
+        async with self._io:
+            await self.write(self.profile.setpoint, self._setpoint_hz)
+        await self._run("stop")
 
     async def read_status(self) -> MotorStatus:
         """Read speed, status, fault code (and angle, revolutions where the drive has them), each

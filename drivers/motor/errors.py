@@ -72,3 +72,15 @@ class MotorFaultError(MotorError):
 
 class MotorStateError(MotorError):
     """The controller is not in the state a command needs (e.g. turning when standstill is required)."""
+
+
+class MotorSafetyError(MotorStateError):
+    """A safety setting of the drive (its communication-loss stop, command source, stop method, the
+    frequency its scaling rests on, ...) does not hold its required value after arming: the station
+    refuses to enable the drive.  ``parameter`` is the drive's name of it (e.g. ``P9.04``)."""
+
+    def __init__(self, profile: str, parameter: str, register: str, required: str, found: str, remedy: str) -> None:
+        super().__init__(f"drive profile {profile!r}: {parameter} (register {register!r}) must be {required}, "
+                         f"{found}; {remedy} -- the station does not enable the drive")
+        self.parameter = parameter
+        self.register = register

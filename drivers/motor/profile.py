@@ -45,6 +45,13 @@ COMMANDS = ("enable", "stop", "quick_stop", "fault_reset")
 # (``run``: CiA 402's "enable operation"), the station's enable is both sequences in turn
 OPTIONAL_COMMANDS = ("run",)
 RAMP_FORMS = ("rate", "time_to_max")
+# what a safety setting stands for (the emulator plays each by its role): communication-loss detection
+# and its action (the drive's watchdog stops the crank only while every such setting holds its value),
+# the command and set-point sources (the drive follows bus commands only while they hold theirs), the
+# stop method and ramps, and what the set point's scaling rests on (reference and maximum frequency,
+# the upper limit)
+SAFETY_ROLES = ("comm_loss_detection", "comm_loss_action", "command_source", "setpoint_source", "stop_method",
+                "stop_ramp", "reference_frequency", "max_frequency", "upper_limit")
 
 
 @dataclass(frozen=True)
@@ -79,6 +86,9 @@ class TransportSpec:
     functions: tuple[int, ...] = (0x03, 0x06, 0x10)
     max_registers_per_read: int = 125
     inter_frame_delay_s: float = 0.0
+    # registers whose write may be sent again after a time-out (idempotent: the same value twice is
+    # the value once); every other write, a command word above all, goes out once
+    retry_writes: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -143,11 +153,13 @@ class FaultTable:
 
 @dataclass(frozen=True)
 class CommandStep:
-    """Write raw ``value`` to ``register`` and keep it at least ``hold_s`` before the next step."""
+    """Write raw ``value`` to ``register`` and keep it at least ``hold_s`` before the next step;
+    ``verify``: read the register back after the sequence (it must hold ``value``)."""
 
     register: str
     value: int
     hold_s: float = 0.0
+    verify: bool = False
 
 
 @dataclass(frozen=True)
@@ -158,6 +170,8 @@ class CommandModel:
 
     kind: str
     sequences: Mapping[str, tuple[CommandStep, ...]]
+    reset_reboot_s: float = 0.0  # the fault reset reboots the drive for this long (s; 0: it does not)
+    repeat_quick_stop: bool = True  # False: a second quick stop while one is latched is not sent
 
     @property
     def registers(self) -> set[str]:
@@ -176,13 +190,59 @@ class RampSpec:
 class WatchdogSpec:
     """The drive's communication watchdog: the parameter holding its time-out, the time-out the
     station sets (s, never 0: a profile whose watchdog is off is refused), the drive's smallest
-    time-out, and how it is refreshed: a write to ``refresh`` (a rolling counter), or None when every
-    valid request refreshes it (the driver then reads the status word)."""
+    time-out, and how it is refreshed: a write to ``refresh`` (a rolling counter), a rewrite of the
+    last value of ``rewrite`` (a drive that counts only received process data, e.g. the V20's F72),
+    or neither when every valid request refreshes it (the driver then reads the status word)."""
 
     register: str
     timeout_s: float
     min_s: float
     refresh: str | None
+    rewrite: str | None = None  # refreshed by rewriting this register's last value (process data)
+    drive_default_s: float | None = None  # the drive's factory time-out (0: off); the emulator starts so
+    parameter: str = ""  # the drive's name of the time-out parameter (F803, P9.05, P2014), for messages
+
+
+@dataclass(frozen=True)
+class SafetySetting:
+    """A setting the drive must hold before the station enables it (``docs/drive-profiles.md``).
+
+    ``register`` (its memory, RAM or EEPROM, is the register's), ``parameter`` (the drive's own name,
+    e.g. ``P9.04``), ``role`` (one of :data:`SAFETY_ROLES`: what it stands for), ``how``: ``set``
+    (the station writes ``value`` once when the drive holds another, then reads it back) or ``check``
+    (read only: set on the panel at commissioning); the required value: ``value``, or a range
+    ``min``..``max`` (checked only); ``meaning``: what the required value means, for the messages;
+    ``default``: the drive's factory setting (the emulator starts with it; None: not documented)."""
+
+    register: str
+    parameter: str
+    role: str
+    how: str
+    value: float | None = None
+    min: float | None = None
+    max: float | None = None
+    meaning: str = ""
+    default: float | None = None
+
+    def holds(self, value: float, resolution: float = 0.0) -> bool:
+        """Whether a read-back ``value`` satisfies the requirement (to half a register step)."""
+        tol = 0.5 * abs(resolution)
+        if self.value is not None:
+            return abs(value - self.value) <= tol
+        return ((self.min is None or value >= self.min - tol)
+                and (self.max is None or value <= self.max + tol))
+
+    def required(self) -> str:
+        """The requirement for people, e.g. ``1 (enable)`` or ``at least 50``."""
+        if self.value is not None:
+            req = f"{self.value:g}"
+        elif self.max is None:
+            req = f"at least {self.min:g}"
+        elif self.min is None:
+            req = f"at most {self.max:g}"
+        else:
+            req = f"{self.min:g}..{self.max:g}"
+        return f"{req} ({self.meaning})" if self.meaning else req
 
 
 @dataclass(frozen=True)
@@ -208,6 +268,7 @@ class DriveProfile:
     path: str = ""
     extra_flags: tuple[str, ...] = field(default=())
     text: str = ""  # the YAML it was loaded from (stored with each recording)
+    safety: tuple[SafetySetting, ...] = ()  # armed and read back before the first enable
 
     def __getitem__(self, name: str) -> Register:
         try:
@@ -268,7 +329,8 @@ def _transport(doc: Any, src: str) -> TransportSpec:
     known = {f.name for f in fields(TransportSpec)}
     extra = sorted(str(k) for k in set(doc) - known)
     expect(not extra, f"{src}: transport", f"only keys {sorted(known)}", extra)
-    kw: dict[str, Any] = {k: (tuple(v) if k == "functions" and isinstance(v, list) else v) for k, v in doc.items()}
+    kw: dict[str, Any] = {k: (tuple(v) if k in ("functions", "retry_writes") and isinstance(v, list) else v)
+                          for k, v in doc.items()}
     t = TransportSpec(**kw)
     expect(t.kind in ("rtu", "tcp"), f"{src}: transport.kind", "'rtu' or 'tcp'", t.kind)
     expect(_int(t.baudrate) and t.baudrate > 0, f"{src}: transport.baudrate", "a positive integer", t.baudrate)
@@ -315,8 +377,8 @@ def _steps(doc: Any, where: str, default_register: str | None, regs: Mapping[str
         w = f"{where}[{i}]"
         if _int(step):
             step = {"value": step}
-        expect(isinstance(step, dict) and set(step) <= {"register", "value", "hold_s"} and "value" in step, w,
-               "a word, or {register:, value:, hold_s:}", step)
+        expect(isinstance(step, dict) and set(step) <= {"register", "value", "hold_s", "verify"} and "value" in step,
+               w, "a word, or {register:, value:, hold_s:, verify:}", step)
         reg_name = step.get("register", default_register)
         expect(isinstance(reg_name, str) and reg_name in regs and regs[reg_name].writable
                and regs[reg_name].words == 1, f"{w}.register",
@@ -327,7 +389,9 @@ def _steps(doc: Any, where: str, default_register: str | None, regs: Mapping[str
                step["value"])
         h = step.get("hold_s", hold_s)
         expect(is_number(h) and 0 <= h <= 5.0, f"{w}.hold_s", "0..5 s", h)
-        out.append(CommandStep(reg_name, int(step["value"]), float(h)))
+        verify = step.get("verify", False)
+        expect(isinstance(verify, bool), f"{w}.verify", "true or false", verify)
+        out.append(CommandStep(reg_name, int(step["value"]), float(h), verify))
     return tuple(out)
 
 
@@ -352,7 +416,47 @@ def _ramp_rates(reg: Register, form: str, max_frequency_hz: float) -> tuple[floa
 
 
 _TOP_KEYS = {"profile", "description", "sources", "transport", "device", "registers", "setpoint", "speed",
-             "angle", "revolutions", "max_frequency", "ramp", "status", "faults", "commands", "watchdog"}
+             "angle", "revolutions", "max_frequency", "ramp", "status", "faults", "commands", "watchdog", "safety"}
+_SAFETY_KEYS = {"register", "parameter", "role", "how", "value", "min", "max", "meaning", "default"}
+
+
+def _safety(doc: Any, regs: Mapping[str, Register], device: DeviceDefaults, src: str) -> tuple[SafetySetting, ...]:
+    doc = [] if doc is None else doc
+    expect(isinstance(doc, list), f"{src}: safety", "a list of settings", doc)
+    out = []
+    for i, e in enumerate(doc):
+        w = f"{src}: safety[{i}]"
+        expect(isinstance(e, dict) and set(e) <= _SAFETY_KEYS and {"register", "parameter", "role", "how"} <= set(e),
+               w, f"{{register:, parameter:, role:, how:, value: | min:/max:, meaning:, default:}} (keys "
+               f"{sorted(_SAFETY_KEYS)})", e)
+        name = e["register"]
+        expect(isinstance(name, str) and name in regs, f"{w}.register", "a register of the profile", name)
+        reg = regs[name]
+        expect(isinstance(e["parameter"], str) and bool(e["parameter"]), f"{w}.parameter",
+               "the drive's name of the parameter (e.g. P9.04)", e["parameter"])
+        expect(e["role"] in SAFETY_ROLES, f"{w}.role", f"one of {list(SAFETY_ROLES)}", e["role"])
+        expect(e["how"] in ("set", "check"), f"{w}.how", "'set' (written once, read back) or 'check' (read only)",
+               e["how"])
+        has_value = "value" in e
+        expect(has_value != ("min" in e or "max" in e), w, "either value: or a range min:/max:", sorted(e))
+        for k in ("value", "min", "max", "default"):
+            if k in e:
+                expect(is_number(e[k]) and reg.in_range(e[k]) if reg.writable else is_number(e[k]), f"{w}.{k}",
+                       f"a number the register holds ({reg.valid_range()})", e[k])
+        expect(e["how"] == "check" or (has_value and reg.writable), f"{w}.how",
+               "'check' (a range or a read-only register cannot be set)", e["how"])
+        expect(isinstance(e.get("meaning", ""), str), f"{w}.meaning", "a string", e.get("meaning"))
+        if e["role"] == "reference_frequency":
+            expect(has_value and device.reference_frequency_hz is not None
+                   and e["value"] == device.reference_frequency_hz, f"{w}.value",
+                   f"device.reference_frequency_hz ({device.reference_frequency_hz}), what the scaling rests on",
+                   e.get("value"))
+        num = {k: None if e.get(k) is None else float(e[k]) for k in ("value", "min", "max", "default")}
+        out.append(SafetySetting(name, e["parameter"], e["role"], e["how"], value=num["value"], min=num["min"],
+                                 max=num["max"], meaning=e.get("meaning", ""), default=num["default"]))
+    expect(len({s.register for s in out}) == len(out), f"{src}: safety", "each register once",
+           [s.register for s in out])
+    return tuple(out)
 
 
 def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
@@ -455,7 +559,7 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
     cd = doc.get("commands")
     expect(isinstance(cd, dict) and cd.get("model") in ("control_word", "registers"), f"{src}: commands",
            "{model: control_word|registers, ...}", cd)
-    allowed = {"model", "register", "hold_s", *COMMANDS, *OPTIONAL_COMMANDS}
+    allowed = {"model", "register", "hold_s", "reset_reboot_s", "repeat_quick_stop", *COMMANDS, *OPTIONAL_COMMANDS}
     expect(set(cd) <= allowed, f"{src}: commands", f"only keys {sorted(allowed)}", sorted(map(str, cd)))
     hold = cd.get("hold_s", 0.0)
     expect(is_number(hold) and 0 <= hold <= 5.0, f"{src}: commands.hold_s", "0..5 s", hold)
@@ -469,12 +573,19 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
     for c in OPTIONAL_COMMANDS:
         if c in cd:
             seqs[c] = _steps(cd[c], f"{src}: commands.{c}", control, regs, float(hold))
-    commands = CommandModel(cd["model"], seqs)
+    reboot = cd.get("reset_reboot_s", 0.0)
+    expect(is_number(reboot) and 0 <= reboot <= 30.0, f"{src}: commands.reset_reboot_s", "0..30 s", reboot)
+    repeat_qs = cd.get("repeat_quick_stop", True)
+    expect(isinstance(repeat_qs, bool), f"{src}: commands.repeat_quick_stop", "true or false", repeat_qs)
+    commands = CommandModel(cd["model"], seqs, float(reboot), repeat_qs)
+
 
     # watchdog: never off
     wd = doc.get("watchdog")
-    expect(isinstance(wd, dict) and set(wd) <= {"register", "timeout_s", "min_s", "refresh"}, f"{src}: watchdog",
-           "{register:, timeout_s:, min_s:, refresh: <register>|any_request}", wd)
+    expect(isinstance(wd, dict) and set(wd) <= {"register", "timeout_s", "min_s", "refresh", "drive_default_s",
+                                                 "parameter"},
+           f"{src}: watchdog", "{register:, timeout_s:, min_s:, refresh: <register>|any_request|{rewrite: <register>}, "
+           "drive_default_s:}", wd)
     wd_reg = _role(wd, "register", regs, f"{src}: watchdog", required=True, writable=True)
     t, m = wd.get("timeout_s"), wd.get("min_s", 0.0)
     expect(is_number(t) and t > 0, f"{src}: watchdog.timeout_s",
@@ -486,18 +597,37 @@ def parse_profile(doc: Any, source: str = "<profile>") -> DriveProfile:
     expect(regs[wd_reg].in_range(t) and t >= regs[wd_reg].scale, f"{src}: watchdog.timeout_s",
            f"a value register {wd_reg!r} holds ({regs[wd_reg].valid_range()})", t)
     refresh = wd.get("refresh", "any_request")
-    if refresh != "any_request":
+    rewrite: str | None = None
+    if isinstance(refresh, dict):
+        rewrite = refresh.get("rewrite")
+        expect(set(refresh) == {"rewrite"} and isinstance(rewrite, str) and rewrite in regs
+               and regs[rewrite].writable and not regs[rewrite].eeprom, f"{src}: watchdog.refresh.rewrite",
+               "a writable RAM register (it is written every refresh)", rewrite)
+        refresh = "any_request"
+    elif refresh != "any_request":
         expect(isinstance(refresh, str) and refresh in regs and regs[refresh].writable, f"{src}: watchdog.refresh",
                "'any_request' or a writable register", refresh)
-    watchdog = WatchdogSpec(wd_reg, float(t), float(m), None if refresh == "any_request" else str(refresh))
+    default_s = wd.get("drive_default_s")
+    expect(default_s is None or (is_number(default_s) and regs[wd_reg].in_range(default_s)),
+           f"{src}: watchdog.drive_default_s", "the drive's factory time-out (s, 0: off)", default_s)
+    parameter = wd.get("parameter", "")
+    expect(isinstance(parameter, str), f"{src}: watchdog.parameter", "the drive's name of the parameter", parameter)
+    watchdog = WatchdogSpec(wd_reg, float(t), float(m), None if refresh == "any_request" else str(refresh), rewrite,
+                            None if default_s is None else float(default_s), parameter)
 
     device = replace(device, default_watchdog_timeout_s=watchdog.timeout_s)
     sources = doc.get("sources", []) or []
     expect(isinstance(sources, list) and all(isinstance(s, str) for s in sources), f"{src}: sources",
            "a list of strings", sources)
+    retry = transport.retry_writes
+    expect(isinstance(retry, tuple) and all(isinstance(n, str) and n in regs and regs[n].writable
+                                            and n not in commands.registers - {setpoint} for n in retry),
+           f"{src}: transport.retry_writes", "writable registers of the profile other than command registers "
+           "(a command word is sent once)", retry)
+    safety = _safety(doc.get("safety"), regs, device, src)
     return DriveProfile(name, str(doc.get("description", "")), tuple(sources), transport, regs, device, setpoint,
                         speed, status, faults, commands, watchdog, ramp, angle, revolutions, max_freq, source,
-                        tuple(f for f in flags if f not in CANONICAL_FLAGS))
+                        tuple(f for f in flags if f not in CANONICAL_FLAGS), safety=safety)
 
 
 def profile_path(name_or_path: str | Path) -> Path:

@@ -2,7 +2,8 @@
 
 A transport moves 16-bit holding-register words; it knows nothing of names or scaling except
 ``what`` (the register name), which it puts into every error it raises.  The Modbus transport
-(TCP or RTU, pymodbus 3.x async client) adds time-outs, retries and reconnect with back-off.
+(TCP or RTU, pymodbus 3.x async client) adds time-outs, retries (of reads and of the writes the
+caller says are idempotent) and reconnect with back-off.
 The in-process backend for fast unit tests lives in :mod:`drivers.sim.motor_inprocess`.
 """
 
@@ -42,7 +43,8 @@ class RegisterTransport(Protocol):
 
     async def read(self, address: int, count: int, what: str, function: int = 0x03) -> list[int]: ...
 
-    async def write(self, address: int, words: Sequence[int], what: str) -> None: ...
+    async def write(self, address: int, words: Sequence[int], what: str, *, retry: bool = True) -> None:
+        """``retry=False``: sent once, never again after a time-out (a write that is not idempotent)."""
 
     async def close(self) -> None: ...
 
@@ -143,10 +145,12 @@ class ModbusTransport:
         raise MotorLinkError(what, f"link to {self.description} lost; "
                                    f"{self.policy.reconnect_attempts} reconnect attempts failed")
 
-    async def _call(self, what: str, fc: int, request: Callable[[ModbusClient], Awaitable[Any]]) -> Any:
+    async def _call(self, what: str, fc: int, request: Callable[[ModbusClient], Awaitable[Any]],
+                    retry: bool = True) -> Any:
         last = "no attempt"
         lost = False
-        for _ in range(self.policy.retries + 1):
+        attempts = self.policy.retries + 1 if retry else 1
+        for _ in range(attempts):
             client = await self._ensure_connected(what)
             pause = self._last_exchange + self.inter_frame_delay_s - time.monotonic()
             if pause > 0:
@@ -168,10 +172,10 @@ class ModbusTransport:
                 code = getattr(reply, "exception_code", 0)
                 raise MotorExceptionReplyError(what, fc, code)
             return reply
+        once = "" if retry else " (sent once, not repeated: the drive may or may not have taken it)"
         if lost:
-            raise MotorLinkError(what, f"{self.description}: {last}")
-        attempts = self.policy.retries + 1
-        raise MotorTimeoutError(what, f"{self.description}: {last} after {attempts} attempt(s)")
+            raise MotorLinkError(what, f"{self.description}: {last}{once}")
+        raise MotorTimeoutError(what, f"{self.description}: {last} after {attempts} attempt(s){once}")
 
     async def read(self, address: int, count: int, what: str, function: int = 0x03) -> list[int]:
         """FC 03 (holding) or FC 04 (``function=4``, input registers) read of ``count`` words at ``address``."""
@@ -186,14 +190,15 @@ class ModbusTransport:
             raise MotorProtocolError(what, f"expected {count} register(s) in the reply, got {len(regs)}")
         return regs
 
-    async def write(self, address: int, words: Sequence[int], what: str) -> None:
-        """FC 06 for one word, FC 16 for several."""
+    async def write(self, address: int, words: Sequence[int], what: str, *, retry: bool = True) -> None:
+        """FC 06 for one word, FC 16 for several.  ``retry=False``: a write that is not idempotent (a
+        command word) is sent once and never again after a time-out (:class:`MotorTimeoutError`)."""
         if len(words) == 1:
             await self._call(what, 0x06, lambda c: c.write_register(address, int(words[0]),
-                                                                    device_id=self.device_id))
+                                                                    device_id=self.device_id), retry)
         else:
             await self._call(what, 0x10, lambda c: c.write_registers(address, [int(w) for w in words],
-                                                                     device_id=self.device_id))
+                                                                     device_id=self.device_id), retry)
 
     async def close(self) -> None:
         if self._client is not None:

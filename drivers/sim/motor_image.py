@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 ILLEGAL_ADDRESS = 0x02
 ILLEGAL_VALUE = 0x03
 DEVICE_FAILURE = 0x04
+NO_REPLY = -1  # the drive does not answer (it reboots)
 _HISTORY = 16  # command-register writes kept for matching sequences
 # the order in which sequences of the same length are tried: a stop is never taken for something else
 _MATCH_ORDER = ("stop", "quick_stop", "fault_reset", "enable", "run")
@@ -42,7 +43,8 @@ class _Refused(Exception):
 class MotorRegisterImage:
     """Reads produce the live state; writes command the model.  Thread-safe through the model.
 
-    ``writes`` counts the accepted writes per register (an EEPROM-backed register's wear)."""
+    ``writes`` counts the accepted writes per register (an EEPROM-backed register's wear),
+    ``write_requests`` every write that arrived, answered or not (a command sent twice shows here)."""
 
     def __init__(self, profile: DriveProfile, model: MotorModel) -> None:
         self.map = profile
@@ -55,13 +57,82 @@ class MotorRegisterImage:
         self._stored: dict[str, float] = {}
         self._history: list[tuple[str, int, float]] = []  # (register, raw value, time) of command writes
         self._command_regs = profile.commands.registers
+        self._triggers = self._command_triggers()
         self.writes: Counter[str] = Counter()
+        self.write_requests: Counter[str] = Counter()  # every write that arrived, answered or not
         self.commands_seen: list[str] = []
         # a drive with a ``run`` command is switched on by ``enable`` and follows the set point on ``run``
         self._two_stage = "run" in profile.commands.sequences
         self.switched_on = False
         # called with (register name, value, time.monotonic()) for every register a write applied
         self.observers: list[Callable[[str, float, float], None]] = []
+        self.locked: set[str] = set()  # test hook: registers whose writes the drive answers but does not keep
+        self._reboot_until = -math.inf  # model time until which the drive reboots (answers nothing)
+        self._silent = False  # the write being applied gets no reply (the drive started rebooting)
+        self.reboots = 0
+        # a drive out of the box: the documented factory settings of its safety parameters and time-out
+        for setting in profile.safety:
+            if setting.default is not None:
+                self._stored[setting.register] = setting.default
+        if profile.watchdog.drive_default_s is not None:
+            model.play_drive_defaults(profile.watchdog.drive_default_s)
+        self._apply_settings()
+
+    def _command_triggers(self) -> dict[str, tuple[str, int]]:
+        """For a drive with one register per command (``model: registers``): the word each command
+        acts on, the last (register, value) of its sequence that no other sequence writes (the GS2's
+        EF = 1 stops it whatever follows); a command without one is matched as a whole sequence."""
+        cmds = self.profile.commands
+        if cmds.kind != "registers":
+            return {}
+        pairs = {c: [(s.register, s.value) for s in seq if s.register != self.profile.setpoint]
+                 for c, seq in cmds.sequences.items()}
+        out = {}
+        for c, mine in pairs.items():
+            others = {pair for o, theirs in pairs.items() if o != c for pair in theirs}
+            unique = [pair for pair in mine if pair not in others]
+            if unique:
+                out[c] = unique[-1]
+        return out
+
+    # ------------------------------------------------------------------------------ the drive's settings
+    def _holds(self, role_prefix: str) -> bool:
+        """Whether every safety setting of the role(s) holds its required value in the drive."""
+        return all(s.holds(self._stored.get(s.register, math.nan), self.profile[s.register].scale)
+                   for s in self.profile.safety if s.role.startswith(role_prefix))
+
+    def _apply_settings(self) -> None:
+        """The drive acts on its settings: its watchdog stops the crank only while communication-loss
+        detection and its action are set to stop."""
+        self.model.set_watchdog_active(self._holds("comm_loss_"))
+
+    def set_panel(self, register: str, value: float) -> None:
+        """Test hook: a setting made on the drive's panel (any register, read-only ones too)."""
+        self._stored[register] = float(value)
+        self._apply_settings()
+
+    def _max_frequency_hz(self) -> float:
+        """The drive's maximum frequency (its own setting where the profile reads it, e.g. FH)."""
+        p = self.profile
+        return self._stored.get(p.max_frequency, p.device.max_frequency_hz) if p.max_frequency else \
+            p.device.max_frequency_hz
+
+    def _rebooting(self) -> bool:
+        return self.model.snapshot().time_s < self._reboot_until
+
+    def _reboot(self) -> None:
+        """The drive restarts: no reply for ``reset_reboot_s``, its RAM (command word, set point) cleared."""
+        p = self.profile
+        self.reboots += 1
+        self._reboot_until = self.model.snapshot().time_s + max(p.commands.reset_reboot_s, 0.5)
+        self._silent = True
+        self.model.set_enable(False)
+        self.model.set_setpoint(max(0.0, p.device.min_frequency_hz))
+        for name in self._command_regs:
+            if not p[name].eeprom and name != p.setpoint:
+                self._stored[name] = 0.0
+        self._history.clear()
+        self.switched_on = False
 
     # ------------------------------------------------------------------------------ reads
     def _fault_code(self, model_code: int) -> int:
@@ -99,10 +170,10 @@ class MotorRegisterImage:
         if p.faults.register:
             values[p.faults.register] = float(code)
         if p.ramp is not None:
-            ramp = s.ramp_hz_per_s if p.ramp.form == "rate" else p.device.max_frequency_hz / s.ramp_hz_per_s
+            ramp = s.ramp_hz_per_s if p.ramp.form == "rate" else self._max_frequency_hz() / s.ramp_hz_per_s
             values.update(dict.fromkeys(p.ramp.registers, ramp))
         if p.max_frequency:
-            values[p.max_frequency] = p.device.max_frequency_hz
+            values[p.max_frequency] = self._max_frequency_hz()
         if p.angle:
             unit_deg = p[p.angle].unit == "deg"
             values[p.angle] = self._wrapped_angle_deg(s.angle_rad) if unit_deg else s.angle_rad % (2 * math.pi)
@@ -126,7 +197,8 @@ class MotorRegisterImage:
         return reg.words_of_raw(raw)
 
     def _any_request(self) -> None:
-        if self.profile.watchdog.refresh is None:
+        wd = self.profile.watchdog
+        if wd.refresh is None and wd.rewrite is None:
             self.model.refresh_watchdog()  # every valid request refreshes this drive's watchdog
 
     def read(self, address: int, count: int, function: int = 0x03) -> list[int] | int:
@@ -137,6 +209,8 @@ class MotorRegisterImage:
         if count < 1 or any(a not in self._by_addr or self._by_addr[a][0].read_function != function
                             for a in range(address, address + count)):
             return ILLEGAL_ADDRESS
+        if self._rebooting():
+            return NO_REPLY
         self._any_request()
         values = self._values()
         out: list[int] = []
@@ -162,6 +236,9 @@ class MotorRegisterImage:
                 return ILLEGAL_ADDRESS
             regs.append(entry[0])
             a += entry[0].words
+        self.write_requests.update(reg.name for reg in regs)
+        if self._rebooting():
+            return NO_REPLY
         self._any_request()
         chunks = [(reg, words[reg.address - address: reg.address - address + reg.words]) for reg in regs]
         for reg, chunk in chunks:
@@ -170,7 +247,8 @@ class MotorRegisterImage:
                 lo, hi = reg.valid_range()
                 log.info("motor emulator: write %s=%s outside [%g, %g]: exception 3", reg.name, value, lo, hi)
                 return ILLEGAL_VALUE
-        saved = (dict(self._stored), list(self._history), list(self.commands_seen), self.switched_on)
+        saved = (dict(self._stored), list(self._history), list(self.commands_seen), self.switched_on,
+                 self._reboot_until, self.reboots)
         try:
             with self.model.atomic():
                 for reg, chunk in chunks:
@@ -180,7 +258,9 @@ class MotorRegisterImage:
                                  reg.decode(chunk), code)
                         raise _Refused(code)
         except _Refused as refused:
-            self._stored, self._history, self.commands_seen, self.switched_on = saved
+            (self._stored, self._history, self.commands_seen, self.switched_on, self._reboot_until,
+             self.reboots) = saved
+            self._silent = False
             return refused.code
         self.writes.update(reg.name for reg, _ in chunks)
         if self.observers:
@@ -188,6 +268,9 @@ class MotorRegisterImage:
             for reg, chunk in chunks:
                 for fn in self.observers:
                     fn(reg.name, reg.decode(chunk), now)
+        if self._silent:
+            self._silent = False
+            return NO_REPLY
         return None
 
     def _matched_command(self) -> str | None:
@@ -197,8 +280,16 @@ class MotorRegisterImage:
         for command in _MATCH_ORDER:
             if command not in self.profile.commands.sequences:
                 continue
-            steps = self.profile.commands.sequences[command]
+            # the set point is no command register: a sequence's set-point steps are not in the history
+            steps = tuple(s for s in self.profile.commands.sequences[command] if s.register != self.profile.setpoint)
+            trigger = self._triggers.get(command)
+            if trigger is not None:  # one register per command: the drive acts on that word alone
+                if (now_hist[-1][0], now_hist[-1][1]) == trigger and (best is None or len(steps) > best[0]):
+                    best = (len(steps), command)
+                continue
             n = len(steps)
+            if n == 0:
+                continue
             if n > len(now_hist):
                 continue
             tail = now_hist[-n:]
@@ -213,16 +304,25 @@ class MotorRegisterImage:
     def _apply(self, reg: Register, value: float, raw: int) -> int | None:
         p, model = self.profile, self.model
         name = reg.name
+        rewrite_refresh = p.watchdog.rewrite is not None and (
+            name in (p.setpoint, p.watchdog.rewrite) or name in self._command_regs)
         try:
-            if name == p.setpoint:
-                model.set_setpoint(value)
+            if rewrite_refresh:
+                model.refresh_watchdog()  # a drive that counts received process data (the V20's F72)
+            if name in self.locked:
+                log.info("motor emulator: write %s=%s answered but not kept (locked)", name, value)
+            elif name == p.setpoint:
+                if self._holds("setpoint_source"):
+                    model.set_setpoint(value)
+                else:
+                    self._stored[name] = value  # the drive follows another set-point source
             elif p.ramp is not None and name in p.ramp.registers:
                 if p.ramp.form == "rate":
                     model.set_ramp(value)
                 elif value <= 0:
                     return ILLEGAL_VALUE
                 else:
-                    model.set_ramp(p.device.max_frequency_hz / value)
+                    model.set_ramp(self._max_frequency_hz() / value)
             elif name == p.watchdog.register:
                 model.set_watchdog_timeout(value)
             elif name == p.watchdog.refresh:
@@ -237,6 +337,8 @@ class MotorRegisterImage:
                     self._command(command)
             else:
                 self._stored[name] = value
+                if any(s.register == name for s in p.safety):
+                    self._apply_settings()
         except ValueError:
             return ILLEGAL_VALUE
         except PermissionError:
@@ -245,6 +347,16 @@ class MotorRegisterImage:
 
     def _command(self, command: str) -> None:
         model = self.model
+        cmds = self.profile.commands
+        if command in ("enable", "run") and not self._holds("command_source"):
+            return  # the drive takes its run command from another source (terminals, panel)
+        if command == "quick_stop" and not cmds.repeat_quick_stop and model.snapshot().estop:
+            self._reboot()  # told again while its quick stop is latched, this drive restarts
+            return
+        if command == "fault_reset" and cmds.reset_reboot_s > 0:
+            model.reset_faults()  # refused while the crank turns (exception 04): no reboot then
+            self._reboot()
+            return
         if command == "enable" and self._two_stage:
             if model.snapshot().fault_code:
                 raise PermissionError("a fault is latched: reset it first")
@@ -261,3 +373,13 @@ class MotorRegisterImage:
         else:
             self.switched_on = False
             model.reset_faults()
+            if cmds.kind == "registers" and self._run_held():
+                model.set_enable(True)  # its run register still says run: the drive starts again
+
+    def _run_held(self) -> bool:
+        """A drive with one register per command whose run register(s) still hold the enable value."""
+        seq = [s for s in self.profile.commands.sequences["enable"] if s.register != self.profile.setpoint]
+        if any(self.profile[s.register].reads_flag is not None for s in seq):
+            return False  # a command register that reads back the drive's state holds no level of its own
+        return bool(seq) and all(self._stored.get(s.register) == self.profile[s.register].decode(
+            self.profile[s.register].words_of_raw(s.value)) for s in seq)

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from drivers.motor.errors import MotorExceptionReplyError, MotorLinkError
-from drivers.sim.motor_image import MotorRegisterImage
+from drivers.motor.errors import MotorExceptionReplyError, MotorLinkError, MotorTimeoutError
+from drivers.sim.motor_image import NO_REPLY, MotorRegisterImage
 
 
 class InProcessTransport:
@@ -41,13 +41,18 @@ class InProcessTransport:
     async def read(self, address: int, count: int, what: str, function: int = 0x03) -> list[int]:
         self._check_link(what)
         result = self.image.read(address, count, function)
+        if result == NO_REPLY:
+            raise MotorTimeoutError(what, "no reply (the emulated drive reboots)")
         if isinstance(result, int):
             raise MotorExceptionReplyError(what, function, result)
         return result
 
-    async def write(self, address: int, words: Sequence[int], what: str) -> None:
+    async def write(self, address: int, words: Sequence[int], what: str, *, retry: bool = True) -> None:
+        """Sent once whatever ``retry`` says: nothing is lost in-process."""
         self._check_link(what)
         code = self.image.write(address, list(words))
+        if code == NO_REPLY:
+            raise MotorTimeoutError(what, "no reply (the emulated drive reboots)")
         if code is not None:
             raise MotorExceptionReplyError(what, 0x06 if len(words) == 1 else 0x10, code)
 

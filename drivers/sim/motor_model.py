@@ -62,6 +62,8 @@ class MotorModel:
         self._wd_expired = False
         self._ignore_stops = False
         self._stuck_hz: float | None = None  # the speed a drive that ignores stops keeps turning at
+        self._wd_required = True  # enabling with the watchdog off (time-out 0) is refused
+        self._wd_active = True  # the watchdog stops the crank when it expires (a drive's detection and action)
 
     # ----------------------------------------------------------------- dynamics
     def _target_and_accel(self) -> tuple[float, float]:
@@ -92,7 +94,7 @@ class MotorModel:
         now = self._clock()
         while self._t < now:
             seg_end = now
-            wd_armed = self._enabled and self._fault == FAULT_NONE and self._wd_timeout > 0
+            wd_armed = self._enabled and self._fault == FAULT_NONE and self._wd_timeout > 0 and self._wd_active
             if wd_armed and self._wd_deadline < now:
                 seg_end = max(self._wd_deadline, self._t)
             self._integrate(seg_end - self._t)
@@ -150,7 +152,7 @@ class MotorModel:
             now = self._advance()
             if on and self._fault != FAULT_NONE:
                 raise PermissionError(f"fault {self._fault} latched: reset it first")
-            if on and self._wd_timeout <= 0:
+            if on and self._wd_timeout <= 0 and self._wd_required:
                 raise PermissionError("the watchdog is off (timeout 0): set a timeout before enabling")
             if on and not self._enabled:
                 self._wd_deadline = now + self._wd_timeout
@@ -182,6 +184,24 @@ class MotorModel:
         with self._lock:
             now = self._advance()
             self._wd_deadline = now + self._wd_timeout
+
+    def play_drive_defaults(self, watchdog_timeout_s: float) -> None:
+        """Behave as a drive out of the box: its communication time-out as the factory set it (0: off)
+        and, unlike the station's own controller, enabling even while the watchdog is off."""
+        with self._lock:
+            now = self._advance()
+            self._wd_required = False
+            self._wd_timeout = watchdog_timeout_s
+            self._wd_deadline = now + watchdog_timeout_s
+
+    def set_watchdog_active(self, on: bool) -> None:
+        """Whether an expired watchdog stops the crank (a drive's communication-loss detection and its
+        action both set to stop); off, the drive keeps turning when the link is lost."""
+        with self._lock:
+            now = self._advance()
+            if on and not self._wd_active:
+                self._wd_deadline = now + self._wd_timeout
+            self._wd_active = on
 
     def set_watchdog_timeout(self, seconds: float) -> None:
         """0 disables the watchdog: refused (``PermissionError``) while the drive is enabled."""

@@ -25,7 +25,7 @@ from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.motor.profile import DriveProfile
-from drivers.sim.motor_image import MotorRegisterImage
+from drivers.sim.motor_image import NO_REPLY, MotorRegisterImage
 from drivers.sim.pty import PtyBridge
 
 log = logging.getLogger(__name__)
@@ -114,6 +114,10 @@ class ModbusFaults:
         with self._lock:
             self._drop += n
 
+    def pending_drops(self) -> int:
+        with self._lock:
+            return self._drop
+
     def exception_replies(self, code: int, n: int = 1, address: int | None = None) -> None:
         with self._lock:
             self._exc.extend([(code, address)] * n)
@@ -181,12 +185,24 @@ class MotorEmulator:
         if set_values is None:  # read
             # pymodbus also reads through the action before a write (FC 06/16): that is a holding read
             result = self.image.read(address, count, 0x04 if function_code == 0x04 else 0x03)
+            if result == NO_REPLY:
+                self._no_reply()
+                return None
             if isinstance(result, int):
                 return ExcCodes(result)
             registers[address - start_address: address - start_address + count] = result
             return None
         code = self.image.write(address, [int(v) for v in set_values])
+        if code == NO_REPLY:
+            self._no_reply()
+            return None
         return ExcCodes(code) if code is not None else None
+
+    def _no_reply(self) -> None:
+        """The drive reboots: this request's reply is not sent (once per request: pymodbus also
+        reads through the action before a write)."""
+        if not self.faults.pending_drops():
+            self.faults.drop_replies(1)
 
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
         if sending and self.faults.take_drop():
