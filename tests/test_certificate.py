@@ -73,7 +73,8 @@ def test_the_pdf_is_the_html_and_cuts_nothing(stored: Path) -> None:
         want = " ".join([row["name"], *row["cells"], row["combined"], row["unit"]])
         assert want in lines, (want, [ln for ln in lines if ln.startswith(row["name"] + " ")])
     for r in c["results"]:
-        assert f"{r['text']} {r['u_text']} {r['k_text']} {r['U_text']} 95 % {r['unit']}" in flat, r["name"]
+        assert f"{r['text']} {r['u_text']} {r['k_text']} {r['U_text']} {r['unit_text']}".strip() in flat, r["name"]
+    assert "coverage factor k = 2" in flat and "95.45 %" in flat
     for s in c["statement"]:
         assert re.sub(r"\s+", " ", s) in flat
 

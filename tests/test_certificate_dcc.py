@@ -51,7 +51,7 @@ def test_dcc_passes_ptbs_schematron_and_carries_the_results(issued_content: dict
         assert float(e.findtext("si:value", namespaces=NS)) == r["value"]
         mu = e.find("si:measurementUncertaintyUnivariate/si:expandedMU", NS)
         assert float(mu.findtext("si:valueExpandedMU", namespaces=NS)) == pytest.approx(r["k"] * r["u"])
-        assert float(mu.findtext("si:coverageProbability", namespaces=NS)) == 0.95
+        assert float(mu.findtext("si:coverageProbability", namespaces=NS)) == r["p"] == 0.9545
     assert {"S", "k_f", "b_f", "natural_frequency_hz", "series_stiffness"} <= set(by_label)
     mags = doc.find(".//dcc:list/dcc:quantity/si:realListXMLList[si:labelXMLList='magnitude']", NS)
     assert len(mags.findtext("si:valueXMLList", namespaces=NS).split()) == len(issued_content["response"])

@@ -17,21 +17,23 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from station.certificate.item import calibrated_item, item_budget, scaled_determined
+from station.certificate.present import QUANTITY, SYMBOL, plain, typeset, unit_text, value_and_uncertainties
+from station.certificate.sdyn import chain_of, sdyn_points
 from station.config import CertificateConfig
-from station.ident.coverage import coverage, coverages
+from station.ident.coverage import K2_PROBABILITY, coverage, coverages
+from station.ident.inputs import DEFAULT_END_MASS_REL_STD
+from station.ident.result import Check, Estimate, IdentificationResult
 from station.recording import start_metadata
 from station.report.data import RunData, load_run
 from station.report.html import METHODS, MODELS, mass_std
-from station.report.quantities import fmt_unc, fmt_value, measured_sensitivity, range_text, structure_sentence
+from station.report.quantities import fmt_unc, range_text, structure_sentence
 from station.report.statement import uncertainty_statement
-from station.report.tables import MEANING
 
 RELATES_ONLY = ("The results relate only to the item calibrated, as received, under the conditions stated. "
                 "This certificate shall not be reproduced except in full without the laboratory's written "
                 "approval.")
-DETERMINED_TEXT = {"natural_frequency_hz": "loaded natural frequency sqrt(k_f/M)/(2π)",
-                   "series_stiffness": "series stiffness of transducer and coupling",
-                   "S_times_M": "sensitivity times moving mass S·M", "damping_ratio": "damping ratio"}
+NOT_STATED = ("withheld", "not certified")
 
 
 @dataclass(frozen=True)
@@ -60,16 +62,73 @@ def _environment(d: RunData) -> dict[str, Any] | None:
 
 
 def _result(name: str, value: float | None, budget_entry: dict[str, Any] | None, unit: str,
-            meaning: str) -> dict[str, Any]:
-    if value is None or budget_entry is None or budget_entry.get("combined") is None:
-        return {"name": name, "meaning": meaning, "value": value, "text": "not determined", "unit": unit,
-                "u": None, "k": None, "p": None, "U": None, "nu_eff": None, "u_text": "", "U_text": "", "k_text": "",
-                "determined": False}
-    c = coverage(budget_entry)
-    return {"name": name, "meaning": meaning, "value": value, "u": c.u, "k": c.k, "p": c.p, "U": c.U,
-            "determined": False,
-            "nu_eff": None if math.isinf(c.nu_eff) else c.nu_eff, "unit": unit,
-            "text": fmt_value(value, c.u), "u_text": fmt_unc(c.u), "U_text": fmt_unc(c.U), "k_text": f"{c.k:.3g}"}
+            status: str = "certified", note: str = "") -> dict[str, Any]:
+    """One row of the results: the value with u, k, U and p (the certificate's k = 2 convention),
+    its status ('certified' | 'conditional' | 'poorly determined' | 'withheld' | 'not certified')
+    and the note that says why, in words."""
+    base = {"name": name, "symbol": SYMBOL.get(name, name), "meaning": QUANTITY.get(name, name),
+            "unit": unit, "unit_text": unit_text(unit), "status": status, "note": note, "determined": False}
+    if value is None or budget_entry is None or budget_entry.get("combined") is None or status in NOT_STATED:
+        return {**base, "value": None, "text": "not certified" if status == "not certified" else "withheld",
+                "u": None, "k": None, "p": None, "U": None, "nu_eff": None, "u_text": "", "U_text": "",
+                "k_text": "", "status": status if status in NOT_STATED else "withheld"}
+    c = coverage(budget_entry, k2=True)
+    text, U_text, u_text = value_and_uncertainties(value, c.U, c.u)
+    return {**base, "value": value, "u": c.u, "k": c.k, "p": c.p, "U": c.U,
+            "nu_eff": None if math.isinf(c.nu_eff) else c.nu_eff,
+            "text": text, "u_text": u_text, "U_text": U_text, "k_text": f"{c.k:.3g}"}
+
+
+def _status(p: Estimate, structure: dict[str, Any] | None) -> tuple[str, str]:
+    """(status, note) of an identified parameter from identify's flags: withheld (not identifiable),
+    not certified (conditional on an assumption the data contradict), conditional, poorly determined."""
+    if not p.identifiable:
+        reason = p.reason.removeprefix("withheld: ")
+        return "withheld", f"withheld: {reason}" if reason else "withheld: the data do not determine it"
+    contradicted = bool(((structure or {}).get("coupling") or {}).get("contradicted_by_the_data"))
+    if p.flag == "conditional" and contradicted and "contradict" in p.reason:
+        return "not certified", ("not certified: it rests on an assumption the data contradict (" + p.reason + ")")
+    if p.flag == "conditional":
+        return "conditional", "conditional: " + (p.reason or "on an assumed input stated below")
+    if p.flag == "poorly_determined":
+        return "poorly determined", ("poorly determined: its relative uncertainty is above the station's policy"
+                                     + (f" ({p.reason})" if p.reason else ""))
+    return "certified", p.reason
+
+
+def end_mass_statement(ident: IdentificationResult, budget: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """What the certificate says of the end mass m_e: determined by a campaign, or assumed (its value,
+    source, standard uncertainty, share of u²(S)) with the campaign named as the way to remove it."""
+    a = ident.assumptions.get("end_mass_kg") or {}
+    s = budget.get("S") or {}
+    u_e = (s.get("contributions") or {}).get("end_mass")
+    uc = s.get("combined")
+    share = (float(u_e) ** 2 / float(uc) ** 2) if isinstance(u_e, int | float) and uc else None
+    source = str(a.get("source", ""))
+    std = a.get("std")
+    where = {"config": "the transducer's data as configured (transducer.end_mass_kg)",
+             "recording": "the run's import (RUN.yaml end_mass_kg)",
+             "assumed": "an assumed value"}.get(source, source or "not stated")
+    default = isinstance(std, int | float) and isinstance(a.get("value"), int | float) and a["value"] and math.isclose(
+        float(std), DEFAULT_END_MASS_REL_STD * float(a["value"]), rel_tol=1e-9)
+    return {"status": "assumed", "value": a.get("value"), "std": std, "source": source, "source_text": where,
+            "std_is_default": bool(default), "share_of_u2_S": share,
+            "text": (f"The end mass m_e is not determined by this run: it is assumed, {plain(a.get('value'), 4)} kg "
+                     f"from {where}"
+                     + (f", standard uncertainty {fmt_unc(float(std))} kg"
+                        + (f" (the station's default of {100 * DEFAULT_END_MASS_REL_STD:g} % of the value, "
+                           "not supported by a certificate)" if default else "")
+                        if isinstance(std, int | float) else ", without an uncertainty: S, k_f and b_f are "
+                        "conditional on it")
+                     + (f". It makes {100 * share:.0f} % of u²(S)." if share is not None else ".")
+                     + " A campaign of runs with several top masses on the same transducer (station campaign, "
+                       "POST /campaigns) determines m_e from the data and removes this assumption.")}
+
+
+def warnings_of(checks: tuple[Check, ...] | list[Check]) -> list[dict[str, Any]]:
+    """identify's findings the certificate prints (warnings and refusals; info notes are left out)."""
+    return [{"name": c.name, "severity": c.severity, "message": c.message,
+             "step": c.step} for c in checks if c.severity != "info"]
 
 
 def register_standards(standards: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -95,38 +154,52 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
     cc = _cert_config(d)
     rec, ident = d.rec, d.ident
     cfg = rec.config if isinstance(rec.config, dict) else {}
+    item = calibrated_item(cfg)
+    values = {n: p.value for n, p in ident.parameters.items()}
+    budget_item = item_budget(ident.budget, values, item)
+    structure = ident.assumptions.get("structure")
+    findings = warnings_of(ident.checks)
     results = []
     for name, p in ident.parameters.items():
-        if p.identifiable and p.value is not None:
-            results.append(_result(name, p.value, ident.budget.get(name), p.unit, MEANING.get(name, name)))
-    for name, q in ident.determined.items():
+        status, note = _status(p, structure if isinstance(structure, dict) else None)
+        unit = item.unit if name == "S" else p.unit
+        value = None if p.value is None else (item.scale if name == "S" else 1.0) * p.value
+        results.append(_result(name, value, budget_item.get(name), unit, status, note))
+    for name, raw in ident.determined.items():
+        q = scaled_determined(raw, name, item)
         if "range" in q or q.get("value") is None or q.get("combined") is None:
             continue
         entry = {"contributions": {k: v for k, v in q.items() if k not in ("value", "unit", "combined", "note")
                                    and (v is None or isinstance(v, int | float))},
                  "combined": q["combined"], "dof": (ident.budget.get("k_f") or {}).get("dof")}
         results.append({**_result(name, float(q["value"]), entry, str(q.get("unit", "")),
-                                  DETERMINED_TEXT.get(name, name)), "determined": True})
+                                  note=str(q.get("note", ""))), "determined": True})
     r = d.response
     u_m = mass_std(ident.assumptions)
-    mag, u_mag, ph, u_ph = measured_sensitivity(r.H, r.cov, d.mass_kg, u_m)
-    k_points = 2.0  # each point rests on thousands of samples: nu_eff infinite, k = 2 kept (about 95.4 %)
-    response = [{"f_hz": float(f), "magnitude": float(mag[i]), "U_magnitude": float(k_points * u_mag[i]),
-                 "phase_deg": math.degrees(float(ph[i])), "U_phase_deg": math.degrees(float(k_points * u_ph[i])),
-                 "text": fmt_value(float(mag[i]), float(u_mag[i])), "U_text": fmt_unc(float(k_points * u_mag[i])),
-                 "phase_text": fmt_value(math.degrees(float(ph[i])), math.degrees(float(u_ph[i]))),
-                 "U_phase_text": fmt_unc(math.degrees(float(k_points * u_ph[i])))}
-                for i, f in enumerate(r.f_hz)]
+    pts = sdyn_points(r.f_hz, r.H, r.cov, d.mass_kg, u_m, chain_of(ident.assumptions), item.scale, item.rel_std)
+    u_mag, u_ph = pts.u_magnitude, pts.u_phase_rad
+    response = []
+    for i, f in enumerate(pts.f_hz):
+        c_mag = coverage({"contributions": {"all": float(u_mag[i])}, "combined": float(u_mag[i])}, k2=True)
+        mag_text, U_text = value_and_uncertainties(float(pts.magnitude[i]), c_mag.k * float(u_mag[i]))
+        ph_deg, U_ph = math.degrees(float(pts.phase_rad[i])), math.degrees(c_mag.k * float(u_ph[i]))
+        ph_text, U_ph_text = value_and_uncertainties(ph_deg, U_ph)
+        response.append({"f_hz": float(f), "magnitude": float(pts.magnitude[i]), "u_magnitude": float(u_mag[i]),
+                         "U_magnitude": c_mag.k * float(u_mag[i]), "phase_deg": ph_deg, "U_phase_deg": U_ph,
+                         "text": mag_text, "U_text": U_text, "phase_text": ph_text, "U_phase_text": U_ph_text,
+                         "terms": {k: float(v[i]) for k, v in pts.mag_terms.items()},
+                         "phase_terms_rad": {k: float(v[i]) for k, v in pts.phase_terms.items()}})
+    k_points = 2.0  # every point's sources are Type B or rest on thousands of samples: nu_eff infinite
     masses = []
     for key, label in (("end_mass_kg", "end mass m_e"), ("load_mass_kg", "load mass m_l")):
         a = ident.assumptions.get(key) or {}
         masses.append({"name": label, "value": a.get("value"), "std": a.get("std"), "source": a.get("source", "")})
-    st = ident.assumptions.get("structure")
-    budget_sources = list(next(iter(ident.budget.values()))["contributions"]) if ident.budget else []
-    budget = [{"name": n, "unit": b.get("unit", ""),
+    st = structure if isinstance(structure, dict) else None
+    budget_sources = list(next(iter(budget_item.values()))["contributions"]) if budget_item else []
+    budget = [{"name": n, "quantity": QUANTITY.get(n, n), "unit": unit_text(b.get("unit", "")),
                "cells": [fmt_unc(b["contributions"].get(s)) if b["contributions"].get(s) is not None else "conditional"
                          for s in budget_sources], "combined": fmt_unc(b.get("combined"))}
-              for n, b in ident.budget.items()]
+              for n, b in budget_item.items()]
     tr_cfg = cfg.get("transducer")
     tr: dict[str, Any] = tr_cfg if isinstance(tr_cfg, dict) else {}
     reg = register or {}
@@ -138,7 +211,8 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
         "approval": asdict(approval),
         "laboratory": cc.laboratory.model_dump(), "customer": None if cc.customer is None else cc.customer.model_dump(),
         "place": cc.place,
-        "item": {"transducer_id": rec.transducer_id, "capacity_N": rec.capacity_N,
+        "title": item.title, "calibrated": item.to_dict(),
+        "item": {"transducer_id": rec.transducer_id, "capacity_N": rec.capacity_N, "text": item.text,
                  "nominal_sensitivity_V_per_N": tr.get("sensitivity_V_per_N"),
                  "signal_sensitivity_V_per_N": rec.sensitivity_V_per_N,
                  **{k: str(reg_tr.get(k) or "") for k in ("type", "serial", "owner")}},
@@ -151,17 +225,18 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
                    "model": ident.model, "model_text": MODELS.get(ident.model, ""), "result": d.ident_source},
         "environment": _environment(d),
         "standards": standards, "standards_source": "register" if reg.get("standards") else "configuration",
-        "results": results, "response": response, "response_k": k_points,
+        "results": results, "response": response, "response_k": k_points, "response_p": K2_PROBABILITY,
+        "response_unit": item.unit, "response_unit_text": unit_text(item.unit),
+        "end_mass": end_mass_statement(ident, budget_item),
         "budget": {"sources": budget_sources, "rows": budget},
-        "coverage": {n: c.to_dict() for n, c in coverages(ident.budget).items()},
-        "statement": uncertainty_statement(ident.budget, ident.assumptions),
+        "coverage": {n: c.to_dict() for n, c in coverages(budget_item, k2=True).items()},
+        "statement": [typeset(x) for x in uncertainty_statement(budget_item, ident.assumptions, k2=True)],
         "assumptions": {"masses": masses, "M_kg": d.mass_kg, "u_M_kg": u_m,
                         "structure": structure_sentence(st) if st else "",
                         "chain": ident.assumptions.get("measurement_chain") or {},
                         "ranges": [{"name": k, "range": range_text(v["range"]), "unit": v.get("unit", ""),
                                     "conditional_on": v.get("conditional_on", "")}
                                    for k, v in ident.determined.items() if "range" in v]},
-        "checks": [{"name": c.name, "severity": c.severity, "message": c.message} for c in ident.checks
-                   if c.severity != "info"],
+        "checks": findings,
         "relates_only": RELATES_ONLY,
     }

@@ -30,7 +30,9 @@ LANG = "en"
 DSI_UNITS = {"V/N": r"\volt\newton\tothe{-1}", "N/m": r"\newton\metre\tothe{-1}",
              "N*s/m": r"\newton\second\metre\tothe{-1}", "kg": r"\kilogram", "Hz": r"\hertz", "1": r"\one",
              "V*s^2/m": r"\volt\second\tothe{2}\metre\tothe{-1}", "deg": r"\degree", "degC": r"\degreecelsius",
-             "%": r"\percent", "m": r"\metre"}
+             "%": r"\percent", "m": r"\metre", "mV/V/N": r"\milli\volt\volt\tothe{-1}\newton\tothe{-1}",
+             "mV/V*s^2/m": r"\milli\volt\volt\tothe{-1}\second\tothe{2}\metre\tothe{-1}",
+             "pC/N": r"\pico\coulomb\newton\tothe{-1}", "pC*s^2/m": r"\pico\coulomb\second\tothe{2}\metre\tothe{-1}"}
 
 
 def dsi(unit: str) -> str:
@@ -188,7 +190,7 @@ def build_dcc(content: dict[str, Any]) -> bytes:
         lst = el(el(res, D + "data"), D + "list")
         k = float(content["response_k"])
         for label, key, unit, ukey in (("frequency", "f_hz", "Hz", None),
-                                       ("magnitude", "magnitude", "V/N", "U_magnitude"),
+                                       ("magnitude", "magnitude", content["response_unit"], "U_magnitude"),
                                        ("phase", "phase_deg", "deg", "U_phase_deg")):
             q = el(lst, D + "quantity")
             text_block(q, "name", label)
@@ -199,7 +201,7 @@ def build_dcc(content: dict[str, Any]) -> bytes:
                 el(r, S + "valueXMLList", " ".join(_num(v) for v in vals))
                 el(r, S + "unitXMLList", dsi(unit))
             else:
-                real_list(q, vals, unit, [p[ukey] for p in pts], k, 0.9545, label)
+                real_list(q, vals, unit, [p[ukey] for p in pts], k, float(content["response_p"]), label)
     return bytes(etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True))
 
 
