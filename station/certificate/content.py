@@ -22,7 +22,7 @@ from station.certificate.present import QUANTITY, SYMBOL, plain, typeset, unit_t
 from station.certificate.sdyn import chain_of, sdyn_points
 from station.config import CertificateConfig
 from station.ident.coverage import K2_PROBABILITY, coverage, coverages
-from station.ident.inputs import DEFAULT_END_MASS_REL_STD
+from station.ident.inputs import DEFAULT_END_MASS_REL_STD, MeasurementChain
 from station.ident.result import Check, Estimate, IdentificationResult
 from station.recording import start_metadata
 from station.report.data import RunData, load_run
@@ -67,7 +67,7 @@ def _result(name: str, value: float | None, budget_entry: dict[str, Any] | None,
     its status ('certified' | 'conditional' | 'poorly determined' | 'withheld' | 'not certified')
     and the note that says why, in words."""
     base = {"name": name, "symbol": SYMBOL.get(name, name), "meaning": QUANTITY.get(name, name),
-            "unit": unit, "unit_text": unit_text(unit), "status": status, "note": note, "determined": False}
+            "unit": unit, "unit_text": unit_text(unit), "status": status, "note": typeset(note), "determined": False}
     if value is None or budget_entry is None or budget_entry.get("combined") is None or status in NOT_STATED:
         return {**base, "value": None, "text": "not certified" if status == "not certified" else "withheld",
                 "u": None, "k": None, "p": None, "U": None, "nu_eff": None, "u_text": "", "U_text": "",
@@ -125,9 +125,35 @@ def end_mass_statement(ident: IdentificationResult, budget: dict[str, dict[str, 
                        "POST /campaigns) determines m_e from the data and removes this assumption.")}
 
 
+CHAIN_TEXT = {"gain_rel_std": ("gain ratio of the force and displacement chains, relative", ""),
+              "flatness_rel_std": ("gain flatness from step to step, relative", ""),
+              "phase_offset_std_deg": ("phase offset between the channels", "°"),
+              "phase_std_deg": ("phase error from step to step", "°"),
+              "delay_std_s": ("time skew between the channels", "s"),
+              "displacement_resonance_hz": ("displacement sensor resonance", "Hz"),
+              "displacement_resonance_std_hz": ("its standard uncertainty", "Hz"),
+              "displacement_damping": ("its damping ratio", ""),
+              "displacement_damping_std": ("its standard uncertainty", "")}
+
+
+def chain_lines(stated: dict[str, Any]) -> list[str]:
+    """The measurement chain's standard uncertainties in words, each a default of the station (no
+    certificate behind it) marked as such."""
+    defaults = MeasurementChain().model_dump()
+    out = []
+    for key, v in stated.items():
+        if v is None or key not in CHAIN_TEXT or (key.startswith("displacement_damping")
+                                                  and stated.get("displacement_resonance_hz") is None):
+            continue
+        text, unit = CHAIN_TEXT[key]
+        out.append(f"{text}: u = {typeset(f'{v:g}')}{' ' + unit if unit else ''}"
+                   + (" (the station's default, not from a certificate)" if v == defaults.get(key) else ""))
+    return out
+
+
 def warnings_of(checks: tuple[Check, ...] | list[Check]) -> list[dict[str, Any]]:
     """identify's findings the certificate prints (warnings and refusals; info notes are left out)."""
-    return [{"name": c.name, "severity": c.severity, "message": c.message,
+    return [{"name": c.name, "severity": c.severity, "message": typeset(c.message),
              "step": c.step} for c in checks if c.severity != "info"]
 
 
@@ -197,8 +223,8 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
     st = structure if isinstance(structure, dict) else None
     budget_sources = list(next(iter(budget_item.values()))["contributions"]) if budget_item else []
     budget = [{"name": n, "quantity": QUANTITY.get(n, n), "unit": unit_text(b.get("unit", "")),
-               "cells": [fmt_unc(b["contributions"].get(s)) if b["contributions"].get(s) is not None else "conditional"
-                         for s in budget_sources], "combined": fmt_unc(b.get("combined"))}
+               "cells": [typeset(fmt_unc(b["contributions"].get(s))) if b["contributions"].get(s) is not None
+                         else "conditional" for s in budget_sources], "combined": typeset(fmt_unc(b.get("combined")))}
               for n, b in budget_item.items()]
     tr_cfg = cfg.get("transducer")
     tr: dict[str, Any] = tr_cfg if isinstance(tr_cfg, dict) else {}
@@ -232,10 +258,11 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
         "coverage": {n: c.to_dict() for n, c in coverages(budget_item, k2=True).items()},
         "statement": [typeset(x) for x in uncertainty_statement(budget_item, ident.assumptions, k2=True)],
         "assumptions": {"masses": masses, "M_kg": d.mass_kg, "u_M_kg": u_m,
-                        "structure": structure_sentence(st) if st else "",
-                        "chain": ident.assumptions.get("measurement_chain") or {},
-                        "ranges": [{"name": k, "range": range_text(v["range"]), "unit": v.get("unit", ""),
-                                    "conditional_on": v.get("conditional_on", "")}
+                        "structure": typeset(structure_sentence(st)) if st else "",
+                        "chain": chain_lines(ident.assumptions.get("measurement_chain") or {}),
+                        "ranges": [{"name": k, "quantity": QUANTITY.get(k, k), "range": typeset(range_text(v["range"])),
+                                    "unit": unit_text(v.get("unit", "")),
+                                    "conditional_on": typeset(v.get("conditional_on", ""))}
                                    for k, v in ident.determined.items() if "range" in v]},
         "checks": findings,
         "relates_only": RELATES_ONLY,

@@ -114,7 +114,8 @@ def build_dcc(content: dict[str, Any]) -> bytes:
     el(core, D + "performanceLocation", "laboratory")
     el(core, D + "issueDate", a["issued_at"][:10])
     it = el(el(adm, D + "items"), D + "item")
-    text_block(it, "name", f"force transducer {item['transducer_id']}")
+    text_block(it, "name", f"{content['title'].removeprefix('Calibration certificate for a ')} "
+                           f"{item['transducer_id']}")
     text_block(el(it, D + "manufacturer"), "name", "not stated")
     ident = el(el(it, D + "identifications"), D + "identification")
     el(ident, D + "issuer", "customer")
@@ -136,8 +137,12 @@ def build_dcc(content: dict[str, Any]) -> bytes:
     location(cust, customer["address"])
     statements = el(adm, D + "statements")
     masses = content["assumptions"]["masses"]
-    declarations = [content["relates_only"], *content["statement"],
-                    *(f"assumption: {m['name']} = {m['value']} kg ({m['source']})" for m in masses)]
+    declarations = [content["relates_only"], f"item calibrated: {item['text']}", *content["statement"],
+                    *(f"assumption: {m['name']} = {m['value']} kg ({m['source']})" for m in masses),
+                    content["end_mass"]["text"],
+                    *(f"{r['meaning']} ({r['name']}): {r['note']}" for r in content["results"]
+                      if r["status"] != "certified" and r["note"]),
+                    *(f"finding ({f['severity']}) {f['name']}: {f['message']}" for f in content["checks"])]
     if content["assumptions"]["structure"]:
         declarations.append("model structure: " + content["assumptions"]["structure"])
     if a.get("replaces"):

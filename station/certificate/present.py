@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
 UNIT_TEXT = {"N*s/m": "N·s/m", "V*s^2/m": "V·s²/m", "mV/V/N": "mV/(V·N)", "mV/V*s^2/m": "mV·s²/(V·m)",
@@ -20,7 +21,7 @@ QUANTITY = {"S": "sensitivity (static limit of the dynamic sensitivity)",
             "m_e": "end mass of the transducer",
             "natural_frequency_hz": "natural frequency with the load mass, √(k_f/M)/(2π)",
             "series_stiffness": "series stiffness of transducer and coupling",
-            "S_times_M": "sensitivity times moving mass, S·M", "damping_ratio": "damping ratio",
+            "S_times_M": "sensitivity times moving mass", "damping_ratio": "damping ratio",
             "transducer_stiffness_alone": "stiffness of the transducer alone"}
 SYMBOL = {"S": "S", "k_f": "k_f", "b_f": "b_f", "k_c": "k_c", "b_c": "b_c", "m_e": "m_e",
           "natural_frequency_hz": "f₀", "series_stiffness": "k_s", "S_times_M": "S·M", "damping_ratio": "ζ",
@@ -71,8 +72,14 @@ def plain(value: float | None, digits: int = 6) -> str:
     return f"{value / 10.0**e:.{digits}g}{_power(e)}"
 
 
+def _power_of_ten(m: re.Match[str]) -> str:
+    return f"{m.group(1)}{_power(int(m.group(2)))}"
+
+
 def typeset(text: str) -> str:
-    """A sentence with the station's unit strings in SI typography (N*s/m -> N·s/m, V*s^2/m -> V·s²/m)."""
-    for raw in ("V*s^2/m", "N*s/m", "mV/V*s^2/m", "pC*s^2/m"):
+    """A sentence with the station's unit strings in SI typography (N*s/m -> N·s/m, V*s^2/m -> V·s²/m)
+    and its numbers' powers of ten written ×10ⁿ (2.91e+07 -> 2.91 ×10⁷)."""
+    for raw in ("mV/V*s^2/m", "pC*s^2/m", "V*s^2/m", "N*s/m"):
         text = text.replace(raw, unit_text(raw))
-    return text
+    text = text.replace("chi2/dof", "χ²/dof").replace("sqrt(", "√(")
+    return re.sub(r"\b(\d+(?:\.\d+)?)e([+-]?\d+)\b", _power_of_ten, text)
