@@ -185,3 +185,45 @@ def test_a_single_mass_certificate_states_the_assumed_end_mass_in_pdf_and_dcc(ch
     assert len(s["U_text"].replace(".", "").lstrip("0")) == 2
     xml = build_dcc(c).decode()
     assert "The end mass m_e is not determined by this run" in xml and share in xml
+
+
+@pytest.mark.slow
+def test_a_campaign_certificate_carries_the_determined_end_mass(tmp_path: Path) -> None:
+    """Three top masses on the simulated rig, the campaign stored beside each run: the certificate of
+    any of them states m_e as determined (within 3 u of the configured truth), with its covariance,
+    no assumed end mass, and S_dyn with M = m_e + m_l of that run; read back from PDF and DCC."""
+    from station.ident.campaign.identify import RESULT_NAME, identify_campaign
+    from station.simulate import simulate_run
+    from tests.conftest import station_config
+
+    paths = []
+    for i, top in enumerate((5.0, 15.0, 25.717)):
+        cfg = station_config(settle_s=0.2, record_s=0.5, acceleration_hz_per_s=200.0, pre_roll_s=0.1,
+                             steps=((4.0, 0.01), (20.0, 0.002), (50.0, 6e-4), (100.0, 1.5e-4)),
+                             rig={"top_mass_kg": top}, transducer={"end_mass_kg": 0.12})
+        p = simulate_run(cfg, tmp_path, seed=40 + i)
+        res = identify_recording(read_recording(p))
+        write_result(p, f"identify_{res.method}_{res.model}", res.to_dict())
+        paths.append(p)
+    camp = identify_campaign([read_recording(p) for p in paths])
+    assert camp.status == "separated"
+    for p in paths:
+        write_result(p, RESULT_NAME, camp.to_dict())
+    c = certificate_content(paths[0], ISSUED)
+    em = c["end_mass"]
+    assert em["status"] == "determined" and em["source"] == "campaign"
+    me = _row(c, "m_e")
+    assert me["status"] == "certified" and abs(me["value"] - 0.12) < 3 * me["u"]
+    assert me["u"] < 0.006  # smaller than the 5 % data-sheet default it replaces
+    assert "end_mass" not in c["budget"]["sources"]
+    assert c["correlation"]["names"] == ["S", "m_e", "k_f", "b_f"] and em["correlation_with_S"] is not None
+    m_l = camp.to_dict()["assumptions"]["load_mass_kg"][0]["value"]
+    assert c["assumptions"]["M_kg"] == pytest.approx(me["value"] + m_l)
+    text = _pdf_text(html_to_pdf(certificate_html(c)))
+    for want in ("The end mass m_e is determined by the data", "a campaign of 3 runs", "correlation coefficients",
+                 "end mass of the transducer", me["text"], me["U_text"]):
+        assert want in text, want
+    assert "not determined by this run" not in text and "jointly with the other parameters" in text
+    xml = build_dcc(c).decode()
+    assert "<si:label>m_e</si:label>" in xml and "The end mass m_e is determined by the data" in xml
+    assert "covariance matrix of (S, m_e, k_f, b_f)" in xml

@@ -17,16 +17,17 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from station.certificate.certified import Certified, certified_of
 from station.certificate.item import calibrated_item, item_budget, scaled_determined
 from station.certificate.present import QUANTITY, SYMBOL, plain, typeset, unit_text, value_and_uncertainties
 from station.certificate.sdyn import chain_of, sdyn_points
 from station.config import CertificateConfig
 from station.ident.coverage import K2_PROBABILITY, coverage, coverages
 from station.ident.inputs import DEFAULT_END_MASS_REL_STD, MeasurementChain
-from station.ident.result import Check, Estimate, IdentificationResult
+from station.ident.result import Check, Covariance, Estimate
 from station.recording import start_metadata
 from station.report.data import RunData, load_run
-from station.report.html import METHODS, MODELS, mass_std
+from station.report.html import METHODS, MODELS
 from station.report.quantities import fmt_unc, range_text, structure_sentence
 from station.report.statement import uncertainty_statement
 
@@ -96,10 +97,29 @@ def _status(p: Estimate, structure: dict[str, Any] | None) -> tuple[str, str]:
     return "certified", p.reason
 
 
-def end_mass_statement(ident: IdentificationResult, budget: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """What the certificate says of the end mass m_e: determined by a campaign, or assumed (its value,
-    source, standard uncertainty, share of u²(S)) with the campaign named as the way to remove it."""
+def end_mass_statement(ident: Certified, budget: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """What the certificate says of the end mass m_e: determined by a campaign (value, u, its
+    correlation with S), or assumed (its value, source, standard uncertainty, share of u²(S)) with the
+    campaign named as the way to remove it."""
     a = ident.assumptions.get("end_mass_kg") or {}
+    me = ident.parameters.get("m_e")
+    if ident.kind == "campaign" and me is not None and me.value is not None and me.std:
+        c = ident.covariance
+        r = None
+        if c is not None and "S" in c.names and "m_e" in c.names:
+            m = c.array
+            i, j = c.names.index("S"), c.names.index("m_e")
+            r = float(m[i, j] / math.sqrt(m[i, i] * m[j, j])) if m[i, i] > 0 and m[j, j] > 0 else None
+        U = 2.0 * me.std
+        v_text, U_text = value_and_uncertainties(me.value, U)
+        masses = ", ".join(f"{plain(x.get('load_mass_kg'), 5)} kg" for x in ident.runs)
+        return {"status": "determined", "value": me.value, "std": me.std, "source": "campaign", "share_of_u2_S": None,
+                "correlation_with_S": r, "runs": ident.runs,
+                "text": (f"The end mass m_e is determined by the data: a campaign of {len(ident.runs)} runs of this "
+                         f"transducer with the load masses {masses} gives m_e = {v_text} kg, U = {U_text} kg (k = 2)"
+                         + (f", correlated with S (correlation coefficient {r:.2f}; the covariance is stated below)"
+                            if r is not None else "")
+                         + ". S, k_f and b_f are determined jointly with it; no end mass is assumed.")}
     s = budget.get("S") or {}
     u_e = (s.get("contributions") or {}).get("end_mass")
     uc = s.get("combined")
@@ -123,6 +143,17 @@ def end_mass_statement(ident: IdentificationResult, budget: dict[str, dict[str, 
                      + (f". It makes {100 * share:.0f} % of u²(S)." if share is not None else ".")
                      + " A campaign of runs with several top masses on the same transducer (station campaign, "
                        "POST /campaigns) determines m_e from the data and removes this assumption.")}
+
+
+def correlation(cov: Covariance | None) -> dict[str, Any] | None:
+    """The parameters' correlation matrix (names, symbols, rows of text to two decimals) or None."""
+    if cov is None or not cov.names:
+        return None
+    m = cov.array
+    d = [math.sqrt(m[i, i]) if m[i, i] > 0 else 0.0 for i in range(len(cov.names))]
+    rows = [[f"{m[i, j] / (d[i] * d[j]):.2f}" if d[i] and d[j] else "—" for j in range(len(d))] for i in range(len(d))]
+    return {"names": list(cov.names), "symbols": [SYMBOL.get(n, n) for n in cov.names], "rows": rows,
+            "matrix": [list(r) for r in cov.matrix], "units": list(cov.units)}
 
 
 CHAIN_TEXT = {"gain_rel_std": ("gain ratio of the force and displacement chains, relative", ""),
@@ -178,7 +209,7 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
     d = load_run(path)
     approval = approval or Approval()
     cc = _cert_config(d)
-    rec, ident = d.rec, d.ident
+    rec, ident = d.rec, certified_of(d)
     cfg = rec.config if isinstance(rec.config, dict) else {}
     item = calibrated_item(cfg)
     values = {n: p.value for n, p in ident.parameters.items()}
@@ -201,8 +232,8 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
         results.append({**_result(name, float(q["value"]), entry, str(q.get("unit", "")),
                                   note=str(q.get("note", ""))), "determined": True})
     r = d.response
-    u_m = mass_std(ident.assumptions)
-    pts = sdyn_points(r.f_hz, r.H, r.cov, d.mass_kg, u_m, chain_of(ident.assumptions), item.scale, item.rel_std)
+    u_m = ident.mass_std_kg
+    pts = sdyn_points(r.f_hz, r.H, r.cov, ident.mass_kg, u_m, chain_of(ident.assumptions), item.scale, item.rel_std)
     u_mag, u_ph = pts.u_magnitude, pts.u_phase_rad
     response = []
     for i, f in enumerate(pts.f_hz):
@@ -248,7 +279,8 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
                 "steps": [{"f_hz": s.crank_frequency_hz, "radius_mm": 1e3 * s.crank_radius_m} for s in rec.steps]},
         "method": {"name": "dynamic calibration by stepped sine excitation on a crank (sine-mechanism) rig",
                    "estimator": ident.method, "estimator_text": METHODS.get(ident.method, ""),
-                   "model": ident.model, "model_text": MODELS.get(ident.model, ""), "result": d.ident_source},
+                   "model": ident.model, "model_text": MODELS.get(ident.model, ""), "result": ident.source,
+                   "campaign": ident.runs},
         "environment": _environment(d),
         "standards": standards, "standards_source": "register" if reg.get("standards") else "configuration",
         "results": results, "response": response, "response_k": k_points, "response_p": K2_PROBABILITY,
@@ -257,7 +289,8 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
         "budget": {"sources": budget_sources, "rows": budget},
         "coverage": {n: c.to_dict() for n, c in coverages(budget_item, k2=True).items()},
         "statement": [typeset(x) for x in uncertainty_statement(budget_item, ident.assumptions, k2=True)],
-        "assumptions": {"masses": masses, "M_kg": d.mass_kg, "u_M_kg": u_m,
+        "correlation": correlation(ident.covariance),
+        "assumptions": {"masses": masses, "M_kg": ident.mass_kg, "u_M_kg": u_m,
                         "structure": typeset(structure_sentence(st)) if st else "",
                         "chain": chain_lines(ident.assumptions.get("measurement_chain") or {}),
                         "ranges": [{"name": k, "quantity": QUANTITY.get(k, k), "range": typeset(range_text(v["range"])),

@@ -143,6 +143,10 @@ def build_dcc(content: dict[str, Any]) -> bytes:
                     *(f"{r['meaning']} ({r['name']}): {r['note']}" for r in content["results"]
                       if r["status"] != "certified" and r["note"]),
                     *(f"finding ({f['severity']}) {f['name']}: {f['message']}" for f in content["checks"])]
+    corr = content.get("correlation")
+    if corr:
+        declarations.append(f"covariance matrix of ({', '.join(corr['names'])}) in ({', '.join(corr['units'])}): "
+                            + "; ".join(" ".join(_num(v) for v in row) for row in corr["matrix"]))
     if content["assumptions"]["structure"]:
         declarations.append("model structure: " + content["assumptions"]["structure"])
     if a.get("replaces"):

@@ -87,9 +87,11 @@ def _scaled_entry(entry: Mapping[str, Any], value: float, item: CalibratedItem, 
     """A budget entry of a quantity proportional to S in the item's unit, with the conditioner's term."""
     contributions = {s: (None if u is None else item.scale * float(u))
                      for s, u in (entry.get("contributions") or {}).items()}
+    combined = abs(item.scale) * float(entry.get("combined") or 0.0)
     if item.kind == "transducer":
-        contributions[SOURCE] = abs(item.scale * value) * item.rel_std
-    combined = math.sqrt(sum(u * u for u in contributions.values() if u is not None))
+        u_cond = abs(item.scale * value) * item.rel_std
+        contributions[SOURCE] = u_cond
+        combined = math.hypot(combined, u_cond)
     return {**entry, "contributions": contributions, "combined": combined, "unit": unit}
 
 
@@ -113,6 +115,7 @@ def scaled_determined(q: Mapping[str, Any], name: str, item: CalibratedItem) -> 
     if name not in SCALED or q.get("value") is None:
         return dict(q)
     sources = {k: v for k, v in q.items() if k not in ("value", "unit", "combined", "note")}
-    entry = _scaled_entry({"contributions": sources}, float(q["value"]), item, item.s_m_unit)
+    entry = _scaled_entry({"contributions": sources, "combined": q.get("combined")}, float(q["value"]), item,
+                          item.s_m_unit)
     return {**q, **entry["contributions"], "value": item.scale * float(q["value"]), "combined": entry["combined"],
             "unit": entry["unit"]}

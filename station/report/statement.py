@@ -73,6 +73,9 @@ def _mass_sentence(source: str, key: str, label: str, status: str | None, assump
                 + f"; the budget propagates it: {per}.")
     if status == "nothing":
         return f"The {label}{value} enters the budget with no effect on the results (contribution 0)."
+    if a.get("source") == "campaign":
+        return (f"The {label} is determined by the data jointly with the other parameters (a campaign of several "
+                "top masses): its uncertainty is in the parameters' covariance, not a source of this budget.")
     return f"The {label} is not a source of this budget."
 
 
