@@ -22,7 +22,7 @@ from station.ident.identify import identify_recording
 from station.ident.inputs import MeasurementChain
 from station.ident.response.checked import checked_response
 from station.recording import read_recording, write_result
-from tests.ident_support import sim
+from tests.ident_support import R, sim
 
 ISSUED = Approval("issued", "SC-2026-0042", "T. Technician", "A. Approver", "approver", "2026-11-24T12:00:00+00:00")
 REFERENCE = {"calibrated": "transducer", "gain_rel_std": 2e-4, "excitation_V": 5.0, "excitation_rel_std": 1e-4}
@@ -185,6 +185,26 @@ def test_a_single_mass_certificate_states_the_assumed_end_mass_in_pdf_and_dcc(ch
     assert len(s["U_text"].replace(".", "").lstrip("0")) == 2
     xml = build_dcc(c).decode()
     assert "The end mass m_e is not determined by this run" in xml and share in xml
+    # the range of validity from the plan (4 to 100 Hz), the model's, the method cited, no internal names
+    v = c["validity"]
+    assert v["f_min_hz"] == pytest.approx(4.0, rel=1e-3) and v["f_max_hz"] == pytest.approx(100.0, rel=1e-3)
+    M = c["assumptions"]["M_kg"]
+    assert v["force_max_N"] == pytest.approx(M * (2 * math.pi * 100.0) ** 2 * R, rel=1e-3)  # M ω² r at 100 Hz
+    assert v["force_min_N"] == pytest.approx(M * (2 * math.pi * 4.0) ** 2 * R, rel=1e-3)
+    for want in ("valid for sinusoidal forces of frequency 4 Hz to 100 Hz", "no statement is made outside",
+                 "The plan supports it for a coupling stiffness k_c >", "J. Lu", "Journal of Vibroengineering",
+                 "[1] Eq. 9"):
+        assert want in text, want
+    assert "doi.org/10.21595/jve.2017.17744" in text.replace(" ", "")  # the PDF may break the address
+    assert "results/identify" not in text and "S_times_M" not in text and "paper Eq" not in text
+    # the Bode plot: embedded, its model drawn only within the plan's range
+    assert 'id="bode"' in certificate_html(c)
+    f_model = c["bode_model"]["f_hz"]
+    assert f_model[0] >= v["f_min_hz"] * (1 - 1e-9) and f_model[-1] <= v["f_max_hz"] * (1 + 1e-9)
+    # the number and "page i of n" on every page
+    pages = PdfReader(io.BytesIO(html_to_pdf(certificate_html(c)))).pages
+    for i, page in enumerate(pages, 1):
+        assert f"SC-2026-0042 · page {i} of {len(pages)}" in " ".join(page.extract_text().split()), i
 
 
 @pytest.mark.slow

@@ -17,20 +17,27 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from station.certificate.certified import Certified, certified_of
-from station.certificate.item import calibrated_item, item_budget, scaled_determined
+from station.certificate.item import CalibratedItem, calibrated_item, item_budget, scaled_determined
 from station.certificate.present import QUANTITY, SYMBOL, plain, typeset, unit_text, value_and_uncertainties
 from station.certificate.sdyn import chain_of, sdyn_points
+from station.certificate.validity import validity
 from station.config import CertificateConfig
 from station.ident.coverage import K2_PROBABILITY, coverage, coverages
 from station.ident.inputs import DEFAULT_END_MASS_REL_STD, MeasurementChain
+from station.ident.models import make_model
 from station.ident.result import Check, Covariance, Estimate
 from station.recording import start_metadata
-from station.report.data import RunData, load_run
+from station.report.data import ModelCurve, RunData, load_run
 from station.report.html import METHODS, MODELS
-from station.report.quantities import fmt_unc, range_text, structure_sentence
+from station.report.quantities import fmt_unc, model_sensitivity, range_text, structure_sentence
 from station.report.statement import uncertainty_statement
 
+CITATION = ("[1] J. Lu, \u201cSystem identification of force transducers for dynamic measurements using particle "
+            "swarm optimization\u201d, Journal of Vibroengineering, vol. 19, no. 2, pp. 864\u2013877, 2017, "
+            "https://doi.org/10.21595/jve.2017.17744")
 RELATES_ONLY = ("The results relate only to the item calibrated, as received, under the conditions stated. "
                 "This certificate shall not be reproduced except in full without the laboratory's written "
                 "approval.")
@@ -145,6 +152,41 @@ def end_mass_statement(ident: Certified, budget: dict[str, dict[str, Any]]) -> d
                        "POST /campaigns) determines m_e from the data and removes this assumption.")}
 
 
+def result_text(ident: Certified) -> str:
+    """Which stored result the certificate states, in words (no internal names)."""
+    how = METHODS.get(ident.method, ident.method).split(" (")[0].replace("the paper's", "[1]'s")
+    written = ident.source.rsplit("written ", 1)[-1].rstrip(")") if "written " in ident.source else ""
+    what = ("the joint identification of the campaign's runs" if ident.kind == "campaign"
+            else "the run's identification" if written else "an identification computed for this certificate "
+            "(none is stored with the recording)")
+    return f"{what} ({how}){', stored ' + written if written else ''}"
+
+
+def model_grid(d: RunData, ident: Certified, item: CalibratedItem, f_lo: float, f_hi: float
+               ) -> dict[str, Any] | None:
+    """The model's S_dyn on a grid within the plan's range only (never extrapolated), in the item's
+    unit, with u from the stated covariance (and the conditioner's gain); None when no model is drawn."""
+    curve = d.curve
+    if ident.kind == "campaign":
+        p, cov = ident.parameters, ident.covariance
+        names = ("S", "k_f", "b_f")
+        m_e = p["m_e"].value
+        m_l = (ident.assumptions.get("load_mass_kg") or {}).get("value")
+        if cov is None or m_e is None or m_l is None or any(p[n].value is None for n in names):
+            return None
+        i = [cov.names.index(n) for n in names]
+        theta = np.array([float(p[n].value or 0.0) for n in names])
+        curve = ModelCurve(make_model("sdof", float(m_e), float(m_l)), theta, cov.array[np.ix_(i, i)])
+    if curve is None:
+        return None
+    ff = np.geomspace(f_lo, f_hi, 120) if f_hi > f_lo else np.array([f_lo])
+    mag, u_mag, ph, u_ph = model_sensitivity(curve, ff)
+    mag = item.scale * mag
+    u = None if u_mag is None else np.hypot(item.scale * u_mag, mag * item.rel_std)
+    return {"f_hz": ff.tolist(), "magnitude": mag.tolist(), "u_magnitude": None if u is None else u.tolist(),
+            "phase_rad": ph.tolist(), "u_phase_rad": None if u_ph is None else u_ph.tolist()}
+
+
 def correlation(cov: Covariance | None) -> dict[str, Any] | None:
     """The parameters' correlation matrix (names, symbols, rows of text to two decimals) or None."""
     if cov is None or not cov.names:
@@ -215,6 +257,7 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
     values = {n: p.value for n, p in ident.parameters.items()}
     budget_item = item_budget(ident.budget, values, item)
     structure = ident.assumptions.get("structure")
+    st_struct = structure if isinstance(structure, dict) else None
     findings = warnings_of(ident.checks)
     results = []
     for name, p in ident.parameters.items():
@@ -246,6 +289,9 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
                          "text": mag_text, "U_text": U_text, "phase_text": ph_text, "U_phase_text": U_ph_text,
                          "terms": {k: float(v[i]) for k, v in pts.mag_terms.items()},
                          "phase_terms_rad": {k: float(v[i]) for k, v in pts.phase_terms.items()}})
+    radius = {st.index: st.crank_radius_m for st in rec.steps}
+    valid = validity([float(f) for f in pts.f_hz], [radius.get(i, 0.0) for i in r.step_index], ident.mass_kg,
+                     st_struct)
     k_points = 2.0  # every point's sources are Type B or rest on thousands of samples: nu_eff infinite
     masses = []
     for key, label in (("end_mass_kg", "end mass m_e"), ("load_mass_kg", "load mass m_l")):
@@ -279,7 +325,10 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
                 "steps": [{"f_hz": s.crank_frequency_hz, "radius_mm": 1e3 * s.crank_radius_m} for s in rec.steps]},
         "method": {"name": "dynamic calibration by stepped sine excitation on a crank (sine-mechanism) rig",
                    "estimator": ident.method, "estimator_text": METHODS.get(ident.method, ""),
-                   "model": ident.model, "model_text": MODELS.get(ident.model, ""), "result": ident.source,
+                   "model": ident.model,
+                   "model_text": typeset(MODELS.get(ident.model, "").replace("paper Eq.", "[1] Eq.")
+                                         .replace("the paper's", "[1]'s")),
+                   "result": ident.source, "result_text": result_text(ident), "reference": CITATION,
                    "campaign": ident.runs},
         "environment": _environment(d),
         "standards": standards, "standards_source": "register" if reg.get("standards") else "configuration",
@@ -290,6 +339,8 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
         "coverage": {n: c.to_dict() for n, c in coverages(budget_item, k2=True).items()},
         "statement": [typeset(x) for x in uncertainty_statement(budget_item, ident.assumptions, k2=True)],
         "correlation": correlation(ident.covariance),
+        "validity": valid,
+        "bode_model": model_grid(d, ident, item, valid["f_min_hz"], valid["f_max_hz"]),
         "assumptions": {"masses": masses, "M_kg": ident.mass_kg, "u_M_kg": u_m,
                         "structure": typeset(structure_sentence(st)) if st else "",
                         "chain": chain_lines(ident.assumptions.get("measurement_chain") or {}),

@@ -69,7 +69,9 @@ def plain(value: float | None, digits: int = 6) -> str:
     if value is None or not math.isfinite(value):
         return "—"
     e = _exponent(value)
-    return f"{value / 10.0**e:.{digits}g}{_power(e)}"
+    m = value / 10.0**e
+    d = max(0, digits - 1 - math.floor(math.log10(abs(m)))) if m else 0
+    return f"{m:.{d}f}".rstrip("0").rstrip(".") + _power(e) if "." in f"{m:.{d}f}" else f"{m:.{d}f}{_power(e)}"
 
 
 def _power_of_ten(m: re.Match[str]) -> str:
