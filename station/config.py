@@ -306,11 +306,14 @@ class ReferenceStandard(_Model):
 
 
 class Party(_Model):
-    """A laboratory or a customer: name and postal address (lines)."""
+    """A laboratory or a customer: name, postal address (lines), e-mail and country (ISO 3166-1)."""
 
     name: str = Field(min_length=1, max_length=200)
     address: list[str] = Field(default_factory=list, max_length=8)
     accreditation: str = Field(default="", max_length=200)
+    email: str = Field(default="", max_length=254, pattern=r"^$|^[^@\s]+@[^@\s]+\.[^@\s]+$")
+    country: str = Field(default="", pattern=r"^$|^[A-Z]{2}$", description="ISO 3166-1 alpha-2 code (the "
+                         "laboratory's is the DCC's country)")
 
 
 class CertificateUser(_Model):

@@ -132,7 +132,8 @@ def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None
         async with app_in_process(rec) as (_, c):
             r = await c.get(f"/runs/{rid}/certificate.html")
             assert r.status_code == 200 and "DRAFT" in r.text and r.headers["content-type"].startswith("text/html")
-            assert (await c.get(f"/runs/{rid}/certificate.xml")).status_code == 404
+            x = await c.get(f"/runs/{rid}/certificate.xml")  # a draft DCC, marked as such
+            assert x.status_code == 200 and "<dcc:uniqueIdentifier>DRAFT-" in x.text and "DRAFT: not issued" in x.text
             assert (await c.get(f"/runs/{rid}/certificate.doc")).status_code == 422
             # the approver is who authenticates, never a name in the body; an admin may not approve
             assert (await c.post(f"/runs/{rid}/certificate", json={"prepared_by": TECH})).status_code == 403
