@@ -247,3 +247,55 @@ def test_a_campaign_certificate_carries_the_determined_end_mass(tmp_path: Path) 
     xml = build_dcc(c).decode()
     assert "<si:label>m_e</si:label>" in xml and "The end mass m_e is determined by the data" in xml
     assert "covariance matrix of (S, m_e, k_f, b_f)" in xml
+
+
+def test_the_runs_standards_feed_its_budget_and_its_certificate(tmp_path: Path) -> None:
+    """The register's standards a run uses (seeded once from the configuration): their certificates'
+    uncertainties replace the station's defaults in the configuration the run records, so the budget
+    rests on them; the certificate lists what the run recorded and what each does in the budget; a
+    standard past its due date refuses the run."""
+    from station.config import parse_config
+    from station.lab import register
+    from station.service.store import Store
+    from station.simulate import simulate_run
+    from tests.conftest import station_dict
+
+    standards = [
+        {"id": "MASS-1", "kind": "masses", "certificate_id": "M-88", "issuer": "PTB", "due_date": "2099-01-31",
+         "uncertainty": 5e-5, "uncertainty_unit": "kg"},
+        {"id": "DAQ-1", "kind": "daq", "certificate_id": "D-7", "issuer": "DKD lab", "due_date": "2099-01-31",
+         "uncertainty": 3e-4, "uncertainty_unit": "relative"},
+        {"id": "LVDT-1", "kind": "displacement_sensor", "certificate_id": "L-1", "issuer": "DKD lab",
+         "due_date": "2099-01-31", "uncertainty": 2e-7, "uncertainty_unit": "m"}]
+    data = station_dict(settle_s=0.3, record_s=1.0, steps=((4.0, R), (30.0, R), (100.0, R)),
+                        acceleration_hz_per_s=200.0, pre_roll_s=0.1)
+    data["lab"] = {"standards": standards}
+    cfg = parse_config(data)
+    store = Store(tmp_path / "station.db")
+    try:
+        assert {"MASS-1", "DAQ-1", "LVDT-1"} <= set(register.seed(store, cfg))
+        setup = register.run_setup(store, cfg, cfg.transducer.id, None)
+        late = {**standards[1], "id": "DAQ-OLD", "due_date": "2020-01-31"}
+        register.put_standard(store, register.Standard(**late), "admin")
+        with pytest.raises(register.OverdueStandardError, match="DAQ-OLD.*2020-01-31"):
+            register.run_setup(store, cfg, cfg.transducer.id, ["MASS-1", "DAQ-OLD"])
+    finally:
+        store.close()
+    run_cfg = setup.config(cfg)
+    assert run_cfg.rig.load_mass_std_kg == 5e-5 and run_cfg.identification.chain.gain_rel_std == 3e-4
+    rec = simulate_run(run_cfg, tmp_path / "rec", seed=5)
+    res = identify_recording(read_recording(rec))
+    write_result(rec, f"identify_{res.method}_{res.model}", res.to_dict())
+    assert res.assumptions["load_mass_kg"]["std"] == 5e-5
+    assert res.assumptions["measurement_chain"]["gain_rel_std"] == 3e-4
+    c = certificate_content(rec, register={"standards": [s.to_dict() for s in setup.standards]})
+    by_id = {s["id"]: s for s in c["standards"]}
+    assert by_id["MASS-1"]["budget"] == "in the budget as the load mass's standard uncertainty"
+    assert by_id["DAQ-1"]["budget"].endswith("gain ratio of the force and displacement chains")
+    assert "enters no budget term" in by_id["LVDT-1"]["budget"]
+    chain = c["assumptions"]["chain"]
+    assert any(x.startswith("gain ratio") and "default" not in x for x in chain)
+    assert any(x.startswith("gain flatness") and "the station's default" in x for x in chain)
+    # without the register's record, the configuration's list is marked as not recorded with the run
+    assert all(not s["recorded"] and "not recorded with the run" in s["budget"]
+               for s in certificate_content(rec)["standards"])

@@ -29,6 +29,7 @@ from station.ident.coverage import K2_PROBABILITY, coverage, coverages
 from station.ident.inputs import DEFAULT_END_MASS_REL_STD, MeasurementChain
 from station.ident.models import make_model
 from station.ident.result import Check, Covariance, Estimate
+from station.lab.traceability import use_text
 from station.recording import start_metadata
 from station.report.data import ModelCurve, RunData, load_run
 from station.report.html import METHODS, MODELS
@@ -230,10 +231,12 @@ def warnings_of(checks: tuple[Check, ...] | list[Check]) -> list[dict[str, Any]]
              "step": c.step} for c in checks if c.severity != "info"]
 
 
-def register_standards(standards: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def register_standards(standards: list[dict[str, Any]], load_mass_kg: float = 0.0,
+                       reference_conditioner: bool = False) -> list[dict[str, Any]]:
     """The lab register's records of the run's reference standards (``station.lab.register.Standard``
-    as the run stored them) in the certificate's form."""
-    return [{"name": s.get("description") or f"{s.get('kind', 'standard')} {s.get('id', '')}",
+    as the run stored them) in the certificate's form, with what each does in the budget."""
+    return [{"budget": use_text(s, load_mass_kg, reference_conditioner), "recorded": True,
+             "name": s.get("description") or f"{s.get('kind', 'standard')} {s.get('id', '')}",
              "kind": str(s.get("kind", "")), "id": str(s.get("id", "")),
              "certificate_id": str(s.get("certificate_id", "")), "due_date": str(s.get("due_date", "")),
              "traceability": "; ".join(x for x in (f"certificate issued by {s['issuer']}" if s.get("issuer") else "",
@@ -308,8 +311,9 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
     reg = register or {}
     reg_tr = reg.get("transducer") if isinstance(reg.get("transducer"), dict) else {}
     assert isinstance(reg_tr, dict)
-    standards = register_standards(reg["standards"]) if reg.get("standards") else [
-        s.model_dump() for s in cc.standards]
+    unrecorded = "not recorded with the run: listed from the configuration (certificate.standards)"
+    standards = register_standards(reg["standards"], rec.load_mass_kg, item.kind == "transducer") if reg.get(
+        "standards") else [{**s.model_dump(), "recorded": False, "budget": unrecorded} for s in cc.standards]
     return {
         "approval": asdict(approval),
         "laboratory": cc.laboratory.model_dump(), "customer": None if cc.customer is None else cc.customer.model_dump(),
