@@ -57,6 +57,7 @@ def _pdf_text(pdf: bytes) -> str:
     return re.sub(r"\s+", " ", "\n".join(p.extract_text() for p in PdfReader(io.BytesIO(pdf)).pages))
 
 
+@pytest.mark.slow
 def test_the_chain_kind_changes_title_unit_and_budget(chain_rec: Path, transducer_rec: Path) -> None:
     """The same transducer on the same (simulated) rig: as one chain S is in V/N with the conditioner's
     gain inside; with a reference conditioner (gain 1000 V/V, 5 V excitation) S is the transducer's in
@@ -130,6 +131,7 @@ def _with_flags(rec: Path, edit: Any) -> Path:
     return rec
 
 
+@pytest.mark.slow
 def test_flags_stand_beside_their_values_and_a_contradicted_assumption_is_not_certified(tmp_path: Path) -> None:
     """identify's flags (as a stored result carries them) on the certificate: a conditional b_f is
     marked beside its value; k_f withheld says why; when the structure the values rest on is
@@ -173,7 +175,8 @@ def test_a_single_mass_certificate_states_the_assumed_end_mass_in_pdf_and_dcc(ch
     c = certificate_content(chain_rec, ISSUED)
     em = c["end_mass"]
     assert em["status"] == "assumed" and em["value"] == 0.12 and 0.3 < em["share_of_u2_S"] < 0.95
-    text = _pdf_text(html_to_pdf(certificate_html(c)))
+    pdf = html_to_pdf(certificate_html(c))
+    text = _pdf_text(pdf)
     share = f"{100 * em['share_of_u2_S']:.0f} % of u²(S)"
     for want in ("The end mass m_e is not determined by this run", "0.12 kg", share, "campaign",
                  "not supported by a certificate", "coverage factor k = 2", "95.45 %", "N·s/m"):
@@ -202,7 +205,7 @@ def test_a_single_mass_certificate_states_the_assumed_end_mass_in_pdf_and_dcc(ch
     f_model = c["bode_model"]["f_hz"]
     assert f_model[0] >= v["f_min_hz"] * (1 - 1e-9) and f_model[-1] <= v["f_max_hz"] * (1 + 1e-9)
     # the number and "page i of n" on every page
-    pages = PdfReader(io.BytesIO(html_to_pdf(certificate_html(c)))).pages
+    pages = PdfReader(io.BytesIO(pdf)).pages
     for i, page in enumerate(pages, 1):
         assert f"SC-2026-0042 · page {i} of {len(pages)}" in " ".join(page.extract_text().split()), i
 
