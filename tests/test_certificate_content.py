@@ -280,7 +280,7 @@ def test_the_runs_standards_feed_its_budget_and_its_certificate(tmp_path: Path) 
         setup = register.run_setup(store, cfg, cfg.transducer.id, None)
         late = {**standards[1], "id": "DAQ-OLD", "due_date": "2020-01-31"}
         register.put_standard(store, register.Standard(**late), "admin")
-        with pytest.raises(register.OverdueStandardError, match="DAQ-OLD.*2020-01-31"):
+        with pytest.raises(register.OverdueStandardError, match=r"DAQ-OLD.*2020-01-31"):
             register.run_setup(store, cfg, cfg.transducer.id, ["MASS-1", "DAQ-OLD"])
     finally:
         store.close()
