@@ -77,6 +77,9 @@ def _result(name: str, value: float | None, budget_entry: dict[str, Any] | None,
     and the note that says why, in words."""
     base = {"name": name, "symbol": SYMBOL.get(name, name), "meaning": QUANTITY.get(name, name),
             "unit": unit, "unit_text": unit_text(unit), "status": status, "note": typeset(note), "determined": False}
+    if value is not None and status not in NOT_STATED and (budget_entry is None
+                                                         or budget_entry.get("combined") is None):
+        status, base["note"] = "not certified", "not certified: no uncertainty budget is stored for it"
     if value is None or budget_entry is None or budget_entry.get("combined") is None or status in NOT_STATED:
         return {**base, "value": None, "text": "not certified" if status == "not certified" else "withheld",
                 "u": None, "k": None, "p": None, "U": None, "nu_eff": None, "u_text": "", "U_text": "",
