@@ -111,8 +111,38 @@ class RigConfig(_Model):
 
 
 class ConditionerConfig(_Model):
-    gain: float = Field(default=1000.0, gt=0, le=1e6, description="V/V")
+    """The conditioner between the transducer and the DAQ, and what a certificate calibrates.
+
+    calibrated: ``chain``, the transducer and this conditioner are calibrated as one measuring chain
+    (S in V/N with the gain inside); ``transducer``, the conditioner is a calibrated reference
+    standard and S is the transducer's own (gain_unit V/V with excitation_V: mV/V per N of a bridge;
+    V/V alone: V/N of the bridge output; V/pC: pC/N of a piezo transducer), its gain's (and the
+    excitation's) stated uncertainty entering the budget of S (``station.certificate.item``)."""
+
+    gain: float = Field(default=1000.0, gt=0, le=1e6, description="V/V (or V/pC, gain_unit)")
     offset_V: float = Field(default=0.0, ge=-10, le=10)
+    calibrated: Literal["chain", "transducer"] = Field(
+        default="chain", description="chain: transducer and conditioner calibrated as one chain; transducer: "
+        "the conditioner is a calibrated reference, S is the transducer's alone")
+    gain_unit: Literal["V/V", "V/pC"] = "V/V"
+    gain_rel_std: float | None = Field(default=None, ge=0, le=0.5, description="relative standard "
+                                       "uncertainty of gain from the conditioner's certificate (needed when "
+                                       "calibrated is transducer)")
+    excitation_V: float | None = Field(default=None, gt=0, le=100, description="bridge excitation, V")
+    excitation_rel_std: float | None = Field(default=None, ge=0, le=0.5, description="relative standard "
+                                             "uncertainty of excitation_V (needed with it)")
+
+    @model_validator(mode="after")
+    def _reference_stated(self) -> ConditionerConfig:
+        if self.calibrated == "transducer":
+            if self.gain_rel_std is None:
+                raise ValueError("a reference conditioner (calibrated: transducer) needs gain_rel_std, the "
+                                 "relative standard uncertainty of its gain from its certificate")
+            if self.excitation_V is not None and self.excitation_rel_std is None:
+                raise ValueError("excitation_V needs excitation_rel_std, its relative standard uncertainty")
+            if self.excitation_V is not None and self.gain_unit != "V/V":
+                raise ValueError("excitation_V is a bridge's: it needs gain_unit V/V")
+        return self
 
 
 class DisplacementSensorConfig(_Model):
@@ -276,11 +306,14 @@ class ReferenceStandard(_Model):
 
 
 class Party(_Model):
-    """A laboratory or a customer: name and postal address (lines)."""
+    """A laboratory or a customer: name, postal address (lines), e-mail and country (ISO 3166-1)."""
 
     name: str = Field(min_length=1, max_length=200)
     address: list[str] = Field(default_factory=list, max_length=8)
     accreditation: str = Field(default="", max_length=200)
+    email: str = Field(default="", max_length=254, pattern=r"^$|^[^@\s]+@[^@\s]+\.[^@\s]+$")
+    country: str = Field(default="", pattern=r"^$|^[A-Z]{2}$", description="ISO 3166-1 alpha-2 code (the "
+                         "laboratory's is the DCC's country)")
 
 
 class CertificateUser(_Model):

@@ -51,7 +51,7 @@ def test_dcc_passes_ptbs_schematron_and_carries_the_results(issued_content: dict
         assert float(e.findtext("si:value", namespaces=NS)) == r["value"]
         mu = e.find("si:measurementUncertaintyUnivariate/si:expandedMU", NS)
         assert float(mu.findtext("si:valueExpandedMU", namespaces=NS)) == pytest.approx(r["k"] * r["u"])
-        assert float(mu.findtext("si:coverageProbability", namespaces=NS)) == 0.95
+        assert float(mu.findtext("si:coverageProbability", namespaces=NS)) == r["p"] == 0.9545
     assert {"S", "k_f", "b_f", "natural_frequency_hz", "series_stiffness"} <= set(by_label)
     mags = doc.find(".//dcc:list/dcc:quantity/si:realListXMLList[si:labelXMLList='magnitude']", NS)
     assert len(mags.findtext("si:valueXMLList", namespaces=NS).split()) == len(issued_content["response"])
@@ -75,5 +75,42 @@ def test_a_configured_schema_refuses_an_invalid_dcc(issued_content: dict[str, An
         validate(bad, xsd)
     with pytest.raises(CertificateError, match="cannot be used"):
         validate(xml, tmp_path / "missing.xsd")
-    with pytest.raises(CertificateError, match="only an issued"):
-        build_dcc({**issued_content, "approval": {**issued_content["approval"], "status": "draft"}})
+
+
+def test_software_contacts_and_country_come_from_the_station_and_its_configuration(
+        issued_content: dict[str, Any]) -> None:
+    """usedSoftware (name, version) silences PTB's Schematron reports about undeclared software; the
+    laboratory's and the customer's e-mail and country are the configuration's (no fixed country)."""
+    from dcclib.validation.schematron import SchematronValidator
+
+    xml = build_dcc(issued_content)
+    result = SchematronValidator.for_dcc().validate_str(xml.decode())
+    assert result.is_valid
+    assert not [r for r in result.successful_reports if "software" in r.text and "NEITHER" in r.text]
+    assert [r for r in result.successful_reports if "software used during measuring process is global" in r.text]
+    doc = etree.fromstring(xml)
+    sw = doc.find(".//dcc:measurementResult/dcc:usedSoftware/dcc:software", NS)
+    assert sw is not None and sw.findtext("dcc:release", namespaces=NS).startswith("v")
+    assert doc.findtext(".//dcc:coreData/dcc:countryCodeISO3166_1", namespaces=NS) == "DE"
+    lab = doc.find(".//dcc:calibrationLaboratory/dcc:contact", NS)
+    assert lab.findtext("dcc:eMail", namespaces=NS) == "calibration@example.org"
+    cust = doc.find(".//dcc:customer", NS)
+    assert cust.findtext("dcc:eMail", namespaces=NS) == "metrology@example.com"
+    assert cust.findtext("dcc:location/dcc:countryCode", namespaces=NS) == "AT"
+    other = {**issued_content, "laboratory": {**issued_content["laboratory"], "country": "CH"}}
+    assert etree.fromstring(build_dcc(other)).findtext(".//dcc:countryCodeISO3166_1", namespaces=NS) == "CH"
+    with pytest.raises(CertificateError, match=r"certificate\.laboratory\.country"):
+        build_dcc({**issued_content, "laboratory": {**issued_content["laboratory"], "country": ""}})
+
+
+def test_a_draft_dcc_is_marked_as_a_draft(issued_content: dict[str, Any]) -> None:
+    from dcclib.validation.schematron import SchematronValidator
+
+    draft = {**issued_content, "approval": Approval(prepared_by="T. Technician").__dict__}
+    xml = build_dcc(draft)
+    assert SchematronValidator.for_dcc().validate_str(xml.decode()).is_valid
+    doc = etree.fromstring(xml)
+    assert doc.findtext(".//dcc:coreData/dcc:uniqueIdentifier", namespaces=NS).startswith("DRAFT-")
+    first = doc.find(".//dcc:statements/dcc:statement/dcc:declaration/dcc:content", NS).text
+    assert first.startswith("DRAFT: not issued")
+    assert doc.find(".//dcc:respPerson[dcc:mainSigner='true']", NS) is None

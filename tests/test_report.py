@@ -243,6 +243,11 @@ def test_pdf_report_is_the_html_and_cuts_no_budget_line(sim_recording: Path) -> 
     assert "combined" in text and "Uncertainty statement" in text
     images = sum(len(p.images) for p in reader.pages)
     assert images >= len(PLOT_NAMES)
+    n = len(reader.pages)
+    run_id = read_recording(sim_recording).run_id
+    for i, page in enumerate(reader.pages, 1):  # the run and "page i of n" on every page
+        flat = " ".join(page.extract_text().split())
+        assert f"page {i} of {n}" in flat and run_id in flat, i
 
 
 def test_report_of_an_imported_run(sim_recording_one_radius: Path, tmp_path: Path) -> None:

@@ -30,7 +30,12 @@ LANG = "en"
 DSI_UNITS = {"V/N": r"\volt\newton\tothe{-1}", "N/m": r"\newton\metre\tothe{-1}",
              "N*s/m": r"\newton\second\metre\tothe{-1}", "kg": r"\kilogram", "Hz": r"\hertz", "1": r"\one",
              "V*s^2/m": r"\volt\second\tothe{2}\metre\tothe{-1}", "deg": r"\degree", "degC": r"\degreecelsius",
-             "%": r"\percent", "m": r"\metre"}
+             "%": r"\percent", "m": r"\metre", "mV/V/N": r"\milli\volt\volt\tothe{-1}\newton\tothe{-1}",
+             "mV/V*s^2/m": r"\milli\volt\volt\tothe{-1}\second\tothe{2}\metre\tothe{-1}",
+             "pC/N": r"\pico\coulomb\newton\tothe{-1}", "pC*s^2/m": r"\pico\coulomb\second\tothe{2}\metre\tothe{-1}"}
+
+
+DRAFT = "DRAFT: not issued, not valid as a calibration certificate (no number, not approved)."
 
 
 def dsi(unit: str) -> str:
@@ -46,7 +51,9 @@ def _num(x: float) -> str:
 
 
 def build_dcc(content: dict[str, Any]) -> bytes:
-    """The DCC of an issued certificate's content (UTF-8 XML bytes)."""
+    """The DCC of a certificate's content (UTF-8 XML bytes): an issued one, or a draft marked as such
+    (uniqueIdentifier DRAFT-<run>, the draft statement first, no approver); CertificateError without
+    the laboratory's country."""
     from lxml import etree
 
     D, S = f"{{{DCC_NS}}}", f"{{{SI_NS}}}"
@@ -63,9 +70,14 @@ def build_dcc(content: dict[str, Any]) -> bytes:
             el(e, D + "content", line, lang=LANG)
         return e
 
-    def location(parent: Any, lines: list[str]) -> None:
+    def contact(parent: Any, party: dict[str, Any]) -> None:
+        text_block(parent, "name", party["name"])
+        if party.get("email"):
+            el(parent, D + "eMail", party["email"])
         loc = el(parent, D + "location")
-        text_block(loc, "further", *(lines or ["not stated"]))
+        if party.get("country"):
+            el(loc, D + "countryCode", party["country"])
+        text_block(loc, "further", *(party.get("address") or ["not stated"]))
 
     def real(parent: Any, value: float, unit: str, U: float | None = None, k: float | None = None,
              p: float | None = None, label: str | None = None) -> None:
@@ -92,8 +104,11 @@ def build_dcc(content: dict[str, Any]) -> bytes:
         el(mu, S + "coverageProbabilityXMLList", _num(p))
 
     a, run, item = content["approval"], content["run"], content["item"]
-    if a["status"] != "issued" or not a["number"]:
-        raise CertificateError("only an issued certificate has a DCC")
+    issued = a["status"] == "issued" and bool(a["number"])
+    country = content["laboratory"].get("country")
+    if not country:
+        raise CertificateError("the DCC needs the laboratory's country: set certificate.laboratory.country "
+                               "(ISO 3166-1 alpha-2, e.g. DE) in the configuration")
     root = etree.Element(D + "digitalCalibrationCertificate", nsmap={"dcc": DCC_NS, "si": SI_NS, "xsi": XSI_NS})
     root.set("schemaVersion", SCHEMA_VERSION)
     root.set(f"{{{XSI_NS}}}schemaLocation", f"{DCC_NS} {DCC_NS}/v{SCHEMA_VERSION}/dcc.xsd")
@@ -103,39 +118,47 @@ def build_dcc(content: dict[str, Any]) -> bytes:
     el(sw, D + "release", f"v{__version__}")  # the DCC rules want a letter before the version
     el(sw, D + "type", "application")
     core = el(adm, D + "coreData")
-    el(core, D + "countryCodeISO3166_1", content.get("country", "DE"))
+    el(core, D + "countryCodeISO3166_1", country)
     el(core, D + "usedLangCodeISO639_1", LANG)
     el(core, D + "mandatoryLangCodeISO639_1", LANG)
-    el(core, D + "uniqueIdentifier", a["number"])
+    el(core, D + "uniqueIdentifier", a["number"] if issued else f"DRAFT-{run['run_id']}")
     el(core, D + "beginPerformanceDate", run["start_time"][:10])
     el(core, D + "endPerformanceDate", (run["end_time"] or run["start_time"])[:10])
     el(core, D + "performanceLocation", "laboratory")
-    el(core, D + "issueDate", a["issued_at"][:10])
+    el(core, D + "issueDate", a["issued_at"][:10] if issued else (run["end_time"] or run["start_time"])[:10])
     it = el(el(adm, D + "items"), D + "item")
-    text_block(it, "name", f"force transducer {item['transducer_id']}")
+    text_block(it, "name", f"{content['title'].removeprefix('Calibration certificate for a ')} "
+                           f"{item['transducer_id']}")
     text_block(el(it, D + "manufacturer"), "name", "not stated")
     ident = el(el(it, D + "identifications"), D + "identification")
     el(ident, D + "issuer", "customer")
     el(ident, D + "value", item["transducer_id"])
     text_block(ident, "name", "transducer id")
-    lab = el(el(adm, D + "calibrationLaboratory"), D + "contact")
-    text_block(lab, "name", content["laboratory"]["name"])
-    location(lab, content["laboratory"]["address"])
+    contact(el(el(adm, D + "calibrationLaboratory"), D + "contact"), content["laboratory"])
     persons = el(adm, D + "respPersons")
-    for name, role, main in ((a["prepared_by"], "prepared", False), (a["approved_by"], a["approver_role"], True)):
+    signers = ((a["prepared_by"] or "not stated", "prepared", False),
+               *(((a["approved_by"], a["approver_role"], True),) if issued else ()))
+    for name, role, main in signers:
         rp = el(persons, D + "respPerson")
         text_block(el(rp, D + "person"), "name", name)
         el(rp, D + "role", role)
         if main:
             el(rp, D + "mainSigner", "true")
     cust = el(adm, D + "customer")
-    customer = content["customer"] or {"name": "not stated", "address": []}
-    text_block(cust, "name", customer["name"])
-    location(cust, customer["address"])
+    contact(cust, content["customer"] or {"name": "not stated", "address": []})
     statements = el(adm, D + "statements")
     masses = content["assumptions"]["masses"]
-    declarations = [content["relates_only"], *content["statement"],
-                    *(f"assumption: {m['name']} = {m['value']} kg ({m['source']})" for m in masses)]
+    declarations = [*(() if issued else (DRAFT,)), content["relates_only"], f"item calibrated: {item['text']}",
+                    *content["statement"],
+                    *(f"assumption: {m['name']} = {m['value']} kg ({m['source']})" for m in masses),
+                    content["end_mass"]["text"],
+                    *(f"{r['meaning']} ({r['name']}): {r['note']}" for r in content["results"]
+                      if r["status"] != "certified" and r["note"]),
+                    *(f"finding ({f['severity']}) {f['name']}: {f['message']}" for f in content["checks"])]
+    corr = content.get("correlation")
+    if corr:
+        declarations.append(f"covariance matrix of ({', '.join(corr['names'])}) in ({', '.join(corr['units'])}): "
+                            + "; ".join(" ".join(_num(v) for v in row) for row in corr["matrix"]))
     if content["assumptions"]["structure"]:
         declarations.append("model structure: " + content["assumptions"]["structure"])
     if a.get("replaces"):
@@ -150,6 +173,10 @@ def build_dcc(content: dict[str, Any]) -> bytes:
     text_block(um, "name", m["name"])
     text_block(um, "description", f"model {m['model']}: {m['model_text']}",
                f"estimator {m['estimator']}: {m['estimator_text']}")
+    used = el(el(mr, D + "usedSoftware"), D + "software")
+    text_block(used, "name", "sinecal calibration station (acquisition, identification, uncertainty budget)")
+    el(used, D + "release", f"v{run.get('software_version') or __version__}")
+    el(used, D + "type", "application")
     if content["standards"]:
         eqs = el(mr, D + "measuringEquipments")
         for s in content["standards"]:
@@ -188,7 +215,7 @@ def build_dcc(content: dict[str, Any]) -> bytes:
         lst = el(el(res, D + "data"), D + "list")
         k = float(content["response_k"])
         for label, key, unit, ukey in (("frequency", "f_hz", "Hz", None),
-                                       ("magnitude", "magnitude", "V/N", "U_magnitude"),
+                                       ("magnitude", "magnitude", content["response_unit"], "U_magnitude"),
                                        ("phase", "phase_deg", "deg", "U_phase_deg")):
             q = el(lst, D + "quantity")
             text_block(q, "name", label)
@@ -199,7 +226,7 @@ def build_dcc(content: dict[str, Any]) -> bytes:
                 el(r, S + "valueXMLList", " ".join(_num(v) for v in vals))
                 el(r, S + "unitXMLList", dsi(unit))
             else:
-                real_list(q, vals, unit, [p[ukey] for p in pts], k, 0.9545, label)
+                real_list(q, vals, unit, [p[ukey] for p in pts], k, float(content["response_p"]), label)
     return bytes(etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True))
 
 

@@ -32,7 +32,6 @@ from station.certificate.dcc import validate as validate_dcc
 from station.certificate.register import (
     FOLDER,
     CertificateError,
-    CertificateNotFoundError,
     Issued,
     canonical_hash,
     issued_file,
@@ -186,13 +185,15 @@ def issue(recording: Path, *, prepared_by: str, approver: str, replaces: str | N
 
 def run_document(recording: Path, ext: str, register: dict[str, Any] | None = None) -> bytes:
     """A run's certificate: the latest issued one of its run that has not been replaced, else its
-    draft rendered now (HTML or PDF; a draft has no DCC)."""
+    draft rendered now (HTML, PDF or a DCC marked as a draft)."""
     recording = Path(recording)
     folder = folder_of(recording)
     mine = [c for c in list_issued(folder) if c["recording"] == recording.name and c["replaced_by"] is None]
     if mine:
         return issued_file(folder, str(mine[-1]["number"]), ext)
+    content, html = draft(recording, register=register)
     if ext == "xml":
-        raise CertificateNotFoundError("a draft has no Digital Calibration Certificate: issue the certificate first")
-    _, html = draft(recording, register=register)
+        from station.certificate.dcc import build_dcc
+
+        return build_dcc(content)
     return html.encode() if ext == "html" else html_to_pdf(html)

@@ -21,9 +21,28 @@ def render_template(name: str, **values: Any) -> str:
     return _env().get_template(name).render(**values)
 
 
+def bode_uri(content: dict[str, Any]) -> str:
+    """The certificate's Bode plot (``validity.bode_svg``) as a data URI, "" without points."""
+    import base64
+
+    import numpy as np
+
+    from station.certificate.validity import bode_svg
+
+    if not content.get("response"):
+        return ""
+    m = content.get("bode_model")
+    def arr(key: str) -> Any:
+        return None if m is None or m[key] is None else np.array(m[key])
+
+    model = None if not m else (arr("f_hz"), arr("magnitude"), arr("u_magnitude"), arr("phase_rad"), arr("u_phase_rad"))
+    svg = bode_svg(content["response"], content["response_unit"], model, float(content["response_k"]))
+    return "data:image/svg+xml;base64," + base64.b64encode(svg.encode()).decode()
+
+
 def certificate_html(content: dict[str, Any]) -> str:
-    """The certificate page of ``content.certificate_content(...)``."""
-    return render_template("certificate.html.j2", c=content)
+    """The certificate page of ``content.certificate_content(...)``, its Bode plot embedded."""
+    return render_template("certificate.html.j2", c=content, bode=bode_uri(content))
 
 
 def html_to_pdf(html: str) -> bytes:

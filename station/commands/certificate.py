@@ -13,7 +13,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("recording", type=Path, metavar="RECORDING", help="the run's .h5 recording")
     p.add_argument("--html", type=Path, metavar="FILE", help="write the certificate as HTML")
     p.add_argument("--pdf", type=Path, metavar="FILE", help="write the certificate as PDF")
-    p.add_argument("--xml", type=Path, metavar="FILE", help="write the Digital Calibration Certificate (issued only)")
+    p.add_argument("--xml", type=Path, metavar="FILE", help="write the DCC (a draft one marked as a draft)")
     p.add_argument("--issue", action="store_true", help="issue it (needs --prepared-by and --approver)")
     p.add_argument("--prepared-by", default="", help="who prepared it (a user in certificate.users)")
     p.add_argument("--approver", default="", help="who approves and issues it (role approver or admin)")

@@ -17,6 +17,7 @@ from typing import Any
 from scipy import stats
 
 COVERAGE_PROBABILITY = 0.95
+K2_PROBABILITY = 0.9545  # the normal distribution's coverage probability of k = 2 (GUM G.1.3)
 
 
 @dataclass(frozen=True)
@@ -55,12 +56,18 @@ def effective_dof(contributions: Mapping[str, float | None], dof: Mapping[str, f
     return uc2 * uc2 / denom
 
 
-def coverage(entry: Mapping[str, Any], p: float = COVERAGE_PROBABILITY) -> Coverage:
-    """The Coverage of one budget entry (module docstring)."""
+def coverage(entry: Mapping[str, Any], p: float = COVERAGE_PROBABILITY, *, k2: bool = False) -> Coverage:
+    """The Coverage of one budget entry (module docstring).  k2: the calibration certificate's
+    convention (EA-4/02): k = 2 for a coverage probability of about 95.45 %, unless nu_eff is so
+    small that the t-quantile exceeds 2 by more than its rounding (then that k, nu_eff stated)."""
     nu = effective_dof(entry.get("contributions") or {}, entry.get("dof"))
+    if k2:
+        k = coverage_factor(nu, K2_PROBABILITY)
+        return Coverage(float(entry["combined"]), nu, 2.0 if k < 2.005 else k, K2_PROBABILITY)
     return Coverage(float(entry["combined"]), nu, coverage_factor(nu, p), p)
 
 
-def coverages(budget: Mapping[str, Mapping[str, Any]], p: float = COVERAGE_PROBABILITY) -> dict[str, Coverage]:
-    """Coverage per parameter of a stored budget."""
-    return {n: coverage(b, p) for n, b in budget.items() if b.get("combined") is not None}
+def coverages(budget: Mapping[str, Mapping[str, Any]], p: float = COVERAGE_PROBABILITY, *,
+              k2: bool = False) -> dict[str, Coverage]:
+    """Coverage per parameter of a stored budget (k2: ``coverage``'s certificate convention)."""
+    return {n: coverage(b, p, k2=k2) for n, b in budget.items() if b.get("combined") is not None}

@@ -18,6 +18,7 @@ from typing import Any
 from station.config import StandardConfig, StationConfig, TransducerConfig
 from station.errors import StationError
 from station.lab import audit
+from station.lab.traceability import with_standards
 from station.service.store import Store
 
 MOUNTED_KEY = "mounted_transducer"
@@ -203,8 +204,10 @@ class RunSetup:
     warnings: tuple[str, ...] = ()
 
     def config(self, cfg: StationConfig) -> StationConfig:
-        """The station configuration with this transducer's record in place of the configured one."""
-        return cfg.model_copy(update={"transducer": self.transducer.to_config()})
+        """The station configuration with this transducer's record in place of the configured one and
+        the uncertainties its standards' certificates state (``traceability.with_standards``)."""
+        return with_standards(cfg.model_copy(update={"transducer": self.transducer.to_config()}),
+                              [s.to_dict() for s in self.standards])
 
     def to_dict(self) -> dict[str, Any]:
         return {"transducer": self.transducer.to_dict(), "standards": [s.to_dict() for s in self.standards],

@@ -69,9 +69,17 @@ def _bode(d: RunData, fig: Figure) -> None:
         ph_at = np.interp(r.f_hz, ff, m_ph)
         ph = ph_at + np.angle(np.exp(1j * (ph - ph_at)))  # measured phase on the model's branch
         label = f"model {d.ident.model} ({d.ident.method})"
-        ax_m.plot(ff, 1e3 * m_mag, "C1", label=label)
-        ax_p.plot(ff, np.degrees(m_ph), "C1", label=label)
+        inside = (ff >= f_lo) & (ff <= f_hi)  # the plan's range; outside it the model is extrapolated
+        outside = np.where(inside, np.nan, 1.0)
+        ax_m.plot(ff, 1e3 * m_mag * np.where(inside, 1.0, np.nan), "C1", label=label)
+        ax_p.plot(ff, np.degrees(m_ph) * np.where(inside, 1.0, np.nan), "C1", label=label)
+        ax_m.plot(ff, 1e3 * m_mag * outside, "C1", ls=":", lw=1, label="model extrapolated beyond the plan")
+        ax_p.plot(ff, np.degrees(m_ph) * outside, "C1", ls=":", lw=1)
+        for ax in (ax_m, ax_p):
+            ax.axvspan(ff[0], f_lo, color="0.9", lw=0)
+            ax.axvspan(f_hi, ff[-1], color="0.9", lw=0)
         if m_umag is not None and m_uph is not None:
+            m_umag, m_uph = np.where(inside, m_umag, np.nan), np.where(inside, m_uph, np.nan)
             ax_m.fill_between(ff, 1e3 * (m_mag - COVERAGE_K * m_umag), 1e3 * (m_mag + COVERAGE_K * m_umag),
                               color="C1", alpha=0.25, lw=0, label="model, k = 2")
             ax_p.fill_between(ff, np.degrees(m_ph - COVERAGE_K * m_uph), np.degrees(m_ph + COVERAGE_K * m_uph),

@@ -23,6 +23,8 @@ SOURCE_TEXT = {"noise": "the measurement noise propagated through the fit",
                "chain_delay": "the time skew between the channels",
                "chain_resonance": "the stated displacement-sensor resonance the response was corrected for",
                "end_mass": "the end mass m_e", "load_mass": "the load mass m_l (top mass and adaption)",
+               "conditioner_gain": ("the reference conditioner's gain and the bridge excitation, from its "
+                                    "certificate (S of the transducer alone)"),
                "radius": "the crank radius (the frame motion is the measured displacement)",
                "unidentified_dynamics": ("the stiffness and damping one frequency leaves undetermined, as uncertain "
                                          "as the estimator has them (RLS)")}
@@ -71,23 +73,37 @@ def _mass_sentence(source: str, key: str, label: str, status: str | None, assump
                 + f"; the budget propagates it: {per}.")
     if status == "nothing":
         return f"The {label}{value} enters the budget with no effect on the results (contribution 0)."
+    if a.get("source") == "campaign":
+        return (f"The {label} is determined by the data jointly with the other parameters (a campaign of several "
+                "top masses): its uncertainty is in the parameters' covariance, not a source of this budget.")
     return f"The {label} is not a source of this budget."
 
 
 def uncertainty_statement(budget: Mapping[str, Mapping[str, Any]], assumptions: Mapping[str, Any] | None = None,
-                          p: float = 0.95) -> list[str]:
-    """The sentences of the uncertainty statement (module docstring); [] for an empty budget."""
+                          p: float = 0.95, *, k2: bool = False) -> list[str]:
+    """The sentences of the uncertainty statement (module docstring); [] for an empty budget.
+    k2: the certificate's convention (``station.ident.coverage.coverage``: k = 2, about 95.45 %)."""
     if not budget:
         return ["No uncertainty budget is stored with this result: no uncertainty is stated."]
     assumptions = assumptions or {}
     status = source_status(budget)
-    cov = coverages(budget, p)
+    cov = coverages(budget, p, k2=k2)
     out = []
     ks = "; ".join(f"{n}: k = {c.k:.3g}, " + ("ν_eff infinite" if math.isinf(c.nu_eff) else f"ν_eff = {c.nu_eff:.3g}")
                    for n, c in cov.items())
-    out.append(f"Standard uncertainties u are stated with k = 1; expanded uncertainties U = k u for a coverage "
-               f"probability of {100 * p:.0f} %, k the t-distribution's quantile at the effective degrees of "
-               f"freedom ν_eff (Welch–Satterthwaite) of each result ({ks}).")
+    if k2:
+        other = {n: c for n, c in cov.items() if c.k != 2.0}
+        out.append("Standard uncertainties u are stated with k = 1. The expanded uncertainties U = k u are stated "
+                   "with the coverage factor k = 2, which for a normal distribution corresponds to a coverage "
+                   "probability of approximately 95 % (95.45 %)"
+                   + ("" if not other else "; where the effective degrees of freedom ν_eff (Welch–Satterthwaite) are "
+                      "too few for k = 2, k is the t-distribution's quantile for 95.45 % at ν_eff: "
+                      + "; ".join(f"{n}: k = {c.k:.3g}, ν_eff = {c.nu_eff:.3g}" for n, c in other.items()))
+                   + ".")
+    else:
+        out.append(f"Standard uncertainties u are stated with k = 1; expanded uncertainties U = k u for a coverage "
+                   f"probability of {100 * p:.0f} %, k the t-distribution's quantile at the effective degrees of "
+                   f"freedom ν_eff (Welch–Satterthwaite) of each result ({ks}).")
     prop = [s for s, v in status.items() if v == "propagated"]
     if prop:
         out.append("The budget propagates " + "; ".join(SOURCE_TEXT.get(s, s) for s in prop) + ".")

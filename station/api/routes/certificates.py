@@ -29,7 +29,7 @@ def _out(c: dict[str, Any]) -> CertificateOut:
             responses={**DOCS, **NON_JSON_ERRORS}, summary="The run's certificate (issued, else the draft)")
 async def run_certificate(run: RunDep, artifacts: ArtifactsDep, ext: Ext) -> Response:
     """The latest issued certificate of the run that has not been replaced; before it is issued, the
-    draft (marked DRAFT; HTML and PDF only)."""
+    draft (marked DRAFT; its DCC with the identifier DRAFT-<run id> and a draft statement)."""
     return Response(await artifacts.certificate(run.id, ext), media_type=MEDIA[ext])
 
 
