@@ -95,9 +95,20 @@ def _weights(coeffs: np.ndarray) -> np.ndarray:
                      np.concatenate([-(k**2) * a, -(k**2) * b]), np.concatenate([-(k**3) * b, k**3 * a])])
 
 
+def harmonic_sum(cs: tuple[np.ndarray, np.ndarray], W: np.ndarray) -> np.ndarray:
+    """W @ harmonic_stack(cs, K) without the stack: sum_h W[i, h-1] cos(h phi) + W[i, K+h-1] sin(h phi);
+    W: (m, 2K), cs: (cos phi, sin phi), each (n,); returns (m, n).  Compiled (``kernels``)."""
+    from drivers.rig import kernels  # numba: imported (and compiled or read from its cache) on first use
+
+    c1, s1 = (np.ascontiguousarray(v, dtype=float) for v in cs)
+    out = np.empty((W.shape[0], c1.size))
+    kernels.harmonic_series(c1, s1, np.ascontiguousarray(W, dtype=float), out)
+    return out
+
+
 def _series(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """x(phi) and dx/dphi for x = sum_k a_k cos(k phi) + b_k sin(k phi), c_k = a_k - i b_k."""
-    xd = np.einsum("ij,jk->ik", _weights(coeffs)[:2], harmonic_stack(cs, coeffs.size))  # no BLAS threads
+    xd = harmonic_sum(cs, _weights(coeffs)[:2])
     return xd[0], xd[1]
 
 
@@ -115,7 +126,7 @@ def evaluate(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray], omega: np.nd
             return Kinematics(displacement=x, acceleration=-w2 * x, jerk=-(w2 * omega) * d1)
         return Kinematics(displacement=x, acceleration=alpha * d1 - w2 * x,
                           jerk=-(w2 * omega) * d1 - 3.0 * alpha * omega * x)
-    x, d1, d2, d3 = np.einsum("ij,jk->ik", _weights(coeffs), harmonic_stack(cs, coeffs.size))
+    x, d1, d2, d3 = harmonic_sum(cs, _weights(coeffs))
     if alpha == 0.0:
         return Kinematics(displacement=x, acceleration=d2 * w2, jerk=d3 * (w2 * omega))
     return Kinematics(displacement=x, acceleration=d2 * w2 + d1 * alpha,

@@ -87,17 +87,21 @@ class FilterBank:
     def __init__(self, filters: DiscreteFilters, u0: float, outputs: int | None = None) -> None:
         """Start in steady state for a constant input u0 (its derivative zero); compute only the
         first ``outputs`` outputs (all by default) on every block."""
-        self._f = filters
-        self._count = filters.n_outputs if outputs is None else outputs
-        self._zu = filters.zi_unit_u[: self._count] * u0
-        self._zdu = np.zeros_like(self._zu)
+        count = filters.n_outputs if outputs is None else outputs
+        d0 = filters.den[0]
+        self._den = np.ascontiguousarray(filters.den / d0)
+        self._num_u = np.ascontiguousarray(filters.num_u[:count] / d0)
+        self._num_du = np.ascontiguousarray(filters.num_du[:count] / d0)
+        # one transposed-direct-form state per output carries both filters (the sum of lfilter's
+        # two states): the u-filters' steady state for u0, the u'-filters' rest at zero
+        self._z = np.array(filters.zi_unit_u[:count] * u0, dtype=float)
 
     def run(self, u: np.ndarray, du: np.ndarray) -> list[np.ndarray]:
         """Filter one block; u, du: (n,) input and its time derivative (same unit per second)."""
-        f = self._f
-        out = []
-        for k in range(self._count):
-            y1, self._zu[k] = signal.lfilter(f.num_u[k], f.den, u, zi=self._zu[k])
-            y2, self._zdu[k] = signal.lfilter(f.num_du[k], f.den, du, zi=self._zdu[k])
-            out.append(y1 + y2)
-        return out
+        from drivers.rig import kernels  # numba: imported (and compiled or read from its cache) on first use
+
+        u = np.ascontiguousarray(u, dtype=float)
+        du = np.ascontiguousarray(np.broadcast_to(du, u.shape), dtype=float)
+        out = np.empty((self._num_u.shape[0], u.size))
+        kernels.two_input_df2t(self._num_u, self._num_du, self._den, u, du, self._z, out)
+        return list(out)

@@ -190,11 +190,11 @@ def _mains(m: MainsInterference, t0: float, T: float, n: int) -> np.ndarray:
     """Mains pick-up in V at the n sample instants t0 + k T (s)."""
     w = 2.0 * np.pi * m.frequency_hz
     k = len(m.amplitudes_V)
-    stack = crank.harmonic_stack(crank.cos_sin(w * t0, w * T, 0.0, n), k)
     amp = np.asarray(m.amplitudes_V)
     ph = np.array([m.phases_rad[h] if h < len(m.phases_rad) else 0.0 for h in range(k)])
     # sum_h A_h sin(h w t + ph_h) = sum_h A_h (sin(h w t) cos ph_h + cos(h w t) sin ph_h)
-    return np.einsum("j,jk->k", np.concatenate([amp * np.sin(ph), amp * np.cos(ph)]), stack)
+    W = np.concatenate([amp * np.sin(ph), amp * np.cos(ph)])[None, :]
+    return crank.harmonic_sum(crank.cos_sin(w * t0, w * T, 0.0, n), W)[0]
 
 
 def _quantise(v: np.ndarray, lsb: float, bits: int) -> tuple[np.ndarray, int]:

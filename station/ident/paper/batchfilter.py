@@ -16,12 +16,17 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 
 
+def block_length(n: int, M: int) -> int:
+    """Block length L for a filter of order n on M samples (about sqrt(M))."""
+    return max(n, 1, round(float(np.sqrt(M))))
+
+
 def _blocked_response(B: FloatArray, A: FloatArray, x: FloatArray) -> tuple[FloatArray, int, int]:
     """Outputs in block layout (L, n_blocks, P); the padded tail beyond len(x) is garbage."""
     P, nbc = B.shape
     n = A.shape[1] - 1
     M = x.size
-    L = max(n, 1, round(float(np.sqrt(M))))
+    L = block_length(n, M)
     nb = -(-M // L)
     inv = 1.0 / A[:, 0]
     a = (A[:, 1:] * inv[:, None]).T.copy()  # (n, P)

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
-from station.ident.paper.batchfilter import batch_mse
+from station.ident.paper.batchfilter import batch_mse, block_length
 
 FloatArray = NDArray[np.float64]
 BatchFitness = Callable[[FloatArray], FloatArray]
@@ -85,50 +85,76 @@ def _fitness(mse: FloatArray, variant: str) -> FloatArray:
     return np.exp(-mse) if variant == "pso+" else -mse
 
 
-def run_pso(fitness_mse: BatchFitness, n_dim: int, settings: PsoSettings, seed: int) -> PsoResult:
-    """Steps 3-8 of Section 3.3 on a batch objective ``fitness_mse(X (P, N)) -> MSE (P,)``."""
+def _move(X: FloatArray, V: FloatArray, pbest: FloatArray, gbest: FloatArray, r1: FloatArray,
+          r2: FloatArray, w: float, s: PsoSettings) -> None:
+    """Eq. 12 and 13 in place, each clipped."""
+    V[:] = w * V + s.c1 * r1 * (pbest - X) + s.c2 * r2 * (gbest - X)
+    np.clip(V, -s.v_max, s.v_max, out=V)
+    X += V
+    np.clip(X, -s.x_max, s.x_max, out=X)
+
+
+def _remember(X: FloatArray, mse: FloatArray, fit: FloatArray, pbest: FloatArray, pbest_fit: FloatArray,
+              pbest_mse: FloatArray, gbest: FloatArray, gbest_state: FloatArray) -> int:
+    """Step 7 in place: Pbest and Gbest by the fitness; gbest_state = [fitness, MSE] of Gbest.
+    Returns how many decisions differ from the ones the MSE itself would have made."""
+    better = fit > pbest_fit
+    n_tie = int(np.count_nonzero(better != (mse < pbest_mse)))
+    pbest[better], pbest_fit[better], pbest_mse[better] = X[better], fit[better], mse[better]
+    g = int(np.argmax(pbest_fit))
+    n_tie += int(pbest_mse[g] != pbest_mse.min())
+    update = bool(pbest_fit[g] > gbest_state[0])
+    n_tie += int(update != bool(pbest_mse.min() < gbest_state[1]))
+    if update:
+        gbest[:] = pbest[g]
+        gbest_state[:] = pbest_fit[g], pbest_mse[g]
+    return n_tie
+
+
+_DRAWS_AHEAD = 64  # iterations whose random numbers are drawn in one call
+
+
+def run_pso(fitness_mse: BatchFitness, n_dim: int, settings: PsoSettings, seed: int, *,
+            compiled: bool = True) -> PsoResult:
+    """Steps 3-8 of Section 3.3 on a batch objective ``fitness_mse(X (P, N)) -> MSE (P,)``.
+
+    An ``OutputErrorObjective`` runs compiled (``swarm_kernel``, the same arithmetic to the last bit)
+    unless ``compiled`` is False or numba is missing; any other objective runs in numpy."""
     s = settings
+    kernel = compiled_swarm(fitness_mse) if compiled else None
+    evaluate = kernel.evaluate if kernel is not None else fitness_mse
+    move = kernel.move if kernel is not None else _move
+    remember = kernel.remember if kernel is not None else _remember
     rng = np.random.default_rng(seed)
     P = s.n_particles
     X = rng.uniform(-s.x_max, s.x_max, (P, n_dim))  # Step 3
     V = rng.uniform(-s.v_max, s.v_max, (P, n_dim))
-    mse = fitness_mse(X)
+    mse = evaluate(X)
     fit = _fitness(mse, s.variant)
     pbest, pbest_fit, pbest_mse = X.copy(), fit.copy(), mse.copy()  # Step 4
     g = int(np.argmax(pbest_fit))
-    gbest, gbest_fit, gbest_mse = pbest[g].copy(), pbest_fit[g], pbest_mse[g]
+    gbest, gbest_state = pbest[g].copy(), np.array([pbest_fit[g], pbest_mse[g]])
     mse_hist = np.empty(s.n_iterations + 1)
     fit_hist = np.empty(s.n_iterations + 1)
-    mse_hist[0], fit_hist[0] = gbest_mse, (gbest_fit if s.variant == "pso+" else gbest_mse)
     ties = np.zeros(s.n_iterations + 1, dtype=np.int64)
     ties[0] = int(pbest_mse[g] != pbest_mse.min())
-    for j in range(1, s.n_iterations + 1):  # Steps 5-7
-        w = s.w_max - j / s.n_iterations * (s.w_max - s.w_min)  # Eq. 14
-        r1 = rng.random((P, n_dim))
-        r2 = rng.random((P, n_dim))
-        V = w * V + s.c1 * r1 * (pbest - X) + s.c2 * r2 * (gbest - X)  # Eq. 12
-        np.clip(V, -s.v_max, s.v_max, out=V)
-        X = X + V  # Eq. 13
-        np.clip(X, -s.x_max, s.x_max, out=X)
-        mse = fitness_mse(X)  # Step 6
-        fit = _fitness(mse, s.variant)
-        better = fit > pbest_fit
-        n_tie = int(np.count_nonzero(better != (mse < pbest_mse)))
-        pbest[better], pbest_fit[better], pbest_mse[better] = X[better], fit[better], mse[better]
-        g = int(np.argmax(pbest_fit))
-        n_tie += int(pbest_mse[g] != pbest_mse.min())
-        update = bool(pbest_fit[g] > gbest_fit)
-        n_tie += int(update != bool(pbest_mse.min() < gbest_mse))
-        if update:
-            gbest, gbest_fit, gbest_mse = pbest[g].copy(), pbest_fit[g], pbest_mse[g]
-        ties[j] = n_tie
-        mse_hist[j] = gbest_mse
-        fit_hist[j] = gbest_fit if s.variant == "pso+" else gbest_mse
+    pso_plus = s.variant == "pso+"
+    for j in range(s.n_iterations + 1):  # Steps 5-7
+        if j:
+            w = s.w_max - j / s.n_iterations * (s.w_max - s.w_min)  # Eq. 14
+            if (j - 1) % _DRAWS_AHEAD == 0:  # r1 then r2 of each iteration: the stream of per-iteration draws
+                r = rng.random((min(_DRAWS_AHEAD, s.n_iterations + 1 - j), 2, P, n_dim))
+            r1, r2 = r[(j - 1) % _DRAWS_AHEAD]
+            move(X, V, pbest, gbest, r1, r2, w, s)
+            mse = evaluate(X)  # Step 6
+            ties[j] = remember(X, mse, _fitness(mse, s.variant), pbest, pbest_fit, pbest_mse, gbest, gbest_state)
+        mse_hist[j] = gbest_state[1]
+        fit_hist[j] = gbest_state[0] if pso_plus else gbest_state[1]
     changes = np.nonzero(fit_hist[1:] != fit_hist[:-1])[0]
     conv = int(changes[-1] + 1) if changes.size else 0
     log.debug("%s seed %d: MSE %.3e after %d iterations (converged at %d)", s.variant, seed,
-              gbest_mse, s.n_iterations, conv)
-    return PsoResult(gbest, float(gbest_mse), mse_hist, fit_hist, conv, s, seed, ties)  # Step 8
+              gbest_state[1], s.n_iterations, conv)
+    return PsoResult(gbest, float(gbest_state[1]), mse_hist, fit_hist, conv, s, seed, ties)  # Step 8
 
 
 # --- parametrisations of the paper's transfer functions as particle positions ---------------
@@ -148,16 +174,69 @@ SPLITS: dict[str, tuple[Callable[[FloatArray], tuple[FloatArray, FloatArray]], i
     "h2": (split_h2, 4), "h1": (split_h1, 10)}
 
 
-def output_error_objective(form: str, x: FloatArray, y: FloatArray) -> BatchFitness:
+@dataclass(frozen=True, eq=False)
+class OutputErrorObjective:
+    """Batch Eq. 15 objective: MSE of lfilter(B(X), A(X), x) against y for every particle.
+
+    form: 'h2' (Eq. 11) or 'h1' (Eq. 10); x, y: input and output, shape (M,)."""
+
+    form: str
+    x: FloatArray
+    y: FloatArray
+
+    def __call__(self, X: FloatArray) -> FloatArray:
+        B, A = SPLITS[self.form][0](X)
+        return batch_mse(B, A, self.x, self.y)
+
+
+def output_error_objective(form: str, x: FloatArray, y: FloatArray) -> OutputErrorObjective:
     """Batch Eq. 15 objective: MSE of lfilter(B(X), A(X), x) against y for every particle."""
-    split, _ = SPLITS[form]
-    xx, yy = np.asarray(x, float), np.asarray(y, float)
+    return OutputErrorObjective(form, np.asarray(x, float), np.asarray(y, float))
 
-    def f(X: FloatArray) -> FloatArray:
-        B, A = split(X)
-        return batch_mse(B, A, xx, yy)
 
-    return f
+class CompiledSwarm:
+    """``run_pso``'s three steps for an ``OutputErrorObjective``, compiled (``swarm_kernel``)."""
+
+    def __init__(self, objective: OutputErrorObjective) -> None:
+        from station.ident.paper import swarm_kernel  # numba: imported (and compiled) on first use
+
+        self._k = swarm_kernel
+        self._form = 0 if objective.form == "h2" else 1
+        self._n = 2 if objective.form == "h2" else 4
+        x, self._y = objective.x, np.ascontiguousarray(objective.y, dtype=float)
+        M = x.size
+        self._L = block_length(self._n, M)
+        nb = -(-M // self._L)
+        self._xpad = np.zeros(nb * self._L + self._n)  # n zeros ahead of x: the FIR's past
+        self._xpad[self._n: self._n + M] = x
+
+    def evaluate(self, X: FloatArray) -> FloatArray:
+        out = np.empty(X.shape[0])
+        self._k.swarm_mse(X, self._form, self._n, self._xpad, self._y, self._L, out, self._k.CHUNK)
+        return out
+
+    def move(self, X: FloatArray, V: FloatArray, pbest: FloatArray, gbest: FloatArray, r1: FloatArray,
+             r2: FloatArray, w: float, s: PsoSettings) -> None:
+        self._k.move(X, V, pbest, gbest, r1, r2, w, s.c1, s.c2, s.v_max, s.x_max)
+
+    def remember(self, X: FloatArray, mse: FloatArray, fit: FloatArray, pbest: FloatArray, pbest_fit: FloatArray,
+                 pbest_mse: FloatArray, gbest: FloatArray, gbest_state: FloatArray) -> int:
+        return int(self._k.remember(X, mse, fit, pbest, pbest_fit, pbest_mse, gbest, gbest_state))
+
+
+_NO_COMPILER: list[str] = []  # why the compiled swarm is unavailable in this process, once known
+
+
+def compiled_swarm(objective: BatchFitness) -> CompiledSwarm | None:
+    """The compiled steps for an output-error objective; None for any other objective or without numba."""
+    if not isinstance(objective, OutputErrorObjective) or objective.form not in SPLITS or _NO_COMPILER:
+        return None
+    try:
+        return CompiledSwarm(objective)
+    except ImportError as e:
+        _NO_COMPILER.append(str(e))
+        log.warning("the swarm runs in numpy (slower): numba is unavailable: %s", e)
+        return None
 
 
 def output_error_objective_loop(form: str, x: FloatArray, y: FloatArray) -> BatchFitness:
