@@ -95,12 +95,12 @@ class Compensator:
         b, U = self.filt.b_array, self.filt.b_cov_array
         r = self.noise.autocov
         if len(r) == 1 or not any(r[1:]):  # white: closed form with cumulative sums
-            j = np.arange(n)
-            head_b = np.concatenate([[0.0], np.cumsum(b**2)])[j]
-            tail_b = np.cumsum(b[::-1])[::-1][j]
-            head_u = np.concatenate([[0.0], np.cumsum(np.diag(U))])[j]
+            jj = np.arange(n)
+            head_b = np.concatenate([[0.0], np.cumsum(b**2)])[jj]
+            tail_b = np.cumsum(b[::-1])[::-1][jj]
+            head_u = np.concatenate([[0.0], np.cumsum(np.diag(U))])[jj]
             S = np.cumsum(np.cumsum(U[::-1, ::-1], axis=0), axis=1)[::-1, ::-1]  # S[j, j] = sum_{k,l>=j} U_kl
-            return r[0] * (head_b + tail_b**2 + head_u + np.diag(S)[j])
+            return r[0] * (head_b + tail_b**2 + head_u + np.diag(S)[jj])
         out = np.empty(n)
         for j in range(n):
             M = np.zeros((self.N, j + 1))  # window (x[j], ..., x[0], x[0], ...) from (x[j], ..., x[0])
@@ -131,7 +131,8 @@ class Compensator:
         return y, np.sqrt(np.clip(var, 0, None))
 
 
-def compensate(filt: CompensationFilter, x: ArrayLike, noise: Noise, block: int = 1 << 16) -> tuple[FloatArray, FloatArray]:
+def compensate(filt: CompensationFilter, x: ArrayLike, noise: Noise,
+               block: int = 1 << 16) -> tuple[FloatArray, FloatArray]:
     """The whole signal in blocks of ``block`` samples: estimate and standard uncertainty (n,)."""
     comp = Compensator(filt, noise)
     return collect(comp.process(b) for b in blocks(np.asarray(x, dtype=float), block))

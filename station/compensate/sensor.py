@@ -184,7 +184,7 @@ def from_result(res: IdentificationResult, mounted_mass_kg: float, mounted_mass_
     cov = 0.5 * (cov + cov.T)
     f_cal = [float(v) for v in res.extra.get("f_hz") or ()]
     rng = (min(f_cal), max(f_cal)) if f_cal else (math.nan, math.nan)
-    units = tuple(res.covariance.units[i] for i in idx) + ("kg", "kg")
+    units = (*tuple(res.covariance.units[i] for i in idx), "kg", "kg")
     assumptions = {
         "model": f"{'Eq. 9 (stiff coupling)' if res.model == 'sdof' else 'Eq. 8 (finite coupling)'} of the "
                  f"{res.method} result, base at rest, the force acting on the mounted mass",
@@ -194,7 +194,7 @@ def from_result(res: IdentificationResult, mounted_mass_kg: float, mounted_mass_
         "chain": "the measurement chain of the application (conditioner, DAQ) is the calibration's: its gain "
                  "is in S; its own dynamics are not compensated",
     }
-    return Sensor(res.model, core + ("m_e", "m_l"), units, tuple(theta_core) + (m_e, mounted_mass_kg),
+    return Sensor(res.model, (*core, "m_e", "m_l"), units, (*tuple(theta_core), m_e, mounted_mass_kg),
                   tuple(tuple(float(v) for v in r) for r in cov), rng, "N", "V",
                   origin or f"identified result {res.result_name}", assumptions, tuple(findings))
 
@@ -255,7 +255,9 @@ def read_table(text: str) -> Table:
     if np.any(mag <= 0):
         raise BadInputError("the calibration table's magnitudes must be > 0")
     u_mag = col.get("u_magnitude", np.full(len(f), np.nan))
-    u_ph = (col[u_ph_col] * (np.pi / 180 if u_ph_col == "u_phase_deg" else 1.0)) if u_ph_col else np.full(len(f), np.nan)
+    u_ph = np.full(len(f), np.nan)
+    if u_ph_col:
+        u_ph = col[u_ph_col] * (np.pi / 180 if u_ph_col == "u_phase_deg" else 1.0)
     order = np.argsort(f)
     return Table(f[order], (mag * np.exp(1j * ph))[order], u_mag[order], u_ph[order])
 
