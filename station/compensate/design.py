@@ -3,8 +3,9 @@ coefficients' covariance propagated from the transducer's (Eichstädt, Elster, E
 Metrologia 47 (2010) 522).
 
 The filter F(z) = sum_n b_n z^-n (``taps`` coefficients, input the transducer's signal, output the
-measurand) minimises sum_k |F(f_k) - L(f_k) exp(-j 2 pi f_k tau / fs) / G(f_k)|^2 over a uniform grid
-f_k of [0, fs/2] (8 points per tap, at least 512): G the transducer's response, L the regularising
+measurand) minimises sum_k |G(f_k)/G(0)|^2 |F(f_k) - L(f_k) exp(-j 2 pi f_k tau / fs) / G(f_k)|^2, i.e.
+the compensated system's error |F G - L e^{-j w tau}|^2 / |G(0)|^2, over a uniform grid f_k of
+[0, fs/2] (8 points per tap, at least 512): G the transducer's response, L the regularising
 low-pass (Butterworth magnitude 1/sqrt(1 + (f/f_c)^(2 n)), zero phase), tau the delay in samples.
 The solution is linear in the target, b = P t(theta) with P the pseudo-inverse of the real-stacked
 basis, so the coefficients' covariance is U_b = J Sigma J^T with J = P dt/dtheta and
@@ -83,12 +84,17 @@ class Basis:
     P: FloatArray
 
     @classmethod
-    def of(cls, taps: int, fs: float) -> Basis:
+    def of(cls, taps: int, fs: float, sensor: Sensor | None = None) -> Basis:
+        """With a sensor, row k weighs |G(f_k)|/|G(0)|: the fit minimises the compensated system's
+        error |F G - L e^{-j w tau}| (relative), not the filter's (absolute, dominated by the high gains
+        near the cut-off)."""
         K = max(512, 8 * taps)
         f = np.linspace(0.0, fs / 2, K)
         E = np.exp(-2j * np.pi * np.outer(f, np.arange(taps)) / fs)
+        w = np.ones(K) if sensor is None else np.abs(sensor.response(f)) / abs(sensor.response([0.0])[0])
         A = np.vstack([E.real, E.imag])
-        P = np.linalg.solve(A.T @ A, A.T)  # the Fourier basis on a uniform grid is well conditioned
+        W2 = np.concatenate([w, w]) ** 2
+        P = np.linalg.solve(A.T @ (W2[:, None] * A), A.T * W2[None, :])  # weighted least squares
         return cls(f, E, P)
 
 
@@ -217,7 +223,7 @@ def design_filter(sensor: Sensor, spec: DesignSpec) -> CompensationFilter:
         findings.append(Check("extrapolation", "warning", None, msg,
                               {"band_hz": list(spec.band_hz), "calibrated_range_hz": [lo_cal, hi_cal]}))
     fs, N = spec.sample_rate_hz, spec.taps
-    basis = Basis.of(N, fs)
+    basis = Basis.of(N, fs, sensor)
     theta = sensor.theta_array
     G = sensor.response(basis.f, theta)
     if not np.all(np.isfinite(G)) or np.any(np.abs(G) == 0):
@@ -256,7 +262,7 @@ def coefficients_for(filt: CompensationFilter, thetas: ArrayLike) -> FloatArray:
     ``thetas`` (m, p): (m, taps).  The Monte Carlo's draws (GUM-S1) go through this, not through the
     linearisation."""
     spec = filt.spec
-    basis = Basis.of(len(filt.b), spec.sample_rate_hz)
+    basis = Basis.of(len(filt.b), spec.sample_rate_hz, filt.sensor)
     th = np.atleast_2d(np.asarray(thetas, dtype=float))
     L = lowpass(basis.f, spec.cutoff_hz, spec.lowpass_order) * np.exp(
         -2j * np.pi * basis.f * filt.delay_samples / spec.sample_rate_hz)
