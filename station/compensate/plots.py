@@ -34,7 +34,7 @@ def bode_plot(filt: CompensationFilter, path: str | Path) -> Path:
     a2.semilogx(f, ph, label="compensated (delay removed)")
     a2.fill_between(f, ph - 2 * np.degrees(b.u_Hc_phase), ph + 2 * np.degrees(b.u_Hc_phase), alpha=0.25)
     for ax in (a1, a2):
-        ax.axvspan(*filt.spec.band_hz, color="0.9", zorder=0)
+        ax.axvspan(max(filt.spec.band_hz[0], f[0]), filt.spec.band_hz[1], color="0.9", zorder=0)
         ax.axvline(filt.spec.cutoff_hz, color="0.5", ls="--", lw=0.8)
         ax.grid(True, which="both", alpha=0.3)
     a1.set_ylabel("magnitude / dB")
