@@ -73,7 +73,7 @@ def test_table_design_compensates_pydynamics_example_signal() -> None:
     t = np.arange(2000) / FS
     x = 0.8 * np.exp(-((t - 2e-3) ** 2) / (2 * 1e-5**2))  # PyDynamic's shocklikeGaussian is similar
     y = dsp.lfilter(b, a, x) + np.random.default_rng(10).normal(0, 1e-3, t.size)
-    est, u = compensate(filt, y, Noise.white(1e-3))
+    est, _ = compensate(filt, y, Noise.white(1e-3))
     ref = np.interp(t - filt.delay_s, t, x)
     assert np.max(np.abs(est - ref)) < 0.05 * 0.8
     assert np.max(np.abs(y / S0 - x)) > 0.3
@@ -146,7 +146,7 @@ def test_bad_signals_get_one_clear_message(tmp_path: Path) -> None:
     x = np.zeros(100)
     x[37] = np.nan
     np.save(p, x)
-    with pytest.raises(BadInputError, match="NaN or infinite .* at sample 37"):
+    with pytest.raises(BadInputError, match=r"NaN or infinite .* at sample 37"):
         read_signal(p, 1000.0)
     big = tmp_path / "big.npy"
     np.save(big, np.zeros(2000))
