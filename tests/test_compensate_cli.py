@@ -14,7 +14,7 @@ from scipy import signal as dsp
 from station.cli import main
 from station.compensate.apply import Noise, compensate
 from station.compensate.design import DesignSpec, design_filter
-from station.compensate.sensor import _second_order, fit_table, read_table
+from station.compensate.sensor import RESPONSES, fit_table, read_table
 from station.compensate.signals import read_signal
 from station.errors import BadInputError
 from station.ident.identify import identify_recording, store_result
@@ -167,4 +167,4 @@ def test_bad_signals_get_one_clear_message(tmp_path: Path) -> None:
 
 
 def test_second_order_static_gain() -> None:
-    assert abs(_second_order([S0, F0, DELTA], [0.0])[0] - S0) < 1e-15
+    assert abs(RESPONSES["second_order"]([S0, F0, DELTA], [0.0])[0] - S0) < 1e-15
