@@ -120,12 +120,16 @@ class Compensator:
                                 f"({int(np.sum(~np.isfinite(x)))} such samples in this block): nothing was compensated")
         tail = np.full(self.N - 1, x[0]) if self._tail is None else self._tail
         xe = np.concatenate([tail, x])
-        Z = fir(xe, self.W)
-        y = Z[0]
-        var = np.sum(Z[1:] ** 2, axis=0) + self.var_noise
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below
+            Z = fir(xe, self.W)
+            y = Z[0]
+            var = np.sum(Z[1:] ** 2, axis=0) + self.var_noise
         if self.samples < self.N - 1:
             n0 = min(self.N - 1 - self.samples, x.size)
             var[:n0] += self._start_noise(self.samples + n0)[self.samples:] - self.var_noise
+        if not (np.all(np.isfinite(y)) and np.all(np.isfinite(var))):
+            raise BadInputError(f"the signal's magnitude overflows the compensation near sample {self.samples}: "
+                                "rescale it (state it in a smaller unit)")
         self._tail = xe[xe.size - (self.N - 1):] if self.N > 1 else np.empty(0)
         self.samples += x.size
         return y, np.sqrt(np.clip(var, 0, None))

@@ -19,7 +19,7 @@ def bode_plot(filt: CompensationFilter, path: str | Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    b = bode(filt)
+    b = bode(filt, 200)
     f = b.f
     g0 = abs(filt.sensor.response([0.0])[0])
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
@@ -44,9 +44,9 @@ def bode_plot(filt: CompensationFilter, path: str | Path) -> Path:
     a1.legend(loc="lower left", fontsize=8)
     a1.set_title(f"compensation filter: {len(filt.b)} taps at {filt.sample_rate_hz:g} Hz, "
                  f"delay {filt.delay_s * 1e3:.4g} ms, cut-off {filt.spec.cutoff_hz:g} Hz (bands k = 2)", fontsize=9)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.1, right=0.97, top=0.94, bottom=0.08, hspace=0.08)
     p = Path(path)
-    fig.savefig(p, dpi=110)
+    fig.savefig(p, dpi=90)
     plt.close(fig)
     return p
 
