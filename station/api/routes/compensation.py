@@ -6,7 +6,6 @@ out; bounded by the body limit and ``MAX_API_SAMPLES``).  The method is ``statio
 from __future__ import annotations
 
 import asyncio
-import json
 from pathlib import Path
 from typing import Any
 
@@ -130,7 +129,9 @@ async def run_compensation(run: RunDep, artifacts: ArtifactsDep, body: DesignIn)
         doc = await artifacts.read_file(run.id, lambda p: _design(p, body.model_dump()))
     except BadInputError as exc:
         raise _refused(exc) from None
-    return json.loads(json.dumps(doc))
+    from station.service.results import finite
+
+    return finite(doc)  # e.g. an older result without its frequencies has a NaN calibrated range: null
 
 
 @router.post("/runs/{run_id}/compensation/plot", response_class=Response, dependencies=[Reader],
