@@ -132,7 +132,7 @@ class Sensor:
         cov = tuple(tuple(float(v) for v in r) for r in d["cov"])
         if len(cov) != len(theta) or any(len(r) != len(theta) for r in cov):
             raise BadInputError("the transducer's covariance does not match its parameters")
-        lo, hi = (float(v) for v in d["calibrated_range_hz"])
+        lo, hi = (math.nan if v is None else float(v) for v in d["calibrated_range_hz"])  # JSON null: unknown
         return cls(kind, tuple(d["names"]), tuple(d["units"]), theta, cov, (lo, hi), str(d.get("unit_in", "N")),
                    str(d.get("unit_out", "V")), str(d.get("origin", "")), dict(d.get("assumptions") or {}),
                    tuple(Check.from_dict(c) for c in d.get("findings") or ()), dict(d.get("fit") or {}))
