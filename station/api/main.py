@@ -28,7 +28,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 from station import __version__
 from station.api.deps import authenticate, credentials_of
 from station.api.guard import BodyGuard
-from station.api.routes import campaign, certificates, lab, proposal, runs, system
+from station.api.routes import campaign, certificates, compensation, lab, proposal, runs, system
 from station.certificate.register import CertificateError, CertificateNotFoundError
 from station.errors import StationError
 from station.lab.integrity import RecordingTamperedError
@@ -237,6 +237,7 @@ def create_app(settings: ServiceSettings, *,
     app.include_router(proposal.router)
     app.include_router(system.router)
     app.include_router(lab.router)
+    app.include_router(compensation.router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     install_docs(app)
 

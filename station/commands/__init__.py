@@ -19,4 +19,5 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.batch",
     "station.commands.lab",
     "station.commands.history",
+    "station.commands.compensate",
 )
