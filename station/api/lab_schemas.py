@@ -149,6 +149,9 @@ class AuditEntryOut(OutModel):
     action: str
     target: str
     details: dict[str, Any]
+    files: dict[str, str | None] = Field(default_factory=dict, description="SHA-256 of the files the entry "
+                                         "concerns (paths in the recordings folder; null: removed on purpose)")
+    hash: str = Field(default="", description="the entry's link in the hash chain (docs/operations.md)")
 
 
 class AuditOut(OutModel):

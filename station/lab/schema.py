@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import sqlite3
 
+from station.lab import chain
+
 RUN_COLUMNS = {  # columns added to runs, with their definitions
     "operator": "TEXT NOT NULL DEFAULT ''",
     "transducer_json": "TEXT NOT NULL DEFAULT '{}'",
@@ -91,4 +93,5 @@ def upgrade(db: sqlite3.Connection) -> list[str]:
             added.append(name)
     for stmt in STATEMENTS:
         db.execute(stmt)
+    chain.upgrade(db)  # the hash chain's columns; an older trail is chained as it stands
     return added

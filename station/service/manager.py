@@ -82,9 +82,10 @@ class RunManager:
         self.disk = RecordingsDisk(settings.recordings_dir, int(self.cfg.station.min_free_mb * 2**20))
         self.runs = Runs(self.cfg, settings.recordings_dir, self.db, self.link, self.changes, self.closing,
                          self._on_acquired, self.latch, self.disk)
-        self.artifacts = Artifacts(settings.recordings_dir, self.render_pool, self.runs.get)
+        self.artifacts = Artifacts(settings.recordings_dir, self.render_pool, self.runs.get, self.db)
         self.jobs = JobQueue(self.db, self.identify_pool, settings.workers,
                              self.artifacts, self.changes, self.closing)
+        self.artifacts.busy = self.jobs.identifying
         self._warm: asyncio.Task[None] | None = None
         self.started_at = time.time()
         self.folder_check = FolderCheck()

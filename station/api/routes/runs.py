@@ -28,7 +28,6 @@ from station.api.schemas import (
     utc,
 )
 from station.errors import LimitError
-from station.lab import audit
 from station.lab.register import RegisterError, UnknownEntryError
 from station.report.names import PLOT_NAMES
 from station.run.methods import SETTLED, MethodOutcome
@@ -236,9 +235,7 @@ async def compute_discrepancy(run: RunDep, artifacts: ArtifactsDep, manager: Man
     earlier one), where `GET`, the proposal and the report read it; the audit trail records who."""
     from station.service.results import finite
 
-    out = await artifacts.discrepancy(run.id, max_effects)
-    manager.db.post(lambda s: audit.append(s, who.name, audit.RESULT_STORED, run.id,
-                                           {"kind": "discrepancy", "max_effects": max_effects}))
+    out = await artifacts.discrepancy(run.id, max_effects, who.name)
     return DiscrepancyOut.model_validate(finite(out))
 
 
