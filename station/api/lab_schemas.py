@@ -154,6 +154,30 @@ class AuditEntryOut(OutModel):
     hash: str = Field(default="", description="the entry's link in the hash chain (docs/operations.md)")
 
 
+class ChainBreakOut(OutModel):
+    id: int = Field(description="the audit entry where the chain stops holding")
+    reason: str
+    excepted_by: int | None = Field(description="the administrator's reviewed exception (an audit entry), if any")
+
+
+class IntegrityReportOut(OutModel):
+    """The audit chain walked and every file it vouches for compared with the recordings folder."""
+
+    ok: bool
+    chain_ok: bool
+    entries: int
+    head_id: int
+    head: str = Field(description="the newest entry's hash")
+    breaks: list[ChainBreakOut]
+    files: list[str] = Field(description="each file that is missing, differs, or is not in the trail")
+    detail: str
+
+
+class ExceptionIn(_In):
+    entry: int = Field(ge=1, le=2**62, description="the broken link's entry id, as /integrity names it")
+    reason: str = Field(min_length=10, max_length=2000, description="what was reviewed and why it is accepted")
+
+
 class AuditOut(OutModel):
     count: int
     entries: list[AuditEntryOut]

@@ -472,6 +472,11 @@ class RecordingsCheckOut(OutModel):
     notes: list[str]
 
 
+class AuditChainHealth(OutModel):
+    ok: bool
+    detail: str
+
+
 class HealthOut(OutModel):
     status: Literal["ok", "degraded"]
     estop: EStopState
@@ -483,6 +488,8 @@ class HealthOut(OutModel):
     active_run: str | None
     uptime_s: float
     recordings: RecordingsCheckOut
+    audit_chain: AuditChainHealth | None = Field(default=None, description="the audit trail's hash chain as last "
+                                                 "walked (start-up, /integrity, before an issue); broken: degraded")
 
 
 class RangeOut(OutModel):

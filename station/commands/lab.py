@@ -80,7 +80,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.set_defaults(handler=run_register)
 
 
-def _store(args: argparse.Namespace) -> Any:
+def open_store(args: argparse.Namespace) -> Any:
     from station.service.settings import load_settings
     from station.service.store import Store
 
@@ -88,7 +88,7 @@ def _store(args: argparse.Namespace) -> Any:
     return Store(settings.database), settings
 
 
-def _who() -> str:
+def cli_user() -> str:
     try:
         return f"cli:{getpass.getuser()}"
     except (KeyError, OSError):
@@ -102,7 +102,7 @@ def _print(args: argparse.Namespace, doc: Any, text: str) -> None:
 def run_users(args: argparse.Namespace) -> int:
     from station.lab import users
 
-    store, _ = _store(args)
+    store, _ = open_store(args)
     try:
         if args.action == "list":
             us = users.users(store)
@@ -112,11 +112,11 @@ def run_users(args: argparse.Namespace) -> int:
             password = None
             if not args.no_password:
                 password = os.environ.get(PASSWORD_ENV) or getpass.getpass(f"password for {args.name}: ")
-            u = users.put_user(store, args.name, users.Role(args.role), _who(), password=password,
+            u = users.put_user(store, args.name, users.Role(args.role), cli_user(), password=password,
                                disabled=args.disable)
             _print(args, u.to_dict(), f"user {u.name}: {u.role}{' (disabled)' if u.disabled else ''}")
         else:
-            text = users.issue_token(store, args.name, args.label, _who())
+            text = users.issue_token(store, args.name, args.label, cli_user())
             _print(args, {"user": args.name, "label": args.label, "token": text},
                    f"{text}\n(the token of {args.name}; shown once, only its hash is stored)")
     finally:
@@ -127,7 +127,7 @@ def run_users(args: argparse.Namespace) -> int:
 def run_register(args: argparse.Namespace) -> int:
     from station.lab import register as reg
 
-    store, settings = _store(args)
+    store, settings = open_store(args)
     try:
         if args.action == "list":
             reg.seed(store, settings.config)
@@ -151,7 +151,7 @@ def run_register(args: argparse.Namespace) -> int:
             except ValidationError as exc:
                 err = exc.errors()[0]
                 raise BadInputError(f"{'.'.join(map(str, err['loc']))}: {err['msg']}") from None
-            t = reg.put_transducer(store, new, _who())
+            t = reg.put_transducer(store, new, cli_user())
             _print(args, t.to_dict(), f"transducer {t.id} registered")
         elif args.action == "standard":
             try:
@@ -161,10 +161,10 @@ def run_register(args: argparse.Namespace) -> int:
             s = reg.put_standard(store, reg.Standard(
                 id=args.id, kind=args.kind, certificate_id=args.certificate, issuer=args.issuer, due_date=due,
                 uncertainty=args.uncertainty, uncertainty_unit=args.unit, description=args.description,
-                in_use=not args.not_in_use), _who())
+                in_use=not args.not_in_use), cli_user())
             _print(args, s.to_dict(), f"standard {s.id} registered (due {s.due_date})")
         else:
-            t = reg.mount(store, args.id, _who())
+            t = reg.mount(store, args.id, cli_user())
             _print(args, t.to_dict(), f"transducer {t.id} mounted")
     finally:
         store.close()

@@ -239,6 +239,17 @@ def file_mismatches(db: sqlite3.Connection, root: Path) -> list[str]:
     return out
 
 
+def integrity_report(db: sqlite3.Connection, root: Path) -> dict[str, Any]:
+    """The whole check (``/integrity``, ``station verify``): the chain walked, every file it vouches
+    for compared; ``ok`` only when both hold."""
+    state = verify_chain(db)
+    files = file_mismatches(db, root)
+    detail = state.describe() + (f"; {len(files)} file(s) differ from the audit trail: " + "; ".join(files)
+                                 if files else "; every file it vouches for is as recorded")
+    return {**state.to_dict(), "ok": state.ok and not files, "chain_ok": state.ok, "files": files,
+            "detail": detail}
+
+
 # ------------------------------------------------------------------------------------------- schema
 COLUMNS = {"prev": "TEXT NOT NULL DEFAULT ''", "hash": "TEXT NOT NULL DEFAULT ''",
            "files": "TEXT NOT NULL DEFAULT '{}'"}

@@ -16,7 +16,7 @@ import threading
 import time
 from typing import Any
 
-from station.lab import audit, register, users
+from station.lab import audit, chain, register, users
 from station.recording.repair import FolderCheck, check_folder
 from station.service import worker
 from station.service.artifacts import Artifacts
@@ -89,6 +89,7 @@ class RunManager:
         self._warm: asyncio.Task[None] | None = None
         self.started_at = time.time()
         self.folder_check = FolderCheck()
+        self.chain: chain.ChainState | None = None  # the audit chain as last walked (start-up, /integrity, issue)
 
     # ------------------------------------------------------------------ life cycle
     async def start(self) -> None:
@@ -97,6 +98,10 @@ class RunManager:
         self.folder_check = await asyncio.to_thread(check_folder, self.settings.recordings_dir)
         self.recover()  # before anything is served: nothing else waits on the loop yet
         self.seed_lab()
+        self.chain = await asyncio.to_thread(self._walk_chain)
+        if not self.chain.ok:
+            log.error("%s; certificates are refused until an administrator records a reviewed exception",
+                      self.chain.describe())
         self.latch.load()
         self.db.start()
         await asyncio.to_thread(self.disk.ensure_reserve)
@@ -172,6 +177,38 @@ class RunManager:
         return {"run_id": run_id, "approved_by": approver.name, "audit_id": entry, **details}
 
 
+    # ------------------------------------------------------------------ the audit chain
+    def _walk_chain(self) -> chain.ChainState:
+        with self.store.reading() as db:
+            return chain.verify_chain(db)
+
+    async def verify_chain(self) -> chain.ChainState:
+        """Walk the audit chain now (in the read pool) and keep the result for /health."""
+        self.chain = await self.db.read(lambda s: self._walk_chain(), timeout_s=120.0)
+        return self.chain
+
+    async def integrity(self) -> dict[str, Any]:
+        """The chain walked and every file it vouches for compared (``/integrity``)."""
+        def check(store: Store) -> dict[str, Any]:
+            with store.reading() as db:
+                return chain.integrity_report(db, self.settings.recordings_dir)
+        out = await self.db.read(check, timeout_s=600.0)
+        self.chain = chain.ChainState(out["entries"], out["head_id"], out["head"],
+                                      [chain.Break(**b) for b in out["breaks"]])
+        return out
+
+    async def record_exception(self, admin: users.User, entry: int, reason: str) -> dict[str, Any]:
+        """An administrator's reviewed exception for a broken link of the chain (itself an entry):
+        the break stays listed, it no longer blocks issuing."""
+        if not admin.may(users.Permission.ADMIN):
+            raise users.ForbiddenError(f"user {admin.name} ({admin.role}) may not record an exception; an admin does")
+        state = await self.verify_chain()
+        if not any(b.id == entry for b in state.breaks):
+            raise RunStateError(f"the audit chain has no broken link at entry {entry} ({state.describe()})")
+        await self.db.call(lambda s: audit.append(s, admin.name, audit.AUDIT_EXCEPTION, "audit",
+                                                  {"entry": entry, "reason": reason}))
+        return (await self.verify_chain()).to_dict()
+
     def _on_acquired(self, run_id: str) -> None:
         self.jobs.wake()
 
@@ -183,6 +220,10 @@ class RunManager:
                      active_run=act.row.id if act else None, started_at=self.started_at,
                      unrecorded=self.jobs.unrecorded)
         out["recordings"] = self.folder_check.to_dict()  # what the start-up check repaired or could not read
+        if self.chain is not None:
+            out["audit_chain"] = {"ok": self.chain.ok, "detail": self.chain.describe()}
+            if not self.chain.ok:
+                out["status"] = "degraded"
         return out
 
 

@@ -16,8 +16,10 @@ from station.api.lab_schemas import (
     ApproveIn,
     AuditEntryOut,
     AuditOut,
+    ExceptionIn,
     HistoryOut,
     IntegrityOut,
+    IntegrityReportOut,
     LoginIn,
     MeOut,
     MountIn,
@@ -36,7 +38,7 @@ from station.api.lab_schemas import (
 )
 from station.api.routes.runs import BODY_ERRORS, E401, E403, E404, E409, E422
 from station.api.schemas import ErrorOut
-from station.lab import audit, history, register, users
+from station.lab import audit, chain, history, register, users
 from station.lab.users import NAME_PATTERN, Principal
 from station.service.errors import RunStateError
 from station.service.store import Store
@@ -170,7 +172,7 @@ async def get_audit(manager: ManagerDep, target: Annotated[str | None, Query(max
                     action: Annotated[str | None, Query(max_length=64, description="exact, or a prefix "
                                                         "ending in '.' (e.g. run.)")] = None,
                     who: Annotated[str | None, Query(max_length=64)] = None,
-                    before_id: Annotated[int | None, Query(ge=1)] = None,
+                    before_id: Annotated[int | None, Query(ge=1, le=2**63 - 1)] = None,
                     limit: Annotated[int, Query(ge=1, le=1000)] = 200) -> AuditOut:
     rows = await manager.db.read(lambda s: audit.entries(s, target=target, action=action, who=who,
                                                          before_id=before_id, limit=limit))
@@ -185,6 +187,29 @@ async def approve(run: RunDep, body: ApproveIn, manager: ManagerDep, who: Approv
     """The second person's approval: refused (403) for the user who started the run, (409) for a
     run not completed or a recording whose SHA-256 differs from the one stored at closing."""
     return ApprovalOut(**await manager.approve(run.id, who.user, body.note))
+
+
+@router.get("/integrity", response_model=IntegrityReportOut, dependencies=[Reader], responses={**E401, **E409},
+            summary="Walk the audit chain and compare every file it vouches for")
+async def station_integrity(manager: ManagerDep) -> IntegrityReportOut:
+    """200 when every link of the audit trail's hash chain holds (or was reviewed by an administrator)
+    and every recording, results file and certificate is as its entry recorded; 409 naming the first
+    broken link and every file that differs otherwise."""
+    out = await manager.integrity()
+    if not out["ok"]:
+        raise chain.ChainBrokenError(out["detail"])
+    return IntegrityReportOut.model_validate(out)
+
+
+@router.post("/integrity/exceptions", response_model=IntegrityReportOut,
+             responses={**E401, **E403, **E409, **E422, **BODY_ERRORS},
+             summary="Record a reviewed exception for a broken link of the chain (admin)")
+async def record_exception(body: ExceptionIn, manager: ManagerDep, who: Admin) -> IntegrityReportOut:
+    """The break stays listed with the exception's entry; it no longer degrades /health or blocks
+    issuing.  409 when the chain has no broken link at that entry."""
+    await manager.record_exception(who.user, body.entry, body.reason)
+    out = await manager.integrity()
+    return IntegrityReportOut.model_validate(out)
 
 
 @router.get("/runs/{run_id}/integrity", response_model=IntegrityOut, tags=["runs"], dependencies=[Reader],
