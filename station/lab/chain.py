@@ -128,6 +128,9 @@ def verify_chain(db: sqlite3.Connection) -> ChainState:
     for raw in cur:
         row = dict(zip(names, raw, strict=True))
         n += 1
+        if int(row["id"]) != last + 1:  # ids are never reused nor skipped (AUTOINCREMENT, audit.record)
+            breaks.append(Break(last + 1, f"entries {last + 1} to {int(row['id']) - 1} are missing (deleted)"))
+            prev = str(row["prev"])  # the missing entries are the break; this one's own hash is still checked
         why = _link_reason(row, prev)
         if why is not None:
             breaks.append(Break(int(row["id"]), why))
@@ -137,7 +140,7 @@ def verify_chain(db: sqlite3.Connection) -> ChainState:
         prev, last = str(row["hash"]), int(row["id"])
     seq = db.execute("SELECT seq FROM sqlite_sequence WHERE name = 'audit'").fetchone()
     if seq is not None and int(seq[0]) > last:
-        breaks.append(Break(last + 1, f"entries {last + 1} to {int(seq[0])} were deleted from the end of the trail"))
+        breaks.append(Break(last + 1, f"entries {last + 1} to {int(seq[0])} are missing (deleted from the end)"))
     return ChainState(n, last, prev, [Break(b.id, b.reason, excepted.get(b.id)) for b in breaks])
 
 

@@ -204,7 +204,7 @@ async def run_recording(run: RunDep, artifacts: ArtifactsDep) -> StreamingRespon
     if run.state not in FINAL_STATES:
         raise RunStateError(f"run {run.id} is {run.state}: its recording is still being written; "
                             "download it once the run has ended")
-    path = artifacts.recording_path(run)
+    path = await artifacts.checked_path(run.id)  # compared with the audit chain before the first byte
     return StreamingResponse(artifacts.stream_file(run.id), media_type="application/x-hdf5",
                              headers={"Content-Disposition": f'attachment; filename="{path.name}"',
                                       "Content-Length": str(path.stat().st_size)})

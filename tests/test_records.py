@@ -1,0 +1,198 @@
+"""Records a lab can trust: the audit trail is a hash chain that finds an entry rewritten, deleted or
+inserted around the database's triggers, and every recording, results file and certificate the
+daemon serves or uses is compared with it first (a change outside the station is refused, 409,
+naming the file).  The attacks are those an insider with write access to the recordings folder
+and the database file would make."""
+
+from __future__ import annotations
+
+import asyncio
+import sqlite3
+from pathlib import Path
+
+import pytest
+
+from station.lab import audit, chain
+from station.service.store import Store
+
+
+def _trail(tmp_path: Path, n: int = 5) -> Store:
+    store = Store(tmp_path / "s.db")
+    for i in range(n):
+        audit.append(store, "tina", audit.RUN_STARTED, f"r{i}", {"i": i}, files={f"r{i}.h5": f"{i:064x}"})
+    return store
+
+
+def _state(store: Store) -> chain.ChainState:
+    with store.reading() as db:
+        return chain.verify_chain(db)
+
+
+def _behind_the_triggers(path: Path, *stmts: str) -> None:
+    """What an insider with the database file does: the triggers dropped, the trail changed, the
+    triggers put back as they were."""
+    db = sqlite3.connect(path)
+    trig = [r[0] for r in db.execute("SELECT sql FROM sqlite_master WHERE type = 'trigger' AND tbl_name = 'audit'")]
+    db.execute("DROP TRIGGER audit_no_update")
+    db.execute("DROP TRIGGER audit_no_delete")
+    for s in stmts:
+        db.execute(s)
+    for t in trig:
+        db.execute(t)
+    db.commit()
+    db.close()
+
+
+def test_a_clean_trail_verifies_and_each_entry_links_to_the_one_before(tmp_path: Path) -> None:
+    store = _trail(tmp_path)
+    st = _state(store)
+    assert st.ok and st.entries == 5 and st.head_id == 5 and not st.breaks
+    rows = store.query("SELECT * FROM audit ORDER BY id")
+    assert rows[0]["prev"] == chain.GENESIS
+    assert all(b["prev"] == a["hash"] == chain.entry_hash(a) for a, b in zip(rows, rows[1:], strict=False))
+    with store.reading() as db:
+        assert chain.expected_files(db, "r3") == {"r3.h5": f"{3:064x}"}
+    store.close()
+
+
+@pytest.mark.parametrize(("stmts", "broken_at", "words"), [
+    (("UPDATE audit SET who = 'mallory' WHERE id = 3",), 3, "content does not match"),
+    (("DELETE FROM audit WHERE id = 2",), 2, "entries 2 to 2 are missing"),
+    (("DELETE FROM audit WHERE id = 5",), 5, "deleted from the end"),
+    (("INSERT INTO audit (id, at, who, action, target, details, files, prev, hash) SELECT 6, at, who, action, "
+      "target, details, files, prev, hash FROM audit WHERE id = 2",), 6, "link to the entry before"),
+    (("UPDATE audit SET files = '{\"r1.h5\": \"" + "f" * 64 + "\"}' WHERE id = 2",), 2, "content does not match"),
+])
+def test_a_change_behind_the_triggers_is_named_at_its_entry(tmp_path: Path, stmts: tuple[str, ...],
+                                                            broken_at: int, words: str) -> None:
+    store = _trail(tmp_path)
+    store.close()
+    _behind_the_triggers(tmp_path / "s.db", *stmts)
+    store = Store(tmp_path / "s.db")
+    st = _state(store)
+    assert not st.ok and st.open_breaks[0].id == broken_at and words in st.open_breaks[0].reason
+    assert f"broken at entry {broken_at}" in st.describe()
+    with pytest.raises(chain.ChainBrokenError, match=f"entry {broken_at}"):
+        st.require()
+    # an administrator's reviewed exception: still listed, no longer blocking; the exception is a link too
+    audit.append(store, "ada", audit.AUDIT_EXCEPTION, "audit", {"entry": broken_at, "reason": "reviewed"})
+    st = _state(store)
+    assert st.ok and st.breaks[0].id == broken_at and st.breaks[0].excepted_by == st.head_id
+    store.close()
+
+
+def test_a_rewritten_entry_that_vouches_for_files_is_refused_where_it_is_used(tmp_path: Path) -> None:
+    store = _trail(tmp_path)
+    store.close()
+    _behind_the_triggers(tmp_path / "s.db", "UPDATE audit SET files = '{\"r2.h5\": \"" + "e" * 64 + "\"}' WHERE id = 3")
+    store = Store(tmp_path / "s.db")
+    with store.reading() as db, pytest.raises(chain.ChainBrokenError, match="entry 3"):
+        chain.expected_files(db, "r2")
+    store.close()
+
+
+def test_an_older_trail_is_chained_as_it_stands(tmp_path: Path) -> None:
+    """A database from before the chain: its entries get their links once, and verify."""
+    path = tmp_path / "old.db"
+    store = Store(path)
+    store.close()
+    db = sqlite3.connect(path)
+    db.execute("DROP TRIGGER audit_no_update")
+    db.execute("DROP TABLE audit")
+    db.execute("CREATE TABLE audit (id INTEGER PRIMARY KEY AUTOINCREMENT, at REAL NOT NULL, who TEXT NOT NULL, "
+               "action TEXT NOT NULL, target TEXT NOT NULL DEFAULT '', details TEXT NOT NULL DEFAULT '{}')")
+    for i in range(3):
+        db.execute("INSERT INTO audit (at, who, action, target) VALUES (?, 'tina', 'run.started', ?)", (i, f"r{i}"))
+    db.commit()
+    db.close()
+    store = Store(path)
+    audit.append(store, "tina", audit.RUN_ENDED, "r2")
+    st = _state(store)
+    assert st.ok and st.entries == 4
+    with pytest.raises(sqlite3.IntegrityError, match="append-only"), store.transaction() as t:
+        t.execute("UPDATE audit SET who = 'x'")
+    store.close()
+
+
+# ---------------------------------------------------------------------------------------------- the daemon
+def _flip(path: Path, at: float = 0.5) -> bytes:
+    data = path.read_bytes()
+    b = bytearray(data)
+    b[int(len(b) * at)] ^= 0x01
+    path.write_bytes(bytes(b))
+    return data
+
+
+@pytest.mark.slow
+def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path) -> None:
+    """A seeded, identified run (vouched for as the daemon vouches): its results file edited, its
+    recording flipped with the runs table's SHA-256 rewritten to match, a results file added, the
+    trail rewritten behind the triggers.  Every endpoint that reads the run refuses (409, the file
+    named), /integrity names it, and all is served again once the files are restored."""
+    from tests.station_support import Seed, app_in_process, daemon_config, seed_runs
+
+    rec = tmp_path / "recordings"
+    [rid] = seed_runs(daemon_config(rec), [Seed()])
+    results = sorted((rec / f"{rid}.results").glob("results.*.h5"))
+    assert results
+    reads = [f"/runs/{rid}/results", f"/runs/{rid}/report", f"/runs/{rid}/report.pdf", f"/runs/{rid}/plots/bode.png",
+             f"/runs/{rid}/recording", f"/runs/{rid}/certificate.html", f"/runs/{rid}/certificate.pdf",
+             f"/runs/{rid}/discrepancy", f"/runs/{rid}/integrity"]
+
+    async def go() -> None:
+        async with app_in_process(rec) as (manager, c):
+            assert (await c.get(f"/runs/{rid}/results")).status_code == 200
+            assert (await c.get("/integrity")).status_code == 200
+            assert (await c.get("/health")).json()["audit_chain"]["ok"] is True
+
+            async def refused(name: str) -> None:
+                for url in reads:
+                    r = await c.get(url)
+                    assert r.status_code == 409 and name in r.json()["detail"], (url, r.status_code, r.text[:300])
+                r = await c.post("/campaigns", json={"runs": [rid], "store": False})
+                assert r.status_code == 409 and name in r.json()["detail"]
+                r = await c.get("/integrity")
+                assert r.status_code == 409 and name in r.json()["detail"]
+
+            # 1. S and k_f edited in a results file
+            target = results[0]
+            old = _flip(target, 0.9)
+            await refused(target.name)
+            target.write_bytes(old)
+            assert (await c.get(f"/runs/{rid}/results")).status_code == 200
+            # 2. a byte of the recording flipped and the runs table's SHA-256 rewritten to match
+            recording = rec / f"{rid}.h5"
+            old = _flip(recording)
+            from station.lab.integrity import sha256_file
+            db = sqlite3.connect(manager.settings.database)
+            db.execute("UPDATE runs SET recording_sha256 = ? WHERE id = ?", (sha256_file(recording), rid))
+            db.commit()
+            db.close()
+            manager.db.update_run(rid, {"recording_sha256": sha256_file(recording)})
+            await refused(recording.name)
+            recording.write_bytes(old)
+            manager.db.update_run(rid, {"recording_sha256": sha256_file(recording)})
+            assert (await c.get(f"/runs/{rid}/results")).status_code == 200
+            # 3. a results file added beside the recording
+            extra = rec / f"{rid}.results" / "results.identify_fd_2dof.h5"
+            extra.write_bytes(results[0].read_bytes())
+            await refused(extra.name)
+            extra.unlink()
+            assert (await c.get(f"/runs/{rid}/integrity")).status_code == 200
+            # 4. the entry that vouches for the results rewritten behind the triggers
+            entry = audit.entries(manager.store, target=rid, action=audit.RUN_IDENTIFIED)[0]
+            _behind_the_triggers(manager.settings.database,
+                                 f"UPDATE audit SET who = 'mallory' WHERE id = {entry.id}")
+            r = await c.get(f"/runs/{rid}/results")
+            assert r.status_code == 409 and f"audit entry {entry.id}" in r.json()["detail"]
+            r = await c.get("/integrity")
+            assert r.status_code == 409 and f"broken at entry {entry.id}" in r.json()["detail"]
+            health = (await c.get("/health")).json()
+            assert health["status"] == "degraded" and health["audit_chain"]["ok"] is False
+            # only an administrator records the reviewed exception, and only for a real break
+            r = await c.post("/integrity/exceptions", json={"entry": entry.id + 1, "reason": "reviewed by QM today"})
+            assert r.status_code == 409
+            r = await c.post("/integrity/exceptions", json={"entry": entry.id, "reason": "reviewed by QM today"})
+            assert r.status_code == 200 and r.json()["breaks"][0]["excepted_by"] is not None
+            assert (await c.get("/health")).json()["audit_chain"]["ok"] is True
+    asyncio.run(go())
