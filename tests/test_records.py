@@ -196,3 +196,110 @@ def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path
             assert r.status_code == 200 and r.json()["breaks"][0]["excepted_by"] is not None
             assert (await c.get("/health")).json()["audit_chain"]["ok"] is True
     asyncio.run(go())
+
+
+# ---------------------------------------------------------------------------------------------- issuing
+def test_two_recordings_folders_of_one_lab_never_issue_the_same_number(tmp_path: Path) -> None:
+    """One lab database, two recordings folders (two stations): one sequence; deleting a
+    certificate's files gives its number to nobody; a number whose files exist is skipped."""
+    from station.lab import certificates
+
+    store = Store(tmp_path / "lab.db")
+    a, b = tmp_path / "a" / "certificates", tmp_path / "b" / "certificates"
+    for f in (a, b):
+        f.mkdir(parents=True)
+    got = [certificates.take_number(store, "SC", 2026, f"r{i}", (a, b)[i % 2]) for i in range(6)]
+    assert got == [f"SC-2026-{i:04d}" for i in range(1, 7)]
+    (b / "SC-2026-0007.json").write_text("{}")  # a number's files already there (an older database restored)
+    assert certificates.take_number(store, "SC", 2026, "r6", b) == "SC-2026-0008"
+    assert certificates.take_number(store, "SC", 2027, "r7", a) == "SC-2027-0001"
+    assert certificates.take_number(store, "LAB2", 2026, "r8", a) == "LAB2-2026-0001"
+    store.close()
+
+
+@pytest.mark.slow
+def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Path) -> None:
+    """Free-text preparer, a technician, the operator approving, a second live certificate: each
+    refused with one refusal entry; an issue names its number and the SHA-256 of its files; an
+    issued file edited with its record's hashes recomputed is refused; a hand-made withdrawal
+    marker changes nothing; withdrawal only through the station; deleted files never give their
+    number again."""
+    import hashlib
+    import json
+
+    from tests.station_support import PASSWORDS, Seed, app_in_process, daemon_config, login, seed_runs
+
+    rec = tmp_path / "recordings"
+    [rid] = seed_runs(daemon_config(rec), [Seed()])
+
+    async def go() -> None:
+        async with app_in_process(rec) as (manager, c):
+            app = c._transport.app  # type: ignore[attr-defined]
+            for name, role in (("tina", "technician"), ("anton", "approver")):
+                r = await c.put(f"/users/{name}", json={"role": role, "password": PASSWORDS[name]})
+                assert r.status_code == 200
+            manager.db.update_run(rid, {"operator": "tina"})
+            tina, anton = await login(app, "tina"), await login(app, "anton")
+
+            def trail(action: str) -> list[audit.AuditEntry]:
+                return audit.entries(manager.store, action=action)
+
+            async def refused(client: object, body: dict[str, object], status: int, words: str, entries: int = 1) -> None:
+                n = len(trail(audit.CERTIFICATE_REFUSED))
+                r = await client.post(f"/runs/{rid}/certificate", json=body)  # type: ignore[attr-defined]
+                assert r.status_code == status and words in r.json()["detail"], r.text
+                assert len(trail(audit.CERTIFICATE_REFUSED)) == n + entries
+                assert not trail(audit.CERTIFICATE_APPROVED)
+
+            await refused(anton, {"prepared_by": "Mickey Mouse"}, 409, "not an enabled user of the lab")
+            await refused(tina, {}, 403, "approve", entries=0)  # refused at the door: no issue was attempted
+            await refused(anton, {"prepared_by": "anton"}, 403, "second person")
+            assert not trail(audit.CERTIFICATE_ISSUED)
+            ok = await anton.post(f"/runs/{rid}/certificate", json={})
+            assert ok.status_code == 201, ok.text
+            number = ok.json()["number"]
+            assert ok.json()["prepared_by"] == "tina" and ok.json()["approved_by"] == "anton"
+            [entry] = trail(audit.CERTIFICATE_ISSUED)
+            folder = rec / "certificates"
+            assert entry.details["number"] == number and entry.who == "anton"
+            assert entry.files == {f"certificates/{number}.{e}": hashlib.sha256((folder / f"{number}.{e}").read_bytes())
+                                   .hexdigest() for e in ("html", "pdf", "xml", "json")}
+            await refused(anton, {}, 409, f"in force ({number})")
+            # an issued certificate edited and its record's hashes recomputed: refused where served
+            html = folder / f"{number}.html"
+            old_html, old_json = html.read_bytes(), (folder / f"{number}.json").read_bytes()
+            forged = old_html.replace(b"anton", b"boss")
+            html.write_bytes(forged)
+            record = json.loads(old_json)
+            record["approved_by"] = "boss"
+            record["sha256"]["html"] = hashlib.sha256(forged).hexdigest()
+            (folder / f"{number}.json").write_text(json.dumps(record))
+            for url in (f"/certificates/{number}.html", f"/runs/{rid}/certificate.html"):
+                r = await c.get(url)
+                assert r.status_code == 409 and f"{number}.html" in r.json()["detail"], (url, r.text)
+            r = await c.get("/integrity")
+            assert r.status_code == 409 and f"{number}.html" in r.json()["detail"] and f"{number}.json" in r.json()["detail"]
+            listed = (await c.get("/certificates")).json()["certificates"]
+            assert [(x["number"], x["approved_by"], x["withdrawn"]) for x in listed] == [(number, "anton", None)]
+            html.write_bytes(old_html)
+            (folder / f"{number}.json").write_bytes(old_json)
+            assert (await c.get(f"/certificates/{number}.html")).status_code == 200
+            # a hand-made withdrawal marker changes nothing; withdrawal is the station's, with a reason
+            (folder / f"{number}.replaced").write_text(json.dumps({"replaced_by": "X", "reason": "forged"}))
+            assert (await c.get("/certificates")).json()["certificates"][0]["withdrawn"] is None
+            r = await tina.post(f"/certificates/{number}/withdraw", json={"reason": "the customer asked for it"})
+            assert r.status_code == 403
+            r = await anton.post(f"/certificates/{number}/withdraw", json={"reason": "the customer asked for it"})
+            assert r.status_code == 200 and "customer asked" in r.json()["withdrawn"]
+            assert trail(audit.CERTIFICATE_WITHDRAWN)[0].details["number"] == number
+            # its files deleted: the number is not given again
+            for p in folder.glob(f"{number}.*"):
+                p.unlink()
+            r = await c.get("/integrity")
+            assert r.status_code == 409 and f"certificates/{number}.pdf: missing" in r.json()["detail"]
+            again = await anton.post(f"/runs/{rid}/certificate", json={})
+            assert again.status_code == 201 and again.json()["number"] != number
+            assert again.json()["number"].endswith("-0002")
+            for t in (tina, anton):
+                await t.aclose()
+    asyncio.run(go())

@@ -555,6 +555,13 @@ class CertificateIssueIn(BaseModel):
     reason: str = Field("", max_length=500)
 
 
+class CertificateWithdrawIn(BaseModel):
+    """Withdraw an issued certificate: why (kept in the audit trail)."""
+
+    model_config = ConfigDict(extra="forbid")
+    reason: str = Field(min_length=10, max_length=500)
+
+
 class CertificateOut(OutModel):
     """An issued certificate in the register."""
 
@@ -566,6 +573,8 @@ class CertificateOut(OutModel):
     approved_by: str
     replaces: str | None
     replaced_by: str | None = Field(description="the certificate that replaces (withdraws) this one")
+    prepared_by: str = Field(default="", description="the lab user who prepared it")
+    withdrawn: str | None = Field(default=None, description="why it is no longer in force (replaced or withdrawn)")
     html: str
     pdf: str
     xml: str

@@ -66,6 +66,15 @@ STATEMENTS = (
         created REAL NOT NULL,
         expires REAL NOT NULL,
         ended REAL)""",
+    """CREATE TABLE IF NOT EXISTS certificate_numbers (
+        number TEXT PRIMARY KEY,
+        prefix TEXT NOT NULL,
+        year INTEGER NOT NULL,
+        seq INTEGER NOT NULL,
+        run_id TEXT NOT NULL,
+        taken REAL NOT NULL,
+        folder TEXT NOT NULL DEFAULT '',
+        UNIQUE (prefix, year, seq))""",
     """CREATE TABLE IF NOT EXISTS audit (
         id INTEGER PRIMARY KEY AUTOINCREMENT,
         at REAL NOT NULL,

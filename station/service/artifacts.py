@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 from collections import OrderedDict
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from station.lab import audit, chain
+from station.certificate.register import CertificateNotFoundError
+from station.lab import audit, certificates, chain
 from station.lab.integrity import RecordingTamperedError, check_recording, sha256_file
 from station.recording.stored import results_version
 from station.report.names import PLOT_NAMES
@@ -226,29 +228,51 @@ class Artifacts:
                 "standards": json.loads(row.standards_json or "[]")}
 
     async def certificate(self, run_id: str, ext: str) -> bytes:
-        """The run's certificate (the issued one, else the draft) as html, pdf or xml."""
+        """The run's certificate (the one in force by the audit trail, else the draft) as html, pdf
+        or xml."""
         path = await self._completed_path(run_id)
+        if self.db is not None:
+            live = await self.db.read(lambda s: certificates.live_of_run(s, run_id))
+            if live is not None:
+                return await self.issued_certificate(live["number"], ext)
+        if ext == "xml":
+            raise CertificateNotFoundError("a draft has no Digital Calibration Certificate: issue the certificate "
+                                           "first")
         out: bytes = await self._locked_job(run_id, worker.certificate_job, str(path), ext,
                                             await self._register(run_id))
         return out
 
     async def issue_certificate(self, run_id: str, prepared_by: str, approver: str, roles: dict[str, str],
-                                replaces: str | None, reason: str) -> dict[str, Any]:
-        """Issue the run's certificate (the approval's checks made by the caller: RunManager.approve)."""
+                                replaces: str | None, reason: str, number: str) -> dict[str, Any]:
+        """Write the run's certificate under ``number`` (the rules checked by the caller:
+        RunManager.issue_certificate); its record and the SHA-256 of each file."""
         path = await self._completed_path(run_id)
         out: dict[str, Any] = await self._locked_job(run_id, worker.issue_job, str(path), prepared_by, approver, roles,
-                                                     replaces, reason, await self._register(run_id))
+                                                     replaces, reason, await self._register(run_id), number)
         return out
 
     async def certificates(self, transducer_id: str | None) -> list[dict[str, Any]]:
-        from station.certificate.register import FOLDER, list_issued
-
-        return await asyncio.to_thread(list_issued, self.recordings_dir / FOLDER, transducer_id)
+        """The issued certificates as the audit trail records them (never from the folder's files)."""
+        if self.db is None:
+            return []
+        return await self.db.read(lambda s: certificates.issued(s, transducer_id))
 
     async def issued_certificate(self, number: str, ext: str) -> bytes:
-        from station.certificate.register import FOLDER, issued_file
-
-        return await asyncio.to_thread(issued_file, self.recordings_dir / FOLDER, number, ext)
+        """An issued certificate's file as issued: compared with the SHA-256 its issue entry holds."""
+        if self.db is None:
+            raise CertificateNotFoundError(f"no issued certificate {number}")
+        c = await self.db.read(lambda s: certificates.one(s, number))
+        key = certificates.file_key(number, ext)
+        if key not in c["files"]:
+            raise CertificateNotFoundError(f"certificate {number} has no .{ext} form")
+        try:  # the bytes served are the bytes compared
+            data = await asyncio.to_thread((self.recordings_dir / key).read_bytes)
+        except FileNotFoundError:
+            raise RecordingTamperedError(f"certificate {number}: {key} is missing; refused") from None
+        if hashlib.sha256(data).hexdigest() != c["files"][key]:
+            raise RecordingTamperedError(f"certificate {number}: {key} was changed after it was issued (its SHA-256 "
+                                         "is not the one the issue entry holds); refused")
+        return data
 
     async def campaign(self, run_ids: list[str]) -> dict[str, Any]:
         """The joint identification of completed runs in the render worker (``worker.campaign_job``),

@@ -16,7 +16,9 @@ import threading
 import time
 from typing import Any
 
-from station.lab import audit, chain, register, users
+from station.certificate.register import FOLDER
+from station.errors import StationError
+from station.lab import audit, certificates, chain, register, users
 from station.recording.repair import FolderCheck, check_folder
 from station.service import worker
 from station.service.artifacts import Artifacts
@@ -160,6 +162,42 @@ class RunManager:
             audit.append(self.store, audit.SYSTEM, audit.DATABASE_UPGRADED, str(self.settings.database.name),
                          {"from_schema": self.store.upgraded_from, "backup": str(self.store.backup)})
 
+    async def issue_certificate(self, run_id: str, approver: users.User, prepared_by: str | None,
+                                replaces: str | None, reason: str) -> dict[str, Any]:
+        """Issue the run's certificate by the lab's rules (``station.lab.certificates``): the audit
+        chain intact (walked now), the rules, the run's files as the chain vouches for them, a number
+        from the database's sequence, the files written in the render worker, then one
+        ``certificate.issued`` entry naming the number and each file's SHA-256.  Any refusal writes
+        one ``certificate.refused`` entry and nothing else."""
+        row = await self.runs.get(run_id)
+        number: str | None = None
+        try:
+            (await self.verify_chain()).require()
+            if row.state != "completed":
+                raise RunStateError(f"run {run_id} is {row.state}: only a completed run has a certificate")
+            prepared = await self.db.read(lambda s: certificates.check_issue(
+                s, run_id=run_id, operator=row.operator, approver=approver, prepared_by=prepared_by,
+                replaces=replaces, reason=reason))
+            await self.artifacts.guard(row, required=True)
+            prefix, year = self.cfg.certificate.number_prefix, time.gmtime().tm_year
+            folder = self.settings.recordings_dir / FOLDER
+            number = await self.db.call(lambda s: certificates.take_number(s, prefix, year, run_id, folder))
+            roles = {prepared: "operator", approver.name: str(approver.role)}
+            head = await self.db.read(lambda s: chain_head(s))
+            out = await self.artifacts.issue_certificate(run_id, prepared, approver.name, roles, replaces, reason,
+                                                         number)
+        except Exception as exc:  # the refusal's one entry, whatever refused it
+            why = str(exc) if isinstance(exc, StationError) else f"{type(exc).__name__}: {exc}"
+            await self.db.call(lambda s: certificates.record_refusal(s, approver.name, run_id, why, number))
+            raise
+        record = out["record"]
+        await self.db.call(lambda s: certificates.record_issue(s, approver.name, run_id, record, out["hashes"], head))
+        return await self.db.read(lambda s: certificates.one(s, record["number"]))
+
+    async def withdraw_certificate(self, who: users.User, number: str, reason: str) -> dict[str, Any]:
+        """Withdraw a certificate in force (an approver, with the reason; an audit entry)."""
+        return await self.db.call(lambda s: certificates.withdraw(s, who, number, reason))
+
     async def approve(self, run_id: str, approver: users.User, note: str) -> dict[str, Any]:
         """The second person's approval of a completed run for its certificate: an approver who did
         not start the run, on a recording whose SHA-256 is the one stored when it was closed."""
@@ -225,6 +263,12 @@ class RunManager:
             if not self.chain.ok:
                 out["status"] = "degraded"
         return out
+
+
+def chain_head(store: Store) -> tuple[int, str]:
+    """(id, hash) of the audit chain's newest entry."""
+    with store.reading() as db:
+        return chain.head(db)
 
 
 def is_final(state: str) -> bool:
