@@ -7,6 +7,7 @@ and the database file would make."""
 from __future__ import annotations
 
 import asyncio
+import itertools
 import sqlite3
 from pathlib import Path
 
@@ -49,7 +50,7 @@ def test_a_clean_trail_verifies_and_each_entry_links_to_the_one_before(tmp_path:
     assert st.ok and st.entries == 5 and st.head_id == 5 and not st.breaks
     rows = store.query("SELECT * FROM audit ORDER BY id")
     assert rows[0]["prev"] == chain.GENESIS
-    assert all(b["prev"] == a["hash"] == chain.entry_hash(a) for a, b in zip(rows, rows[1:], strict=False))
+    assert all(b["prev"] == a["hash"] == chain.entry_hash(a) for a, b in itertools.pairwise(rows))
     with store.reading() as db:
         assert chain.expected_files(db, "r3") == {"r3.h5": f"{3:064x}"}
     store.close()
@@ -244,7 +245,8 @@ def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Pa
             def trail(action: str) -> list[audit.AuditEntry]:
                 return audit.entries(manager.store, action=action)
 
-            async def refused(client: object, body: dict[str, object], status: int, words: str, entries: int = 1) -> None:
+            async def refused(client: object, body: dict[str, object], status: int, words: str,
+                              entries: int = 1) -> None:
                 n = len(trail(audit.CERTIFICATE_REFUSED))
                 r = await client.post(f"/runs/{rid}/certificate", json=body)  # type: ignore[attr-defined]
                 assert r.status_code == status and words in r.json()["detail"], r.text
@@ -278,7 +280,8 @@ def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Pa
                 r = await c.get(url)
                 assert r.status_code == 409 and f"{number}.html" in r.json()["detail"], (url, r.text)
             r = await c.get("/integrity")
-            assert r.status_code == 409 and f"{number}.html" in r.json()["detail"] and f"{number}.json" in r.json()["detail"]
+            detail = r.json()["detail"]
+            assert r.status_code == 409 and f"{number}.html" in detail and f"{number}.json" in detail
             listed = (await c.get("/certificates")).json()["certificates"]
             assert [(x["number"], x["approved_by"], x["withdrawn"]) for x in listed] == [(number, "anton", None)]
             html.write_bytes(old_html)
