@@ -218,6 +218,59 @@ def test_two_recordings_folders_of_one_lab_never_issue_the_same_number(tmp_path:
     store.close()
 
 
+def _customer_checks(folder: Path, number: str, public_pem: str, where: Path) -> None:
+    """`station verify CERTIFICATE --key` on copies, as a customer would (no station, no database):
+    each form passes; any byte changed in it, or in the signature file, fails; another key fails."""
+    import shutil
+
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+    from station.cli import main
+    from station.lab import signing
+
+    where.mkdir()
+    key = where / "lab.pem"
+    key.write_text(public_pem)
+    for ext in ("pdf", "xml", "html", "sig"):
+        shutil.copy(folder / f"{number}.{ext}", where / f"{number}.{ext}")
+    for ext in ("pdf", "xml", "html"):
+        cert = where / f"{number}.{ext}"
+        assert main(["verify", str(cert), "--key", str(key)]) == 0
+        good = cert.read_bytes()
+        for at in (0, len(good) // 3, len(good) - 1):
+            _flip(cert, at / len(good))
+            assert main(["verify", str(cert), "--key", str(key)]) == 1
+            cert.write_bytes(good)
+    sig = where / f"{number}.sig"
+    good = sig.read_bytes()
+    sig.write_bytes(good.replace(b'"number": "', b'"number": "X'))
+    assert main(["verify", str(where / f"{number}.pdf"), "--key", str(key)]) == 1
+    sig.write_bytes(good)
+    other = where / "other.pem"
+    other.write_text(signing.public_pem(Ed25519PrivateKey.generate().public_key()))
+    assert main(["verify", str(where / f"{number}.pdf"), "--key", str(other)]) == 1
+    assert main(["verify", str(where / f"{number}.pdf"), "--key", str(key)]) == 0
+
+
+def test_the_signing_key_is_the_owners_alone_and_rotation_keeps_the_old_one(tmp_path: Path) -> None:
+    import stat
+
+    from station.lab import signing
+
+    path = tmp_path / "k" / "signing-key.pem"
+    key, retired = signing.init_key(path)
+    assert retired is None and stat.S_IMODE(path.stat().st_mode) == 0o600
+    with pytest.raises(signing.SigningError, match="never overwritten"):
+        signing.init_key(path)
+    new, retired = signing.init_key(path, rotate=True)
+    assert retired is not None and stat.S_IMODE(retired.stat().st_mode) == 0o600
+    assert signing.fingerprint(signing.load_key(retired).public_key()) == signing.fingerprint(key.public_key())
+    assert signing.fingerprint(signing.load_key(path).public_key()) == signing.fingerprint(new.public_key())
+    path.chmod(0o644)
+    with pytest.raises(signing.SigningError, match="readable by others"):
+        signing.load_key(path)
+
+
 @pytest.mark.slow
 def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Path) -> None:
     """Free-text preparer, a technician, the operator approving, a second live certificate: each
@@ -265,7 +318,13 @@ def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Pa
             folder = rec / "certificates"
             assert entry.details["number"] == number and entry.who == "anton"
             assert entry.files == {f"certificates/{number}.{e}": hashlib.sha256((folder / f"{number}.{e}").read_bytes())
-                                   .hexdigest() for e in ("html", "pdf", "xml", "json")}
+                                   .hexdigest() for e in ("html", "pdf", "xml", "json", "sig")}
+            # signed: the public key published, its fingerprint on the certificate, the DCC names the signature
+            key = (await c.get("/signing-key", headers={"Authorization": ""})).json()
+            assert key["algorithm"] == "Ed25519" and key["fingerprint"] in (folder / f"{number}.html").read_text()
+            assert f"{number}.sig" in (folder / f"{number}.xml").read_text()
+            assert entry.details["chain_head"]["id"] == entry.id - 1
+            _customer_checks(folder, number, key["public_key"], tmp_path / "customer")
             await refused(anton, {}, 409, f"in force ({number})")
             # an issued certificate edited and its record's hashes recomputed: refused where served
             html = folder / f"{number}.html"

@@ -555,6 +555,14 @@ class CertificateIssueIn(BaseModel):
     reason: str = Field("", max_length=500)
 
 
+class SigningKeyOut(OutModel):
+    """The lab's public signing key."""
+
+    algorithm: str = Field(description="Ed25519")
+    fingerprint: str = Field(description="SHA-256 of the raw public key, as printed on the certificates")
+    public_key: str = Field(description="PEM (SubjectPublicKeyInfo)")
+
+
 class CertificateWithdrawIn(BaseModel):
     """Withdraw an issued certificate: why (kept in the audit trail)."""
 

@@ -45,6 +45,16 @@ def _num(x: float) -> str:
     return repr(float(x))
 
 
+def signature_declaration(approval: dict[str, Any]) -> list[str]:
+    """The lab's detached signature of an issued certificate (``station.lab.signing``), as a
+    statement: the file that holds it and the key's fingerprint ([] unsigned)."""
+    sig = approval.get("signature")
+    if not sig:
+        return []
+    return [f"Signed by the laboratory: {sig['algorithm']} signature in the file {sig['file']} (detached; it "
+            f"covers this DCC, the PDF and the HTML forms), key fingerprint {sig['key_fingerprint']}"]
+
+
 def build_dcc(content: dict[str, Any]) -> bytes:
     """The DCC of an issued certificate's content (UTF-8 XML bytes)."""
     from lxml import etree
@@ -140,7 +150,7 @@ def build_dcc(content: dict[str, Any]) -> bytes:
         declarations.append("model structure: " + content["assumptions"]["structure"])
     if a.get("replaces"):
         declarations.append(f"This certificate replaces certificate {a['replaces']}, which is withdrawn: {a['reason']}")
-    for d in declarations:
+    for d in [*declarations, *signature_declaration(a)]:
         text_block(el(statements, D + "statement"), "declaration", d)
 
     mr = el(el(root, D + "measurementResults"), D + "measurementResult")

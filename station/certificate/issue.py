@@ -126,12 +126,15 @@ def _next_number(folder: Path, prefix: str, year: int) -> str:
 
 def issue(recording: Path, *, prepared_by: str, approver: str, replaces: str | None = None, reason: str = "",
           roles: UserRoles | None = None, now: datetime | None = None,
-          register: dict[str, Any] | None = None, number: str | None = None) -> Issued:
+          register: dict[str, Any] | None = None, number: str | None = None,
+          signature: dict[str, str] | None = None) -> Issued:
     """Issue the certificate of a recording's stored identification (module docstring); refused with
     a CertificateError when the approver may not approve, approves their own work, a reference
     standard was overdue at the calibration, the result was not stored, or ``replaces`` is unknown,
     of another transducer or already replaced.  ``number``: taken from the lab's sequence by the
-    daemon (``station.lab.certificates``); None numbers it in this folder (a folder of its own)."""
+    daemon (``station.lab.certificates``); None numbers it in this folder (a folder of its own).
+    ``signature``: the lab key's fingerprint and the detached signature file the daemon writes
+    (``station.lab.signing``), printed on the certificate and named in the DCC."""
     recording = Path(recording)
     cc = _config(recording)
     roles = roles or ConfigRoles(cc)
@@ -164,7 +167,8 @@ def issue(recording: Path, *, prepared_by: str, approver: str, replaces: str | N
         number = number or _next_number(folder, cc.number_prefix, now.year)
         approval = Approval("issued", number, prepared_by, approver, str(role), now.isoformat(timespec="seconds"),
                             replaces, reason)
-        content = {**content, "approval": {**content["approval"], **approval.__dict__}}
+        content = {**content, "approval": {**content["approval"], **approval.__dict__,
+                                           **({"signature": signature} if signature else {})}}
         html = certificate_html(content).encode()
         xml = build_dcc(content)
         if cc.dcc_schema:

@@ -41,6 +41,7 @@ TOKEN_ISSUED = "user.token_issued"
 DATABASE_UPGRADED = "database.upgraded"
 RECORDING_RECOVERED = "run.recovered"  # a partial recording recovered at start-up, hashed into the chain
 CERTIFICATE_ISSUED = "certificate.issued"
+KEY_CREATED = "signing_key.created"  # the lab's signing key made (its fingerprint; never the key)
 CERTIFICATE_REFUSED = "certificate.refused"
 CERTIFICATE_WITHDRAWN = "certificate.withdrawn"
 AUDIT_EXCEPTION = chain.EXCEPTION

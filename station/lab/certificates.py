@@ -27,7 +27,7 @@ from station.certificate.register import FOLDER, CertificateError, CertificateNo
 from station.lab import audit, users
 from station.service.store import Store
 
-FILE_EXTS = ("html", "pdf", "xml", "json")
+FILE_EXTS = ("html", "pdf", "xml", "json", "sig")
 
 
 

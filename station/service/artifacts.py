@@ -243,12 +243,14 @@ class Artifacts:
         return out
 
     async def issue_certificate(self, run_id: str, prepared_by: str, approver: str, roles: dict[str, str],
-                                replaces: str | None, reason: str, number: str) -> dict[str, Any]:
+                                replaces: str | None, reason: str, number: str,
+                                signature: dict[str, str]) -> dict[str, Any]:
         """Write the run's certificate under ``number`` (the rules checked by the caller:
         RunManager.issue_certificate); its record and the SHA-256 of each file."""
         path = await self._completed_path(run_id)
         out: dict[str, Any] = await self._locked_job(run_id, worker.issue_job, str(path), prepared_by, approver, roles,
-                                                     replaces, reason, await self._register(run_id), number)
+                                                     replaces, reason, await self._register(run_id), number,
+                                                     signature)
         return out
 
     async def certificates(self, transducer_id: str | None) -> list[dict[str, Any]]:

@@ -11,9 +11,12 @@ raises HTTP errors: the API layer maps the typed errors (``errors.py``, ``LimitE
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import logging
+import os
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from station.certificate.register import FOLDER
@@ -92,6 +95,8 @@ class RunManager:
         self.started_at = time.time()
         self.folder_check = FolderCheck()
         self.chain: chain.ChainState | None = None  # the audit chain as last walked (start-up, /integrity, issue)
+        self.signing_key: Any = None  # the lab's Ed25519 key (station.lab.signing), loaded at start
+        self.signing_problem = ""  # why there is none
 
     # ------------------------------------------------------------------ life cycle
     async def start(self) -> None:
@@ -101,6 +106,7 @@ class RunManager:
         self.recover()  # before anything is served: nothing else waits on the loop yet
         self.seed_lab()
         self.chain = await asyncio.to_thread(self._walk_chain)
+        await asyncio.to_thread(self._load_signing_key)
         if not self.chain.ok:
             log.error("%s; certificates are refused until an administrator records a reviewed exception",
                       self.chain.describe())
@@ -173,6 +179,8 @@ class RunManager:
         number: str | None = None
         try:
             (await self.verify_chain()).require()
+            pub = self.public_key()
+            signature = {"algorithm": pub["algorithm"], "key_fingerprint": pub["fingerprint"]}
             if row.state != "completed":
                 raise RunStateError(f"run {run_id} is {row.state}: only a completed run has a certificate")
             prepared = await self.db.read(lambda s: certificates.check_issue(
@@ -185,7 +193,8 @@ class RunManager:
             roles = {prepared: "operator", approver.name: str(approver.role)}
             head = await self.db.read(lambda s: chain_head(s))
             out = await self.artifacts.issue_certificate(run_id, prepared, approver.name, roles, replaces, reason,
-                                                         number)
+                                                         number, {**signature, "file": f"{number}.sig"})
+            out["hashes"]["sig"] = await asyncio.to_thread(self._sign, number, out["record"], out["hashes"], head)
         except Exception as exc:  # the refusal's one entry, whatever refused it
             why = str(exc) if isinstance(exc, StationError) else f"{type(exc).__name__}: {exc}"
             await self.db.call(lambda s: certificates.record_refusal(s, approver.name, run_id, why, number))
@@ -214,6 +223,55 @@ class RunManager:
                                                               run_id, details))
         return {"run_id": run_id, "approved_by": approver.name, "audit_id": entry, **details}
 
+
+    def key_path(self) -> Path:
+        """The lab's private key file (``lab.signing_key``, relative to the database's folder)."""
+        p = Path(self.cfg.lab.signing_key).expanduser()
+        return p if p.is_absolute() else self.settings.database.parent / p
+
+    def _load_signing_key(self) -> None:
+        """Start-up: the lab's key, created (0600, an audit entry with its fingerprint) on the first
+        start; a key that cannot be used is logged and every issue refused with the reason."""
+        from station.lab import signing
+
+        path = self.key_path()
+        try:
+            if not path.exists():
+                key, _ = signing.init_key(path)
+                audit.append(self.store, audit.SYSTEM, audit.KEY_CREATED, "signing-key",
+                             {"fingerprint": signing.fingerprint(key.public_key()), "path": str(path)})
+                log.warning("signing key created at %s (back it up: docs/operations.md)", path)
+            self.signing_key = signing.load_key(path)
+        except (StationError, OSError, ValueError) as exc:
+            self.signing_problem = str(exc)
+            log.error("no usable signing key: %s; certificates are refused", exc)
+
+    def public_key(self) -> dict[str, str]:
+        from station.lab import signing
+
+        if self.signing_key is None:
+            raise signing.SigningError(self.signing_problem or "no signing key")
+        pub = self.signing_key.public_key()
+        return {"algorithm": signing.ALGORITHM, "fingerprint": signing.fingerprint(pub),
+                "public_key": signing.public_pem(pub)}
+
+    def _sign(self, number: str, record: dict[str, Any], hashes: dict[str, str], head: tuple[int, str]) -> str:
+        """Write ``<number>.sig`` (once): the statement of the issued files signed with the lab's key;
+        returns its SHA-256."""
+        from station.lab import signing
+
+        files = {f"{number}.{ext}": hashes[ext] for ext in ("html", "pdf", "xml")}
+        doc = signing.statement(number, record["sha256"]["content"], files, head,
+                                signing.fingerprint(self.signing_key.public_key()))
+        data = signing.sign(self.signing_key, doc)
+        path = self.settings.recordings_dir / FOLDER / f"{number}.sig"
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        try:
+            os.write(fd, data)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        return hashlib.sha256(data).hexdigest()
 
     # ------------------------------------------------------------------ the audit chain
     def _walk_chain(self) -> chain.ChainState:

@@ -167,14 +167,14 @@ def certificate_job(path: str, ext: str, register: dict[str, Any]) -> bytes:
 
 @worker_job
 def issue_job(path: str, prepared_by: str, approver: str, roles: dict[str, str], replaces: str | None, reason: str,
-              register: dict[str, Any], number: str) -> dict[str, Any]:
+              register: dict[str, Any], number: str, signature: dict[str, str]) -> dict[str, Any]:
     """Issue the run's certificate under ``number`` (taken from the lab's sequence; roles: of the
     authenticated approver and the preparer); its record and the SHA-256 of each of its files."""
     from station.certificate.issue import MappingRoles, issue
     from station.lab.integrity import sha256_file
 
     it = issue(Path(path), prepared_by=prepared_by, approver=approver, replaces=replaces, reason=reason,
-               roles=MappingRoles(roles), register=register, number=number)
+               roles=MappingRoles(roles), register=register, number=number, signature=signature)
     return {"record": {k: v for k, v in it.record.items() if k != "content"},
             "hashes": {ext: sha256_file(it.path(ext)) for ext in ("html", "pdf", "xml", "json")}}
 

@@ -9,7 +9,14 @@ from fastapi import APIRouter, Path, Query, Response
 
 from station.api.deps import Approver, ArtifactsDep, ManagerDep, Reader, RunDep
 from station.api.routes.runs import BINARY, BODY_ERRORS, E401, E403, E404, E409, E422, E503, NON_JSON_ERRORS
-from station.api.schemas import CertificateIssueIn, CertificateList, CertificateOut, CertificateWithdrawIn
+from station.api.schemas import (
+    CertificateIssueIn,
+    CertificateList,
+    CertificateOut,
+    CertificateWithdrawIn,
+    ErrorOut,
+    SigningKeyOut,
+)
 from station.certificate.register import MEDIA
 
 router = APIRouter(tags=["certificates"])
@@ -56,6 +63,14 @@ async def withdraw_certificate(manager: ManagerDep, who: Approver, body: Certifi
     """The certificate stays as issued; the audit trail records who withdrew it and why, and the
     register shows it no longer in force."""
     return _out(await manager.withdraw_certificate(who.user, number, body.reason))
+
+
+@router.get("/signing-key", response_model=SigningKeyOut, responses={409: {"model": ErrorOut}},
+            summary="The lab's public key that verifies its certificates (no login needed)")
+async def signing_key(manager: ManagerDep) -> SigningKeyOut:
+    """What a customer needs to check a certificate off-line (`station verify CERTIFICATE --key
+    FILE`): the Ed25519 public key (PEM) and its fingerprint, as printed on each certificate."""
+    return SigningKeyOut(**manager.public_key())
 
 
 @router.get("/certificates", response_model=CertificateList, dependencies=[Reader], responses={**E401, **E422},
