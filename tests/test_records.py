@@ -365,3 +365,70 @@ def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Pa
             for t in (tina, anton):
                 await t.aclose()
     asyncio.run(go())
+
+
+# ---------------------------------------------------------------------------------------------- bounded input
+def test_a_key_written_twice_is_refused_naming_both_lines(tmp_path: Path) -> None:
+    """The station's configuration (the force limit raised tenfold by a second capacity_N), a drive
+    profile, a RUN.yaml: every YAML the station reads."""
+    from drivers.motor.errors import RegisterMapError
+    from drivers.motor.profile import load_profile
+    from sinecal_config import config_file
+    from station.config import default_config_path, load_config
+    from station.errors import ConfigError
+
+    text = default_config_path().read_text()
+    lines = text.splitlines()
+    at = next(i for i, ln in enumerate(lines) if ln.strip().startswith("capacity_N:"))
+    indent = lines[at][: len(lines[at]) - len(lines[at].lstrip())]
+    lines.insert(at + 1, f"{indent}capacity_N: 50000.0")
+    bad = tmp_path / "station.yaml"
+    bad.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ConfigError, match=f"key 'capacity_N' on line {at + 1} and again on line {at + 2}"):
+        load_config(bad)
+    prof = config_file("drives/sinecal-crank.yaml").read_text().splitlines()
+    key = next(ln for ln in prof if ln and not ln.startswith((" ", "#")) and ":" in ln)
+    (tmp_path / "drive.yaml").write_text("\n".join([*prof, key]) + "\n")
+    with pytest.raises(RegisterMapError, match="again on line"):
+        load_profile(tmp_path / "drive.yaml")
+
+
+def test_an_import_refuses_fifos_loops_and_too_many_bytes(tmp_path: Path) -> None:
+    import os
+
+    from station.errors import RecordingFormatError
+    from station.interchange import MAX_RUN_BYTES, import_run
+
+    run = ("format: sinecal-csv\nformat_version: 1\nsample_rate_hz: 1000\ntop_mass_kg: 1\nend_mass_kg: 0.1\n"
+           "crank_radius_m: 0.001\ntransducer: {id: T, capacity_N: 5000, sensitivity_V_per_N: 2.0e-6}\n"
+           "steps:\n{steps}")
+
+    def attempt(files: list[str]) -> str:
+        (tmp_path / "RUN.yaml").write_text(run.replace("{steps}", "".join(
+            f"  - {{file: {f}, crank_frequency_hz: 10}}\n" for f in files)))
+        with pytest.raises(RecordingFormatError) as exc:
+            import_run(tmp_path / "RUN.yaml", tmp_path / "out")
+        return str(exc.value)
+
+    os.mkfifo(tmp_path / "fifo.csv")
+    assert "not a regular file" in attempt(["fifo.csv"])
+    os.symlink(tmp_path / "loop2.csv", tmp_path / "loop1.csv")
+    os.symlink(tmp_path / "loop1.csv", tmp_path / "loop2.csv")
+    assert "cannot be opened" in attempt(["loop1.csv"])
+    assert "must lie beside" in attempt(["/dev/zero"])  # a device elsewhere, or a link to one
+    big = tmp_path / "big.csv"
+    with open(big, "wb") as f:  # sparse: the size is what counts, nothing is read
+        f.truncate(MAX_RUN_BYTES // 4 + 1)
+    assert f"the limit is {MAX_RUN_BYTES} bytes per run" in attempt(["big.csv"] * 4)
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())
+
+
+def test_an_out_of_range_audit_cursor_is_422(tmp_path: Path) -> None:
+    from tests.station_support import app_in_process
+
+    async def go() -> None:
+        async with app_in_process(tmp_path / "rec") as (_, c):
+            r = await c.get("/audit", params={"before_id": "99999999999999999999999"})
+            assert r.status_code == 422 and "before_id" in str(r.json())
+            assert (await c.get("/audit", params={"before_id": str(2**63 - 1)})).status_code == 200
+    asyncio.run(go())

@@ -105,7 +105,8 @@ def _run(args: argparse.Namespace) -> int:
             audit.append(store, cli_user(), audit.AUDIT_EXCEPTION, "audit",
                          {"entry": args.exception, "reason": args.reason.strip()})
         with store.reading() as db:
-            out = chain.integrity_report(db, settings.recordings_dir)
+            state, latest = chain.verify_chain(db), chain.latest_files(db)
+        out = chain.integrity_report(state, latest, settings.recordings_dir)
     finally:
         store.close()
     if args.json:

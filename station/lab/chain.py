@@ -213,9 +213,8 @@ def check_files(root: Path, expected: Mapping[str, str], present: Iterable[str],
         raise RecordingTamperedError(f"{what}: " + "; ".join(bad) + "; refused")
 
 
-def file_mismatches(db: sqlite3.Connection, root: Path) -> list[str]:
-    """Every file the chain vouches for (its latest word on each) that is missing or differs, and
-    every results or certificate file the chain does not know (``station verify``)."""
+def latest_files(db: sqlite3.Connection) -> dict[str, str]:
+    """Every file the chain vouches for, with its latest entry's SHA-256."""
     latest: dict[str, str] = {}
     for row in _rows(db, "SELECT files FROM audit WHERE files != '{}' ORDER BY id"):
         for k, v in json.loads(row["files"]).items():
@@ -223,6 +222,12 @@ def file_mismatches(db: sqlite3.Connection, root: Path) -> list[str]:
                 latest.pop(k, None)
             else:
                 latest[k] = str(v)
+    return latest
+
+
+def file_mismatches(latest: Mapping[str, str], root: Path) -> list[str]:
+    """Every file of ``latest`` (:func:`latest_files`) that is missing or differs, and every results
+    or certificate file the chain does not know (``station verify``).  Reads files, not the database."""
     out = []
     for key, sha in sorted(latest.items()):
         p = root / key
@@ -242,11 +247,10 @@ def file_mismatches(db: sqlite3.Connection, root: Path) -> list[str]:
     return out
 
 
-def integrity_report(db: sqlite3.Connection, root: Path) -> dict[str, Any]:
-    """The whole check (``/integrity``, ``station verify``): the chain walked, every file it vouches
-    for compared; ``ok`` only when both hold."""
-    state = verify_chain(db)
-    files = file_mismatches(db, root)
+def integrity_report(state: ChainState, latest: Mapping[str, str], root: Path) -> dict[str, Any]:
+    """The whole check (``/integrity``, ``station verify``): the chain as walked (``state``), every
+    file it vouches for (``latest``) compared; ``ok`` only when both hold."""
+    files = file_mismatches(latest, root)
     detail = state.describe() + (f"; {len(files)} file(s) differ from the audit trail: " + "; ".join(files)
                                  if files else "; every file it vouches for is as recorded")
     return {**state.to_dict(), "ok": state.ok and not files, "chain_ok": state.ok, "files": files,

@@ -285,13 +285,13 @@ class RunManager:
 
     async def integrity(self) -> dict[str, Any]:
         """The chain walked and every file it vouches for compared (``/integrity``)."""
-        def check(store: Store) -> dict[str, Any]:
+        def walk(store: Store) -> tuple[chain.ChainState, dict[str, str]]:
             with store.reading() as db:
-                return chain.integrity_report(db, self.settings.recordings_dir)
-        out = await self.db.read(check, timeout_s=600.0)
-        self.chain = chain.ChainState(out["entries"], out["head_id"], out["head"],
-                                      [chain.Break(**b) for b in out["breaks"]])
-        return out
+                return chain.verify_chain(db), chain.latest_files(db)
+        state, latest = await self.db.read(walk, timeout_s=120.0)
+        self.chain = state
+        # the files are hashed outside the database's read lock (other reads go on meanwhile)
+        return await asyncio.to_thread(chain.integrity_report, state, latest, self.settings.recordings_dir)
 
     async def record_exception(self, admin: users.User, entry: int, reason: str) -> dict[str, Any]:
         """An administrator's reviewed exception for a broken link of the chain (itself an entry):
