@@ -432,3 +432,97 @@ def test_an_out_of_range_audit_cursor_is_422(tmp_path: Path) -> None:
             assert r.status_code == 422 and "before_id" in str(r.json())
             assert (await c.get("/audit", params={"before_id": str(2**63 - 1)})).status_code == 200
     asyncio.run(go())
+
+
+# ---------------------------------------------------------------------------------------------- logins
+def test_every_kind_of_name_costs_one_password_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Unknown, known (wrong password), disabled and password-less names: one scrypt each, so no
+    name can be told from another by the time a refusal takes (the measured medians are in
+    docs/operations.md)."""
+    import hashlib
+
+    from station.lab import users
+
+    store = Store(tmp_path / "s.db")
+    users.put_user(store, "tina", users.Role.TECHNICIAN, "admin", password="tina-secret-pw")
+    users.put_user(store, "dora", users.Role.TECHNICIAN, "admin", password="dora-secret-pw", disabled=True)
+    users.put_user(store, "tok", users.Role.TECHNICIAN, "admin")
+    users.login_candidate(store, "nobody")  # the dummy hash made once
+    calls = []
+    real = hashlib.scrypt
+    monkeypatch.setattr(hashlib, "scrypt", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for name in ("nobody", "tina", "dora", "tok", "Tina-Secret-PW!"):
+        calls.clear()
+        assert users.check_login(store, name, "wrong-password-1") is None
+        assert len(calls) == 1, name
+    calls.clear()
+    assert users.check_login(store, "tina", "tina-secret-pw") is not None and len(calls) == 1
+    store.close()
+
+
+def test_the_password_pool_refuses_at_once_when_full() -> None:
+    import threading
+
+    from station.service.logins import PasswordPool
+
+    async def go() -> None:
+        pool = PasswordPool(workers=1, queue=0)
+        gate = threading.Event()
+        busy = asyncio.ensure_future(pool.run(gate.wait, 5.0))
+        await asyncio.sleep(0.05)
+        assert pool.full() and await pool.run(lambda: True) is None  # refused at once, not queued
+        gate.set()
+        assert await busy is True and await pool.run(lambda: True) is True
+        pool.close()
+    asyncio.run(go())
+
+
+def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path) -> None:
+    """Five wrong passwords, then each further one locks the name and the address out for a
+    growing time (the right password is refused meanwhile, no password checked); the lock-out is
+    audited and listed for an administrator, who lifts it.  A password typed into the name field
+    never reaches the trail; a new password ends the user's sessions; tokens are listed and revoked."""
+    from station.service import logins
+    from tests.station_support import PASSWORDS, app_in_process, asgi_client, login
+
+    async def go() -> None:
+        async with app_in_process(tmp_path / "rec") as (manager, c):
+            app = c._transport.app  # type: ignore[attr-defined]
+            r = await c.put("/users/tina", json={"role": "technician", "password": PASSWORDS["tina"]})
+            assert r.status_code == 200
+            anon = asgi_client(app, token=False)
+            for _ in range(logins.FREE_FAILURES):
+                r = await anon.post("/login", json={"name": "tina", "password": "not-her-password"})
+                assert r.status_code == 401 and "wrong user name or password" in r.json()["detail"]
+            r = await anon.post("/login", json={"name": "tina", "password": "not-her-password"})
+            assert r.status_code == 401
+            r = await anon.post("/login", json={"name": "tina", "password": PASSWORDS["tina"]})
+            assert r.status_code == 401 and "locked until" in r.json()["detail"]
+            locks = (await c.get("/logins/locks")).json()
+            assert {x["key"] for x in locks} == {"user:tina", "client:127.0.0.1"}
+            assert audit.entries(manager.store, action=audit.LOGIN_LOCKED)
+            for x in locks:
+                assert (await c.delete(f"/logins/locks/{x['key']}")).status_code == 200
+            tina = await login(app, "tina")
+            assert (await tina.get("/me")).json()["user"]["name"] == "tina"
+            # a password typed into the name field
+            r = await anon.post("/login", json={"name": "Sup3r Secret!", "password": "x"})
+            assert r.status_code in (401, 422)
+            assert "Sup3r" not in str([e.to_dict() for e in audit.entries(manager.store, limit=1000)])
+            # a new password ends her sessions
+            r = await c.put("/users/tina", json={"role": "technician", "password": "a-new-password-1"})
+            assert r.status_code == 200
+            assert (await tina.get("/me")).status_code == 401
+            # tokens: listed (never their text), revoked, refused after
+            text = (await c.post("/users/tina/tokens", json={"label": "ci"})).json()["token"]
+            bot = asgi_client(app, token=False)
+            bot.headers["Authorization"] = f"Bearer {text}"
+            assert (await bot.get("/me")).json()["user"]["name"] == "tina"
+            [row] = [t for t in (await c.get("/tokens", params={"user": "tina"})).json() if t["label"] == "ci"]
+            assert text not in str(row) and row["revoked"] is None
+            assert (await c.delete(f"/tokens/{row['id']}")).status_code == 200
+            assert (await bot.get("/me")).status_code == 401
+            assert audit.entries(manager.store, action=audit.TOKEN_REVOKED)[0].details["token"] == row["id"]
+            for cl in (anon, tina, bot):
+                await cl.aclose()
+    asyncio.run(go())

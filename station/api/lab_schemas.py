@@ -154,6 +154,20 @@ class AuditEntryOut(OutModel):
     hash: str = Field(default="", description="the entry's link in the hash chain (docs/operations.md)")
 
 
+class LockOut(OutModel):
+    key: str = Field(description="user:<name> or client:<address>")
+    failures: int = Field(description="failed logins in a row")
+    locked_until: float = Field(description="UNIX s")
+
+
+class TokenRowOut(OutModel):
+    id: str = Field(description="the first 12 hex digits of the token's SHA-256 (never the token)")
+    user: str
+    label: str
+    created: float | None = Field(description="UNIX s")
+    revoked: float | None = Field(description="UNIX s, or null while it is valid")
+
+
 class ChainBreakOut(OutModel):
     id: int = Field(description="the audit entry where the chain stops holding")
     reason: str

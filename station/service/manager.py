@@ -39,6 +39,7 @@ from station.service.health import database_state, health
 from station.service.instance import InstanceLock
 from station.service.jobs import MAX_JOB_ATTEMPTS, JobQueue
 from station.service.latch import EStopLatch
+from station.service.logins import LoginThrottle, PasswordPool
 from station.service.recovery import recover
 from station.service.riglink import RigConnector, RigLink, default_connector
 from station.service.runs import AckReport, LiveRun, Runs, StopReport
@@ -97,6 +98,8 @@ class RunManager:
         self.chain: chain.ChainState | None = None  # the audit chain as last walked (start-up, /integrity, issue)
         self.signing_key: Any = None  # the lab's Ed25519 key (station.lab.signing), loaded at start
         self.signing_problem = ""  # why there is none
+        self.logins = LoginThrottle()
+        self.password_pool = PasswordPool()
 
     # ------------------------------------------------------------------ life cycle
     async def start(self) -> None:
@@ -144,6 +147,7 @@ class RunManager:
         self.jobs.cancel_jobs()
         await self.link.close()
         await asyncio.to_thread(self.db.close, 5.0)
+        self.password_pool.close()
         await asyncio.to_thread(self.store.close)  # after the writer: it may still wait on a lock
         self.instance.release()
 

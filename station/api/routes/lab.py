@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import datetime as dt
+import logging
+import re
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request, Response
@@ -20,6 +22,7 @@ from station.api.lab_schemas import (
     HistoryOut,
     IntegrityOut,
     IntegrityReportOut,
+    LockOut,
     LoginIn,
     MeOut,
     MountIn,
@@ -29,6 +32,7 @@ from station.api.lab_schemas import (
     StandardOut,
     TokenIn,
     TokenOut,
+    TokenRowOut,
     TransducerIn,
     TransducerOut,
     UserIn,
@@ -43,6 +47,7 @@ from station.lab.users import NAME_PATTERN, Principal
 from station.service.errors import RunStateError
 from station.service.store import Store
 
+log = logging.getLogger(__name__)
 router = APIRouter(tags=["lab"])
 EntryId = Annotated[str, Path(pattern=ID_PATTERN)]
 UserName = Annotated[str, Path(pattern=NAME_PATTERN)]
@@ -57,15 +62,33 @@ def _me(who: Principal | None) -> MeOut:
 # ---------------------------------------------------------------------------------------------- sessions
 @router.post("/login", response_model=MeOut, responses={401: {"model": ErrorOut}, **E422, **BODY_ERRORS},
              summary="Log in on the page (sets an HttpOnly session cookie)")
-async def login(body: LoginIn, manager: ManagerDep, response: Response) -> MeOut:
-    """A wrong name or password is refused alike (401).  The session expires after
-    `lab.session_minutes`; the cookie is HttpOnly and SameSite=Strict."""
+async def login(body: LoginIn, manager: ManagerDep, response: Response, request: Request) -> MeOut:
+    """A wrong name or password is refused alike (401), in the same time for any name.  After 5
+    failures in a row for a name or from an address, each further one locks it out for a growing
+    time (2 s doubling to 15 min; refused at once with the time it is lifted; an administrator lifts
+    it: `GET /logins/locks`).  The session expires after `lab.session_minutes`; the cookie is HttpOnly
+    and SameSite=Strict."""
     minutes = manager.cfg.lab.session_minutes
-    # the scrypt check (~0.1 s) in the read pool, never in the writer the runs' records go through
-    user = await manager.db.read(lambda s: users.check_login(s, body.name, body.password))
+    client = request.client.host if request.client else ""
+    user_key = f"user:{body.name}" if re.match(NAME_PATTERN, body.name) else "user:?"
+    keys = [user_key, f"client:{client}"]
+    why = manager.logins.refusal(keys)
+    if why is not None:
+        raise users.AuthError(why)
+    candidate, stored = await manager.db.read(lambda s: users.login_candidate(s, body.name))
+    # the scrypt check (~0.1 s) in the login pool: never in the read pool other requests need
+    ok = await manager.password_pool.run(users.check_password, body.password, stored)
+    if ok is None:
+        raise users.AuthError("too many logins at once: try again in a moment")
+    user = candidate if ok else None
     if user is None:
-        manager.db.post(lambda s: users.refuse_login(s, body.name))
+        manager.db.post(lambda s: users.refuse_login(s, body.name, client))
+        for key, seconds in manager.logins.failed(keys):
+            log.warning("login lock-out: %s for %.0f s after repeated failures", key, seconds)
+            manager.db.post(lambda s, k=key, t=seconds: audit.append(  # type: ignore[misc]
+                s, audit.SYSTEM, audit.LOGIN_LOCKED, k, {"seconds": t}))
         raise users.AuthError(users.REFUSED)
+    manager.logins.succeeded(user_key)
     text, expires = await manager.db.call(lambda s: users.open_session(s, user, minutes))
     response.set_cookie(SESSION_COOKIE, text, max_age=int(minutes * 60), httponly=True, samesite="strict", path="/")
     return MeOut(user=UserOut.model_validate(user.to_dict()), via="session", expires=expires)
@@ -122,6 +145,37 @@ async def put_user(name: UserName, body: UserIn, manager: ManagerDep, who: Admin
 async def issue_token(name: UserName, body: TokenIn, manager: ManagerDep, who: Admin) -> TokenOut:
     text = await manager.db.call(lambda s: users.issue_token(s, name, body.label, who.name))
     return TokenOut(user=name, label=body.label, token=text)
+
+
+@router.get("/logins/locks", response_model=list[LockOut], responses={**E401, **E403},
+            summary="Names and client addresses locked out after failed logins (admin)")
+async def login_locks(manager: ManagerDep, who: Admin) -> list[LockOut]:
+    return [LockOut(**x) for x in manager.logins.locks()]
+
+
+@router.delete("/logins/locks/{key}", response_model=list[LockOut], responses={**E401, **E403, **E404},
+               summary="Lift a lock-out (admin)")
+async def lift_lock(key: Annotated[str, Path(pattern=r"^(user|client):[^/]{1,128}$")], manager: ManagerDep,
+                    who: Admin) -> list[LockOut]:
+    if not manager.logins.lift(key):
+        raise users.UnknownUserError(f"no lock-out or failure count for {key}")
+    await manager.db.call(lambda s: audit.append(s, who.name, audit.LOGIN_LOCKED, key, {"lifted": True}))
+    return [LockOut(**x) for x in manager.logins.locks()]
+
+
+@router.get("/tokens", response_model=list[TokenRowOut], responses={**E401, **E403, **E422},
+            summary="The API tokens (never their text), optionally of one user (admin)")
+async def list_tokens(manager: ManagerDep, who: Admin,
+                      user: Annotated[str | None, Query(pattern=NAME_PATTERN)] = None) -> list[TokenRowOut]:
+    return [TokenRowOut(**t) for t in await manager.db.read(lambda s: users.tokens(s, user))]
+
+
+@router.delete("/tokens/{token_id}", response_model=TokenRowOut, responses={**E401, **E403, **E404, **E422},
+               summary="Revoke an API token (admin)")
+async def revoke_token(token_id: Annotated[str, Path(pattern=r"^[0-9a-f]{12}$")], manager: ManagerDep,
+                       who: Admin) -> TokenRowOut:
+    out = await manager.db.call(lambda s: users.revoke_token(s, token_id, who.name))
+    return TokenRowOut(**out, created=None)
 
 
 # ---------------------------------------------------------------------------------------------- register
