@@ -529,3 +529,29 @@ def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path
             for cl in (anon, tina, bot):
                 await cl.aclose()
     asyncio.run(go())
+
+
+def test_the_command_line_lists_and_revokes_tokens(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    import yaml
+
+    from station.cli import main
+    from station.lab import users
+    from tests.station_support import daemon_config
+
+    cfg = tmp_path / "station.yaml"
+    cfg.write_text(yaml.safe_dump(daemon_config(tmp_path / "rec")))
+    monkeypatch.setenv("STATION_PASSWORD", "bot-secret-password")
+    assert main(["users", "add", "bot", "--role", "technician", "--config", str(cfg)]) == 0
+    assert main(["users", "token", "bot", "--label", "nightly", "--config", str(cfg), "--json"]) == 0
+    text = json.loads(capsys.readouterr().out.split("\n", 1)[1])["token"]
+    assert main(["users", "tokens", "bot", "--config", str(cfg), "--json"]) == 0
+    [row] = json.loads(capsys.readouterr().out)
+    assert text not in json.dumps(row) and row["revoked"] is None
+    assert main(["users", "revoke", row["id"], "--config", str(cfg)]) == 0
+    assert main(["users", "revoke", row["id"], "--config", str(cfg)]) == 1  # no live token with that id
+    store = Store(tmp_path / "rec" / "station.db")
+    assert users.user_of_token(store, text) is None
+    store.close()
