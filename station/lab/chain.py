@@ -186,12 +186,17 @@ def expected_files(db: sqlite3.Connection, target: str, *, check: bool = True) -
         why = _link_reason(row, GENESIS if before is None else str(before[0])) if check else None
         if why is not None:
             raise ChainBrokenError(f"audit entry {row['id']} vouching for run {target}'s files: {why}")
-        for k, v in json.loads(row["files"]).items():
-            if v is None:
-                out.pop(k, None)
-            else:
-                out[k] = str(v)
+        _fold(out, row["files"])
     return out
+
+
+def _fold(out: dict[str, str], files: str) -> None:
+    """An entry's word on its files over what earlier entries said (None: the file is gone)."""
+    for k, v in json.loads(files).items():
+        if v is None:
+            out.pop(k, None)
+        else:
+            out[k] = str(v)
 
 
 def check_files(root: Path, expected: Mapping[str, str], present: Iterable[str], what: str,
@@ -217,11 +222,7 @@ def latest_files(db: sqlite3.Connection) -> dict[str, str]:
     """Every file the chain vouches for, with its latest entry's SHA-256."""
     latest: dict[str, str] = {}
     for row in _rows(db, "SELECT files FROM audit WHERE files != '{}' ORDER BY id"):
-        for k, v in json.loads(row["files"]).items():
-            if v is None:
-                latest.pop(k, None)
-            else:
-                latest[k] = str(v)
+        _fold(latest, row["files"])
     return latest
 
 

@@ -64,14 +64,21 @@ def init_key(path: Path, *, rotate: bool = False) -> tuple[Ed25519PrivateKey, Pa
                             serialization.NoEncryption())
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.new")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    tmp.unlink(missing_ok=True)
+    write_new(tmp, pem, 0o600)
+    os.replace(tmp, path)
+    return key, retired
+
+
+def write_new(path: Path, data: bytes, mode: int) -> None:
+    """Write a file that must not exist yet (FileExistsError otherwise), with ``mode`` from its
+    creation on, and sync it."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
     try:
-        os.write(fd, pem)
+        os.write(fd, data)
         os.fsync(fd)
     finally:
         os.close(fd)
-    os.replace(tmp, path)
-    return key, retired
 
 
 def load_key(path: Path) -> Ed25519PrivateKey:

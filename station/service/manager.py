@@ -13,7 +13,6 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import logging
-import os
 import threading
 import time
 from pathlib import Path
@@ -268,13 +267,7 @@ class RunManager:
         doc = signing.statement(number, record["sha256"]["content"], files, head,
                                 signing.fingerprint(self.signing_key.public_key()))
         data = signing.sign(self.signing_key, doc)
-        path = self.settings.recordings_dir / FOLDER / f"{number}.sig"
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        try:
-            os.write(fd, data)
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        signing.write_new(self.settings.recordings_dir / FOLDER / f"{number}.sig", data, 0o644)
         return hashlib.sha256(data).hexdigest()
 
     # ------------------------------------------------------------------ the audit chain
