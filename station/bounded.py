@@ -95,10 +95,36 @@ def _expanded_nodes(root: yaml.Node, limit: int) -> int:
     return sizes[id(root)]
 
 
+def duplicate_keys(root: yaml.Node) -> list[str]:
+    """Every key written twice in one mapping of the document (``key 'capacity_N' on lines 12 and
+    14``): YAML says a mapping's keys are unique, PyYAML keeps the last silently."""
+    out: list[str] = []
+    seen_nodes: set[int] = set()
+    todo = [root]
+    while todo:
+        node = todo.pop()
+        if id(node) in seen_nodes or isinstance(node, yaml.ScalarNode):
+            continue
+        seen_nodes.add(id(node))
+        if isinstance(node, yaml.MappingNode):
+            keys: dict[tuple[str, str], int] = {}
+            for k, v in node.value:
+                if isinstance(k, yaml.ScalarNode) and k.tag != "tag:yaml.org,2002:merge":
+                    line = k.start_mark.line + 1
+                    first = keys.setdefault((k.tag, k.value), line)
+                    if first != line:
+                        out.append(f"key {quote(k.value)} on line {first} and again on line {line}")
+                todo.extend((k, v))
+        else:
+            todo.extend(node.value)
+    return out
+
+
 def load_yaml(text: str, source: str, error: type[BadInputError] = BadInputError,
               max_nodes: int = MAX_YAML_NODES) -> Any:
-    """``yaml.safe_load(text)`` with the document's expanded size bounded (module docstring); a
-    malformed document raises ``error`` naming ``source``, its message within a few hundred characters."""
+    """``yaml.safe_load(text)`` with the document's expanded size bounded (module docstring) and no key
+    written twice in one mapping; a malformed document raises ``error`` naming ``source``, its message
+    within a few hundred characters."""
     loader = yaml.SafeLoader(text)
     try:
         try:
@@ -109,6 +135,10 @@ def load_yaml(text: str, source: str, error: type[BadInputError] = BadInputError
             if n > max_nodes:
                 raise error(f"{source}: the YAML document expands to more than {max_nodes} nodes (through "
                             "its aliases '*name'); refused")
+            dups = duplicate_keys(node)
+            if dups:
+                raise error(f"{source}: a key written twice (which one counts is not for the station to guess): "
+                            f"{cut('; '.join(sorted(dups)), 4 * QUOTE_CHARS)}")
             return loader.construct_document(node)
         except yaml.YAMLError as exc:
             raise error(f"{source}: not valid YAML: {cut(str(exc), 4 * QUOTE_CHARS)}") from None

@@ -244,6 +244,9 @@ class LabSection(_Model):
     standards: list[StandardConfig] = Field(default_factory=list, max_length=64,
                                             description="reference standards entered into the register at "
                                             "start-up when not there yet")
+    signing_key: str = Field(default="signing-key.pem", min_length=1, max_length=4096,
+                             description="the lab's Ed25519 private key that signs each issued certificate "
+                             "(PEM, mode 0600; relative to the database's folder; station keys init)")
 
 
 class ServiceSection(_Model):

@@ -14,6 +14,7 @@ import io
 import logging
 import os
 import shutil
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -34,6 +35,7 @@ VERSIONS = (1, 2)
 VERSION = 2  # what export writes
 RATE_TOLERANCE = 1e-3  # allowed deviation of each time step from 1/fs, as a fraction of 1/fs
 MAX_STEP_FILE_BYTES = 64 << 20  # one step file: ~1.6 million samples (80 s at 20 kHz) at ~40 bytes a line
+MAX_RUN_BYTES = 256 << 20  # all the step files one RUN.yaml names, counted each time it names one
 
 
 class _Strict(BaseModel):
@@ -192,16 +194,34 @@ def read_step_csv(path: Path, sample_rate_hz: float) -> tuple[np.ndarray, np.nda
     return data[:, 1].copy(), data[:, 2].copy(), float(t[0])
 
 
+def step_file(src: Path, name: str) -> Path:
+    """A step file RUN.yaml names: beside it, a regular file (never a FIFO, a device or a symlink
+    loop, which would hang or fail the import)."""
+    try:
+        f = (src.parent / name).resolve()
+        if src.parent.resolve() not in f.parents:
+            raise RecordingFormatError(f"{src}: step file {name!r} must lie beside RUN.yaml")
+        mode = f.stat().st_mode
+    except FileNotFoundError as exc:
+        raise RecordingFormatError(f"{f}: cannot read: {exc.strerror}") from None
+    except (OSError, RuntimeError) as exc:  # RuntimeError: a symlink loop (Python < 3.13)
+        raise RecordingFormatError(f"{src}: step file {name!r} cannot be opened ({exc})") from None
+    if not stat.S_ISREG(mode):
+        raise RecordingFormatError(f"{src}: step file {name!r} is not a regular file (a FIFO, a device or a "
+                                   "folder); refused")
+    return f
+
+
 def import_run(run_yaml: str | Path, out_dir: str | Path) -> Path:
     """Convert a sinecal-csv run into a recording in ``out_dir``; returns its path."""
     src = Path(run_yaml)
     run, run_text = _load_run_file(src)
-    steps = []
-    for st in run.steps:
-        f = (src.parent / st.file).resolve()
-        if src.parent.resolve() not in f.parents:
-            raise RecordingFormatError(f"{src}: step file {st.file!r} must lie beside RUN.yaml")
-        steps.append((st, *read_step_csv(f, run.sample_rate_hz)))
+    files = [step_file(src, st.file) for st in run.steps]  # every file checked before any is read
+    total = sum(f.stat().st_size for f in files)
+    if total > MAX_RUN_BYTES:
+        raise RecordingFormatError(f"{src}: its {len(files)} step files add up to {total} bytes (a file named n "
+                                   f"times counts n times); the limit is {MAX_RUN_BYTES} bytes per run")
+    steps = [(st, *read_step_csv(f, run.sample_rate_hz)) for st, f in zip(run.steps, files, strict=True)]
     meta = RunMetadata(
         run_id=new_run_id(run.transducer.id), transducer_id=run.transducer.id, source="import",
         sample_rate_hz=run.sample_rate_hz, load_mass_kg=run.top_mass_kg, end_mass_kg=run.end_mass_kg,

@@ -85,6 +85,7 @@ def seed_runs(config: dict[str, Any], seeds: Sequence[Seed]) -> list[str]:
 
     ``config``: the daemon's configuration as parsed YAML.  The recordings are simulated from the
     physics (``station.simulate``), not by the code under test."""
+    from station.lab import audit
     from station.lab.integrity import sha256_file
     from station.run.calibrate import process_and_identify
     from station.run.request import RunRequest, plan_run
@@ -119,6 +120,11 @@ def seed_runs(config: dict[str, Any], seeds: Sequence[Seed]) -> list[str]:
                 recording=path.name, result_name=result_name, recording_sha256=sha256_file(path)))
             if not s.identified:
                 store.enqueue_job(path.stem)
+            # the audit chain vouches for the recording and its results, as the daemon's would
+            audit.append(store, audit.SYSTEM, audit.RUN_ENDED, path.stem, {"recording": path.name},
+                         files={path.name: sha256_file(path)})
+            if s.identified:
+                audit.seal_results(store, audit.SYSTEM, audit.RUN_IDENTIFIED, path.stem, path, {"seeded": True})
             ids.append(path.stem)
     finally:
         store.close()

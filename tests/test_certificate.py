@@ -140,11 +140,14 @@ def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None
             app = c._transport.app  # type: ignore[attr-defined]
             user = {"role": "approver", "password": PASSWORDS["anton"]}
             assert (await c.put("/users/anton", json=user)).status_code == 200
+            assert (await c.put("/users/tina", json={"role": "technician"})).status_code == 200
             anton = await login(app, "anton")
             assert (await anton.post(f"/runs/{rid}/certificate", json={"approver": "x"})).status_code == 422
             bad = await anton.post(f"/runs/{rid}/certificate", json={"prepared_by": "anton"})
             assert bad.status_code in (403, 409) and "second person" in bad.json()["detail"]
-            ok = await anton.post(f"/runs/{rid}/certificate", json={"prepared_by": TECH})
+            bad = await anton.post(f"/runs/{rid}/certificate", json={"prepared_by": TECH})  # free text
+            assert bad.status_code == 409 and "not an enabled user of the lab" in bad.json()["detail"]
+            ok = await anton.post(f"/runs/{rid}/certificate", json={"prepared_by": "tina"})
             assert ok.status_code == 201, ok.text
             number = ok.json()["number"]
             html = (await c.get(f"/runs/{rid}/certificate.html")).text
@@ -165,22 +168,23 @@ def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None
 
 
 @pytest.mark.slow
-def test_cli_issues_and_writes_the_three_forms(stored: Path, tmp_path: Path,
-                                               capsys: pytest.CaptureFixture[str]) -> None:
-    """`station certificate` in process: a refused approver (exit 1, the reason on stderr), an issue,
-    the issued HTML, PDF and DCC written, the register listed."""
+def test_cli_writes_the_three_forms_and_refuses_to_issue(stored: Path, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """`station certificate` in process: issuing is refused (exit 1, the station named on stderr);
+    a certificate issued as the station's worker issues it is written in its three forms and listed."""
     import json
 
     from station.cli import main
 
     rec = _copy(stored, tmp_path)
-    assert main(["certificate", str(rec), "--issue", "--prepared-by", APPROVER, "--approver", TECH]) == 1
+    assert main(["certificate", str(rec), "--issue"]) == 2  # bad input
+    assert "issued through the station" in capsys.readouterr().err
+    number = issue(rec, prepared_by=TECH, approver=APPROVER).number
     out = tmp_path / "out"
     out.mkdir()
-    assert main(["certificate", str(rec), "--issue", "--prepared-by", TECH, "--approver", APPROVER,
-                 "--html", str(out / "c.html"), "--pdf", str(out / "c.pdf"), "--xml", str(out / "c.xml")]) == 0
-    number = re.search(r"SC-\d{4}-0001", (out / "c.html").read_text()).group(0)  # type: ignore[union-attr]
-    assert number in _pdf_text((out / "c.pdf").read_bytes())
+    assert main(["certificate", str(rec), "--html", str(out / "c.html"), "--pdf", str(out / "c.pdf"),
+                 "--xml", str(out / "c.xml")]) == 0
+    assert number in (out / "c.html").read_text() and number in _pdf_text((out / "c.pdf").read_bytes())
     assert f"<dcc:uniqueIdentifier>{number}</dcc:uniqueIdentifier>" in (out / "c.xml").read_text()
     capsys.readouterr()
     assert main(["certificate", str(rec), "--list", "--json"]) == 0

@@ -370,5 +370,13 @@ def test_start_up_recovery_of_every_kind_of_cut_off_run(tmp_path: Path) -> None:
         jobs = {j.run_id: j for j in m.store.jobs()}
         assert set(jobs) == {"r-done", "r-ident", "r-job"} and all(j.state == "queued" for j in jobs.values())
         assert set(out["interrupted"]) == {"r-partial", "r-queued"} and out["ended"] == ["r-aborted"]
+        # every recording closed by the recovery is hashed into the audit chain, like any closed one
+        from station.lab import audit
+        from station.lab.integrity import sha256_file
+        recovered = {e.target: e for e in audit.entries(m.store, action=audit.RECORDING_RECOVERED)}
+        assert set(recovered) == {"r-partial", "r-done", "r-aborted"}
+        for rid, e in recovered.items():
+            sha = sha256_file(rec_dir / f"{rid}.h5")
+            assert e.files == {f"{rid}.h5": sha} and runs[rid].recording_sha256 == sha
     finally:
         m.store.close()

@@ -644,6 +644,20 @@ def shipped_profiles() -> list[str]:
     return sorted(p.stem for p in folder.glob("*.yaml"))
 
 
+class _UniqueKeys(yaml.SafeLoader):
+    """SafeLoader that refuses a key written twice in one mapping, naming both lines."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        lines: dict[Any, int] = {}
+        for k, _ in node.value:
+            key = self.construct_object(k, deep=True)
+            line = k.start_mark.line + 1
+            if isinstance(key, str | int | float | bool) and lines.setdefault(key, line) != line:
+                raise yaml.constructor.ConstructorError(None, None, f"key {key!r} on line {lines[key]} and again "
+                                                        f"on line {line}", k.start_mark)
+        return super().construct_mapping(node, deep)
+
+
 def load_profile(name_or_path: str | Path | None = None) -> DriveProfile:
     """Load and validate a profile (default: the station's own crank controller, ``sinecal-crank``)."""
     try:
@@ -653,7 +667,7 @@ def load_profile(name_or_path: str | Path | None = None) -> DriveProfile:
                                f"({', '.join(shipped_profiles())}) or a .yaml path") from exc
     try:
         text = p.read_text(encoding="utf-8")
-        doc = yaml.safe_load(text)
+        doc = yaml.load(text, Loader=_UniqueKeys)  # a SafeLoader that refuses a key written twice
     except yaml.YAMLError as exc:
         raise RegisterMapError(f"{p}: not valid YAML: {exc}") from exc
     except (OSError, UnicodeDecodeError) as exc:

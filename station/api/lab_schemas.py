@@ -149,6 +149,47 @@ class AuditEntryOut(OutModel):
     action: str
     target: str
     details: dict[str, Any]
+    files: dict[str, str | None] = Field(default_factory=dict, description="SHA-256 of the files the entry "
+                                         "concerns (paths in the recordings folder; null: removed on purpose)")
+    hash: str = Field(default="", description="the entry's link in the hash chain (docs/operations.md)")
+
+
+class LockOut(OutModel):
+    key: str = Field(description="user:<name> or client:<address>")
+    failures: int = Field(description="failed logins in a row")
+    locked_until: float = Field(description="UNIX s")
+
+
+class TokenRowOut(OutModel):
+    id: str = Field(description="the first 12 hex digits of the token's SHA-256 (never the token)")
+    user: str
+    label: str
+    created: float | None = Field(description="UNIX s")
+    revoked: float | None = Field(description="UNIX s, or null while it is valid")
+
+
+class ChainBreakOut(OutModel):
+    id: int = Field(description="the audit entry where the chain stops holding")
+    reason: str
+    excepted_by: int | None = Field(description="the administrator's reviewed exception (an audit entry), if any")
+
+
+class IntegrityReportOut(OutModel):
+    """The audit chain walked and every file it vouches for compared with the recordings folder."""
+
+    ok: bool
+    chain_ok: bool
+    entries: int
+    head_id: int
+    head: str = Field(description="the newest entry's hash")
+    breaks: list[ChainBreakOut]
+    files: list[str] = Field(description="each file that is missing, differs, or is not in the trail")
+    detail: str
+
+
+class ExceptionIn(_In):
+    entry: int = Field(ge=1, le=2**62, description="the broken link's entry id, as /integrity names it")
+    reason: str = Field(min_length=10, max_length=2000, description="what was reviewed and why it is accepted")
 
 
 class AuditOut(OutModel):

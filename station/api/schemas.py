@@ -472,6 +472,11 @@ class RecordingsCheckOut(OutModel):
     notes: list[str]
 
 
+class AuditChainHealth(OutModel):
+    ok: bool
+    detail: str
+
+
 class HealthOut(OutModel):
     status: Literal["ok", "degraded"]
     estop: EStopState
@@ -483,6 +488,8 @@ class HealthOut(OutModel):
     active_run: str | None
     uptime_s: float
     recordings: RecordingsCheckOut
+    audit_chain: AuditChainHealth | None = Field(default=None, description="the audit trail's hash chain as last "
+                                                 "walked (start-up, /integrity, before an issue); broken: degraded")
 
 
 class RangeOut(OutModel):
@@ -548,6 +555,21 @@ class CertificateIssueIn(BaseModel):
     reason: str = Field("", max_length=500)
 
 
+class SigningKeyOut(OutModel):
+    """The lab's public signing key."""
+
+    algorithm: str = Field(description="Ed25519")
+    fingerprint: str = Field(description="SHA-256 of the raw public key, as printed on the certificates")
+    public_key: str = Field(description="PEM (SubjectPublicKeyInfo)")
+
+
+class CertificateWithdrawIn(BaseModel):
+    """Withdraw an issued certificate: why (kept in the audit trail)."""
+
+    model_config = ConfigDict(extra="forbid")
+    reason: str = Field(min_length=10, max_length=500)
+
+
 class CertificateOut(OutModel):
     """An issued certificate in the register."""
 
@@ -559,6 +581,8 @@ class CertificateOut(OutModel):
     approved_by: str
     replaces: str | None
     replaced_by: str | None = Field(description="the certificate that replaces (withdraws) this one")
+    prepared_by: str = Field(default="", description="the lab user who prepared it")
+    withdrawn: str | None = Field(default=None, description="why it is no longer in force (replaced or withdrawn)")
     html: str
     pdf: str
     xml: str

@@ -50,6 +50,16 @@ def _num(x: float) -> str:
     return repr(float(x))
 
 
+def signature_declaration(approval: dict[str, Any]) -> list[str]:
+    """The lab's detached signature of an issued certificate (``station.lab.signing``), as a
+    statement: the file that holds it and the key's fingerprint ([] unsigned)."""
+    sig = approval.get("signature")
+    if not sig:
+        return []
+    return [f"Signed by the laboratory: {sig['algorithm']} signature in the file {sig['file']} (detached; it "
+            f"covers this DCC, the PDF and the HTML forms), key fingerprint {sig['key_fingerprint']}"]
+
+
 def build_dcc(content: dict[str, Any]) -> bytes:
     """The DCC of a certificate's content (UTF-8 XML bytes): an issued one, or a draft marked as such
     (uniqueIdentifier DRAFT-<run>, the draft statement first, no approver); CertificateError without
@@ -163,7 +173,7 @@ def build_dcc(content: dict[str, Any]) -> bytes:
         declarations.append("model structure: " + content["assumptions"]["structure"])
     if a.get("replaces"):
         declarations.append(f"This certificate replaces certificate {a['replaces']}, which is withdrawn: {a['reason']}")
-    for d in declarations:
+    for d in [*declarations, *signature_declaration(a)]:
         text_block(el(statements, D + "statement"), "declaration", d)
 
     mr = el(el(root, D + "measurementResults"), D + "measurementResult")

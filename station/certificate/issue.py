@@ -125,11 +125,15 @@ def _next_number(folder: Path, prefix: str, year: int) -> str:
 
 def issue(recording: Path, *, prepared_by: str, approver: str, replaces: str | None = None, reason: str = "",
           roles: UserRoles | None = None, now: datetime | None = None,
-          register: dict[str, Any] | None = None) -> Issued:
+          register: dict[str, Any] | None = None, number: str | None = None,
+          signature: dict[str, str] | None = None) -> Issued:
     """Issue the certificate of a recording's stored identification (module docstring); refused with
     a CertificateError when the approver may not approve, approves their own work, a reference
     standard was overdue at the calibration, the result was not stored, or ``replaces`` is unknown,
-    of another transducer or already replaced."""
+    of another transducer or already replaced.  ``number``: taken from the lab's sequence by the
+    daemon (``station.lab.certificates``); None numbers it in this folder (a folder of its own).
+    ``signature``: the lab key's fingerprint and the detached signature file the daemon writes
+    (``station.lab.signing``), printed on the certificate and named in the DCC."""
     recording = Path(recording)
     cc = _config(recording)
     roles = roles or ConfigRoles(cc)
@@ -159,10 +163,11 @@ def issue(recording: Path, *, prepared_by: str, approver: str, replaces: str | N
                 raise CertificateError(f"{replaces} is the certificate of another transducer")
             if (folder / f"{replaces}.replaced").exists():
                 raise CertificateError(f"{replaces} has been replaced already")
-        number = _next_number(folder, cc.number_prefix, now.year)
+        number = number or _next_number(folder, cc.number_prefix, now.year)
         approval = Approval("issued", number, prepared_by, approver, str(role), now.isoformat(timespec="seconds"),
                             replaces, reason)
-        content = {**content, "approval": {**content["approval"], **approval.__dict__}}
+        content = {**content, "approval": {**content["approval"], **approval.__dict__,
+                                           **({"signature": signature} if signature else {})}}
         html = certificate_html(content).encode()
         xml = build_dcc(content)
         if cc.dcc_schema:
@@ -183,12 +188,15 @@ def issue(recording: Path, *, prepared_by: str, approver: str, replaces: str | N
     return Issued(number, record, folder)
 
 
-def run_document(recording: Path, ext: str, register: dict[str, Any] | None = None) -> bytes:
+def run_document(recording: Path, ext: str, register: dict[str, Any] | None = None, *,
+                 draft_only: bool = False) -> bytes:
     """A run's certificate: the latest issued one of its run that has not been replaced, else its
-    draft rendered now (HTML, PDF or a DCC marked as a draft)."""
+    draft rendered now (HTML, PDF or a DCC marked as a draft).  ``draft_only``: the draft whatever the
+    folder holds (the daemon knows from its audit trail that none is in force)."""
     recording = Path(recording)
     folder = folder_of(recording)
-    mine = [c for c in list_issued(folder) if c["recording"] == recording.name and c["replaced_by"] is None]
+    mine = [] if draft_only else [c for c in list_issued(folder)
+                                  if c["recording"] == recording.name and c["replaced_by"] is None]
     if mine:
         return issued_file(folder, str(mine[-1]["number"]), ext)
     content, html = draft(recording, register=register)

@@ -20,4 +20,5 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.lab",
     "station.commands.history",
     "station.commands.compensate",
+    "station.commands.verify",
 )

@@ -1,5 +1,7 @@
-"""``station certificate``: a recording's certificate (draft or issued) as HTML, PDF or DCC XML;
-issuing it (approval by a second person); the register of issued certificates."""
+"""``station certificate``: a recording's certificate (draft or issued) as HTML, PDF or DCC XML and
+the certificates issued in its folder.  Issuing is the station's (``POST /runs/{id}/certificate`` or
+the page): an authenticated approver, the lab's users, the database's number sequence and the audit
+trail; ``--issue`` here says so."""
 
 from __future__ import annotations
 
@@ -14,26 +16,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--html", type=Path, metavar="FILE", help="write the certificate as HTML")
     p.add_argument("--pdf", type=Path, metavar="FILE", help="write the certificate as PDF")
     p.add_argument("--xml", type=Path, metavar="FILE", help="write the DCC (a draft one marked as a draft)")
-    p.add_argument("--issue", action="store_true", help="issue it (needs --prepared-by and --approver)")
-    p.add_argument("--prepared-by", default="", help="who prepared it (a user in certificate.users)")
-    p.add_argument("--approver", default="", help="who approves and issues it (role approver or admin)")
-    p.add_argument("--replaces", default=None, metavar="NUMBER", help="the issued certificate this one corrects")
-    p.add_argument("--reason", default="", help="why it replaces the other")
+    p.add_argument("--issue", action="store_true", help="refused: certificates are issued through the station")
     p.add_argument("--list", action="store_true", help="list the issued certificates of this transducer")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(handler=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
-    from station.certificate.issue import folder_of, issue, run_document
+    from station.certificate.issue import folder_of, run_document
     from station.certificate.register import list_issued
+    from station.errors import BadInputError
     from station.recording import read_recording
 
     out: dict[str, object] = {}
     if args.issue:
-        it = issue(args.recording, prepared_by=args.prepared_by, approver=args.approver, replaces=args.replaces,
-                   reason=args.reason)
-        out["issued"] = it.number
+        raise BadInputError("certificates are issued through the station by an authenticated approver (POST "
+                            "/runs/{id}/certificate, or the page): the lab's users, its number sequence and its "
+                            "audit trail; this command writes drafts and issued certificates as they are")
     for ext in ("html", "pdf", "xml"):
         target = getattr(args, ext)
         if target is not None:

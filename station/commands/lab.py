@@ -4,6 +4,8 @@ database file in hand, i.e. administers the station; the audit trail names them 
 
     station users add tina --role technician         (password from STATION_PASSWORD or asked)
     station users token ci-bot --label nightly        (prints the token once)
+    station users tokens [ci-bot]                     (ids, labels, revoked or not; never the text)
+    station users revoke 3f2a9c0d41be
     station users list
     station register list
     station register transducer TX5K-0002 --capacity-N 5000 --sensitivity-V-per-N 2e-6 --end-mass-kg 0.1
@@ -46,6 +48,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = us.add_parser("token", help="issue an API token for a user (printed once)")
     p.add_argument("name")
     p.add_argument("--label", default="", help="what the token is for")
+    _common(p)
+    p = us.add_parser("tokens", help="list the API tokens (never their text), of one user or all")
+    p.add_argument("name", nargs="?", default=None)
+    _common(p)
+    p = us.add_parser("revoke", help="revoke an API token by its id (as `tokens` lists it)")
+    p.add_argument("token_id")
     _common(p)
     u.set_defaults(handler=run_users)
 
@@ -115,6 +123,13 @@ def run_users(args: argparse.Namespace) -> int:
             u = users.put_user(store, args.name, users.Role(args.role), cli_user(), password=password,
                                disabled=args.disable)
             _print(args, u.to_dict(), f"user {u.name}: {u.role}{' (disabled)' if u.disabled else ''}")
+        elif args.action == "tokens":
+            ts = users.tokens(store, args.name)
+            _print(args, ts, "\n".join(f"{t['id']}  {t['user']:16s} {t['label']:20s} "
+                                       f"{'revoked' if t['revoked'] else 'valid'}" for t in ts) or "no tokens")
+        elif args.action == "revoke":
+            t = users.revoke_token(store, args.token_id, cli_user())
+            _print(args, t, f"token {t['id']} of {t['user']} revoked")
         else:
             text = users.issue_token(store, args.name, args.label, cli_user())
             _print(args, {"user": args.name, "label": args.label, "token": text},

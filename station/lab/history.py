@@ -25,11 +25,14 @@ def runs_of(store: Store, transducer_id: str, limit: int = 500) -> list[RunRow]:
 
 
 def approvals(store: Store, run_ids: list[str]) -> dict[str, list[dict[str, Any]]]:
-    """The approvals (audit trail) of each run: who, when, note."""
+    """The approvals (audit trail) of each run: who, when, note (a certificate's issue is one)."""
     out: dict[str, list[dict[str, Any]]] = {}
-    for e in audit.entries(store, action=audit.CERTIFICATE_APPROVED, limit=10_000):
-        if e.target in run_ids:
-            out.setdefault(e.target, []).append({"by": e.who, "at": e.at, "note": e.details.get("note", "")})
+    for action in (audit.CERTIFICATE_APPROVED, audit.CERTIFICATE_ISSUED):
+        for e in audit.entries(store, action=action, limit=10_000):
+            if e.target in run_ids:
+                note = e.details.get("note", "") or (f"certificate {e.details['number']}" if "number" in e.details
+                                                     else "")
+                out.setdefault(e.target, []).append({"by": e.who, "at": e.at, "note": note})
     return out
 
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import sqlite3
 
+from station.lab import chain
+
 RUN_COLUMNS = {  # columns added to runs, with their definitions
     "operator": "TEXT NOT NULL DEFAULT ''",
     "transducer_json": "TEXT NOT NULL DEFAULT '{}'",
@@ -64,6 +66,15 @@ STATEMENTS = (
         created REAL NOT NULL,
         expires REAL NOT NULL,
         ended REAL)""",
+    """CREATE TABLE IF NOT EXISTS certificate_numbers (
+        number TEXT PRIMARY KEY,
+        prefix TEXT NOT NULL,
+        year INTEGER NOT NULL,
+        seq INTEGER NOT NULL,
+        run_id TEXT NOT NULL,
+        taken REAL NOT NULL,
+        folder TEXT NOT NULL DEFAULT '',
+        UNIQUE (prefix, year, seq))""",
     """CREATE TABLE IF NOT EXISTS audit (
         id INTEGER PRIMARY KEY AUTOINCREMENT,
         at REAL NOT NULL,
@@ -108,4 +119,5 @@ def upgrade(db: sqlite3.Connection) -> list[str]:
             added.append(name)
     for stmt in STATEMENTS:
         db.execute(stmt)
+    chain.upgrade(db)  # the hash chain's columns; an older trail is chained as it stands
     return added

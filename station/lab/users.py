@@ -15,6 +15,7 @@ from __future__ import annotations
 import enum
 import hashlib
 import hmac
+import re
 import secrets
 import time
 from dataclasses import dataclass
@@ -161,7 +162,7 @@ def put_user(store: Store, name: str, role: Role, by: str, *, password: str | No
             db.execute("UPDATE users SET role = ?, disabled = ? WHERE name = ?", (str(role), int(disabled), name))
             if hashed is not None:
                 db.execute("UPDATE users SET password = ? WHERE name = ?", (hashed, name))
-        if disabled:  # a disabled user's sessions end now
+        if disabled or hashed is not None:  # a disabled user's sessions, or all after a new password, end now
             db.execute("UPDATE sessions SET ended = ? WHERE user = ? AND ended IS NULL", (now, name))
         audit.record(db, by, audit.USER_CHANGED, f"user:{name}",
                      {"role": str(role), "disabled": disabled, "password_changed": hashed is not None,
@@ -189,6 +190,31 @@ def issue_token(store: Store, name: str, label: str, by: str) -> str:
     return text
 
 
+def tokens(store: Store, name: str | None = None) -> list[dict[str, Any]]:
+    """The API tokens (never their text): id (the first 12 characters of the hash), user, label,
+    created, revoked (UNIX s or None)."""
+    q = "SELECT hash, user, label, created, revoked FROM tokens" + (" WHERE user = ?" if name else "") + \
+        " ORDER BY created"
+    return [{"id": r["hash"][:12], "user": r["user"], "label": r["label"], "created": r["created"],
+             "revoked": r["revoked"]} for r in store.query(q, (name,) if name else ())]
+
+
+def revoke_token(store: Store, token_id: str, by: str) -> dict[str, Any]:
+    """Revoke a token by its id (:func:`tokens`); audited.  UnknownUserError when no live token has it."""
+    if not re.fullmatch(r"[0-9a-f]{12}", token_id):
+        raise UserError(f"not a token id: {token_id[:20]!r} (12 hex digits, as GET /tokens lists them)")
+    now = time.time()
+    with store.transaction() as db:
+        rows = db.execute("SELECT hash, user, label FROM tokens WHERE substr(hash, 1, 12) = ? AND revoked IS NULL",
+                          (token_id,)).fetchall()
+        if len(rows) != 1:
+            raise UnknownUserError(f"no live token {token_id}")
+        db.execute("UPDATE tokens SET revoked = ? WHERE hash = ?", (now, rows[0][0]))
+        audit.record(db, by, audit.TOKEN_REVOKED, f"user:{rows[0][1]}", {"token": token_id, "label": rows[0][2]},
+                     at=now)
+    return {"id": token_id, "user": rows[0][1], "label": rows[0][2], "revoked": now}
+
+
 def user_of_token(store: Store, text: str) -> User | None:
     rows = store.query("SELECT u.* FROM tokens t JOIN users u ON u.name = t.user WHERE t.hash = ? AND "
                        "t.revoked IS NULL", (secret_hash(text),))
@@ -196,25 +222,44 @@ def user_of_token(store: Store, text: str) -> User | None:
 
 
 # ---------------------------------------------------------------------------------------------- sessions
+_DUMMY: list[str] = []  # a password hash nobody has: checked for unknown, disabled and password-less names
+
+
+def _dummy_hash() -> str:
+    if not _DUMMY:
+        _DUMMY.append(hash_password(secrets.token_urlsafe(16)))
+    return _DUMMY[0]
+
+
+def login_candidate(store: Store, name: str) -> tuple[User | None, str]:
+    """(the user who may log in with a password, the hash to check): for an unknown, disabled or
+    password-less name (None, a hash nobody has), so that the check costs the same one scrypt
+    whatever the name is (no name can be told from another by the time a refusal takes)."""
+    rows = store.query("SELECT * FROM users WHERE name = ?", (name,)) if re.match(NAME_PATTERN, name) else []
+    if not rows or not rows[0]["password"] or rows[0]["disabled"]:
+        return None, _dummy_hash()
+    return _user(rows[0]), str(rows[0]["password"])
+
+
 def check_login(store: Store, name: str, password: str) -> User | None:
-    """The user if the name and password are right (read only: the scrypt check runs where this is
-    called, never in the database's writer); None for a wrong name or password alike."""
-    rows = store.query("SELECT * FROM users WHERE name = ?", (name,))
-    if not rows:
-        check_password(password, hash_password("x" * MIN_PASSWORD))  # the same time as a real check
-        return None
-    r = rows[0]
-    if not r["password"] or r["disabled"] or not check_password(password, r["password"]):
-        return None
-    return _user(r)
+    """The user if the name and password are right; None for a wrong name or password alike (one
+    scrypt check in every case: :func:`login_candidate`).  The daemon splits it: the look-up in its
+    read pool, the scrypt check in the login pool (``service/logins.py``)."""
+    user, stored = login_candidate(store, name)
+    ok = check_password(password, stored)
+    return user if ok and user is not None else None
 
 
 REFUSED = "wrong user name or password (ask an administrator if you have none or forgot it)"
 
 
-def refuse_login(store: Store, name: str) -> None:
-    """Audit a refused login (the name as given, at most 64 characters)."""
-    audit.append(store, name[:64] or "?", audit.LOGIN_REFUSED, f"user:{name[:64]}")
+def refuse_login(store: Store, name: str, client: str = "") -> None:
+    """Audit a refused login: the name only when it is a valid user name (a password typed into the
+    name field is never stored), and the client's address."""
+    valid = bool(re.match(NAME_PATTERN, name))
+    shown = name if valid else "?"
+    audit.append(store, shown, audit.LOGIN_REFUSED, f"user:{shown}",
+                 {"client": client, **({} if valid else {"name": "not a valid user name (not stored)"})})
 
 
 def open_session(store: Store, user: User, minutes: float) -> tuple[str, float]:

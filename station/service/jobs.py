@@ -155,8 +155,8 @@ class JobQueue:
             if rest <= 0:
                 store.finish_job(job_id, "done")
             store.update_run(run_id, **row_values)
-            audit.append(store, audit.SYSTEM, audit.RUN_IDENTIFIED, run_id,
-                         {"result": out["result_name"], "method": out["method"], "model": out["model"]})
+            audit.seal_results(store, audit.SYSTEM, audit.RUN_IDENTIFIED, run_id, path,  # its results' hashes
+                               {"result": out["result_name"], "method": out["method"], "model": out["model"]})
         if not await self._record(run_id, f"{done}, result {out['result_name']}", note_primary, row_values):
             return
         self.outcomes[run_id] = outcomes
@@ -185,8 +185,12 @@ class JobQueue:
                     return
                 got = replace(outcomes[i], status="failed", reason=f"{type(exc).__name__}: {exc}")
             outcomes[i] = got
-            try:
-                await asyncio.to_thread(write_outcomes, path, list(outcomes))
+            details = {"kind": "method", "method": got.label, "status": got.status}
+            try:  # written and vouched for in the audit trail under the recording's lock
+                async with self.artifacts.file_lock(run_id):
+                    await asyncio.to_thread(write_outcomes, path, list(outcomes))
+                    await self.db.call(lambda s, d=details: audit.seal_results(  # type: ignore[misc]
+                        s, audit.SYSTEM, audit.RESULT_STORED, run_id, path, d))
             except Exception as exc:
                 log.error("run %s: the outcome of %s could not be stored: %s", run_id, got.label, exc)
             log.info("run %s: %s %s%s", run_id, got.label, got.status, f" ({got.reason})" if got.reason else "")

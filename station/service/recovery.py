@@ -9,6 +9,8 @@ import logging
 import time
 from pathlib import Path
 
+from station.lab import audit
+from station.lab.integrity import sha256_file
 from station.recording import read_recording, recover_partial
 from station.service.store import ACTIVE_STATES, Store
 
@@ -21,6 +23,8 @@ def recover(store: Store, recordings_dir: Path, max_attempts: int) -> dict[str, 
                                  "failed_jobs": []}
     for row in store.list_runs(states=ACTIVE_STATES, limit=1_000_000):
         name, status, file_reason = recover_recording(recordings_dir, row.id)
+        if name is not None and name.endswith(".h5"):
+            _hash_into_chain(store, recordings_dir / name, row.id, status)
         if status in ("aborted", "failed"):  # the run had ended; the daemon died before noting it
             store.update_run(row.id, state=status, recording=name, reason=file_reason, message=file_reason,
                              ended=time.time())
@@ -50,6 +54,19 @@ def recover(store: Store, recordings_dir: Path, max_attempts: int) -> dict[str, 
     if any(out.values()):
         log.info("start-up recovery: %s", json.dumps(out))
     return out
+
+
+def _hash_into_chain(store: Store, path: Path, run_id: str, status: str | None) -> None:
+    """A recording closed without the daemon (recovered from its partial file, or closed as the
+    daemon died): its SHA-256 stored with the run and in the audit chain, like any closed one."""
+    try:
+        sha = sha256_file(path)
+    except OSError as exc:
+        log.error("run %s: recovered recording %s not hashed (%s)", run_id, path.name, exc)
+        return
+    store.update_run(run_id, recording_sha256=sha)
+    audit.append(store, audit.SYSTEM, audit.RECORDING_RECOVERED, run_id,
+                 {"recording": path.name, "sha256": sha, "exit_status": status}, files={path.name: sha})
 
 
 def recover_recording(recordings_dir: Path, run_id: str) -> tuple[str | None, str | None, str]:

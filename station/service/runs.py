@@ -194,7 +194,8 @@ class Runs:
         self._update(live, recording_sha256=sha)
         self.db.post(lambda store: audit.append(store, audit.SYSTEM, audit.RUN_ENDED, run_id,
                                                 {"exit_status": outcome.exit_status, "recording": name,
-                                                 "sha256": sha, "reason": outcome.reason}))
+                                                 "sha256": sha, "reason": outcome.reason},
+                                                files={name: sha} if sha else None))
         if outcome.exit_status == "completed":
             self._update(live, recording=name, lost_samples=outcome.lost_samples, state="identifying",
                          fraction=1.0, message="acquisition completed; identification queued")

@@ -231,6 +231,16 @@ class Store:
                 raise
             self._db.execute("COMMIT")
 
+    @contextlib.contextmanager
+    def reading(self) -> Iterator[sqlite3.Connection]:
+        """The read connection (read-only), held for a walk over many rows (the audit chain)."""
+        with self._rlock:
+            self._rdb.execute("BEGIN")  # one snapshot for the whole walk
+            try:
+                yield self._rdb
+            finally:
+                self._rdb.execute("COMMIT")
+
     def query(self, sql: str, args: Sequence[Any] = ()) -> list[dict[str, Any]]:
         """Rows of a read-only statement, as dicts."""
         with self._rlock:

@@ -158,23 +158,25 @@ def report_pdf_job(path: str) -> bytes:
 
 @worker_job
 def certificate_job(path: str, ext: str, register: dict[str, Any]) -> bytes:
-    """The run's certificate (issued, else its draft) as html, pdf or xml bytes."""
+    """The run's draft certificate as html or pdf bytes (the daemon serves an issued one from its
+    files, checked against the audit trail)."""
     from station.certificate.issue import run_document
 
-    return run_document(Path(path), ext, register)
+    return run_document(Path(path), ext, register, draft_only=True)
 
 
 @worker_job
 def issue_job(path: str, prepared_by: str, approver: str, roles: dict[str, str], replaces: str | None, reason: str,
-              register: dict[str, Any]) -> dict[str, Any]:
-    """Issue the run's certificate (roles: of the authenticated approver and the operator); its
-    listing entry."""
+              register: dict[str, Any], number: str, signature: dict[str, str]) -> dict[str, Any]:
+    """Issue the run's certificate under ``number`` (taken from the lab's sequence; roles: of the
+    authenticated approver and the preparer); its record and the SHA-256 of each of its files."""
     from station.certificate.issue import MappingRoles, issue
-    from station.certificate.register import list_issued
+    from station.lab.integrity import sha256_file
 
     it = issue(Path(path), prepared_by=prepared_by, approver=approver, replaces=replaces, reason=reason,
-               roles=MappingRoles(roles), register=register)
-    return next(c for c in list_issued(it.folder) if c["number"] == it.number)
+               roles=MappingRoles(roles), register=register, number=number, signature=signature)
+    return {"record": {k: v for k, v in it.record.items() if k != "content"},
+            "hashes": {ext: sha256_file(it.path(ext)) for ext in ("html", "pdf", "xml", "json")}}
 
 
 @worker_job

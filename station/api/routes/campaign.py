@@ -17,7 +17,6 @@ from station.api.schemas import ErrorOut, ValidationErrorOut
 from station.lab import audit
 from station.recording import write_result
 from station.service.results import finite
-from station.service.store import Store
 
 router = APIRouter(prefix="/campaigns", tags=["campaigns"])
 
@@ -49,14 +48,12 @@ async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep, wh
         r["path"] = Path(r["path"]).name  # never a server path
     stored = None
     if body.store:
-        for run_id in body.runs:
-            path = manager.artifacts.recording_path(await manager.runs.get(run_id))
-            await asyncio.to_thread(write_result, path, RESULT_NAME, payload)
-        stored = f"<run>.results/results.{RESULT_NAME}.h5"
         runs = list(body.runs)
-
-        def record(store: Store) -> None:
-            for run_id in runs:
-                audit.append(store, who.name, audit.RESULT_STORED, run_id, {"kind": "campaign", "runs": runs})
-        manager.db.post(record)
+        for run_id in runs:  # each written and vouched for in the audit trail under its recording's lock
+            row = await manager.runs.get(run_id)
+            path = manager.artifacts.recording_path(row)
+            async with manager.artifacts.file_lock(run_id):
+                await asyncio.to_thread(write_result, path, RESULT_NAME, payload)
+                await manager.artifacts.seal(row, who.name, audit.RESULT_STORED, {"kind": "campaign", "runs": runs})
+        stored = f"<run>.results/results.{RESULT_NAME}.h5"
     return CampaignOut.model_validate({**data, "runs": list(body.runs), "stored_as": stored})

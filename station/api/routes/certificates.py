@@ -9,8 +9,15 @@ from fastapi import APIRouter, Path, Query, Response
 
 from station.api.deps import Approver, ArtifactsDep, ManagerDep, Reader, RunDep
 from station.api.routes.runs import BINARY, BODY_ERRORS, E401, E403, E404, E409, E422, E503, NON_JSON_ERRORS
-from station.api.schemas import CertificateIssueIn, CertificateList, CertificateOut
-from station.certificate.register import MEDIA, CertificateError
+from station.api.schemas import (
+    CertificateIssueIn,
+    CertificateList,
+    CertificateOut,
+    CertificateWithdrawIn,
+    ErrorOut,
+    SigningKeyOut,
+)
+from station.certificate.register import MEDIA
 
 router = APIRouter(tags=["certificates"])
 Ext = Literal["html", "pdf", "xml"]
@@ -22,7 +29,8 @@ DOCS: dict[int | str, dict[str, Any]] = {200: {"content": {m.split(";")[0]: {"sc
 
 def _out(c: dict[str, Any]) -> CertificateOut:
     base = f"/certificates/{c['number']}"
-    return CertificateOut(**c, html=f"{base}.html", pdf=f"{base}.pdf", xml=f"{base}.xml")
+    return CertificateOut(**{k: v for k, v in c.items() if k != "files"}, html=f"{base}.html", pdf=f"{base}.pdf",
+                          xml=f"{base}.xml")
 
 
 @router.get("/runs/{run_id}/certificate.{ext}", response_class=Response, dependencies=[Reader],
@@ -36,18 +44,33 @@ async def run_certificate(run: RunDep, artifacts: ArtifactsDep, ext: Ext) -> Res
 @router.post("/runs/{run_id}/certificate", response_model=CertificateOut, status_code=201,
              responses={**E401, **E403, **E404, **E409, **E422, **E503, **BODY_ERRORS},
              summary="Issue the run's certificate (approval by a second person)")
-async def issue_certificate(run: RunDep, artifacts: ArtifactsDep, manager: ManagerDep, who: Approver,
+async def issue_certificate(run: RunDep, manager: ManagerDep, who: Approver,
                             body: CertificateIssueIn) -> CertificateOut:
-    """The authenticated approver approves the run (`POST /runs/{id}/approve`'s checks: an approver
-    who did not run it, the recording's SHA-256 as stored at closing; audit trail) and issues its
-    certificate: numbered, stored immutable with its hashes, with the register's transducer and
-    standards as the run used them.  409 when a standard was overdue or `replaces` cannot be replaced."""
-    prepared = body.prepared_by or run.operator
-    if not prepared:
-        raise CertificateError("the run has no recorded operator: say who prepared the certificate (prepared_by)")
-    await manager.approve(run.id, who.user, body.note or f"certificate of run {run.id}")
-    roles = {prepared: "operator", who.name: str(who.user.role)}
-    return _out(await artifacts.issue_certificate(run.id, prepared, who.name, roles, body.replaces, body.reason))
+    """The authenticated approver issues the run's certificate: the audit chain intact, the preparer
+    an enabled user of the lab (the run's operator by default), the approver neither the preparer nor
+    the operator, no other certificate of the run in force unless this one `replaces` it with a
+    `reason`, the run's files as the audit trail vouches for them.  It is numbered from the lab's
+    sequence, stored immutable, and its issue entry names the number and each file's SHA-256.  A
+    refusal (403, 409) writes one `certificate.refused` entry and nothing else."""
+    return _out(await manager.issue_certificate(run.id, who.user, body.prepared_by, body.replaces, body.reason))
+
+
+@router.post("/certificates/{number}/withdraw", response_model=CertificateOut,
+             responses={**E401, **E403, **E404, **E409, **E422, **BODY_ERRORS},
+             summary="Withdraw an issued certificate (an approver, with the reason)")
+async def withdraw_certificate(manager: ManagerDep, who: Approver, body: CertificateWithdrawIn,
+                               number: Annotated[str, Path(pattern=r"^[A-Za-z0-9\-]{1,40}$")]) -> CertificateOut:
+    """The certificate stays as issued; the audit trail records who withdrew it and why, and the
+    register shows it no longer in force."""
+    return _out(await manager.withdraw_certificate(who.user, number, body.reason))
+
+
+@router.get("/signing-key", response_model=SigningKeyOut, responses={409: {"model": ErrorOut}},
+            summary="The lab's public key that verifies its certificates (no login needed)")
+async def signing_key(manager: ManagerDep) -> SigningKeyOut:
+    """What a customer needs to check a certificate off-line (`station verify CERTIFICATE --key
+    FILE`): the Ed25519 public key (PEM) and its fingerprint, as printed on each certificate."""
+    return SigningKeyOut(**manager.public_key())
 
 
 @router.get("/certificates", response_model=CertificateList, dependencies=[Reader], responses={**E401, **E422},

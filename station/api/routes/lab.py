@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import datetime as dt
+import logging
+import re
 import time
 from typing import Annotated
 
@@ -19,8 +21,11 @@ from station.api.lab_schemas import (
     AsLeftOut,
     AuditEntryOut,
     AuditOut,
+    ExceptionIn,
     HistoryOut,
     IntegrityOut,
+    IntegrityReportOut,
+    LockOut,
     LoginIn,
     MeOut,
     MountIn,
@@ -32,6 +37,7 @@ from station.api.lab_schemas import (
     StandardOut,
     TokenIn,
     TokenOut,
+    TokenRowOut,
     TransducerIn,
     TransducerOut,
     UserIn,
@@ -41,11 +47,12 @@ from station.api.lab_schemas import (
 )
 from station.api.routes.runs import BODY_ERRORS, E401, E403, E404, E409, E422
 from station.api.schemas import ErrorOut
-from station.lab import audit, history, policy, register, users
+from station.lab import audit, chain, history, policy, register, users
 from station.lab.users import NAME_PATTERN, Principal
 from station.service.errors import RunStateError
 from station.service.store import Store
 
+log = logging.getLogger(__name__)
 router = APIRouter(tags=["lab"])
 EntryId = Annotated[str, Path(pattern=ID_PATTERN)]
 UserName = Annotated[str, Path(pattern=NAME_PATTERN)]
@@ -60,15 +67,33 @@ def _me(who: Principal | None) -> MeOut:
 # ---------------------------------------------------------------------------------------------- sessions
 @router.post("/login", response_model=MeOut, responses={401: {"model": ErrorOut}, **E422, **BODY_ERRORS},
              summary="Log in on the page (sets an HttpOnly session cookie)")
-async def login(body: LoginIn, manager: ManagerDep, response: Response) -> MeOut:
-    """A wrong name or password is refused alike (401).  The session expires after
-    `lab.session_minutes`; the cookie is HttpOnly and SameSite=Strict."""
+async def login(body: LoginIn, manager: ManagerDep, response: Response, request: Request) -> MeOut:
+    """A wrong name or password is refused alike (401), in the same time for any name.  After 5
+    failures in a row for a name or from an address, each further one locks it out for a growing
+    time (2 s doubling to 15 min; refused at once with the time it is lifted; an administrator lifts
+    it: `GET /logins/locks`).  The session expires after `lab.session_minutes`; the cookie is HttpOnly
+    and SameSite=Strict."""
     minutes = manager.cfg.lab.session_minutes
-    # the scrypt check (~0.1 s) in the read pool, never in the writer the runs' records go through
-    user = await manager.db.read(lambda s: users.check_login(s, body.name, body.password))
+    client = request.client.host if request.client else ""
+    user_key = f"user:{body.name}" if re.match(NAME_PATTERN, body.name) else "user:?"
+    keys = [user_key, f"client:{client}"]
+    why = manager.logins.refusal(keys)
+    if why is not None:
+        raise users.AuthError(why)
+    candidate, stored = await manager.db.read(lambda s: users.login_candidate(s, body.name))
+    # the scrypt check (~0.1 s) in the login pool: never in the read pool other requests need
+    ok = await manager.password_pool.run(users.check_password, body.password, stored)
+    if ok is None:
+        raise users.AuthError("too many logins at once: try again in a moment")
+    user = candidate if ok else None
     if user is None:
-        manager.db.post(lambda s: users.refuse_login(s, body.name))
+        manager.db.post(lambda s: users.refuse_login(s, body.name, client))
+        for key, seconds in manager.logins.failed(keys):
+            log.warning("login lock-out: %s for %.0f s after repeated failures", key, seconds)
+            manager.db.post(lambda s, k=key, t=seconds: audit.append(  # type: ignore[misc]
+                s, audit.SYSTEM, audit.LOGIN_LOCKED, k, {"seconds": t}))
         raise users.AuthError(users.REFUSED)
+    manager.logins.succeeded(user_key)
     text, expires = await manager.db.call(lambda s: users.open_session(s, user, minutes))
     response.set_cookie(SESSION_COOKIE, text, max_age=int(minutes * 60), httponly=True, samesite="strict", path="/")
     return MeOut(user=UserOut.model_validate(user.to_dict()), via="session", expires=expires)
@@ -127,6 +152,37 @@ async def issue_token(name: UserName, body: TokenIn, manager: ManagerDep, who: A
     return TokenOut(user=name, label=body.label, token=text)
 
 
+@router.get("/logins/locks", response_model=list[LockOut], responses={**E401, **E403},
+            summary="Names and client addresses locked out after failed logins (admin)")
+async def login_locks(manager: ManagerDep, who: Admin) -> list[LockOut]:
+    return [LockOut(**x) for x in manager.logins.locks()]
+
+
+@router.delete("/logins/locks/{key}", response_model=list[LockOut], responses={**E401, **E403, **E404},
+               summary="Lift a lock-out (admin)")
+async def lift_lock(key: Annotated[str, Path(pattern=r"^(user|client):[^/]{1,128}$")], manager: ManagerDep,
+                    who: Admin) -> list[LockOut]:
+    if not manager.logins.lift(key):
+        raise users.UnknownUserError(f"no lock-out or failure count for {key}")
+    await manager.db.call(lambda s: audit.append(s, who.name, audit.LOGIN_LOCKED, key, {"lifted": True}))
+    return [LockOut(**x) for x in manager.logins.locks()]
+
+
+@router.get("/tokens", response_model=list[TokenRowOut], responses={**E401, **E403, **E422},
+            summary="The API tokens (never their text), optionally of one user (admin)")
+async def list_tokens(manager: ManagerDep, who: Admin,
+                      user: Annotated[str | None, Query(pattern=NAME_PATTERN)] = None) -> list[TokenRowOut]:
+    return [TokenRowOut(**t) for t in await manager.db.read(lambda s: users.tokens(s, user))]
+
+
+@router.delete("/tokens/{token_id}", response_model=TokenRowOut, responses={**E401, **E403, **E404, **E422},
+               summary="Revoke an API token (admin)")
+async def revoke_token(token_id: Annotated[str, Path(pattern=r"^[0-9a-f]{12}$")], manager: ManagerDep,
+                       who: Admin) -> TokenRowOut:
+    out = await manager.db.call(lambda s: users.revoke_token(s, token_id, who.name))
+    return TokenRowOut(**out, created=None)
+
+
 # ---------------------------------------------------------------------------------------------- register
 def _standard_out(s: register.Standard, today: dt.date) -> StandardOut:
     return StandardOut(**s.to_dict(), overdue=s.overdue(today))
@@ -175,7 +231,7 @@ async def get_audit(manager: ManagerDep, target: Annotated[str | None, Query(max
                     action: Annotated[str | None, Query(max_length=64, description="exact, or a prefix "
                                                         "ending in '.' (e.g. run.)")] = None,
                     who: Annotated[str | None, Query(max_length=64)] = None,
-                    before_id: Annotated[int | None, Query(ge=1)] = None,
+                    before_id: Annotated[int | None, Query(ge=1, le=2**63 - 1)] = None,
                     limit: Annotated[int, Query(ge=1, le=1000)] = 200) -> AuditOut:
     rows = await manager.db.read(lambda s: audit.entries(s, target=target, action=action, who=who,
                                                          before_id=before_id, limit=limit))
@@ -190,6 +246,29 @@ async def approve(run: RunDep, body: ApproveIn, manager: ManagerDep, who: Approv
     """The second person's approval: refused (403) for the user who started the run, (409) for a
     run not completed or a recording whose SHA-256 differs from the one stored at closing."""
     return ApprovalOut(**await manager.approve(run.id, who.user, body.note))
+
+
+@router.get("/integrity", response_model=IntegrityReportOut, dependencies=[Reader], responses={**E401, **E409},
+            summary="Walk the audit chain and compare every file it vouches for")
+async def station_integrity(manager: ManagerDep) -> IntegrityReportOut:
+    """200 when every link of the audit trail's hash chain holds (or was reviewed by an administrator)
+    and every recording, results file and certificate is as its entry recorded; 409 naming the first
+    broken link and every file that differs otherwise."""
+    out = await manager.integrity()
+    if not out["ok"]:
+        raise chain.ChainBrokenError(out["detail"])
+    return IntegrityReportOut.model_validate(out)
+
+
+@router.post("/integrity/exceptions", response_model=IntegrityReportOut,
+             responses={**E401, **E403, **E409, **E422, **BODY_ERRORS},
+             summary="Record a reviewed exception for a broken link of the chain (admin)")
+async def record_exception(body: ExceptionIn, manager: ManagerDep, who: Admin) -> IntegrityReportOut:
+    """The break stays listed with the exception's entry; it no longer degrades /health or blocks
+    issuing.  409 when the chain has no broken link at that entry."""
+    await manager.record_exception(who.user, body.entry, body.reason)
+    out = await manager.integrity()
+    return IntegrityReportOut.model_validate(out)
 
 
 @router.get("/runs/{run_id}/integrity", response_model=IntegrityOut, tags=["runs"], dependencies=[Reader],

@@ -28,7 +28,6 @@ from station.api.schemas import (
     utc,
 )
 from station.errors import LimitError
-from station.lab import audit
 from station.lab.register import RegisterError, UnknownEntryError
 from station.report.names import PLOT_NAMES
 from station.run.methods import SETTLED, MethodOutcome
@@ -205,7 +204,7 @@ async def run_recording(run: RunDep, artifacts: ArtifactsDep) -> StreamingRespon
     if run.state not in FINAL_STATES:
         raise RunStateError(f"run {run.id} is {run.state}: its recording is still being written; "
                             "download it once the run has ended")
-    path = artifacts.recording_path(run)
+    path = await artifacts.checked_path(run.id)  # compared with the audit chain before the first byte
     return StreamingResponse(artifacts.stream_file(run.id), media_type="application/x-hdf5",
                              headers={"Content-Disposition": f'attachment; filename="{path.name}"',
                                       "Content-Length": str(path.stat().st_size)})
@@ -236,9 +235,7 @@ async def compute_discrepancy(run: RunDep, artifacts: ArtifactsDep, manager: Man
     earlier one), where `GET`, the proposal and the report read it; the audit trail records who."""
     from station.service.results import finite
 
-    out = await artifacts.discrepancy(run.id, max_effects)
-    manager.db.post(lambda s: audit.append(s, who.name, audit.RESULT_STORED, run.id,
-                                           {"kind": "discrepancy", "max_effects": max_effects}))
+    out = await artifacts.discrepancy(run.id, max_effects, who.name)
     return DiscrepancyOut.model_validate(finite(out))
 
 
