@@ -12,6 +12,7 @@ from fastapi.responses import HTMLResponse, StreamingResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 
 from station.api.deps import ArtifactsDep, ManagerDep, Operator, Reader, RunDep, RunsDep
+from station.api.problems import MEDIA_TYPE, Refusal
 from station.api.schemas import (
     AbortOut,
     DiscrepancyOut,
@@ -54,15 +55,16 @@ BODY_ERRORS: Responses = {  # what the body guard answers on any POST that carri
     415: {"model": ErrorOut, "description": "request body that is not JSON by its Content-Type (not read)"}}
 
 
-def _json(status: int, description: str, schema: str = "ErrorOut") -> dict[int | str, dict[str, Any]]:
-    """An error response documented as JSON on a route whose success is not JSON (SSE, PNG, HTML)."""
+def _json(status: int, description: str, schema: str = "Problem") -> dict[int | str, dict[str, Any]]:
+    """An error response documented on a route whose success is not JSON (SSE, PNG, HTML): problem
+    details (the OpenAPI document declares every 4xx/5xx so, station/api/problems.py)."""
     return {status: {"description": description,
-                     "content": {"application/json": {"schema": {"$ref": f"#/components/schemas/{schema}"}}}}}
+                     "content": {MEDIA_TYPE: {"schema": {"$ref": f"#/components/schemas/{schema}"}}}}}
 
 
 NON_JSON_ERRORS = {**_json(401, "bearer token missing or wrong"), **_json(404, "no such run"),
                    **_json(409, "the run is not in a state that allows this"),
-                   **_json(422, "invalid path or query parameter", "ValidationErrorOut"),
+                   **_json(422, "invalid path or query parameter", "ValidationProblem"),
                    **_json(503, "the recording cannot be read right now")}
 
 
@@ -176,8 +178,7 @@ async def run_plot(run: RunDep, artifacts: ArtifactsDep,
                    name: Annotated[str, Path(pattern=r"^[A-Za-z0-9_\-]{1,64}$")]) -> Response:
     png = await artifacts.plot(run.id, name)
     if png is None:
-        return Response(ErrorOut(detail=f"no plot {name!r}; available: {', '.join(PLOT_NAMES)}").model_dump_json(),
-                        status_code=404, media_type="application/json")
+        raise Refusal(404, "not-found", f"no plot {name!r}; available: {', '.join(PLOT_NAMES)}")
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
 
 
