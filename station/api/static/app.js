@@ -33,8 +33,12 @@ async function api(method, path, body) {
 }
 
 // what a refusal says, with what to do: the API's reason (401: log in; 403: the role)
+// (the API answers RFC 9457 problem details: `type` says the kind of refusal, `detail` what happened)
+const problemKind = (data) => String((data && data.type) || "").replace("urn:sinecal:problem:", "");
 function refusal(res, action) {
-  if (res.status === 401) return `${action}: ${detailText(res.data)}` + (me ? "" : " (log in at the top of the page)");
+  if (res.status === 401 && problemKind(res.data) === "not-logged-in")
+    return `You are not logged in: log in at the top of the page to ${action}.`;
+  if (res.status === 401) return `${action}: ${detailText(res.data)}`;
   return `${action} refused (${res.status}): ${detailText(res.data)}`;
 }
 
@@ -42,8 +46,8 @@ const may = (perm) => !!(me && me.permissions.includes(perm));
 
 function detailText(data) {
   if (!data) return "";
+  if (Array.isArray(data.errors)) return data.errors.map((e) => locText(e.loc) + ": " + e.msg).join("; ");
   if (typeof data.detail === "string") return data.detail;
-  if (Array.isArray(data.detail)) return data.detail.map((e) => locText(e.loc) + ": " + e.msg).join("; ");
   return JSON.stringify(data);
 }
 
@@ -59,6 +63,7 @@ function locText(loc) {
 function showMe() {
   $("#login-form").hidden = !!me;
   $("#me").hidden = !me;
+  $("#login-hint").hidden = !!me || !(station && station.simulated);
   if (me) $("#me-name").textContent = `${me.name} (${me.role})`;
   $("#nav-users").hidden = !may("admin");
   if (!may("admin")) hideUsers();
@@ -227,6 +232,7 @@ function showLimits() {
   showEnvironmentInputs(station.environment);
   $("#station-name").textContent = station.name;
   $("#sim-badge").hidden = !station.simulated;
+  $("#login-hint").hidden = !!me || !station.simulated;
   checkPlan();
 }
 
@@ -322,15 +328,15 @@ $("#run-form").addEventListener("submit", async (ev) => {
       location.hash = `#/runs/${res.data.id}`;
       return;
     }
-    if (res.status === 422 && Array.isArray(res.data.detail)) {
-      for (const e of res.data.detail) {
+    if (res.status === 422 && Array.isArray(res.data.errors)) {
+      for (const e of res.data.errors) {
         const field = [...(e.loc || [])].reverse().find((x) => typeof x === "string") || "";
         const slot = document.querySelector(`#run-form .err[data-for="${field}"]`);
         (slot || $("#form-msg")).textContent = `${locText(e.loc)}: ${e.msg}`;
       }
       return;
     }
-    $("#form-msg").textContent = refusal(res, "start");
+    $("#form-msg").textContent = refusal(res, "start a run");
   } finally {
     $("#start").disabled = false;
   }
@@ -704,8 +710,8 @@ function showRefusal(form, res, action, fields, about) {
     const el = form.querySelector(`.err[data-for="${fields[field] || form.id}"]`);
     el.textContent = (el.textContent ? el.textContent + "; " : "") + text;
   };
-  if (res.status === 422 && Array.isArray(res.data && res.data.detail)) {
-    for (const e of res.data.detail) put(String((e.loc || []).slice(-1)[0]), e.msg);
+  if (res.status === 422 && Array.isArray(res.data && res.data.errors)) {
+    for (const e of res.data.errors) put(String((e.loc || []).slice(-1)[0]), e.msg);
   } else {
     put(about(detailText(res.data)), refusal(res, action));
   }
@@ -749,7 +755,7 @@ $("#user-form").addEventListener("submit", async (ev) => {
   if ($("#user-password").value) body.password = $("#user-password").value;
   $("#user-password").value = "";  // sent once, never kept
   const fields = {name: "name", role: "role", password: "password", disabled: "disabled"};
-  if (!name) { showRefusal(form, {ok: false, status: 422, data: {detail: [{loc: ["path", "name"], msg: "a user name is needed"}]}}, "", fields, () => ""); return; }
+  if (!name) { showRefusal(form, {ok: false, status: 422, data: {errors: [{loc: ["path", "name"], msg: "a user name is needed"}]}}, "", fields, () => ""); return; }
   const r = await api("PUT", `/users/${encodeURIComponent(name)}`, body);
   showRefusal(form, r, "save the user", fields, (t) => t.startsWith("user name") ? "name" : t.includes("password") ? "password" : "");
   if (r.ok) {
@@ -763,7 +769,7 @@ $("#token-form").addEventListener("submit", async (ev) => {
   clearToken();
   const user = $("#token-user").value;
   const fields = {name: "user", label: "label"};
-  if (!user) { showRefusal(ev.target, {ok: false, status: 422, data: {detail: [{loc: ["path", "name"], msg: "choose a user"}]}}, "", fields, () => ""); return; }
+  if (!user) { showRefusal(ev.target, {ok: false, status: 422, data: {errors: [{loc: ["path", "name"], msg: "choose a user"}]}}, "", fields, () => ""); return; }
   const r = await api("POST", `/users/${encodeURIComponent(user)}/tokens`, {label: $("#token-label").value});
   showRefusal(ev.target, r, "issue the token", fields, (t) => t.startsWith("no user") ? "name" : "");
   if (!r.ok) return;
