@@ -29,7 +29,7 @@ from station import __version__
 from station.api.deps import authenticate, credentials_of
 from station.api.guard import BodyGuard
 from station.api.problems import NOT_LOGGED_IN, Refusal, declare_problems, errors_text, kind_of_status, problem_response
-from station.api.routes import campaign, certificates, lab, proposal, runs, system
+from station.api.routes import campaign, certificates, exports, lab, proposal, runs, system
 from station.certificate.register import CertificateError, CertificateNotFoundError
 from station.errors import StationError
 from station.lab.integrity import RecordingTamperedError
@@ -244,6 +244,7 @@ def create_app(settings: ServiceSettings, *,
                        authenticate=body_refusal)
     app.add_middleware(StartupFailureLine)
     app.include_router(runs.router)
+    app.include_router(exports.router)
     app.include_router(certificates.router)
     app.include_router(campaign.router)
     app.include_router(proposal.router)

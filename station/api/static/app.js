@@ -496,6 +496,8 @@ async function loadResults(id) {
   if (d.report) { rl.href = d.report; rl.textContent = "calibration report"; } else { rl.removeAttribute("href"); rl.textContent = "report not available"; }
   $("#recording-link").href = `/runs/${encodeURIComponent(id)}/recording`;
   $("#report-pdf-link").href = `/runs/${encodeURIComponent(id)}/report.pdf`;
+  for (const [sel, name] of [["#export-xlsx", "results.xlsx"], ["#export-params", "parameters.csv"], ["#export-sdyn", "sdyn.csv"]])
+    $(sel).href = `/runs/${encodeURIComponent(id)}/export/${name}`;
   showCertificate(id);
   if (seq === methodsSeq) showMethods(d.methods || []);  // a later 'result' event's answer is newer
   $("#results").hidden = false;
