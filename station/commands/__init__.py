@@ -18,4 +18,5 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.stop",
     "station.commands.batch",
     "station.commands.lab",
+    "station.commands.backup",
 )
