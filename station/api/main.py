@@ -27,6 +27,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from station import __version__
 from station.api.deps import authenticate, credentials_of
+from station.api.downloads import declare_downloads
 from station.api.guard import BodyGuard
 from station.api.problems import NOT_LOGGED_IN, Refusal, declare_problems, errors_text, kind_of_status, problem_response
 from station.api.routes import campaign, certificates, exports, lab, proposal, runs, system
@@ -148,9 +149,9 @@ def install_error_handlers(app: FastAPI) -> None:
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            app.openapi_schema = declare_problems(get_openapi(
+            app.openapi_schema = declare_downloads(declare_problems(get_openapi(
                 title=app.title, version=app.version, openapi_version=app.openapi_version,
-                description=app.description, routes=app.routes))
+                description=app.description, routes=app.routes)))
         return app.openapi_schema
     app.openapi = openapi  # type: ignore[method-assign]
 
