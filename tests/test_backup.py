@@ -122,3 +122,27 @@ def test_a_damaged_or_partial_backup_or_a_full_folder_is_refused(backed_up: tupl
     assert [p.name for p in full.iterdir()] == ["something.h5"]
     with pytest.raises(BackupError, match="not empty"):
         backup(dest, dest / "station.db", full)
+
+
+def test_a_recording_archive_holds_its_results_and_certificates_with_hashes(
+        backed_up: tuple[Path, Path, Any, str]) -> None:
+    import hashlib
+    import io
+    import zipfile
+
+    from station.recording.archive import recording_archive
+
+    rec, _, _, number = backed_up
+    it = read_issued(rec / FOLDER, number)
+    recording = rec / it.record["recording"]
+    with zipfile.ZipFile(io.BytesIO(recording_archive(recording))) as z:
+        manifest = json.loads(z.read("MANIFEST.json"))
+        names = set(z.namelist()) - {"MANIFEST.json"}
+        assert names == set(manifest["files"])
+        for name in names:  # each file as the manifest states it, and as it is on the station
+            data = z.read(name)
+            assert hashlib.sha256(data).hexdigest() == manifest["files"][name]["sha256"], name
+        assert z.read(recording.name) == recording.read_bytes()
+    assert {f"{FOLDER}/{number}.{ext}" for ext in ("json", "pdf", "html", "xml")} <= names
+    assert any(n.startswith(f"{recording.stem}.results/") for n in names)
+    assert not any(n.startswith(f"{FOLDER}/") and number not in n for n in names)  # only this run's certificate

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 from pathlib import Path
 from typing import Any
 
@@ -83,6 +84,7 @@ def test_the_api_serves_the_exports_and_refuses_an_unknown_one(seeded: Seeded) -
         async with running_app(recording.parent, config=cfg) as app, asgi_client(app) as c:
             out = {n: await c.get(f"/runs/{rid}/export/{n}") for n in ("parameters.csv", "sdyn.csv", "results.xlsx")}
             out["bad"] = await c.get(f"/runs/{rid}/export/results.ods")
+            out["zip"] = await c.get(f"/runs/{rid}/archive.zip")
             return out
     r = asyncio.run(go())
     assert r["parameters.csv"].headers["content-type"].startswith("text/csv")
@@ -94,3 +96,10 @@ def test_the_api_serves_the_exports_and_refuses_an_unknown_one(seeded: Seeded) -
     x = pd.read_excel(io.BytesIO(r["results.xlsx"].content), sheet_name=None)
     _check_tables(x["parameters"], x["S_dyn"], cfg, results)
     assert r["bad"].status_code == 422 and r["bad"].headers["content-type"] == "application/problem+json"
+    import zipfile
+
+    assert r["zip"].status_code == 200 and r["zip"].headers["content-type"] == "application/zip"
+    with zipfile.ZipFile(io.BytesIO(r["zip"].content)) as z:
+        files = json.loads(z.read("MANIFEST.json"))["files"]
+        assert z.read(recording.name) == recording.read_bytes() and recording.name in files
+        assert any(n.startswith(f"{recording.stem}.results/") for n in files)

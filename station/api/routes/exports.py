@@ -1,5 +1,6 @@
 """A run's results as tables for a spreadsheet: parameters and S_dyn(f) as CSV and as an Excel
-workbook (``station.report.export``)."""
+workbook (``station.report.export``); the recording with its results and certificates as one ZIP
+archive with a manifest of hashes (``station.recording.archive``)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from station.api.deps import ArtifactsDep, Reader, RunDep
 from station.api.routes.runs import BINARY, NON_JSON_ERRORS
 from station.report.export import MEDIA_TYPES, export_bytes
 from station.service.manager import RunStateError
+from station.service.store import FINAL_STATES
 
 router = APIRouter(prefix="/runs", tags=["runs"])
 
@@ -33,3 +35,21 @@ async def run_export(run: RunDep, artifacts: ArtifactsDep,
     data = await artifacts.read_file(run.id, lambda p: export_bytes(p, name))
     return Response(data, media_type=MEDIA_TYPES[name],
                     headers={"Content-Disposition": f'attachment; filename="{path.stem}.{name}"'})
+
+
+@router.get("/{run_id}/archive.zip", response_class=Response, dependencies=[Reader],
+            responses={200: {"description": "ZIP: the HDF5 recording, its stored results (<run>.results/), the "
+                             "certificates issued for it (certificates/) and MANIFEST.json (SHA-256 and size of "
+                             "each file)", "content": {"application/zip": {"schema": BINARY}}},
+                       **NON_JSON_ERRORS},
+            summary="The recording with its results and certificates as one archive")
+async def run_archive(run: RunDep, artifacts: ArtifactsDep) -> Response:
+    from station.recording.archive import recording_archive
+
+    if run.state not in FINAL_STATES:
+        raise RunStateError(f"run {run.id} is {run.state}: its recording is still being written; "
+                            "download it once the run has ended")
+    path = artifacts.recording_path(run)
+    data = await artifacts.read_file(run.id, recording_archive)
+    return Response(data, media_type="application/zip",
+                    headers={"Content-Disposition": f'attachment; filename="{path.stem}.zip"'})

@@ -495,6 +495,7 @@ async function loadResults(id) {
   const rl = $("#report-link");
   if (d.report) { rl.href = d.report; rl.textContent = "calibration report"; } else { rl.removeAttribute("href"); rl.textContent = "report not available"; }
   $("#recording-link").href = `/runs/${encodeURIComponent(id)}/recording`;
+  $("#archive-link").href = `/runs/${encodeURIComponent(id)}/archive.zip`;
   $("#report-pdf-link").href = `/runs/${encodeURIComponent(id)}/report.pdf`;
   for (const [sel, name] of [["#export-xlsx", "results.xlsx"], ["#export-params", "parameters.csv"], ["#export-sdyn", "sdyn.csv"]])
     $(sel).href = `/runs/${encodeURIComponent(id)}/export/${name}`;
