@@ -67,6 +67,9 @@ def test_the_readme_works_as_written(browser: object, tmp_path: Path) -> None:
             pg.wait_for_selector("#results:not([hidden])", timeout=15_000)
             for name in ("S", "k_f", "b_f"):
                 assert "±" in pg.inner_text(f"#params tr[data-param='{name}'] td.value"), name
+            # a technician is offered no approval nor issuing (actions only for the roles that may use them)
+            assert not pg.is_visible("#approve") and not pg.is_visible("#cert-issue")
+            assert pg.inner_text("#cert-state") == "draft"
             # the report and the (draft) certificate open from the results
             for link, words in (("#report-link", "report"), ("#cert-html", "ertificate")):
                 with pg.context.expect_page(timeout=60_000) as opened:

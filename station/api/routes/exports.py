@@ -9,10 +9,9 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Path, Response
 
 from station.api.deps import ArtifactsDep, Reader, RunDep
-from station.api.routes.runs import BINARY, NON_JSON_ERRORS
+from station.api.routes.runs import BINARY, NON_JSON_ERRORS, ended_recording
 from station.report.export import MEDIA_TYPES, export_bytes
 from station.service.manager import RunStateError
-from station.service.store import FINAL_STATES
 
 router = APIRouter(prefix="/runs", tags=["runs"])
 
@@ -46,10 +45,7 @@ async def run_export(run: RunDep, artifacts: ArtifactsDep,
 async def run_archive(run: RunDep, artifacts: ArtifactsDep) -> Response:
     from station.recording.archive import recording_archive
 
-    if run.state not in FINAL_STATES:
-        raise RunStateError(f"run {run.id} is {run.state}: its recording is still being written; "
-                            "download it once the run has ended")
-    path = artifacts.recording_path(run)
+    path = ended_recording(run, artifacts)
     data = await artifacts.read_file(run.id, recording_archive)
     return Response(data, media_type="application/zip",
                     headers={"Content-Disposition": f'attachment; filename="{path.stem}.zip"'})

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import AsyncIterable
+from pathlib import Path as PathLib
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query, Request, Response, status
@@ -34,6 +35,7 @@ from station.lab.register import RegisterError, UnknownEntryError
 from station.report.names import PLOT_NAMES
 from station.run.methods import SETTLED, MethodOutcome
 from station.run.request import RunRequest
+from station.service.artifacts import Artifacts
 from station.service.manager import RunStateError
 from station.service.results import load_results
 from station.service.store import FINAL_STATES, RunRow
@@ -197,16 +199,21 @@ async def run_report_pdf(run: RunDep, artifacts: ArtifactsDep) -> Response:
     return Response(await artifacts.report_pdf(run.id), media_type="application/pdf")
 
 
+def ended_recording(run: RunRow, artifacts: Artifacts) -> PathLib:
+    """The recording of a run that has ended (RunStateError while it is being written)."""
+    if run.state not in FINAL_STATES:
+        raise RunStateError(f"run {run.id} is {run.state}: its recording is still being written; "
+                            "download it once the run has ended")
+    return artifacts.recording_path(run)
+
+
 @router.get("/{run_id}/recording", response_class=StreamingResponse, dependencies=[Reader],
             responses={200: {"content": {"application/x-hdf5": {"schema": BINARY}},
                              "description": "the HDF5 recording"},
                        **NON_JSON_ERRORS},
             summary="Download the HDF5 recording")
 async def run_recording(run: RunDep, artifacts: ArtifactsDep) -> StreamingResponse:
-    if run.state not in FINAL_STATES:
-        raise RunStateError(f"run {run.id} is {run.state}: its recording is still being written; "
-                            "download it once the run has ended")
-    path = artifacts.recording_path(run)
+    path = ended_recording(run, artifacts)
     return StreamingResponse(artifacts.stream_file(run.id), media_type="application/x-hdf5",
                              headers={"Content-Disposition": f'attachment; filename="{path.name}"',
                                       "Content-Length": str(path.stat().st_size)})

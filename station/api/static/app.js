@@ -69,6 +69,19 @@ function showMe() {
   if (!may("admin")) hideUsers();
   const ap = $("#approve");
   if (ap) ap.disabled = !may("approve");
+  applyRoles();
+}
+
+// actions only for the roles that may use them, and only while they apply
+let shownStatus = null;   // the status of the run on screen
+let shownIssued = [];     // its issued certificates (not replaced)
+function applyRoles() {
+  const st = shownStatus;
+  const own = !!(st && me && st.operator === me.name);  // nobody approves their own run
+  $("#abort").hidden = !(st && may("run") && (st.state === "queued" || st.state === "running"));
+  $("#approve-controls").hidden = !may("approve") || own;
+  $("#cert-issue").hidden = !may("approve") || own || shownIssued.length > 0;
+  $("#cert-state").textContent = shownIssued.length ? `issued: ${shownIssued.map((c) => c.number).join(", ")}` : "draft";
 }
 
 // an ended or expired session's cookie (HttpOnly: only the server can drop it) would have every
@@ -368,7 +381,8 @@ function showStatus(st) {
   $("#run-samples").textContent = st.samples;
   $("#run-lost").textContent = st.lost_samples;
   $("#run-message").textContent = st.reason || st.message;
-  $("#abort").hidden = !(st.state === "queued" || st.state === "running");
+  shownStatus = st;
+  applyRoles();
   if (FINAL.includes(st.state)) {
     if (st.state === "completed") loadResults(st.id);
     else if (st.recording) { $("#ended").hidden = false; $("#ended-recording").href = st.links.recording; }
@@ -507,7 +521,7 @@ async function loadResults(id) {
 }
 
 // the run's certificate: the draft until a second person with the approver role issues it
-function showCertificate(id) {
+async function showCertificate(id) {
   const base = `/runs/${encodeURIComponent(id)}/certificate`;
   for (const ext of ["html", "pdf", "xml"]) $(`#cert-${ext}`).href = `${base}.${ext}`;
   $("#cert-form").onsubmit = async (ev) => {
@@ -515,7 +529,12 @@ function showCertificate(id) {
     const prepared = $("#cert-prepared").value.trim();
     const res = await api("POST", base, prepared ? {prepared_by: prepared} : {});
     $("#cert-msg").textContent = res.ok ? `issued ${res.data.number}` : (detailText(res.data) || `refused (${res.status})`);
+    if (res.ok) { shownIssued = [res.data]; applyRoles(); }
   };
+  shownIssued = [];
+  const r = await api("GET", "/certificates");
+  if (r.ok && shownRun === id) shownIssued = r.data.certificates.filter((c) => c.run_id === id && !c.replaced_by);
+  applyRoles();
 }
 
 async function loadDiscrepancy(url) {
