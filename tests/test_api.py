@@ -302,7 +302,7 @@ def test_invalid_or_unsafe_requests_are_422_naming_the_field(tmp_path: Path) -> 
         for body, loc in INVALID:
             r = await c.post("/runs", json=body)
             assert r.status_code == 422, (body, r.text)
-            locs = [e["loc"] for e in r.json()["detail"]]
+            locs = [e["loc"] for e in r.json()["errors"]]
             assert loc in locs, (body, locs)
     in_app(tmp_path, go)
 
@@ -311,7 +311,7 @@ def test_peak_force_message_says_the_limit(tmp_path: Path) -> None:
     async def go(c: httpx.AsyncClient) -> httpx.Response:
         return await c.post("/runs", json=run_body(freqs=(50.0,), radius=0.01))
     r = in_app(tmp_path, go)
-    err = r.json()["detail"][0]
+    err = r.json()["errors"][0]
     assert r.status_code == 422 and err["type"] == "limit_error"
     assert "peak force" in err["msg"] and "4000 N" in err["msg"] and err["input"] == 0.01
 

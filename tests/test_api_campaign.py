@@ -50,7 +50,7 @@ def test_errors(runs: tuple[HeldApp, list[str]], tmp_path: Path) -> None:
     d, ids = runs
     c = d
     r = c.post("/campaigns", json={"runs": [ids[0], ids[0]]})
-    assert r.status_code == 422 and "more than once" in r.json()["detail"][0]["msg"]
+    assert r.status_code == 422 and "more than once" in r.json()["errors"][0]["msg"]
     assert c.post("/campaigns", json={"runs": ["no-such-run"]}).status_code == 404
     assert c.post("/campaigns", json={"runs": []}).status_code == 422
     assert c.post("/campaigns", json={"runs": ["../etc"]}).status_code == 422

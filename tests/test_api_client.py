@@ -29,15 +29,6 @@ from station.run.procedure import StepState
 from station.service.settings import build_settings
 from tests.station_support import TOKEN, daemon_config, running_app
 
-# the generator's documented setting for binary media types: read as bytes (application/octet-stream)
-GENERATOR_CONFIG = """
-content_type_overrides:
-  image/png: application/octet-stream
-  application/x-hdf5: application/octet-stream
-  application/pdf: application/octet-stream
-post_hooks: []
-"""
-
 
 def openapi(tmp: Path) -> dict[str, Any]:
     app = create_app(build_settings(parse_config(daemon_config(tmp / "recordings")), sim=True,
@@ -70,12 +61,15 @@ def test_closed_sets_are_enumerations_and_results_are_typed(tmp_path: Path) -> N
     assert schemas["CampaignOut"]["properties"]["assumptions"]["$ref"].endswith("/CampaignAssumptionsOut")
     paths = spec["paths"]
     binary = {"type": "string", "format": "binary"}
+    octet = {"application/octet-stream": {"schema": binary}}  # first: generic clients read bytes
     assert paths["/runs/{run_id}/plots/{name}.png"]["get"]["responses"]["200"]["content"] == {
-        "image/png": {"schema": binary}}
+        **octet, "image/png": {"schema": binary}}
     assert paths["/runs/{run_id}/recording"]["get"]["responses"]["200"]["content"] == {
-        "application/x-hdf5": {"schema": binary}}
+        **octet, "application/x-hdf5": {"schema": binary}}
     assert paths["/runs/{run_id}/report.pdf"]["get"]["responses"]["200"]["content"] == {
-        "application/pdf": {"schema": binary}}
+        **octet, "application/pdf": {"schema": binary}}
+    assert next(iter(paths["/runs/{run_id}/export/{name}"]["get"]["responses"]["200"]["content"])) == \
+        "application/octet-stream"
     assert paths["/runs/{run_id}/certificate.{ext}"]["get"]["responses"]["200"]["content"]["application/pdf"] == {
         "schema": binary}
     assert paths["/runs"]["post"]["operationId"] == "start_run"  # readable names in generated clients
@@ -85,11 +79,9 @@ def test_closed_sets_are_enumerations_and_results_are_typed(tmp_path: Path) -> N
 def test_a_generated_client_drives_a_run(tmp_path: Path) -> None:
     spec_path = tmp_path / "openapi.json"
     spec_path.write_text(json.dumps(openapi(tmp_path)))
-    cfg = tmp_path / "generator.yaml"
-    cfg.write_text(GENERATOR_CONFIG)
-    out = tmp_path / "gen" / "sinecal_client"
+    out = tmp_path / "gen" / "sinecal_client"  # off the shelf: no configuration, no override
     r = subprocess.run([sys.executable, "-m", "openapi_python_client", "generate", "--path", str(spec_path),
-                        "--config", str(cfg), "--output-path", str(out), "--meta", "none"],
+                        "--output-path", str(out), "--meta", "none"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "WARNING" not in r.stdout + r.stderr, r.stdout + r.stderr
     sys.path.insert(0, str(out.parent))
@@ -97,8 +89,13 @@ def test_a_generated_client_drives_a_run(tmp_path: Path) -> None:
         client_pkg = importlib.import_module("sinecal_client")
         runs = importlib.import_module("sinecal_client.api.runs")
         models = importlib.import_module("sinecal_client.models")
-        for name in ("start_run", "get_run", "run_results", "run_plot", "run_recording"):
+        for name in ("start_run", "get_run", "run_results", "run_plot", "run_recording", "run_export"):
             importlib.import_module(f"sinecal_client.api.runs.{name}")
+        # every file download is read as bytes (File), the certificate's PDF too, not text
+        for module in ("runs.run_plot", "runs.run_recording", "runs.run_report_pdf", "runs.run_export",
+                       "certificates.run_certificate", "certificates.issued_certificate"):
+            source = (out / "api" / (module.replace(".", "/") + ".py")).read_text()
+            assert "File(payload=BytesIO(response.content))" in source, module
         asyncio.run(_drive(tmp_path / "recordings", client_pkg, runs, models))
     finally:
         sys.path.remove(str(out.parent))
@@ -143,3 +140,5 @@ async def _drive(rec: Path, pkg: Any, runs: Any, models: Any) -> None:
             h5 = await runs.run_recording.asyncio(rid, client=client)
             with h5py.File(io.BytesIO(h5.payload.read()), "r") as f:
                 assert f.attrs["run_id"] == rid and f.attrs["exit_status"] == "completed"
+            xlsx = await runs.run_export.asyncio(rid, models.RunExportName("results.xlsx"), client=client)
+            assert xlsx.payload.read()[:2] == b"PK"  # a workbook is a zip

@@ -51,7 +51,7 @@ BAD_JSON = {  # name: body sent as application/json
 
 def _assert_clear_4xx(r: httpx.Response, expected: tuple[int, ...], what: str) -> None:
     assert r.status_code in expected, (what, r.status_code, r.text[:500])
-    assert r.headers["content-type"].startswith("application/json"), what
+    assert r.headers["content-type"] == "application/problem+json", what
     assert "Traceback" not in r.text and 'File "' not in r.text, what
     assert len(r.content) < 3000, (what, len(r.content))  # the input is quoted within a few hundred characters
     assert r.json()["detail"], what
@@ -120,8 +120,10 @@ def test_an_internal_error_is_a_short_json_500_and_the_traceback_goes_to_the_log
             t = httpx.ASGITransport(app=app, client=("127.0.0.1", 40000), raise_app_exceptions=False)
             async with httpx.AsyncClient(transport=t, base_url="http://127.0.0.1") as c:
                 r = await c.get("/runs")
-        assert r.status_code == 500 and r.headers["content-type"] == "application/json", r.text
-        assert r.json() == {"detail": "internal error of the station daemon; the details are in its log"}
+        assert r.status_code == 500 and r.headers["content-type"] == "application/problem+json", r.text
+        assert r.json() == {"type": "urn:sinecal:problem:internal-error", "title": "Internal error of the station "
+                            "daemon", "status": 500, "instance": "/runs",
+                            "detail": "internal error of the station daemon; the details are in its log"}
     with caplog.at_level("ERROR", logger="station.api.main"):
         asyncio.run(go())
     assert "GET /runs: internal error" in caplog.text and "a bug deep inside" in caplog.text

@@ -364,7 +364,7 @@ def test_a_body_that_is_not_utf8_is_refused_clearly(tmp_path: Path) -> None:
                 headers = {"Content-Type": ctype} if ctype else {}
                 r = await c.post("/runs", content=b'{"transducer_id": "\xff\xfe"}', headers=headers)
                 assert r.status_code == 422, (ctype, r.text)
-                d = r.json()["detail"][0]
+                d = r.json()["errors"][0]
                 assert d["type"] == "body_not_utf8" and "0xff" in d["msg"] and "position 19" in d["msg"]
             r = await c.post("/stop/acknowledge", content=b"\x80", headers={"Content-Type": "application/json"})
             assert r.status_code == 422
@@ -388,12 +388,12 @@ def test_booleans_and_strings_are_not_numbers(tmp_path: Path) -> None:
                 body = run_body(freqs=(10.0,))
                 body["steps"][0][field] = value
                 r = await c.post("/runs", json=body)
-                assert r.status_code == 422 and r.json()["detail"][0]["loc"] == loc, (field, value, r.text)
-                assert "a number expected" in r.json()["detail"][0]["msg"]
+                assert r.status_code == 422 and r.json()["errors"][0]["loc"] == loc, (field, value, r.text)
+                assert "a number expected" in r.json()["errors"][0]["msg"]
             body = run_body(freqs=(10.0,))
             body["top_mass_kg"] = "25.7"
             r = await c.post("/runs", json=body)
-            assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "top_mass_kg"]
+            assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["body", "top_mass_kg"]
             assert m.store.list_runs() == []  # nothing started
     asyncio.run(go())
 

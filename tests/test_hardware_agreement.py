@@ -240,7 +240,7 @@ def test_station_serve_says_it_once_in_its_log_and_refuses_every_run(tmp_path: P
     d["rig"]["acceleration_hz_per_s"] = hi * 1.2
     with Daemon(tmp_path, workers=0, config=d) as daemon:
         r = daemon.c().post("/runs", json=run_body())
-        assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["config", "rig", "acceleration_hz_per_s"]
+        assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["config", "rig", "acceleration_hz_per_s"]
         assert daemon.c().get("/health").json()["rig"]["connected"]
         lines = [ln for ln in daemon.log().splitlines() if "every run will be refused" in ln]
         assert len(lines) == 1 and f"rig.acceleration_hz_per_s {hi * 1.2:g} Hz/s" in lines[0], daemon.log()[-2000:]

@@ -195,8 +195,8 @@ def test_a_standard_past_its_due_date_refuses_or_warns(tmp_path: Path, policy: s
             r = await c.post("/runs", json=run_body())
             if policy == "refuse":
                 assert r.status_code == 422
-                msg = r.json()["detail"][0]["msg"]
-                assert "LVDT-7" in msg and "2020-03-31" in msg and r.json()["detail"][0]["loc"] == ["body", "standards"]
+                msg = r.json()["errors"][0]["msg"]
+                assert "LVDT-7" in msg and "2020-03-31" in msg and r.json()["errors"][0]["loc"] == ["body", "standards"]
                 # naming only the standards that are in date lets it run
                 ok = await c.post("/runs", json={**run_body(), "standards": ["MASS-SET-2"]})
                 assert ok.status_code == 202, ok.text
@@ -207,7 +207,7 @@ def test_a_standard_past_its_due_date_refuses_or_warns(tmp_path: Path, policy: s
                 row = await manager.runs.get(st["id"])
                 assert "2020-03-31" in row.plan_json  # the warning travels with the run's record
             r = await c.post("/runs", json={**run_body(), "transducer_id": "NOPE-1"})
-            assert r.status_code == 422 and "not in the register" in r.json()["detail"][0]["msg"]
+            assert r.status_code == 422 and "not in the register" in r.json()["errors"][0]["msg"]
     asyncio.run(go())
 
 

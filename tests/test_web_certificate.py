@@ -72,6 +72,8 @@ def test_conditions_from_the_form_reach_the_issued_certificate(browser: object, 
         pg.click("#cert-form button[type=submit]")
         pg.wait_for_function("document.querySelector('#cert-msg').textContent.startsWith('issued ')", timeout=30_000)
         number = pg.inner_text("#cert-msg").removeprefix("issued ").strip()
+        # once issued, issuing is offered no more; the page says which certificate was issued
+        assert not pg.is_visible("#cert-issue") and pg.inner_text("#cert-state") == f"issued: {number}"
         issued = daemon.c().get("/certificates").json()["certificates"]
         assert [c["number"] for c in issued if c["run_id"] == rid] == [number]
         # the page's downloads now read back the issued certificate's conditions

@@ -14,9 +14,10 @@ import secrets
 from collections.abc import Awaitable, Callable
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Path, Request, Security, status
+from fastapi import Depends, Path, Request, Security, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from station.api.problems import NOT_LOGGED_IN, Refusal
 from station.lab import users
 from station.lab.users import AuthError, Permission, Principal, Role, User
 from station.service.artifacts import Artifacts
@@ -114,7 +115,8 @@ async def principal(request: Request, creds: Credentials, settings: SettingsDep)
         who = await authenticate(getattr(request.app.state, "manager", None), settings,
                                  creds.credentials if creds else None, session)
     except AuthError as exc:
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, str(exc), headers={"WWW-Authenticate": "Bearer"}) from None
+        raise Refusal(status.HTTP_401_UNAUTHORIZED, "credentials-refused", str(exc),
+                      headers={"WWW-Authenticate": "Bearer"}) from None
     return who
 
 
@@ -128,7 +130,7 @@ def _same_site(request: Request) -> None:
     origin = request.headers.get("origin")
     if (site is not None and site not in ("same-origin", "none")) or \
             (origin is not None and origin.split("://", 1)[-1] != request.headers.get("host", "")):
-        raise HTTPException(status.HTTP_403_FORBIDDEN, "cross-site request refused; use the station's own page")
+        raise Refusal(status.HTTP_403_FORBIDDEN, "cross-site", "cross-site request refused; use the station's own page")
 
 
 def require(perm: Permission) -> Callable[..., Awaitable[Principal]]:
@@ -136,13 +138,12 @@ def require(perm: Permission) -> Callable[..., Awaitable[Principal]]:
     a role that does not grant it)."""
     async def check(request: Request, who: PrincipalDep) -> Principal:
         if who is None:
-            raise HTTPException(status.HTTP_401_UNAUTHORIZED,
-                                "log in on the page, or send a bearer token (Authorization: Bearer <token>)",
-                                headers={"WWW-Authenticate": "Bearer"})
+            raise Refusal(status.HTTP_401_UNAUTHORIZED, "not-logged-in", NOT_LOGGED_IN,
+                          headers={"WWW-Authenticate": "Bearer"})
         if not who.user.may(perm):
             roles = ", ".join(str(r) for r, g in users.GRANTS.items() if perm in g)
-            raise HTTPException(status.HTTP_403_FORBIDDEN, f"user {who.name} ({who.user.role}) may not do this: "
-                                f"it needs the '{perm}' permission ({roles})")
+            raise Refusal(status.HTTP_403_FORBIDDEN, "forbidden", f"user {who.name} ({who.user.role}) may not do "
+                          f"this: it needs the '{perm}' permission ({roles})")
         if who.via == "session":
             _same_site(request)
         return who
@@ -154,8 +155,8 @@ async def read_access(request: Request, who: PrincipalDep) -> None:
     client = request.client.host if request.client else ""
     if is_loopback(client) or who is not None:
         return
-    raise HTTPException(status.HTTP_401_UNAUTHORIZED, "reading from outside this machine needs a login or a "
-                        "bearer token", headers={"WWW-Authenticate": "Bearer"})
+    raise Refusal(status.HTTP_401_UNAUTHORIZED, "not-logged-in", "reading from outside this machine needs a "
+                  "login or an API token", headers={"WWW-Authenticate": "Bearer"})
 
 
 RunId = Annotated[str, Path(pattern=RUN_ID_PATTERN, description="run id as returned by POST /runs")]
@@ -165,7 +166,7 @@ async def get_run(run_id: RunId, runs: RunsDep) -> RunRow:
     try:
         return await runs.get(run_id)
     except RunNotFoundError as exc:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
+        raise Refusal(status.HTTP_404_NOT_FOUND, "run-not-found", str(exc)) from None
 
 
 RunDep = Annotated[RunRow, Depends(get_run)]

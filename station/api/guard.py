@@ -14,10 +14,11 @@
 
 from __future__ import annotations
 
-import json
 import secrets
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
+
+from station.api.problems import MEDIA_TYPE, errors_text, problem_bytes
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -37,20 +38,22 @@ def is_json_type(ctype: bytes) -> bool:
                                                          and media.endswith(b"+json"))
 
 
-async def _answer(send: Send, status: int, detail: Any, headers: list[tuple[bytes, bytes]] | None = None) -> None:
-    body = json.dumps({"detail": detail}).encode()
+async def _answer(send: Send, status: int, kind: str, detail: str, path: str,
+                  headers: list[tuple[bytes, bytes]] | None = None, errors: list[dict[str, Any]] | None = None) -> None:
+    body = problem_bytes(status, kind, detail, path or None, errors)
     await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                "headers": [(b"content-type", MEDIA_TYPE.encode()), (b"content-length", str(len(body)).encode()),
                             (b"connection", b"close"), *(headers or [])]})
     await send({"type": "http.response.body", "body": body})
 
 
-Authenticate = Callable[[dict[bytes, bytes]], Awaitable[str | None]]
+Authenticate = Callable[[dict[bytes, bytes]], Awaitable[tuple[str, str] | None]]  # (kind, reason) or None
 
 
 class BodyGuard:
     """``authenticate(headers)``: None for a request with valid credentials (a token or a page
-    session), else the reason it is refused; without it, only ``token`` is accepted."""
+    session), else the kind of problem and the reason it is refused; without it, only ``token`` is
+    accepted."""
 
     def __init__(self, app: ASGIApp, *, token: str, max_body_bytes: int,
                  authenticate: Authenticate | None = None) -> None:
@@ -59,13 +62,14 @@ class BodyGuard:
         self.max_body_bytes = max_body_bytes
         self._authenticate = authenticate
 
-    async def _refusal(self, headers: dict[bytes, bytes]) -> str | None:
+    async def _refusal(self, headers: dict[bytes, bytes]) -> tuple[str, str] | None:
         if self._authenticate is not None:
             return await self._authenticate(headers)
         auth = headers.get(b"authorization", b"")
         scheme, _, cred = auth.partition(b" ")
         ok = scheme.lower() == b"bearer" and secrets.compare_digest(b"Bearer " + cred.strip(), self._token)
-        return None if ok else "a valid bearer token is required (Authorization: Bearer <token>)"
+        return None if ok else ("credentials-refused",
+                                "a valid bearer token is required (Authorization: Bearer <token>)")
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
@@ -77,7 +81,8 @@ class BodyGuard:
         try:
             length = int(length_text) if length_text is not None else None
         except ValueError:
-            await _answer(send, 400, f"Content-Length {(length_text or b'')[:QUOTE_CHARS]!r} is not a number")
+            await _answer(send, 400, "bad-request", f"Content-Length {(length_text or b'')[:QUOTE_CHARS]!r} is not a "
+                          "number", scope.get("path", ""))
             return
         has_body = chunked or (length or 0) > 0
         path = scope.get("path", "")
@@ -86,18 +91,19 @@ class BodyGuard:
             return
         refusal = None if path in LOGIN_POSTS else await self._refusal(headers)
         if refusal is not None:
-            await _answer(send, 401, f"{refusal}; the request body was not read", [(b"www-authenticate", b"Bearer")])
+            await _answer(send, 401, refusal[0], f"{refusal[1]}; the request body was not read", path,
+                          [(b"www-authenticate", b"Bearer")])
             return
         ctype = headers.get(b"content-type", b"")
         if not is_json_type(ctype):
             shown = ctype[:QUOTE_CHARS].decode("latin-1")
-            await _answer(send, 415, f"the request body must be JSON (Content-Type: application/json), got "
-                          f"Content-Type {shown!r}; the body was not read")
+            await _answer(send, 415, "unsupported-media-type", "the request body must be JSON (Content-Type: "
+                          f"application/json), got Content-Type {shown!r}; the body was not read", path)
             return
         limit = self.max_body_bytes
         if length is not None and length > limit:
-            await _answer(send, 413, f"request body of {length} bytes exceeds the limit of {limit} bytes "
-                          "(service.max_body_bytes)")
+            await _answer(send, 413, "body-too-large", f"request body of {length} bytes exceeds the limit of "
+                          f"{limit} bytes (service.max_body_bytes)", path)
             return
         # read the (authorised, bounded) body here, check it, then hand it on in one piece
         chunks, size = [], 0
@@ -108,7 +114,8 @@ class BodyGuard:
             part = msg.get("body", b"")
             size += len(part)
             if size > limit:
-                await _answer(send, 413, f"request body exceeds the limit of {limit} bytes (service.max_body_bytes)")
+                await _answer(send, 413, "body-too-large", f"request body exceeds the limit of {limit} bytes "
+                              "(service.max_body_bytes)", path)
                 return
             chunks.append(part)
             if not msg.get("more_body", False):
@@ -117,9 +124,11 @@ class BodyGuard:
         try:
             body.decode("utf-8")
         except UnicodeDecodeError as exc:
-            await _answer(send, 422, [{"type": "body_not_utf8", "loc": ["body"], "input": None,
-                                       "msg": f"the request body must be UTF-8 encoded JSON; byte "
-                                              f"0x{body[exc.start]:02x} at position {exc.start} is not UTF-8"}])
+            errors: list[dict[str, Any]] = [
+                {"type": "body_not_utf8", "loc": ["body"], "input": None,
+                 "msg": f"the request body must be UTF-8 encoded JSON; byte 0x{body[exc.start]:02x} at position "
+                        f"{exc.start} is not UTF-8"}]
+            await _answer(send, 422, "invalid-input", errors_text(errors), path, errors=errors)
             return
         sent = False
 

@@ -17,8 +17,8 @@ from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
-from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
 from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
@@ -27,8 +27,10 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from station import __version__
 from station.api.deps import authenticate, credentials_of
+from station.api.downloads import declare_downloads
 from station.api.guard import BodyGuard
-from station.api.routes import campaign, certificates, compensation, lab, proposal, runs, system
+from station.api.problems import NOT_LOGGED_IN, Refusal, declare_problems, errors_text, kind_of_status, problem_response
+from station.api.routes import campaign, certificates, compensation, exports, lab, proposal, runs, system
 from station.certificate.register import CertificateError, CertificateNotFoundError
 from station.errors import StationError
 from station.lab.integrity import RecordingTamperedError
@@ -61,10 +63,6 @@ operator acknowledges it.  Units are SI and part of every field name."""
 
 
 QUOTE_CHARS = 200  # the most of a request's input a validation error quotes back
-
-
-def _error(status: int, exc: Exception) -> JSONResponse:
-    return JSONResponse({"detail": str(exc)}, status_code=status)
 
 
 def _quoted(value: Any) -> Any:
@@ -101,36 +99,43 @@ def validation_details(errors: Sequence[Any]) -> list[dict[str, Any]]:
 
 
 def install_error_handlers(app: FastAPI) -> None:
-    statuses: list[tuple[type[Exception], int]] = [
-        (RunNotFoundError, 404), (ResultNotStoredError, 404), (RunStateError, 409), (RigBusyError, 409),
-        (EStopLatchedError, 409), (RigUnavailableError, 503), (DatabaseBusyError, 503),
-        (CertificateNotFoundError, 404), (CertificateError, 409),
-        (AuthError, 401), (ForbiddenError, 403), (UnknownEntryError, 404), (RegisterError, 409),
-        (UnknownUserError, 404), (UserError, 409), (RecordingTamperedError, 409)]
-    for cls, code in statuses:
-        def handler(request: Request, exc: Exception, code: int = code) -> JSONResponse:
-            return _error(code, exc)
+    """Every refusal as RFC 9457 problem details (station/api/problems.py), with its kind."""
+    kinds: list[tuple[type[Exception], int, str]] = [
+        (RunNotFoundError, 404, "run-not-found"), (ResultNotStoredError, 404, "result-not-stored"),
+        (RunStateError, 409, "run-state"), (RigBusyError, 409, "rig-busy"),
+        (EStopLatchedError, 409, "emergency-stop-latched"), (RigUnavailableError, 503, "rig-unavailable"),
+        (DatabaseBusyError, 503, "database-busy"), (CertificateNotFoundError, 404, "certificate-not-found"),
+        (CertificateError, 409, "certificate-refused"), (AuthError, 401, "credentials-refused"),
+        (ForbiddenError, 403, "forbidden"), (UnknownEntryError, 404, "entry-not-found"),
+        (RegisterError, 409, "register-conflict"), (UnknownUserError, 404, "user-not-found"),
+        (UserError, 409, "user-conflict"), (RecordingTamperedError, 409, "recording-tampered")]
+    for cls, code, kind in kinds:
+        def handler(request: Request, exc: Exception, code: int = code, kind: str = kind) -> JSONResponse:
+            return problem_response(code, kind, str(exc), request.url.path)
         app.add_exception_handler(cls, handler)
 
     async def validation_error(request: Request, exc: Exception) -> JSONResponse:
         # FastAPI's own handler echoes the input, which cannot be JSON when it is NaN or inf (-> 500)
-        errors = exc.errors() if isinstance(exc, RequestValidationError) else []
-        return JSONResponse({"detail": validation_details(errors)}, status_code=422)
+        errors = validation_details(exc.errors() if isinstance(exc, RequestValidationError) else [])
+        return problem_response(422, "invalid-input", errors_text(errors), request.url.path, errors)
     app.add_exception_handler(RequestValidationError, validation_error)
 
     async def http_error(request: Request, exc: Exception) -> Response:
         assert isinstance(exc, StarletteHTTPException)
         if exc.status_code == 400 and request.method in ("POST", "PUT", "PATCH"):
             # a body that is not even text (FastAPI says 400): bad input like any other, 422
-            return JSONResponse({"detail": [{"type": "body_unreadable", "loc": ["body"], "msg": str(exc.detail)}]},
-                                status_code=422)
-        return await http_exception_handler(request, exc)
+            errors = [{"type": "body_unreadable", "loc": ["body"], "msg": str(exc.detail)}]
+            return problem_response(422, "invalid-input", errors_text(errors), request.url.path, errors)
+        if exc.status_code < 400:
+            return Response(status_code=exc.status_code, headers=exc.headers)
+        kind = exc.kind if isinstance(exc, Refusal) else kind_of_status(exc.status_code)
+        return problem_response(exc.status_code, kind, str(exc.detail), request.url.path, headers=exc.headers)
     app.add_exception_handler(StarletteHTTPException, http_error)
 
     async def station_error(request: Request, exc: Exception) -> JSONResponse:
         # a recording that cannot be read or written right now (locked by another process, damaged)
         log.warning("%s %s: %s", request.method, request.url.path, exc)
-        return _error(503, exc)
+        return problem_response(503, "unavailable", str(exc), request.url.path)
     app.add_exception_handler(StationError, station_error)
     app.add_exception_handler(OSError, station_error)
     app.add_exception_handler(sqlite3.Error, station_error)  # e.g. the database's disk is full
@@ -138,9 +143,17 @@ def install_error_handlers(app: FastAPI) -> None:
     async def internal_error(request: Request, exc: Exception) -> JSONResponse:
         # a bug: the traceback goes to the daemon's log, never to the client
         log.error("%s %s: internal error", request.method, request.url.path, exc_info=exc)
-        return JSONResponse({"detail": "internal error of the station daemon; the details are in its log"},
-                            status_code=500)
+        return problem_response(500, "internal-error", "internal error of the station daemon; the details are "
+                                "in its log", request.url.path)
     app.add_exception_handler(Exception, internal_error)
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            app.openapi_schema = declare_downloads(declare_problems(get_openapi(
+                title=app.title, version=app.version, openapi_version=app.openapi_version,
+                description=app.description, routes=app.routes)))
+        return app.openapi_schema
+    app.openapi = openapi  # type: ignore[method-assign]
 
 
 class StartupFailureLine:
@@ -217,21 +230,22 @@ def create_app(settings: ServiceSettings, *,
                            allowed_hosts=["127.0.0.1", "localhost", "::1", "[::1]"])
     install_error_handlers(app)
     # outermost: authenticate and bound a request body before anything reads it
-    async def body_refusal(headers: dict[bytes, bytes]) -> str | None:
+    async def body_refusal(headers: dict[bytes, bytes]) -> tuple[str, str] | None:
         manager = getattr(app.state, "manager", None)
         if manager is None:
-            return "the station daemon is starting"
+            return "credentials-refused", "the station daemon is starting"
         token, session = credentials_of({k.decode("latin-1"): v.decode("latin-1") for k, v in headers.items()})
         if token is None and session is None:
-            return "log in on the page, or send a bearer token (Authorization: Bearer <token>)"
+            return "not-logged-in", NOT_LOGGED_IN
         try:
-            return None if await authenticate(manager, settings, token, session) else "not authenticated"
+            return None if await authenticate(manager, settings, token, session) else ("not-logged-in", NOT_LOGGED_IN)
         except AuthError as exc:
-            return str(exc)
+            return "credentials-refused", str(exc)
     app.add_middleware(BodyGuard, token=settings.token, max_body_bytes=settings.config.service.max_body_bytes,
                        authenticate=body_refusal)
     app.add_middleware(StartupFailureLine)
     app.include_router(runs.router)
+    app.include_router(exports.router)
     app.include_router(certificates.router)
     app.include_router(campaign.router)
     app.include_router(proposal.router)

@@ -39,8 +39,18 @@ def utc(ts: float | None) -> datetime | None:
     return None if ts is None else datetime.fromtimestamp(ts, UTC)
 
 
-class ErrorOut(OutModel):
-    detail: str = Field(description="what went wrong, for the operator")
+class Problem(OutModel):
+    """A refusal as RFC 9457 problem details (``application/problem+json``; station/api/problems.py)."""
+
+    type: str = Field(description="the kind of refusal, machine-readable: urn:sinecal:problem:<kind> "
+                      "(e.g. not-logged-in, run-not-found, rig-busy, invalid-input)")
+    title: str = Field(description="the kind of refusal in words")
+    status: int = Field(description="the HTTP status")
+    detail: str = Field(description="what went wrong this time and what to do, for the operator")
+    instance: str | None = Field(default=None, description="the request's path")
+
+
+ErrorOut = Problem  # the name the routes use
 
 
 class FieldError(BaseModel):
@@ -55,8 +65,13 @@ class FieldError(BaseModel):
     input: Any = None
 
 
-class ValidationErrorOut(OutModel):
-    detail: list[FieldError]
+class ValidationProblem(Problem):
+    """Invalid input (422): the problem, with each offending field in ``errors``."""
+
+    errors: list[FieldError] = Field(description="each offending value: where (`loc`) and why (`msg`)")
+
+
+ValidationErrorOut = ValidationProblem  # the name the routes use
 
 
 class RunLinks(OutModel):

@@ -21,4 +21,5 @@ COMMAND_MODULES: tuple[str, ...] = (
     "station.commands.history",
     "station.commands.compensate",
     "station.commands.verify",
+    "station.commands.backup",
 )

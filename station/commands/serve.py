@@ -50,6 +50,8 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
     if settings.token_source == "generated":
         log.warning("no token configured (%s or service.token): this session's token is %s", TOKEN_ENV,
                     settings.token)
+    if settings.sim:
+        _demo_users(settings)
     if not is_loopback(settings.host):
         log.warning("listening on %s: reading needs the token from other machines; use TLS in front of it",
                     settings.host)
@@ -81,3 +83,20 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
     server = StationServer(config, settings, on_listening=lambda host, port: lock.update(host=host, port=port))
     asyncio.run(server.serve())
     return 0 if server.started else 3  # 3: the daemon could not start (the log says why)
+
+
+def _demo_users(settings: ServiceSettings) -> None:
+    """The simulated station's technician and approver, with this start's passwords (logged once)."""
+    from station.lab.demo import demo_users
+    from station.service.store import Store
+
+    store = Store(settings.database)
+    try:
+        made = demo_users(store)
+    finally:
+        store.close()
+    where = f"http://{settings.host}:{settings.port}/" if settings.port else "the page"
+    lines = [f"  {u.name:10s} ({u.role}) password {u.password}" if u.password is not None else
+             f"  {u.name:10s} ({u.role}) made by someone else: its own password" for u in made]
+    log.warning("simulated station: log in on %s as\n%s\n(new passwords at every start of the simulated "
+                "station)", where, "\n".join(lines))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import AsyncIterable
+from pathlib import Path as PathLib
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query, Request, Response, status
@@ -12,6 +13,7 @@ from fastapi.responses import HTMLResponse, StreamingResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 
 from station.api.deps import ArtifactsDep, ManagerDep, Operator, Reader, RunDep, RunsDep
+from station.api.problems import MEDIA_TYPE, Refusal
 from station.api.schemas import (
     AbortOut,
     DiscrepancyOut,
@@ -32,6 +34,7 @@ from station.lab.register import RegisterError, UnknownEntryError
 from station.report.names import PLOT_NAMES
 from station.run.methods import SETTLED, MethodOutcome
 from station.run.request import RunRequest
+from station.service.artifacts import Artifacts
 from station.service.manager import RunStateError
 from station.service.results import load_results
 from station.service.store import FINAL_STATES, RunRow
@@ -53,15 +56,16 @@ BODY_ERRORS: Responses = {  # what the body guard answers on any POST that carri
     415: {"model": ErrorOut, "description": "request body that is not JSON by its Content-Type (not read)"}}
 
 
-def _json(status: int, description: str, schema: str = "ErrorOut") -> dict[int | str, dict[str, Any]]:
-    """An error response documented as JSON on a route whose success is not JSON (SSE, PNG, HTML)."""
+def _json(status: int, description: str, schema: str = "Problem") -> dict[int | str, dict[str, Any]]:
+    """An error response documented on a route whose success is not JSON (SSE, PNG, HTML): problem
+    details (the OpenAPI document declares every 4xx/5xx so, station/api/problems.py)."""
     return {status: {"description": description,
-                     "content": {"application/json": {"schema": {"$ref": f"#/components/schemas/{schema}"}}}}}
+                     "content": {MEDIA_TYPE: {"schema": {"$ref": f"#/components/schemas/{schema}"}}}}}
 
 
 NON_JSON_ERRORS = {**_json(401, "bearer token missing or wrong"), **_json(404, "no such run"),
                    **_json(409, "the run is not in a state that allows this"),
-                   **_json(422, "invalid path or query parameter", "ValidationErrorOut"),
+                   **_json(422, "invalid path or query parameter", "ValidationProblem"),
                    **_json(503, "the recording cannot be read right now")}
 
 
@@ -175,8 +179,7 @@ async def run_plot(run: RunDep, artifacts: ArtifactsDep,
                    name: Annotated[str, Path(pattern=r"^[A-Za-z0-9_\-]{1,64}$")]) -> Response:
     png = await artifacts.plot(run.id, name)
     if png is None:
-        return Response(ErrorOut(detail=f"no plot {name!r}; available: {', '.join(PLOT_NAMES)}").model_dump_json(),
-                        status_code=404, media_type="application/json")
+        raise Refusal(404, "not-found", f"no plot {name!r}; available: {', '.join(PLOT_NAMES)}")
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
 
 
@@ -195,15 +198,21 @@ async def run_report_pdf(run: RunDep, artifacts: ArtifactsDep) -> Response:
     return Response(await artifacts.report_pdf(run.id), media_type="application/pdf")
 
 
+def ended_recording(run: RunRow, artifacts: Artifacts) -> PathLib:
+    """The recording of a run that has ended (RunStateError while it is being written)."""
+    if run.state not in FINAL_STATES:
+        raise RunStateError(f"run {run.id} is {run.state}: its recording is still being written; "
+                            "download it once the run has ended")
+    return artifacts.recording_path(run)
+
+
 @router.get("/{run_id}/recording", response_class=StreamingResponse, dependencies=[Reader],
             responses={200: {"content": {"application/x-hdf5": {"schema": BINARY}},
                              "description": "the HDF5 recording"},
                        **NON_JSON_ERRORS},
             summary="Download the HDF5 recording")
 async def run_recording(run: RunDep, artifacts: ArtifactsDep) -> StreamingResponse:
-    if run.state not in FINAL_STATES:
-        raise RunStateError(f"run {run.id} is {run.state}: its recording is still being written; "
-                            "download it once the run has ended")
+    ended_recording(run, artifacts)
     path = await artifacts.checked_path(run.id)  # compared with the audit chain before the first byte
     return StreamingResponse(artifacts.stream_file(run.id), media_type="application/x-hdf5",
                              headers={"Content-Disposition": f'attachment; filename="{path.name}"',

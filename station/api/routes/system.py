@@ -6,9 +6,10 @@ from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
 from typing import Annotated
 
-from fastapi import APIRouter, Body, Depends, HTTPException, Request, status
+from fastapi import APIRouter, Body, Depends, Request, status
 
 from station.api.deps import ManagerDep, Operator, Reader, RunsDep, SettingsDep, credentials_of, token_lookup
+from station.api.problems import Refusal
 from station.api.routes.runs import BODY_ERRORS
 from station.api.schemas import (
     AcknowledgeIn,
@@ -55,7 +56,7 @@ async def not_cross_site(request: Request) -> None:
     why = cross_site_refusal(request.headers.get("sec-fetch-site"), request.headers.get("origin"),
                              request.headers.get("host", ""))
     if why is not None:
-        raise HTTPException(status.HTTP_403_FORBIDDEN, why)
+        raise Refusal(status.HTTP_403_FORBIDDEN, "cross-site", why)
 
 
 SameSite = Depends(not_cross_site)

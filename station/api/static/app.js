@@ -33,8 +33,12 @@ async function api(method, path, body) {
 }
 
 // what a refusal says, with what to do: the API's reason (401: log in; 403: the role)
+// (the API answers RFC 9457 problem details: `type` says the kind of refusal, `detail` what happened)
+const problemKind = (data) => String((data && data.type) || "").replace("urn:sinecal:problem:", "");
 function refusal(res, action) {
-  if (res.status === 401) return `${action}: ${detailText(res.data)}` + (me ? "" : " (log in at the top of the page)");
+  if (res.status === 401 && problemKind(res.data) === "not-logged-in")
+    return `You are not logged in: log in at the top of the page to ${action}.`;
+  if (res.status === 401) return `${action}: ${detailText(res.data)}`;
   return `${action} refused (${res.status}): ${detailText(res.data)}`;
 }
 
@@ -42,8 +46,8 @@ const may = (perm) => !!(me && me.permissions.includes(perm));
 
 function detailText(data) {
   if (!data) return "";
+  if (Array.isArray(data.errors)) return data.errors.map((e) => locText(e.loc) + ": " + e.msg).join("; ");
   if (typeof data.detail === "string") return data.detail;
-  if (Array.isArray(data.detail)) return data.detail.map((e) => locText(e.loc) + ": " + e.msg).join("; ");
   return JSON.stringify(data);
 }
 
@@ -59,11 +63,25 @@ function locText(loc) {
 function showMe() {
   $("#login-form").hidden = !!me;
   $("#me").hidden = !me;
+  $("#login-hint").hidden = !!me || !(station && station.simulated);
   if (me) $("#me-name").textContent = `${me.name} (${me.role})`;
   $("#nav-users").hidden = !may("admin");
   if (!may("admin")) hideUsers();
   const ap = $("#approve");
   if (ap) ap.disabled = !may("approve");
+  applyRoles();
+}
+
+// actions only for the roles that may use them, and only while they apply
+let shownStatus = null;   // the status of the run on screen
+let shownIssued = [];     // its issued certificates (not replaced)
+function applyRoles() {
+  const st = shownStatus;
+  const own = !!(st && me && st.operator === me.name);  // nobody approves their own run
+  $("#abort").hidden = !(st && may("run") && (st.state === "queued" || st.state === "running"));
+  $("#approve-controls").hidden = !may("approve") || own;
+  $("#cert-issue").hidden = !may("approve") || own || shownIssued.length > 0;
+  $("#cert-state").textContent = shownIssued.length ? `issued: ${shownIssued.map((c) => c.number).join(", ")}` : "draft";
 }
 
 // an ended or expired session's cookie (HttpOnly: only the server can drop it) would have every
@@ -227,6 +245,7 @@ function showLimits() {
   showEnvironmentInputs(station.environment);
   $("#station-name").textContent = station.name;
   $("#sim-badge").hidden = !station.simulated;
+  $("#login-hint").hidden = !!me || !station.simulated;
   checkPlan();
 }
 
@@ -322,15 +341,15 @@ $("#run-form").addEventListener("submit", async (ev) => {
       location.hash = `#/runs/${res.data.id}`;
       return;
     }
-    if (res.status === 422 && Array.isArray(res.data.detail)) {
-      for (const e of res.data.detail) {
+    if (res.status === 422 && Array.isArray(res.data.errors)) {
+      for (const e of res.data.errors) {
         const field = [...(e.loc || [])].reverse().find((x) => typeof x === "string") || "";
         const slot = document.querySelector(`#run-form .err[data-for="${field}"]`);
         (slot || $("#form-msg")).textContent = `${locText(e.loc)}: ${e.msg}`;
       }
       return;
     }
-    $("#form-msg").textContent = refusal(res, "start");
+    $("#form-msg").textContent = refusal(res, "start a run");
   } finally {
     $("#start").disabled = false;
   }
@@ -362,7 +381,8 @@ function showStatus(st) {
   $("#run-samples").textContent = st.samples;
   $("#run-lost").textContent = st.lost_samples;
   $("#run-message").textContent = st.reason || st.message;
-  $("#abort").hidden = !(st.state === "queued" || st.state === "running");
+  shownStatus = st;
+  applyRoles();
   if (FINAL.includes(st.state)) {
     if (st.state === "completed") loadResults(st.id);
     else if (st.recording) { $("#ended").hidden = false; $("#ended-recording").href = st.links.recording; }
@@ -489,7 +509,10 @@ async function loadResults(id) {
   const rl = $("#report-link");
   if (d.report) { rl.href = d.report; rl.textContent = "calibration report"; } else { rl.removeAttribute("href"); rl.textContent = "report not available"; }
   $("#recording-link").href = `/runs/${encodeURIComponent(id)}/recording`;
+  $("#archive-link").href = `/runs/${encodeURIComponent(id)}/archive.zip`;
   $("#report-pdf-link").href = `/runs/${encodeURIComponent(id)}/report.pdf`;
+  for (const [sel, name] of [["#export-xlsx", "results.xlsx"], ["#export-params", "parameters.csv"], ["#export-sdyn", "sdyn.csv"]])
+    $(sel).href = `/runs/${encodeURIComponent(id)}/export/${name}`;
   showCertificate(id);
   if (seq === methodsSeq) showMethods(d.methods || []);  // a later 'result' event's answer is newer
   $("#results").hidden = false;
@@ -498,7 +521,7 @@ async function loadResults(id) {
 }
 
 // the run's certificate: the draft until a second person with the approver role issues it
-function showCertificate(id) {
+async function showCertificate(id) {
   const base = `/runs/${encodeURIComponent(id)}/certificate`;
   for (const ext of ["html", "pdf", "xml"]) $(`#cert-${ext}`).href = `${base}.${ext}`;
   $("#cert-form").onsubmit = async (ev) => {
@@ -506,7 +529,12 @@ function showCertificate(id) {
     const prepared = $("#cert-prepared").value.trim();
     const res = await api("POST", base, prepared ? {prepared_by: prepared} : {});
     $("#cert-msg").textContent = res.ok ? `issued ${res.data.number}` : (detailText(res.data) || `refused (${res.status})`);
+    if (res.ok) { shownIssued = [res.data]; applyRoles(); }
   };
+  shownIssued = [];
+  const r = await api("GET", "/certificates");
+  if (r.ok && shownRun === id) shownIssued = r.data.certificates.filter((c) => c.run_id === id && !c.replaced_by);
+  applyRoles();
 }
 
 async function loadDiscrepancy(url) {
@@ -748,8 +776,8 @@ function showRefusal(form, res, action, fields, about) {
     const el = form.querySelector(`.err[data-for="${fields[field] || form.id}"]`);
     el.textContent = (el.textContent ? el.textContent + "; " : "") + text;
   };
-  if (res.status === 422 && Array.isArray(res.data && res.data.detail)) {
-    for (const e of res.data.detail) put(String((e.loc || []).slice(-1)[0]), e.msg);
+  if (res.status === 422 && Array.isArray(res.data && res.data.errors)) {
+    for (const e of res.data.errors) put(String((e.loc || []).slice(-1)[0]), e.msg);
   } else {
     put(about(detailText(res.data)), refusal(res, action));
   }
@@ -793,7 +821,7 @@ $("#user-form").addEventListener("submit", async (ev) => {
   if ($("#user-password").value) body.password = $("#user-password").value;
   $("#user-password").value = "";  // sent once, never kept
   const fields = {name: "name", role: "role", password: "password", disabled: "disabled"};
-  if (!name) { showRefusal(form, {ok: false, status: 422, data: {detail: [{loc: ["path", "name"], msg: "a user name is needed"}]}}, "", fields, () => ""); return; }
+  if (!name) { showRefusal(form, {ok: false, status: 422, data: {errors: [{loc: ["path", "name"], msg: "a user name is needed"}]}}, "", fields, () => ""); return; }
   const r = await api("PUT", `/users/${encodeURIComponent(name)}`, body);
   showRefusal(form, r, "save the user", fields, (t) => t.startsWith("user name") ? "name" : t.includes("password") ? "password" : "");
   if (r.ok) {
@@ -807,7 +835,7 @@ $("#token-form").addEventListener("submit", async (ev) => {
   clearToken();
   const user = $("#token-user").value;
   const fields = {name: "user", label: "label"};
-  if (!user) { showRefusal(ev.target, {ok: false, status: 422, data: {detail: [{loc: ["path", "name"], msg: "choose a user"}]}}, "", fields, () => ""); return; }
+  if (!user) { showRefusal(ev.target, {ok: false, status: 422, data: {errors: [{loc: ["path", "name"], msg: "choose a user"}]}}, "", fields, () => ""); return; }
   const r = await api("POST", `/users/${encodeURIComponent(user)}/tokens`, {label: $("#token-label").value});
   showRefusal(ev.target, r, "issue the token", fields, (t) => t.startsWith("no user") ? "name" : "");
   if (!r.ok) return;
