@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import copy
 import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import h5py
@@ -28,7 +28,7 @@ from drivers.motor import (
     shipped_profiles,
 )
 from drivers.motor.errors import RegisterMapError
-from drivers.motor.profile import DriveProfile, parse_profile, profile_path
+from drivers.motor.profile import parse_profile, profile_path
 from drivers.sim.clock import VirtualClock
 from drivers.sim.motor_image import MotorRegisterImage
 from drivers.sim.motor_inprocess import InProcessTransport
@@ -39,6 +39,7 @@ from station.recording import read_recording
 from station.run.procedure import Procedure
 from station.run.request import Plan, PlannedStep, RunRequest, StepSpec, plan_run
 from station.run.rig import connect
+from tests.drive_support import calibration_config, drive
 
 ROOT = Path(__file__).resolve().parent.parent
 PROFILES = shipped_profiles()
@@ -53,23 +54,6 @@ def test_the_four_drives_and_the_station_controller_are_shipped() -> None:
 
 
 # ------------------------------------------------------------------------------------ in-process rig
-def drive(profile: DriveProfile, body: Callable[[MotorController, MotorModel, MotorRegisterImage, VirtualClock],
-                                                Awaitable[None]]) -> MotorRegisterImage:
-    """Run ``body`` against the profile's emulated drive, in-process on a virtual clock."""
-    clock = VirtualClock()
-    model = MotorModel(profile.device, clock=clock.monotonic)
-    image = MotorRegisterImage(profile, model)
-
-    async def go() -> None:
-        motor = MotorController(profile, clock=clock)
-        await motor.connect(InProcessTransport(image))
-        await body(motor, model, image, clock)
-        await motor.close()
-
-    asyncio.run(go())
-    return image
-
-
 async def spin_up(motor: MotorController, hz: float = 20.0) -> None:
     await motor.ensure_watchdog()
     await motor.set_ramp(50.0)
@@ -181,17 +165,6 @@ def test_control_word_steps_held_too_briefly_are_not_seen_by_the_drive() -> None
 
 
 # ------------------------------------------------------------------------------ a calibration per drive
-def calibration_config(profile: str) -> dict:
-    d = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
-    d["rig"]["motor"] = {"profile": profile}
-    d["rig"]["crank_frequency_hz"] = {"min": 1.0, "max": 40.0}
-    d["rig"]["acceleration_hz_per_s"] = 50.0
-    d["plan"].update({"settle_s": 0.1, "record_s": 0.5})
-    d["plan"]["steps"] = [{"crank_frequency_hz": 10.0, "crank_radius_m": 0.002},
-                          {"crank_frequency_hz": 25.0, "crank_radius_m": 0.001}]
-    return d
-
-
 def calibrate(tmp_path: Path, profile: str, *, wire: bool = False) -> tuple[object, dict[str, int], list[str]]:
     cfg = parse_config(calibration_config(profile), "test.yaml")
     steps = [StepSpec(crank_frequency_hz=s.crank_frequency_hz, crank_radius_m=s.crank_radius_m)

@@ -27,7 +27,7 @@ from drivers.sim.clock import VirtualClock
 from drivers.sim.motor_image import MotorRegisterImage
 from drivers.sim.motor_inprocess import InProcessTransport
 from drivers.sim.motor_model import MotorModel
-from tests.test_drive_profiles import drive as factory_drive  # the emulated drive, as it leaves the factory
+from tests.drive_support import drive as factory_drive  # the emulated drive, as it leaves the factory
 
 REAL = ["toshiba-vf-s11", "automationdirect-gs2", "siemens-sinamics-v20", "cia402-modbus"]
 
@@ -156,7 +156,7 @@ def test_the_station_refuses_a_run_on_a_drive_whose_upper_limit_is_too_low(tmp_p
     from station.run.procedure import Procedure
     from station.run.request import RunRequest, StepSpec, plan_run
     from station.run.rig import connect
-    from tests.test_drive_profiles import calibration_config
+    from tests.drive_support import calibration_config
 
     cfg = parse_config(calibration_config("toshiba-vf-s11"), "test.yaml")
     steps = [StepSpec(crank_frequency_hz=s.crank_frequency_hz, crank_radius_m=s.crank_radius_m)

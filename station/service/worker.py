@@ -158,7 +158,7 @@ def report_pdf_job(path: str) -> bytes:
 
 @worker_job
 def certificate_job(path: str, ext: str, register: dict[str, Any]) -> bytes:
-    """The run's draft certificate as html or pdf bytes (the daemon serves an issued one from its
+    """The run's draft certificate as html, pdf or DCC bytes (the daemon serves an issued one from its
     files, checked against the audit trail)."""
     from station.certificate.issue import run_document
 
