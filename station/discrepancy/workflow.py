@@ -43,6 +43,7 @@ from station.discrepancy.structure import state_structure
 from station.discrepancy.ties import TIE_CHI2, averaged, tie_models, tied_names, undetectable
 from station.errors import StationError
 from station.ident.result import Estimate
+from station.ident.structure import state_stiff
 from station.recording import Recording, read_recording
 
 if TYPE_CHECKING:
@@ -345,31 +346,15 @@ def withheld(params: dict[str, Estimate], why: str) -> dict[str, Estimate]:
 def stated_structure(after: dict[str, Estimate], structure: Any, rep: DiscrepancyResult) -> dict[str, Estimate]:
     """``after`` with the structure it rests on stated as ``identify`` states it: unless a coupling is
     named, k_f and b_f are those of a stiff coupling (Eq. 9), so k_f is the series stiffness of
-    transducer and coupling; it is flagged 'conditional' with the range of k_f alone the data leave,
-    or withheld when they do not bound it."""
+    transducer and coupling (``state_stiff``), withheld when the data do not determine k_f alone."""
     if any(e.name == COUPLING_EFFECT for e in rep.effects):
         return after
-    out = dict(after)
-    kf, bf = out.get("k_f"), out.get("b_f")
-    if kf is None or not kf.identifiable:
-        return out
-    if structure is None:
-        rng = "the coupling is not tested (fewer than 3 steps or no end mass)"
-    elif structure.k_f_alone_range is None:
-        out["k_f"] = Estimate(None, None, kf.unit, False, f"k_f of the transducer alone is not determined: "
-                              f"{structure.message}; the series stiffness is in 'structure'")
-        rng = ""
-    else:
-        lo, hi = structure.k_f_alone_range
-        rng = f"k_f alone lies in [{lo:.6g}, {hi:.6g}] N/m under the couplings these data cannot exclude"
-    if rng:
-        text = ("conditional on a stiff coupling (Eq. 9): the data determine the series stiffness of transducer "
-                f"and coupling; {rng}")
-        out["k_f"] = replace(kf, flag=kf.flag or "conditional", reason="; ".join(filter(None, (kf.reason, text))))
-    if bf is not None and bf.identifiable:
-        out["b_f"] = replace(bf, flag=bf.flag or "conditional", reason="; ".join(filter(None, (
-            bf.reason, "conditional on a stiff coupling (Eq. 9): a coupling's damping would be in it too"))))
-    return out
+    kf = after.get("k_f")
+    if structure is not None and structure.k_f_alone_range is None and kf is not None and kf.identifiable:
+        return {**state_stiff(after, (0.0, None)),
+                "k_f": Estimate(None, None, kf.unit, False, f"k_f of the transducer alone is not determined: "
+                                f"{structure.message}; the series stiffness is in 'structure'")}
+    return state_stiff(after, None if structure is None else structure.k_f_alone_range)
 
 
 BUDGET_NOTE = ("parameters_after: the standard uncertainties combine the model gap's own (noise, the spread "
