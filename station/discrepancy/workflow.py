@@ -346,15 +346,14 @@ def withheld(params: dict[str, Estimate], why: str) -> dict[str, Estimate]:
 def stated_structure(after: dict[str, Estimate], structure: Any, rep: DiscrepancyResult) -> dict[str, Estimate]:
     """``after`` with the structure it rests on stated as ``identify`` states it: unless a coupling is
     named, k_f and b_f are those of a stiff coupling (Eq. 9), so k_f is the series stiffness of
-    transducer and coupling (``state_stiff``), withheld when the data do not determine k_f alone."""
+    transducer and coupling, flagged 'conditional' with the range of k_f alone (``state_stiff``;
+    unbounded above when the data do not determine k_f alone, ``structure``)."""
     if any(e.name == COUPLING_EFFECT for e in rep.effects):
         return after
-    kf = after.get("k_f")
-    if structure is not None and structure.k_f_alone_range is None and kf is not None and kf.identifiable:
-        return {**state_stiff(after, (0.0, None)),
-                "k_f": Estimate(None, None, kf.unit, False, f"k_f of the transducer alone is not determined: "
-                                f"{structure.message}; the series stiffness is in 'structure'")}
-    return state_stiff(after, None if structure is None else structure.k_f_alone_range)
+    if structure is None:
+        return state_stiff(after, None)
+    rng = structure.k_f_alone_range
+    return state_stiff(after, (structure.series_stiffness.value, None) if rng is None else rng)
 
 
 BUDGET_NOTE = ("parameters_after: the standard uncertainties combine the model gap's own (noise, the spread "
