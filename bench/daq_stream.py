@@ -53,7 +53,7 @@ def run_emulator() -> int:
 
     pty = open_pty()
     src = RigSource(paper_5kN_physics(), seed=1, crank_radius_m=0.01)
-    emu = DaqEmulator(pty.master, src, lambda: 20.0, fifo_bytes=64 * 1024, on_close=pty.forget_master).start()
+    emu = DaqEmulator(pty.master, src, lambda t: 20.0, fifo_bytes=64 * 1024, on_close=pty.forget_master).start()
     print(pty.path, flush=True)
     sys.stdin.read()
     emu.close()

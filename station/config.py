@@ -96,6 +96,9 @@ class RigConfig(_Model):
     load_mass_std_kg: float | None = Field(default=None, ge=0, le=100, description="standard uncertainty "
                                            "of top + adaption mass (default: 1e-4 of it)")
     crank_radius_m: Range = Range(min=1e-4, max=0.05)
+    crank_radius_std_m: float | None = Field(default=None, ge=0, le=0.01, description="standard uncertainty "
+                                             "of a set crank radius in m (default: 1e-7 m, which no certificate "
+                                             "supports); the measured displacement amplitude is checked against it")
     crank_frequency_hz: Range = Range(min=1.0, max=100.0)
     peak_force_fraction: float = Field(default=0.8, gt=0, le=1.0,
                                        description="peak force limit as a fraction of capacity")
@@ -182,6 +185,10 @@ class TruthConfig(_Model):
                                       description="true end mass; defaults to the transducer's")
     sensitivity_V_per_N: float | None = Field(default=None, gt=0, le=1.0,
                                               description="true sensitivity; defaults to nominal")
+    load_mass_kg: float | None = Field(default=None, gt=0, le=MAX_TOP_MASS_KG + 100,
+                                       description="true load mass (top + adaption); defaults to the stated one")
+    displacement_gain_V_per_m: float | None = Field(default=None, gt=0, le=1e6, description="true gain of the "
+                                                    "displacement sensor; defaults to the stated one")
 
 
 class SimulationConfig(_Model):
@@ -552,11 +559,12 @@ def to_rig_physics(cfg: StationConfig) -> rp.RigPhysics:
                           "or transducer.end_mass_kg")
     return rp.RigPhysics(
         transducer=rp.Transducer(
-            k_f=sim.truth.k_f, b_f=sim.truth.b_f, m_e=m_e, m_l=cfg.rig.load_mass_kg,
+            k_f=sim.truth.k_f, b_f=sim.truth.b_f, m_e=m_e, m_l=sim.truth.load_mass_kg or cfg.rig.load_mass_kg,
             sensitivity_V_per_N=sim.truth.sensitivity_V_per_N or t.sensitivity_V_per_N,
             capacity_N=t.capacity_N),
-        displacement_sensor=rp.DisplacementSensor(gain_V_per_m=cfg.displacement_sensor.gain_V_per_m,
-                                                  noise_m=sim.displacement_noise_m),
+        displacement_sensor=rp.DisplacementSensor(
+            gain_V_per_m=sim.truth.displacement_gain_V_per_m or cfg.displacement_sensor.gain_V_per_m,
+            noise_m=sim.displacement_noise_m),
         conditioner=rp.Conditioner(gain=cfg.conditioner.gain, offset_V=cfg.conditioner.offset_V,
                                    noise_V=sim.conditioner_noise_V),
         adc=rp.Adc(bits=cfg.daq.adc_bits, displacement_range_V=cfg.daq.displacement_range_V,

@@ -75,7 +75,7 @@ def simulate_run(cfg: StationConfig, out_dir: str | Path, seed: int | None = Non
     synth = RigSynth(physics, seed=seed, crank_radius_m=segs[0].radius_m)
     adc = physics.adc
     v_d, v_f = adc.volts_per_count(adc.displacement_range_V), adc.volts_per_count(adc.force_range_V)
-    gain = physics.displacement_sensor.gain_V_per_m
+    gain = cfg.displacement_sensor.gain_V_per_m  # the stated gain (the true one may differ: simulation.truth)
     channels = (
         ChannelSpec("displacement", "i2", "count", "m", scale=v_d / gain, volts_per_count=v_d),
         ChannelSpec("force", "i2", "count", "V", scale=v_f, volts_per_count=v_f),

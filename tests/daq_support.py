@@ -34,7 +34,7 @@ def emulator_on_pty(source: Any = None, crank_hz: float = 20.0, **emu: Any) -> I
     ``crank_hz`` (Hz) on a new pseudo-terminal; yields (the emulator, the pty's path for the driver).
     ``emu``: the emulator's options (e.g. ``seed``, ``link``); closed on leaving."""
     pty = open_pty()
-    e = DaqEmulator(pty.master, source or CounterSource(), lambda: crank_hz, on_close=pty.forget_master,
+    e = DaqEmulator(pty.master, source or CounterSource(), lambda t: crank_hz, on_close=pty.forget_master,
                     **emu).start()
     try:
         yield e, pty.path

@@ -21,7 +21,7 @@ from tests.daq_support import CounterSource, emulator_on_pty
 
 
 def inprocess(**emu: object) -> tuple[DaqEmulator, DaqBridge]:
-    e = DaqEmulator(None, CounterSource(), lambda: 0.0, clock=VirtualClock(), **emu).start()  # type: ignore[arg-type]
+    e = DaqEmulator(None, CounterSource(), lambda t: 0.0, clock=VirtualClock(), **emu).start()  # type: ignore[arg-type]
     daq = DaqBridge()
     daq.connect(ClockedDaqLink(e))
     return e, daq
@@ -135,7 +135,7 @@ def test_malformed_commands_get_an_untagged_err_4_and_the_bridge_keeps_answering
     emulator stays up; the asked rate is echoed as asked; frame takes plain digits only."""
     from drivers.daq.protocol import PKT_COMMAND, StreamDecoder, encode_command, encode_packet
 
-    emu = DaqEmulator(None, CounterSource(), lambda: 0.0, clock=VirtualClock()).start()
+    emu = DaqEmulator(None, CounterSource(), lambda t: 0.0, clock=VirtualClock()).start()
 
     def ask(raw: bytes) -> list[str]:
         emu.feed(raw)

@@ -215,7 +215,7 @@ def test_firmware_and_python_emulator_give_the_same_reply_kinds(start_firmware) 
                      encode_packet(PKT_SAMPLES, b"#1 IDN?"), b"\xc0\x10\x00\xc0",  # type, length: ERR 4
                      encode_packet(PKT_COMMAND, b"#1 IDN\xff"), b"\xc0\x10\xdb\x41\xc0"]  # non-ASCII, SLIP: ERR 4
     pty = open_pty()
-    emulator = DaqEmulator(pty.master, _SilentSource(), lambda: 20.0, on_close=pty.forget_master).start()
+    emulator = DaqEmulator(pty.master, _SilentSource(), lambda t: 20.0, on_close=pty.forget_master).start()
     answers = []
     try:
         for path in (start_firmware().path, pty.path):

@@ -67,6 +67,9 @@ def test_three_top_masses_recover_the_end_mass_within_its_uncertainty(three: lis
     cons = next(c for c in res.checks if c.name == "same_transducer_model")
     assert cons.severity == "info"
     assert 0.2 < res.chi2_per_dof < 3
+    # the joint k_f rests on a stiff coupling, stated as identify states it (never a bare k_f alone)
+    assert "series stiffness" in res.parameter("k_f").reason and "stiff coupling" in res.parameter("k_f").reason
+    assert res.assumptions["structure"]["coupling"]["assumed"] == "stiff"
 
 
 def test_nearly_equal_top_masses_are_too_alike(alike: list[Path]) -> None:

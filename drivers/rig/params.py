@@ -72,6 +72,16 @@ class ChannelDelay:
 
 
 @dataclass(frozen=True)
+class ClockSkew:
+    """The two converters on clocks of their own: the force converter's runs ``relative`` fast against
+    the displacement converter's (its sample k comes at k T / (1 + relative)).  On the force's time
+    base the displacement sample k is taken at t_k (1 + relative): a force/displacement phase that
+    grows with time, within a step and from step to step (+2*pi*f*relative*t)."""
+
+    relative: Annotated[float, Ge(-1e-3), Le(1e-3)]
+
+
+@dataclass(frozen=True)
 class CrankHarmonics:
     """Non-sinusoidal frame motion of a slider-crank with a connecting rod of ``rod_length_m``.
 
@@ -142,6 +152,7 @@ class Effects:
     mains_interference: MainsInterference | None = None
     zero_drift: ZeroDrift | None = None
     displacement_resonance: DisplacementResonance | None = None
+    clock_skew: ClockSkew | None = None
 
     def active(self) -> list[str]:
         """Names of the effects that are switched on."""
@@ -157,6 +168,7 @@ EFFECT_NAMES: tuple[str, ...] = (
     "mains_interference",
     "zero_drift",
     "displacement_resonance",
+    "clock_skew",
 )
 
 

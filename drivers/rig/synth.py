@@ -5,7 +5,7 @@ Signal chain per sample k (t_k = k / fs):
     acceleration, jerk (``crank``) -> mechanical chain (paper Eq. 3, exact Hermite discretisation)
     -> spring force F = k_f Z2 -> transducer output S*F*(1 + q F/C + c (F/C)^2) -> conditioner
     low-pass -> gain, offset, drift, mains, noise -> force ADC;
-    x_b (sampled ``channel_delay`` earlier) -> the displacement sensor's own resonance
+    x_b (sampled ``channel_delay`` earlier, and ``clock_skew`` t later) -> the displacement sensor's own resonance
     (``displacement_resonance``, a second-order low-pass integrated exactly like the mechanics)
     -> displacement sensor gain + noise -> displacement ADC.
 
@@ -22,7 +22,7 @@ import numpy as np
 from drivers.rig import crank
 from drivers.rig.discretize import FilterBank, hermite_discretize
 from drivers.rig.model import lowpass_state_space, mechanical_state_space, sensor_resonance_state_space
-from drivers.rig.params import MainsInterference, RigPhysics
+from drivers.rig.params import Effects, MainsInterference, RigPhysics
 
 
 @dataclass(frozen=True)
@@ -163,8 +163,8 @@ class RigSynth:
 
         x = kin.displacement
         cs_x = cs
-        if eff.channel_delay is not None:
-            d = eff.channel_delay.delay_s
+        if eff.channel_delay is not None or eff.clock_skew is not None:
+            d = _displacement_lag(eff, (self._k + np.arange(n)) * T)
             cs_x = crank.shift_angle(cs, omega * d - 0.5 * alpha * d * d)
             x = crank.displacement_at(self._coeffs, cs_x)
         if self._sensor is not None:
@@ -184,6 +184,15 @@ class RigSynth:
         self._f = float(f_end_hz)
         self._k += n
         return block
+
+
+def _displacement_lag(eff: Effects, t: np.ndarray) -> np.ndarray | float:
+    """How long before the force sample at t (s, shape (n,)) the displacement sample is taken, s:
+    the channel delay, less the clock skew's growing lead (``params.ClockSkew``)."""
+    d: np.ndarray | float = eff.channel_delay.delay_s if eff.channel_delay is not None else 0.0
+    if eff.clock_skew is not None:
+        d = d - eff.clock_skew.relative * t
+    return d
 
 
 def _mains(m: MainsInterference, t0: float, T: float, n: int) -> np.ndarray:

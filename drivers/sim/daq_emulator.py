@@ -1,10 +1,13 @@
 """The DAQ-bridge emulator: speaks ``docs/daq-protocol.md`` on a pty (or any fd), streams in real time.
 
-Samples come from a :class:`~drivers.sim.daq_source.SampleSource` (the rig physics); the crank
-frequency of every block is the motor emulator's actual speed at that moment, so both channels
-move with the motor.  Fault injection (thread-safe): dropped and corrupted frames, garbage
-between frames, a stalled stream and a closed port.  Every sample the emulator does not deliver
-intact is recorded in :attr:`DaqEmulator.lost` as ``(first_sample_index, count)``.
+Samples come from a :class:`~drivers.sim.daq_source.SampleSource` (the rig physics) in blocks of a
+fixed length; the crank frequency at a block's end is the motor emulator's speed at that sample's
+own instant (start time + index / rate), so both channels move with the motor, and what a sample
+holds depends on its index only, never on when the emulator got round to computing it (a host
+that stalls the emulator delays the samples, it does not change them).
+Fault injection (thread-safe): dropped and corrupted frames, garbage between frames, a stalled
+stream and a closed port.  Every sample the emulator does not deliver intact is recorded in
+:attr:`DaqEmulator.lost` as ``(first_sample_index, count)``.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ IDENTITY = "SINECAL,DAQ-BRIDGE-EMU,SN0001,1.0"
 RATE_LIMITS_HZ = (100.0, 1_000_000.0)
 FRAME_LIMITS = (16, 4096)
 RANGES_V = (0.1, 10.0)
+SYNTH_BLOCK_S = 0.0128  # samples are synthesised in blocks of this duration (256 samples at 20 kHz)
 
 
 class DaqEmulator:
@@ -51,12 +55,13 @@ class DaqEmulator:
     :meth:`pull` (see :class:`~drivers.sim.daq_inprocess.ClockedDaqLink`).
     """
 
-    def __init__(self, fd: int | None, source: SampleSource, speed_hz: Callable[[], float], *,
+    def __init__(self, fd: int | None, source: SampleSource, speed_hz: Callable[[float], float], *,
                  seed: int = 0, fifo_bytes: int = 1 << 20, tick_s: float = 0.005,
                  on_close: Callable[[], None] | None = None, clock: Clock = REAL_CLOCK,
                  adc_clock_hz: float | None = None, link: str = "uart",
                  link_bytes_per_s: float | None = None, adc_bits: int = 16) -> None:
-        """``adc_clock_hz``: the emulated ADC's rate is ``adc_clock_hz / N`` for a whole N (the
+        """``speed_hz(t)``: the crank frequency (Hz) at time ``t`` (s) of ``clock`` (never later than now).
+        ``adc_clock_hz``: the emulated ADC's rate is ``adc_clock_hz / N`` for a whole N (the
         achievable rate nearest the asked one, reported as ``rate_exact``); None: every rate is exact.
         ``link``/``link_bytes_per_s``: what ``HW?`` reports (``usb-cdc`` needs the throughput);
         ``adc_bits``: the resolution ``HW?`` reports (that of the source's converter)."""
@@ -87,6 +92,7 @@ class DaqEmulator:
         self._stall_until = 0.0
         self._reply_delay: list[float] = []
         self._delayed: list[tuple[float, bytes]] = []  # (due time, reply packet)
+        self._pending: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int16), np.zeros(0, np.int16))
         self._stop = threading.Event()
         self._closed = False
         self._wake_r, self._wake_w = os.pipe()
@@ -204,6 +210,7 @@ class DaqEmulator:
             self.overflows = 0
             self.lost = []
             self._produce(self.clock.monotonic())  # idle synthesis up to now
+            self._pending = (self._pending[0][:0], self._pending[1][:0])
             self.streaming = True
             return f"OK START seq=0 {self._conf_text()}"
         if cmd == "STOP":
@@ -230,6 +237,7 @@ class DaqEmulator:
             self._source_key = key
             self._t0 = self.clock.monotonic()
             self._produced = 0
+            self._block = max(1, round(key[0] * SYNTH_BLOCK_S))
 
     def _conf_text(self) -> str:
         return " ".join(f"{k}={v}" for k, v in self.config.items())
@@ -311,20 +319,33 @@ class DaqEmulator:
                 self._out += packet
 
     # ------------------------------------------------------------------ streaming
+    def _synthesise(self, now: float) -> None:
+        """Synthesise the whole blocks due by ``now``; kept (for frames) only while streaming."""
+        rate = float(self.config["rate_exact"])
+        due = int((now - self._t0) * rate)
+        block = self._block
+        kept: list[tuple[np.ndarray, np.ndarray]] = []
+        while due - self._produced >= block:
+            end = self._produced + block
+            # the crank frequency at the block's end is the motor's speed at that sample's instant
+            d, f = self.source.advance(block, self.speed_hz(self._t0 + end / rate))
+            self._produced = end
+            if self.streaming:
+                kept.append((d, f))
+        if kept:
+            self._pending = (np.concatenate([self._pending[0], *(d for d, _ in kept)]),
+                             np.concatenate([self._pending[1], *(f for _, f in kept)]))
+
     def _produce(self, now: float) -> None:
-        frame = int(self.config["frame"])
-        due = int((now - self._t0) * float(self.config["rate_exact"]))
-        if not self.streaming:  # keep the physics running with the motor; samples are discarded
-            if due - self._produced >= frame:
-                n = due - self._produced
-                self.source.advance(n - n % frame, self.speed_hz())
-                self._produced += n - n % frame
+        self._synthesise(now)
+        if not self.streaming:
             return
-        n_frames = (due - self._produced) // frame
+        frame = int(self.config["frame"])
+        n_frames = len(self._pending[0]) // frame
         if n_frames <= 0:
             return
-        disp, force = self.source.advance(n_frames * frame, self.speed_hz())
-        self._produced += n_frames * frame
+        disp, force = (a[: n_frames * frame] for a in self._pending)
+        self._pending = (self._pending[0][n_frames * frame:], self._pending[1][n_frames * frame:])
         with self._lock:
             stalled = now < self._stall_until
             for k in range(n_frames):

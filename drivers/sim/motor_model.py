@@ -2,11 +2,15 @@
 
 The model is exact for piecewise-constant acceleration: between two queries the speed moves
 linearly towards its target at the ramp rate and the crank angle is the integral of the speed.
-Time comes from an injectable clock (seconds, monotonic) so unit tests can step it.
+Time comes from an injectable clock (seconds, monotonic) so unit tests can step it.  The speed is
+also known at past instants (:meth:`MotorModel.speed_hz` with ``at_s``, from the last minute's
+ramps): the DAQ emulator synthesises each sample at the speed of its own instant, however late it
+gets round to computing it.
 """
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import logging
 import math
@@ -22,6 +26,14 @@ log = logging.getLogger(__name__)
 FAULT_NONE = 0
 FAULT_WATCHDOG = 1
 FAULT_ESTOP = 2
+HISTORY_S = 60.0  # how far back the speed is known (s): far beyond any host stall
+
+
+def _ramp_speed(v0: float, target: float, accel: float, dt: float) -> float:
+    """Speed (Hz) ``dt`` s after ``v0`` when it moves towards ``target`` at ``accel`` Hz/s."""
+    if accel <= 0.0 or v0 == target:
+        return v0
+    return v0 + math.copysign(min(accel * dt, abs(target - v0)), target - v0)
 
 
 @dataclass(frozen=True)
@@ -64,6 +76,9 @@ class MotorModel:
         self._stuck_hz: float | None = None  # the speed a drive that ignores stops keeps turning at
         self._wd_required = True  # enabling with the watchdog off (time-out 0) is refused
         self._wd_active = True  # the watchdog stops the crank when it expires (a drive's detection and action)
+        # the ramps so far: segment start times (s) and (speed at the start, target, accel) of each
+        self._hist_t: list[float] = [self._t]
+        self._hist: list[tuple[float, float, float]] = [(0.0, *self._target_and_accel())]
 
     # ----------------------------------------------------------------- dynamics
     def _target_and_accel(self) -> tuple[float, float]:
@@ -83,7 +98,7 @@ class MotorModel:
             return
         t_reach = abs(target - v0) / accel
         if t_reach >= dt:
-            v1 = v0 + math.copysign(accel * dt, target - v0)
+            v1 = _ramp_speed(v0, target, accel, dt)
             self._angle += 2.0 * math.pi * 0.5 * (v0 + v1) * dt
             self._speed = v1
         else:
@@ -97,6 +112,7 @@ class MotorModel:
             wd_armed = self._enabled and self._fault == FAULT_NONE and self._wd_timeout > 0 and self._wd_active
             if wd_armed and self._wd_deadline < now:
                 seg_end = max(self._wd_deadline, self._t)
+            self._record(now)
             self._integrate(seg_end - self._t)
             self._t = seg_end
             if wd_armed and seg_end < now:
@@ -105,6 +121,16 @@ class MotorModel:
                 self._wd_expired = True
                 self._latch_fault(FAULT_WATCHDOG)
         return now
+
+    def _record(self, now: float) -> None:
+        """Note the segment that starts at ``self._t`` if its target or ramp differs from the last."""
+        target, accel = self._target_and_accel()
+        _, last_target, last_accel = self._hist[-1]
+        if (target, accel) != (last_target, last_accel):
+            self._hist_t.append(self._t)
+            self._hist.append((self._speed, target, accel))
+        if len(self._hist_t) > 64 and self._hist_t[32] < now - HISTORY_S:
+            del self._hist_t[:32], self._hist[:32]
 
     def _stopping(self) -> None:
         """A command that would slow the crank down: a drive that ignores stops keeps its target."""
@@ -126,11 +152,16 @@ class MotorModel:
             return MotorSnapshot(now, self._enabled, self._setpoint, self._ramp, self._speed, self._angle,
                                  target, self._fault, self._estop, self._wd_timeout, self._wd_expired)
 
-    def speed_hz(self) -> float:
-        """Actual crank frequency now, in Hz."""
+    def speed_hz(self, at_s: float | None = None) -> float:
+        """Actual crank frequency in Hz now, or at the clock time ``at_s`` (s) of the last minute
+        (a time after now counts as now: the future is not known yet)."""
         with self._lock:
-            self._advance()
-            return self._speed
+            now = self._advance()
+            if at_s is None or at_s >= now:
+                return self._speed
+            i = max(0, bisect.bisect_right(self._hist_t, at_s) - 1)
+            v0, target, accel = self._hist[i]
+            return _ramp_speed(v0, target, accel, max(0.0, at_s - self._hist_t[i]))
 
     # ----------------------------------------------------------------- commands
     @contextlib.contextmanager
@@ -143,6 +174,9 @@ class MotorModel:
                 yield
             except BaseException:
                 vars(self).update(saved)
+                # the history lists are shared with the saved state: forget the segments begun since
+                keep = bisect.bisect_left(self._hist_t, self._t)
+                del self._hist_t[max(1, keep):], self._hist[max(1, keep):]
                 raise
 
     def set_enable(self, on: bool) -> None:

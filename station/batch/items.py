@@ -13,7 +13,9 @@ class BatchItem:
 
     parameters: name -> the identification's JSON form ``{"value", "std", "unit", "identifiable"[,
     "reason"]}`` (SI units, std the standard uncertainty, k = 1); wall_s / cpu_s: elapsed and CPU
-    time of the job in the worker (s); stored_as: the result's group in the recording when the batch stored it, else "".
+    time of the job in the worker (s); stored_as: the result's group in the recording when the batch stored it, else "";
+    structure: the model structure the parameters rest on, as identify states it (``assumptions.structure``);
+    findings: identify's warnings (name, severity, message), each as in its result.
     """
 
     path: Path
@@ -28,6 +30,8 @@ class BatchItem:
     wall_s: float = 0.0
     stored_as: str = ""
     cpu_s: float = 0.0
+    structure: dict[str, Any] = field(default_factory=dict)
+    findings: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -37,4 +41,5 @@ class BatchItem:
         return {"path": str(self.path), "run_id": self.run_id, "transducer_id": self.transducer_id,
                 "start_time": self.start_time, "status": self.status, "method": self.method,
                 "model": self.model, "parameters": self.parameters, "error": self.error,
-                "wall_s": self.wall_s, "cpu_s": self.cpu_s, "stored_as": self.stored_as}
+                "wall_s": self.wall_s, "cpu_s": self.cpu_s, "stored_as": self.stored_as,
+                "structure": self.structure, "findings": self.findings}

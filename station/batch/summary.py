@@ -78,7 +78,8 @@ def drift_checks(series: Sequence[tuple[float | None, float | None]], *, k: floa
 
 def _row(it: BatchItem) -> dict[str, Any]:
     return {"run_id": it.run_id, "start_time": it.start_time, "recording": str(it.path), "status": it.status,
-            "method": it.method, "model": it.model, "error": it.error, "parameters": it.parameters}
+            "method": it.method, "model": it.model, "error": it.error, "parameters": it.parameters,
+            "structure": it.structure, "findings": it.findings}
 
 
 def _key(row: dict[str, Any]) -> tuple[str, str]:

@@ -61,6 +61,8 @@ def effect_params(name: str, data: RigData) -> tuple[Param, ...]:
     if name == "displacement_resonance":  # the sensor's own resonance (drivers.rig.params.DisplacementResonance)
         return (Param("sensor_resonance_hz", "Hz", log=True, lower=float(data.f_hz.max()), upper=1e6),
                 Param("sensor_damping", "1", lower=0.0, upper=10.0))
+    if name == "clock_skew":  # the force converter's clock against the displacement converter's
+        return (Param("clock_skew", "1", lower=-1e-3, upper=1e-3),)
     if name == "zero_drift":
         if not data.common_clock:  # no common time axis: each step's own offset, slope and curvature
             return tuple([Param(f"dc_s{i}", "V") for i in range(1, data.n_steps)]
@@ -72,7 +74,7 @@ def effect_params(name: str, data: RigData) -> tuple[Param, ...]:
 NEUTRAL: dict[str, float] = {
     "k_c": np.inf, "b_c": 0.0, "cutoff_hz": np.inf, "delay_s": 0.0, "inverse_rod_length_per_m": 0.0,
     "quadratic": 0.0, "cubic": 0.0, "rate_V_per_s": 0.0, "quadratic_V_per_s2": 0.0,
-    "sensor_resonance_hz": np.inf, "sensor_damping": 0.0,
+    "sensor_resonance_hz": np.inf, "sensor_damping": 0.0, "clock_skew": 0.0,
 }
 
 
@@ -84,7 +86,7 @@ def scales(p: dict[str, float], data: RigData) -> dict[str, float]:
            "b_c": 0.1 * p["b_f"], "cutoff_hz": 0.1, "delay_s": 1e-6, "inverse_rod_length_per_m": 0.1,
            "quadratic": 1e-3, "cubic": 1e-3, "frequency_hz": 1e-3,
            "sensor_resonance_hz": 0.1, "sensor_damping": 0.05, "rate_V_per_s": 10 * sig / T,
-           "quadratic_V_per_s2": 10 * sig / T**2}
+           "quadratic_V_per_s2": 10 * sig / T**2, "clock_skew": 1e-6}
     for i in range(data.n_steps):
         out[f"dc_s{i}"] = out[f"slope_s{i}"] = out[f"curv_s{i}"] = 10 * sig
     for h in range(1, data.n_mains + 1):
@@ -105,6 +107,8 @@ def start_grid(name: str, data: RigData, p: dict[str, float]) -> list[dict[str, 
         return [{"cutoff_hz": fc} for fc in np.geomspace(0.5 * fmax, 300 * fmax, 13)]
     if name == "channel_delay":
         return [{"delay_s": d} for d in (0.0, -1e-4, 1e-4, -5e-4, 5e-4)]
+    if name == "clock_skew":
+        return [{"clock_skew": e} for e in (0.0, -1e-4, 1e-4)]
     if name == "displacement_resonance":
         return [{"sensor_resonance_hz": fr, "sensor_damping": z} for fr in np.geomspace(3 * fmax, 300 * fmax, 5)
                 for z in (0.1, 0.7)]

@@ -44,6 +44,8 @@ def effect_estimates(fit: ModelFit, name: str) -> dict[str, Estimate]:
         return est
     if name == "channel_delay":
         return {"delay_s": Estimate(v["delay_s"], s["delay_s"], "s")}
+    if name == "clock_skew":
+        return {"clock_skew": Estimate(v["clock_skew"], s["clock_skew"], "1")}
     if name == "displacement_resonance":
         return {"resonance_hz": Estimate(v["sensor_resonance_hz"], s["sensor_resonance_hz"], "Hz"),
                 "damping": Estimate(v["sensor_damping"], s["sensor_damping"], "1")}

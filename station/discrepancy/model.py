@@ -8,7 +8,9 @@ displacement fundamental X_1 (phasor, m):
    cos^2 phi)), kappa = 1/L, r = |X_1|, phi = w tau + angle(j X_1) is only a check of the drive
    (``drive``), not part of the force model;
 2. frame motion at the force sample instants  x_k = D_k exp(j Omega_k Delta)  (``channel_delay``),
-   divided by the displacement sensor's own response H_s(j Omega_k) (``displacement_resonance``,
+   and ``clock_skew`` (the converters' clocks differ: the displacement sample at t is taken e t later,
+   x_k = D_k exp(-j Omega_k e t), t the step's mid time), divided by the displacement sensor's own
+   response H_s(j Omega_k) (``displacement_resonance``,
    ``drivers.rig.params.DisplacementResonance``: the recorded motion is H_s times the frame's);
 3. spring force  F_k = G(Omega_k) x_k,  G = k_f Z2 / X_b = s^2 * (paper Eq. 9, or Eq. 8 with
    ``coupling_compliance``) in N/m;  F(t) = -M g + sum Re(F_k e^{j k w tau});
@@ -126,6 +128,8 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     dr = _drive(data)
     Om, s, D = dr.Om, dr.s, dr.D
     x = D * np.exp(1j * Om * p["delay_s"]) if "channel_delay" in effects else D
+    if "clock_skew" in effects:  # the displacement sample taken clock_skew * t after the force sample at t
+        x = x * np.exp(-1j * Om * p["clock_skew"] * data.t_mid_s[:, None])
     if "displacement_resonance" in effects:  # the recorded motion is H_s x_b: the frame's is D / H_s
         x = x / DisplacementResonance(p["sensor_resonance_hz"], p["sensor_damping"]).response(dr.f)
     t = Transducer(k_f=p["k_f"], b_f=p["b_f"], m_e=data.end_mass_kg, m_l=data.load_mass_kg,

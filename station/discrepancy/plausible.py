@@ -34,7 +34,7 @@ CLAIMS: dict[str, tuple[str, ...]] = {
     "coupling_compliance": ("fundamental",), "conditioner_lowpass": ("fundamental",),
     "channel_delay": ("fundamental",), "transducer_nonlinearity": ("harmonic",),
     "mains_interference": ("mains line",), "zero_drift": ("offset and drift",),
-    "displacement_resonance": ("fundamental",),
+    "displacement_resonance": ("fundamental",), "clock_skew": ("fundamental",),
 }
 def left_in_band(name: str, findings: Sequence[Finding]) -> list[Finding]:
     """The findings (of the final model) in the components ``name`` claims to explain."""

@@ -69,6 +69,8 @@ def draw_effect(name: str, rng: np.random.Generator, k_f: float, b_f: float) -> 
                 "quadratic_V_per_s2": _sign(rng) * float(rng.uniform(0.0, 2e-5))}
     if name == "displacement_resonance":
         return {"resonance_hz": _logu(rng, 300.0, 1000.0), "damping": float(rng.uniform(0.3, 1.0))}
+    if name == "clock_skew":
+        return {"relative": _sign(rng) * _logu(rng, 1e-5, 1e-4)}
     raise KeyError(name)
 
 

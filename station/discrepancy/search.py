@@ -16,7 +16,8 @@ from station.discrepancy.fit import ModelFit, Problem, fit_model, profiled_chi2
 
 log = logging.getLogger(__name__)
 __all__ = ["base_start", "fit_candidate"]
-FUNDAMENTAL_ONLY = ("coupling_compliance", "conditioner_lowpass", "channel_delay", "displacement_resonance")
+FUNDAMENTAL_ONLY = ("coupling_compliance", "conditioner_lowpass", "channel_delay", "displacement_resonance",
+                    "clock_skew")
 # LM runs from the best grid points
 MULTI_START: dict[str, int] = {"coupling_compliance": 3, "displacement_resonance": 2}
 

@@ -61,6 +61,10 @@ def mains_statistic(residuals: list[FloatArray], sigmas: list[float], fs: float,
     return grid, per.sum(axis=0), per
 
 
+MAINS_NOMINAL_HZ = (50.0, 60.0)
+MAINS_TOL = 0.02  # a mains line is within 2 % of its nominal frequency (``physical``)
+
+
 @dataclass(frozen=True)
 class MainsDetection:
     """Mains line search: frequency (Hz) or None, number of harmonics to model, evidence text."""
@@ -74,15 +78,25 @@ def detect_mains(residuals: list[FloatArray], sigmas: list[float], fs: float,
                  f_range: tuple[float, float], h_max: int, alpha: float = 1e-6) -> MainsDetection:
     """Find a line common to the steps in ``f_range`` (with harmonics); it must stand out in the
     sum over steps (Gamma test at ``alpha`` after the number of grid cells searched) *and* in at least
-    half of the steps (a line of one step only is not mains).  Harmonics up to ``h_max`` are kept
-    when each is significant (alpha 1e-4) in the summed single-harmonic power."""
+    half of the steps (a line of one step only is not mains).  Mains is at a mains frequency: only
+    ``MAINS_TOL`` around 50 and 60 Hz is searched, and the line's own fundamental must be significant
+    (alpha 1e-4): a line that is only a "harmonic" of a grid frequency (the transducer's own free
+    oscillation, say) is not mains.  Harmonics up to ``h_max`` are kept when each is significant
+    (alpha 1e-4) in the summed single-harmonic power."""
     n = len(residuals)
     if n == 0:
         return MainsDetection(None, 0, "no steps")
     spectra = [normalised_periodogram(r, s, fs) for r, s in zip(residuals, sigmas, strict=True)]
     grid, total, per = mains_statistic(residuals, sigmas, fs, f_range, spectra=spectra)
+    at_mains = np.zeros(grid.size, bool)
+    for f0 in MAINS_NOMINAL_HZ:
+        at_mains |= np.abs(grid / f0 - 1) <= MAINS_TOL
+    if not np.any(at_mains):
+        return MainsDetection(None, 0, f"no mains frequency in {f_range[0]:g}-{f_range[1]:g} Hz")
+    total = np.where(at_mains, total, -np.inf)
     j = int(np.argmax(total))
-    trials = (f_range[1] - f_range[0]) * max(r.size for r in residuals) / fs  # independent cells
+    width = float(np.count_nonzero(at_mains)) * float(grid[1] - grid[0] if grid.size > 1 else 0.01)
+    trials = width * max(r.size for r in residuals) / fs  # independent cells
     thresh = stats.gamma.isf(alpha / max(trials, 1.0), 3 * n)
     per_step = stats.gamma.isf(1e-3, 3)
     steps_with = int(np.count_nonzero(per[:, j] > per_step))
@@ -91,6 +105,10 @@ def detect_mains(residuals: list[FloatArray], sigmas: list[float], fs: float,
                                        f"(max statistic {total[j]:.3g} at {grid[j]:.2f} Hz, threshold "
                                        f"{thresh:.3g}, in {steps_with}/{n} steps)")
     f_m = float(grid[j])
+    p1 = sum(float(np.interp(f_m, fr, P)) for fr, P in spectra)
+    if p1 < stats.gamma.isf(1e-4, n):
+        return MainsDetection(None, 0, f"lines at harmonics of {f_m:.2f} Hz but none at {f_m:.2f} Hz itself: "
+                                       "not mains (e.g. the transducer's own free oscillation)")
     keep = 1
     t1 = stats.gamma.isf(1e-4, n)
     for h in range(2, h_max + 1):

@@ -38,10 +38,12 @@ from station.discrepancy.plausible import withdraw
 from station.discrepancy.propose import FILL, KF_REL, RunContext, next_run
 from station.discrepancy.result import AddedEffect, Candidate, DiscrepancyResult
 from station.discrepancy.search import base_start, fit_candidate, with_order_alternatives
+from station.discrepancy.structure import COUPLING as COUPLING_EFFECT
 from station.discrepancy.structure import state_structure
 from station.discrepancy.ties import TIE_CHI2, averaged, tie_models, tied_names, undetectable
 from station.errors import StationError
 from station.ident.result import Estimate
+from station.ident.structure import state_stiff
 from station.recording import Recording, read_recording
 
 if TYPE_CHECKING:
@@ -91,8 +93,8 @@ def _forward(data: RigData, current: ModelFit, allowed: tuple[str, ...], max_eff
         fits: dict[str, ModelFit] = {}
         cands: list[Candidate] = []
         for name in allowed:
-            if name in current.effects:
-                continue
+            if name in current.effects or (name == "clock_skew" and not data.common_clock):
+                continue  # a clock skew needs the steps on one time axis
             fit = fit_candidate(data, current, name)
             if fit is None:
                 continue
@@ -311,6 +313,16 @@ def analyse_recording(path: str | Path | Recording, max_effects: int = 4,
     ident = _identify(rec) if data.n_steps >= 2 else None
     before, after, notes = rep.parameters_before, rep.parameters_after, rep.notes
     structure = rep.structure
+    if isinstance(ident, str):  # identify refused (or failed): no parameter goes out without its budget
+        after, before = withheld(after, ident), withheld(before, ident)
+        if structure is not None:
+            structure = replace(structure, series_stiffness=withheld({"k_f": structure.series_stiffness},
+                                                                     ident)["k_f"])
+        return replace(rep, parameters_before=before, parameters_after=after, structure=structure,
+                       unexplained=(*rep.unexplained, f"station identify refuses this run: {ident}"),
+                       notes=(*notes, "parameters withheld: station identify refuses this run, so they have no "
+                              "budget (measurement chain, masses); the effects above still describe the gap"),
+                       wall_s=time.perf_counter() - t0)
     if ident is not None:
         before = ident[0]
         after = with_budget(after, ident[0], ident[1])
@@ -318,8 +330,30 @@ def analyse_recording(path: str | Path | Recording, max_effects: int = 4,
         if structure is not None:  # the series stiffness carries the same systematic terms as k_f
             ks = with_budget({"k_f": structure.series_stiffness}, ident[0], ident[1])["k_f"]
             structure = replace(structure, series_stiffness=ks)
+    else:
+        notes = (*notes, "parameters_after: noise and model spread only (no budget: fewer than two steps)")
+    after = stated_structure(after, structure, rep)
     return replace(rep, parameters_before=before, parameters_after=after, notes=notes, structure=structure,
                    wall_s=time.perf_counter() - t0)
+
+
+def withheld(params: dict[str, Estimate], why: str) -> dict[str, Estimate]:
+    """Every parameter withheld (not identifiable) with ``why``: what a refused identification leaves."""
+    return {k: Estimate(None, None, e.unit, False, f"withheld: station identify refuses this run ({why})")
+            for k, e in params.items()}
+
+
+def stated_structure(after: dict[str, Estimate], structure: Any, rep: DiscrepancyResult) -> dict[str, Estimate]:
+    """``after`` with the structure it rests on stated as ``identify`` states it: unless a coupling is
+    named, k_f and b_f are those of a stiff coupling (Eq. 9), so k_f is the series stiffness of
+    transducer and coupling, flagged 'conditional' with the range of k_f alone (``state_stiff``;
+    unbounded above when the data do not determine k_f alone, ``structure``)."""
+    if any(e.name == COUPLING_EFFECT for e in rep.effects):
+        return after
+    if structure is None:
+        return state_stiff(after, None)
+    rng = structure.k_f_alone_range
+    return state_stiff(after, (structure.series_stiffness.value, None) if rng is None else rng)
 
 
 BUDGET_NOTE = ("parameters_after: the standard uncertainties combine the model gap's own (noise, the spread "
@@ -399,26 +433,32 @@ def run_context(rec: Recording, station: StationConfig | None = None) -> RunCont
         return why
 
 
-def _identify(rec: Recording) -> tuple[dict[str, Estimate], dict[str, Any]] | None:
+def _identify(rec: Recording) -> tuple[dict[str, Estimate], dict[str, Any]] | str:
     """The base model's S, k_f, b_f as ``station identify --json`` reports them (frequency-domain fit
-    of paper Eq. 9, ``station.ident``) and its uncertainty budget; None (the workflow's own base fit
-    stays, no systematic terms) if that fails.  The values agree with the workflow's base fit; the
-    uncertainties of a misfitting base model differ (identify inflates by the fundamental's
-    chi^2/dof alone, which is the honest figure for k_f)."""
-    try:
-        from station.ident.identify import identify_recording
+    of paper Eq. 9, ``station.ident``) and its uncertainty budget, or why identify gives none (its
+    refusal, or its failure): the caller then withholds the parameters rather than report them with
+    a noise-only uncertainty.  The values agree with the workflow's base fit; the uncertainties of a
+    misfitting base model differ (identify inflates by the fundamental's chi^2/dof alone, which is
+    the honest figure for k_f)."""
+    from station.ident.identify import identify_recording
 
+    try:
         res = identify_recording(rec, "fd", "sdof")
-        out = {}
-        for name, q in res.parameters.items():
-            if name in ("S", "k_f", "b_f"):
-                ok = q.identifiable and q.value is not None and q.std is not None
-                out[name] = Estimate(float(q.value) if ok and q.value is not None else math.nan,
-                                       float(q.std) if ok and q.std is not None else math.nan, q.unit, ok, q.reason)
-        return (out, dict(res.budget or {})) if len(out) == 3 else None
-    except Exception as exc:  # identification is another package: never let it break this report
-        log.warning("station.ident failed (%s); parameters_before from the workflow's base fit", exc)
-        return None
+    except StationError as exc:  # a refusal (IdentificationRefused) or bad inputs: the same reason travels on
+        log.info("%s: station identify refuses: %s", rec.path, exc)
+        return str(exc)
+    except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
+        log.warning("%s: station identify failed (%s): parameters withheld", rec.path, exc)
+        return f"identification failed: {type(exc).__name__}: {exc}"
+    out = {}
+    for name, q in res.parameters.items():
+        if name in ("S", "k_f", "b_f"):
+            ok = q.identifiable and q.value is not None and q.std is not None
+            out[name] = Estimate(float(q.value) if ok and q.value is not None else math.nan,
+                                 float(q.std) if ok and q.std is not None else math.nan, q.unit, ok, q.reason)
+    if len(out) != 3:
+        return "identify gave no S, k_f and b_f"
+    return out, dict(res.budget or {})
 
 
 def gap_table(rep: DiscrepancyResult) -> list[tuple[str, list[float]]]:

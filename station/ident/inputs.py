@@ -29,6 +29,7 @@ from station.ident.models import Model, make_model
 DEFAULT_END_MASS_REL_STD = 0.05
 DEFAULT_RESONANCE_REL_STD = 0.05
 DEFAULT_LOAD_MASS_REL_STD = 1e-4
+DEFAULT_CRANK_RADIUS_STD_M = 1e-7  # a motorised eccentric read by its encoder
 
 
 class MeasurementChain(BaseModel):
@@ -121,6 +122,8 @@ class IdentInputs:
     load_mass: MassInput
     chain: MeasurementChain
     end_mass_given: bool
+    crank_radius_std_m: float = DEFAULT_CRANK_RADIUS_STD_M
+    defaults: tuple[str, ...] = ()  # the standard uncertainties used that no certificate supports (defaults)
 
     @property
     def m_e(self) -> float:
@@ -134,7 +137,9 @@ class IdentInputs:
         """The ``assumptions`` of the result JSON."""
         return {"end_mass_kg": self.end_mass.to_dict(), "load_mass_kg": self.load_mass.to_dict(),
                 "measurement_chain": self.chain.model_dump(),
-                "displacement_chain": self.chain.displacement_statement()}
+                "displacement_chain": self.chain.displacement_statement(),
+                "crank_radius_std_m": self.crank_radius_std_m,
+                "unsupported_defaults": list(self.defaults)}
 
 
 def _num(d: Any, *keys: str) -> float | None:
@@ -159,11 +164,17 @@ def inputs_for(rec: Any, *, assumed_end_mass_kg: float | None = None,
     m_l = float(rec.load_mass_kg)
     u_l = _num(cfg, "top_mass_std_kg") if imported else _num(cfg, "rig", "load_mass_std_kg")
     load = MassInput(m_l, u_l if u_l is not None else DEFAULT_LOAD_MASS_REL_STD * m_l, src)
+    defaults = [] if u_l is not None else [f"load mass u = {DEFAULT_LOAD_MASS_REL_STD:g} of its value"]
+    u_r = _num(cfg, "rig", "crank_radius_std_m")
+    if u_r is None:
+        defaults.append(f"crank radius u = {DEFAULT_CRANK_RADIUS_STD_M:g} m")
     if rec.end_mass_kg is not None:
         u_e = _num(cfg, "end_mass_std_kg") if imported else _num(cfg, "transducer", "end_mass_std_kg")
         end = MassInput(float(rec.end_mass_kg), u_e if u_e is not None
                         else DEFAULT_END_MASS_REL_STD * float(rec.end_mass_kg), src)
         given = True
+        if u_e is None:
+            defaults.append(f"end mass u = {DEFAULT_END_MASS_REL_STD:g} of its value")
     else:
         given = assumed_end_mass_kg is not None and assumed_end_mass_std_kg is not None
         end = MassInput(float(assumed_end_mass_kg or 0.0), assumed_end_mass_std_kg if given else None, "assumed")
@@ -174,7 +185,10 @@ def inputs_for(rec: Any, *, assumed_end_mass_kg: float | None = None,
         except ValidationError as exc:
             raise BadInputError(f"{rec.path}: measurement chain: {exc.errors()[0]['msg']} "
                                 f"(received {raw!r})") from None
-    return IdentInputs(end, load, chain, given)
+    if chain.gain_rel_std == MeasurementChain.model_fields["gain_rel_std"].default:  # a snapshot states defaults too
+        defaults.append(f"measurement chain gain u = {chain.gain_rel_std:g} (relative)")
+    return IdentInputs(end, load, chain, given, DEFAULT_CRANK_RADIUS_STD_M if u_r is None else u_r,
+                       tuple(defaults))
 
 
 def model_for(rec: Any, key: str, inputs: IdentInputs | None = None) -> Model:

@@ -238,6 +238,33 @@ def _conditional(p: Estimate, text: str) -> Estimate:
     return replace(p, flag=p.flag or "conditional", reason=(p.reason + "; " if p.reason else "") + text)
 
 
+def state_stiff(params: dict[str, Estimate], k_range: tuple[float, float | None] | None,
+                subject: str = "the data") -> dict[str, Estimate]:
+    """k_f and b_f of an Eq. 9 result (the joint fit of a campaign, the model gap's) stated as
+    ``apply_structure`` states them: k_f is the series stiffness of transducer and coupling; with the
+    range of k_f alone (``k_range``: (k_s, high), high None when unbounded; None: the coupling is not
+    tested) wider than u(k_f), k_f and b_f are flagged 'conditional', else k_f only says so."""
+    out = dict(params)
+    kf, bf = out.get("k_f"), out.get("b_f")
+    if kf is None or not kf.identifiable or kf.value is None:
+        return out
+    if k_range is None:
+        where, soft = "the coupling is not tested", True
+    elif k_range[1] is None:
+        where, soft = f"{subject} cannot tell a soft coupling from a stiff one, so k_f alone is not bounded above", True
+    else:
+        where = (f"k_f alone lies in [{k_range[0]:.6g}, {k_range[1]:.6g}] N/m under the couplings {subject} "
+                 "cannot exclude")
+        soft = k_range[1] - k_range[0] > float(kf.std or 0.0)
+    text = (f"conditional on a stiff coupling (Eq. 9): {subject} determine the series stiffness of transducer and "
+            f"coupling; {where}")
+    out["k_f"] = _conditional(kf, text) if soft else replace(kf, reason="; ".join(filter(None, (kf.reason, text))))
+    if soft and bf is not None and bf.identifiable:
+        out["b_f"] = _conditional(bf, "conditional on a stiff coupling (Eq. 9): a coupling's damping would be in "
+                                      "it too")
+    return out
+
+
 def apply_structure(model_key: str, stiff: bool, params: dict[str, Estimate], theta: FloatArray,
                     budget: Budget, frf: frfmod.FrequencyResponse, sdof: SdofModel, birge: float,
                     inputs: IdentInputs, suspected: Check | None) -> StructureOutcome:

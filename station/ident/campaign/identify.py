@@ -49,7 +49,7 @@ from station.ident.response.checked import checked_response
 from station.ident.response.frf import FrequencyResponse
 from station.ident.response.gate import IdentificationRefused
 from station.ident.result import Check, Covariance, Estimate
-from station.ident.structure import chain_corrected, coupling_bound, structure_statement
+from station.ident.structure import chain_corrected, coupling_bound, state_stiff, structure_statement
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -253,13 +253,15 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
     me = ({"value": float(fit.theta[1]), "std": float(sd[1]), "source": "campaign"} if status == "separated"
           else {"value": stated.value, "std": stated.std, "source": inputs[0].end_mass.source} if stated
           else None)
+    structure = _structure(frfs, priors, fit.theta, fit.chi2_per_dof if fit.inflated else 1.0, inputs[0])
+    cpl = structure.get("coupling") or {}
+    params = state_stiff(params, cpl.get("k_f_alone_range_N_per_m"), "the recordings")
     assumptions = {"model": "Eq. 9 (stiff coupling), one S, m_e, k_f, b_f for every recording",
                    "end_mass_kg": me,
                    "load_mass_kg": [{"run_id": r.run_id, "value": p.value, "std": p.std} for r, p in zip(recs, priors,
                                                                                                         strict=True)],
                    "measurement_chain": chain.model_dump(),
-                   "structure": _structure(frfs, priors, fit.theta, fit.chi2_per_dof if fit.inflated else 1.0,
-                                           inputs[0])}
+                   "structure": structure}
     log.info("campaign of %d recordings: %s", len(recs), status)
     covariance = Covariance.of(jf.NAMES, jf.UNITS, cov)
     return CampaignResult(status, recs[0].transducer_id, params, covariance, rows, fit.chi2, fit.dof, fit.inflated,

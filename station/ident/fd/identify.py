@@ -25,6 +25,7 @@ from station.ident.models import CoupledModel, Model, SdofModel, make_model
 from station.ident.response import frf as frfmod
 from station.ident.response.checked import CheckedResponse, checked_response
 from station.ident.response.gate import sensitivity_check
+from station.ident.response.redundancy import beside_clock_skew
 from station.ident.result import Check, Estimate, IdentificationResult, estimated_covariance
 from station.ident.structure import apply_structure, chain_corrected, coupling_suspected, resonance_suspected
 from station.recording import Recording
@@ -176,7 +177,7 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
     birge = sdof_fit.chi2 / sdof_fit.dof if sdof_fit.inflated else 1.0
     structure = apply_structure(model.key, stiff, params, fit.theta, budget, frf, sdof, birge, inputs, suspected)
     params = structure.parameters
-    checks += structure.checks
+    checks = beside_clock_skew(checks + list(structure.checks))
     c = sensitivity_check(params["S"].value, rec.sensitivity_V_per_N, not inputs.end_mass_given)
     checks += [c] if c else []
     determined = {**_determined(model, fit.theta, budget), **structure.determined}

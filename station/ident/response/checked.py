@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 from station.ident.inputs import IdentInputs, inputs_for
 from station.ident.response import frf as frfmod
 from station.ident.response.gate import run_checks, screen_step
+from station.ident.response.redundancy import clock_check, radius_check
 from station.ident.response.sinefit import SineFit
 from station.ident.result import Check
 from station.recording import Recording
@@ -48,7 +49,9 @@ class CheckedResponse:
 def checked_response(rec: Recording, inputs: IdentInputs | None = None,
                      n_harmonics: int = 3) -> CheckedResponse:
     """Screen every step (``gate.screen_step``), then the run (``gate.run_checks``; raises
-    ``IdentificationRefused``), and assemble H(f) of the steps left."""
+    ``IdentificationRefused``), check the redundant measurements against each other
+    (``redundancy``: displacement against crank radius, the two converters' clocks), and assemble
+    H(f) of the steps left."""
     inputs = inputs or inputs_for(rec)
     fs = rec.sample_rate_hz
     items: dict[int, tuple] = {}
@@ -71,5 +74,9 @@ def checked_response(rec: Recording, inputs: IdentInputs | None = None,
             sigs[st.index] = StepSignal(t, u, item[2], np.array((item[2].phasor, *item[2].harmonics)))
     more, used, sign = run_checks(items, checks, radii, rec.sensitivity_V_per_N, inputs.m_e + inputs.m_l)
     checks += more
+    # redundant measurements: the displacement against the crank radius, one clock for both converters
+    checks += [c for c in (radius_check({i: items[i][2] for i in used}, radii, inputs),
+                           clock_check({i: (sigs[i].t, sigs[i].u, sigs[i].fit_x) for i in used}, n_harmonics))
+               if c is not None]
     return CheckedResponse(frfmod.assemble([items[i] for i in used]), [sigs[i] for i in used], used,
                            checks, sign)
