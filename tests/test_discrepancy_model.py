@@ -50,6 +50,8 @@ def _truth(name: str, cfg: dict, fs_S: float) -> dict[str, float]:
         return {"cutoff_hz": cfg["cutoff_hz"]}
     if name == "displacement_resonance":
         return {"sensor_resonance_hz": cfg["resonance_hz"], "sensor_damping": cfg["damping"]}
+    if name == "clock_skew":
+        return {"clock_skew": cfg["relative"]}
     if name == "mains_interference":
         out = {"frequency_hz": cfg["frequency_hz"]}
         for h, (a, p) in enumerate(zip(cfg["amplitudes_V"], cfg["phases_rad"], strict=True), start=1):

@@ -40,6 +40,8 @@ def _truth_params(name: str, cfg: dict[str, Any]) -> dict[str, float]:
         for h, (a, p) in enumerate(zip(cfg["amplitudes_V"], cfg["phases_rad"], strict=True), start=1):
             out[f"amplitude_V_{h}"], out[f"phase_rad_{h}"] = a, p
         return out
+    if name == "clock_skew":  # the simulator's relative rate of the force converter's clock
+        return {"clock_skew": cfg["relative"]}
     return {k: float(v) for k, v in cfg.items()}
 
 
