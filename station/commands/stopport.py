@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs, urlsplit
 
 from station.api.routes.system import cross_site_refusal, stop_answer, who_stopped
+from station.service.priority import Priority, raise_priority
 from station.service.rigthread import close_loop
 
 if TYPE_CHECKING:
@@ -136,7 +137,7 @@ class StopPort:
 
     def __init__(self, manager: RunManager, settings: ServiceSettings, host: str, port: int, *,
                  page_port: int | None = None, header_timeout_s: float = 5.0,
-                 max_connections: int = MAX_CONNECTIONS) -> None:
+                 max_connections: int = MAX_CONNECTIONS, priority: Priority = "normal") -> None:
         self.manager = manager
         self.settings = settings
         self.host = host
@@ -144,6 +145,7 @@ class StopPort:
         self.page_port = page_port  # the main port: the station's own page comes from there
         self.header_timeout_s = header_timeout_s
         self.max_connections = max_connections
+        self.priority = priority  # the scheduling priority its thread asks for
         self.names = station_names(settings)  # taken in a Host header besides loopback names and addresses
         self.loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -162,6 +164,8 @@ class StopPort:
         failure: list[BaseException] = []
 
         def main() -> None:
+            if self.priority != "normal":
+                raise_priority("stop-port", self.priority)
             loop = asyncio.new_event_loop()
             self.loop = loop
             try:
