@@ -107,9 +107,11 @@ def test_stop_port_stops_the_drive_and_refuses_bad_and_cross_site_requests_witho
                 (req("PUT", p), 405),
             ]
             for request, want in refused:
-                status, _, body = await raw(p, request)
+                status, headers, body = await raw(p, request)
                 assert status == want, (request[:60], body)
-                assert body["detail"]
+                # a refusal as problem details, as the main port answers
+                assert headers["content-type"] == "application/problem+json" and body["status"] == want
+                assert body["type"].startswith("urn:sinecal:problem:") and body["detail"]
             assert not m.latch.latched and await m.link.motor_fault() is None  # no effect
             status, _, body = await raw(p, req("GET", p))
             assert status == 200 and body["estop"]["latched"] is False

@@ -53,6 +53,10 @@ REASONS = {200: "OK", 400: "Bad Request", 403: "Forbidden", 404: "Not Found", 40
            408: "Request Timeout", 431: "Request Header Fields Too Large", 500: "Internal Server Error"}
 
 
+PROBLEM_KINDS = {400: "bad-request", 403: "cross-site", 404: "not-found", 405: "method-not-allowed",
+                 408: "bad-request", 413: "body-too-large", 431: "bad-request", 500: "internal-error"}
+
+
 class BadRequest(Exception):
     def __init__(self, status: int, detail: str) -> None:
         super().__init__(detail)
@@ -243,8 +247,14 @@ class StopPort:
 
     async def _answer(self, writer: asyncio.StreamWriter, status: int, body: dict[str, Any],
                       extra: list[tuple[str, str]] | None = None) -> None:
+        media = "application/json"
+        if status >= 400:  # a refusal as RFC 9457 problem details, as on the main port
+            kind = PROBLEM_KINDS.get(status, "bad-request")
+            body = {"type": f"urn:sinecal:problem:{kind}", "title": REASONS.get(status, "Error"), "status": status,
+                    "detail": str(body.get("detail", ""))}
+            media = "application/problem+json"
         data = json.dumps(body).encode()
-        head = [f"HTTP/1.1 {status} {REASONS.get(status, 'Error')}", "Content-Type: application/json",
+        head = [f"HTTP/1.1 {status} {REASONS.get(status, 'Error')}", f"Content-Type: {media}",
                 f"Content-Length: {len(data)}", "Connection: close", "Cache-Control: no-store",
                 *(f"{k}: {v}" for k, v in extra or [])]
         writer.write(("\r\n".join(head) + "\r\n\r\n").encode("latin-1") + data)
