@@ -16,6 +16,10 @@ minus the time just before the bench sent ``POST /stop``.  Cases, each ``--repea
 - ``idle_connections``: ``--connections`` (20 000) idle TCP connections to the daemon on loopback,
   opened just before the stop (no request on any of them).  Also reported: how many the daemon kept
   open (its descriptors) and its log lines about open files.
+- ``flood_busy``: a run recording, both cores kept busy (two spinning processes of this bench),
+  ``--flood`` (5 000) idle TCP connections opened on the main port, 2 s, then the stop.  Also
+  reported: stops lost (not answered 200 or not reaching the drive within 10 s: a second stop then
+  ends the run) and runs that failed by themselves during the flood (before the stop).
 
 Each case is measured for each ``--via``: ``main`` sends ``POST /stop`` to the daemon's web port (a
 new connection each time), ``stop_port`` to its stop port (``service.stop_port``: a listener of its
@@ -26,7 +30,7 @@ acknowledges the stop as an operator would.  Everything is bounded in time; the 
 emulator are ended at the close.  Target: <= 100 ms in every case.
 
 Usage: python bench/stop_latency.py [--repeats 3] [--connections 20000] [--cases idle,idle_connections,...]
-       [--via main,stop_port]
+       [--via main,stop_port] [--flood 5000] [--daemon-tree OTHER_SOURCE_TREE]
 """
 
 from __future__ import annotations
@@ -83,7 +87,7 @@ class Daemon:
         self.log_path = tmp / "daemon.log"
         self.port = _free_port()
         self.stop_port: int | None = None
-        if tree is None:  # this version has the stop port
+        if tree is None or "stop_port" in (tree / "station" / "config.py").read_text():  # it has the stop port
             self.stop_port = _free_port()
             cfg.setdefault("service", {})["stop_port"] = self.stop_port
             self.cfg_path.write_text(yaml.safe_dump(cfg))
@@ -266,16 +270,16 @@ def idle_connections(port: int, n: int, limit_s: float = 60.0) -> Iterator[tuple
                 h.kill()
 
 
-def one_stop(d: Daemon, emu: SimRigProcess, via: str) -> dict[str, Any]:
+def one_stop(d: Daemon, emu: SimRigProcess, via: str, wait_s: float = 60.0) -> dict[str, Any]:
     client = d.stop_port_client if via == "stop_port" else d.stop_client
     t0 = time.monotonic()
     try:
         r = client.post("/stop")
         status, body = r.status_code, r.json()
-    except httpx.HTTPError as exc:
+    except (httpx.HTTPError, ValueError) as exc:
         status, body = None, {"error": f"{type(exc).__name__}: {exc}"}
     http_ms = (time.monotonic() - t0) * 1e3
-    t_cmd = emu.wait_command("emergency_stop", t0, 60.0)
+    t_cmd = emu.wait_command("emergency_stop", t0, wait_s)
     return {"latency_ms": None if t_cmd is None else (t_cmd - t0) * 1e3, "http_ms": http_ms,
             "status": status, "motor_stopped": body.get("motor_stopped"), "error": body.get("error")}
 
@@ -305,6 +309,68 @@ def measure(name: str, d: Daemon, emu: SimRigProcess, repeats: int,
             "met": bool(lat) and len(lat) == repeats and max(lat) <= TARGET_MS, **extra}
 
 
+def renice(pid: int, nice: int) -> str:
+    """Every thread of process ``pid`` at ``nice``; what was done, in words."""
+    tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    try:
+        for tid in tids:
+            os.setpriority(os.PRIO_PROCESS, tid, nice)
+    except OSError as exc:
+        return f"not changed: {exc.strerror}"
+    return f"nice {nice} ({len(tids)} threads)"
+
+
+@contextlib.contextmanager
+def cores_busy(n: int = 2) -> Iterator[None]:
+    """``n`` processes spinning on the CPU (ended at the close)."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    try:
+        yield
+    finally:
+        for h in hogs:
+            h.kill()
+            h.wait()
+
+
+def flood_busy(d: Daemon, emu: SimRigProcess, repeats: int, flood: int, via: str,
+               drive_nice: int | None = None) -> dict[str, Any]:
+    """The stop during a run, with both cores busy and ``flood`` idle connections on the main port
+    (``drive_nice``: the emulator's threads at this nice value once the run records)."""
+    samples, failed_runs = [], []
+    reniced = None
+    for _ in range(repeats):
+        rid = start_run(d)
+        if drive_nice is not None:
+            proc = emu._proc  # the emulator's process (a bench may look inside)
+            assert proc is not None
+            reniced = renice(proc.pid, drive_nice)
+        with cores_busy(), idle_connections(d.port, flood) as (opened, est):
+            time.sleep(2.0)  # the flood held during the record window: does the run survive it?
+            st = d.call("GET", f"/runs/{rid}").json()
+            if st["state"] != "running":
+                failed_runs.append(f"{st['state']}: {st['message']}")
+            s = one_stop(d, emu, via, wait_s=10.0)
+        s.update(opened=opened, established=est)
+        samples.append(s)
+        if s["status"] != 200 or s["latency_ms"] is None:  # lost: end the run all the same
+            one_stop(d, emu, "stop_port" if d.stop_port else "main")
+        wait_rig_free(d)
+        acknowledge(d)
+    lat = [s["latency_ms"] for s in samples if s["latency_ms"] is not None]
+    lost = sum(1 for s in samples if s["status"] != 200 or s["latency_ms"] is None)
+    return {"case": "flood_busy", "via": via, "repeats": repeats, "flood_connections": flood,
+            "drive_emulator": reniced or "nice 0 (as everything else)",
+            "stops_lost": lost, "runs_failed_by_the_flood": len(failed_runs), "run_failures": failed_runs[:5],
+            "latency_ms_median": round(statistics.median(lat), 2) if lat else None,
+            "latency_ms_max": round(max(lat), 2) if lat else None,
+            "latency_ms_each": [round(x, 1) for x in lat],
+            "http_answer_ms_median": round(statistics.median(s["http_ms"] for s in samples), 1),
+            "statuses": [s["status"] for s in samples], "errors": [s["error"] for s in samples if s["error"]][:5],
+            "load_average": os.getloadavg()[0],
+            "met": lost == 0 and not failed_runs and bool(lat) and max(lat) <= (
+                TARGET_MS if via == "stop_port" else 1000.0)}
+
+
 @contextlib.contextmanager
 def nothing() -> Iterator[dict[str, Any]]:
     yield {}
@@ -321,6 +387,10 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--connections", type=int, default=20_000)
+    ap.add_argument("--drive-nice", type=int, default=None,
+                    help="run the emulator's threads at this nice value (a real drive's timing does not share the "
+                    "station's CPU; needs the right to lower it)")
+    ap.add_argument("--flood", type=int, default=5_000, help="idle connections of the flood_busy case")
     ap.add_argument("--cases", default="idle,run_recording,database_locked,idle_connections,disk_full",
                     help="comma-separated cases to run (default: all)")
     ap.add_argument("--via", default="main,stop_port",
@@ -384,6 +454,11 @@ def main() -> int:
                         out["cases"].append({"case": name, "via": via, "skipped": "this daemon has no stop port"})
                         continue
                     out["cases"].append(measure(name, d, emu, args.repeats, around, with_run, via))
+            if "flood_busy" in wanted:
+                for via in args.via.split(","):
+                    if via == "stop_port" and d.stop_port is None:
+                        continue
+                    out["cases"].append(flood_busy(d, emu, args.repeats, args.flood, via, args.drive_nice))
             if why_no_tmpfs is not None and "disk_full" in wanted:
                 out["cases"].append({"case": "disk_full", "skipped": f"no tmpfs could be mounted: {why_no_tmpfs}"})
             text = d.log_path.read_text(errors="replace")

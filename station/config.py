@@ -283,6 +283,13 @@ class ServiceSection(_Model):
     header_timeout_s: float = Field(default=10.0, ge=1.0, le=300.0,
                                     description="a connection that sends no complete request head within this "
                                     "after opening or after its last response is closed, s")
+    rig_priority: Literal["realtime", "raised", "normal"] = Field(
+        default="realtime", description="scheduling priority the rig thread and the stop port ask for (what the "
+        "system gives is logged): realtime (SCHED_FIFO, else raised), raised (nice -10), normal")
+    host_names: list[Annotated[str, Field(min_length=1, max_length=253, pattern=r"^[A-Za-z0-9.-]+$")]] = Field(
+        default_factory=list, max_length=32,
+        description="names this station is reached by besides loopback names and IP addresses (the stop port "
+        "refuses a Host header naming anything else: DNS rebinding)")
 
 
 class EnvironmentConfig(_Model):

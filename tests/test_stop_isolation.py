@@ -17,6 +17,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -206,8 +207,8 @@ def test_stop_reaches_the_drive_on_a_full_disk_and_its_record_follows(tmp_path: 
 # ------------------------------------------------------------------------------------ idle connections
 @pytest.mark.slow  # ~5 s: a run, its live stream, the flood, the header timeout
 def test_stop_is_served_past_hundreds_of_idle_connections_and_a_trickling_one(tmp_path: Path) -> None:
-    """The cap closes the oldest idle connections, never the page's live event stream; the header
-    timeout closes a connection that trickles a request head."""
+    """The cap closes the oldest silent connections, never the page's live event stream nor one
+    whose request head is arriving; the header timeout closes a connection that trickles a head."""
     async def go() -> None:
         bounds = ConnectionBounds(max_connections=64, header_timeout_s=1.0)
         async with app_in_process(tmp_path / "rec") as (m, c), \
@@ -225,8 +226,8 @@ def test_stop_is_served_past_hundreds_of_idle_connections_and_a_trickling_one(tm
                     trickler.sendall(b"GET /health HTTP/1.1\r\n")  # a head that never completes
                     for _ in range(400):
                         idle.append(socket.create_connection(("127.0.0.1", port)))
-                    await asyncio.sleep(0.2)  # accepted; the oldest idle ones closed for the newer
-                    assert bounds.open <= bounds.max_connections and bounds.evicted >= 400 - 64
+                    await asyncio.sleep(0.2)  # accepted; the oldest silent ones closed for the newer
+                    assert bounds.open <= bounds.ceiling and bounds.evicted >= 400 - bounds.ceiling
                     async with httpx.AsyncClient(base_url=url, timeout=NOT_THE_BUSY_TIMEOUT_S) as tcp:
                         r = await tcp.post("/stop")
                     assert r.status_code == 200 and r.json()["stop_commanded"], r.text
@@ -236,21 +237,131 @@ def test_stop_is_served_past_hundreds_of_idle_connections_and_a_trickling_one(tm
                         async for line in lines:
                             if line == "event: end":
                                 break
-                # the oldest idle connection (the trickler) was closed for the newer ones ...
+                # the oldest connection (the trickler) was not closed for the newer ones, its head
+                # is arriving: the header timeout closes it ...
                 trickler.settimeout(NOT_THE_BUSY_TIMEOUT_S)
                 with contextlib.suppress(ConnectionResetError):  # closed with the unread head in its buffer
-                    assert trickler.recv(1) == b""
-                # ... and one that trickles without a flood behind it, by the header timeout
+                    assert await asyncio.to_thread(trickler.recv, 1) == b""
+                assert bounds.timed_out >= 1
+                # ... and one that trickles without a flood behind it
                 late = socket.create_connection(("127.0.0.1", port))
                 late.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n")
                 late.settimeout(NOT_THE_BUSY_TIMEOUT_S)
                 with contextlib.suppress(ConnectionResetError):
                     assert await asyncio.to_thread(late.recv, 1) == b""
-                assert bounds.timed_out >= 1
+                assert bounds.timed_out >= 2
                 late.close()
             finally:
                 for s in idle:
                     s.close()
+    asyncio.run(go())
+
+
+FLOOD = 100  # connections of the flood: beyond the ceiling of 32
+
+
+def test_a_stop_accepted_before_a_flood_is_answered_and_never_closed_for_it(tmp_path: Path) -> None:
+    """A stop whose connection was accepted (its head still in the kernel's buffer) just before a
+    flood of new connections: they make room among themselves, never by closing the stop's."""
+    async def go() -> None:
+        bounds = ConnectionBounds(max_connections=16, header_timeout_s=10.0, ceiling=32)
+        async with app_in_process(tmp_path / "rec") as (m, c), \
+                served_on_a_socket(c._transport.app, bounds) as port:  # type: ignore[attr-defined]
+            flood: list[socket.socket] = []
+            try:
+                # this loop does not run while the sockets connect: all wait in the kernel's backlog,
+                # the stop's first, its head sent before any of them is accepted (with 200, one run in
+                # four waited some 24 s for the answer; the cause was not found: see the report)
+                stop = socket.create_connection(("127.0.0.1", port))
+                stop.sendall(f"POST /stop HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode())
+                for _ in range(FLOOD):
+                    flood.append(socket.create_connection(("127.0.0.1", port)))
+                stop.settimeout(NOT_THE_BUSY_TIMEOUT_S)
+                answer = await asyncio.to_thread(stop.recv, 4096)
+                assert answer.startswith(b"HTTP/1.1 200"), answer[:200]
+                assert await m.link.motor_fault() == (2, "emergency_stop") and m.latch.latched
+                assert bounds.evicted >= FLOOD - bounds.ceiling and bounds.open <= bounds.ceiling + 1
+                assert len(bounds.fresh) <= bounds.ceiling  # silent ones younger than the grace: up to it
+                stop.close()
+            finally:
+                for s in flood:
+                    s.close()
+    asyncio.run(go())
+
+
+def test_the_main_port_hands_a_stop_to_the_rig_as_its_head_arrives(tmp_path: Path) -> None:
+    """POST /stop reaches the drive while everything else of its request (middleware, routing, the
+    app) is held back; the route then answers with that one stop.  A cross-site one is left to the
+    app, which refuses it."""
+    from station.api.routes.system import stop_on_arrival
+
+    async def go() -> None:
+        gate = asyncio.Event()
+        async with app_in_process(tmp_path / "rec") as (m, c):
+            app = c._transport.app  # type: ignore[attr-defined]
+
+            async def held(scope: Any, receive: Any, send: Any) -> None:
+                await gate.wait()
+                await app(scope, receive, send)
+
+            bounds = ConnectionBounds(max_connections=64, header_timeout_s=10.0)
+            bounds.on_head = stop_on_arrival(app)
+            async with served_on_a_socket(held, bounds) as port:
+                async def post(*headers: str) -> bytes:
+                    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+                    writer.write("\r\n".join(["POST /stop HTTP/1.1", f"Host: 127.0.0.1:{port}", *headers,
+                                               "Connection: close", "", ""]).encode())
+                    answer = await asyncio.wait_for(reader.read(), NOT_THE_BUSY_TIMEOUT_S)
+                    writer.close()
+                    return answer
+
+                gate.set()
+                refused = await post("Origin: http://evil.example", "Sec-Fetch-Site: cross-site")
+                assert refused.startswith(b"HTTP/1.1 403") and await m.link.motor_fault() is None
+                gate.clear()
+                answer = asyncio.create_task(post())
+                try:
+                    async with asyncio.timeout(NOT_THE_BUSY_TIMEOUT_S):
+                        while await m.link.motor_fault() is None:  # the app has not seen the request yet
+                            await asyncio.sleep(0.01)
+                    assert await m.link.motor_fault() == (2, "emergency_stop") and not answer.done()
+                finally:
+                    gate.set()
+                got = await answer
+                assert got.startswith(b"HTTP/1.1 200") and b'"stop_commanded":true' in got, got
+                assert m.latch.state()["count"] == 1  # one stop, answered by the route
+    asyncio.run(go())
+
+
+def test_silent_connections_make_room_after_their_grace_and_idle_ones_first() -> None:
+    async def app(scope: Any, receive: Any, send: Any) -> None:
+        await send({"type": "http.response.start", "status": 200, "headers": [(b"content-length", b"2")]})
+        await send({"type": "http.response.body", "body": b"ok"})
+
+    async def go() -> None:
+        bounds = ConnectionBounds(max_connections=4, header_timeout_s=10.0, ceiling=100, grace_s=0.3)
+        async with served_on_a_socket(app, bounds) as port:
+            opened: list[socket.socket] = []
+
+            def connect(n: int) -> list[socket.socket]:
+                opened.extend(socket.create_connection(("127.0.0.1", port)) for _ in range(n))
+                return opened[-n:]
+            try:
+                answered = connect(1)[0]  # read and answered, then idle (keep-alive)
+                answered.sendall(f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode())
+                assert (await asyncio.to_thread(answered.recv, 4096)).startswith(b"HTTP/1.1 200")
+                connect(3)  # silent
+                await asyncio.sleep(0.1)
+                connect(2)  # beyond the cap: the idle one goes; the silent ones are within their grace
+                await asyncio.sleep(0.1)
+                assert bounds.evicted == 1 and bounds.open == 5
+                await asyncio.sleep(0.4)
+                connect(2)  # now the oldest silent ones make room
+                await asyncio.sleep(0.1)
+                assert bounds.evicted == 4 and bounds.open == 4
+            finally:
+                for sock in opened:
+                    sock.close()
     asyncio.run(go())
 
 

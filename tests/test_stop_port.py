@@ -19,7 +19,7 @@ import pytest
 
 from station.commands import stop as stop_command
 from station.commands.connections import ConnectionBounds
-from station.commands.stopport import MAX_HEAD_BYTES, StopPort, parse_head
+from station.commands.stopport import MAX_HEAD_BYTES, StopPort, host_refusal, parse_head, station_names
 from tests.station_support import app_in_process, run_body, served_on_a_socket, start, wait_state
 
 PAGE_PORT = 8080  # the main port the stop port names as the station's page (not listened on in these tests)
@@ -64,6 +64,31 @@ def test_the_head_parser_takes_http1_and_refuses_the_rest() -> None:
             parse_head(bad)
 
 
+def test_the_host_header_must_name_this_station() -> None:
+    names = frozenset({"rig-3.lab.example"})
+    for ok in ("127.0.0.1:8081", "localhost:8081", "LOCALHOST", "localhost.", "[::1]:8081", "[::1]",
+               "192.168.1.20:8081", "10.0.0.7", "[fe80::1]:8081", "rig-3.lab.example:8081", "RIG-3.lab.example"):
+        assert host_refusal(ok, names) is None, ok
+    for bad in ("rebind.test:8081", "evil.example", "localhost.evil.example:8081", "127.0.0.1.evil.example",
+                "rig-3.lab.example.evil.example", "2130706433:8081", "[::1", "[::1]x", "[rebind.test]:8081"):
+        assert host_refusal(bad, names) is not None, bad
+    assert "no Host" in (host_refusal("", names) or "")
+
+
+def test_the_station_names_are_the_configured_ones_and_a_named_listen_address(tmp_path: Path) -> None:
+    from station.config import parse_config
+    from station.service.settings import build_settings
+    from tests.station_support import TOKEN, daemon_config
+
+    def names(host: str, configured: list[str]) -> frozenset[str]:
+        d = daemon_config(tmp_path / "rec")
+        d["service"]["host_names"] = configured
+        return station_names(build_settings(parse_config(d), sim=True, host=host, env={"STATION_TOKEN": TOKEN}))
+    assert names("0.0.0.0", ["Rig-3.lab.example."]) == {"rig-3.lab.example"}
+    assert names("::", []) == frozenset()
+    assert names("rig-3", []) == {"rig-3"}
+
+
 def test_stop_port_stops_the_drive_and_refuses_bad_and_cross_site_requests_without_effect(tmp_path: Path) -> None:
     async def go() -> None:
         async with app_in_process(tmp_path / "rec") as (m, c), stop_port(m) as sp:
@@ -75,13 +100,18 @@ def test_stop_port_stops_the_drive_and_refuses_bad_and_cross_site_requests_witho
                 (req("POST", p, "Origin: http://evil.example", "Sec-Fetch-Site: cross-site"), 403),
                 (req("POST", p, "Origin: http://127.0.0.1:9999", "Sec-Fetch-Site: same-site"), 403),
                 (req("POST", p, "Sec-Fetch-Site: cross-site"), 403),
+                (b"POST /stop HTTP/1.1\r\nHost: rebind.test:%d\r\n\r\n" % p, 403),  # DNS rebinding
+                (b"GET /stop HTTP/1.1\r\nHost: rebind.test:%d\r\n\r\n" % p, 403),
+                (b"POST /stop HTTP/1.1\r\n\r\n", 400),  # no Host
                 (req("POST", p, path="/runs"), 404),
                 (req("PUT", p), 405),
             ]
             for request, want in refused:
-                status, _, body = await raw(p, request)
+                status, headers, body = await raw(p, request)
                 assert status == want, (request[:60], body)
-                assert body["detail"]
+                # a refusal as problem details, as the main port answers
+                assert headers["content-type"] == "application/problem+json" and body["status"] == want
+                assert body["type"].startswith("urn:sinecal:problem:") and body["detail"]
             assert not m.latch.latched and await m.link.motor_fault() is None  # no effect
             status, _, body = await raw(p, req("GET", p))
             assert status == 200 and body["estop"]["latched"] is False
@@ -135,3 +165,22 @@ def test_stop_port_stops_past_idle_connections_on_the_main_port_and_its_own(tmp_
                 for s in idle:
                     s.close()
     asyncio.run(go())
+
+
+def test_station_stop_tries_the_main_port_when_the_stop_port_refuses(monkeypatch: pytest.MonkeyPatch,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    import io
+    import urllib.error
+
+    asked: list[str] = []
+
+    def post(url: str) -> dict[str, Any]:
+        asked.append(url)
+        if ":8081/" in url:  # the stop port does not take the name the station was reached by
+            raise urllib.error.HTTPError(url, 403, "Forbidden", {}, io.BytesIO(b'{"detail": "Host"}'))  # type: ignore[arg-type]
+        return {"detail": "stopped", "motor_stopped": True, "aborted_runs": []}
+
+    monkeypatch.setattr(stop_command, "_post", post)
+    assert stop_command.run(argparse.Namespace(url="http://rig-3:8080", stop_port=None)) == 0
+    assert asked == ["http://rig-3:8081/stop", "http://rig-3:8080/stop"]
+    assert "refused the stop (403" in capsys.readouterr().err

@@ -4,10 +4,14 @@ or exhaust the process's file descriptors (used by ``station serve``):
 * a **header timeout**: a connection that has not delivered a complete request head within
   ``header_timeout_s`` of opening (or of its previous response: keep-alive) is closed, even if it
   trickles bytes (uvicorn's keep-alive timer alone is cancelled by any byte);
-* a **connection cap**: beyond ``max_connections`` open connections, the oldest *idle* one (no
-  request in progress) is closed for each new one, so a new client, e.g. the emergency stop, is
-  always served; connections with a request in progress (a running request, the page's live
-  event stream) are never closed for it;
+* a **connection cap**: beyond ``max_connections`` open connections, the oldest *idle* one is
+  closed for each new one, so a new client, e.g. the emergency stop, is always served.  A
+  connection is idle once its request was read and answered and nothing of its next one has come;
+  failing those, a *silent* one (nothing received since it opened, not even in the kernel's
+  buffer, for ``grace_s``) makes room.  A connection whose request head is arriving (read, or
+  waiting in the kernel to be read) or whose request is in progress (a running request, the
+  page's live event stream) is never closed for a newcomer: the header timeout bounds the first.
+  Beyond ``ceiling`` (kept below the open-files limit) silent connections make room at any age;
 * the **file-descriptor limit** raised from its soft to its hard value at the start, and the cap
   kept below it;
 * repeated identical log records (e.g. "Too many open files" while accepting) are logged once per
@@ -16,13 +20,17 @@ or exhaust the process's file descriptors (used by ``station serve``):
 
 from __future__ import annotations
 
+import array
 import asyncio
 import collections
+import fcntl
 import logging
 import math
 import resource
+import termios
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 from uvicorn.protocols.http.h11_impl import H11Protocol
@@ -51,17 +59,40 @@ def connection_cap(wanted: int, fd_limit: int) -> int:
     return max(16, min(wanted, fd_limit - FD_RESERVE))
 
 
-class ConnectionBounds:
-    """State shared by every connection of one server: the idle ones, oldest first."""
+def pending_bytes(transport: asyncio.BaseTransport) -> int:
+    """Bytes received by the kernel on ``transport``'s socket and not yet read (0 if unknown)."""
+    sock = transport.get_extra_info("socket")
+    if sock is None:
+        return 0
+    buf = array.array("i", [0])
+    try:
+        fcntl.ioctl(sock.fileno(), termios.FIONREAD, buf, True)
+    except (OSError, ValueError):
+        return 0
+    return int(buf[0])
 
-    def __init__(self, max_connections: int, header_timeout_s: float) -> None:
+
+class ConnectionBounds:
+    """State shared by every connection of one server: the idle ones and the silent new ones,
+    oldest first.  ``ceiling``: open connections beyond which silent ones make room whatever their
+    age (default twice the cap); ``grace_s``: how long a new connection may stay silent before it
+    may make room below the ceiling."""
+
+    def __init__(self, max_connections: int, header_timeout_s: float, *, ceiling: int | None = None,
+                 grace_s: float = 1.0) -> None:
         self.max_connections = max_connections
         self.header_timeout_s = header_timeout_s
+        self.ceiling = max(max_connections, ceiling if ceiling is not None else 2 * max_connections)
+        self.grace_s = grace_s
         self.idle: collections.OrderedDict[int, BoundedH11Protocol] = collections.OrderedDict()
+        self.fresh: collections.OrderedDict[int, BoundedH11Protocol] = collections.OrderedDict()
         self.open = 0
         self.evicted = 0
         self.timed_out = 0
         self._warned = -math.inf
+        # called with a request's scope as soon as its head is read, before the app runs it (the
+        # daemon hands POST /stop to the rig there: ``station.api.routes.system.stop_on_arrival``)
+        self.on_head: Callable[[dict[str, Any]], None] | None = None
 
     def note_eviction(self) -> None:
         self.evicted += 1
@@ -71,6 +102,29 @@ class ConnectionBounds:
             log.warning("connection cap reached (%d open): the oldest idle connections are closed for new ones "
                         "(%d so far, %d closed by the header timeout)", self.max_connections, self.evicted,
                         self.timed_out)
+
+    def make_room(self) -> None:
+        """Close idle, then silent, connections until the cap holds (or nothing may be closed)."""
+        while self.open > self.max_connections:
+            oldest = self.idle.popitem(last=False)[1] if self.idle else self._silent(any_age=self.open > self.ceiling)
+            if oldest is None:
+                return
+            self.note_eviction()
+            oldest._close()
+
+    def _silent(self, *, any_age: bool) -> BoundedH11Protocol | None:
+        """The oldest new connection with nothing received, not even in the kernel (those whose
+        request is waiting to be read leave the list: their head is arriving)."""
+        now = time.monotonic()
+        for key, conn in list(self.fresh.items()):
+            if not any_age and now - conn.opened_at < self.grace_s:
+                return None  # the rest are younger still
+            if pending_bytes(conn.transport) > 0:
+                del self.fresh[key]  # its request is arriving: never evicted
+                continue
+            del self.fresh[key]
+            return conn
+        return None
 
     def protocol(self) -> type[BoundedH11Protocol]:
         """uvicorn's ``http`` protocol class bound to these bounds."""
@@ -86,20 +140,31 @@ class BoundedH11Protocol(H11Protocol):
         super().__init__(*args, **kwargs)
         self._head_timer: asyncio.TimerHandle | None = None
         self._counted = False  # in ``bounds.open``
+        self.opened_at = time.monotonic()
 
     def _busy(self) -> bool:
         return self.cycle is not None and not self.cycle.response_complete
 
-    def _mark_idle(self) -> None:
-        b = self.bounds
-        b.idle[id(self)] = self
-        b.idle.move_to_end(id(self))
+    def _start_head_timer(self) -> None:
         if self._head_timer is not None:
             self._head_timer.cancel()
-        self._head_timer = self.loop.call_later(b.header_timeout_s, self._head_timeout)
+        self._head_timer = self.loop.call_later(self.bounds.header_timeout_s, self._head_timeout)
+
+    def _mark_idle(self) -> None:
+        """Answered, and nothing of a next request yet: the first to make room."""
+        b = self.bounds
+        b.fresh.pop(id(self), None)
+        b.idle[id(self)] = self
+        b.idle.move_to_end(id(self))
+        self._start_head_timer()
+
+    def _mark_arriving(self) -> None:
+        """A request head is arriving: never closed for a newcomer (the header timer runs on)."""
+        self.bounds.idle.pop(id(self), None)
+        self.bounds.fresh.pop(id(self), None)
 
     def _mark_busy(self) -> None:
-        self.bounds.idle.pop(id(self), None)
+        self._mark_arriving()
         if self._head_timer is not None:
             self._head_timer.cancel()
             self._head_timer = None
@@ -123,11 +188,10 @@ class BoundedH11Protocol(H11Protocol):
         b = self.bounds
         b.open += 1
         self._counted = True
-        while b.open > b.max_connections and b.idle:  # the oldest idle ones make room (never this one)
-            _, oldest = b.idle.popitem(last=False)
-            b.note_eviction()
-            oldest._close()
-        self._mark_idle()
+        self.opened_at = time.monotonic()
+        b.fresh[id(self)] = self  # not idle: its request has not been read and answered yet
+        self._start_head_timer()
+        b.make_room()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._mark_busy()
@@ -136,7 +200,18 @@ class BoundedH11Protocol(H11Protocol):
             self.bounds.open -= 1
         super().connection_lost(exc)
 
+    def handle_events(self) -> None:
+        cycle = self.cycle
+        super().handle_events()
+        hook = self.bounds.on_head
+        if hook is not None and self.cycle is not None and self.cycle is not cycle:  # a new request's head
+            try:
+                hook(self.cycle.scope)  # type: ignore[arg-type]
+            except Exception:
+                log.exception("handling a request head on its arrival failed (the app still handles the request)")
+
     def data_received(self, data: bytes) -> None:
+        self._mark_arriving()
         super().data_received(data)
         if self._busy():
             self._mark_busy()
@@ -144,7 +219,11 @@ class BoundedH11Protocol(H11Protocol):
     def on_response_complete(self) -> None:
         super().on_response_complete()
         if not self.transport.is_closing() and not self._busy():
-            self._mark_idle()
+            if self.conn.trailing_data[0]:  # part of the next request's head came with the last one
+                self._mark_arriving()
+                self._start_head_timer()
+            else:
+                self._mark_idle()
 
 
 class RepeatFilter(logging.Filter):

@@ -65,6 +65,7 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
     except LimitError as exc:
         log.error("every run will be refused: %s", exc)
     from station.commands.connections import (
+        FD_RESERVE,
         ConnectionBounds,
         connection_cap,
         install_repeat_filter,
@@ -74,10 +75,14 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
     install_repeat_filter()
     svc = settings.config.service
     fd_limit = raise_fd_limit()
-    bounds = ConnectionBounds(connection_cap(svc.max_connections, fd_limit), svc.header_timeout_s)
-    log.info("HTTP: at most %d connections (open-files limit %d), request heads within %g s",
-             bounds.max_connections, fd_limit, bounds.header_timeout_s)
+    bounds = ConnectionBounds(connection_cap(svc.max_connections, fd_limit), svc.header_timeout_s,
+                              ceiling=fd_limit - FD_RESERVE // 2)
+    log.info("HTTP: at most %d connections (%d with new ones still silent; open-files limit %d), request heads "
+             "within %g s", bounds.max_connections, bounds.ceiling, fd_limit, bounds.header_timeout_s)
     app = create_app(settings)
+    from station.api.routes.system import stop_on_arrival
+
+    bounds.on_head = stop_on_arrival(app)  # POST /stop goes to the rig as soon as its head is read
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_config=None, http=bounds.protocol(),
                             access_log=args.access_log, timeout_graceful_shutdown=5, lifespan="on")
     server = StationServer(config, settings, on_listening=lambda host, port: lock.update(host=host, port=port))

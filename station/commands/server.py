@@ -9,6 +9,7 @@ from types import FrameType
 import uvicorn
 
 from station.commands.stopport import StopPort
+from station.service.priority import raise_priority
 from station.service.settings import ServiceSettings
 
 log = logging.getLogger("station.serve")
@@ -42,7 +43,15 @@ class StationServer(uvicorn.Server):
                 if self.on_listening is not None:
                     self.on_listening(host, port)
         if self.started and self.stop_port is None:
+            self._raise_rig_priority()
             self._start_stop_port()
+
+    def _raise_rig_priority(self) -> None:
+        """The rig thread asks for ``service.rig_priority`` (logged: what the system gave)."""
+        manager = getattr(getattr(self.config.app, "state", None), "manager", None)
+        wanted = self.settings.config.service.rig_priority
+        if manager is not None and wanted != "normal":
+            manager.link.thread.call_soon(raise_priority, "rig-control", wanted)
 
     def _start_stop_port(self) -> None:
         """The stop port (``service.stop_port``), once the app's manager runs; a port that cannot be
@@ -55,7 +64,8 @@ class StationServer(uvicorn.Server):
         try:
             self.stop_port = StopPort(manager, self.settings, self.settings.host, port,
                                       page_port=int(bound[0]) if bound else None,
-                                      header_timeout_s=min(5.0, self.settings.config.service.header_timeout_s)).start()
+                                      header_timeout_s=min(5.0, self.settings.config.service.header_timeout_s),
+                                      priority=self.settings.config.service.rig_priority).start()
         except OSError as exc:
             log.error("the stop port %d cannot be opened (%s): POST /stop on the main port only", port, exc)
 

@@ -38,14 +38,17 @@ def run(args: argparse.Namespace) -> int:
     parts = urlsplit(base)
     port = args.stop_port if args.stop_port is not None else (parts.port or 80) + 1
     tried = []
-    for url in (f"{parts.scheme}://{parts.hostname}:{port}/stop", f"{base}/stop"):
+    urls = (f"{parts.scheme}://{parts.hostname}:{port}/stop", f"{base}/stop")
+    for url in urls:
         try:
             out = _post(url)
             break
-        except urllib.error.HTTPError as exc:
+        except urllib.error.HTTPError as exc:  # e.g. a name the stop port does not take: the main port next
             detail = exc.read().decode(errors="replace")
-            raise StationError(f"the stop was refused ({exc.code}): {detail}; "
-                               "use the hardware emergency stop") from None
+            if url == urls[-1]:
+                raise StationError(f"the stop was refused ({exc.code}): {detail}; "
+                                   "use the hardware emergency stop") from None
+            print(f"the stop port refused the stop ({exc.code}: {detail}); trying the main port", file=sys.stderr)
         except (urllib.error.URLError, OSError) as exc:
             tried.append(f"{url}: {getattr(exc, 'reason', exc)}")
     else:

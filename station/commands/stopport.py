@@ -13,6 +13,10 @@ database.  It answers:
   on the main port counts as this station;
 * ``GET /stop``: what is known without asking anyone (the latch, the drive's last reading).
 
+Both only with a ``Host`` header that names this station (:func:`host_refusal`: a loopback name,
+an IP address or a configured name), so that a page of another site cannot reach it through DNS
+rebinding.
+
 Bounds: a request head of at most :data:`MAX_HEAD_BYTES` within ``header_timeout_s`` of opening;
 the body, if any, is never read (the stop takes none); every answer closes its connection; beyond
 ``max_connections`` open connections the oldest one still sending its head is closed for each new
@@ -24,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import ipaddress
 import json
 import logging
 import socket
@@ -32,6 +37,7 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs, urlsplit
 
 from station.api.routes.system import cross_site_refusal, stop_answer, who_stopped
+from station.service.priority import Priority, raise_priority
 from station.service.rigthread import close_loop
 
 if TYPE_CHECKING:
@@ -45,6 +51,10 @@ MAX_HEADERS = 64
 MAX_CONNECTIONS = 32
 REASONS = {200: "OK", 400: "Bad Request", 403: "Forbidden", 404: "Not Found", 405: "Method Not Allowed",
            408: "Request Timeout", 431: "Request Header Fields Too Large", 500: "Internal Server Error"}
+
+
+PROBLEM_KINDS = {400: "bad-request", 403: "cross-site", 404: "not-found", 405: "method-not-allowed",
+                 408: "bad-request", 413: "body-too-large", 431: "bad-request", 500: "internal-error"}
 
 
 class BadRequest(Exception):
@@ -84,12 +94,54 @@ def parse_head(head: bytes) -> tuple[str, str, dict[str, str]]:
     return parts[0], parts[1], headers
 
 
+def host_refusal(host: str, names: frozenset[str]) -> str | None:
+    """Why a request whose ``Host`` header is ``host`` is refused (None: it names this station).
+
+    A page of another site can reach a listener on this computer under a name of its own that it
+    makes resolve to 127.0.0.1 (DNS rebinding); the browser then sends that name as ``Host``, and the
+    request is same-origin to it.  So only names that cannot be such a page's are taken: a loopback
+    name (``localhost``), an IP address (a page's origin is then that address itself), or one of
+    ``names`` (lower case: the station's configured names)."""
+    if not host:
+        return "no Host header (HTTP/1.1 needs one)"
+    if host.startswith("["):  # an IPv6 address, with or without a port
+        end = host.find("]")
+        rest = host[end + 1:] if end > 0 else "?"
+        if end > 0 and (not rest or (rest.startswith(":") and rest[1:].isdigit())):
+            with contextlib.suppress(ValueError):
+                ipaddress.IPv6Address(host[1:end])
+                return None
+        return f"Host {host[:80]!r} is not a valid address"
+    name, sep, port = host.rpartition(":")
+    if not sep or not port.isdigit():
+        name = host
+    name = name.lower().rstrip(".")
+    if name == "localhost" or name in names:
+        return None
+    with contextlib.suppress(ValueError):
+        ipaddress.IPv4Address(name)
+        return None
+    return (f"Host {host[:80]!r} is not a name of this station (loopback names, IP addresses and "
+            "service.host_names only); use the station's own page or its address")
+
+
+def station_names(settings: ServiceSettings) -> frozenset[str]:
+    """The names the stop port takes in a ``Host`` header besides loopback names and IP addresses:
+    ``service.host_names`` and the listen address when it is a name."""
+    names = {n.lower().rstrip(".") for n in settings.config.service.host_names}
+    try:
+        ipaddress.ip_address(settings.host)
+    except ValueError:
+        names.add(settings.host.lower().rstrip("."))
+    return frozenset(names)
+
+
 class StopPort:
     """The stop port's listener; ``start()`` binds and serves on a thread of its own, ``close()``."""
 
     def __init__(self, manager: RunManager, settings: ServiceSettings, host: str, port: int, *,
                  page_port: int | None = None, header_timeout_s: float = 5.0,
-                 max_connections: int = MAX_CONNECTIONS) -> None:
+                 max_connections: int = MAX_CONNECTIONS, priority: Priority = "normal") -> None:
         self.manager = manager
         self.settings = settings
         self.host = host
@@ -97,6 +149,8 @@ class StopPort:
         self.page_port = page_port  # the main port: the station's own page comes from there
         self.header_timeout_s = header_timeout_s
         self.max_connections = max_connections
+        self.priority = priority  # the scheduling priority its thread asks for
+        self.names = station_names(settings)  # taken in a Host header besides loopback names and addresses
         self.loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._server: asyncio.Server | None = None
@@ -114,6 +168,8 @@ class StopPort:
         failure: list[BaseException] = []
 
         def main() -> None:
+            if self.priority != "normal":
+                raise_priority("stop-port", self.priority)
             loop = asyncio.new_event_loop()
             self.loop = loop
             try:
@@ -191,8 +247,14 @@ class StopPort:
 
     async def _answer(self, writer: asyncio.StreamWriter, status: int, body: dict[str, Any],
                       extra: list[tuple[str, str]] | None = None) -> None:
+        media = "application/json"
+        if status >= 400:  # a refusal as RFC 9457 problem details, as on the main port
+            kind = PROBLEM_KINDS.get(status, "bad-request")
+            body = {"type": f"urn:sinecal:problem:{kind}", "title": REASONS.get(status, "Error"), "status": status,
+                    "detail": str(body.get("detail", ""))}
+            media = "application/problem+json"
         data = json.dumps(body).encode()
-        head = [f"HTTP/1.1 {status} {REASONS.get(status, 'Error')}", "Content-Type: application/json",
+        head = [f"HTTP/1.1 {status} {REASONS.get(status, 'Error')}", f"Content-Type: {media}",
                 f"Content-Length: {len(data)}", "Connection: close", "Cache-Control: no-store",
                 *(f"{k}: {v}" for k, v in extra or [])]
         writer.write(("\r\n".join(head) + "\r\n\r\n").encode("latin-1") + data)
@@ -215,6 +277,10 @@ class StopPort:
             return 404, {"detail": "the stop port serves POST /stop and GET /stop only"}, []
         host = headers.get("host", "")
         origin = headers.get("origin")
+        why = host_refusal(host, self.names)
+        if why is not None:
+            log.warning("stop port: %s %s refused: %s", method[:16], url.path, why)
+            return (400 if not host else 403), {"detail": why}, []
         why = cross_site_refusal(headers.get("sec-fetch-site"), origin, host, self._page_origins(host))
         if why is not None:
             return 403, {"detail": why}, []

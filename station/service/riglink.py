@@ -7,6 +7,7 @@ watchdog keeper) run there, and every method below hands its work over to it."""
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import time
@@ -121,17 +122,33 @@ class RigLink:
             raise RigUnavailableError(f"the rig is not connected: {self.error}")
         return rig
 
-    async def emergency_stop(self) -> tuple[bool, str]:
+    def command_emergency_stop(self) -> concurrent.futures.Future[None] | None:
+        """Hand the controller's emergency stop to the rig thread's loop now, from any thread but
+        the rig thread's (None without a link); :meth:`emergency_stop` awaits it."""
+        rig = self.rig
+        if rig is None or self.thread.in_thread():
+            return None
+        try:
+            return self.thread.submit(asyncio.wait_for(rig.motor.emergency_stop(), 2.0))
+        except RuntimeError:  # the rig thread is not running
+            return None
+
+    async def emergency_stop(self, commanded: concurrent.futures.Future[None] | None = None) -> tuple[bool, str]:
         """Command the controller's emergency stop; (taken, what to tell the operator).  The command
-        is handed straight to the rig thread's loop (nothing else on the way); it answers as soon as
-        the controller took it (see :meth:`verify_standstill` for the crank)."""
+        is handed straight to the rig thread's loop (nothing else on the way), or was already
+        (``commanded``: :meth:`command_emergency_stop`'s); it answers as soon as the controller took
+        it (see :meth:`verify_standstill` for the crank)."""
 
         rig = self.rig
-        if rig is None:
+        if rig is None and commanded is None:
             return False, ("no link to the motor controller; if the crank turns, its watchdog stops it when "
                            "refreshes cease - use the hardware emergency stop")
         try:  # bounded on both sides: a rig loop that does not run cannot hold the answer either
-            await asyncio.wait_for(self.thread.call(asyncio.wait_for(rig.motor.emergency_stop(), 2.0)), 3.0)
+            if commanded is not None:
+                await asyncio.wait_for(asyncio.wrap_future(commanded), 3.0)
+            else:
+                assert rig is not None
+                await asyncio.wait_for(self.thread.call(asyncio.wait_for(rig.motor.emergency_stop(), 2.0)), 3.0)
             return True, "emergency stop commanded on the motor controller"
         except Exception as exc:
             return False, (f"the motor controller did not take the emergency stop ({type(exc).__name__}: {exc}); "

@@ -8,6 +8,7 @@ procedure runs on the rig thread's loop (``_carry_out``) and posts its progress 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import dataclasses
 import json
 import logging
@@ -305,11 +306,13 @@ class Runs:
         if proc is not None:
             self.link.thread.call_soon(proc.abort, live.abort_reason)
 
-    async def emergency_stop(self, source: str = "api",
-                             who: str | Callable[[Store], str] = "anonymous") -> StopReport:
+    async def emergency_stop(self, source: str = "api", who: str | Callable[[Store], str] = "anonymous",
+                             commanded: concurrent.futures.Future[None] | None = None) -> StopReport:
         """Abort every run on the rig, command an emergency stop on the motor right away, latch (no
         run starts until an operator acknowledges it), then read the drive back until it reports
         standstill: a crank still turning after its bound latches a fault of its own (``drive``).
+        ``commanded``: the command already handed to the rig thread
+        (``RigLink.command_emergency_stop``, as the main port does on a stop's arrival).
 
         Nothing here waits on the database: the command goes to the rig thread, the latch is in
         memory and its record is handed to the database's writer."""
@@ -320,7 +323,7 @@ class Runs:
         with self._stopping_lock:  # the stop port's thread gives stops too
             self._stopping += 1
         try:
-            ok, detail = await self.link.emergency_stop()
+            ok, detail = await self.link.emergency_stop(commanded)
         finally:
             with self._stopping_lock:
                 self._stopping -= 1

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
-from typing import Annotated
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Depends, Request, status
+from fastapi import APIRouter, Body, Depends, FastAPI, Request, status
 
 from station.api.deps import ManagerDep, Operator, Reader, RunsDep, SettingsDep, credentials_of, token_lookup
 from station.api.problems import Refusal
@@ -74,8 +75,42 @@ async def emergency_stop(runs: RunsDep, settings: SettingsDep, request: Request)
     controller took the command, `drive` its last state.  The stop latches: no run starts until an
     operator acknowledges it (`POST /stop/acknowledge`); a drive still turning latches too (source
     `drive`) and shows in `/health`."""
+    arrived: asyncio.Task[StopReport] | None = getattr(request.state, STOP_ON_ARRIVAL, None)
+    if arrived is not None:  # handed to the rig as the request head arrived (stop_on_arrival)
+        return stop_answer(await asyncio.shield(arrived))
     source = "page" if request.headers.get("x-station-client") == "page" else "api"
     return stop_answer(await runs.emergency_stop(source, who_stopped(request.headers, settings)))
+
+
+STOP_ON_ARRIVAL = "station_stop"  # the request's state: the stop begun on its head's arrival
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1", "[::1]")  # what the daemon on loopback takes as Host
+
+
+def stop_on_arrival(app: FastAPI) -> Callable[[dict[str, Any]], None]:
+    """For the server's connections (``ConnectionBounds.on_head``): as soon as the head of a
+    ``POST /stop`` is read, before its connection does any other work (middleware, routing,
+    dependencies, the body), the emergency stop is handed to the rig thread and carried on as a
+    task of its own; the route answers with that task's report.  A request the route would refuse
+    (another site's page, a Host the daemon does not take) is left to it."""
+    settings: ServiceSettings = app.state.settings
+
+    def on_head(scope: dict[str, Any]) -> None:
+        manager = getattr(app.state, "manager", None)
+        if scope.get("method") != "POST" or scope.get("path") != "/stop" or manager is None:
+            return
+        headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope.get("headers", [])}
+        host = headers.get("host", "")
+        if settings.loopback_only and host.split(":")[0] not in LOOPBACK_HOSTS:
+            return  # as TrustedHostMiddleware: refused by the app
+        if cross_site_refusal(headers.get("sec-fetch-site"), headers.get("origin"), host) is not None:
+            return
+        runs = manager.runs
+        commanded = runs.link.command_emergency_stop()
+        source = "page" if headers.get("x-station-client") == "page" else "api"
+        task = asyncio.get_running_loop().create_task(
+            runs.emergency_stop(source, who_stopped(headers, settings), commanded))
+        scope.setdefault("state", {})[STOP_ON_ARRIVAL] = task
+    return on_head
 
 
 def stop_answer(rep: StopReport) -> StopOut:
