@@ -138,6 +138,7 @@ async def _drive(rec: Path, pkg: Any, runs: Any, models: Any) -> None:
             png = await runs.run_plot.asyncio(rid, "bode", client=client)
             assert png.payload.read()[:8] == b"\x89PNG\r\n\x1a\n"
             h5 = await runs.run_recording.asyncio(rid, client=client)
+            assert not isinstance(h5, models.Problem), h5.detail
             with h5py.File(io.BytesIO(h5.payload.read()), "r") as f:
                 assert f.attrs["run_id"] == rid and f.attrs["exit_status"] == "completed"
             xlsx = await runs.run_export.asyncio(rid, models.RunExportName("results.xlsx"), client=client)

@@ -74,7 +74,7 @@ def test_the_api_answers_422_at_the_configuration_field_and_writes_nothing_to_th
         async with app_in_process(tmp_path, config=d) as (manager, c):
             r = await c.post("/runs", json=run_body())
             assert r.status_code == 422, r.text
-            (err,) = r.json()["detail"]
+            (err,) = r.json()["errors"]
             assert err["loc"] == ["config", "rig", "acceleration_hz_per_s"] and err["input"] == hi + 50.0
             assert f"{hi + 50.0:g} Hz/s" in err["msg"] and f"..{hi:g} Hz/s" in err["msg"]
             assert "'sinecal-crank'" in err["msg"]

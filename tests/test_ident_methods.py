@@ -73,7 +73,7 @@ def test_the_api_refuses_a_bad_list_at_its_field_and_runs_a_good_one(tmp_path: P
             return bad, await wait_state(c, good.json()["id"], ("identifying",))
     bad, st = asyncio.run(go())
     assert bad.status_code == 422
-    [err] = bad.json()["detail"]
+    [err] = bad.json()["errors"]
     assert err["loc"][:3] == ["body", "methods", 0] and "defined for the models h2" in err["msg"]
     rec = read_recording(tmp_path / st["recording"])  # the request's list is in the recording's configuration
     assert rec.config["identification"]["methods"] == [{"method": "pso", "seed": 3}]

@@ -129,7 +129,8 @@ def install_error_handlers(app: FastAPI) -> None:
         if exc.status_code < 400:
             return Response(status_code=exc.status_code, headers=exc.headers)
         kind = exc.kind if isinstance(exc, Refusal) else kind_of_status(exc.status_code)
-        return problem_response(exc.status_code, kind, str(exc.detail), request.url.path, headers=exc.headers)
+        fields = exc.errors if isinstance(exc, Refusal) else None
+        return problem_response(exc.status_code, kind, str(exc.detail), request.url.path, fields, headers=exc.headers)
     app.add_exception_handler(StarletteHTTPException, http_error)
 
     async def station_error(request: Request, exc: Exception) -> JSONResponse:

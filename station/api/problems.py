@@ -43,6 +43,7 @@ KINDS: dict[str, str] = {
     "body-too-large": "The request body is too large",
     "unsupported-media-type": "The request body must be JSON",
     "invalid-input": "Invalid input",
+    "compensation-refused": "No compensation filter can be made or applied for this input",
     "rig-unavailable": "The rig cannot be reached",
     "database-busy": "The station's database is busy",
     "unavailable": "Cannot be read or written right now",
@@ -103,9 +104,11 @@ def errors_text(errors: list[dict[str, Any]]) -> str:
 class Refusal(HTTPException):
     """An HTTP refusal of the API layer with its kind of problem (a key of :data:`KINDS`)."""
 
-    def __init__(self, status: int, kind: str, detail: str, headers: dict[str, str] | None = None) -> None:
+    def __init__(self, status: int, kind: str, detail: str, headers: dict[str, str] | None = None,
+                 errors: list[dict[str, Any]] | None = None) -> None:
         super().__init__(status, detail, headers=headers)
         self.kind = kind
+        self.errors = errors  # a 422's fields (loc, msg, type), as the validation problems list them
 
 
 def declare_problems(doc: dict[str, Any]) -> dict[str, Any]:

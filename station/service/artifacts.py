@@ -122,9 +122,11 @@ class Artifacts:
             with store.reading() as db:
                 return chain.expected_files(db, row.id)
         for attempt in (0, 1):
-            want = await self.db.read(expected)
             try:
+                # what the chain vouches for, read under the recording's lock: a writer holds it from
+                # writing a results file until its entry is in the chain
                 async with self.file_lock(row.id):
+                    want = await self.db.read(expected)
                     return await asyncio.to_thread(self._compare, row, path, want, required)
             except RecordingTamperedError:
                 if attempt or not self.busy(row.id):

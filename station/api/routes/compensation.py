@@ -9,11 +9,12 @@ import asyncio
 from pathlib import Path
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Response
+from fastapi import APIRouter, Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from station.api.deps import ArtifactsDep, Reader, RunDep
-from station.api.routes.runs import E401, E404, E422, E503
+from station.api.problems import Refusal
+from station.api.routes.runs import BINARY, BODY_ERRORS, E401, E404, E422, E503
 from station.errors import BadInputError
 
 router = APIRouter(tags=["compensation"])
@@ -114,12 +115,13 @@ def _plot(path: Path, body: dict[str, Any]) -> bytes:
         return bode_plot(CompensationFilter.from_dict(doc), Path(tmp) / "bode.png").read_bytes()
 
 
-def _refused(exc: BadInputError) -> HTTPException:
-    return HTTPException(422, detail=[{"type": "compensation_refused", "loc": ["body"], "msg": str(exc)}])
+def _refused(exc: BadInputError) -> Refusal:
+    return Refusal(422, "compensation-refused", str(exc),
+                   errors=[{"type": "compensation_refused", "loc": ["body"], "msg": str(exc)}])
 
 
 @router.post("/runs/{run_id}/compensation", response_model=FilterOut, dependencies=[Reader],
-             responses={**E401, **E404, **E422, **E503},
+             responses={**E401, **E404, **E422, **E503, **BODY_ERRORS},
              summary="A compensation filter for the application's mounting, from the run's identification")
 async def run_compensation(run: RunDep, artifacts: ArtifactsDep, body: DesignIn) -> dict[str, Any]:
     """Least-squares FIR inverse of the run's identified transducer carrying ``mounted_mass_kg``,
@@ -135,7 +137,8 @@ async def run_compensation(run: RunDep, artifacts: ArtifactsDep, body: DesignIn)
 
 
 @router.post("/runs/{run_id}/compensation/plot", response_class=Response, dependencies=[Reader],
-             responses={200: {"content": {"image/png": {}}, "description": "Bode plot"}, **E401, **E404, **E422},
+             responses={200: {"content": {"image/png": {"schema": BINARY}}, "description": "Bode plot"},
+                        **E401, **E404, **E422, **BODY_ERRORS},
              summary="The Bode plot of that filter: transducer, filter, compensated system with bands")
 async def run_compensation_plot(run: RunDep, artifacts: ArtifactsDep, body: DesignIn) -> Response:
     try:
@@ -164,7 +167,8 @@ def _apply(body: ApplyIn) -> dict[str, Any]:
 
 
 @router.post("/compensation/apply", response_model=ApplyOut, dependencies=[Reader],
-             responses={**E401, **E422}, summary="Apply a compensation filter to a signal, with u at every sample")
+             responses={**E401, **E422, **BODY_ERRORS},
+             summary="Apply a compensation filter to a signal, with u at every sample")
 async def apply_compensation(body: ApplyIn) -> dict[str, Any]:
     """The estimate and its standard uncertainty (GUM: the coefficients' covariance and the white
     noise stated) at every sample; at most ``MAX_API_SAMPLES`` samples (the command line takes more)."""
