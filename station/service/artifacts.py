@@ -93,7 +93,11 @@ class Artifacts:
             self._hashes.pop(next(iter(self._hashes)))
         return sha
 
-    def _compare(self, row: RunRow, path: Path, expected: dict[str, str], required: bool) -> str:
+    def _compare(self, row: RunRow, path: Path, expected: dict[str, str], required: bool,
+                 writing: bool = False) -> str:
+        """``writing``: a further method of the run is being computed by the daemon now; the result
+        file it is writing is not vouched for yet, so an added file is not judged (every file the
+        chain vouches for still is)."""
         rec_key, prefix = chain.run_files(row.id, path.name)
         want = expected.get(rec_key)
         if want is None:  # a run from before the chain: the SHA-256 its row holds
@@ -107,6 +111,8 @@ class Artifacts:
         results = {k: v for k, v in expected.items() if k.startswith(prefix)}
         if results:  # results vouched for: exactly those, as written
             present = chain.results_hashes_names(path)
+            if writing:
+                present = [k for k in present if k in results]
             chain.check_files(self.recordings_dir, results, present, f"run {row.id}", self._sha256)
         return sha
 
@@ -127,7 +133,7 @@ class Artifacts:
                 # writing a results file until its entry is in the chain
                 async with self.file_lock(row.id):
                     want = await self.db.read(expected)
-                    return await asyncio.to_thread(self._compare, row, path, want, required)
+                    return await asyncio.to_thread(self._compare, row, path, want, required, self.busy(row.id))
             except RecordingTamperedError:
                 if attempt or not self.busy(row.id):
                     raise
