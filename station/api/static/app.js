@@ -504,6 +504,12 @@ async function loadResults(id) {
   for (const n of names) {
     const fig = document.createElement("figure");
     fig.innerHTML = `<img alt="${esc(n)} plot" data-plot="${esc(n)}" src="${esc(d.plots[n])}"><figcaption class="small">${esc(n)}</figcaption>`;
+    // a plot refused for the moment (the render worker busy, a further method being stored) is asked again
+    const img = fig.querySelector("img"), src = d.plots[n];
+    img.onerror = () => {
+      const tries = Number(img.dataset.tries || 0);
+      if (tries < 5) { img.dataset.tries = String(tries + 1); setTimeout(() => { img.src = `${src}?try=${tries + 1}`; }, 2000 * (tries + 1)); }
+    };
     plots.appendChild(fig);
   }
   const rl = $("#report-link");
