@@ -56,6 +56,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"station {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a driver's or the system's failure: one clear line, the traceback with -v
+        logging.getLogger("station.cli").debug("station %s failed", args.command, exc_info=True)
+        message = f"{type(exc).__name__}: {exc}"
+        hint = "" if args.verbose else " (run with -v for the details)"
+        print(f"station {args.command}: error: {message}{hint}", file=sys.stderr)
+        if getattr(args, "json", False) is True:
+            print(json.dumps({"error": {"command": args.command, "message": message, "kind": type(exc).__name__,
+                                        "exit_code": 1}}, indent=2))
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

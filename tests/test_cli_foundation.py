@@ -182,3 +182,20 @@ def test_import_of_a_missing_run_file(tmp_path: Path, capsys: pytest.CaptureFixt
     assert main(["import", str(tmp_path / "RUN.yaml"), "--out", str(tmp_path / "o")]) == 2
     assert f"{tmp_path / 'RUN.yaml'}: cannot read: No such file or directory" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_failure_outside_the_station_is_one_clear_line_without_a_traceback(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """A driver's or the system's exception (not a StationError) ends the command with exit code 1 and
+    one line naming it, the JSON refusal under --json; the traceback is logged only with -v."""
+    import station.commands.calibrate as calibrate
+
+    def fails(args: Any) -> int:
+        raise TimeoutError("no reply to 'STAT?' (#2) within 1.0 s")
+
+    monkeypatch.setattr(calibrate, "run", fails)
+    assert main(["calibrate", "--sim", "--json"]) == 1
+    out, err = capsys.readouterr()
+    assert "station calibrate: error: TimeoutError: no reply to 'STAT?' (#2) within 1.0 s" in err
+    assert "-v for the details" in err and "Traceback" not in err
+    assert '"kind": "TimeoutError"' in out and '"exit_code": 1' in out

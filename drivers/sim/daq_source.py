@@ -9,6 +9,7 @@ from typing import Protocol
 
 import numpy as np
 
+from drivers.rig.crank import harmonic_sum
 from drivers.rig.params import RigPhysics
 from drivers.rig.synth import RigSynth
 
@@ -44,12 +45,27 @@ class RigSource:
         self._lock = threading.Lock()
         self.synth: RigSynth | None = None
 
+    _compiled = False  # the synthesis kernels compiled (or read from numba's cache) in this process
+
     def configure(self, rate_hz: float, range_disp_V: float, range_force_V: float) -> None:
         key = (rate_hz, range_disp_V, range_force_V)
         with self._lock:
             if self.synth is not None and key == self._key:
                 return
             self._new_synth(key)
+            self._compile_once()
+
+    def _compile_once(self) -> None:
+        """Synthesise a few samples on a throwaway synthesiser, once per process: the numba kernels are
+        compiled (seconds on a fresh install, before their cache exists) at the first configuration,
+        which the emulator makes before it answers, not at the first block synthesised while the
+        station waits for a reply."""
+        if RigSource._compiled or self.synth is None:
+            return
+        scratch = RigSynth(self.synth.physics, seed=self.seed, crank_radius_m=self.crank_radius_m)
+        scratch.advance(64, 1.0)
+        harmonic_sum((np.ones(8), np.zeros(8)), np.zeros((4, 2)))  # the crank's harmonics, if an effect needs them
+        RigSource._compiled = True
 
     def _new_synth(self, key: tuple[float, float, float]) -> None:
         rate_hz, range_disp_V, range_force_V = key
