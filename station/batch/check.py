@@ -80,7 +80,8 @@ def _problem(r: httpx.Response) -> str:
 async def run_check(client: httpx.AsyncClient, body: dict[str, Any], *, timeout_s: float = 1800.0,
                     poll_s: float = 1.0) -> CheckRun:
     """Start the check run ``body`` on the daemon ``client`` talks to (base URL and token set) and
-    wait until it is identified or ends; never raises for what the daemon or the network does."""
+    wait until it is identified or ends (asked after 0.05 s, then at doubling intervals up to
+    ``poll_s``); never raises for what the daemon or the network does."""
     tx, at = str(body.get("transducer_id")), time.time()
     try:
         r = await client.post("/runs", json=body)
@@ -94,7 +95,7 @@ async def run_check(client: httpx.AsyncClient, body: dict[str, Any], *, timeout_
         return CheckRun(tx, "not run", f"{why}: {_problem(r)}", at)
     run_id = str(r.json()["id"])
     deadline = time.monotonic() + timeout_s
-    state = "queued"
+    state, wait = "queued", min(0.05, poll_s)
     while True:
         try:
             st = await client.get(f"/runs/{run_id}")
@@ -111,7 +112,8 @@ async def run_check(client: httpx.AsyncClient, body: dict[str, Any], *, timeout_
         if time.monotonic() >= deadline:
             return CheckRun(tx, "unfinished", f"run {run_id} was still {state} after {timeout_s:g} s (the daemon "
                             "goes on with it; tomorrow's charts will have it)", at, run_id, state)
-        await asyncio.sleep(poll_s)
+        await asyncio.sleep(wait)
+        wait = min(2 * wait, poll_s)  # asked often at first (a short check run), then every poll_s
 
 
 async def check_runs(cfg: StationConfig, transducers: list[str], token: str | None, *,
