@@ -121,6 +121,7 @@ def check_first(cfg: StationConfig, args: argparse.Namespace) -> tuple[list[dict
     transducer now holds certificates (``station.lab.history.check_hold``).  Returns the findings
     (``CheckRun`` as dicts with ``hold``) and notes (why no check run was asked for)."""
     import asyncio
+    import sqlite3
 
     from station.batch.check import check_runs
     from station.lab import history, policy
@@ -131,7 +132,11 @@ def check_first(cfg: StationConfig, args: argparse.Namespace) -> tuple[list[dict
     db = db if db.is_absolute() else rec_dir / db
     if not db.is_file():
         return [], [f"no station database at {db}: no check transducer is marked"]
-    store = Store(db)
+    try:
+        store = Store(db)
+    except sqlite3.Error as exc:
+        log.warning("batch: the station database %s could not be read (%s): no check run", db, exc)
+        return [], [f"the station database {db} could not be read ({exc}): no check run was asked for"]
     try:
         marked = policy.check_transducers(store)
         if not marked:
