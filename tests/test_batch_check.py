@@ -185,6 +185,9 @@ def test_nightly_check_runs_chart_a_drifting_check_transducer_and_hold_the_certi
             p = np.cumsum(first_alarm_probabilities([shift * (j + 1) for j in range(10)], kind="ewma"))
             bound = int(np.argmax(p >= 0.999))
             assert detected <= bound, (detected, bound, shift)
+            assert h["hold"]["transducer_id"] == TX and h["hold"]["run_id"] == nights[-1]["run_id"]  # the page says so
+            assert h["hold"]["since"] == pytest.approx(max(x["created"] for x in h["runs"]
+                                                           if x["run_id"] == nights[-2]["run_id"]))
             # the run made since the last good check is held, with the reason; an earlier one is not
             r = await anton.post(f"/runs/{customer}/approve", json={"note": "ok"})
             assert r.status_code == 409 and "held for review" in r.text and TX in r.text
