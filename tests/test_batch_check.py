@@ -21,7 +21,7 @@ from drivers.clock import REAL_CLOCK
 from drivers.rig.params import TransducerAgeing
 from drivers.sim.clock import VirtualClock
 from drivers.sim.rig import SimRig
-from station.batch.check import check_body, check_runs, station_url
+from station.batch.check import check_body, check_runs, run_check, station_url
 from station.config import parse_config, to_rig_physics
 from station.lab import policy
 from station.service.store import Store
@@ -157,13 +157,21 @@ def test_nightly_check_runs_chart_a_drifting_check_transducer_and_hold_the_certi
 
             r = await admin.put(f"/register/transducers/{TX}/policy", json={"check_standard": True})
             assert r.status_code == 200, r.text
-            # the rig busy with a technician's run: the check run is not made, and says why
-            busy = (await admin.post("/runs", json=check_body(config, TX))).json()["id"]
+            # a (long) check run on the rig: a second one finds the rig busy and says so, then the
+            # first is aborted by an operator and the batch reports it failed, with the reason
+            long = check_body(config, TX)
+            for step in long["steps"]:
+                step["record_s"] = 120.0  # far longer than the abort takes to arrive
+            first = asyncio.create_task(run_check(admin, long, poll_s=0.05))
+            while not (busy := (await admin.get("/runs", params={"limit": 1})).json()["runs"]) \
+                    or busy[0]["state"] not in ("queued", "running"):
+                await asyncio.sleep(0.01)
             [found] = await check_runs(config, [TX], TOKEN, transport=transport)
-            assert found.status == "not run" and "rig is busy" in found.detail and busy in found.detail
-            await admin.post(f"/runs/{busy}/abort", json={"reason": "test"})
-            while (await admin.get(f"/runs/{busy}")).json()["state"] not in ("aborted", "failed", "completed"):
-                await asyncio.sleep(0.02)
+            assert found.status == "not run" and "rig is busy" in found.detail and busy[0]["id"] in found.detail
+            await admin.post(f"/runs/{busy[0]['id']}/abort")
+            found = await first
+            assert (found.status, found.state, found.run_id) == ("failed", "aborted", busy[0]["id"]), found
+            assert "aborted by admin" in found.detail  # the reason the run ended with
 
             await admin.put("/users/anton", json={"role": "approver", "password": "anton-secret-pw"})
             anton = await login(app, "anton")
