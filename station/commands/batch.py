@@ -134,19 +134,27 @@ def check_first(cfg: StationConfig, args: argparse.Namespace) -> tuple[list[dict
         return [], [f"no station database at {db}: no check transducer is marked"]
     try:
         store = Store(db)
+        try:
+            marked = policy.check_transducers(store)
+        finally:
+            store.close()  # not held open while the check runs (up to batch.check_timeout_s)
     except sqlite3.Error as exc:
         log.warning("batch: the station database %s could not be read (%s): no check run", db, exc)
         return [], [f"the station database {db} could not be read ({exc}): no check run was asked for"]
+    if not marked:
+        return [], ["the register marks no check transducer"]
+    if args.station:
+        cfg = cfg.model_copy(update={"batch": cfg.batch.model_copy(update={"station_url": args.station})})
+    token = os.environ.get("STATION_TOKEN", "").strip() or cfg.service.token
+    found = asyncio.run(check_runs(cfg, marked, token))
     try:
-        marked = policy.check_transducers(store)
-        if not marked:
-            return [], ["the register marks no check transducer"]
-        if args.station:
-            cfg = cfg.model_copy(update={"batch": cfg.batch.model_copy(update={"station_url": args.station})})
-        token = os.environ.get("STATION_TOKEN", "").strip() or cfg.service.token
-        found = asyncio.run(check_runs(cfg, marked, token))
-        hold = history.check_hold(store, rec_dir)
-    finally:
-        store.close()
+        store = Store(db)
+        try:
+            hold = history.check_hold(store, rec_dir)
+        finally:
+            store.close()
+    except sqlite3.Error as exc:
+        log.warning("batch: whether the check transducer holds certificates could not be read (%s)", exc)
+        hold = None
     return [{**c.to_dict(), "hold": hold.reason if hold is not None and hold.transducer_id == c.transducer_id
              else None} for c in found], []
