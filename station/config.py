@@ -240,6 +240,22 @@ class StandardConfig(_Model):
     uncertainty_unit: str = Field(min_length=1, max_length=32, description="e.g. m, kg, V/V, relative")
 
 
+class BatchSection(_Model):
+    """The nightly batch (``station batch``): the check transducer's short calibration it asks the
+    station daemon for before it re-identifies (docs/batch.md)."""
+
+    check_steps: list[StepConfig] = Field(
+        default_factory=list, max_length=10, description="the check run's steps (a short plan: 2-3 steps "
+        "where S, k_f and b_f are determined); empty: three of the plan's steps (first, middle, last)")
+    check_top_mass_kg: float | None = Field(default=None, gt=0, le=MAX_TOP_MASS_KG,
+                                            description="the check run's top mass; default rig.top_mass_kg")
+    check_timeout_s: float = Field(default=1800.0, gt=0, le=86_400.0, description="how long the batch waits "
+                                   "for the check run to be acquired and identified before it reports it unfinished")
+    station_url: str | None = Field(default=None, pattern=r"^https?://[^\s]+$", max_length=256,
+                                    description="the station daemon's address (default: http://service.host:"
+                                    "service.port); its token is STATION_TOKEN or service.token")
+
+
 class LabSection(_Model):
     """Users, reference standards, the register's seed."""
 
@@ -450,6 +466,7 @@ class StationConfig(_Model):
     simulation: SimulationConfig | None = None
     service: ServiceSection = ServiceSection()
     lab: LabSection = LabSection()
+    batch: BatchSection = BatchSection()
 
     @model_validator(mode="after")
     def _drive_profile(self) -> StationConfig:

@@ -232,6 +232,10 @@ class HistoryOut(OutModel):
         "the next due date and the intervals methods A3, S2 and variables recommend (docs/batch.md)")
     out_of_control: list[dict[str, Any]] = Field(default_factory=list,
                                                  description="every chart's out-of-control points")
+    hold: dict[str, Any] | None = Field(
+        default=None, description="the station's check transducer out of control: transducer_id, since (UNIX s, "
+        "its last good check), run_id, parameter, reason; approving and issuing the runs made since are refused "
+        "(null: no hold)")
 
 
 class PolicyIn(_In):

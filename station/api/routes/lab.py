@@ -8,6 +8,7 @@ import datetime as dt
 import logging
 import re
 import time
+from dataclasses import asdict
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request, Response
@@ -293,8 +294,10 @@ async def transducer_history(entry_id: EntryId, manager: ManagerDep,
                                                            policy.as_left_of(s, entry_id)))
     doc = await asyncio.to_thread(history.history, rows, manager.settings.recordings_dir, approved, pol, left,
                                   lam=lam, L=L)
+    hold = await manager.db.read(lambda s: history.check_hold(s, manager.settings.recordings_dir))
     certs = await manager.artifacts.certificates(entry_id)
-    return HistoryOut(transducer=TransducerOut(**t.to_dict()), certificates=certs, **doc)
+    return HistoryOut(transducer=TransducerOut(**t.to_dict()), certificates=certs,
+                      hold=asdict(hold) if hold is not None else None, **doc)
 
 
 @router.put("/register/transducers/{entry_id}/policy", response_model=PolicyOut,
