@@ -289,3 +289,20 @@ def test_eq8_filter_states_the_coupling_damping_it_assumes(tmp_path: Path) -> No
     assert s.theta[i] == 0.0 and s.cov_array[i, i] == 0.0
     (finding,) = [c for c in s.findings if c.name == "coupling_damping_conditional"]
     assert "b_c = 0" in finding.message and "not identifiable" in finding.message
+
+
+def test_compiled_pass_equals_the_convolutions() -> None:
+    """The compiled per-sample loop against numpy's convolutions of the same rows (the FFT path
+    beyond DIRECT_MAX_TAPS and the fallback without numba)."""
+    from station.compensate.apply import fir
+    from station.compensate.kernel import estimate_and_variance
+
+    rng = np.random.default_rng(8)
+    for taps, rows in ((5, 2), (64, 4), (97, 8)):
+        w = rng.normal(size=(rows, taps))
+        xe = rng.normal(size=3000 + taps - 1) + 3.0
+        y, var = estimate_and_variance(xe, np.ascontiguousarray(w[:, ::-1]), 0.25)
+        Z = np.array([np.convolve(xe, r, mode="valid") for r in w])
+        np.testing.assert_allclose(y, Z[0], rtol=0, atol=1e-12 * np.max(np.abs(Z[0])))
+        np.testing.assert_allclose(var, 0.25 + np.sum(Z[1:] ** 2, axis=0), rtol=1e-12)
+        np.testing.assert_allclose(fir(xe, w), Z, rtol=0, atol=1e-12 * np.max(np.abs(Z)))
