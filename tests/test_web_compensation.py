@@ -39,6 +39,7 @@ def test_design_download_and_correct_a_signal_on_the_page(browser: object, daemo
                              timeout=60_000)
         refused = pg.inner_text("#comp-msg")
         assert "refused (422)" in refused and "beyond the calibrated range" in refused, refused
+        assert "tick “correct beyond the calibrated frequencies”" in refused
         assert pg.is_hidden("#comp-result")
         pg.check("#comp-extrap")
         pg.click("#comp-design")

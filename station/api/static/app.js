@@ -570,7 +570,13 @@ async function designFilter(id) {
     const path = `/runs/${encodeURIComponent(id)}/compensation`;
     const res = await api("POST", path, body);
     if (shownRun !== id) return;
-    if (!res.ok) { msg.textContent = refusal(res, "design the filter"); $("#comp-result").hidden = true; return; }
+    if (!res.ok) {
+      const why = refusal(res, "design the filter");
+      msg.textContent = why + (/calibrated range/.test(why) && !body.allow_extrapolation
+        ? " To accept it, tick “correct beyond the calibrated frequencies”." : "");
+      $("#comp-result").hidden = true;
+      return;
+    }
     msg.textContent = "";
     for (const u of compUrls) URL.revokeObjectURL(u);
     compUrls = [];
