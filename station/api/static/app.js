@@ -523,7 +523,200 @@ async function loadResults(id) {
   if (seq === methodsSeq) showMethods(d.methods || []);  // a later 'result' event's answer is newer
   $("#results").hidden = false;
   loadApprovals(id);
+  showCompensation(id);
   loadDiscrepancy(d.discrepancy);
+}
+
+// ------------------------------------------------------------------------------------------ compensation
+// a correction filter for the user's set-up from the run's identification (POST /runs/{id}/compensation),
+// its Bode plot, the filter as a file, and the filter tried on an uploaded signal (POST /compensation/apply)
+const COMP_MAX_SAMPLES = 200000;   // the API's bound; the command line takes more
+let compFilter = null;              // the filter document on screen
+let compUrls = [];                  // object URLs of the downloads and the plot, revoked when replaced
+
+function compUrl(blob) {
+  const u = URL.createObjectURL(blob);
+  compUrls.push(u);
+  return u;
+}
+
+function showCompensation(id) {
+  for (const u of compUrls) URL.revokeObjectURL(u);
+  compUrls = [];
+  compFilter = null;
+  $("#comp-result").hidden = true;
+  $("#comp-applied").hidden = true;
+  $("#comp-msg").textContent = "";
+  $("#comp-form").onsubmit = (ev) => { ev.preventDefault(); designFilter(id); };
+  $("#comp-apply-form").onsubmit = (ev) => { ev.preventDefault(); applyFilter(); };
+}
+
+function compBody() {
+  const v = (sel) => $(sel).value.trim();
+  for (const [sel, what] of [["#comp-fs", "your sample rate"], ["#comp-mass", "the mass on the transducer"], ["#comp-band", "up to which frequency to correct"]])
+    if (v(sel) === "" || !Number.isFinite(Number(v(sel)))) throw new Error(`state ${what}`);
+  return {sample_rate_hz: Number(v("#comp-fs")), mounted_mass_kg: Number(v("#comp-mass")),
+          mounted_mass_std_kg: Number(v("#comp-mass-u") || 0), band_hz: [0, Number(v("#comp-band"))],
+          allow_extrapolation: $("#comp-extrap").checked};
+}
+
+async function designFilter(id) {
+  const msg = $("#comp-msg");
+  let body;
+  try { body = compBody(); } catch (e) { msg.textContent = e.message; return; }
+  msg.textContent = "designing…";
+  $("#comp-design").disabled = true;
+  try {
+    const path = `/runs/${encodeURIComponent(id)}/compensation`;
+    const res = await api("POST", path, body);
+    if (shownRun !== id) return;
+    if (!res.ok) {
+      const why = refusal(res, "design the filter");
+      msg.textContent = why + (/calibrated range/.test(why) && !body.allow_extrapolation
+        ? " To accept it, tick “correct beyond the calibrated frequencies”." : "");
+      $("#comp-result").hidden = true;
+      return;
+    }
+    msg.textContent = "";
+    for (const u of compUrls) URL.revokeObjectURL(u);
+    compUrls = [];
+    compFilter = res.data;
+    showFilter(compFilter);
+    $("#comp-applied").hidden = true;
+    $("#comp-result").hidden = false;
+    const img = $("#comp-bode");
+    img.removeAttribute("src");
+    $("#comp-bode-cap").textContent = "drawing the frequency response…";
+    const r = await fetch(path + "/plot", {method: "POST", body: JSON.stringify(body),
+      headers: {"Content-Type": "application/json", "Accept": "image/png", "X-Station-Client": "page"}});
+    if (shownRun !== id || compFilter !== res.data) return;
+    if (r.ok) {
+      img.src = compUrl(await r.blob());
+      $("#comp-bode-cap").textContent = "how the transducer (blue), the filter (orange) and the corrected system (green) " +
+        "answer each frequency, with their uncertainty (k = 2); grey: the band you asked for; dashed: the cut-off";
+    } else $("#comp-bode-cap").textContent = `the plot is not available (${r.status})`;
+  } finally { $("#comp-design").disabled = false; }
+}
+
+const pct = (v) => (100 * v).toPrecision(2) + " %";
+function showFilter(d) {
+  const S = d.transducer.theta[0];  // the static sensitivity (S or S0), unit_in per unit_out
+  const [lo, hi] = d.band_hz;
+  $("#comp-summary").innerHTML =
+    `The filter corrects the force from ${esc(lo)} Hz to ${esc(hi)} Hz to within ${pct(d.dynamic_error_bound)} ` +
+    `(besides the uncertainty it states at every sample). Above ${esc(Number(d.cutoff_hz).toPrecision(4))} Hz it smooths ` +
+    `on purpose: correcting higher frequencies would amplify the noise too much. It delays the signal by ` +
+    `${esc((1000 * d.delay_s).toPrecision(3))} ms (taken out of the time axis when it is applied). Noise in your signal ` +
+    `comes out ${esc((d.noise_gain * S).toPrecision(3))} times larger than in a reading divided by the static sensitivity.`;
+  $("#comp-findings").innerHTML = (d.findings || []).map((c) => `<li data-finding="${esc(c.name)}">${esc(c.severity)}: ${esc(c.message)}</li>`).join("");
+  const t = d.transducer;
+  const rows = [["taps (coefficients)", d.taps], ["sample rate", `${d.sample_rate_hz} Hz`],
+    ["delay", `${d.delay_samples} samples (${(1000 * d.delay_s).toPrecision(4)} ms)${d.delay_given ? ", as given" : ", the one of least error"}`],
+    ["regularising low-pass", `cut-off ${Number(d.cutoff_hz).toPrecision(5)} Hz, order ${d.lowpass_order}`],
+    ["fit RMS over the band", Number(d.fit_rms_band).toExponential(2)],
+    ["dynamic error bound in the band", Number(d.dynamic_error_bound).toExponential(2)],
+    ["noise gain ‖b‖₂", `${Number(d.noise_gain).toPrecision(4)} ${esc(d.unit_out)}/${esc(d.unit_in)}`],
+    ["transducer model", `${esc(t.kind)}: ${esc((t.assumptions || {}).model || "")}`],
+    ["calibrated range", t.calibrated_range_hz.map((v) => (v === null ? "—" : v + " Hz")).join(" to ")]];
+  t.names.forEach((n, i) => rows.push([`${n} (${t.units[i]})`, fmtU(t.theta[i], Math.sqrt(t.cov[i][i]))]));
+  $("#comp-table tbody").innerHTML = rows.map(([k, v]) => `<tr><th>${esc(k)}</th><td>${v}</td></tr>`).join("");
+  $("#comp-assumptions").textContent = Object.entries(t.assumptions || {}).filter(([, v]) => typeof v === "string")
+    .map(([k, v]) => `${k}: ${v}`).join("; ");
+  for (const el of document.querySelectorAll(".comp-unit-in")) el.textContent = d.unit_in;
+  $("#comp-download").href = compUrl(new Blob([JSON.stringify(d, null, 1)], {type: "application/json"}));
+}
+
+// the uploaded CSV: a header, a time_s (or time) column and one value column, or one value column
+function parseSignal(text) {
+  const lines = text.split(/\r?\n/).filter((l) => l.trim() && !l.trim().startsWith("#"));
+  if (lines.length < 2) throw new Error("the file has a header and no samples");
+  const head = lines[0].split(",").map((h) => h.trim().toLowerCase());
+  const ti = head.findIndex((h) => h === "time_s" || h === "time");
+  const vi = head.map((_, i) => i).filter((i) => i !== ti);
+  if (vi.length !== 1) throw new Error(`the header names ${vi.length} value columns (${head.join(", ")}): give one, with a time_s column or without`);
+  if (lines.length - 1 > COMP_MAX_SAMPLES) throw new Error(`${lines.length - 1} samples: the page takes at most ${COMP_MAX_SAMPLES} (use station compensate apply)`);
+  const x = new Float64Array(lines.length - 1), t = ti >= 0 ? new Float64Array(lines.length - 1) : null;
+  for (let k = 1; k < lines.length; k++) {
+    const f = lines[k].split(",");
+    if (f.length !== head.length) throw new Error(`line ${k + 1}: ${f.length} fields, the header names ${head.length}`);
+    x[k - 1] = Number(f[vi[0]]);
+    if (f[vi[0]].trim() === "" || !Number.isFinite(x[k - 1])) throw new Error(`line ${k + 1}: "${f[vi[0]].trim()}" is not a finite number: nothing was corrected`);
+    if (t) {
+      t[k - 1] = Number(f[ti]);
+      if (!Number.isFinite(t[k - 1])) throw new Error(`line ${k + 1}: the time "${f[ti].trim()}" is not a number`);
+    }
+  }
+  let fs = null, t0 = 0;
+  if (t) {
+    if (t.length < 2) throw new Error("fewer than 2 samples");
+    const step = (t[t.length - 1] - t[0]) / (t.length - 1);
+    for (let k = 1; k < t.length; k++)
+      if (!(step > 0) || Math.abs(t[k] - t[k - 1] - step) > 1e-3 * step) throw new Error(`the time column is not uniformly sampled (at line ${k + 2}): resample it first`);
+    fs = 1 / step;
+    t0 = t[0];
+  }
+  return {x, fs, t0, column: head[vi[0]]};
+}
+
+async function applyFilter() {
+  const msg = $("#comp-apply-msg"), d = compFilter;
+  const file = $("#comp-file").files[0];
+  if (!d) { msg.textContent = "design a filter first"; return; }
+  if (!file) { msg.textContent = "choose a signal file"; return; }
+  let sig;
+  try { sig = parseSignal(await file.text()); } catch (e) { msg.textContent = `${file.name}: ${e.message}`; return; }
+  const noise = Number($("#comp-noise").value || 0);
+  if (!(noise >= 0)) { msg.textContent = "the noise's standard deviation must be a number ≥ 0"; return; }
+  // a time column within 1e-3 of the filter's rate is the filter's rate (a CSV rounds its times)
+  const fs = sig.fs === null || Math.abs(sig.fs / d.sample_rate_hz - 1) <= 1e-3 ? d.sample_rate_hz : sig.fs;
+  msg.textContent = "correcting…";
+  $("#comp-apply").disabled = true;
+  try {
+    const res = await api("POST", "/compensation/apply", {filter: d, signal: Array.from(sig.x), sample_rate_hz: fs, noise_std: noise});
+    if (compFilter !== d) return;
+    if (!res.ok) { msg.textContent = refusal(res, "correct the signal"); return; }
+    msg.textContent = "";
+    showApplied(d, sig, fs, res.data);
+  } finally { $("#comp-apply").disabled = false; }
+}
+
+function showApplied(d, sig, fs, r) {
+  const S = d.transducer.theta[0];
+  const y = r.estimate, u = r.u, t = r.time_s.map((v) => v + sig.t0);
+  let ip = 0, im = 0;
+  for (let k = 1; k < y.length; k++) if (Math.abs(y[k]) > Math.abs(y[ip])) ip = k;
+  for (let k = 1; k < sig.x.length; k++) if (Math.abs(sig.x[k]) > Math.abs(sig.x[im])) im = k;
+  $("#comp-applied-summary").textContent = `${y.length} samples corrected. Largest corrected force ${fmtU(y[ip], u[ip])} ${r.unit} ` +
+    `(± one standard uncertainty) at ${(t[ip] * 1000).toPrecision(5)} ms; the uncorrected reading (signal ÷ static sensitivity) ` +
+    `peaks at ${(sig.x[im] / S).toPrecision(4)} ${r.unit}. The delay of ${(1000 * r.delay_s).toPrecision(3)} ms is taken out of the time axis.`;
+  $("#comp-signal").innerHTML = signalPlot(sig, S, fs, t, y, u, r.unit);
+  const rows = ["time_s,estimate_" + r.unit + ",u_" + r.unit];
+  for (let k = 0; k < y.length; k++) rows.push(`${t[k]},${y[k]},${u[k]}`);
+  $("#comp-applied-download").href = compUrl(new Blob([rows.join("\n") + "\n"], {type: "text/csv"}));
+  $("#comp-applied").hidden = false;
+}
+
+// measured ÷ static sensitivity and the corrected force with its band (k = 2), at most ~1200 points drawn
+function signalPlot(sig, S, fs, t, y, u, unit) {
+  const W = 700, H = 260, pad = 50, n = y.length, step = Math.max(1, Math.ceil(n / 1200));
+  const idx = [];
+  for (let k = 0; k < n; k += step) idx.push(k);
+  const tm = (k) => sig.t0 + k / fs;  // the measured sample's time (the estimate's is earlier by the delay)
+  const vals = idx.flatMap((k) => [y[k] - 2 * u[k], y[k] + 2 * u[k], sig.x[k] / S]);
+  const lo = Math.min(...vals), hi = Math.max(...vals);
+  const ta = Math.min(t[0], tm(0)), tb = Math.max(t[n - 1], tm(n - 1));
+  const X = (v) => pad + (tb > ta ? (v - ta) / (tb - ta) : 0.5) * (W - 2 * pad);
+  const Y = (v) => H - pad / 2 - (hi > lo ? (v - lo) / (hi - lo) : 0.5) * (H - pad);
+  const line = (f) => idx.map((k, i) => `${i ? "L" : "M"}${X(f(k)[0]).toFixed(1)},${Y(f(k)[1]).toFixed(1)}`).join(" ");
+  const band = idx.map((k, i) => `${i ? "L" : "M"}${X(t[k]).toFixed(1)},${Y(y[k] + 2 * u[k]).toFixed(1)}`).join(" ") + " " +
+    idx.slice().reverse().map((k) => `L${X(t[k]).toFixed(1)},${Y(y[k] - 2 * u[k]).toFixed(1)}`).join(" ") + " Z";
+  return `<svg viewBox="0 0 ${W} ${H}" width="100%" role="img" aria-label="measured and corrected signal" class="hist-svg">` +
+    `<text x="4" y="14" font-size="12">${esc(unit)}: grey measured ÷ static sensitivity; blue corrected, band ± 2u</text>` +
+    `<path d="${band}" fill="#06c" fill-opacity="0.25" stroke="none"/>` +
+    `<path d="${line((k) => [tm(k), sig.x[k] / S])}" stroke="#888" fill="none"/>` +
+    `<path d="${line((k) => [t[k], y[k]])}" stroke="#06c" fill="none"/>` +
+    `<text x="4" y="${Y(hi) + 4}" font-size="10">${hi.toPrecision(4)}</text><text x="4" y="${Y(lo)}" font-size="10">${lo.toPrecision(4)}</text>` +
+    `<text x="${pad}" y="${H - 4}" font-size="10">${(ta * 1000).toPrecision(4)} ms</text><text x="${W - pad - 60}" y="${H - 4}" font-size="10">${(tb * 1000).toPrecision(4)} ms</text></svg>`;
 }
 
 // the run's certificate: the draft until a second person with the approver role issues it
