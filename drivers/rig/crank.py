@@ -52,11 +52,20 @@ ROTATION_ROW = 256  # samples per row of ``rotations`` (kernels.SYNTH_TILE: the 
 def rotations(phi0: float, dphi: float, n: int) -> tuple[np.ndarray, np.ndarray]:
     """exp(i phi_k), phi_k = phi0 + dphi*k, k = 0..n-1, as base[k // ROTATION_ROW] * table[k % ROTATION_ROW]:
     (base, table) as real and imaginary parts, shapes (2, ceil(n / ROTATION_ROW)) and (2, ROTATION_ROW)."""
+    return rotation_base(phi0, dphi, n), rotation_table(dphi)
+
+
+def rotation_table(dphi: float) -> np.ndarray:
+    """The table of ``rotations``: exp(i dphi k), k < ROTATION_ROW, real and imaginary parts (2, ROTATION_ROW)."""
+    table = np.exp(1j * dphi * np.arange(ROTATION_ROW))
+    return np.stack([table.real, table.imag])
+
+
+def rotation_base(phi0: float, dphi: float, n: int) -> np.ndarray:
+    """The base of ``rotations``: exp(i (phi0 + dphi ROTATION_ROW j)), j < ceil(n / ROTATION_ROW), (2, rows)."""
     m = ROTATION_ROW
-    rows = -(-n // m)
-    table = np.exp(1j * dphi * np.arange(m))
-    base = np.exp(1j * (phi0 + dphi * m * np.arange(rows)))
-    return np.stack([base.real, base.imag]), np.stack([table.real, table.imag])
+    base = np.exp(1j * (phi0 + dphi * m * np.arange(-(-n // m))))
+    return np.stack([base.real, base.imag])
 
 
 def cos_sin(phi0: float, dphi: float, c: float, n: int) -> tuple[np.ndarray, np.ndarray]:

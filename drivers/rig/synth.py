@@ -80,9 +80,35 @@ class RigSynth:
         self._sensor_coefficients = (self._sensor or _NO_FILTER).coefficients
         self._mains_weights = (_mains_weights(eff.mains_interference) if eff.mains_interference is not None
                                else np.zeros((1, 2)))
+        self._tables: dict[float, np.ndarray] = {}
+        self._fl, self._ints = self._kernel_arguments()
         disp_seq, force_seq = np.random.SeedSequence(seed).spawn(2)
         self._rng_disp = np.random.default_rng(disp_seq)
         self._rng_force = np.random.default_rng(force_seq)
+
+    def _kernel_arguments(self) -> tuple[np.ndarray, np.ndarray]:
+        """``kernels.synth_block``'s fl and ints with what stays the same from block to block; each
+        block fills in its own (f0, rate, alpha, cd, sd; n, the sample index, ramp, shift mode)."""
+        ph = self.physics
+        eff, t, cond, sens, adc = ph.effects, ph.transducer, ph.conditioner, ph.displacement_sensor, ph.adc
+        nl, drift = eff.transducer_nonlinearity, eff.zero_drift
+        lo, hi = -(2 ** (adc.bits - 1)), 2 ** (adc.bits - 1) - 1
+        fl = np.array([
+            self._T, 0.0, 0.0, 0.0, ph.gravity_m_per_s2,
+            t.sensitivity_V_per_N, t.capacity_N, nl.quadratic if nl else 0.0, nl.cubic if nl else 0.0,
+            cond.gain, cond.offset_V, drift.rate_V_per_s if drift else 0.0,
+            drift.quadratic_V_per_s2 if drift else 0.0, cond.noise_V,
+            1.0, 0.0, eff.channel_delay.delay_s if eff.channel_delay else 0.0,
+            eff.clock_skew.relative if eff.clock_skew else 0.0,
+            sens.gain_V_per_m, sens.noise_m * sens.gain_V_per_m,
+            adc.volts_per_count(adc.displacement_range_V), adc.volts_per_count(adc.force_range_V), lo, hi,
+        ], dtype=float)
+        ints = np.array([
+            0, 0, 0, nl is not None, self._lowpass is not None, drift is not None,
+            eff.mains_interference is not None, cond.noise_V > 0, 0, self._sensor is not None,
+            sens.noise_m > 0,
+        ], dtype=np.int64)
+        return fl, ints
 
     # -- state -------------------------------------------------------------------------------
     @property
@@ -151,33 +177,18 @@ class RigSynth:
             crank_base, crank_tab = _NO_ROTATION
         else:
             crank_cs = _NO_SAMPLES2
-            crank_base, crank_tab = crank.rotations(self._phi, dphi, n)
+            crank_base, crank_tab = crank.rotation_base(self._phi, dphi, n), self._table(dphi)
         if eff.mains_interference is not None:
             w = 2.0 * np.pi * eff.mains_interference.frequency_hz
-            mains_base, mains_tab = crank.rotations(w * (self._k * T), w * T, n)
+            mains_base, mains_tab = crank.rotation_base(w * (self._k * T), w * T, n), self._table(w * T)
         else:
             mains_base, mains_tab = _NO_ROTATION
-        cond, sens, adc = ph.conditioner, ph.displacement_sensor, ph.adc
-        noise_f = self._rng_force.standard_normal(n) if cond.noise_V > 0 else _NO_SAMPLES
-        noise_d = self._rng_disp.standard_normal(n) if sens.noise_m > 0 else _NO_SAMPLES
+        noise_f = self._rng_force.standard_normal(n) if ph.conditioner.noise_V > 0 else _NO_SAMPLES
+        noise_d = self._rng_disp.standard_normal(n) if ph.displacement_sensor.noise_m > 0 else _NO_SAMPLES
         shift_mode, cd, sd, shift_cs = self._shift(n, f0, f_end_hz, rate, alpha)
-        t, nl, drift = ph.transducer, eff.transducer_nonlinearity, eff.zero_drift
-        lo, hi = -(2 ** (adc.bits - 1)), 2 ** (adc.bits - 1) - 1
-        fl = np.array([
-            T, f0, rate, alpha, ph.gravity_m_per_s2,
-            t.sensitivity_V_per_N, t.capacity_N, nl.quadratic if nl else 0.0, nl.cubic if nl else 0.0,
-            cond.gain, cond.offset_V, drift.rate_V_per_s if drift else 0.0,
-            drift.quadratic_V_per_s2 if drift else 0.0, cond.noise_V,
-            cd, sd, eff.channel_delay.delay_s if eff.channel_delay else 0.0,
-            eff.clock_skew.relative if eff.clock_skew else 0.0,
-            sens.gain_V_per_m, sens.noise_m * sens.gain_V_per_m,
-            adc.volts_per_count(adc.displacement_range_V), adc.volts_per_count(adc.force_range_V), lo, hi,
-        ], dtype=float)
-        ints = np.array([
-            n, self._k, c2 != 0.0, nl is not None, self._lowpass is not None, drift is not None,
-            eff.mains_interference is not None, cond.noise_V > 0, shift_mode, self._sensor is not None,
-            sens.noise_m > 0,
-        ], dtype=np.int64)
+        fl, ints = self._fl.copy(), self._ints.copy()
+        fl[1], fl[2], fl[3], fl[14], fl[15] = f0, rate, alpha, cd, sd
+        ints[0], ints[1], ints[2], ints[8] = n, self._k, c2 != 0.0, shift_mode
         x, force_V, disp_V = np.empty(n), np.empty(n), np.empty(n)
         dc, fc = np.empty(n, dtype=np.int16), np.empty(n, dtype=np.int16)
         lp, sensor = self._lowpass or _NO_FILTER, self._sensor or _NO_FILTER
@@ -190,6 +201,15 @@ class RigSynth:
             start_sample=self._k, displacement_counts=dc, force_counts=fc, displacement_V=disp_V,
             force_V=force_V, displacement_m=x, crank_frequency_hz=np.broadcast_to(freq, (n,)),
             clipped=int(clipped)))
+
+    def _table(self, dphi: float) -> np.ndarray:
+        """``crank.rotation_table(dphi)``, kept for the few steps (crank frequencies) a run repeats."""
+        table = self._tables.get(dphi)
+        if table is None:
+            if len(self._tables) >= 16:
+                self._tables.clear()
+            table = self._tables[dphi] = crank.rotation_table(dphi)
+        return table
 
     def _shift(self, n: int, f0: float, f_end: float, rate: float,
                alpha: float) -> tuple[int, float, float, np.ndarray]:
@@ -204,8 +224,7 @@ class RigSynth:
             cd, sd = crank.shift_cos_sin(omega * d - 0.5 * alpha * d * d)
             return 1, float(cd), float(sd), _NO_SAMPLES2
         # |delta| <= |omega| |d| + |alpha| d^2 / 2, d linear in t: its largest at either end
-        d_ends = np.abs(_displacement_lag(eff, np.array([self._k, self._k + n - 1]) * T))
-        d_max = float(np.max(d_ends))
+        d_max = max(abs(float(_displacement_lag(eff, k * T))) for k in (self._k, self._k + n - 1))
         if 2.0 * np.pi * max(f0, f_end) * d_max + 0.5 * abs(alpha) * d_max * d_max < 0.099:
             return 2, 1.0, 0.0, _NO_SAMPLES2
         freq = f0 + rate * (np.arange(n) * T)
@@ -286,8 +305,8 @@ class RigSynth:
         return block
 
 
-def _displacement_lag(eff: Effects, t: np.ndarray) -> np.ndarray | float:
-    """How long before the force sample at t (s, shape (n,)) the displacement sample is taken, s:
+def _displacement_lag(eff: Effects, t: np.ndarray | float) -> np.ndarray | float:
+    """How long before the force sample at t (s, shape (n,) or a scalar) the displacement sample is taken, s:
     the channel delay, less the clock skew's growing lead (``params.ClockSkew``)."""
     d: np.ndarray | float = eff.channel_delay.delay_s if eff.channel_delay is not None else 0.0
     if eff.clock_skew is not None:
