@@ -258,22 +258,27 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
         if K == 1:
             a = Wc[0, 0]
             b = Wc[0, 1]
-            for q in range(t):
-                if a == 0.0:
-                    xq = b * s[q]
-                    d1 = b * c[q]
-                else:
-                    xq = a * c[q] + b * s[q]
-                    d1 = b * c[q] - a * s[q]
-                w = om[q]
-                w2 = w * w
-                x[q] = xq
-                if alpha == 0.0:
-                    u[q] = -w2 * xq + g
-                    jerk[q] = -(w2 * w) * d1
-                else:
-                    u[q] = (alpha * d1 - w2 * xq) + g
-                    jerk[q] = -(w2 * w) * d1 - 3.0 * alpha * w * xq
+            d1 = v  # scratch until the filter pass
+            if a == 0.0:
+                for q in range(t):
+                    x[q] = b * s[q]
+                    d1[q] = b * c[q]
+            else:
+                for q in range(t):
+                    x[q] = a * c[q] + b * s[q]
+                    d1[q] = b * c[q] - a * s[q]
+            if alpha == 0.0:
+                for q in range(t):
+                    w = om[q]
+                    w2 = w * w
+                    u[q] = -w2 * x[q] + g
+                    jerk[q] = -(w2 * w) * d1[q]
+            else:
+                for q in range(t):
+                    w = om[q]
+                    w2 = w * w
+                    u[q] = (alpha * d1[q] - w2 * x[q]) + g
+                    jerk[q] = -(w2 * w) * d1[q] - 3.0 * alpha * w * x[q]
         else:
             _harmonics_tile(c, s, t, Wc, 4, rows, cprev, ccur, sprev, scur)
             if alpha == 0.0:
@@ -291,22 +296,26 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
                     u[q] = (rows[2, q] * w2 + rows[1, q] * alpha) + g
                     jerk[q] = rows[3, q] * (w2 * w) + 3.0 * alpha * rows[2, q] * w
         # the displacement channel's angle: lagging by the channel delay less the clock skew's lead
-        if shift_mode != 0:
+        if shift_mode == 1:
             for q in range(t):
-                if shift_mode == 1:
-                    cd = cd0
-                    sd = sd0
-                elif shift_mode == 2:
-                    d = delay - skew * ((k_abs + k0 + q) * T)
-                    delta = om[q] * d - 0.5 * alpha * d * d
-                    d2 = delta * delta
-                    cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 / 720.0))
-                    sd = delta * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 / 5040.0)))
-                else:
-                    cd = shift_cs[0, k0 + q]
-                    sd = shift_cs[1, k0 + q]
+                cx[q] = c[q] * cd0 + s[q] * sd0
+                sx[q] = s[q] * cd0 - c[q] * sd0
+        elif shift_mode == 2:
+            for q in range(t):
+                d = delay - skew * ((k_abs + k0 + q) * T)
+                delta = om[q] * d - 0.5 * alpha * d * d
+                d2 = delta * delta
+                cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 / 720.0))
+                sd = delta * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 / 5040.0)))
                 cx[q] = c[q] * cd + s[q] * sd
                 sx[q] = s[q] * cd - c[q] * sd
+        elif shift_mode == 3:
+            for q in range(t):
+                cd = shift_cs[0, k0 + q]
+                sd = shift_cs[1, k0 + q]
+                cx[q] = c[q] * cd + s[q] * sd
+                sx[q] = s[q] * cd - c[q] * sd
+        if shift_mode != 0:
             _harmonics_tile(cx, sx, t, Wc, 2 if has_sen else 1, rows, cprev, ccur, sprev, scur)
         elif has_sen:
             _harmonics_tile(c, s, t, Wc, 2, rows, cprev, ccur, sprev, scur)
