@@ -24,38 +24,18 @@ def harmonic_series(c1, s1, W, out):
 
     c1, s1: cos phi, sin phi, shape (n,); W: (m, 2K); out: (m, n)."""
     m = W.shape[0]
-    K = W.shape[1] // 2
     n = c1.size
+    rows = np.empty((m, TILE))
     cprev = np.empty(TILE)
     ccur = np.empty(TILE)
     sprev = np.empty(TILE)
     scur = np.empty(TILE)
     for k0 in range(0, n, TILE):
         t = min(TILE, n - k0)
-        for q in range(t):
-            cprev[q] = 1.0
-            sprev[q] = 0.0
-            ccur[q] = c1[k0 + q]
-            scur[q] = s1[k0 + q]
+        _harmonics_tile(c1[k0:k0 + t], s1[k0:k0 + t], t, W, m, rows, cprev, ccur, sprev, scur)
         for i in range(m):
-            wc = W[i, 0]
-            ws = W[i, K]
             for q in range(t):
-                out[i, k0 + q] = wc * ccur[q] + ws * scur[q]
-        for h in range(1, K):  # harmonic h + 1 from h and h - 1
-            for q in range(t):
-                two_c1 = 2.0 * c1[k0 + q]
-                cn = two_c1 * ccur[q] - cprev[q]
-                sn = two_c1 * scur[q] - sprev[q]
-                cprev[q] = ccur[q]
-                sprev[q] = scur[q]
-                ccur[q] = cn
-                scur[q] = sn
-            for i in range(m):
-                wc = W[i, h]
-                ws = W[i, K + h]
-                for q in range(t):
-                    out[i, k0 + q] += wc * ccur[q] + ws * scur[q]
+                out[i, k0 + q] = rows[i, q]
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -79,8 +59,8 @@ def two_input_df2t(num_u, num_du, den, u, du, z, out):
 
 @numba.njit(cache=True, error_model="numpy")
 def _harmonics_tile(c1, s1, t, W, rows, out, cprev, ccur, sprev, scur):
-    """``harmonic_series`` on one tile: out[i, q] for the first ``rows`` rows of W and q < t <= SYNTH_TILE
-    (the same operations in the same order, so the same values to the bit)."""
+    """The harmonic sums of ``harmonic_series`` on one tile: out[i, q] for the first ``rows`` rows of W
+    and q < t (t at most the length of the scratch rows cprev, ccur, sprev, scur)."""
     K = W.shape[1] // 2
     for q in range(t):
         cprev[q] = 1.0
