@@ -23,8 +23,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from station.bounded import MAX_YAML_BYTES, load_yaml, quote, read_text_limited
+from station.config import MeasurementChain
 from station.errors import RecordingFormatError, StationError
-from station.ident.inputs import MeasurementChain
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id, read_recording
 
 log = logging.getLogger(__name__)

@@ -24,9 +24,9 @@ from station.certificate.item import CalibratedItem, calibrated_item, item_budge
 from station.certificate.present import QUANTITY, SYMBOL, plain, typeset, unit_text, value_and_uncertainties
 from station.certificate.sdyn import chain_of, sdyn_points
 from station.certificate.validity import validity
-from station.config import CertificateConfig
+from station.config import CertificateConfig, MeasurementChain
 from station.ident.coverage import K2_PROBABILITY, coverage, coverages
-from station.ident.inputs import DEFAULT_END_MASS_REL_STD, MeasurementChain
+from station.ident.inputs import DEFAULT_END_MASS_REL_STD
 from station.ident.models import make_model
 from station.ident.result import Check, Covariance, Estimate
 from station.lab.traceability import use_text

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from station import __version__
-from station.certificate.register import CertificateError
+from station.lab.issued import CertificateError
 
 DCC_NS = "https://ptb.de/dcc"
 SI_NS = "https://ptb.de/si"

@@ -1,5 +1,5 @@
 """The calibration report of a run as one self-contained HTML page (Jinja2 template report.html.j2 of
-station/certificate/templates, the certificates' engine; plots embedded as base64 PNG,
+station/report/templates, the certificates' engine; plots embedded as base64 PNG,
 styles inline, no external assets).  Layout and definitions: docs/report.md."""
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import numpy as np
 from markupsafe import Markup
 
 from station import __version__
-from station.certificate.render import render_template
 from station.errors import StationError
 from station.ident.coverage import coverages
 from station.ident.montecarlo import check_result
@@ -32,6 +31,7 @@ from station.report.quantities import (
     range_text,
     structure_sentence,
 )
+from station.report.render import render_template
 from station.report.statement import uncertainty_statement
 from station.report.tables import PARAM_HEADERS, budget_table, esc, num, param_rows, table
 from station.run.methods import METHODS_RESULT, MethodOutcome, agreement
@@ -312,7 +312,7 @@ def render_report(recording_path: Path, monte_carlo: int = 0) -> str:
     title = f"Calibration report: {d.rec.transducer_id}, run {d.rec.run_id}"
     sections = [_statement(d), _conditions(d), _model(d), _parameters(d), _monte_carlo(path, d, monte_carlo),
                 methods_section(d), campaign_section(d), _sensitivity(d), _discrepancy(d), _plots(path)]
-    # the page skeleton is the certificates' template engine's (station.certificate.render); the
+    # the page skeleton is a template (report/templates, station.report.render); the
     # sections are HTML built (and escaped) here
-    return render_template("report.html.j2", title=title, css=Markup(CSS), generated=now, version=__version__,
-                           source=path.name, sections=sections) + "\n"
+    return render_template("station.report", "report.html.j2", title=title, css=Markup(CSS), generated=now,
+                           version=__version__, source=path.name, sections=sections) + "\n"
