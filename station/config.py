@@ -32,6 +32,8 @@ Pos = Annotated[float, Field(gt=0)]
 
 # Bounds of every configuration, run request and the limits the daemon publishes (GET /station).
 MAX_TOP_MASS_KG = 500.0
+MAX_CRANK_FREQUENCY_HZ = 1000  # a step's crank frequency, wherever a step is declared
+MAX_CRANK_RADIUS_M = 1.0
 MAX_STEPS = 200
 
 DEFAULT_RESONANCE_REL_STD = 0.05  # u(f_r) of a displacement resonance stated without one, relative
@@ -231,8 +233,8 @@ class DaqConfig(_Model):
 class StepConfig(_Model):
     """One step of a stepped-sine run."""
 
-    crank_frequency_hz: float = Field(gt=0, le=1000)
-    crank_radius_m: float = Field(gt=0, le=1.0)
+    crank_frequency_hz: float = Field(gt=0, le=MAX_CRANK_FREQUENCY_HZ)
+    crank_radius_m: float = Field(gt=0, le=MAX_CRANK_RADIUS_M)
     settle_s: float | None = Field(default=None, ge=0, le=600)
     record_s: float | None = Field(default=None, gt=0, le=3600)
 
