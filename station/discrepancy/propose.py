@@ -64,11 +64,6 @@ class RunContext:
     steps: tuple[tuple[float, float], ...]
 
 
-class StepJson(TypedDict):
-    crank_frequency_hz: float
-    crank_radius_m: float
-
-
 class PairJson(TypedDict):
     """A pair of tied models: the one taken as true, the one refitted, Delta chi^2 now and after the steps
     (None if not finite)."""
@@ -83,8 +78,8 @@ class ProposalJson(TypedDict):
     """``Proposal.to_json``: steps in Hz and m; the information gain as ``measure`` says (None if not finite)."""
 
     reason: str
-    steps: list[StepJson]
-    run_steps: list[StepJson]
+    steps: list[dict[str, float]]  # crank_frequency_hz (Hz), crank_radius_m (m): a request's step
+    run_steps: list[dict[str, float]]
     expected_information_gain: float | None
     measure: str
     current: float | None
@@ -111,7 +106,7 @@ class Proposal:
     pairs: tuple[tuple[str, str, float, float], ...] = field(default_factory=tuple)
 
     def to_json(self) -> ProposalJson:
-        def steps(s: Sequence[tuple[float, float]]) -> list[StepJson]:
+        def steps(s: Sequence[tuple[float, float]]) -> list[dict[str, float]]:
             return [{"crank_frequency_hz": f, "crank_radius_m": r} for f, r in s]
         return {"reason": self.reason, "steps": steps(self.steps), "run_steps": steps(self.run_steps),
                 "expected_information_gain": _num(self.expected_information_gain), "measure": self.measure,
