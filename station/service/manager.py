@@ -18,9 +18,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from station.certificate.register import FOLDER
 from station.errors import StationError
 from station.lab import audit, certificates, chain, register, users
+from station.lab.issued import FOLDER
 from station.recording.repair import FolderCheck, check_folder
 from station.service import worker
 from station.service.artifacts import Artifacts

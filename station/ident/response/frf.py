@@ -142,7 +142,10 @@ def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
     last: list[float] = []
 
     def resid(p: FloatArray) -> FloatArray:
-        d = model.response(theta_of(p), frf.f_hz) - frf.H
+        # a trial step of the LM may reach beyond exp's range (a parameter near 0, e.g. b_c): its residuals
+        # are then not finite and the LM rejects the step and shortens the next, as it should
+        with np.errstate(over="ignore", invalid="ignore"):
+            d = model.response(theta_of(p), frf.f_hz) - frf.H
         r = np.einsum("fij,fj->fi", W, np.column_stack([d.real, d.imag])).ravel()
         last[:] = [float(r @ r)]
         return r
