@@ -556,3 +556,67 @@ def test_the_command_line_lists_and_revokes_tokens(tmp_path: Path, monkeypatch: 
     store = Store(tmp_path / "rec" / "station.db")
     assert users.user_of_token(store, text) is None
     store.close()
+
+
+# ---------------------------------------------------------------------------------------------- the lab's tables
+def _sql(path: Path, *stmts: str) -> None:
+    """What an insider with the database file does to a table the station keeps (no trigger there)."""
+    db = sqlite3.connect(path)
+    for s in stmts:
+        db.execute(s)
+    db.commit()
+    db.close()
+
+
+@pytest.mark.parametrize(("stmt", "words"), [
+    ("UPDATE transducer_policy SET check_standard = 0", "transducer_policy TX-CHECK-1: check_standard changed"),
+    ("UPDATE transducer_policy SET tolerances_json = '{\"S\": 0.5}'", "tolerances changed"),
+    ("UPDATE transducer_policy SET updated_by = 'mallory'", "updated_by changed"),
+    ("DELETE FROM transducer_policy", "transducer_policy TX-CHECK-1: deleted outside the station"),
+    ("UPDATE as_left SET value = value * 1.01", "as_left run001/S: value changed"),
+    ("DELETE FROM as_left", "as_left run001/S: deleted outside the station"),
+    ("INSERT INTO as_left SELECT 'run002', transducer_id, 'k_f', 1.0, 'N/m', '', at, by FROM as_left",
+     "as_left run002/k_f: not in the audit trail"),
+    ("UPDATE as_left SET transducer_id = 'OTHER'", "as_left run001/S: transducer_id changed"),
+])
+def test_policies_and_adjustments_changed_outside_the_station_are_refused(tmp_path: Path, stmt: str,
+                                                                         words: str) -> None:
+    """The chain vouches for every row of transducer_policy and as_left: an edit with sqlite3 is
+    refused by the reads (the history, the check transducers) and named by the integrity check; the
+    next change through the station records what it found and overwrote."""
+    from station.lab import policy
+    from tests.history_support import TX, add_runs, add_transducer
+
+    store = Store(tmp_path / "s.db")
+    add_transducer(store)
+    ids = add_runs(store, tmp_path, 3)
+    policy.put_policy(store, policy.Policy(TX, {"S": 0.005}, 365.0, True), "ada")
+    policy.record_as_left(store, policy.AsLeft(ids[1], TX, "S", 2.001e-3, "V/N", "gain set", 1.8e9, "anton"))
+    with store.reading() as db:
+        assert policy.record_mismatches(db) == [] and chain.verify_chain(db).ok
+    assert policy.check_transducers(store) == [TX] and policy.as_left_of(store, TX)[ids[1]]["S"].value == 2.001e-3
+    store.close()
+
+    _sql(tmp_path / "s.db", stmt)
+    store = Store(tmp_path / "s.db")
+    with store.reading() as db:
+        found = policy.record_mismatches(db)
+        report = chain.integrity_report(chain.verify_chain(db), {}, tmp_path, found)
+    assert len(found) == 1 and words in found[0], found
+    assert report["chain_ok"] and not report["ok"] and words in report["detail"]
+    with pytest.raises(policy.RecordTamperedError, match=words.split(":")[0]):
+        if "as_left" in stmt:
+            policy.as_left_of(store, TX)
+        else:
+            policy.check_transducers(store)
+    if "transducer_policy" in stmt:
+        with pytest.raises(policy.RecordTamperedError, match="changed outside|deleted outside"):
+            policy.policy(store, TX)
+        # the administrator sets the policy again: the entry says what was found and overwritten
+        policy.put_policy(store, policy.Policy(TX, {"S": 0.005}, 365.0, True), "ada")
+        e = audit.entries(store, action=policy.POLICY_CHANGED)[0]
+        assert e.details["found_changed_outside"] == found
+        assert policy.policy(store, TX).check_standard
+        with store.reading() as db:
+            assert policy.record_mismatches(db) == []
+    store.close()

@@ -184,6 +184,8 @@ class IntegrityReportOut(OutModel):
     head: str = Field(description="the newest entry's hash")
     breaks: list[ChainBreakOut]
     files: list[str] = Field(description="each file that is missing, differs, or is not in the trail")
+    records: list[str] = Field(default_factory=list, description="each row of the lab's tables (transducer "
+                               "policies, adjustments) changed, added or deleted outside the station")
     detail: str
 
 

@@ -20,7 +20,7 @@ from typing import Any
 
 from station.certificate.register import FOLDER
 from station.errors import StationError
-from station.lab import audit, certificates, chain, register, users
+from station.lab import audit, certificates, chain, policy, register, users
 from station.recording.repair import FolderCheck, check_folder
 from station.service import worker
 from station.service.artifacts import Artifacts
@@ -292,13 +292,13 @@ class RunManager:
 
     async def integrity(self) -> dict[str, Any]:
         """The chain walked and every file it vouches for compared (``/integrity``)."""
-        def walk(store: Store) -> tuple[chain.ChainState, dict[str, str]]:
+        def walk(store: Store) -> tuple[chain.ChainState, dict[str, str], list[str]]:
             with store.reading() as db:
-                return chain.verify_chain(db), chain.latest_files(db)
-        state, latest = await self.db.read(walk, timeout_s=120.0)
+                return chain.verify_chain(db), chain.latest_files(db), policy.record_mismatches(db)
+        state, latest, records = await self.db.read(walk, timeout_s=120.0)
         self.chain = state
         # the files are hashed outside the database's read lock (other reads go on meanwhile)
-        return await asyncio.to_thread(chain.integrity_report, state, latest, self.settings.recordings_dir)
+        return await asyncio.to_thread(chain.integrity_report, state, latest, self.settings.recordings_dir, records)
 
     async def record_exception(self, admin: users.User, entry: int, reason: str) -> dict[str, Any]:
         """An administrator's reviewed exception for a broken link of the chain (itself an entry):
