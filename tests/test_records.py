@@ -73,6 +73,8 @@ def test_a_change_behind_the_triggers_is_named_at_its_entry(tmp_path: Path, stmt
     st = _state(store)
     assert not st.ok and st.open_breaks[0].id == broken_at and words in st.open_breaks[0].reason
     assert f"broken at entry {broken_at}" in st.describe()
+    with store.reading() as db:  # a page of /audit marks it too (not an entry deleted from the end: no page has it)
+        assert chain.broken_among(db, range(1, 10)) == ([] if "from the end" in words else [broken_at])
     with pytest.raises(chain.ChainBrokenError, match=f"entry {broken_at}"):
         st.require()
     # an administrator's reviewed exception: still listed, no longer blocking; the exception is a link too
@@ -481,10 +483,12 @@ def test_the_password_pool_refuses_at_once_when_full() -> None:
     asyncio.run(go())
 
 
-def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path) -> None:
+def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     """Five wrong passwords, then each further one locks the name and the address out for a
     growing time (the right password is refused meanwhile, no password checked); the lock-out is
-    audited and listed for an administrator, who lifts it.  A password typed into the name field
+    audited and listed for an administrator, who lifts it; a locked login costs the same one
+    password check as any other.  A password typed into the name field
     never reaches the trail; a new password ends the user's sessions; tokens are listed and revoked."""
     from station.service import logins
     from tests.station_support import PASSWORDS, app_in_process, asgi_client, login
@@ -500,8 +504,17 @@ def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path
                 assert r.status_code == 401 and "wrong user name or password" in r.json()["detail"]
             r = await anon.post("/login", json={"name": "tina", "password": "not-her-password"})
             assert r.status_code == 401
+            import hashlib
+            calls = []
+            real = hashlib.scrypt
+            def counted(*a: object, **k: object) -> bytes:
+                calls.append(1)
+                return real(*a, **k)  # type: ignore[arg-type]
+            monkeypatch.setattr(hashlib, "scrypt", counted)
             r = await anon.post("/login", json={"name": "tina", "password": PASSWORDS["tina"]})
             assert r.status_code == 401 and "locked until" in r.json()["detail"]
+            assert len(calls) == 1  # the same password check as any login: a lock-out is not told by its time
+            monkeypatch.undo()
             locks = (await c.get("/logins/locks")).json()
             assert {x["key"] for x in locks} == {"user:tina", "client:127.0.0.1"}
             assert audit.entries(manager.store, action=audit.LOGIN_LOCKED)
@@ -610,7 +623,7 @@ def test_policies_and_adjustments_changed_outside_the_station_are_refused(tmp_pa
         else:
             policy.check_transducers(store)
     if "transducer_policy" in stmt:
-        with pytest.raises(policy.RecordTamperedError, match="changed outside|deleted outside"):
+        with pytest.raises(policy.RecordTamperedError, match=r"changed outside|deleted outside"):
             policy.policy(store, TX)
         # the administrator sets the policy again: the entry says what was found and overwritten
         policy.put_policy(store, policy.Policy(TX, {"S": 0.005}, 365.0, True), "ada")
@@ -619,4 +632,36 @@ def test_policies_and_adjustments_changed_outside_the_station_are_refused(tmp_pa
         assert policy.policy(store, TX).check_standard
         with store.reading() as db:
             assert policy.record_mismatches(db) == []
+    store.close()
+
+
+def test_a_lock_out_outlives_a_restart_and_its_doubling_goes_on(tmp_path: Path) -> None:
+    """A lock-out is kept in the database and loaded by the next daemon: still in force, and the
+    next failure after it runs out doubles it as before; lifting it forgets it there too.  Counts
+    below the first lock-out are not kept."""
+    from station.lab import users
+    from station.service.logins import BASE_LOCK_S, FREE_FAILURES, LoginThrottle
+
+    store = Store(tmp_path / "s.db")
+    now = [1000.0]
+
+    def throttle() -> LoginThrottle:
+        t = LoginThrottle(clock=lambda: now[0], save=lambda k, n, u: users.keep_lock(store, k, n, u))
+        t.load(users.kept_locks(store))
+        return t
+
+    t = throttle()
+    for _ in range(FREE_FAILURES):
+        assert t.failed(["user:tina", "user:other"]) == []
+    t.succeeded("user:other")
+    assert users.kept_locks(store) == []  # nothing kept below the first lock-out
+    assert t.failed(["user:tina"]) == [("user:tina", BASE_LOCK_S)]
+    assert users.kept_locks(store) == [("user:tina", FREE_FAILURES + 1, now[0] + BASE_LOCK_S)]
+    t = throttle()  # the daemon restarted
+    assert t.refusal(["user:tina"]) is not None and [x["key"] for x in t.locks()] == ["user:tina"]
+    now[0] += BASE_LOCK_S + 0.1
+    assert t.refusal(["user:tina"]) is None
+    assert t.failed(["user:tina"]) == [("user:tina", 2 * BASE_LOCK_S)]
+    assert throttle().refusal(["user:tina"]) is not None
+    assert t.lift("user:tina") and users.kept_locks(store) == []
     store.close()

@@ -197,6 +197,9 @@ class ExceptionIn(_In):
 class AuditOut(OutModel):
     count: int
     entries: list[AuditEntryOut]
+    broken: list[int] = Field(default_factory=list, description="entries of this page that do not hold (content "
+                              "not matching its hash, a link not matching the entry before; for deleted "
+                              "entries the first missing id): the trail was changed outside the station")
 
 
 class ApproveIn(_In):

@@ -144,6 +144,25 @@ def verify_chain(db: sqlite3.Connection) -> ChainState:
     return ChainState(n, last, prev, [Break(b.id, b.reason, excepted.get(b.id)) for b in breaks])
 
 
+def broken_among(db: sqlite3.Connection, ids: Iterable[int]) -> list[int]:
+    """Of the entries ``ids`` (a page of the trail), those that do not hold: the content does not
+    match the hash, or the link does not match the entry before (for entries deleted before one,
+    the first missing id is named).  One indexed look-up per entry: cheap enough for every page."""
+    out: set[int] = set()
+    for i in sorted(set(ids)):
+        rows = _rows(db, "SELECT id, at, who, action, target, details, files, prev, hash FROM audit WHERE id = ?", (i,))
+        if not rows:
+            continue
+        before = db.execute("SELECT id, hash FROM audit WHERE id < ? ORDER BY id DESC LIMIT 1", (i,)).fetchone()
+        b_id, b_hash = (0, GENESIS) if before is None else (int(before[0]), str(before[1]))
+        if b_id != i - 1:  # the gap is the break; this entry's own content is still checked
+            out.add(b_id + 1)
+            b_hash = str(rows[0]["prev"])
+        if _link_reason(rows[0], b_hash) is not None:
+            out.add(i)
+    return sorted(out)
+
+
 # ------------------------------------------------------------------------------------------- files
 def run_files(run_id: str, recording: str | None) -> tuple[str, str]:
     """(recording key, results prefix) of a run's files in the chain (paths in the recordings folder)."""

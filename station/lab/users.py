@@ -262,6 +262,23 @@ def refuse_login(store: Store, name: str, client: str = "") -> None:
                  {"client": client, **({} if valid else {"name": "not a valid user name (not stored)"})})
 
 
+def keep_lock(store: Store, key: str, failures: int, locked_until: float) -> None:
+    """Keep a login lock-out (``service/logins.LoginThrottle``) across restarts; failures 0 forgets it."""
+    with store.transaction() as db:
+        if failures:
+            db.execute("INSERT OR REPLACE INTO login_locks (key, failures, locked_until) VALUES (?, ?, ?)",
+                       (key, int(failures), float(locked_until)))
+        else:
+            db.execute("DELETE FROM login_locks WHERE key = ?", (key,))
+
+
+def kept_locks(store: Store) -> list[tuple[str, int, float]]:
+    """The login lock-outs kept: (key, failures, locked until in UNIX s), also those run out (their
+    count still doubles the next lock-out)."""
+    return [(r["key"], int(r["failures"]), float(r["locked_until"]))
+            for r in store.query("SELECT key, failures, locked_until FROM login_locks")]
+
+
 def open_session(store: Store, user: User, minutes: float) -> tuple[str, float]:
     """A new page session for ``user``: its cookie text and its end (UNIX s); audited."""
     text = secrets.token_urlsafe(32)

@@ -97,7 +97,8 @@ class RunManager:
         self.chain: chain.ChainState | None = None  # the audit chain as last walked (start-up, /integrity, issue)
         self.signing_key: Any = None  # the lab's Ed25519 key (station.lab.signing), loaded at start
         self.signing_problem = ""  # why there is none
-        self.logins = LoginThrottle()
+        self.logins = LoginThrottle(save=lambda key, n, until: self.db.post(
+            lambda s: users.keep_lock(s, key, n, until)))
         self.password_pool = PasswordPool()
 
     # ------------------------------------------------------------------ life cycle
@@ -164,9 +165,11 @@ class RunManager:
 
     def seed_lab(self) -> None:
         """Start-up: the configuration's transducer and standards into the register (when missing),
-        the user the configured token acts for, and the record of a database upgrade."""
+        the user the configured token acts for, the login lock-outs kept, and the record of a
+        database upgrade."""
         register.seed(self.store, self.cfg)
         users.ensure_user(self.store, TOKEN_USER, users.Role.ADMIN)
+        self.logins.load(users.kept_locks(self.store))  # a restart lifts no lock-out
         if self.store.upgraded_from is not None:
             audit.append(self.store, audit.SYSTEM, audit.DATABASE_UPGRADED, str(self.settings.database.name),
                          {"from_schema": self.store.upgraded_from, "backup": str(self.store.backup)})

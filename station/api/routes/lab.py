@@ -68,23 +68,23 @@ def _me(who: Principal | None) -> MeOut:
 @router.post("/login", response_model=MeOut, responses={401: {"model": ErrorOut}, **E422, **BODY_ERRORS},
              summary="Log in on the page (sets an HttpOnly session cookie)")
 async def login(body: LoginIn, manager: ManagerDep, response: Response, request: Request) -> MeOut:
-    """A wrong name or password is refused alike (401), in the same time for any name.  After 5
-    failures in a row for a name or from an address, each further one locks it out for a growing
-    time (2 s doubling to 15 min; refused at once with the time it is lifted; an administrator lifts
-    it: `GET /logins/locks`).  The session expires after `lab.session_minutes`; the cookie is HttpOnly
-    and SameSite=Strict."""
+    """A wrong name or password is refused alike (401), in the same time for any name.  After 5 failures
+    in a row for a name or from an address, each further one locks it out for a growing time (2 s
+    doubling to 15 min; refused, whatever the password, with the time it is lifted, after the same
+    password check as any login; an administrator lifts it: `GET /logins/locks`).  The session expires
+    after `lab.session_minutes`; the cookie is HttpOnly and SameSite=Strict."""
     minutes = manager.cfg.lab.session_minutes
     client = request.client.host if request.client else ""
     user_key = f"user:{body.name}" if re.match(NAME_PATTERN, body.name) else "user:?"
     keys = [user_key, f"client:{client}"]
     why = manager.logins.refusal(keys)
-    if why is not None:
-        raise users.AuthError(why)
     candidate, stored = await manager.db.read(lambda s: users.login_candidate(s, body.name))
     # the scrypt check (~0.1 s) in the login pool: never in the read pool other requests need
     ok = await manager.password_pool.run(users.check_password, body.password, stored)
     if ok is None:
         raise users.AuthError("too many logins at once: try again in a moment")
+    if why is not None:  # locked out: the same work done (no lock-out told by its time), the answer unused
+        raise users.AuthError(why)
     user = candidate if ok else None
     if user is None:
         manager.db.post(lambda s: users.refuse_login(s, body.name, client))
@@ -233,9 +233,12 @@ async def get_audit(manager: ManagerDep, target: Annotated[str | None, Query(max
                     who: Annotated[str | None, Query(max_length=64)] = None,
                     before_id: Annotated[int | None, Query(ge=1, le=2**63 - 1)] = None,
                     limit: Annotated[int, Query(ge=1, le=1000)] = 200) -> AuditOut:
-    rows = await manager.db.read(lambda s: audit.entries(s, target=target, action=action, who=who,
-                                                         before_id=before_id, limit=limit))
-    return AuditOut(count=len(rows), entries=[AuditEntryOut(**e.to_dict()) for e in rows])
+    def read(s: Store) -> tuple[list[audit.AuditEntry], list[int]]:
+        rows = audit.entries(s, target=target, action=action, who=who, before_id=before_id, limit=limit)
+        with s.reading() as db:
+            return rows, chain.broken_among(db, [e.id for e in rows])
+    rows, broken = await manager.db.read(read)
+    return AuditOut(count=len(rows), entries=[AuditEntryOut(**e.to_dict()) for e in rows], broken=broken)
 
 
 # ---------------------------------------------------------------------------------------------- runs
