@@ -665,3 +665,29 @@ def test_a_lock_out_outlives_a_restart_and_its_doubling_goes_on(tmp_path: Path) 
     assert throttle().refusal(["user:tina"]) is not None
     assert t.lift("user:tina") and users.kept_locks(store) == []
     store.close()
+
+
+def test_each_user_lists_and_revokes_their_own_tokens_and_an_admin_all(tmp_path: Path) -> None:
+    from tests.station_support import PASSWORDS, app_in_process, login
+
+    async def go() -> None:
+        async with app_in_process(tmp_path / "rec") as (_, c):
+            app = c._transport.app  # type: ignore[attr-defined]
+            for name, role in (("tina", "technician"), ("anton", "approver")):
+                assert (await c.put(f"/users/{name}", json={"role": role, "password": PASSWORDS[name]})).status_code \
+                    == 200
+                assert (await c.post(f"/users/{name}/tokens", json={"label": f"{name}-ci"})).status_code == 201
+            tina = await login(app, "tina")
+            mine = (await tina.get("/tokens")).json()
+            assert [(t["user"], t["label"]) for t in mine] == [("tina", "tina-ci")]
+            assert (await tina.get("/tokens", params={"user": "anton"})).status_code == 403
+            every = (await c.get("/tokens")).json()
+            assert {t["user"] for t in every} >= {"tina", "anton"}
+            [anton_token] = [t["id"] for t in every if t["user"] == "anton"]
+            r = await tina.delete(f"/tokens/{anton_token}")
+            assert r.status_code == 404 and "of user tina" in r.json()["detail"]
+            assert (await tina.delete(f"/tokens/{mine[0]['id']}")).status_code == 200
+            assert (await tina.get("/tokens")).json()[0]["revoked"] is not None
+            assert (await c.get("/tokens", params={"user": "anton"})).json()[0]["revoked"] is None
+            await tina.aclose()
+    asyncio.run(go())

@@ -10,9 +10,19 @@ import re
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, Path, Query, Request, Response
 
-from station.api.deps import SESSION_COOKIE, Admin, Approver, ManagerDep, Operator, PrincipalDep, Reader, RunDep
+from station.api.deps import (
+    SESSION_COOKIE,
+    Admin,
+    Approver,
+    ManagerDep,
+    Operator,
+    PrincipalDep,
+    Reader,
+    RunDep,
+    require,
+)
 from station.api.lab_schemas import (
     ID_PATTERN,
     ApprovalOut,
@@ -56,6 +66,7 @@ log = logging.getLogger(__name__)
 router = APIRouter(tags=["lab"])
 EntryId = Annotated[str, Path(pattern=ID_PATTERN)]
 UserName = Annotated[str, Path(pattern=NAME_PATTERN)]
+SignedIn = Annotated[Principal, Depends(require(users.Permission.RUN))]  # any user of the lab (every role runs)
 
 
 def _me(who: Principal | None) -> MeOut:
@@ -169,17 +180,23 @@ async def lift_lock(key: Annotated[str, Path(pattern=r"^(user|client):[^/]{1,128
 
 
 @router.get("/tokens", response_model=list[TokenRowOut], responses={**E401, **E403, **E422},
-            summary="The API tokens (never their text), optionally of one user (admin)")
-async def list_tokens(manager: ManagerDep, who: Admin,
+            summary="The API tokens (never their text): the signed-in user's own; an admin's: all, or one user's")
+async def list_tokens(manager: ManagerDep, who: SignedIn,
                       user: Annotated[str | None, Query(pattern=NAME_PATTERN)] = None) -> list[TokenRowOut]:
+    if not who.user.may(users.Permission.ADMIN):
+        if user not in (None, who.name):
+            raise users.ForbiddenError(f"user {who.name} ({who.user.role}) sees only their own tokens; an admin "
+                                       "sees every user's")
+        user = who.name
     return [TokenRowOut(**t) for t in await manager.db.read(lambda s: users.tokens(s, user))]
 
 
 @router.delete("/tokens/{token_id}", response_model=TokenRowOut, responses={**E401, **E403, **E404, **E422},
-               summary="Revoke an API token (admin)")
+               summary="Revoke an API token (the signed-in user's own; an admin: any)")
 async def revoke_token(token_id: Annotated[str, Path(pattern=r"^[0-9a-f]{12}$")], manager: ManagerDep,
-                       who: Admin) -> TokenRowOut:
-    out = await manager.db.call(lambda s: users.revoke_token(s, token_id, who.name))
+                       who: SignedIn) -> TokenRowOut:
+    owner = None if who.user.may(users.Permission.ADMIN) else who.name
+    out = await manager.db.call(lambda s: users.revoke_token(s, token_id, who.name, owner))
     return TokenRowOut(**out, created=None)
 
 
