@@ -29,7 +29,7 @@ import pytest
 
 from tests.station_support import AUTH, PASSWORDS, ROLES, Daemon, Seed
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("attacks")]  # one worker, one daemon (--dist loadgroup)
 
 OPERATOR = "tina"
 START_S = 300.0  # the daemon's start on a loaded machine (2 cores shared by many)
