@@ -691,3 +691,30 @@ def test_each_user_lists_and_revokes_their_own_tokens_and_an_admin_all(tmp_path:
             assert (await c.get("/tokens", params={"user": "anton"})).json()[0]["revoked"] is None
             await tina.aclose()
     asyncio.run(go())
+
+
+def test_station_verify_passes_on_a_clean_station_and_names_a_row_edited_outside(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import yaml
+
+    from station.cli import main
+    from station.lab import policy
+    from tests.history_support import TX, add_runs, add_transducer
+    from tests.station_support import daemon_config
+
+    cfg = tmp_path / "station.yaml"
+    cfg.write_text(yaml.safe_dump(daemon_config(tmp_path / "rec")))
+    (tmp_path / "rec").mkdir()
+    store = Store(tmp_path / "rec" / "station.db")
+    add_transducer(store)
+    ids = add_runs(store, tmp_path / "rec", 3)
+    policy.put_policy(store, policy.Policy(TX, {"S": 0.005}, 365.0, True), "ada")
+    policy.record_as_left(store, policy.AsLeft(ids[2], TX, "S", 2.001e-3, "V/N", "gain set", 1.9e9, "anton"))
+    store.close()
+    assert main(["verify", "--config", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "audit chain intact" in out and out.rstrip().endswith("OK")
+    _sql(tmp_path / "rec" / "station.db", "UPDATE as_left SET note = 'set by nobody'")
+    assert main(["verify", "--config", str(cfg)]) == 1
+    out = capsys.readouterr().out
+    assert "audit chain intact" in out and f"row as_left {ids[2]}/S: note changed" in out and "FAILED" in out
