@@ -28,6 +28,7 @@ import httpx
 import pytest
 
 from tests.station_support import AUTH, PASSWORDS, ROLES, Daemon, Seed
+from tests.test_records import _flip
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("attacks")]  # one worker, one daemon (--dist loadgroup)
 
@@ -105,14 +106,6 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
             cl.close()
     finally:
         d.stop()
-
-
-def _flip(path: Path, at: float = 0.5) -> bytes:
-    data = path.read_bytes()
-    b = bytearray(data)
-    b[int(len(b) * at)] ^= 0x01
-    path.write_bytes(bytes(b))
-    return data
 
 
 READS = ("/results", "/report", "/report.pdf", "/plots/bode.png", "/recording", "/certificate.html",

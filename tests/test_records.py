@@ -438,12 +438,24 @@ def test_an_out_of_range_audit_cursor_is_422(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- logins
+def _count_scrypt(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """hashlib.scrypt counted from now on: one 1 in the list per call."""
+    import hashlib
+
+    calls: list[int] = []
+    real = hashlib.scrypt
+
+    def counted(*a: object, **k: object) -> bytes:
+        calls.append(1)
+        return real(*a, **k)  # type: ignore[arg-type]
+    monkeypatch.setattr(hashlib, "scrypt", counted)
+    return calls
+
+
 def test_every_kind_of_name_costs_one_password_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Unknown, known (wrong password), disabled and password-less names: one scrypt each, so no
     name can be told from another by the time a refusal takes (the measured medians are in
     docs/operations.md)."""
-    import hashlib
-
     from station.lab import users
 
     store = Store(tmp_path / "s.db")
@@ -451,12 +463,7 @@ def test_every_kind_of_name_costs_one_password_check(tmp_path: Path, monkeypatch
     users.put_user(store, "dora", users.Role.TECHNICIAN, "admin", password="dora-secret-pw", disabled=True)
     users.put_user(store, "tok", users.Role.TECHNICIAN, "admin")
     users.login_candidate(store, "nobody")  # the dummy hash made once
-    calls = []
-    real = hashlib.scrypt
-    def counted(*a: object, **k: object) -> bytes:
-        calls.append(1)
-        return real(*a, **k)  # type: ignore[arg-type]
-    monkeypatch.setattr(hashlib, "scrypt", counted)
+    calls = _count_scrypt(monkeypatch)
     for name in ("nobody", "tina", "dora", "tok", "Tina-Secret-PW!"):
         calls.clear()
         assert users.check_login(store, name, "wrong-password-1") is None
@@ -504,13 +511,7 @@ def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path
                 assert r.status_code == 401 and "wrong user name or password" in r.json()["detail"]
             r = await anon.post("/login", json={"name": "tina", "password": "not-her-password"})
             assert r.status_code == 401
-            import hashlib
-            calls = []
-            real = hashlib.scrypt
-            def counted(*a: object, **k: object) -> bytes:
-                calls.append(1)
-                return real(*a, **k)  # type: ignore[arg-type]
-            monkeypatch.setattr(hashlib, "scrypt", counted)
+            calls = _count_scrypt(monkeypatch)
             r = await anon.post("/login", json={"name": "tina", "password": PASSWORDS["tina"]})
             assert r.status_code == 401 and "locked until" in r.json()["detail"]
             assert len(calls) == 1  # the same password check as any login: a lock-out is not told by its time
