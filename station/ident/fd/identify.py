@@ -70,8 +70,9 @@ def _determined(model: Model, theta: FloatArray, budget: Budget) -> dict[str, An
                                    "unit": "Hz"}
     if budget.free[2]:
         # zeta = b / (2 sqrt(k M)) = (b/M) / (2 sqrt(k/M)): invariant too
-        z = b / (2 * np.sqrt(k * M))
-        out["damping_ratio"] = {"value": z, **budget.std_of(np.array([0.0, -z / (2 * k), 1 / (2 * np.sqrt(k * M))]), inv),
+        dz_db = 1 / (2 * np.sqrt(k * M))
+        z = b * dz_db
+        out["damping_ratio"] = {"value": z, **budget.std_of(np.array([0.0, -z / (2 * k), dz_db]), inv),
                                 "unit": "1"}
     return out
 
