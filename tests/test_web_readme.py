@@ -157,3 +157,7 @@ def test_a_phone_reads_plain_words_and_nothing_scrolls_sideways(browser: object,
         pg.goto(f"{d.url}/runs/{rid}/certificate.html")
         pg.wait_for_load_state(timeout=60_000)
         assert "ertificate" in pg.title() and pg.evaluate(WIDTH) <= 390, pg.evaluate(WIDTH)
+        # its wide tables scroll within themselves, their words whole (not broken letter by letter)
+        narrowest = pg.evaluate("Math.min(...[...document.querySelectorAll('table.results td:first-child')]"
+                                ".map((td) => td.getBoundingClientRect().width))")
+        assert narrowest >= 100, narrowest
