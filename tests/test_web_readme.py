@@ -112,7 +112,7 @@ WATCH = """() => { window.watched = {width: 0, steps: [], eta: []};
 
 def test_a_phone_reads_plain_words_and_nothing_scrolls_sideways(browser: object, station: Daemon) -> None:
     d = station
-    password = _printed_password(d.log(), "technician")
+    password = _printed_password(d.log_path.read_text(errors="replace"), "technician")  # printed at start
     with open_page(browser, d.url + "/", **PHONE) as pg:
         pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
         pg.fill("#login-name", "technician")
@@ -145,6 +145,13 @@ def test_a_phone_reads_plain_words_and_nothing_scrolls_sideways(browser: object,
         assert pg.inner_text("#params tr[data-param='b_f'] td:nth-child(3)") == "N·s/m"
         assert not re.search(r"\*|\de[-+]?\d|\d(Hz|mV|°C)\b", shown), shown
         assert pg.text_content("#frf tbody tr:first-child td:first-child") == f"1 of {n}"
+        # the page's words for what this run did not show: units, powers of ten, a finding's plain line
+        words = pg.evaluate("""() => [unitText('N*s/m'), unitText('V/(m/s^2)'), unitText('us'), withUnit('12.5', 'Hz'),
+            withUnit('3', 'deg'), fmtU(29100524.7, 9845.2), localTime(0),
+            findingText({name: 'model_misfit', severity: 'warning', step: null, message: 'chi2/dof = 3.31'})]""")
+        assert words[:6] == ["N·s/m", "V/(m/s²)", "µs", "12.5 Hz", "3°", "(2.91005 ± 0.00098) × 10⁷"], words
+        assert re.fullmatch(r"1970-01-01 01:00:00 (GMT\+1|CET)", words[6]), words[6]
+        assert words[7].startswith("Check before using the results: The transducer model does not describe"), words[7]
         # the recent runs: local time with its zone (Berlin in November: UTC+1)
         pg.goto(d.url + "/#/")
         cell = pg.locator(f"#runs tr:has(a[href='#/runs/{rid}']) td:nth-child(5)")
