@@ -27,8 +27,8 @@ import h5py
 import httpx
 import pytest
 
+from tests.recording_support import flip_bit
 from tests.station_support import AUTH, PASSWORDS, ROLES, Daemon, Seed
-from tests.test_records import _flip
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("attacks")]  # with --dist loadgroup: one worker, one daemon
 
@@ -149,7 +149,7 @@ def test_a_recording_flipped_with_its_hash_rewritten_in_the_runs_table_is_refuse
 
     path = lab.rec / f"{lab.a}.h5"
     good = sha256_file(path)
-    old = _flip(path)
+    old = flip_bit(path)
     _sql(lab.db, "UPDATE runs SET recording_sha256 = ? WHERE id = ?", args=(sha256_file(path), lab.a))
     try:
         _refused_everywhere(lab, lab.a, path.name)
@@ -161,7 +161,7 @@ def test_a_recording_flipped_with_its_hash_rewritten_in_the_runs_table_is_refuse
 
 def test_a_flipped_byte_in_a_recording_is_refused_by_every_endpoint(lab: Lab) -> None:
     path = lab.rec / f"{lab.a}.h5"
-    old = _flip(path, 0.3)
+    old = flip_bit(path, 0.3)
     try:
         _refused_everywhere(lab, lab.a, path.name)
     finally:

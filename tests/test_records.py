@@ -15,6 +15,7 @@ import pytest
 
 from station.lab import audit, chain
 from station.service.store import Store
+from tests.recording_support import flip_bit
 
 
 def _trail(tmp_path: Path, n: int = 5) -> Store:
@@ -118,14 +119,6 @@ def test_an_older_trail_is_chained_as_it_stands(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- the daemon
-def _flip(path: Path, at: float = 0.5) -> bytes:
-    data = path.read_bytes()
-    b = bytearray(data)
-    b[int(len(b) * at)] ^= 0x01
-    path.write_bytes(bytes(b))
-    return data
-
-
 @pytest.mark.slow
 def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path) -> None:
     """A seeded, identified run (vouched for as the daemon vouches): its results file edited, its
@@ -159,13 +152,13 @@ def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path
 
             # 1. S and k_f edited in a results file
             target = results[0]
-            old = _flip(target, 0.9)
+            old = flip_bit(target, 0.9)
             await refused(target.name)
             target.write_bytes(old)
             assert (await c.get(f"/runs/{rid}/results")).status_code == 200
             # 2. a byte of the recording flipped and the runs table's SHA-256 rewritten to match
             recording = rec / f"{rid}.h5"
-            old = _flip(recording)
+            old = flip_bit(recording)
             from station.lab.integrity import sha256_file
             db = sqlite3.connect(manager.settings.database)
             db.execute("UPDATE runs SET recording_sha256 = ? WHERE id = ?", (sha256_file(recording), rid))
@@ -240,7 +233,7 @@ def _customer_checks(folder: Path, number: str, public_pem: str, where: Path) ->
         assert main(["verify", str(cert), "--key", str(key)]) == 0
         good = cert.read_bytes()
         for at in (0, len(good) // 3, len(good) - 1):
-            _flip(cert, at / len(good))
+            flip_bit(cert, at / len(good))
             assert main(["verify", str(cert), "--key", str(key)]) == 1
             cert.write_bytes(good)
     sig = where / f"{number}.sig"
