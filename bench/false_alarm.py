@@ -85,8 +85,12 @@ def _wait_health(c: httpx.Client, proc: subprocess.Popen[bytes], log: Path) -> N
 
 def _submit(c: httpx.Client, steps: list[dict[str, float]]) -> str:
     """Start a run and wait until it leaves the rig (its identification goes on in the worker)."""
-    r = c.post("/runs", json={"transducer_id": "TX5K-0001", "top_mass_kg": 25.717, "steps": steps})
-    r.raise_for_status()
+    deadline = time.monotonic() + 300
+    while (r := c.post("/runs", json={"transducer_id": "TX5K-0001", "top_mass_kg": 25.717,
+                                      "steps": steps})).status_code == 409 and time.monotonic() < deadline:
+        time.sleep(0.5)  # the previous run still holds the rig (ramping down, closing its recording)
+    if r.status_code != 202:
+        raise RuntimeError(f"POST /runs answered {r.status_code}: {r.text[:500]}")
     run_id = str(r.json()["id"])
     while c.get(f"/runs/{run_id}").json()["state"] in ("queued", "running"):
         time.sleep(0.25)
