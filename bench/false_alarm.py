@@ -112,10 +112,43 @@ def _outcome(c: httpx.Client, run_id: str) -> dict[str, Any]:
     return row
 
 
+def _inprocess(d: dict[str, Any], tmp: Path, runs: int) -> list[dict[str, Any]]:
+    """The same runs through the simulated rig in-process on a virtual clock (the real drivers, the
+    run procedure, the DAQ emulator, no HTTP and no real-time watchdog), one seed per run."""
+    import asyncio
+
+    from drivers.sim.clock import VirtualClock
+    from station.config import parse_config
+    from station.run.calibrate import run_and_identify
+    from station.run.request import RunRequest, StepSpec
+
+    rows = []
+    for i in range(runs):
+        d["simulation"]["seed"] = 3000 + i
+        cfg = parse_config(d)
+        req = RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg,
+                         steps=[StepSpec(**s.model_dump(exclude_none=True)) for s in cfg.plan.steps],
+                         methods=[{"method": "fd", "model": "auto"}])  # type: ignore[list-item]
+        res = asyncio.run(run_and_identify(cfg, req, tmp / f"run{i}", sim=True, sim_clock=VirtualClock()))
+        r = res.identification
+        row: dict[str, Any] = {"id": i, "state": "completed" if r is not None else "failed"}
+        if r is None:
+            row["reason"] = res.outcome.reason
+        else:
+            names = [c.name for c in r.checks]
+            row.update({"misfit": "model_misfit" in names, "checks": names,
+                        "chi2_per_dof": float(r.fit.chi2_per_dof)})
+        rows.append(row)
+        print(json.dumps(row), file=sys.stderr, flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=50)
     ap.add_argument("--busy", type=int, default=2, help="busy-loop processes loading the cores")
+    ap.add_argument("--inprocess", action="store_true",
+                    help="the simulated rig in-process on a virtual clock instead of the daemon")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench-false-alarm-"))
     d = _config(tmp / "recordings")
@@ -123,9 +156,20 @@ def main() -> None:
              for s in d["plan"]["steps"]]
     cfg = tmp / "station.yaml"
     cfg.write_text(yaml.safe_dump(d))
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy)]
+    if args.inprocess:
+        t0 = time.monotonic()
+        try:
+            ran = _inprocess(d, tmp, args.runs)
+        finally:
+            for p in busy:
+                p.kill()
+                p.wait()
+            shutil.rmtree(tmp, ignore_errors=True)
+        _report(ran, args, 0, "in-process simulated rig (virtual clock)", t0)
+        return
     port = _free_port()
     log = tmp / "daemon.log"
-    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy)]
     logf = log.open("wb")
     proc = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--sim", "--config", str(cfg),
                              "--port", str(port)], stdout=logf, stderr=subprocess.STDOUT,
@@ -155,6 +199,10 @@ def main() -> None:
         logf.close()
         stalls = sum("stalled" in line for line in log.read_text(errors="replace").splitlines())
         shutil.rmtree(tmp, ignore_errors=True)
+    _report(rows, args, stalls, "daemon (station serve --sim)", t0)
+
+
+def _report(rows: list[dict[str, Any]], args: argparse.Namespace, stalls: int, path: str, t0: float) -> None:
     done = [r for r in rows if r["state"] == "completed"]
     n, k = len(done), sum(bool(r["misfit"]) for r in done)
     x = np.array([r["chi2_per_dof"] for r in done if r["chi2_per_dof"] is not None], float)
@@ -162,7 +210,7 @@ def main() -> None:
     stated = misfit_false_alarm_rate(dof)
     lo, hi = clopper_pearson(k, n) if n else (float("nan"), float("nan"))
     print(json.dumps({
-        "runs": n, "alarms": k, "rate": k / n if n else None, "stated_rate": stated,
+        "path": path, "runs": n, "alarms": k, "rate": k / n if n else None, "stated_rate": stated,
         "interval_95": [lo, hi], "within_stated": bool(lo <= stated <= hi),
         "not_completed": [{"state": r["state"], "reason": r.get("reason")} for r in rows if r["state"] != "completed"],
         "dof": dof, "chi2_per_dof_mean": float(x.mean()) if x.size else None,

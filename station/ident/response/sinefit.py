@@ -199,7 +199,7 @@ def quantisation_cov(t: FloatArray, y: FloatArray, fit: SineFit, n_harmonics: in
     for kk, ak in zip(k, a, strict=True):  # k = 1, 2, ...: e^{j k theta} by products
         ek = e1 if kk == 1 else ek * e1
         g += ((-1.0) ** kk / kk * ak) * ek.imag
-    AB = proj @ (g * (q / np.pi))  # (2, P)
+    AB = np.einsum("in,np->ip", proj, g) * (q / np.pi)  # (2, P); a tall BLAS product spins its threads
     b = (AB[0] - 1j * AB[1]) * np.exp(-1j * phases) * np.exp(1j * np.angle(fit.phasor))  # X = A - jB
     return np.array([[np.mean(b.real**2), np.mean(b.real * b.imag)],
                      [np.mean(b.real * b.imag), np.mean(b.imag**2)]])
