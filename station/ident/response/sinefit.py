@@ -15,7 +15,9 @@ the signal: periodic with the sine, so part of it lands on the fundamental as a 
 white formula misses (at 245 codes amplitude and sigma = 0.33 q, 200 samples a period: the phasor's
 variance 2.4 times the white one).  Its value depends on where the samples fall on the grid (the
 phase, the offset), so it is stated as a covariance: the mean square of that phasor error over
-phases, in the frame of the fitted phasor.  Three-parameter fit: w known, linear LS.  Four-parameter fit:
+phases, in the frame of the fitted phasor, computed on whole periods of at most about 8192 samples
+(the pattern repeats with the sine: the same per period where the period is a whole number of
+samples, an upper estimate otherwise).  Three-parameter fit: w known, linear LS.  Four-parameter fit:
 w estimated too (Gauss-Newton from a three-parameter start, IEEE 1057 Sec. 4.1.3.3).  The phasor
 covariance is s^2 (J^T J)^-1 with s^2 the residual variance (for white noise of variance sigma^2
 and whole periods, var(A) = var(B) = 2 sigma^2 / N).
@@ -153,6 +155,7 @@ def fit_channels(t: FloatArray, Y: FloatArray, f_hz: float, *, t_center_s: float
 
 
 QUANT_PHASES = 16  # phases over which the quantisation error of the phasor is averaged
+QUANT_SAMPLES = 8192  # at most this many samples (whole periods) carry the computation
 _QUANT_RNG_SEED = 20_000  # fixed phases: never commensurate with a sampling period
 
 
@@ -189,7 +192,11 @@ def quantisation_cov(t: FloatArray, y: FloatArray, fit: SineFit, n_harmonics: in
     if k.size == 0:
         return out
     w = 2 * np.pi * fit.frequency_hz
-    tt = np.asarray(t, float) - fit.t_center_s
+    tt = np.asarray(t, float)
+    if tt.size > QUANT_SAMPLES:  # whole periods: the error's mean square per period, as over the window
+        per = 2 * np.pi / (w * float(np.median(np.diff(tt[:100]))))  # samples per period
+        tt = tt[:min(tt.size, int(np.ceil(np.ceil(QUANT_SAMPLES / per) * per)))]
+    tt = tt - float(np.mean(tt))
     J = _design(tt, w, n_harmonics)
     proj = np.linalg.inv(J.T @ J)[:2] @ J.T  # (2, N): coefficients A, B of the fundamental
     phases = np.random.default_rng(_QUANT_RNG_SEED).uniform(0.0, 2 * np.pi, QUANT_PHASES)
