@@ -24,7 +24,8 @@ def _trials(f_hz: float, amp_V: float, noise_V: float, n: int, seed: int,
     rng = np.random.default_rng(seed)
     t = np.arange(n_samples) / FS
     tc = float(t.mean())
-    z_white, z_q = [], []
+    z_white: list[float] = []
+    z_q: list[float] = []
     for _ in range(n):
         ph = rng.uniform(0, 2 * np.pi)
         v = amp_V * np.cos(2 * np.pi * f_hz * t + ph) + offset_V + noise_V * rng.standard_normal(t.size)
