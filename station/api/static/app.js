@@ -970,7 +970,7 @@ async function showHistory(id) {
   $("#hist-transducer").textContent = [t.type, t.serial && `serial ${t.serial}`, `${t.capacity_N} N`, t.owner,
     `${d.runs.length} runs`].filter(Boolean).join(" · ");
   $("#hist-plot").innerHTML = historyPlot(d.runs, "k_f", d.units.k_f) + historyPlot(d.runs, "S", d.units.S);
-  $("#hist-trends").innerHTML = (d.hold ? `<p class="hold"><strong>Held for review:</strong> ${esc(d.hold.reason)} (since ${esc(utcText(d.hold.since))})</p>` : "") +
+  $("#hist-trends").innerHTML = (d.hold ? `<p class="hold"><strong>Held for review:</strong> ${esc(d.hold.reason)} (since ${esc(localTime(d.hold.since))})</p>` : "") +
     trendSection(d.trends);
   $("#hist-flagged").textContent = d.flagged.length ? "drift flagged: " + d.flagged.map((f) => `${f.run_id} ${f.parameter}`).join(", ")
     : "no drift flagged against earlier calibrations (the nightly batch's rule: |x − mean| > 3 u_c, after 3 runs)";
