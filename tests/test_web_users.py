@@ -1,7 +1,8 @@
 """An administrator manages the users on the page, in a real headless Chromium against a real daemon:
 adds a technician (a refused password shown at its field), issues them an API token (shown once),
-the technician logs in and sees what the role allows and no users section, the administrator disables
-them and their next request is refused; the audit trail records each change, without secrets."""
+the technician logs in and sees what the role allows and no users section, lists his own API tokens
+(the administrator: everyone's) and revokes one, the administrator disables them and their next
+request is refused; the audit trail records each change, without secrets."""
 
 from __future__ import annotations
 
@@ -83,7 +84,32 @@ def test_admin_adds_issues_token_and_disables_a_user(browser: object, daemon: Da
             tech.wait_for_selector("#reg-transducers tbody tr", timeout=10_000)
             assert tech.is_hidden("#reg-admin")
 
+            # API tokens: tomas sees his own only, the administrator everyone's; tomas revokes his on the page
+            other = daemon.c().post("/users/ada/tokens", json={"label": "ada's script"}).json()["token"]
+            later = daemon.c().post("/users/tomas/tokens", json={"label": "spare"}).json()["token"]
+            admin.goto(daemon.url + "/#/tokens")
+            admin.wait_for_selector("#tokens td:has-text('spare')", timeout=10_000)
+            rows = {r.split("\t")[2]: r.split("\t")[1] for r in admin.locator("#tokens tbody tr").all_inner_texts()}
+            assert {"nightly script": "tomas", "spare": "tomas", "ada's script": "ada"}.items() <= rows.items(), rows
+            tech.click("#nav-tokens a")
+            tech.wait_for_selector("#tokens td:has-text('spare')", timeout=10_000)
+            mine = [r.split("\t")[1:3] for r in tech.locator("#tokens tbody tr").all_inner_texts()]
+            assert sorted(mine) == [["tomas", "nightly script"], ["tomas", "spare"]], mine
+            nightly = tech.locator("#tokens tr:has-text('nightly script')")
+            tech.once("dialog", lambda d: d.accept())
+            nightly.locator(".token-revoke").click()
+            tech.wait_for_selector("#tokens tr.bad:has-text('nightly script')", timeout=10_000)
+            assert "revoked" in nightly.locator("td").nth(4).inner_text() and nightly.locator(".token-revoke").count() == 0
+            assert httpx.get(daemon.url + "/me", headers={"Authorization": f"Bearer {token}"},
+                             timeout=10).status_code == 401  # revoked
+            assert httpx.get(daemon.url + "/me", headers={"Authorization": f"Bearer {other}"},
+                             timeout=10).status_code == 200  # another's untouched
+            assert tech.evaluate(f"fetch('/tokens/{daemon.c().get('/tokens', params={'user': 'ada'}).json()[0]['id']}', "
+                                 "{method: 'DELETE'}).then((r) => r.status)") == 404  # not his to revoke
+
             # the administrator disables tomas; the next request of tomas's page is refused
+            admin.goto(daemon.url + "/#/users")
+            admin.wait_for_selector(row, timeout=10_000)
             admin.click(f"{row} .user-edit")
             assert admin.input_value("#user-name") == "tomas"
             assert admin.is_checked("#user-roles input[value='technician']")
@@ -95,7 +121,7 @@ def test_admin_adds_issues_token_and_disables_a_user(browser: object, daemon: Da
             tech.wait_for_function("document.querySelector('#banner').textContent.includes('session was ended')",
                                    timeout=10_000)
             assert tech.is_visible("#login-form") and tech.is_hidden("#me")
-        assert httpx.get(daemon.url + "/me", headers={"Authorization": f"Bearer {token}"},
+        assert httpx.get(daemon.url + "/me", headers={"Authorization": f"Bearer {later}"},
                          timeout=10).status_code == 401  # a disabled user's token too
 
         # the audit trail (API and page): each change by ada, no password or token in it
@@ -105,7 +131,7 @@ def test_admin_adds_issues_token_and_disables_a_user(browser: object, daemon: Da
     trail = daemon.c().get("/audit", params={"target": "user:tomas"}).json()["entries"][::-1]
     mine = [(e["who"], e["action"], e["details"].get("disabled")) for e in trail if e["who"] == "ada"]
     assert mine == [("ada", "user.changed", False), ("ada", "user.token_issued", None), ("ada", "user.changed", True)]
-    assert [e["action"] for e in trail if e["who"] == "tomas"] == ["user.login"]
+    assert [e["action"] for e in trail if e["who"] == "tomas"] == ["user.login", "user.token_revoked"]
     assert trail[0]["details"]["password_changed"] is True and trail[-1]["details"]["password_changed"] is False
-    for secret in (token, NEW_PASSWORD):
+    for secret in (token, later, other, NEW_PASSWORD):
         assert secret not in str(trail) and not any(secret in line for line in console)

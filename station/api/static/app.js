@@ -66,6 +66,7 @@ function showMe() {
   $("#login-hint").hidden = !!me || !(station && station.simulated);
   if (me) $("#me-name").textContent = `${me.name} (${me.role})`;
   $("#nav-users").hidden = !may("admin");
+  $("#nav-tokens").hidden = !me;
   if (!may("admin")) hideUsers();
   const ap = $("#approve");
   if (ap) ap.disabled = !may("approve");
@@ -1097,14 +1098,43 @@ $("#token-copy").addEventListener("click", async () => {
 
 $("#token-done").addEventListener("click", clearToken);
 
+// ------------------------------------------------------------------------------------------ API tokens
+// Any signed-in user: their own tokens (an administrator: everyone's), never a token's text; revoking
+// one asks first, and the token is refused from then on.
+async function showTokens() {
+  $("#tokens-about").textContent = may("admin")
+    ? "Every user's API tokens (only their ids: a token's text is shown once, when it is issued). Revoked tokens are refused."
+    : "Your API tokens (only their ids: a token's text is shown once, when it is issued). Revoked tokens are refused.";
+  const r = await api("GET", "/tokens");
+  if (!r.ok) { $("#tokens-msg").textContent = refusal(r, "list the API tokens"); $("#tokens tbody").innerHTML = ""; return; }
+  $("#tokens tbody").innerHTML = r.data.map((t) => `<tr data-token="${esc(t.id)}"${t.revoked ? ' class="bad"' : ""}>` +
+    `<td><code>${esc(t.id)}</code></td><td>${esc(t.user)}</td><td>${esc(t.label) || "—"}</td>` +
+    `<td>${t.created ? localTime(t.created) : "—"}</td><td>${t.revoked ? `revoked ${localTime(t.revoked)}` : "valid"}</td>` +
+    `<td>${t.revoked ? "" : `<button type="button" class="token-revoke" data-token="${esc(t.id)}">revoke</button>`}</td></tr>`).join("") ||
+    `<tr><td colspan="6">no API tokens</td></tr>`;
+  for (const b of document.querySelectorAll(".token-revoke")) b.addEventListener("click", () => revokeToken(b.dataset.token));
+}
+
+async function revokeToken(id) {
+  const t = $(`#tokens tr[data-token="${id}"]`);
+  const what = t ? `${t.children[1].textContent}'s token ${id}` : `token ${id}`;
+  if (!confirm(`Revoke ${what}? Whatever uses it is refused from now on.`)) return;
+  const r = await api("DELETE", `/tokens/${encodeURIComponent(id)}`);
+  $("#tokens-msg").textContent = r.ok ? `token ${r.data.id} of ${r.data.user} revoked` : refusal(r, "revoke the token");
+  showTokens();
+}
+
 // ------------------------------------------------------------------------------------------ routing
 async function route() {
   const h = location.hash;
   const m = h.match(/^#\/runs\/([^/]+)$/);
   const th = h.match(/^#\/transducers\/([^/]+)$/);
   const users = h === "#/users" && may("admin");  // nobody else sees the section
-  const view = m ? "run" : th ? "history" : h === "#/register" ? "register" : h === "#/audit" ? "audit" : users ? "users" : "home";
-  for (const v of ["home", "run", "history", "register", "audit"]) $(`#view-${v}`).hidden = v !== view;
+  const tokens = h === "#/tokens" && !!me;
+  const view = m ? "run" : th ? "history" : h === "#/register" ? "register" : h === "#/audit" ? "audit" : users ? "users" :
+    tokens ? "tokens" : "home";
+  for (const v of ["home", "run", "history", "register", "audit", "tokens"]) $(`#view-${v}`).hidden = v !== view;
+  if (view !== "tokens") { $("#tokens tbody").innerHTML = ""; $("#tokens-msg").textContent = ""; }
   if (view === "users") $("#view-users").hidden = false;
   else hideUsers();
   if (view !== "run") { shownRun = null; if (source) { source.close(); source = null; } }
@@ -1112,6 +1142,7 @@ async function route() {
   if (view === "register") return showRegister();
   if (view === "audit") return showAudit();
   if (view === "users") return showUsers();
+  if (view === "tokens") return showTokens();
   if (m) {
     const id = decodeURIComponent(m[1]);
     shownRun = id;
