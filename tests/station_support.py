@@ -256,12 +256,13 @@ def free_port() -> int:
 
 
 @contextlib.asynccontextmanager
-async def served_on_a_socket(app: Any, bounds: ConnectionBounds) -> AsyncIterator[int]:
+async def served_on_a_socket(app: Any, bounds: ConnectionBounds, **config: Any) -> AsyncIterator[int]:
     """The in-process ``app`` served by uvicorn on a free loopback port in this event loop, with the
-    daemon's connection ``bounds`` (cap and header timeout); yields the port; stopped on leaving."""
+    daemon's connection ``bounds`` (cap and header timeout) and uvicorn's ``config`` options; yields
+    the port; stopped on leaving."""
     port = free_port()
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=bounds.protocol(),
-                                           lifespan="off", log_config=None))
+                                           lifespan="off", log_config=None, **config))
     serving = asyncio.create_task(server.serve())
     try:
         while not server.started:

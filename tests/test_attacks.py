@@ -425,23 +425,21 @@ def test_a_login_flood_never_fails_another_users_request(lab: Lab) -> None:
                 with lock:
                     statuses.append(r.status_code)
 
-    # the approver's own connection, opened now: a keep-alive connection left idle by an earlier case is
-    # closed by the daemon's header time-out, and reusing it races that close (a client's matter, not the flood's)
-    anton = lab.client("anton")
+    anton = lab.users["anton"]  # its keep-alive connection, idle since an earlier case, reused
     threads = [threading.Thread(target=guess, args=(i,)) for i in range(64)]
     for t in threads:
         t.start()
-    mine: list[tuple[int, str]] = []
+    mine: list[tuple[int, str, str | None]] = []
     try:
         for _ in range(6):
             for r in (anton.get(f"/runs/{lab.a}"), anton.post(f"/runs/{lab.a}/approve", json={"note": "flood"})):
-                mine.append((r.status_code, r.text[:200]))
+                mine.append((r.status_code, r.text[:200], r.headers.get("keep-alive")))
     finally:
         for t in threads:
             t.join()
-        anton.close()
         _lift(lab)
     assert [m[0] for m in mine] == [200] * len(mine), mine
+    assert {m[2] for m in mine} == {"timeout=9"}  # the idle limit announced (10 s header timeout)
     assert statuses and set(statuses) <= {401, 429, 503} and all(s < 500 or s == 503 for s in statuses)
     assert "Traceback" not in lab.d.log()
 

@@ -365,6 +365,51 @@ def test_silent_connections_make_room_after_their_grace_and_idle_ones_first() ->
     asyncio.run(go())
 
 
+def test_an_idle_keep_alive_connection_is_kept_to_its_limit_never_reset_on_reuse_and_closed_cleanly() -> None:
+    """On real sockets: uvicorn's own shorter idle timer does not close a keep-alive connection before
+    the header timeout; a request already waiting in the kernel when the limit comes is answered, not
+    reset; past the limit the daemon's FIN comes first and a client sending after it reads a clean
+    close."""
+    async def app(scope: Any, receive: Any, send: Any) -> None:
+        await send({"type": "http.response.start", "status": 200, "headers": [(b"content-length", b"2")]})
+        await send({"type": "http.response.body", "body": b"ok"})
+
+    async def go() -> None:
+        bounds = ConnectionBounds(max_connections=64, header_timeout_s=1.0)
+        async with served_on_a_socket(app, bounds, timeout_keep_alive=0.2) as port:
+            get = f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode()
+
+            def answer(sock: socket.socket) -> bytes:
+                """One whole response (its head and its 2-byte body), or what came before the close."""
+                got = b""
+                while not (b"\r\n\r\n" in got and got.endswith(b"ok")) and (part := sock.recv(4096)):
+                    got += part
+                return got
+
+            async def ask(sock: socket.socket) -> bytes:
+                sock.sendall(get)
+                return await asyncio.to_thread(answer, sock)
+            with socket.create_connection(("127.0.0.1", port)) as late, \
+                    socket.create_connection(("127.0.0.1", port)) as reused:
+                assert (await ask(late)).startswith(b"HTTP/1.1 200")
+                t_late = time.monotonic()
+                assert (await ask(reused)).startswith(b"HTTP/1.1 200")
+                await asyncio.sleep(0.5)  # past uvicorn's 0.2 s, within the 1 s header timeout
+                assert (await ask(reused)).startswith(b"HTTP/1.1 200")
+                # reused at the very moment of the limit: the request is in the kernel, unread
+                (idle,) = [c for c in bounds.idle.values() if c.transport.get_extra_info("peername")[1] ==
+                           reused.getsockname()[1]]
+                reused.sendall(get)
+                idle._head_timeout()  # the limit comes before the loop reads it
+                assert (await asyncio.to_thread(answer, reused)).startswith(b"HTTP/1.1 200")
+                # past the limit: the daemon closes first; a request sent after its FIN reads a clean close
+                await asyncio.sleep(max(0.0, t_late + 1.3 - time.monotonic()))
+                assert bounds.timed_out >= 1 and bounds.open == 1  # late's; reused's timer started later
+                late.sendall(get)
+                assert await asyncio.to_thread(answer, late) == b""  # EOF, not ConnectionResetError
+    asyncio.run(go())
+
+
 def test_repeated_log_lines_are_held_back_and_counted() -> None:
     f = RepeatFilter(interval_s=60.0)
 

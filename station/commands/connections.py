@@ -3,7 +3,13 @@ or exhaust the process's file descriptors (used by ``station serve``):
 
 * a **header timeout**: a connection that has not delivered a complete request head within
   ``header_timeout_s`` of opening (or of its previous response: keep-alive) is closed, even if it
-  trickles bytes (uvicorn's keep-alive timer alone is cancelled by any byte);
+  trickles bytes (uvicorn's keep-alive timer alone is cancelled by any byte).  It is the one rule for
+  idle keep-alive connections too (uvicorn's own 5 s timer, which raced clients that keep an idle
+  connection 5 s, e.g. httpx, is cancelled), announced in every response as ``Keep-Alive:
+  timeout=N`` (:func:`keep_alive_header`).  A keep-alive connection is never closed mid-reuse: if
+  the next request's first bytes are waiting in the kernel when the limit comes, its head gets
+  ``header_timeout_s`` more (a socket closed with unread data answers with a reset); an idle one
+  with nothing waiting is closed with a FIN, which a client reads as a clean close;
 * a **connection cap**: beyond ``max_connections`` open connections, the oldest *idle* one is
   closed for each new one, so a new client, e.g. the emergency stop, is always served.  A
   connection is idle once its request was read and answered and nothing of its next one has come;
@@ -70,6 +76,12 @@ def pending_bytes(transport: asyncio.BaseTransport) -> int:
     except (OSError, ValueError):
         return 0
     return int(buf[0])
+
+
+def keep_alive_header(header_timeout_s: float) -> tuple[str, str]:
+    """The response header announcing how long an idle keep-alive connection is kept at least, s
+    (a whole second below the limit: the client's clock starts when the answer reaches it)."""
+    return "Keep-Alive", f"timeout={max(1, math.ceil(header_timeout_s) - 1)}"
 
 
 class ConnectionBounds:
@@ -140,6 +152,7 @@ class BoundedH11Protocol(H11Protocol):
         super().__init__(*args, **kwargs)
         self._head_timer: asyncio.TimerHandle | None = None
         self._counted = False  # in ``bounds.open``
+        self._extended = False  # the head timer was extended once for a request found waiting
         self.opened_at = time.monotonic()
 
     def _busy(self) -> bool:
@@ -148,6 +161,7 @@ class BoundedH11Protocol(H11Protocol):
     def _start_head_timer(self) -> None:
         if self._head_timer is not None:
             self._head_timer.cancel()
+        self._extended = False
         self._head_timer = self.loop.call_later(self.bounds.header_timeout_s, self._head_timeout)
 
     def _mark_idle(self) -> None:
@@ -179,9 +193,21 @@ class BoundedH11Protocol(H11Protocol):
 
     def _head_timeout(self) -> None:
         self._head_timer = None
-        if not self._busy() and not self.transport.is_closing():
-            self.bounds.timed_out += 1
-            self._close()
+        if self._busy() or self.transport.is_closing():
+            return
+        waiting = pending_bytes(self.transport) > 0
+        if waiting and not self._extended and not self._head_begun():
+            # an idle connection reused just at the limit: its request is in the kernel, unread; closing
+            # now would reset it.  Its head gets the full time once more (then it is closed like any other)
+            self._head_timer = self.loop.call_later(self.bounds.header_timeout_s, self._head_timeout)
+            self._extended = True
+            return
+        self.bounds.timed_out += 1
+        self._close()  # nothing unread in the kernel: our FIN, no reset (a head too slow may be reset)
+
+    def _head_begun(self) -> bool:
+        """Part of a request head has been read (h11 holds it, waiting for the rest)."""
+        return bool(self.conn.trailing_data[0])
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -218,6 +244,7 @@ class BoundedH11Protocol(H11Protocol):
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
+        self._unset_keepalive_if_required()  # the header timer is the one rule for an idle connection
         if not self.transport.is_closing() and not self._busy():
             if self.conn.trailing_data[0]:  # part of the next request's head came with the last one
                 self._mark_arriving()

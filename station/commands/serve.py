@@ -69,6 +69,7 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
         ConnectionBounds,
         connection_cap,
         install_repeat_filter,
+        keep_alive_header,
         raise_fd_limit,
     )
 
@@ -84,7 +85,8 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
 
     bounds.on_head = stop_on_arrival(app)  # POST /stop goes to the rig as soon as its head is read
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_config=None, http=bounds.protocol(),
-                            access_log=args.access_log, timeout_graceful_shutdown=5, lifespan="on")
+                            access_log=args.access_log, timeout_graceful_shutdown=5, lifespan="on",
+                            headers=[keep_alive_header(bounds.header_timeout_s)])
     server = StationServer(config, settings, on_listening=lambda host, port: lock.update(host=host, port=port))
     asyncio.run(server.serve())
     return 0 if server.started else 3  # 3: the daemon could not start (the log says why)
