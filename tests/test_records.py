@@ -486,7 +486,8 @@ def test_the_password_pool_refuses_at_once_when_full() -> None:
 def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """Five wrong passwords, then each further one locks the name and the address out for a
-    growing time (the right password is refused meanwhile, no password checked); the lock-out is
+    growing time (the right password is refused meanwhile, after the same password check and the same
+    audited refusal as any other login); the lock-out is
     audited and listed for an administrator, who lifts it; a locked login costs the same one
     password check as any other.  A password typed into the name field
     never reaches the trail; a new password ends the user's sessions; tokens are listed and revoked."""
@@ -509,6 +510,10 @@ def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path
             assert r.status_code == 401 and "locked until" in r.json()["detail"]
             assert len(calls) == 1  # the same password check as any login: a lock-out is not told by its time
             monkeypatch.undo()
+            # and the same write: each refusal, the locked one too, is in the trail before its answer
+            refused = audit.entries(manager.store, action=audit.LOGIN_REFUSED, target="user:tina")
+            assert len(refused) == logins.FREE_FAILURES + 2 and refused[0].details.get("locked") is True
+            assert not any(e.details.get("locked") for e in refused[1:])
             locks = (await c.get("/logins/locks")).json()
             assert {x["key"] for x in locks} == {"user:tina", "client:127.0.0.1"}
             assert audit.entries(manager.store, action=audit.LOGIN_LOCKED)

@@ -254,13 +254,14 @@ def check_login(store: Store, name: str, password: str) -> User | None:
 REFUSED = "wrong user name or password (ask an administrator if you have none or forgot it)"
 
 
-def refuse_login(store: Store, name: str, client: str = "") -> None:
+def refuse_login(store: Store, name: str, client: str = "", *, locked: bool = False) -> None:
     """Audit a refused login: the name only when it is a valid user name (a password typed into the
-    name field is never stored), and the client's address."""
+    name field is never stored), the client's address, and whether a lock-out refused it."""
     valid = bool(re.match(NAME_PATTERN, name))
     shown = name if valid else "?"
     audit.append(store, shown, audit.LOGIN_REFUSED, f"user:{shown}",
-                 {"client": client, **({} if valid else {"name": "not a valid user name (not stored)"})})
+                 {"client": client, **({"locked": True} if locked else {}),
+                  **({} if valid else {"name": "not a valid user name (not stored)"})})
 
 
 def keep_lock(store: Store, key: str, failures: int, locked_until: float) -> None:

@@ -95,16 +95,16 @@ async def login(body: LoginIn, manager: ManagerDep, response: Response, request:
     ok = await manager.password_pool.run(users.check_password, body.password, stored)
     if ok is None:
         raise users.AuthError("too many logins at once: try again in a moment")
-    if why is not None:  # locked out: the same work done (no lock-out told by its time), the answer unused
-        raise users.AuthError(why)
-    user = candidate if ok else None
+    # locked out: the same work done (no lock-out told by its time), the answer unused.  Every login,
+    # refused or not, awaits one write (the session, or the refusal's audit entry) through the writer
+    user = candidate if ok and why is None else None
     if user is None:
-        manager.db.post(lambda s: users.refuse_login(s, body.name, client))
-        for key, seconds in manager.logins.failed(keys):
+        for key, seconds in [] if why is not None else manager.logins.failed(keys):  # counted before any wait
             log.warning("login lock-out: %s for %.0f s after repeated failures", key, seconds)
             manager.db.post(lambda s, k=key, t=seconds: audit.append(  # type: ignore[misc]
                 s, audit.SYSTEM, audit.LOGIN_LOCKED, k, {"seconds": t}))
-        raise users.AuthError(users.REFUSED)
+        await manager.db.call(lambda s: users.refuse_login(s, body.name, client, locked=why is not None))
+        raise users.AuthError(why or users.REFUSED)
     manager.logins.succeeded(user_key)
     text, expires = await manager.db.call(lambda s: users.open_session(s, user, minutes))
     response.set_cookie(SESSION_COOKIE, text, max_age=int(minutes * 60), httponly=True, samesite="strict", path="/")
