@@ -3,11 +3,14 @@
 A real daemon (``station serve --sim`` in a subprocess, loopback) with four kinds of name:
 
 1. **Login time per kind of name** (median and quartiles over ``--rounds`` rounds, the kinds
-   interleaved so that the machine's load falls on all alike): a known user with the right
+   interleaved: each round times every kind once, in an order shuffled anew (seeded), so that the
+   machine's load, however it drifts, falls on all alike): a known user with the right
    password, the same with a wrong one, an unknown name, a disabled user, a password-less user and
    a locked-out user.  ``spread`` is (largest median - smallest) / smallest: the aim is <= 0.10, so
-   that no kind of name can be told from another by the time a refusal takes.  Between timed
-   logins the administrator lifts every lock-out but the locked user's (untimed).
+   that no kind of name can be told from another by the time a refusal takes.
+   ``login_relative_to_round_median`` (and its ``spread_relative``): each login's time over the
+   median of its own round, which takes out the drift of the load between rounds too.  Between
+   timed logins the administrator lifts every lock-out but the locked user's (untimed).
 2. **Lock-out threshold**: wrong passwords for one name until the first "locked" refusal.
 3. **Guesses per second allowed**: one name guessed as fast as one client can for ``--guess-s``
    seconds: how many guesses were answered in that time (``guesses_answered``: the answers that
@@ -16,18 +19,16 @@ A real daemon (``station serve --sim`` in a subprocess, loopback) with four kind
    lock-out, 2 s doubling to 15 min).  ``server_guesses_per_s`` is what the password check alone
    would allow without a lock-out (1 / the median of a refused login).
 
-Usage: python bench/login.py [--rounds 25] [--guess-s 20]
+Usage: python bench/login.py [--rounds 40] [--guess-s 20] [--seed 1]
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
-import socket
+import random
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -35,55 +36,18 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from bench._daemon import BenchDaemon, bench_config  # noqa: E402
 from station.service import logins  # noqa: E402
 
-TOKEN = "bench-token-0123456789"
 USERS = {"tina": ("technician", "tina-secret-pw", False), "dora": ("technician", "dora-secret-pw", True),
          "tok": ("technician", None, False), "lotte": ("technician", "lotte-secret-pw", False)}
 KINDS = {"right_password": ("tina", "tina-secret-pw"), "wrong_password": ("tina", "wrong-password-1"),
          "unknown": ("nobody", "wrong-password-1"), "disabled": ("dora", "wrong-password-1"),
          "password_less": ("tok", "wrong-password-1"), "locked": ("lotte", "lotte-secret-pw")}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@contextlib.contextmanager
-def daemon(tmp: Path) -> Any:
-    d = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
-    d["station"]["recordings_dir"] = str(tmp / "recordings")
-    cfg = tmp / "station.yaml"
-    cfg.write_text(yaml.safe_dump(d))
-    port = _free_port()
-    logf = (tmp / "daemon.log").open("wb")
-    proc = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--sim", "--config", str(cfg),
-                             "--port", str(port)], stdout=logf, stderr=subprocess.STDOUT,
-                            env={**os.environ, "STATION_TOKEN": TOKEN}, cwd=tmp)
-    admin = httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {TOKEN}"},
-                         timeout=60)
-    try:
-        deadline = time.monotonic() + 240  # a loaded machine starts it slowly
-        while True:
-            with contextlib.suppress(httpx.TransportError):
-                if admin.get("/health").status_code == 200:
-                    break
-            if time.monotonic() > deadline or proc.poll() is not None:
-                raise RuntimeError("daemon did not start: " + (tmp / "daemon.log").read_text()[-3000:])
-            time.sleep(0.1)
-        yield admin
-    finally:
-        admin.close()
-        proc.terminate()
-        proc.wait(60)
-        logf.close()
 
 
 def lift_all(admin: httpx.Client, keep: str = "") -> None:
@@ -113,22 +77,31 @@ def lock(admin: httpx.Client, c: httpx.Client, name: str) -> int:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rounds", type=int, default=25)
+    ap.add_argument("--rounds", type=int, default=40)
     ap.add_argument("--guess-s", type=float, default=20.0)
+    ap.add_argument("--seed", type=int, default=1, help="of the kinds' order in each round")
     args = ap.parse_args()
-    with tempfile.TemporaryDirectory() as tmp, daemon(Path(tmp)) as admin:
+    order = random.Random(args.seed)
+    with tempfile.TemporaryDirectory() as tmp, \
+            BenchDaemon(Path(tmp), bench_config(Path(tmp) / "recordings", short=False)) as d:
+        admin = d.client
         for name, (role, pw, disabled) in USERS.items():
             body: dict[str, Any] = {"role": role, "disabled": disabled}
             if pw is not None:
                 body["password"] = pw
             admin.put(f"/users/{name}", json=body).raise_for_status()
-        c = httpx.Client(base_url=str(admin.base_url), timeout=60)
+        c = httpx.Client(base_url=d.url, timeout=60)
         attempt(c, "nobody", "warm-up-password")  # the hash nobody has is made once, on first use
         lift_all(admin)
         threshold = lock(admin, c, "lotte")
         times: dict[str, list[float]] = {k: [] for k in KINDS}
+        relative: dict[str, list[float]] = {k: [] for k in KINDS}  # each login / its round's median
         for _ in range(args.rounds):
-            for kind, (name, pw) in KINDS.items():
+            kinds = list(KINDS)
+            order.shuffle(kinds)  # no kind always first, or always after another
+            this: dict[str, float] = {}
+            for kind in kinds:
+                name, pw = KINDS[kind]
                 lift_all(admin, keep="user:lotte")
                 if kind == "locked" and not admin.get("/logins/locks").json():
                     lock(admin, c, "lotte")  # the lock-out ran out: locked again (untimed)
@@ -136,10 +109,15 @@ def main() -> None:
                 locked = "locked until" in r.json().get("detail", "")
                 if (kind == "right_password") != (r.status_code == 200) or (kind == "locked") != locked:
                     raise RuntimeError(f"{kind}: unexpected answer {r.status_code} {r.text}")
-                times[kind].append(dt * 1e3)
+                this[kind] = dt * 1e3
                 if kind == "right_password":
                     c.cookies.clear()
+            mid = statistics.median(this.values())
+            for kind, ms in this.items():
+                times[kind].append(ms)
+                relative[kind].append(ms / mid)
         med = {k: statistics.median(v) for k, v in times.items()}
+        rel = {k: statistics.median(v) for k, v in relative.items()}
         q = {k: [round(x, 1) for x in statistics.quantiles(v, n=4)] for k, v in times.items()}
         # guessing one name as fast as one client can (lock-outs are not lifted now)
         lift_all(admin)
@@ -163,6 +141,8 @@ def main() -> None:
         "login_median_ms": {k: round(v, 1) for k, v in med.items()},
         "login_quartiles_ms": q,
         "spread": round((max(med.values()) - min(med.values())) / min(med.values()), 3),
+        "login_relative_to_round_median": {k: round(v, 3) for k, v in rel.items()},
+        "spread_relative": round((max(rel.values()) - min(rel.values())) / min(rel.values()), 3),
         "spread_refusals": round((max(v for k, v in med.items() if k != "right_password")
                                   - min(v for k, v in med.items() if k != "right_password"))
                                  / min(v for k, v in med.items() if k != "right_password"), 3),
