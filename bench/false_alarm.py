@@ -21,12 +21,9 @@ Usage: python bench/false_alarm.py [--runs 50] [--busy 2]
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import shutil
-import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -36,32 +33,20 @@ from typing import Any
 
 import httpx
 import numpy as np
-import yaml
 from scipy.stats import beta, kstest
 from scipy.stats import chi2 as chi2_dist
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from bench._daemon import BenchDaemon, bench_config  # noqa: E402
 from station.ident.response.frf import misfit_false_alarm_rate  # noqa: E402
-
-TOKEN = "bench-token-0123456789"
 
 
 def _config(data_dir: Path) -> dict[str, Any]:
-    d = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
-    d["station"]["recordings_dir"] = str(data_dir)
-    d["rig"]["acceleration_hz_per_s"] = 100.0
-    d["plan"].update({"settle_s": 0.2, "record_s": 0.5})
-    d["simulation"]["pre_roll_s"] = 0.2
+    d = bench_config(data_dir, acceleration_hz_per_s=100.0, record_s=0.5)
     d["identification"]["methods"] = [{"method": "fd", "model": "auto"}]
     return d
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
@@ -70,17 +55,6 @@ def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
     lo = 0.0 if k == 0 else float(beta.ppf(a, k, n - k + 1))
     hi = 1.0 if k == n else float(beta.ppf(1 - a, k + 1, n - k))
     return lo, hi
-
-
-def _wait_health(c: httpx.Client, proc: subprocess.Popen[bytes], log: Path) -> None:
-    deadline = time.monotonic() + 240
-    while True:
-        with contextlib.suppress(httpx.TransportError):
-            if c.get("/health").status_code == 200:
-                return
-        if time.monotonic() > deadline or proc.poll() is not None:
-            raise RuntimeError("daemon did not start: " + log.read_text()[-3000:])
-        time.sleep(0.2)
 
 
 def _submit(c: httpx.Client, steps: list[dict[str, float]]) -> str:
@@ -154,8 +128,6 @@ def main() -> None:
     d = _config(tmp / "recordings")
     steps = [{"crank_frequency_hz": s["crank_frequency_hz"], "crank_radius_m": s["crank_radius_m"]}
              for s in d["plan"]["steps"]]
-    cfg = tmp / "station.yaml"
-    cfg.write_text(yaml.safe_dump(d))
     busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy)]
     if args.inprocess:
         t0 = time.monotonic()
@@ -168,18 +140,11 @@ def main() -> None:
             shutil.rmtree(tmp, ignore_errors=True)
         _report(ran, args, 0, "in-process simulated rig (virtual clock)", t0)
         return
-    port = _free_port()
-    log = tmp / "daemon.log"
-    logf = log.open("wb")
-    proc = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--sim", "--config", str(cfg),
-                             "--port", str(port)], stdout=logf, stderr=subprocess.STDOUT,
-                            env={**os.environ, "STATION_TOKEN": TOKEN}, cwd=tmp)
+    daemon = BenchDaemon(tmp, d).start()
     t0 = time.monotonic()
     rows: list[dict[str, Any]] = []
     try:
-        c = httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {TOKEN}"},
-                         timeout=60)
-        _wait_health(c, proc, log)
+        c = daemon.wait_ready()
         ids = []
         for i in range(args.runs):
             ids.append(_submit(c, steps))
@@ -191,13 +156,8 @@ def main() -> None:
         for p in busy:
             p.kill()
             p.wait()
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        logf.close()
-        stalls = sum("stalled" in line for line in log.read_text(errors="replace").splitlines())
+        daemon.stop()
+        stalls = sum("stalled" in line for line in daemon.log().splitlines())
         shutil.rmtree(tmp, ignore_errors=True)
     _report(rows, args, stalls, "daemon (station serve --sim)", t0)
 

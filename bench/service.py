@@ -16,16 +16,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import importlib
 import json
 import logging
 import os
 import shutil
-import signal
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -33,31 +29,15 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from bench._daemon import BenchDaemon, bench_config  # noqa: E402
 from station.config import default_config_path, load_config  # noqa: E402
 from station.simulate import simulate_run  # noqa: E402
 
 log = logging.getLogger("bench.service")
-TOKEN = "bench-token-0123456789"
-
-
-def _config(data_dir: Path) -> dict[str, Any]:
-    d = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
-    d["station"]["recordings_dir"] = str(data_dir)
-    d["rig"]["acceleration_hz_per_s"] = 50.0
-    d["plan"].update({"settle_s": 0.2, "record_s": 1.0})
-    d["simulation"]["pre_roll_s"] = 0.2
-    return d
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _pct(xs: list[float], q: float) -> float:
@@ -127,50 +107,32 @@ async def _poll(port: int, run_id: str, clients: int, seconds: float, interval: 
 
 def status_latency(clients: int, seconds: float, interval: float) -> dict[str, Any]:
     tmp = Path(tempfile.mkdtemp(prefix="bench-service-"))
-    cfg = tmp / "station.yaml"
-    cfg.write_text(yaml.safe_dump(_config(tmp / "recordings")))
-    port = _free_port()
-    url = f"http://127.0.0.1:{port}"
-    logf = (tmp / "daemon.log").open("wb")
-    proc = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--sim", "--config", str(cfg),
-                             "--port", str(port)], stdout=logf, stderr=subprocess.STDOUT,
-                            env={**os.environ, "STATION_TOKEN": TOKEN}, cwd=tmp)
     try:
-        c = httpx.Client(base_url=url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30)
-        deadline = time.monotonic() + 40
-        while True:
-            with contextlib.suppress(httpx.TransportError):
-                if c.get("/health").status_code == 200:
-                    break
-            if time.monotonic() > deadline or proc.poll() is not None:
-                raise RuntimeError("daemon did not start: " + (tmp / "daemon.log").read_text()[-3000:])
-            time.sleep(0.1)
-        record_s = seconds + 4.0
-        r = c.post("/runs", json={"transducer_id": "TX5K-0001", "top_mass_kg": 25.717,
-                                  "steps": [{"crank_frequency_hz": 20.0, "crank_radius_m": 0.001,
-                                             "record_s": record_s}]})
-        r.raise_for_status()
-        run_id = r.json()["id"]
-        while (st := c.get(f"/runs/{run_id}").json())["step_state"] != "recording":
-            if st["state"] not in ("queued", "running"):
-                raise RuntimeError(f"run ended early: {st}")
-            time.sleep(0.05)
-        lat, errors = asyncio.run(_poll(port, run_id, clients, seconds, interval))
-        while (st := c.get(f"/runs/{run_id}").json())["state"] in ("queued", "running", "identifying"):
-            time.sleep(0.2)
-        ms = [x * 1000 for x in lat]
-        return {"status_p50_ms": round(statistics.median(ms), 2), "status_p99_ms": round(_pct(ms, 0.99), 2),
-                "status_max_ms": round(max(ms), 2), "status_requests": len(ms), "status_errors": errors,
-                "status_rate_hz": round(len(ms) / seconds, 1), "clients": clients, "client_interval_s": interval,
-                "lost_samples": st["lost_samples"], "run_state": st["state"], "run_samples": st["samples"]}
+        with BenchDaemon(tmp, bench_config(tmp / "recordings")) as d:
+            return _status_latency(d.client, d.port, clients, seconds, interval)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        logf.close()
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _status_latency(c: httpx.Client, port: int, clients: int, seconds: float, interval: float) -> dict[str, Any]:
+    record_s = seconds + 4.0
+    r = c.post("/runs", json={"transducer_id": "TX5K-0001", "top_mass_kg": 25.717,
+                              "steps": [{"crank_frequency_hz": 20.0, "crank_radius_m": 0.001,
+                                         "record_s": record_s}]})
+    r.raise_for_status()
+    run_id = r.json()["id"]
+    while (st := c.get(f"/runs/{run_id}").json())["step_state"] != "recording":
+        if st["state"] not in ("queued", "running"):
+            raise RuntimeError(f"run ended early: {st}")
+        time.sleep(0.05)
+    lat, errors = asyncio.run(_poll(port, run_id, clients, seconds, interval))
+    while (st := c.get(f"/runs/{run_id}").json())["state"] in ("queued", "running", "identifying"):
+        time.sleep(0.2)
+    ms = [x * 1000 for x in lat]
+    return {"status_p50_ms": round(statistics.median(ms), 2), "status_p99_ms": round(_pct(ms, 0.99), 2),
+            "status_max_ms": round(max(ms), 2), "status_requests": len(ms), "status_errors": errors,
+            "status_rate_hz": round(len(ms) / seconds, 1), "clients": clients, "client_interval_s": interval,
+            "lost_samples": st["lost_samples"], "run_state": st["state"], "run_samples": st["samples"]}
 
 
 def batch_speedup(n: int, repeat: int = 2) -> dict[str, Any]:

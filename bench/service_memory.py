@@ -15,28 +15,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import signal
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-import httpx
-import yaml
-
 ROOT = Path(__file__).resolve().parent.parent
-TOKEN = "bench-token-0123456789"
+sys.path.insert(0, str(ROOT))
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from bench._daemon import BenchDaemon, bench_config  # noqa: E402
 
 
 def _rss_mb(pid: int) -> float:
@@ -59,62 +48,32 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=0)
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench-memory-"))
-    d = yaml.safe_load((ROOT / "config" / "sim-5kN.yaml").read_text())
-    d["station"]["recordings_dir"] = str(tmp / "rec")
-    d["rig"]["acceleration_hz_per_s"] = 50.0
-    d["plan"].update({"settle_s": 0.2, "record_s": args.record_s})
-    d["simulation"]["pre_roll_s"] = 0.2
-    cfg = tmp / "station.yaml"
-    cfg.write_text(yaml.safe_dump(d))
-    port = _free_port()
-    path = str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")
-    env = {**os.environ, "STATION_TOKEN": TOKEN, "PYTHONPATH": path}
-    logf = (tmp / "daemon.log").open("wb")
-    proc = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--sim", "--config", str(cfg),
-                             "--port", str(port), "--workers", str(args.workers)],
-                            stdout=logf, stderr=subprocess.STDOUT, env=env, cwd=tmp)
-    url = f"http://127.0.0.1:{port}"
+    d = bench_config(tmp / "rec", record_s=args.record_s)
     body = {"transducer_id": d["transducer"]["id"], "top_mass_kg": d["rig"]["top_mass_kg"],
             "steps": [{"crank_frequency_hz": 10.0, "crank_radius_m": 0.001}]}
     rss: list[float] = []
     states: dict[str, int] = {}
-    try:
-        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30) as c:
-            deadline = time.monotonic() + 60
-            while True:
-                try:
-                    if c.get("/health").status_code == 200:
+    with BenchDaemon(tmp, d, args=["--workers", str(args.workers)], stop_timeout_s=60) as daemon:
+        c, proc = daemon.client, daemon.proc
+        assert proc is not None
+        t0 = time.monotonic()
+        for _ in range(args.runs):
+            r = c.post("/runs", json=body)
+            r.raise_for_status()
+            rid = r.json()["id"]
+            with c.stream("GET", f"/runs/{rid}/events") as ev:  # follow it live until its end event
+                for line in ev.iter_lines():
+                    if line.startswith("event: end"):
                         break
-                except httpx.TransportError:
-                    pass
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    raise SystemExit(f"daemon did not start: {(tmp / 'daemon.log').read_text()[-3000:]}")
-                time.sleep(0.1)
-            t0 = time.monotonic()
-            for _ in range(args.runs):
-                r = c.post("/runs", json=body)
-                r.raise_for_status()
-                rid = r.json()["id"]
-                with c.stream("GET", f"/runs/{rid}/events") as ev:  # follow it live until its end event
-                    for line in ev.iter_lines():
-                        if line.startswith("event: end"):
-                            break
-                        if line.startswith("event:") and c.get(f"/runs/{rid}").json()["state"] not in (
-                                "queued", "running"):
-                            break
-                while (st := c.get(f"/runs/{rid}").json())["state"] in ("queued", "running"):
-                    time.sleep(0.05)
-                states[st["state"]] = states.get(st["state"], 0) + 1
-                c.get("/runs", params={"limit": 100})
-                rss.append(round(_rss_mb(proc.pid), 2))
-            wall = time.monotonic() - t0
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        logf.close()
+                    if line.startswith("event:") and c.get(f"/runs/{rid}").json()["state"] not in (
+                            "queued", "running"):
+                        break
+            while (st := c.get(f"/runs/{rid}").json())["state"] in ("queued", "running"):
+                time.sleep(0.05)
+            states[st["state"]] = states.get(st["state"], 0) + 1
+            c.get("/runs", params={"limit": 100})
+            rss.append(round(_rss_mb(proc.pid), 2))
+        wall = time.monotonic() - t0
     tail = rss[10:] if len(rss) > 12 else rss
     out: dict[str, Any] = {
         "runs": args.runs, "states": states, "wall_s": round(wall, 1),

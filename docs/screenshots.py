@@ -14,24 +14,19 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import re
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
-import yaml
 from PIL import Image
 from playwright.sync_api import sync_playwright
 
-from station.config import default_config_path
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from bench._daemon import BenchDaemon, bench_config
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking"]
@@ -43,53 +38,20 @@ USER = "technician"
 def _config(data: Path) -> dict[str, Any]:
     """The shipped configuration with a shorter plan (its five steps, less settling and recording) and
     the small swarm of the tests (the methods side by side finish in seconds)."""
-    cfg = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
-    cfg["station"]["recordings_dir"] = str(data)
-    cfg["plan"].update({"settle_s": 0.5, "record_s": 1.5})
-    cfg["rig"]["acceleration_hz_per_s"] = 50.0
+    cfg = bench_config(data, settle_s=0.5, record_s=1.5, pre_roll_s=None)
     cfg.setdefault("identification", {})["swarm"] = {"n_particles": 24, "n_iterations": 60}
-    return dict(cfg)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return cfg
 
 
 @contextlib.contextmanager
 def station(tmp: Path) -> Iterator[tuple[str, str]]:
     """``station serve --sim`` in ``tmp``; yields its URL and the printed password of :data:`USER`."""
-    cfg = tmp / "station.yaml"
-    cfg.write_text(yaml.safe_dump(_config(tmp / "recordings")))
-    port = _free_port()
-    log_path = tmp / "station.log"
-    with log_path.open("wb") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "station.cli", "serve", "--sim", "--config", str(cfg),
-                                 "--port", str(port)], stdout=log, stderr=subprocess.STDOUT, cwd=tmp,
-                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 180  # a busy machine starts it slowly
-        while True:
-            with contextlib.suppress(httpx.TransportError):
-                if httpx.get(url + "/health", timeout=5).status_code == 200:
-                    break
-            if time.monotonic() > deadline or proc.poll() is not None:
-                raise RuntimeError(f"the station did not start (exit code {proc.poll()}):\n"
-                                   + log_path.read_text(errors="replace")[-3000:])
-            time.sleep(0.2)
-        found = re.findall(rf"^\s+{USER}\s+\(\w+\) password (\S+)$", log_path.read_text(errors="replace"), re.M)
+    with BenchDaemon(tmp, _config(tmp / "recordings"), token=None, start_timeout_s=180,
+                     stop_timeout_s=40) as d:
+        found = re.findall(rf"^\s+{USER}\s+\(\w+\) password (\S+)$", d.log(), re.M)
         if not found:
             raise RuntimeError("the station printed no password for " + USER)
-        yield url, found[-1]
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(40)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        yield d.url, found[-1]
 
 
 def _save(page: Any, path: Path, width: str) -> dict[str, Any]:
