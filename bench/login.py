@@ -1,6 +1,6 @@
 """Benchmark of the daemon's logins as a guesser meets them; prints JSON.
 
-A real daemon (``station serve --sim`` in a subprocess, loopback) with four kinds of name:
+A real daemon (``station serve --sim`` in a subprocess, loopback; ``bench/_daemon.py``) with four users:
 
 1. **Login time per kind of name** (median and quartiles over ``--rounds`` rounds, the kinds
    interleaved: each round times every kind once, in an order shuffled anew (seeded), so that the
@@ -19,7 +19,7 @@ A real daemon (``station serve --sim`` in a subprocess, loopback) with four kind
    lock-out, 2 s doubling to 15 min).  ``server_guesses_per_s`` is what the password check alone
    would allow without a lock-out (1 / the median of a refused login).
 
-Usage: python bench/login.py [--rounds 40] [--guess-s 20] [--seed 1]
+Usage: python bench/login.py [--rounds 200] [--guess-s 20] [--seed 1]
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def lock(admin: httpx.Client, c: httpx.Client, name: str) -> int:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rounds", type=int, default=40)
+    ap.add_argument("--rounds", type=int, default=200)
     ap.add_argument("--guess-s", type=float, default=20.0)
     ap.add_argument("--seed", type=int, default=1, help="of the kinds' order in each round")
     args = ap.parse_args()
