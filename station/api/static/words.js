@@ -78,6 +78,7 @@ const FINDING_WORDS = {
   non_finite_channel: "A channel holds invalid numbers; the affected step was left out.",
   frequency_mismatch: "A step ran at a frequency other than the one planned; it was evaluated at the measured one.",
   clock_skew: "The two converters' clocks run at slightly different rates.",
+  static_force_vs_weight: "The force at rest (the masses' weight) disagrees with the moving force scale: check the force channel's zero and the displacement sensor.",
   polarity: "The force signal's sign (polarity) is noted.",
   channels_swapped: "The force and displacement signals look swapped: check the wiring.",
   low_frequency_gain: "The force signal is far from what the top mass and sensitivity predict: check the top mass, the sensitivity and the units.",
