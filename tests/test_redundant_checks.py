@@ -98,6 +98,7 @@ def test_the_model_gap_names_a_clock_skew_and_covers_the_truth(tmp_path: Path) -
     assert "clock_skew" in [e.name for e in rep.effects], [e.name for e in rep.effects]
     for k, true in (("k_f", KF), ("b_f", BF)):
         e = rep.parameters_after[k]
+        assert e.value is not None and e.std is not None, e
         assert e.identifiable and abs(e.value - true) <= 3 * e.std, (k, e)
 
 
@@ -109,4 +110,5 @@ def test_a_lightly_damped_transducer_rings_at_its_own_frequency_not_mains(tmp_pa
     assert not any("mains" in u for u in rep.unexplained), rep.unexplained
     assert not rep.mains_search.startswith("line at"), rep.mains_search
     e = rep.parameters_after["b_f"]
+    assert e.value is not None and e.std is not None, e
     assert e.identifiable and abs(e.value - 92.0) <= 3 * e.std, e
