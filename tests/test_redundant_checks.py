@@ -37,7 +37,7 @@ def _checks(path: Path) -> dict[str, Any]:
 def test_an_ideal_run_raises_no_redundancy_finding(tmp_path: Path) -> None:
     res = identify_recording(read_recording(simulate_run(_config({}), tmp_path, seed=5)))
     names = {c.name for c in res.checks}
-    assert not names & {"displacement_vs_radius", "clock_skew", "model_misfit"}, names
+    assert not names & {"displacement_vs_radius", "clock_skew", "model_misfit", "static_force_vs_weight"}, names
     assert "crank radius u = 1e-07 m" in res.assumptions["unsupported_defaults"]
     assert "measurement chain gain u = 0.0001 (relative)" in res.assumptions["unsupported_defaults"]
 
@@ -50,6 +50,33 @@ def test_a_displacement_channel_reading_half_a_percent_high_is_found(tmp_path: P
     assert c.severity == "warning" and abs(c.values["ratio"] - 1.005) < 3 * c.values["std"], c.message
     assert "displacement sensor's calibration" in c.message and "crank radius" in c.message
     assert "defaults no certificate supports" in c.message
+
+
+@pytest.mark.slow
+def test_the_static_force_disagrees_with_the_weight_when_the_acceleration_scale_is_off(tmp_path: Path) -> None:
+    """The displacement channel reads 3 % high: S comes out 3 % low, so the force channel's mean (the
+    gravity preload) over S is 1.03 times the weight of the stated masses; the finding says so within
+    its stated u and names the displacement sensor first (the radius check agrees)."""
+    cfg = _config({}, {"displacement_gain_V_per_m": 1.03 * GAIN})
+    d = cfg.model_dump(exclude_none=True)
+    d["plan"]["steps"] = d["plan"]["steps"][:3]
+    checks = _checks(simulate_run(parse_config(d), tmp_path, seed=5))
+    c = checks["static_force_vs_weight"]
+    assert c.severity == "warning" and abs(c.values["ratio"] - 1.03) < 3 * c.values["std"], c.message
+    assert "displacement sensor's calibration (the acceleration S rests on) first" in c.message, c.message
+    assert "standard gravity used, a default no certificate supports" in c.message
+
+
+def test_the_static_comparison_only_where_the_plan_allows() -> None:
+    """A charge amplifier's chain (V/pC) and an imported file have no known zero: no static check."""
+    from station.ident.response.redundancy import static_check
+    from station.ident.result import Estimate
+    S = Estimate(2e-3, 2e-7, "V/N")
+    off = ((0.1, -0.6, 1e-5), (0.5, -0.6, 1e-5))  # 16 % above the weight of 26.3 kg: a finding
+    bridge = {"conditioner": {"gain_unit": "V/V", "offset_V": 0.0}}
+    assert static_check(off, S, 26.3, bridge, False) is not None
+    assert static_check(off, S, 26.3, {"conditioner": {"gain_unit": "V/pC", "offset_V": 0.0}}, False) is None
+    assert static_check(off, S, 26.3, {"format": "sinecal-csv"}, False) is None
 
 
 @pytest.mark.slow
@@ -71,6 +98,7 @@ def test_the_model_gap_names_a_clock_skew_and_covers_the_truth(tmp_path: Path) -
     assert "clock_skew" in [e.name for e in rep.effects], [e.name for e in rep.effects]
     for k, true in (("k_f", KF), ("b_f", BF)):
         e = rep.parameters_after[k]
+        assert e.value is not None and e.std is not None, e
         assert e.identifiable and abs(e.value - true) <= 3 * e.std, (k, e)
 
 
@@ -82,4 +110,5 @@ def test_a_lightly_damped_transducer_rings_at_its_own_frequency_not_mains(tmp_pa
     assert not any("mains" in u for u in rep.unexplained), rep.unexplained
     assert not rep.mains_search.startswith("line at"), rep.mains_search
     e = rep.parameters_after["b_f"]
+    assert e.value is not None and e.std is not None, e
     assert e.identifiable and abs(e.value - 92.0) <= 3 * e.std, e

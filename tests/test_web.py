@@ -91,6 +91,12 @@ def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon:
                          "document.querySelector('#discrepancy').textContent.startsWith('not available')",
                          timeout=60_000)
     assert "residual" in pg.text_content("#discrepancy") or "not available" in pg.inner_text("#discrepancy")
+    if pg.evaluate("document.querySelector('#discrepancy').dataset.loaded === '1'"):
+        # the result's sentence and the model gap's go through the page's one rule for findings that agree
+        gap = daemon.c().get(results["discrepancy"]).json()
+        rule = pg.evaluate("([c, g]) => pageFindings(c, g)", [results["checks"], gap])
+        assert pg.inner_text("#res-summary").endswith(rule["tail"]), rule
+        assert pg.text_content("#discrepancy p.plain") == rule["gap"], rule
     assert daemon.c().get(f"/runs/{run_id}").json()["state"] == "completed"
     # the run is listed on the start page
     pg.click("text=start another run")

@@ -452,18 +452,24 @@ function showMethods(methods) {
 }
 
 // the result in a sentence: what was determined, from how many steps, and whether anything needs a look
-function resultSummary(d) {
+// (its findings and the model gap's, once loaded, agree by one rule: ``pageFindings``)
+function resultSummary(d, gap) {
   const got = d.parameters.filter((p) => p.identifiable).map((p) => QUANTITY_WORDS[p.name] || p.name);
   const missing = d.parameters.filter((p) => !p.identifiable).map((p) => QUANTITY_WORDS[p.name] || p.name);
-  const look = (d.checks || []).filter((c) => c.severity !== "info").length;
   const conditional = d.parameters.filter((p) => p.identifiable && p.reason).length;
   return (got.length ? `The run determined the ${listText(got)}, each with its uncertainty (below).` : "The run determined nothing.") +
     (missing.length ? ` It could not determine the ${listText(missing)}.` : "") +
     (conditional ? " Some values rest on a condition (see their remarks)." : "") +
-    (look ? ` ${look === 1 ? "One finding needs" : `${look} findings need`} checking before the results are used.` : " Nothing needs checking.");
+    ` ${pageFindings(d.checks, gap).tail}`;
 }
 
-const listText = (xs) => (xs.length < 2 ? xs.join("") : `${xs.slice(0, -1).join(", ")} and ${xs[xs.length - 1]}`);
+// the result's sentence and its findings' plain lines, with the model gap's once it is loaded
+let shownResults = null;
+function showFindings(d, gap) {
+  $("#res-summary").textContent = resultSummary(d, gap);
+  const lines = pageFindings(d.checks, gap).lines;
+  document.querySelectorAll("#res-checks > li > span.plain").forEach((el, i) => { el.textContent = lines[i]; });
+}
 
 // a parameter's remark: plain first, the identification's reason behind "why"
 function parameterRemark(p) {
@@ -494,12 +500,13 @@ async function loadResults(id) {
   if (!res.ok) { $("#run-message").textContent = detailText(res.data); return; }
   const d = res.data;
   $("#results").dataset.run = id;
-  $("#res-summary").textContent = resultSummary(d);
+  shownResults = d;
   $("#res-model").textContent = `method ${d.method}, model ${d.model}` + (d.notes.length ? ` — ${d.notes.join("; ")}` : "");
   const nSteps = (shownStatus && shownStatus.n_steps) || d.frequency_response.length;
   $("#res-checks").innerHTML = (d.checks || []).map((c) => `<li data-check="${esc(c.name)}" data-severity="${esc(c.severity)}">` +
     `<span class="plain">${esc(findingText(c))}</span>` + (c.step === null || c.step === undefined ? "" : ` (step ${c.step + 1} of ${nSteps})`) +
     `<details><summary>details</summary>${esc(c.name)}: ${esc(c.message)}</details></li>`).join("");
+  showFindings(d, null);
   const em = (d.assumptions || {}).end_mass_kg;
   $("#res-assumptions").textContent = em ? `end mass m_e = ${em.value} kg (${em.source}` +
     (em.std === null ? ": assumed, no uncertainty; S, k_f, b_f are conditional on it)" : `, u = ${em.std} kg)`) : "";
@@ -785,11 +792,10 @@ async function loadDiscrepancy(url) {
   }
   const d = res.data;
   const mV = (v) => (v === null ? "—" : (v * 1000).toPrecision(3) + " mV");
-  const plainGap = d.effects.length
-    ? `The measurement shows ${d.effects.length === 1 ? "an effect" : `${d.effects.length} effects`} the transducer model leaves out: ` +
-      `${listText(d.effects.map((e) => String(e.name).replace(/_/g, " ")))}.`
-    : "The transducer model explains the measurement: no known effect is missing.";
-  let html = `<p class="plain">${esc(plainGap)}${d.unexplained.length ? " Part of the difference stays unexplained." : ""}</p>` +
+  const results = shownResults && shownResults.discrepancy === url ? shownResults : null;
+  const plainGap = pageFindings(results ? results.checks : [], d).gap;
+  if (results) showFindings(results, d);
+  let html = `<p class="plain">${esc(plainGap)}</p>` +
     '<details class="tech"><summary>The numbers (for the expert)</summary>';
   html += `<p>force residual (RMS) of the model: ${mV(d.base_gap)} → ${mV(d.final_gap)} after the effects below</p>`;
   html += d.effects.length ? "<ul>" + d.effects.map((e) => `<li>${esc(e.name)} (gap after: ${mV(e.gap_after)})</li>`).join("") + "</ul>"

@@ -78,6 +78,7 @@ const FINDING_WORDS = {
   non_finite_channel: "A channel holds invalid numbers; the affected step was left out.",
   frequency_mismatch: "A step ran at a frequency other than the one planned; it was evaluated at the measured one.",
   clock_skew: "The two converters' clocks run at slightly different rates.",
+  static_force_vs_weight: "The force at rest (the masses' weight) disagrees with the moving force scale: check the force channel's zero and the displacement sensor.",
   polarity: "The force signal's sign (polarity) is noted.",
   channels_swapped: "The force and displacement signals look swapped: check the wiring.",
   low_frequency_gain: "The force signal is far from what the top mass and sensitivity predict: check the top mass, the sensitivity and the units.",
@@ -93,6 +94,58 @@ const SEVERITY_WORDS = {info: "Note", warning: "Check before using the results",
 function findingText(check) {
   const plain = FINDING_WORDS[check.name] || `${String(check.name).replace(/_/g, " ")}.`;
   return `${SEVERITY_WORDS[check.severity] || check.severity}: ${plain}`;
+}
+
+// a list in words: "a", "a and b", "a, b and c"
+const listText = (xs) => (xs.length < 2 ? xs.join("") : `${xs.slice(0, -1).join(", ")} and ${xs[xs.length - 1]}`);
+
+// One rule for every finding a run's page shows (the identification's findings, the result's
+// sentence, the model gap's sentence): a finding shown never contradicts another on the same page.
+//  1. The model is said to explain the measurement, or nothing to need checking, only when no finding
+//     on the page says otherwise: neither a warning of the identification (a misfit, a coupling, a
+//     clock skew, ...) nor an effect or an unexplained line of the model gap.
+//  2. Causes of one misfit that exclude each other (a mounting that is not stiff, the converters'
+//     clock skew, a displacement-sensor resonance; the model gap's effects as one more) are shown as
+//     alternatives, none asserted alone; the same cause named by both is one cause.
+// checks: the identification's findings (the results' ``checks``); gap: the model gap's answer or
+// null (not loaded).  Returns {lines: one plain line per check, gap: the model gap's sentence (null
+// without it), tail: the result sentence's last part}.
+const CAUSES = {coupling_suspected: "coupling", clock_skew: "clock_skew",
+  displacement_resonance_suspected: "displacement_resonance"};  // the identification's findings -> cause
+const GAP_CAUSES = {coupling_compliance: "coupling", clock_skew: "clock_skew", displacement_resonance: "displacement_resonance"};
+const CAUSE_WORDS = {coupling: "a mounting (coupling) that is not stiff", clock_skew: "the converters' clocks running apart",
+  displacement_resonance: "a resonance of the displacement sensor"};
+function pageFindings(checks, gap) {
+  const cs = checks || [];
+  const named = (c) => c.severity !== "info" && c.name in CAUSES;
+  const idCauses = [...new Set(cs.filter(named).map((c) => CAUSES[c.name]))];
+  const effects = gap ? gap.effects.map((e) => String(e.name)) : [];
+  const gapCauses = new Set(effects.map((e) => GAP_CAUSES[e] || e));
+  const gapOwn = effects.length > 0 && !idCauses.some((c) => gapCauses.has(c));  // the gap's effects: one more cause
+  const alternatives = idCauses.length + (gapOwn ? 1 : 0) > 1;
+  const causeList = (xs) => listText(xs.map((c) => CAUSE_WORDS[c]));
+  const lines = cs.map((c) => {
+    if (!alternatives || !named(c)) return findingText(c);
+    const rest = idCauses.filter((x) => x !== CAUSES[c.name]);
+    const others = [...(rest.length ? [causeList(rest)] : []), ...(gapOwn ? ["the model gap's effects (below)"] : [])];
+    return `${SEVERITY_WORDS[c.severity] || c.severity}: One possible cause of the misfit is ${CAUSE_WORDS[CAUSES[c.name]]}; ` +
+      `${listText(others)} would explain it too: the data do not decide between them.`;
+  });
+  const misfit = cs.some((c) => c.severity !== "info" && (c.name === "model_misfit" || c.name in CAUSES));
+  let gapText = null;
+  if (gap) {
+    const plain = effects.map((e) => e.replace(/_/g, " "));
+    gapText = effects.length
+      ? `The measurement shows ${effects.length === 1 ? "an effect" : `${effects.length} effects`} the transducer model leaves out: ${listText(plain)}.`
+        + (alternatives && gapOwn ? ` The identification's findings name ${causeList(idCauses)} instead: either may be the cause, the data do not decide.` : "")
+      : misfit ? "No known effect explains the misfit the identification found: its cause is not among the effects the analysis knows."
+        : "The transducer model explains the measurement: no known effect is missing.";
+    if (gap.unexplained.length) gapText += " Part of the difference stays unexplained.";
+  }
+  const look = cs.filter((c) => c.severity !== "info").length + (gap ? effects.length + (gap.unexplained.length ? 1 : 0) : 0);
+  const tail = look ? `${look === 1 ? "One finding needs" : `${look} findings need`} checking before the results are used.`
+    : "Nothing needs checking.";
+  return {lines, gap: gapText, tail};
 }
 
 // the plots by what they show (the file stems of the API: bode, timefit, residuals, convergence, ...)

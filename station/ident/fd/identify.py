@@ -25,7 +25,7 @@ from station.ident.models import CoupledModel, Model, SdofModel, make_model
 from station.ident.response import frf as frfmod
 from station.ident.response.checked import CheckedResponse, checked_response
 from station.ident.response.gate import sensitivity_check
-from station.ident.response.redundancy import beside_clock_skew
+from station.ident.response.redundancy import beside_clock_skew, static_check
 from station.ident.result import Check, Estimate, IdentificationResult, estimated_covariance
 from station.ident.structure import apply_structure, chain_corrected, coupling_suspected, resonance_suspected
 from station.recording import Recording
@@ -180,6 +180,9 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
     params = structure.parameters
     checks = beside_clock_skew(checks + list(structure.checks))
     c = sensitivity_check(params["S"].value, rec.sensitivity_V_per_N, not inputs.end_mass_given)
+    checks += [c] if c else []
+    c = static_check(cr.force_offsets, params["S"], inputs.m_e + inputs.m_l, rec.config,
+                     any(x.name == "displacement_vs_radius" for x in checks))
     checks += [c] if c else []
     determined = {**_determined(model, fit.theta, budget), **structure.determined}
     if n_f == 1 and budget.free[0]:

@@ -33,13 +33,15 @@ class StepSignal:
 @dataclass(frozen=True)
 class CheckedResponse:
     """H(f) of the steps that passed (frf), their signals for OE, the step indices used, every
-    check, and the polarity sign of S (+1 / -1)."""
+    check, the polarity sign of S (+1 / -1), and the force channel's mean per step used
+    (``force_offsets``: (window centre s, offset V, its standard uncertainty V)) for the static check."""
 
     frf: frfmod.FrequencyResponse
     sigs: list[StepSignal]
     used: list[int]
     checks: list[Check] = field(default_factory=list)
     sign: float = 1.0
+    force_offsets: tuple[tuple[float, float, float], ...] = ()
 
     @property
     def notes(self) -> list[str]:
@@ -78,5 +80,6 @@ def checked_response(rec: Recording, inputs: IdentInputs | None = None,
     checks += [c for c in (radius_check({i: items[i][2] for i in used}, radii, inputs),
                            clock_check({i: (sigs[i].t, sigs[i].u, sigs[i].fit_x) for i in used}, n_harmonics))
                if c is not None]
+    offsets = tuple((items[i][3].t_center_s, items[i][3].offset, items[i][3].offset_std) for i in used)
     return CheckedResponse(frfmod.assemble([items[i] for i in used]), [sigs[i] for i in used], used,
-                           checks, sign)
+                           checks, sign, offsets)

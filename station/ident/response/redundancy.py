@@ -12,6 +12,16 @@
   and, separately, on the force channel.  Both converters sample the same crank motion, so the two
   frequencies agree within their standard uncertainties unless the converters' clocks differ (a
   clock skew shows as a force phase that grows with time within a step, and from step to step).
+* **The static force against the weight of the stated masses.**  The force channel's mean over a
+  step is the gravity preload, -S (m_l + m_e) g (the frame's acceleration averages out), so the
+  means less the conditioner's stated offset, divided by the identified S, are the weight of the
+  moving masses.  S rests on the stated masses, so the masses cancel from the comparison: what it
+  checks is the acceleration scale S rests on (the displacement sensor's calibration, the crank
+  radius) against gravity, and the force channel's zero (the conditioner's stated offset, a zero
+  drift).  The plan allows it for this station's own recordings of a DC-coupled chain (a bridge,
+  ``conditioner.gain_unit`` V/V): not a charge amplifier's (V/pC), not an imported file (whose zero
+  is unknown).  Standard gravity is used, its relative standard uncertainty against a local value
+  (``G_REL_STD``: +-0.27 % between equator and poles, rectangular) a default no certificate supports.
 
 Every default the comparison uses that no certificate supports is named in the finding.
 """
@@ -25,11 +35,13 @@ import numpy as np
 
 from station.ident.inputs import IdentInputs
 from station.ident.response.sinefit import SineFit, estimate_frequency
-from station.ident.result import Check
+from station.ident.result import Check, Estimate
 
 Z_FINDING = 3.0  # combined standard uncertainties beyond which a disagreement is a finding
 CLOCK_SAMPLES = 4000  # force samples per step the clock comparison fits (at most)
 Z_CLOCK = 5.0  # the clock comparison is a test over every step: a stricter line against false alarms
+G_STANDARD = 9.80665  # m/s^2
+G_REL_STD = 0.0027 / math.sqrt(3)  # local gravity against standard gravity (equator to poles), relative
 
 
 def _amplitude_std(fit: SineFit) -> float:
@@ -150,3 +162,62 @@ def clock_check(steps: dict[int, tuple[np.ndarray, np.ndarray, SineFit]], n_harm
                  "the damping b_f (and S at high frequencies); check the DAQ bridge's sample clocks (one clock for "
                  "both converters)",
                  {"relative": eps, "std": u, "z": z, "per_step": rel})
+
+
+def _stated_zero_V(config: object) -> float | None:
+    """The force channel's stated zero (the conditioner's offset, V) where the plan allows the static
+    comparison (module docstring), else None."""
+    if not isinstance(config, dict) or config.get("format") == "sinecal-csv":
+        return None
+    cond = config.get("conditioner")
+    cond = cond if isinstance(cond, dict) else {}
+    if cond.get("gain_unit", "V/V") != "V/V":
+        return None
+    off = cond.get("offset_V", 0.0)
+    return float(off) if isinstance(off, int | float) and not isinstance(off, bool) else None
+
+
+def static_check(offsets: tuple[tuple[float, float, float], ...], S: Estimate, mass_kg: float,
+                 config: object, displacement_off: bool) -> Check | None:
+    """The static force against the weight of the stated masses (module docstring).
+
+    offsets: the force channel's mean per step (window centre s, V, standard uncertainty V);
+    S: the identified sensitivity in V/N with its budget; mass_kg: m_l + m_e as stated;
+    displacement_off: the displacement amplitude disagreed with the crank radius (its finding).
+    A warning naming the standard to check beyond ``Z_FINDING`` combined standard uncertainties, else None."""
+    zero = _stated_zero_V(config)
+    if zero is None or not offsets or not S.identifiable or S.value is None or S.std is None:
+        return None
+    if not (math.isfinite(S.value) and S.value != 0 and math.isfinite(S.std) and mass_kg > 0):
+        return None
+    v = np.array([o for _, o, _ in offsets])
+    s = np.array([max(u, 1e-12) for _, _, u in offsets])
+    w = 1 / s**2
+    mean = float(np.sum(w * v) / np.sum(w))
+    u_mean = math.sqrt(1 / float(np.sum(w)))
+    dof = v.size - 1
+    chi2 = float(np.sum(w * (v - mean) ** 2))
+    drifts = dof > 0 and chi2 > dof + 5 * math.sqrt(2 * dof)  # the means move from step to step
+    if dof > 0 and chi2 > dof:
+        u_mean *= math.sqrt(chi2 / dof)
+    weight = mass_kg * G_STANDARD
+    q = -(mean - zero) / (S.value * weight)
+    u_s = abs(S.std / S.value)  # S's budget holds the masses' share, which cancels here: conservative
+    u = math.sqrt(u_s**2 + (u_mean / abs(S.value * weight)) ** 2 + G_REL_STD**2)
+    z = (q - 1) / u
+    if abs(z) <= Z_FINDING:
+        return None
+    which = ("the force channel's mean moves from step to step: check the force channel's zero (the "
+             "conditioner's offset, a zero drift) first, then the displacement sensor's calibration" if drifts else
+             "the displacement amplitude disagrees with the crank radius too: check the displacement sensor's "
+             "calibration (the acceleration S rests on) first, then the force channel's zero" if displacement_off
+             else "check the force channel's zero (the conditioner's stated offset) and the displacement sensor's "
+             "calibration (the acceleration S rests on); then the local gravity")
+    return Check("static_force_vs_weight", "warning", None,
+                 f"the static force (the force channel's mean {mean:.6g} V less the stated zero {zero:.6g} V, over "
+                 f"the identified S) is {q:.6g} times the weight of the stated masses ({mass_kg:.6g} kg x "
+                 f"{G_STANDARD} m/s^2) (z {z:+.3g}; combined standard uncertainty {u:.2g}: S's budget, the steps' "
+                 f"means, local gravity u = {G_REL_STD:.2g} (relative; standard gravity used, a default no "
+                 f"certificate supports)): the static and the dynamic force scales disagree; {which}",
+                 {"ratio": q, "std": u, "z": z, "mean_V": mean, "mean_std_V": u_mean, "zero_V": zero,
+                  "weight_N": weight, "gravity_rel_std": G_REL_STD, "zero_drifts": bool(drifts)})
