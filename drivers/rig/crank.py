@@ -159,6 +159,14 @@ def displacement_at(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> np
     return _series(coeffs, cs)[0]
 
 
+def displacement_at_angle(coeffs: np.ndarray, phi: float) -> float:
+    """x_b(phi) in m at one crank angle phi (rad): ``displacement_at`` in plain numpy (nothing compiled)."""
+    K = coeffs.size
+    h = np.arange(1, K + 1) * phi
+    w = harmonic_weights(coeffs)[0]
+    return float(w[:K] @ np.cos(h) + w[K:] @ np.sin(h))
+
+
 def displacement_and_slope(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """x_b(phi) in m and dx_b/dphi in m/rad (times the crank rate: the velocity)."""
     return _series(coeffs, cs)

@@ -14,6 +14,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from drivers.rig.normals import standard_normal
+
 TILE = 512  # samples per tile of harmonic_series (its scratch stays in the L1 cache)
 SYNTH_TILE = 256  # samples per tile of synth_block: one row of crank.cos_sin's rotations (crank.ROTATION_ROW)
 
@@ -172,7 +174,7 @@ def _quantise(v, lsb, lo, hi, codes):
 # same filter with its state in memory measured 6x slower); the staged path is RigSynth.advance_stages
 @numba.njit(cache=True, error_model="numpy")
 def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp, lp_z, mains_base, mains_tab, Wm,  # noqa: C901
-                noise_f, shift_cs, sen, sen_z, noise_d, out_x, out_fV, out_dV, codes_d, codes_f):
+                keys, shift_cs, sen, sen_z, out_x, out_fV, out_dV, codes_d, codes_f):
     """One block of ``synth.RigSynth``: every stage of its signal chain for each tile of SYNTH_TILE samples
     (the crank's and the mains' harmonics and every elementwise stage vectorised over the tile, the
     three filters in one pass over it), the same operations as the staged numpy path in the same
@@ -187,7 +189,8 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
     crank_cs: (2, n) cos and sin of the crank angle when ``ramp``; Wc (4, 2K), Wm (1, 2Km): weights
     of ``harmonic_series``; mech, lp, sen: (3, P, n+1) num_u, num_du and the denominator (in row
     [2, 0]) of a ``two_input_df2t``, with their states mech_z, lp_z, sen_z (P, n) carried over;
-    noise_f, noise_d: standard normal draws (n,); outputs (n,)."""
+    keys (uint64): the streams of the force's and the displacement's noise (``normals``, drawn at
+    each sample's index k_abs + k); outputs (n,)."""
     T, f0, rate, alpha, g = fl[0], fl[1], fl[2], fl[3], fl[4]
     S, cap, quad, cub = fl[5], fl[6], fl[7], fl[8]
     gain, offset, dr, dq, noise_V = fl[9], fl[10], fl[11], fl[12], fl[13]
@@ -334,8 +337,9 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
             for q in range(t):
                 fV[q] += mrow[0, q]
         if has_fnoise:
+            key = keys[0]
             for q in range(t):
-                fV[q] += noise_f[k0 + q] * noise_V
+                fV[q] += standard_normal(key, k_abs + k0 + q) * noise_V
         # the displacement channel
         dV = out_dV[k0:k0 + t]
         if has_sen:
@@ -348,8 +352,9 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
             for q in range(t):
                 dV[q] = dgain * x[q]
         if has_dnoise:
+            key = keys[1]
             for q in range(t):
-                dV[q] += noise_d[k0 + q] * dscale
+                dV[q] += standard_normal(key, k_abs + k0 + q) * dscale
     _store_state(zm0, mech_z, 0)
     if P > 1:
         _store_state(zm1, mech_z, 1)

@@ -10,7 +10,8 @@ Signal chain per sample k (t_k = k / fs):
     -> displacement sensor gain + noise -> displacement ADC.
 
 Every effect is off unless configured (``params.Effects``).  Blocks may have any length; the
-result does not depend on how a run is cut into blocks except for the noise draws.
+result does not depend on how a run is cut into blocks (the noise of sample k is draw k of its
+channel's counter-based stream, ``normals``, keyed by the seed).
 """
 
 from __future__ import annotations
@@ -72,9 +73,9 @@ class RigSynth:
             self._lowpass = FilterBank(lp, u0=float(self._transducer_output(np.array([F0]))[0]))
         self._sensor: FilterBank | None = None
         if eff.displacement_resonance is not None:
-            x0 = crank.displacement_at(self._coeffs, (np.array([np.cos(self._phi)]), np.array([np.sin(self._phi)])))
+            x0 = crank.displacement_at_angle(self._coeffs, self._phi)
             self._sensor = FilterBank(hermite_discretize(sensor_resonance_state_space(eff.displacement_resonance),
-                                                         self._T), u0=float(x0[0]))
+                                                         self._T), u0=x0)
         self._mech_coefficients = self._mech.coefficients
         self._lp_coefficients = (self._lowpass or _NO_FILTER).coefficients
         self._sensor_coefficients = (self._sensor or _NO_FILTER).coefficients
@@ -83,8 +84,8 @@ class RigSynth:
         self._tables: dict[float, np.ndarray] = {}
         self._fl, self._ints = self._kernel_arguments()
         disp_seq, force_seq = np.random.SeedSequence(seed).spawn(2)
-        self._rng_disp = np.random.default_rng(disp_seq)
-        self._rng_force = np.random.default_rng(force_seq)
+        # the keys of the force's and the displacement's noise streams (``normals``)
+        self._noise_keys = np.concatenate([s.generate_state(1, np.uint64) for s in (force_seq, disp_seq)])
 
     def _kernel_arguments(self) -> tuple[np.ndarray, np.ndarray]:
         """``kernels.synth_block``'s fl and ints with what stays the same from block to block; each
@@ -183,8 +184,6 @@ class RigSynth:
             mains_base, mains_tab = crank.rotation_base(w * (self._k * T), w * T, n), self._table(w * T)
         else:
             mains_base, mains_tab = _NO_ROTATION
-        noise_f = self._rng_force.standard_normal(n) if ph.conditioner.noise_V > 0 else _NO_SAMPLES
-        noise_d = self._rng_disp.standard_normal(n) if ph.displacement_sensor.noise_m > 0 else _NO_SAMPLES
         shift_mode, cd, sd, shift_cs = self._shift(n, f0, f_end_hz, rate, alpha)
         fl, ints = self._fl.copy(), self._ints.copy()
         fl[1], fl[2], fl[3], fl[14], fl[15] = f0, rate, alpha, cd, sd
@@ -194,8 +193,8 @@ class RigSynth:
         lp, sensor = self._lowpass or _NO_FILTER, self._sensor or _NO_FILTER
         clipped = kernels.synth_block(
             fl, ints, crank_base, crank_tab, crank_cs, self._weights, self._mech_coefficients, self._mech.state,
-            self._lp_coefficients, lp.state, mains_base, mains_tab, self._mains_weights, noise_f, shift_cs,
-            self._sensor_coefficients, sensor.state, noise_d, x, force_V, disp_V, dc, fc)
+            self._lp_coefficients, lp.state, mains_base, mains_tab, self._mains_weights, self._noise_keys,
+            shift_cs, self._sensor_coefficients, sensor.state, x, force_V, disp_V, dc, fc)
         freq = f0 if rate == 0.0 else f0 + rate * (np.arange(n) * T)
         return self._finish(n, f_end_hz, SynthBlock(
             start_sample=self._k, displacement_counts=dc, force_counts=fc, displacement_V=disp_V,
@@ -266,7 +265,7 @@ class RigSynth:
         if eff.mains_interference is not None:
             force_V += _mains(eff.mains_interference, self._k * T, T, n)
         if cond.noise_V > 0:
-            force_V += self._rng_force.standard_normal(n) * cond.noise_V
+            force_V += self._noise(0, n) * cond.noise_V
 
         x = kin.displacement
         cs_x = cs
@@ -280,7 +279,7 @@ class RigSynth:
         sens = ph.displacement_sensor
         disp_V = sens.gain_V_per_m * x
         if sens.noise_m > 0:
-            disp_V += self._rng_disp.standard_normal(n) * (sens.noise_m * sens.gain_V_per_m)
+            disp_V += self._noise(1, n) * (sens.noise_m * sens.gain_V_per_m)
 
         dc, clip_d = _quantise(disp_V, ph.adc.volts_per_count(ph.adc.displacement_range_V), ph.adc.bits)
         fc, clip_f = _quantise(force_V, ph.adc.volts_per_count(ph.adc.force_range_V), ph.adc.bits)
@@ -288,6 +287,14 @@ class RigSynth:
             start_sample=self._k, displacement_counts=dc, force_counts=fc, displacement_V=disp_V,
             force_V=force_V, displacement_m=kin.displacement, crank_frequency_hz=np.broadcast_to(freq, (n,)),
             clipped=clip_d + clip_f))
+
+    def _noise(self, channel: int, n: int) -> np.ndarray:
+        """The standard normal draws of the block's n samples for channel 0 (force) or 1 (displacement)."""
+        from drivers.rig import normals  # numba: imported (and compiled or read from its cache) on first use
+
+        out = np.empty(n)
+        normals.fill_standard_normal(self._noise_keys[channel], self._k, out)
+        return out
 
     @staticmethod
     def _check(n: int, f_end_hz: float) -> None:
@@ -329,7 +336,6 @@ def _mains_weights(m: MainsInterference) -> np.ndarray:
     return np.concatenate([amp * np.sin(ph), amp * np.cos(ph)])[None, :]
 
 
-_NO_SAMPLES = np.empty(0)
 _NO_SAMPLES2 = np.empty((2, 0))
 _NO_ROTATION = (np.empty((2, 0)), np.empty((2, 0)))
 
