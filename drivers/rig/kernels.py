@@ -154,6 +154,20 @@ def _rotate_tile(base, table, j, t, c, s):
         s[q] = br * table[1, q] + bi * table[0, q]
 
 
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _taylor_shift(c, s, om, t, delay, skew, k, T, alpha, centre, cx, sx):
+    """cx + i sx = (c + i s) exp(-i (delta_q - centre)), q < t, the lag delta_q of sample k + q (rad) by
+    the Taylor series of ``crank.shift_cos_sin`` (|delta_q - centre| < 0.1 rad)."""
+    for q in range(t):
+        d = delay - skew * ((k + q) * T)
+        delta = om[q] * d - 0.5 * alpha * d * d - centre
+        d2 = delta * delta
+        cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 / 720.0))
+        sd = delta * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 / 5040.0)))
+        cx[q] = c[q] * cd + s[q] * sd
+        sx[q] = s[q] * cd - c[q] * sd
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _quantise(v, lsb, lo, hi, codes):
     """codes = clip(rint(v / lsb), lo, hi) as int16; returns how many were clipped."""
@@ -181,10 +195,12 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
     order, so the same samples to the bit.  Returns the number of clipped samples (both channels).
 
     fl (float64): [T, f0, rate, alpha, g, S, capacity, quadratic, cubic, gain, offset, drift_rate,
-    drift_quadratic, noise_V, cd, sd, delay, skew, disp_gain, disp_noise_scale, lsb_d, lsb_f, lo, hi]
+    drift_quadratic, noise_V, cd, sd, delay, skew, disp_gain, disp_noise_scale, lsb_d, lsb_f, lo, hi,
+    centre]
     (T s; f0 Hz; rate Hz/s; alpha rad/s^2; the rest as in ``params``); ints (int64): [n, k_abs,
     ramp, has_nl, has_lp, has_drift, has_mains, has_fnoise, shift_mode, has_sen, has_dnoise];
-    shift_mode 0 none, 1 constant (cd, sd), 2 Taylor of the per-sample lag, 3 given (shift_cs).
+    shift_mode 0 none, 1 constant (cd, sd), 2 Taylor of the per-sample lag, 3 given (shift_cs), 4 the
+    constant lag centre (rad; its cos and sin cd, sd) and the Taylor series of the per-sample lag less it.
     crank_base, crank_tab, mains_base, mains_tab: (2, rows), (2, SYNTH_TILE) the rotations of ``crank.cos_sin``;
     crank_cs: (2, n) cos and sin of the crank angle when ``ramp``; Wc (4, 2K), Wm (1, 2Km): weights
     of ``harmonic_series``; mech, lp, sen: (3, P, n+1) num_u, num_du and the denominator (in row
@@ -195,7 +211,7 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
     S, cap, quad, cub = fl[5], fl[6], fl[7], fl[8]
     gain, offset, dr, dq, noise_V = fl[9], fl[10], fl[11], fl[12], fl[13]
     cd0, sd0, delay, skew, dgain, dscale = fl[14], fl[15], fl[16], fl[17], fl[18], fl[19]
-    lsb_d, lsb_f, lo, hi = fl[20], fl[21], fl[22], fl[23]
+    lsb_d, lsb_f, lo, hi, centre = fl[20], fl[21], fl[22], fl[23], fl[24]
     n, k_abs, ramp, has_nl, has_lp = ints[0], ints[1], ints[2], ints[3], ints[4]
     has_drift, has_mains, has_fnoise, shift_mode = ints[5], ints[6], ints[7], ints[8]
     has_sen, has_dnoise = ints[9], ints[10]
@@ -286,14 +302,13 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
                 cx[q] = c[q] * cd0 + s[q] * sd0
                 sx[q] = s[q] * cd0 - c[q] * sd0
         elif shift_mode == 2:
+            _taylor_shift(c, s, om, t, delay, skew, k_abs + k0, T, alpha, 0.0, cx, sx)
+        elif shift_mode == 4:
             for q in range(t):
-                d = delay - skew * ((k_abs + k0 + q) * T)
-                delta = om[q] * d - 0.5 * alpha * d * d
-                d2 = delta * delta
-                cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 / 720.0))
-                sd = delta * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 / 5040.0)))
-                cx[q] = c[q] * cd + s[q] * sd
-                sx[q] = s[q] * cd - c[q] * sd
+                cq, sq = c[q], s[q]
+                c[q] = cq * cd0 + sq * sd0  # c, s: the crank's angle less the centre (the crank's not needed again)
+                s[q] = sq * cd0 - cq * sd0
+            _taylor_shift(c, s, om, t, delay, skew, k_abs + k0, T, alpha, centre, cx, sx)
         elif shift_mode == 3:
             for q in range(t):
                 cd = shift_cs[0, k0 + q]

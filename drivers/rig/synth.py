@@ -89,7 +89,7 @@ class RigSynth:
 
     def _kernel_arguments(self) -> tuple[np.ndarray, np.ndarray]:
         """``kernels.synth_block``'s fl and ints with what stays the same from block to block; each
-        block fills in its own (f0, rate, alpha, cd, sd; n, the sample index, ramp, shift mode)."""
+        block fills in its own (f0, rate, alpha, cd, sd, centre; n, the sample index, ramp, shift mode)."""
         ph = self.physics
         eff, t, cond, sens, adc = ph.effects, ph.transducer, ph.conditioner, ph.displacement_sensor, ph.adc
         nl, drift = eff.transducer_nonlinearity, eff.zero_drift
@@ -102,7 +102,7 @@ class RigSynth:
             1.0, 0.0, eff.channel_delay.delay_s if eff.channel_delay else 0.0,
             eff.clock_skew.relative if eff.clock_skew else 0.0,
             sens.gain_V_per_m, sens.noise_m * sens.gain_V_per_m,
-            adc.volts_per_count(adc.displacement_range_V), adc.volts_per_count(adc.force_range_V), lo, hi,
+            adc.volts_per_count(adc.displacement_range_V), adc.volts_per_count(adc.force_range_V), lo, hi, 0.0,
         ], dtype=float)
         ints = np.array([
             0, 0, 0, nl is not None, self._lowpass is not None, drift is not None,
@@ -184,9 +184,9 @@ class RigSynth:
             mains_base, mains_tab = crank.rotation_base(w * (self._k * T), w * T, n), self._table(w * T)
         else:
             mains_base, mains_tab = _NO_ROTATION
-        shift_mode, cd, sd, shift_cs = self._shift(n, f0, f_end_hz, rate, alpha)
+        shift_mode, cd, sd, shift_cs, centre = self._shift(n, f0, f_end_hz, rate, alpha)
         fl, ints = self._fl.copy(), self._ints.copy()
-        fl[1], fl[2], fl[3], fl[14], fl[15] = f0, rate, alpha, cd, sd
+        fl[1], fl[2], fl[3], fl[14], fl[15], fl[24] = f0, rate, alpha, cd, sd, centre
         ints[0], ints[1], ints[2], ints[8] = n, self._k, c2 != 0.0, shift_mode
         x, force_V, disp_V = np.empty(n), np.empty(n), np.empty(n)
         dc, fc = np.empty(n, dtype=np.int16), np.empty(n, dtype=np.int16)
@@ -211,26 +211,50 @@ class RigSynth:
         return table
 
     def _shift(self, n: int, f0: float, f_end: float, rate: float,
-               alpha: float) -> tuple[int, float, float, np.ndarray]:
+               alpha: float) -> tuple[int, float, float, np.ndarray, float]:
         """How ``kernels.synth_block`` lags the displacement channel's crank angle in this block:
-        (mode, cos, sin, given (2, n)); 0 no lag, 1 one constant lag, 2 the per-sample Taylor series
-        of ``crank.shift_cos_sin`` (every lag certainly below its 0.1 rad), 3 given per sample."""
+        (mode, cos, sin, given (2, n), centre); 0 no lag, 1 one constant lag (its cos, sin), 2 the
+        per-sample Taylor series of ``crank.shift_cos_sin`` (every lag certainly below its 0.1 rad),
+        4 a constant lag ``centre`` (rad; its cos, sin) and the Taylor series of the per-sample lag
+        less it (a clock skew's lag grown large over a run, every lag within 0.1 rad of the centre),
+        3 given per sample."""
         eff, T = self.physics.effects, self._T
         if eff.channel_delay is None and eff.clock_skew is None:
-            return 0, 1.0, 0.0, _NO_SAMPLES2
+            return 0, 1.0, 0.0, _NO_SAMPLES2, 0.0
         if eff.clock_skew is None and rate == 0.0:
             omega, d = 2.0 * np.pi * f0, eff.channel_delay.delay_s if eff.channel_delay else 0.0
             cd, sd = crank.shift_cos_sin(omega * d - 0.5 * alpha * d * d)
-            return 1, float(cd), float(sd), _NO_SAMPLES2
+            return 1, float(cd), float(sd), _NO_SAMPLES2, 0.0
         # |delta| <= |omega| |d| + |alpha| d^2 / 2, d linear in t: its largest at either end
         d_max = max(abs(float(_displacement_lag(eff, k * T))) for k in (self._k, self._k + n - 1))
         if 2.0 * np.pi * max(f0, f_end) * d_max + 0.5 * abs(alpha) * d_max * d_max < 0.099:
-            return 2, 1.0, 0.0, _NO_SAMPLES2
-        freq = f0 + rate * (np.arange(n) * T)
-        omega_k = 2.0 * np.pi * freq
-        d_k = _displacement_lag(eff, (self._k + np.arange(n)) * T)
-        cd_k, sd_k = crank.shift_cos_sin(omega_k * d_k - 0.5 * alpha * d_k * d_k)
-        return 3, 1.0, 0.0, np.stack(np.broadcast_arrays(cd_k, sd_k)).astype(float)
+            return 2, 1.0, 0.0, _NO_SAMPLES2, 0.0
+        lo, hi = self._lag_range(n, f0, rate, alpha)
+        if hi - lo < 0.198:
+            centre = 0.5 * (lo + hi)
+            cd, sd = crank.shift_cos_sin(centre)
+            return 4, float(cd), float(sd), _NO_SAMPLES2, centre
+        cd_k, sd_k = crank.shift_cos_sin(self._lag_angle(np.arange(n), f0, rate, alpha))
+        return 3, 1.0, 0.0, np.stack(np.broadcast_arrays(cd_k, sd_k)).astype(float), 0.0
+
+    def _lag_angle(self, k: np.ndarray, f0: float, rate: float, alpha: float) -> np.ndarray:
+        """The displacement channel's lag behind the crank (rad) at the block's samples k (shape (m,))."""
+        d = _displacement_lag(self.physics.effects, (self._k + k) * self._T)
+        return 2.0 * np.pi * (f0 + rate * (k * self._T)) * d - 0.5 * alpha * d * d
+
+    def _lag_range(self, n: int, f0: float, rate: float, alpha: float) -> tuple[float, float]:
+        """The smallest and largest lag (rad) over the block's n samples: the lag is quadratic in the
+        sample index (the crank rate and the lag time both linear in it), so at either end or its vertex."""
+        h = 0.5 * (n - 1)
+        d0, d1, d2 = self._lag_angle(np.array([0.0, h, n - 1.0]), f0, rate, alpha)
+        k = [0.0, n - 1.0]
+        curve = d0 - 2.0 * d1 + d2
+        if h > 0.0 and curve != 0.0:
+            vertex = h - h * (d2 - d0) / (2.0 * curve)
+            if 0.0 < vertex < n - 1.0:
+                k.append(vertex)
+        lags = self._lag_angle(np.array(k), f0, rate, alpha)
+        return float(lags.min()), float(lags.max())
 
     def advance_stages(self, n: int, f_end_hz: float) -> SynthBlock:
         """``advance`` stage by stage in numpy with the compiled harmonic sums and filter bank (the
@@ -271,7 +295,12 @@ class RigSynth:
         cs_x = cs
         if eff.channel_delay is not None or eff.clock_skew is not None:
             d = _displacement_lag(eff, (self._k + np.arange(n)) * T)
-            cs_x = crank.shift_angle(cs, omega * d - 0.5 * alpha * d * d)
+            delta = omega * d - 0.5 * alpha * d * d
+            mode, _, _, _, centre = self._shift(n, f0, f_end_hz, rate, alpha)
+            if mode == 4:  # the constant lag, then what is left of each sample's
+                cs_x = crank.shift_angle(crank.shift_angle(cs, centre), delta - centre)
+            else:
+                cs_x = crank.shift_angle(cs, delta)
             x = crank.displacement_at(self._coeffs, cs_x)
         if self._sensor is not None:
             x, dx_dphi = crank.displacement_and_slope(self._coeffs, cs_x)
