@@ -63,9 +63,11 @@ def rotation_table(dphi: float) -> np.ndarray:
 
 def rotation_base(phi0: float, dphi: float, n: int) -> np.ndarray:
     """The base of ``rotations``: exp(i (phi0 + dphi ROTATION_ROW j)), j < ceil(n / ROTATION_ROW), (2, rows)."""
-    m = ROTATION_ROW
-    base = np.exp(1j * (phi0 + dphi * m * np.arange(-(-n // m))))
-    return np.stack([base.real, base.imag])
+    angle = phi0 + dphi * ROTATION_ROW * np.arange(-(-n // ROTATION_ROW))
+    base = np.empty((2, angle.size))
+    np.cos(angle, out=base[0])
+    np.sin(angle, out=base[1])
+    return base
 
 
 def cos_sin(phi0: float, dphi: float, c: float, n: int) -> tuple[np.ndarray, np.ndarray]:

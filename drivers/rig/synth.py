@@ -82,6 +82,7 @@ class RigSynth:
         self._mains_weights = (_mains_weights(eff.mains_interference) if eff.mains_interference is not None
                                else np.zeros((1, 2)))
         self._tables: dict[float, np.ndarray] = {}
+        self._steady_freq = np.broadcast_to(0.0, (0,))
         self._fl, self._ints = self._kernel_arguments()
         disp_seq, force_seq = np.random.SeedSequence(seed).spawn(2)
         # the keys of the force's and the displacement's noise streams (``normals``)
@@ -195,11 +196,19 @@ class RigSynth:
             fl, ints, crank_base, crank_tab, crank_cs, self._weights, self._mech_coefficients, self._mech.state,
             self._lp_coefficients, lp.state, mains_base, mains_tab, self._mains_weights, self._noise_keys,
             shift_cs, self._sensor_coefficients, sensor.state, x, force_V, disp_V, dc, fc)
-        freq = f0 if rate == 0.0 else f0 + rate * (np.arange(n) * T)
         return self._finish(n, f_end_hz, SynthBlock(
             start_sample=self._k, displacement_counts=dc, force_counts=fc, displacement_V=disp_V,
-            force_V=force_V, displacement_m=x, crank_frequency_hz=np.broadcast_to(freq, (n,)),
+            force_V=force_V, displacement_m=x, crank_frequency_hz=self._frequencies(n, f0, rate),
             clipped=int(clipped)))
+
+    def _frequencies(self, n: int, f0: float, rate: float) -> np.ndarray:
+        """The crank frequency (Hz) at the block's n samples; a steady block's is one read-only view,
+        kept while blocks repeat it."""
+        if rate != 0.0:
+            return f0 + rate * (np.arange(n) * self._T)
+        if self._steady_freq.shape != (n,) or self._steady_freq[0] != f0:
+            self._steady_freq = np.broadcast_to(f0, (n,))
+        return self._steady_freq
 
     def _table(self, dphi: float) -> np.ndarray:
         """``crank.rotation_table(dphi)``, kept for the few steps (crank frequencies) a run repeats."""
@@ -226,7 +235,8 @@ class RigSynth:
             cd, sd = crank.shift_cos_sin(omega * d - 0.5 * alpha * d * d)
             return 1, float(cd), float(sd), _NO_SAMPLES2, 0.0
         # |delta| <= |omega| |d| + |alpha| d^2 / 2, d linear in t: its largest at either end
-        d_max = max(abs(float(_displacement_lag(eff, k * T))) for k in (self._k, self._k + n - 1))
+        d_ends = (float(_displacement_lag(eff, self._k * T)), float(_displacement_lag(eff, (self._k + n - 1) * T)))
+        d_max = max(abs(d_ends[0]), abs(d_ends[1]))
         if 2.0 * np.pi * max(f0, f_end) * d_max + 0.5 * abs(alpha) * d_max * d_max < 0.099:
             return 2, 1.0, 0.0, _NO_SAMPLES2, 0.0
         lo, hi = self._lag_range(n, f0, rate, alpha)
@@ -245,16 +255,21 @@ class RigSynth:
     def _lag_range(self, n: int, f0: float, rate: float, alpha: float) -> tuple[float, float]:
         """The smallest and largest lag (rad) over the block's n samples: the lag is quadratic in the
         sample index (the crank rate and the lag time both linear in it), so at either end or its vertex."""
+        eff, T, k_abs = self.physics.effects, self._T, self._k
+
+        def lag(k: float) -> float:
+            d = float(_displacement_lag(eff, (k_abs + k) * T))
+            return 2.0 * np.pi * (f0 + rate * (k * T)) * d - 0.5 * alpha * d * d
+
         h = 0.5 * (n - 1)
-        d0, d1, d2 = self._lag_angle(np.array([0.0, h, n - 1.0]), f0, rate, alpha)
-        k = [0.0, n - 1.0]
+        d0, d1, d2 = lag(0.0), lag(h), lag(n - 1.0)
+        lags = [d0, d2]
         curve = d0 - 2.0 * d1 + d2
         if h > 0.0 and curve != 0.0:
             vertex = h - h * (d2 - d0) / (2.0 * curve)
             if 0.0 < vertex < n - 1.0:
-                k.append(vertex)
-        lags = self._lag_angle(np.array(k), f0, rate, alpha)
-        return float(lags.min()), float(lags.max())
+                lags.append(lag(vertex))
+        return min(lags), max(lags)
 
     def advance_stages(self, n: int, f_end_hz: float) -> SynthBlock:
         """``advance`` stage by stage in numpy with the compiled harmonic sums and filter bank (the
