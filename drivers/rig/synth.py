@@ -273,8 +273,9 @@ class RigSynth:
 
     def advance_stages(self, n: int, f_end_hz: float) -> SynthBlock:
         """``advance`` stage by stage in numpy with the compiled harmonic sums and filter bank (the
-        synthesis as it was before ``kernels.synth_block``): slower; the definition the one-pass
-        kernel is tested against and the baseline ``bench/simulate.py`` measures it beside.
+        synthesis as it was before ``kernels.synth_block``, its noise drawn by ``normals`` as the one
+        pass draws it): slower; the definition the one-pass kernel is tested against and the baseline
+        ``bench/simulate.py`` measures it beside.
         Interchangeable with ``advance`` block by block (the same states)."""
         self._check(n, f_end_hz)
         ph, T = self.physics, self._T
