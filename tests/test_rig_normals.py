@@ -1,4 +1,4 @@
-"""The simulated rig's noise (``drivers.rig.normals``: counter-based standard normal draws): normal
+"""The simulated rig's noise (``kernels.standard_normal``: counter-based standard normal draws): normal
 by the distribution's own numbers (scipy's), white, the channels and seeds independent, and each
 draw a function of its sample index alone, so a run's noise does not depend on its blocks."""
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from drivers.rig import normals
+from drivers.rig import kernels
 from drivers.rig import params as rp
 from drivers.rig.presets import paper_5kN_physics
 from drivers.rig.synth import RigSynth
@@ -18,7 +18,7 @@ N = 1_000_000
 
 def _draws(key: int, start: int, n: int) -> np.ndarray:
     out = np.empty(n)
-    normals.fill_standard_normal(np.uint64(key), start, out)
+    kernels.fill_standard_normal(np.uint64(key), start, out)
     return out
 
 
@@ -36,7 +36,7 @@ def test_the_draws_are_standard_normal(z: np.ndarray) -> None:
     assert stats.kstest(z, "norm").pvalue > 1e-4
 
 
-@pytest.mark.parametrize("beyond", [1.0, 3.0, normals.ZIGGURAT_R, 4.5])
+@pytest.mark.parametrize("beyond", [1.0, 3.0, kernels.ZIGGURAT_R, 4.5])
 def test_the_tails_hold_their_share(z: np.ndarray, beyond: float) -> None:
     """Beyond the ziggurat's base strip (its tail algorithm) and inside it (its wedges)."""
     p = 2 * stats.norm.sf(beyond)

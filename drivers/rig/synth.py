@@ -11,7 +11,7 @@ Signal chain per sample k (t_k = k / fs):
 
 Every effect is off unless configured (``params.Effects``).  Blocks may have any length; the
 result does not depend on how a run is cut into blocks (the noise of sample k is draw k of its
-channel's counter-based stream, ``normals``, keyed by the seed).
+channel's counter-based stream, ``kernels.standard_normal``, keyed by the seed).
 """
 
 from __future__ import annotations
@@ -85,7 +85,7 @@ class RigSynth:
         self._steady_freq = np.broadcast_to(0.0, (0,))
         self._fl, self._ints = self._kernel_arguments()
         disp_seq, force_seq = np.random.SeedSequence(seed).spawn(2)
-        # the keys of the force's and the displacement's noise streams (``normals``)
+        # the keys of the force's and the displacement's noise streams (``kernels.standard_normal``)
         self._noise_keys = np.concatenate([s.generate_state(1, np.uint64) for s in (force_seq, disp_seq)])
 
     def _kernel_arguments(self) -> tuple[np.ndarray, np.ndarray]:
@@ -273,8 +273,8 @@ class RigSynth:
 
     def advance_stages(self, n: int, f_end_hz: float) -> SynthBlock:
         """``advance`` stage by stage in numpy with the compiled harmonic sums and filter bank (the
-        synthesis as it was before ``kernels.synth_block``, its noise drawn by ``normals`` as the one
-        pass draws it): slower; the definition the one-pass kernel is tested against and the baseline
+        synthesis as it was before ``kernels.synth_block``, its noise drawn as the one pass draws it):
+        slower; the definition the one-pass kernel is tested against and the baseline
         ``bench/simulate.py`` measures it beside.
         Interchangeable with ``advance`` block by block (the same states)."""
         self._check(n, f_end_hz)
@@ -335,10 +335,10 @@ class RigSynth:
 
     def _noise(self, channel: int, n: int) -> np.ndarray:
         """The standard normal draws of the block's n samples for channel 0 (force) or 1 (displacement)."""
-        from drivers.rig import normals  # numba: imported (and compiled or read from its cache) on first use
+        from drivers.rig import kernels  # numba: imported (and compiled or read from its cache) on first use
 
         out = np.empty(n)
-        normals.fill_standard_normal(self._noise_keys[channel], self._k, out)
+        kernels.fill_standard_normal(self._noise_keys[channel], self._k, out)
         return out
 
     @staticmethod
