@@ -98,10 +98,11 @@ def _harmonics_tile(c1, s1, t, W, rows, out, cprev, ccur, sprev, scur):
 # time (``fill_standard_normal``), and both give the same bits.  Uniforms: SplitMix64's output function
 # (Steele, Lea & Flood 2014) on the Weyl sequence key + (k + 1) gamma (the generator passes BigCrush;
 # two streams of random 64-bit keys overlap within a run with negligible probability).  Normals: the
-# ziggurat of Marsaglia & Tsang (2000) with 256 layers and 52-bit abscissae, the tables and steps numpy's
-# ``Generator.standard_normal`` uses; the rare rejections (about 1 % of draws) take their further
-# uniforms from a sub-stream of (key, k).  (In this file, not a module of its own: numba's cache of
-# ``synth_block``, which inlines the draw, is invalidated by changes to its own file only.)
+# ziggurat of Marsaglia & Tsang (2000) with 256 layers and 52-bit abscissae, the steps of numpy's
+# ``Generator.standard_normal`` (its tables recomputed here); the rare rejections (about 1 % of
+# draws) take their further uniforms from a sub-stream of (key, k).  (In this file, not a module of
+# its own: numba's cache of ``synth_block``, which inlines the draw, is invalidated by changes to its
+# own file only.)
 
 GAMMA = np.uint64(0x9E3779B97F4A7C15)  # SplitMix64's Weyl increment (the golden ratio's 64 bits)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
