@@ -120,7 +120,7 @@ def test_a_displacement_sensor_resonance_is_flagged_or_corrected_when_stated(
     for name, truth in (("k_f", K), ("b_f", B)):
         p = res.parameter(name)
         assert p.value is not None and abs(p.value - truth) < 3 * p.std
-        assert res.budget[name]["contributions"]["chain_resonance"] > 0
+        assert res.budget[name].stds["chain_resonance"] > 0
     assert not [c for c in res.checks if c.severity == "warning"]
 
 

@@ -86,6 +86,6 @@ def certified_of(d: RunData) -> Certified:
     if camp is not None:
         return camp
     i = d.ident
-    return Certified("run", i.method, i.model, d.ident_source, dict(i.parameters), dict(i.budget),
+    return Certified("run", i.method, i.model, d.ident_source, dict(i.parameters), i.budget.to_dict(),
                      dict(i.determined), dict(i.assumptions), tuple(i.checks), i.covariance, d.mass_kg,
                      mass_std(i.assumptions))

@@ -22,8 +22,8 @@ def format_text(res: CampaignResult) -> str:
             lines.append(f"  {name:4s} = {p.value:.7g} {p.unit}  (std {p.std:.2g})" + (f"  [{flag}]" if flag else ""))
             b = res.budget.get(name)
             if b:
-                lines.append("       budget: " + ", ".join(f"{k} {v:.2g}" for k, v in b["contributions"].items()
-                                                           if v is not None) + f"; combined {b['combined']:.2g}")
+                lines.append("       budget: " + ", ".join(f"{k} {v:.2g}" for k, v in b.stds.items()
+                                                           if v is not None) + f"; combined {b.combined:.2g}")
         else:
             lines.append(f"  {name:4s}   not given: {p.reason}")
     for r in res.recordings:

@@ -49,7 +49,7 @@ def format_text(res: IdentificationResult) -> str:
             if b:
                 lines.append("       budget: " + ", ".join(
                     f"{k} {v:.2g}" if v is not None else f"{k} (conditional)"
-                    for k, v in b["contributions"].items()) + f"; combined {b['combined']:.2g}")
+                    for k, v in b.stds.items()) + f"; combined {b.combined:.2g}")
         else:
             lines.append(f"  {name:4s}   not identifiable: {p.reason}")
     em = (res.assumptions or {}).get("end_mass_kg")

@@ -125,7 +125,7 @@ def _model(d: RunData) -> str:
 
 def _budget(d: RunData) -> str:
     """GUM budget: standard uncertainty of each parameter per source (k = 1), and combined."""
-    return budget_table(d.ident.budget, "budget.")
+    return budget_table(d.ident.budget.to_dict(), "budget.")
 
 
 def _parameters(d: RunData) -> str:

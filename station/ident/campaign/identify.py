@@ -50,6 +50,7 @@ from station.ident.response.frf import FrequencyResponse
 from station.ident.response.gate import IdentificationRefused
 from station.ident.result import Check, Covariance, Estimate
 from station.ident.structure import chain_corrected, coupling_bound, state_stiff, structure_statement
+from station.ident.uncertainty import UncertaintyBudget
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -243,7 +244,7 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
         params = dict(_param(n, u, None, None, why) for n, u in zip(jf.NAMES, jf.UNITS, strict=True))
     if status == "refused":
         cov = np.zeros((4, 4))
-        budget = {}
+        budget = UncertaintyBudget()
     rows = tuple(CampaignRecording(str(r.path), r.run_id, pr.value, pr.std, float(fit.load_mass[k]),
                                    float(fit.load_mass_std[k]), used[k],
                                    (float(frfs[k].f_hz.min()), float(frfs[k].f_hz.max())),

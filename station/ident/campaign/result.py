@@ -4,7 +4,8 @@ JSON (``station identify REC1 REC2 ... --json``, ``POST /campaigns``): ``status`
 'conditional' or 'refused'), ``parameters`` {S, m_e, k_f, b_f: value, std, unit, identifiable[,
 flag, reason]}, ``covariance`` {names, units, matrix}, ``recordings`` (per recording: its load mass
 as weighed and as fitted, the steps used, its chi^2 share, S and k_f of its own fit), ``fit``
-{chi2, dof, chi2_per_dof, inflated}, ``checks``, ``budget``, ``assumptions``, ``determined``,
+{chi2, dof, chi2_per_dof, inflated}, ``checks``, ``budget`` (with ``budget_covariances``: each source's
+covariance over the budgeted parameters), ``assumptions``, ``determined``,
 ``notes`` (shared conventions of the identification result).
 """
 
@@ -18,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.ident.result import Check, Covariance, Estimate
+from station.ident.uncertainty import UncertaintyBudget
 
 FloatArray = NDArray[np.float64]
 
@@ -75,7 +77,7 @@ class CampaignResult:
     dof: int
     inflated: bool
     checks: tuple[Check, ...]
-    budget: dict[str, Any]
+    budget: UncertaintyBudget
     assumptions: dict[str, Any]
     determined: dict[str, Any]
     notes: tuple[str, ...] = ()
@@ -95,5 +97,6 @@ class CampaignResult:
                 "recordings": [r.to_dict() for r in self.recordings],
                 "fit": {"chi2": _f(self.chi2), "dof": self.dof, "chi2_per_dof": _f(self.chi2_per_dof),
                         "inflated": self.inflated},
-                "checks": [c.to_dict() for c in self.checks], "budget": self.budget,
+                "checks": [c.to_dict() for c in self.checks], "budget": self.budget.to_dict(),
+                "budget_covariances": self.budget.covariances_to_dict(),
                 "assumptions": self.assumptions, "determined": self.determined, "notes": list(self.notes)}

@@ -197,6 +197,6 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
              "H_phase_rad": np.angle(frf.H).tolist(),
              "H_std": np.sqrt(np.trace(frf.cov, axis1=1, axis2=2) / 2).tolist(), "steps_used": cr.used}
     return IdentificationResult("fd", model.key, params, summary_fd(frf, fit, cr.sigs), rep,
-                                tuple(notes), extra, tuple(checks), budget.to_dict(),
+                                tuple(notes), extra, tuple(checks), budget.uncertainty(),
                                 {**inputs.to_dict(), "structure": structure.statement}, determined,
                                 estimated_covariance(params, model.names, budget.cov))
