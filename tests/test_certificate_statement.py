@@ -31,7 +31,7 @@ def _end_mass_sentence(lines: list[str]) -> str:
 
 def test_the_statement_follows_the_budget(identified) -> None:  # type: ignore[no-untyped-def]
     _, res = identified
-    budget, assumptions = res.budget, res.assumptions
+    budget, assumptions = res.budget, res.assumptions.to_dict()
     lines = uncertainty_statement(budget, assumptions)
     # the end mass is the largest contribution to u(S) in this budget, and the statement says so
     c = budget["S"].stds

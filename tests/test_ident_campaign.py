@@ -69,7 +69,7 @@ def test_three_top_masses_recover_the_end_mass_within_its_uncertainty(three: lis
     assert 0.2 < res.chi2_per_dof < 3
     # the joint k_f rests on a stiff coupling, stated as identify states it (never a bare k_f alone)
     assert "series stiffness" in res.parameter("k_f").reason and "stiff coupling" in res.parameter("k_f").reason
-    assert res.assumptions["structure"]["coupling"]["assumed"] == "stiff"
+    assert res.assumptions.structure.to_dict()["coupling"]["assumed"] == "stiff"
 
 
 def test_nearly_equal_top_masses_are_too_alike(alike: list[Path]) -> None:
@@ -91,7 +91,7 @@ def test_too_alike_without_a_stated_end_mass_is_refused(alike: list[Path]) -> No
     sm = res.determined["S_times_M"]  # what the data do determine: S (m_e + m_l) per recording
     for r, d in zip(recs, sm, strict=True):
         truth = TRUTH["S"] * (END_MASS + r.load_mass_kg)
-        assert abs(d["value"] - truth) < 4 * d["combined"] + 2e-4 * truth
+        assert abs(d.value - truth) < 4 * d.combined + 2e-4 * truth
 
 
 def test_one_recording_is_conditional_or_refused(three: list[Path]) -> None:

@@ -53,7 +53,7 @@ def test_rls_s_is_within_its_stated_uncertainty_where_the_noise_term_alone_misse
     assert res.budget["S"].combined == pytest.approx(np.hypot(terms["noise"], terms["unidentified_dynamics"]))
     assert abs(p.value - S) / terms["noise"] > 3  # the old, noise-only statement
     assert abs(p.value - S) / p.std <= 2
-    assert "unidentified_dynamics" in res.assumptions["rls_uncertainty"]
+    assert "unidentified_dynamics" in res.assumptions.rls_uncertainty
     assert any("unidentified_dynamics" in n for n in res.notes)
     assert not res.parameters["k_f"].identifiable and not res.parameters["b_f"].identifiable
 

@@ -10,10 +10,11 @@ import math
 import numpy as np
 import pytest
 
+from station.ident.assumptions import Assumptions
 from station.ident.coverage import coverage
 from station.ident.fd.budget import Budget
 from station.ident.result import FitSummary, IdentificationResult
-from station.ident.uncertainty import ParameterBudget, UncertaintyBudget
+from station.ident.uncertainty import DeterminedQuantity, ParameterBudget, UncertaintyBudget
 
 
 def _budget() -> Budget:
@@ -60,3 +61,49 @@ def test_a_changed_contribution_is_recombined() -> None:
     c = b.with_contribution("noise", 0.0)
     assert c.combined == 4.0 and c.stds["end_mass"] is None and c.dof == {"noise": 2.0}
     assert coverage(b).k > coverage(UncertaintyBudget({"x": c})["x"]).k  # fewer dof, larger k
+
+
+@pytest.mark.parametrize("stored", [
+    {"value": 5.0, "noise": 0.3, "end_mass": 0.0, "chain_gain": None, "combined": 0.3, "unit": "N/m",
+     "note": "1/k_s = 1/k_f + 1/k_c"},
+    {"value": None, "range": [5.0, None], "unit": "N/m", "k_c_lower_bound_N_per_m": None,
+     "conditional_on": "a stiff coupling"},
+    {"run_id": "r1", "value": 2.0, "combined": None, "unit": "Hz"},
+])
+def test_a_determined_quantity_reads_back_its_stored_form(stored: dict[str, object]) -> None:
+    q = DeterminedQuantity.from_dict(stored)
+    assert q.to_dict() == stored
+    assert (q.budget is None) == ("combined" not in stored)
+    if "noise" in stored:
+        assert q.budget is not None and q.budget.std("noise") == 0.3 and q.combined == 0.3 and not q.bounds
+    if "range" in stored:
+        assert q.range == (5.0, None) and q.bounds == {"k_c_lower_bound_N_per_m": None}
+
+
+def test_the_derived_quantitys_budget_propagates_each_source_through_its_gradient() -> None:
+    q = _budget().budget_of(np.array([1.0, 1.0, 0.0]), "V/N", invariant=("chain_gain",))
+    assert q.stds == {"noise": pytest.approx(math.sqrt(4 + 9 + 2)), "chain_gain": 0.0, "end_mass": None}
+    assert q.combined == pytest.approx(math.sqrt(15.0)) and q.unit == "V/N"
+
+
+STORED_ASSUMPTIONS = {
+    "end_mass_kg": {"value": 0.12, "std": 0.006, "source": "config"},
+    "load_mass_kg": {"value": 1.5, "std": 1.5e-4, "source": "config"},
+    "measurement_chain": {"gain_rel_std": 1e-4, "delay_std_s": 1e-6},
+    "displacement_chain": {"response": "flat", "note": "taken as flat"},
+    "crank_radius_std_m": 1e-7, "unsupported_defaults": ["crank radius u = 1e-07 m"],
+    "structure": {"model": "stiff", "equation": "Eq. 9", "displacement_chain": {"response": "flat"},
+                  "coupling": {"assumed": "stiff", "data_determine": "the series stiffness",
+                               "k_f_alone_range_N_per_m": [5e6, None], "contradicted_by_the_data": True}},
+    "rls_uncertainty": {"estimate": "the paper's RLS"},
+}
+
+
+def test_the_assumptions_read_back_their_stored_form() -> None:
+    a = Assumptions.from_dict(STORED_ASSUMPTIONS)
+    assert a.to_dict() == STORED_ASSUMPTIONS
+    assert a.end_mass is not None and a.end_mass.source == "config"
+    assert a.mass_std_kg == pytest.approx(math.hypot(0.006, 1.5e-4))
+    assert a.structure is not None and a.structure.coupling is not None
+    assert a.structure.coupling.contradicted_by_the_data and a.structure.coupling.k_f_alone_range == (5e6, None)
+    assert Assumptions.from_dict({}).to_dict() == {}  # a result stored without assumptions

@@ -17,7 +17,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from station.ident.uncertainty import Covariance, UncertaintyBudget, finite_or_none, float_or_nan
+from station.ident.assumptions import Assumptions
+from station.ident.uncertainty import (
+    Covariance,
+    DeterminedQuantity,
+    UncertaintyBudget,
+    determined_from_dict,
+    determined_to_dict,
+    finite_or_none,
+    float_or_nan,
+)
 
 
 @dataclass(frozen=True)
@@ -152,8 +161,8 @@ class IdentificationResult:
     extra: dict[str, Any] = field(default_factory=dict)
     checks: tuple[Check, ...] = ()
     budget: UncertaintyBudget = field(default_factory=UncertaintyBudget)
-    assumptions: dict[str, Any] = field(default_factory=dict)
-    determined: dict[str, Any] = field(default_factory=dict)
+    assumptions: Assumptions = field(default_factory=Assumptions)
+    determined: dict[str, DeterminedQuantity] = field(default_factory=dict)
     covariance: Covariance | None = None
 
     @property
@@ -172,7 +181,7 @@ class IdentificationResult:
                 "notes": list(self.notes), "extra": self.extra,
                 "checks": [c.to_dict() for c in self.checks], "budget": self.budget.to_dict(),
                 "budget_covariances": self.budget.covariances_to_dict(),
-                "assumptions": self.assumptions, "determined": self.determined,
+                "assumptions": self.assumptions.to_dict(), "determined": determined_to_dict(self.determined),
                 "covariance": None if self.covariance is None else self.covariance.to_dict()}
 
     @classmethod
@@ -187,7 +196,7 @@ class IdentificationResult:
                    None if ident is None else Identifiability.from_dict(ident), tuple(d.get("notes") or ()),
                    dict(d.get("extra") or {}), tuple(Check.from_dict(c) for c in d.get("checks") or ()),
                    UncertaintyBudget.from_dict(d.get("budget"), d.get("budget_covariances")),
-                   dict(d.get("assumptions") or {}), dict(d.get("determined") or {}),
+                   Assumptions.from_dict(d.get("assumptions")), determined_from_dict(d.get("determined")),
                    None if cov is None else Covariance.from_dict(cov))
 
 

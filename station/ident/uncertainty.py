@@ -162,3 +162,73 @@ class UncertaintyBudget(Mapping[str, ParameterBudget]):
         """Read back ``to_dict`` (and ``covariances_to_dict``; results stored without them have none)."""
         return cls({str(n): ParameterBudget.from_dict(b) for n, b in (d or {}).items()},
                    {str(s): None if c is None else Covariance.from_dict(c) for s, c in (covariances or {}).items()})
+
+
+_DETERMINED_FIELDS = ("value", "combined", "unit", "note", "range", "conditional_on", "run_id")
+
+
+@dataclass(frozen=True)
+class DeterminedQuantity:
+    """A quantity the data determine whatever the assumptions (e.g. S M, the loaded natural frequency,
+    the series stiffness): value in ``unit`` (None when only a range is determined) with its budget
+    (contributions and combined standard uncertainty; None when it has none), a note, a range
+    (low, high; high None: unbounded) and what the range is conditional on, further named numbers
+    of the range (``bounds``, e.g. a coupling's lower bound in N/m) and the recording (``run_id``,
+    a campaign's per-recording entries).
+
+    JSON (flat, as stored): ``{"value", <source>: u ..., "combined", "unit"[, "note", "range",
+    "conditional_on", <bound>: x ..., "run_id"]}``: beside a ``combined`` the other numbers are the
+    budget's sources, without one they are bounds."""
+
+    value: float | None
+    unit: str
+    budget: ParameterBudget | None = None
+    note: str = ""
+    range: tuple[float, float | None] | None = None
+    conditional_on: str = ""
+    bounds: Mapping[str, float | None] = field(default_factory=dict)
+    run_id: str = ""
+
+    @property
+    def combined(self) -> float | None:
+        """The combined standard uncertainty (None without a budget)."""
+        return None if self.budget is None else self.budget.combined
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"run_id": self.run_id} if self.run_id else {}
+        out["value"] = None if self.value is None else float(self.value)
+        if self.budget is not None:
+            out |= {c.source: finite_or_none(c.std) for c in self.budget.contributions}
+            out["combined"] = finite_or_none(self.budget.combined)
+        out["unit"] = self.unit
+        if self.note:
+            out["note"] = self.note
+        if self.range is not None:
+            out["range"] = list(self.range)
+        out |= dict(self.bounds)
+        if self.conditional_on:
+            out["conditional_on"] = self.conditional_on
+        return out
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> DeterminedQuantity:
+        rest = {str(k): None if v is None else float(v) for k, v in d.items()
+                if k not in _DETERMINED_FIELDS and (v is None or isinstance(v, int | float))}
+        budget = None
+        if "combined" in d:
+            comb = d["combined"]
+            budget = ParameterBudget.of(rest, math.nan if comb is None else float(comb), str(d.get("unit", "")))
+        rng = d.get("range")
+        v = d.get("value")
+        return cls(None if v is None else float(v), str(d.get("unit", "")), budget, str(d.get("note") or ""),
+                   None if rng is None else (float(rng[0]), None if rng[1] is None else float(rng[1])),
+                   str(d.get("conditional_on") or ""), {} if budget is not None else rest,
+                   str(d.get("run_id") or ""))
+
+
+def determined_to_dict(determined: Mapping[str, DeterminedQuantity]) -> dict[str, Any]:
+    return {n: q.to_dict() for n, q in determined.items()}
+
+
+def determined_from_dict(d: Mapping[str, Any] | None) -> dict[str, DeterminedQuantity]:
+    return {str(n): DeterminedQuantity.from_dict(q) for n, q in (d or {}).items()}

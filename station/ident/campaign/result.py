@@ -4,8 +4,9 @@ JSON (``station identify REC1 REC2 ... --json``, ``POST /campaigns``): ``status`
 'conditional' or 'refused'), ``parameters`` {S, m_e, k_f, b_f: value, std, unit, identifiable[,
 flag, reason]}, ``covariance`` {names, units, matrix}, ``recordings`` (per recording: its load mass
 as weighed and as fitted, the steps used, its chi^2 share, S and k_f of its own fit), ``fit``
-{chi2, dof, chi2_per_dof, inflated}, ``checks``, ``budget`` (with ``budget_covariances``: each source's
-covariance over the budgeted parameters), ``assumptions``, ``determined``,
+{chi2, dof, chi2_per_dof, inflated}, ``checks``, ``budget`` (each source's covariance over the
+budgeted parameters is in ``CampaignResult.budget``, not in the JSON, whose ``covariance`` is their sum),
+``assumptions``, ``determined``,
 ``notes`` (shared conventions of the identification result).
 """
 
@@ -18,8 +19,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from station.ident.assumptions import CampaignAssumptions
 from station.ident.result import Check, Covariance, Estimate
-from station.ident.uncertainty import UncertaintyBudget
+from station.ident.uncertainty import DeterminedQuantity, UncertaintyBudget
 
 FloatArray = NDArray[np.float64]
 
@@ -78,8 +80,8 @@ class CampaignResult:
     inflated: bool
     checks: tuple[Check, ...]
     budget: UncertaintyBudget
-    assumptions: dict[str, Any]
-    determined: dict[str, Any]
+    assumptions: CampaignAssumptions
+    determined: dict[str, tuple[DeterminedQuantity, ...]]
     notes: tuple[str, ...] = ()
 
     @property
@@ -98,5 +100,6 @@ class CampaignResult:
                 "fit": {"chi2": _f(self.chi2), "dof": self.dof, "chi2_per_dof": _f(self.chi2_per_dof),
                         "inflated": self.inflated},
                 "checks": [c.to_dict() for c in self.checks], "budget": self.budget.to_dict(),
-                "budget_covariances": self.budget.covariances_to_dict(),
-                "assumptions": self.assumptions, "determined": self.determined, "notes": list(self.notes)}
+                "assumptions": self.assumptions.to_dict(),
+                "determined": {n: [q.to_dict() for q in qs] for n, qs in self.determined.items()},
+                "notes": list(self.notes)}

@@ -69,15 +69,14 @@ class Budget:
         """Combined standard uncertainty per parameter, NaN where held."""
         return np.where(self.free, np.sqrt(np.clip(np.diag(self.cov), 0, None)), np.nan)
 
-    def std_of(self, grad: FloatArray, invariant: tuple[str, ...] = ()) -> dict[str, float | None]:
-        """Standard uncertainty per source and combined of a derived quantity with gradient grad;
-        sources in ``invariant`` do not change it (0; e.g. the masses for S M)."""
+    def budget_of(self, grad: FloatArray, unit: str, invariant: tuple[str, ...] = ()) -> ParameterBudget:
+        """The budget (standard uncertainty per source and combined, in ``unit``) of a derived quantity
+        with gradient grad; sources in ``invariant`` do not change it (0; e.g. the masses for S M)."""
         out: dict[str, float | None] = {}
         for s, c in self.covs.items():
             out[s] = 0.0 if s in invariant else None if c is None else float(np.sqrt(max(float(grad @ c @ grad),
                                                                                           0.0)))
-        out["combined"] = float(np.sqrt(sum(v * v for v in out.values() if v is not None)))
-        return out
+        return ParameterBudget.of(out, float(np.sqrt(sum(v * v for v in out.values() if v is not None))), unit)
 
     def uncertainty(self) -> UncertaintyBudget:
         """The result's budget: per free parameter its contributions (degrees of freedom included)
