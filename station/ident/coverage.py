@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 from scipy import stats
 
@@ -35,7 +34,7 @@ class Coverage:
     def U(self) -> float:
         return self.k * self.u
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"u": self.u, "nu_eff": None if math.isinf(self.nu_eff) else self.nu_eff, "k": self.k, "p": self.p,
                 "U": self.U}
 

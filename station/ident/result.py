@@ -50,11 +50,11 @@ class Estimate:
         return cls(None if v is None else float(v), None if s is None else float(s), str(d.get("unit", "")),
                    bool(d.get("identifiable", True)), str(d.get("reason") or ""), str(d.get("flag") or ""))
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         if not self.identifiable:
             return {"value": None, "std": None, "unit": self.unit, "identifiable": False,
                     "reason": self.reason}
-        out: dict[str, Any] = {"value": finite_or_none(self.value), "std": finite_or_none(self.std),
+        out: dict[str, object] = {"value": finite_or_none(self.value), "std": finite_or_none(self.std),
                                "unit": self.unit, "identifiable": True}
         if self.reason:
             out["reason"] = self.reason
@@ -79,7 +79,7 @@ class Check:
     message: str
     values: dict[str, Any] = field(default_factory=dict)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         vals = {k: (finite_or_none(v) if isinstance(v, float) else v) for k, v in self.values.items()}
         return {"name": self.name, "severity": self.severity, "step": self.step, "message": self.message,
                 "values": vals}
@@ -105,7 +105,7 @@ class FitSummary:
     chi2_per_dof: float = float("nan")
     n_points: int = 0
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"mse": finite_or_none(self.mse),
                 "residual_rms_V": [finite_or_none(v) for v in self.residual_rms_V],
                 "chi2_per_dof": finite_or_none(self.chi2_per_dof), "n_points": self.n_points}
@@ -133,7 +133,7 @@ class Identifiability:
     identifiable: tuple[bool, ...]
     reasons: tuple[str, ...]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"names": list(self.names), "condition_number": finite_or_none(self.condition_number),
                 "correlations": [[finite_or_none(c) for c in row] for row in self.correlations],
                 "identifiable": list(self.identifiable), "reasons": list(self.reasons)}
@@ -173,7 +173,7 @@ class IdentificationResult:
     def parameter(self, name: str) -> Estimate:
         return self.parameters[name]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"method": self.method, "model": self.model,
                 "parameters": {n: p.to_dict() for n, p in self.parameters.items()},
                 "fit": self.fit.to_dict(),

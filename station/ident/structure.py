@@ -24,7 +24,7 @@ H(f) by H_s; ``fd.budget.resonance_vectors`` give the budget's ``chain_resonance
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -90,7 +90,7 @@ class CouplingBound:
     lambda_needed: float
     threshold_chi2: float
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"k_c_lower_bound_N_per_m": None if self.k_c_min is None else float(self.k_c_min),
                 "k_c_lower_bound_over_k_s": None if self.k_c_min is None else self.k_c_min / self.k_s,
                 "k_f_alone_range_N_per_m": [self.k_s, self.k_f_high],
