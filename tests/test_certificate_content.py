@@ -260,7 +260,7 @@ def test_the_runs_standards_feed_its_budget_and_its_certificate(tmp_path: Path) 
     standard past its due date refuses the run."""
     from station.config import parse_config
     from station.lab import register
-    from station.service.store import Store
+    from station.lab.store import Store
     from station.simulate import simulate_run
     from tests.conftest import station_dict
 

@@ -11,8 +11,8 @@ from typing import Any, Literal, overload
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from station.lab.store import RunState
 from station.run.procedure import StepState
-from station.service.store import RunState
 from station.vocabulary import Flag, Method, Model, Severity
 
 # closed sets of values: enumerations in the OpenAPI document (checked against their sources in the tests)
