@@ -1,7 +1,9 @@
 """The closed sets of the station's results, defined once: ``Method`` and ``Model`` of an
 identification, ``Severity`` of a finding, ``Flag`` of an estimate.  ``StrEnum``s without imports, so
 that every layer can use them: the API's enumerations are these (``station.api.schemas``), and a
-member is its string wherever a result compares or stores it (the stored JSON holds the strings)."""
+member is its string wherever a result compares or stores it (the stored JSON holds the strings).
+``Estimate.flag`` is a ``Flag``; ``Check.severity`` and the identification result's method and model
+are still plain strings holding these values."""
 
 from enum import StrEnum
 

@@ -9,12 +9,14 @@ import math
 
 import numpy as np
 import pytest
+import yaml
 
 from station.ident.assumptions import Assumptions
 from station.ident.coverage import coverage
 from station.ident.fd.budget import Budget
-from station.ident.result import FitSummary, IdentificationResult
+from station.ident.result import Estimate, FitSummary, IdentificationResult
 from station.ident.uncertainty import DeterminedQuantity, ParameterBudget, UncertaintyBudget
+from station.vocabulary import Flag
 
 
 def _budget() -> Budget:
@@ -107,3 +109,12 @@ def test_the_assumptions_read_back_their_stored_form() -> None:
     assert a.structure is not None and a.structure.coupling is not None
     assert a.structure.coupling.contradicted_by_the_data and a.structure.coupling.k_f_alone_range == (5e6, None)
     assert Assumptions.from_dict({}).to_dict() == {}  # a result stored without assumptions
+
+
+def test_an_estimates_flag_is_the_domains_enumeration_and_stored_as_its_string() -> None:
+    e = Estimate.from_dict({"value": 1.0, "std": 0.1, "unit": "V/N", "identifiable": True, "reason": "r",
+                            "flag": "conditional"})
+    assert e.flag is Flag.CONDITIONAL
+    assert Estimate.from_dict({"value": 1.0, "std": 0.1, "unit": "V/N"}).flag is Flag.NONE
+    stored = e.to_dict()["flag"]
+    assert type(stored) is str and yaml.safe_dump(e.to_dict())  # a plain string: any serialiser takes it

@@ -27,6 +27,7 @@ from station.ident.uncertainty import (
     finite_or_none,
     float_or_nan,
 )
+from station.vocabulary import Flag
 
 
 @dataclass(frozen=True)
@@ -42,13 +43,13 @@ class Estimate:
     unit: str
     identifiable: bool = True
     reason: str = ""
-    flag: str = ""
+    flag: Flag = Flag.NONE
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Estimate:
         v, s = d.get("value"), d.get("std")
         return cls(None if v is None else float(v), None if s is None else float(s), str(d.get("unit", "")),
-                   bool(d.get("identifiable", True)), str(d.get("reason") or ""), str(d.get("flag") or ""))
+                   bool(d.get("identifiable", True)), str(d.get("reason") or ""), Flag(str(d.get("flag") or "")))
 
     def to_dict(self) -> dict[str, object]:
         if not self.identifiable:
@@ -59,7 +60,7 @@ class Estimate:
         if self.reason:
             out["reason"] = self.reason
         if self.flag:
-            out["flag"] = self.flag
+            out["flag"] = str(self.flag)
         return out
 
 

@@ -39,6 +39,7 @@ from station.ident.models import CoupledModel, SdofModel, make_model
 from station.ident.response import frf as frfmod
 from station.ident.result import Check, Estimate
 from station.ident.uncertainty import DeterminedQuantity
+from station.vocabulary import Flag
 
 if TYPE_CHECKING:
     from station.ident.fd.budget import Budget
@@ -232,7 +233,7 @@ class StructureOutcome:
 
 
 def _conditional(p: Estimate, text: str) -> Estimate:
-    return replace(p, flag=p.flag or "conditional", reason=(p.reason + "; " if p.reason else "") + text)
+    return replace(p, flag=p.flag or Flag.CONDITIONAL, reason=(p.reason + "; " if p.reason else "") + text)
 
 
 def state_stiff(params: dict[str, Estimate], k_range: tuple[float, float | None] | None,

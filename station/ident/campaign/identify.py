@@ -52,6 +52,7 @@ from station.ident.result import Check, Covariance, Estimate
 from station.ident.structure import chain_corrected, coupling_bound, state_stiff, structure_statement
 from station.ident.uncertainty import DeterminedQuantity, ParameterBudget, UncertaintyBudget
 from station.recording import Recording
+from station.vocabulary import Flag
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -63,7 +64,7 @@ class CampaignRefused(IdentificationRefused):
 
 
 def _param(name: str, unit: str, value: float | None, std: float | None, reason: str = "",
-           flag: str = "") -> tuple[str, Estimate]:
+           flag: Flag = Flag.NONE) -> tuple[str, Estimate]:
     return name, Estimate(value, std, unit, value is not None, reason, flag)
 
 
@@ -227,9 +228,10 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
                                                                                             strict=True))
     elif separated:
         status = "separated"
-        flag = "poorly_determined" if sep.severity == "warning" else ""
+        flag = Flag.POORLY_DETERMINED if sep.severity == "warning" else Flag.NONE
         params = dict(_param(n, u, float(fit.theta[i]), float(sd[i]), sep.message if flag and i < 2 else "",
-                              flag if i < 2 else "") for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
+                              flag if i < 2 else Flag.NONE)
+                      for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
     elif stated is not None:
         status = "conditional"
         src = inputs[0].end_mass.source
@@ -237,7 +239,7 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
                + (f"(std {stated.std:.2g} kg, propagated)" if stated.std > 0 else "(no uncertainty: not propagated)")
                + ": the top masses do not separate S from m_e")
         params = dict(_param(n, u, None, None, sep.message) if i == 1 else
-                       _param(n, u, float(fit.theta[i]), float(sd[i]), why, "conditional")
+                       _param(n, u, float(fit.theta[i]), float(sd[i]), why, Flag.CONDITIONAL)
                        for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
     else:
         status = "refused"

@@ -30,6 +30,7 @@ from station.ident.result import Check, Estimate, IdentificationResult, estimate
 from station.ident.structure import apply_structure, chain_corrected, coupling_suspected, resonance_suspected
 from station.ident.uncertainty import DeterminedQuantity
 from station.recording import Recording
+from station.vocabulary import Flag
 
 FloatArray = NDArray[np.float64]
 
@@ -95,13 +96,13 @@ def _param_list(model: Model, theta: FloatArray, budget: Budget, rep_ok: tuple[b
             out[n] = Estimate(None, None, u, False, f"not determined by the data: relative "
                               f"uncertainty {rel:.2g} ({parts}); " + effect_text(model, theta, frf.f_hz, i))
             continue
-        flag, reason = "", ""
+        flag, reason = Flag.NONE, ""
         if rel > policy.max_rel_std or not rep_ok[i]:
-            flag = "poorly_determined"
+            flag = Flag.POORLY_DETERMINED
             reason = (f"poorly determined: relative uncertainty {rel:.2g} (> {policy.max_rel_std}; {parts}); "
                       + effect_text(model, theta, frf.f_hz, i))
         if not inputs.end_mass_given and i < 3:
-            flag = flag or "conditional"
+            flag = flag or Flag.CONDITIONAL
             reason = (reason + "; " if reason else "") + (
                 f"conditional on the assumed end mass m_e = {inputs.m_e:g} kg (not given): "
                 f"{'S' if i == 0 else n} scales as {'1/' if i == 0 else ''}(m_l + m_e)")
