@@ -44,7 +44,7 @@ def main() -> None:
     from station.config import default_config_path, load_config
     from station.lab import audit, register, users
     from station.lab.integrity import sha256_file
-    from station.service.store import Store
+    from station.lab.store import Store
 
     out: dict[str, Any] = {}
     hashed = users.hash_password("a-password-of-some-length")

@@ -36,6 +36,13 @@ MAX_CRANK_FREQUENCY_HZ = 1000  # a step's crank frequency, wherever a step is de
 MAX_CRANK_RADIUS_M = 1.0
 MAX_STEPS = 200
 
+# a step's quantities with their bounds, declared once for every step type (the configuration's plan,
+# the run request, the interchange file and the API's schemas built from them)
+CrankFrequencyHz = Annotated[float, Field(gt=0, le=MAX_CRANK_FREQUENCY_HZ)]
+CrankRadiusM = Annotated[float, Field(gt=0, le=MAX_CRANK_RADIUS_M)]
+SettleS = Annotated[float, Field(ge=0, le=600)]
+RecordS = Annotated[float, Field(gt=0, le=3600)]
+
 DEFAULT_RESONANCE_REL_STD = 0.05  # u(f_r) of a displacement resonance stated without one, relative
 
 
@@ -233,17 +240,17 @@ class DaqConfig(_Model):
 class StepConfig(_Model):
     """One step of a stepped-sine run."""
 
-    crank_frequency_hz: float = Field(gt=0, le=MAX_CRANK_FREQUENCY_HZ)
-    crank_radius_m: float = Field(gt=0, le=MAX_CRANK_RADIUS_M)
-    settle_s: float | None = Field(default=None, ge=0, le=600)
-    record_s: float | None = Field(default=None, gt=0, le=3600)
+    crank_frequency_hz: CrankFrequencyHz
+    crank_radius_m: CrankRadiusM
+    settle_s: SettleS | None = None
+    record_s: RecordS | None = None
 
 
 class PlanConfig(_Model):
     """The default run: steps with settle and record times."""
 
-    settle_s: float = Field(default=1.0, ge=0, le=600)
-    record_s: float = Field(default=2.0, gt=0, le=3600)
+    settle_s: SettleS = 1.0
+    record_s: RecordS = 2.0
     steps: list[StepConfig] = Field(min_length=1, max_length=MAX_STEPS)
 
 

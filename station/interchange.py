@@ -23,7 +23,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from station.bounded import MAX_YAML_BYTES, load_yaml, quote, read_text_limited
-from station.config import MAX_CRANK_FREQUENCY_HZ, MAX_CRANK_RADIUS_M, MeasurementChain
+from station.config import CrankFrequencyHz, CrankRadiusM, MeasurementChain
 from station.errors import RecordingFormatError, StationError
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id, read_recording
 
@@ -50,9 +50,8 @@ class CsvTransducer(_Strict):
 
 class CsvStep(_Strict):
     file: str = Field(min_length=1)
-    crank_frequency_hz: float = Field(gt=0, le=MAX_CRANK_FREQUENCY_HZ)
-    crank_radius_m: float | None = Field(default=None, gt=0, le=MAX_CRANK_RADIUS_M,
-                                         description="v2: this step's radius")
+    crank_frequency_hz: CrankFrequencyHz
+    crank_radius_m: CrankRadiusM | None = Field(default=None, description="v2: this step's radius")
 
 
 class CsvRange(_Strict):

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from station.lab import register
+from station.lab.store import RunRow, Store
 from station.lab.trends import DAY_S
 from station.recording.stored import write_result
-from station.service.store import RunRow, Store
 
 TX = "TX-CHECK-1"
 S0, K0, B0 = 2.0e-3, 2.91e7, 17136.0

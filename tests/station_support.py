@@ -37,7 +37,7 @@ import yaml
 
 from station.commands.connections import ConnectionBounds
 from station.config import StationConfig, parse_config
-from station.service.store import RunRow, Store
+from station.lab.store import RunRow, Store
 from tests.conftest import fast_dict
 
 if TYPE_CHECKING:

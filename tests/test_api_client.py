@@ -27,6 +27,7 @@ from station.config import parse_config
 from station.ident.names import METHODS, MODELS
 from station.run.procedure import StepState
 from station.service.settings import build_settings
+from station.vocabulary import Flag, Severity
 from tests.station_support import TOKEN, daemon_config, running_app
 
 
@@ -42,15 +43,17 @@ def test_closed_sets_are_enumerations_and_results_are_typed(tmp_path: Path) -> N
 
     def enum(schema: str, field: str) -> list[Any]:
         prop = schemas[schema]["properties"][field]
-        options = prop.get("anyOf", [prop])
+        options = [schemas[o["$ref"].rsplit("/", 1)[-1]] if "$ref" in o else o for o in prop.get("anyOf", [prop])]
         return next(o["enum"] for o in options if "enum" in o)
     assert enum("RunStatus", "step_state") == list(get_args(StepState))
     assert enum("RunStatus", "state") == ["queued", "running", "identifying", "completed", "aborted", "failed",
                                           "interrupted"]
     assert enum("ParameterOut", "flag") == ["", "poorly_determined", "conditional"]
     assert enum("CheckOut", "severity") == ["info", "warning", "refused"]
-    assert enum("RunResults", "method") == list(METHODS) == list(get_args(MethodName))
-    assert enum("RunResults", "model") == list(MODELS) == list(get_args(ModelName))
+    assert enum("RunResults", "method") == list(METHODS) == [m.value for m in MethodName]
+    assert enum("RunResults", "model") == list(MODELS) == [m.value for m in ModelName]
+    # the domain's enumerations themselves, one schema each
+    assert schemas["Severity"]["enum"] == [s.value for s in Severity] and schemas["Flag"]["enum"] == list(Flag)
     assert enum("CampaignOut", "status") == ["separated", "conditional", "refused"]
     assert enum("EStopState", "source") == ["page", "api", "controller", "drive"]
     results = schemas["RunResults"]["properties"]

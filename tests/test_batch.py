@@ -114,7 +114,7 @@ def test_run_batch_gives_the_identification_results_in_order(history: dict, tmp_
         assert it.parameters == {n: q.to_dict() for n, q in res.parameters.items()}
         assert (it.method, it.model, it.run_id) == (res.method, res.model, read_recording(p).run_id)
         # the structure the parameters rest on and identify's findings travel with the item
-        assert it.structure == res.assumptions["structure"] and it.structure["coupling"]["assumed"] == "stiff"
+        assert it.structure == res.assumptions.structure.to_dict() and it.structure["coupling"]["assumed"] == "stiff"
         assert it.findings == [{"name": c.name, "severity": c.severity, "message": c.message}
                                for c in res.checks if c.severity != "info"]
         assert it.to_dict()["structure"] == it.structure

@@ -24,7 +24,7 @@ from drivers.sim.rig import SimRig
 from station.batch.check import check_body, check_runs, run_check, station_url
 from station.config import parse_config, to_rig_physics
 from station.lab import policy
-from station.service.store import Store
+from station.lab.store import Store
 from station.trend.charts import first_alarm_probabilities
 from tests.conftest import fast_dict
 from tests.station_support import TOKEN, Seed, app_in_process, daemon_config, free_port, login, seed_runs
@@ -209,7 +209,7 @@ def test_nightly_check_runs_chart_a_drifting_check_transducer_and_hold_the_certi
 async def _customer_run(m: Any) -> str:
     """A completed calibration of another transducer, started now by a technician (its row only:
     the hold is decided by when it was made, before anything of its recording is read)."""
-    from station.service.store import RunRow
+    from station.lab.store import RunRow
 
     rid = f"customer-{time.time_ns()}"
     row = RunRow(id=rid, state="completed", transducer_id="CUSTOMER-1", top_mass_kg=25.0, request_json="{}",

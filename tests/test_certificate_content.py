@@ -99,7 +99,7 @@ def test_sdyn_u_equals_an_independent_propagation_of_the_budget(chain_rec: Path)
     the masses by numerical differentiation (not the code under test's delta method)."""
     c = certificate_content(chain_rec)
     ident = identify_recording(read_recording(chain_rec))
-    a = ident.assumptions
+    a = ident.assumptions.to_dict()
     ch = MeasurementChain.model_validate(a["measurement_chain"])
     M = a["end_mass_kg"]["value"] + a["load_mass_kg"]["value"]
     uM = math.hypot(a["end_mass_kg"]["std"], a["load_mass_kg"]["std"])
@@ -260,7 +260,7 @@ def test_the_runs_standards_feed_its_budget_and_its_certificate(tmp_path: Path) 
     standard past its due date refuses the run."""
     from station.config import parse_config
     from station.lab import register
-    from station.service.store import Store
+    from station.lab.store import Store
     from station.simulate import simulate_run
     from tests.conftest import station_dict
 
@@ -290,8 +290,8 @@ def test_the_runs_standards_feed_its_budget_and_its_certificate(tmp_path: Path) 
     rec = simulate_run(run_cfg, tmp_path / "rec", seed=5)
     res = identify_recording(read_recording(rec))
     write_result(rec, f"identify_{res.method}_{res.model}", res.to_dict())
-    assert res.assumptions["load_mass_kg"]["std"] == 5e-5
-    assert res.assumptions["measurement_chain"]["gain_rel_std"] == 3e-4
+    assert res.assumptions.load_mass.std == 5e-5
+    assert res.assumptions.measurement_chain["gain_rel_std"] == 3e-4
     c = certificate_content(rec, register={"standards": [s.to_dict() for s in setup.standards]})
     by_id = {s["id"]: s for s in c["standards"]}
     assert by_id["MASS-1"]["budget"] == "in the budget as the load mass's standard uncertainty"

@@ -3,7 +3,6 @@ and k from the t-distribution; the GUM Supplement 1 Monte Carlo check agrees wit
 
 from __future__ import annotations
 
-import copy
 import itertools
 import math
 from pathlib import Path
@@ -14,6 +13,7 @@ from scipy import stats
 from station.ident.coverage import coverage, effective_dof
 from station.ident.fd.identify import identify_fd
 from station.ident.montecarlo import check_result
+from station.ident.uncertainty import ParameterBudget
 from station.recording import read_recording
 from station.report.statement import uncertainty_statement
 from tests.ident_support import sim
@@ -31,26 +31,21 @@ def _end_mass_sentence(lines: list[str]) -> str:
 
 def test_the_statement_follows_the_budget(identified) -> None:  # type: ignore[no-untyped-def]
     _, res = identified
-    budget, assumptions = res.budget, res.assumptions
+    budget, assumptions = res.budget, res.assumptions.to_dict()
     lines = uncertainty_statement(budget, assumptions)
     # the end mass is the largest contribution to u(S) in this budget, and the statement says so
-    c = budget["S"]["contributions"]
+    c = budget["S"].stds
     assert max(c, key=lambda s: c[s] or 0) == "end_mass"
     assert "to u(S) the end mass m_e" in " ".join(lines)
     em = _end_mass_sentence(lines)
     assert "uncertain input" in em and "taken as exact" not in " ".join(lines)
     # the same result with the end mass assumed (not propagated): the sentence changes with the budget
-    cond = copy.deepcopy(budget)
-    for b in cond.values():
-        b["contributions"]["end_mass"] = None
+    cond = {n: ParameterBudget.of({**b.stds, "end_mass": None}, b.combined, b.unit, b.dof) for n, b in budget.items()}
     em2 = _end_mass_sentence(uncertainty_statement(cond, assumptions))
     assert "conditional" in em2 and "uncertain input" not in em2
     # a budget whose noise has few degrees of freedom: ν_eff and k follow it
-    few = copy.deepcopy(budget)
-    for b in few.values():
-        b["contributions"] = {"noise": 3.0, "chain_gain": 1.0}
-        b["combined"] = math.sqrt(10.0)
-        b["dof"] = {"noise": 4.0}
+    few = {n: ParameterBudget.of({"noise": 3.0, "chain_gain": 1.0}, math.sqrt(10.0), b.unit, {"noise": 4.0})
+           for n, b in budget.items()}
     text = " ".join(uncertainty_statement(few, assumptions))
     nu = 100 / (81 / 4)  # u_c^4 / (u_noise^4 / 4)
     assert f"ν_eff = {nu:.3g}" in text and f"k = {stats.t.ppf(0.975, nu):.3g}" in text
@@ -61,9 +56,9 @@ def test_effective_dof_and_k() -> None:
     assert math.isinf(effective_dof({"noise": 1.0, "end_mass": 2.0}, None))
     nu = effective_dof({"noise": 1.0, "end_mass": 1.0}, {"noise": 3.0})
     assert nu == pytest.approx(4 * 3.0)  # (1 + 1)^2 / (1 / 3)
-    c = coverage({"contributions": {"noise": 1.0}, "combined": 1.0, "dof": {"noise": 5.0}})
+    c = coverage(ParameterBudget.of({"noise": 1.0}, 1.0, "N/m", {"noise": 5.0}))
     assert c.k == pytest.approx(2.5706, abs=1e-4) and pytest.approx(c.k) == c.U
-    assert coverage({"contributions": {"noise": 1.0}, "combined": 1.0}).k == pytest.approx(1.95996, abs=1e-5)
+    assert coverage(ParameterBudget.of({"noise": 1.0}, 1.0, "N/m")).k == pytest.approx(1.95996, abs=1e-5)
 
 
 def test_monte_carlo_agrees_with_the_linear_budget(identified) -> None:  # type: ignore[no-untyped-def]

@@ -332,3 +332,19 @@ def test_force_limit_message_gives_the_largest_radius(cfg5k: StationConfig) -> N
 def test_limits_need_a_step(cfg5k: StationConfig) -> None:
     with pytest.raises(LimitError, match="at least one step"):
         check_steps(cfg5k, [])
+
+
+def test_every_step_type_has_the_one_declaration_of_a_steps_bounds() -> None:
+    """The configuration's plan, the run request (the API's body) and the interchange file refuse the
+    same crank frequency and radius: their bounds come from one declaration."""
+    from station.config import MAX_CRANK_FREQUENCY_HZ, MAX_CRANK_RADIUS_M, StepConfig
+    from station.interchange import CsvStep
+    from station.run.request import StepSpec
+
+    for model, extra in ((StepConfig, {}), (StepSpec, {}), (CsvStep, {"file": "a.csv"})):
+        ok = {"crank_frequency_hz": MAX_CRANK_FREQUENCY_HZ, "crank_radius_m": MAX_CRANK_RADIUS_M, **extra}
+        model.model_validate(ok)
+        for key, bad in (("crank_frequency_hz", MAX_CRANK_FREQUENCY_HZ * 1.001), ("crank_frequency_hz", 0.0),
+                         ("crank_radius_m", MAX_CRANK_RADIUS_M * 1.001)):
+            with pytest.raises(pydantic.ValidationError, match=key):
+                model.model_validate({**ok, key: bad})

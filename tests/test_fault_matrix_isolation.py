@@ -265,7 +265,7 @@ def test_a_second_station_on_the_folder_touches_nothing(tmp_path: Path, capsys: 
     is another process holding the lock; a database with a live run and its partial recording) |"""
     import yaml
 
-    from station.service.store import RunRow, Store
+    from station.lab.store import RunRow, Store
 
     rec = tmp_path / "rec"
     rec.mkdir()
@@ -378,7 +378,7 @@ def test_two_real_daemons_on_one_folder_the_live_run_is_untouched(tmp_path: Path
 
 # --------------------------------------------------------------------------------------- the database at start
 def _station_db(rec: Path, runs: int = 200) -> Path:
-    from station.service.store import RunRow, Store
+    from station.lab.store import RunRow, Store
 
     rec.mkdir(parents=True, exist_ok=True)
     store = Store(rec / "station.db")
@@ -539,12 +539,12 @@ def test_a_full_disk_while_identifying_keeps_the_result_until_the_database_takes
         tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
     """| a full disk while identifying | the worker's result is dropped when the database write fails, no
     log line; the run stays `identifying` until a restart |"""
+    from station.lab.store import RunRow, Store
     from station.service import jobs
     from station.service.artifacts import Artifacts
     from station.service.changes import Changes
     from station.service.db import DbAccess
     from station.service.recovery import recover
-    from station.service.store import RunRow, Store
 
     monkeypatch.setattr(jobs, "RECORD_RETRY_S", 0.05)
     rec = tmp_path / "rec"

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from station.lab import audit, history, policy
+from station.lab.store import Store
 from station.lab.trends import DAY_S, natural_frequency
-from station.service.store import Store
 from tests.history_support import K0, S0, TX, U_REL, add_runs, add_transducer
 
 

@@ -45,28 +45,28 @@ def test_clean_run_no_findings_and_the_budget_adds_up(base: Path) -> None:
         p = res.parameter(name)
         assert within(p, truth) and not p.flag
         b = res.budget[name]
-        assert set(b["contributions"]) == {"noise", "chain_gain", "chain_phase", "chain_delay", "chain_resonance",
+        assert set(b.stds) == {"noise", "chain_gain", "chain_phase", "chain_delay", "chain_resonance",
                                            "end_mass", "load_mass", "radius"}
-        total = np.sqrt(sum(v**2 for v in b["contributions"].values()))
-        assert b["combined"] == pytest.approx(total, rel=1e-9) and p.std == pytest.approx(b["combined"])
+        total = np.sqrt(sum(v**2 for v in b.stds.values() if v is not None))
+        assert b.combined == pytest.approx(total, rel=1e-9) and p.std == pytest.approx(b.combined)
     # S is proportional to 1/M: its end-mass term is S u(m_e)/M exactly (u(m_e) = 5 % by default)
-    assert res.budget["S"]["contributions"]["end_mass"] == pytest.approx(S * 0.05 * ME / (ME + ML), rel=1e-3)
-    assert res.assumptions["end_mass_kg"] == {"value": ME, "std": pytest.approx(0.006), "source": "config"}
+    assert res.budget["S"].stds["end_mass"] == pytest.approx(S * 0.05 * ME / (ME + ML), rel=1e-3)
+    assert res.assumptions.end_mass.to_dict() == {"value": ME, "std": pytest.approx(0.006), "source": "config"}
 
 
 def test_missing_end_mass_is_conditional_and_the_data_still_give_S_M_and_f0(base: Path, tmp_path: Path) -> None:
     rec = via_csv(base, tmp_path, doc=lambda d: d.pop("end_mass_kg"))
     res = identify_recording(read_recording(rec))
     assert "end_mass_not_given" in names(res, "warning")
-    assert res.assumptions["end_mass_kg"] == {"value": 0.0, "std": None, "source": "assumed"}
+    assert res.assumptions.end_mass.to_dict() == {"value": 0.0, "std": None, "source": "assumed"}
     for name in ("S", "k_f", "b_f"):
         p = res.parameter(name)
         assert p.flag == "conditional" and "assumed end mass" in p.reason
-        assert res.budget[name]["contributions"]["end_mass"] is None
+        assert res.budget[name].stds["end_mass"] is None
     # what the data determine does not depend on the end mass: right within its uncertainty
     sm, f0 = res.determined["S_times_M"], res.determined["natural_frequency_hz"]
-    assert abs(sm["value"] - S * (ME + ML)) < 3 * sm["combined"]
-    assert abs(f0["value"] - np.sqrt(K / (ME + ML)) / (2 * np.pi)) < 3 * f0["combined"]
+    assert abs(sm.value - S * (ME + ML)) < 3 * sm.combined
+    assert abs(f0.value - np.sqrt(K / (ME + ML)) / (2 * np.pi)) < 3 * f0.combined
     # the conditional S is off by exactly the missing m_e / M (1 + 0.46 %), and says so
     assert res.parameter("S").value / S - 1 == pytest.approx(ME / ML, rel=0.02)
 
@@ -74,8 +74,8 @@ def test_missing_end_mass_is_conditional_and_the_data_still_give_S_M_and_f0(base
 def test_end_mass_with_its_uncertainty_from_run_yaml(base: Path, tmp_path: Path) -> None:
     rec = via_csv(base, tmp_path, doc=lambda d: d.update(end_mass_std_kg=0.03))
     res = identify_recording(read_recording(rec))
-    assert res.assumptions["end_mass_kg"] == {"value": ME, "std": 0.03, "source": "recording"}
-    u = res.budget["k_f"]["contributions"]["end_mass"]
+    assert res.assumptions.end_mass.to_dict() == {"value": ME, "std": 0.03, "source": "recording"}
+    u = res.budget["k_f"].stds["end_mass"]
     assert u == pytest.approx(K * 0.03 / (ME + ML), rel=0.02)  # k_f scales with M
     assert within(res.parameter("k_f"), K)
 
@@ -180,7 +180,7 @@ def test_single_step_at_100_hz_does_not_call_S_identifiable(tmp_path: Path) -> N
     assert not s.identifiable and "HIGH" in s.reason
     q = res.determined["quasi_static_sensitivity"]
     bias = 1 / abs(1 - (ME + ML) * (2 * np.pi * 100) ** 2 / K + 2j * np.pi * 100 * B / K)
-    assert q["value"] / S == pytest.approx(bias, rel=1e-3) and q["value"] > 1.3 * S
+    assert q.value / S == pytest.approx(bias, rel=1e-3) and q.value > 1.3 * S
 
 
 def test_4_hz_reason_numbers_come_from_the_estimate(tmp_path: Path) -> None:
@@ -204,7 +204,7 @@ def test_3_to_40_hz_plan_gives_b_f_with_value_and_uncertainty(tmp_path: Path) ->
     res = identify_recording(read_recording(rec))
     b = res.parameter("b_f")
     assert b.identifiable and b.flag == "poorly_determined" and b.value is not None and within(b, B)
-    assert "poorly determined" in b.reason and res.budget["b_f"]["contributions"]["chain_phase"] > 0.1 * B
+    assert "poorly determined" in b.reason and res.budget["b_f"].stds["chain_phase"] > 0.1 * B
 
 
 def test_a_channel_delay_is_covered_by_the_correlated_delay_term(tmp_path: Path) -> None:
@@ -215,7 +215,7 @@ def test_a_channel_delay_is_covered_by_the_correlated_delay_term(tmp_path: Path)
     res = identify_recording(read_recording(sim(tmp_path, edit=skew)), "fd", "sdof")
     for name, truth in (("k_f", K), ("b_f", B)):
         p = res.parameter(name)
-        assert abs(p.value / truth - 1) > 3 * res.budget[name]["contributions"]["noise"] / truth  # biased
+        assert abs(p.value / truth - 1) > 3 * res.budget[name].stds["noise"] / truth  # biased
         assert within(p, truth, 2.0)  # ... and covered
 
 
@@ -244,8 +244,8 @@ def test_stated_uncertainties_survive_export_and_import(base: Path, tmp_path: Pa
     rec = via_csv(base, tmp_path, doc=lambda d: d.update(end_mass_std_kg=0.01, measurement_chain=chain))
     again = via_csv(rec, tmp_path / "again")
     res = identify_recording(read_recording(again))
-    assert res.assumptions["end_mass_kg"]["std"] == 0.01
-    assert res.assumptions["measurement_chain"]["delay_std_s"] == 1e-6
+    assert res.assumptions.end_mass.std == 0.01
+    assert res.assumptions.measurement_chain["delay_std_s"] == 1e-6
 
 
 @pytest.mark.slow
@@ -257,7 +257,7 @@ def test_budget_noise_term_matches_the_scatter_over_40_simulated_runs(tmp_path: 
     for seed in range(40):
         res = identify_recording(read_recording(sim(tmp_path / str(seed), seed=100 + seed, record_s=0.5)))
         est.append([res.parameter(n).value for n in ("S", "k_f", "b_f")])
-        noise.append([res.budget[n]["contributions"]["noise"] for n in ("S", "k_f", "b_f")])
+        noise.append([res.budget[n].stds["noise"] for n in ("S", "k_f", "b_f")])
         comb.append([res.parameter(n).std for n in ("S", "k_f", "b_f")])
     est, noise, comb = np.array(est), np.array(noise), np.array(comb)
     ratio = noise.mean(axis=0) / est.std(axis=0, ddof=1)

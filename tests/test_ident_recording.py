@@ -69,7 +69,7 @@ def test_single_4hz_record_b_f_and_coupled_model_not_identifiable(single_4hz: Pa
     s = res.parameter("S")  # one frequency: |H|/M is S only far below the resonance (high by (f/f_0)^2)
     assert not s.identifiable and s.value is None and "HIGH" in s.reason
     q = res.determined["quasi_static_sensitivity"]
-    assert abs(q["value"] / 2e-3 - 1) < 1e-3 and q["combined"] > 0
+    assert abs(q.value / 2e-3 - 1) < 1e-3 and q.combined > 0
     coupled = identify_recording(rec, "fd", "coupled")
     assert not any(coupled.parameter(n).identifiable for n in ("k_f", "b_f", "k_c", "b_c"))
     # the paper's PSO+ on the same record gets no digits for k_f, b_f either
@@ -87,9 +87,9 @@ def test_auto_model_picks_eq8_when_the_coupling_is_compliant(tmp_path: Path) -> 
     # Eq. 9 sees the series stiffness, stated as such; k_f alone is withheld: a coupling explains the misfit
     k_s = 1 / (1 / TRUTH["k_f"] + 1 / 1e8)
     ser = stiff.determined["series_stiffness"]
-    assert abs(ser["value"] - k_s) < 3 * ser["combined"] and abs(ser["value"] / TRUTH["k_f"] - 1) > 0.1
+    assert abs(ser.value - k_s) < 3 * ser.combined and abs(ser.value / TRUTH["k_f"] - 1) > 0.1
     assert not stiff.parameter("k_f").identifiable and "coupling_suspected" in {c.name for c in stiff.checks}
-    assert stiff.assumptions["structure"]["equation"] == "Eq. 9"
+    assert stiff.assumptions.structure.equation == "Eq. 9"
     res = identify_recording(rec)
     assert res.model == "coupled"
     k, kc = res.parameter("k_f"), res.parameter("k_c")

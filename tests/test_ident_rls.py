@@ -48,12 +48,12 @@ def test_rls_s_is_within_its_stated_uncertainty_where_the_noise_term_alone_misse
     res = _rls(tmp_path, 10)
     p = res.parameters["S"]
     assert p.identifiable and p.value is not None and p.std is not None
-    terms = res.budget["S"]["contributions"]
+    terms = res.budget["S"].stds
     assert set(terms) == {"noise", "unidentified_dynamics"}
-    assert res.budget["S"]["combined"] == pytest.approx(np.hypot(terms["noise"], terms["unidentified_dynamics"]))
+    assert res.budget["S"].combined == pytest.approx(np.hypot(terms["noise"], terms["unidentified_dynamics"]))
     assert abs(p.value - S) / terms["noise"] > 3  # the old, noise-only statement
     assert abs(p.value - S) / p.std <= 2
-    assert "unidentified_dynamics" in res.assumptions["rls_uncertainty"]
+    assert "unidentified_dynamics" in res.assumptions.rls_uncertainty
     assert any("unidentified_dynamics" in n for n in res.notes)
     assert not res.parameters["k_f"].identifiable and not res.parameters["b_f"].identifiable
 
@@ -65,7 +65,7 @@ def test_rls_s_covers_the_truth_over_twenty_noise_seeds(tmp_path: Path) -> None:
         p = res.parameters["S"]
         assert p.value is not None and p.std is not None
         z.append((p.value - S) / p.std)
-        z_noise.append((p.value - S) / res.budget["S"]["contributions"]["noise"])
+        z_noise.append((p.value - S) / res.budget["S"].stds["noise"])
     a = np.abs(z)
     assert np.mean(a <= 2) >= 0.9 and a.max() <= 3, np.round(z, 2)
     assert 0.5 < np.std(z) < 1.5, np.std(z)  # honest, and not inflated either

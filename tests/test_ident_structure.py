@@ -68,8 +68,8 @@ def test_a_soft_coupling_is_named_and_k_f_alone_withheld(tmp_path: Path) -> None
     k = res.parameter("k_f")
     assert not k.identifiable and k.value is None and "contradict the stiff coupling" in k.reason
     ser = res.determined["series_stiffness"]
-    assert abs(ser["value"] - 2 * K / 3) < 3 * ser["combined"]
-    assert res.assumptions["structure"]["coupling"]["contradicted_by_the_data"]
+    assert abs(ser.value - 2 * K / 3) < 3 * ser.combined
+    assert res.assumptions.structure.to_dict()["coupling"]["contradicted_by_the_data"]
 
 
 @pytest.mark.slow
@@ -79,7 +79,7 @@ def test_with_the_steps_that_show_the_coupling_eq8_is_chosen_and_k_f_alone_is_ri
     plan = (*PLAN_3_40, (16.5, 1.5e-3), (54.8, 6e-4), (67.0, 4e-4), (100.0, 1.5e-4))
     res = identify_recording(read_recording(sim(tmp_path, plan, edit=effects({"coupling_compliance": {
         "k_c": 2 * K, "b_c": 0.0}}))))
-    assert res.model == "coupled" and res.assumptions["structure"]["equation"] == "Eq. 8"
+    assert res.model == "coupled" and res.assumptions.structure.to_dict()["equation"] == "Eq. 8"
     for name, truth in (("k_f", K), ("k_c", 2 * K)):
         p = res.parameter(name)
         assert p.value is not None and abs(p.value - truth) < 3 * p.std
@@ -90,13 +90,13 @@ def test_a_clean_run_states_its_structure_and_bounds_the_coupling(tmp_path: Path
     """No coupling, the shipped plan's frequencies: the structure is stated, the plan excludes couplings
     softer than ADAPTER_COUPLING_RATIO k_s, k_f is right and unflagged, no warning."""
     res = identify_recording(read_recording(sim(tmp_path, record_s=0.5)))
-    c = res.assumptions["structure"]["coupling"]
+    c = res.assumptions.structure.to_dict()["coupling"]
     assert c["k_c_lower_bound_over_k_s"] > ADAPTER_COUPLING_RATIO
     lo, hi = c["k_f_alone_range_N_per_m"]
     k = res.parameter("k_f")
     assert abs(k.value - K) < 3 * k.std and not k.flag and lo - 3 * k.std <= K <= hi and hi / lo - 1 < 0.01
     assert not [x for x in res.checks if x.severity != "info"]
-    assert res.assumptions["structure"]["displacement_chain"]["response"] == "flat"
+    assert res.assumptions.structure.to_dict()["displacement_chain"]["response"] == "flat"
 
 
 @pytest.mark.parametrize("damping", [0.3, 1.0])
@@ -116,11 +116,11 @@ def test_a_displacement_sensor_resonance_is_flagged_or_corrected_when_stated(
              "displacement_damping": damping, "displacement_damping_std": 0.1}
     rec = via_csv(path, tmp_path, doc=lambda d: d.update(measurement_chain=chain))
     res = identify_recording(read_recording(rec))
-    assert res.assumptions["structure"]["displacement_chain"]["resonance_hz"] == 600.0
+    assert res.assumptions.structure.to_dict()["displacement_chain"]["resonance_hz"] == 600.0
     for name, truth in (("k_f", K), ("b_f", B)):
         p = res.parameter(name)
         assert p.value is not None and abs(p.value - truth) < 3 * p.std
-        assert res.budget[name]["contributions"]["chain_resonance"] > 0
+        assert res.budget[name].stds["chain_resonance"] > 0
     assert not [c for c in res.checks if c.severity == "warning"]
 
 

@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from station.lab import audit, users
-from station.service.store import Store
+from station.lab.store import Store
 from tests.station_support import (
     ON_RIG_DONE,
     PASSWORDS,

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from station.lab import audit, chain
-from station.service.store import Store
+from station.lab.store import Store
 from tests.recording_support import flip_bit
 
 

@@ -38,8 +38,8 @@ def test_an_ideal_run_raises_no_redundancy_finding(tmp_path: Path) -> None:
     res = identify_recording(read_recording(simulate_run(_config({}), tmp_path, seed=5)))
     names = {c.name for c in res.checks}
     assert not names & {"displacement_vs_radius", "clock_skew", "model_misfit", "static_force_vs_weight"}, names
-    assert "crank radius u = 1e-07 m" in res.assumptions["unsupported_defaults"]
-    assert "measurement chain gain u = 0.0001 (relative)" in res.assumptions["unsupported_defaults"]
+    assert "crank radius u = 1e-07 m" in res.assumptions.unsupported_defaults
+    assert "measurement chain gain u = 0.0001 (relative)" in res.assumptions.unsupported_defaults
 
 
 @pytest.mark.slow

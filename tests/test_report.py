@@ -237,8 +237,8 @@ def test_pdf_report_is_the_html_and_cuts_no_budget_line(sim_recording: Path) -> 
     ident = load_run(sim_recording).ident
     assert ident.budget
     for name, b in ident.budget.items():
-        cells = [fmt_unc(v) if v is not None else "conditional" for v in b["contributions"].values()]
-        want = " ".join([name, *cells, fmt_unc(b["combined"]), b["unit"]])
+        cells = [fmt_unc(v) if v is not None else "conditional" for v in b.stds.values()]
+        want = " ".join([name, *cells, fmt_unc(b.combined), b.unit])
         assert want in lines, (want, [ln for ln in lines if ln.startswith(name + " ")])
     assert "combined" in text and "Uncertainty statement" in text
     images = sum(len(p.images) for p in reader.pages)

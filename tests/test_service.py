@@ -17,12 +17,12 @@ import pytest
 
 from station.config import parse_config
 from station.errors import ConfigError, LimitError
+from station.lab.store import RunRow, Store
 from station.limits import max_radius_m
 from station.recording import read_recording
 from station.run.request import RunRequest, StepSpec, plan_run
 from station.service.manager import RunManager, RunStateError
 from station.service.settings import build_settings
-from station.service.store import RunRow, Store
 from tests.station_support import Daemon, Seed, daemon_config
 
 

@@ -24,9 +24,9 @@ import pytest
 
 from drivers.sim import SimRigProcess
 from station.commands.connections import ConnectionBounds, RepeatFilter
+from station.lab.store import RunRow, Store
 from station.service.db import DbAccess
 from station.service.errors import DatabaseBusyError
-from station.service.store import RunRow, Store
 from tests.disk_support import fill_disk, mounted_tmpfs
 from tests.station_support import (
     FINAL,

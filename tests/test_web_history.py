@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from station.lab import policy
-from station.service.store import Store
+from station.lab.store import Store
 from tests.history_support import TX, add_runs, add_transducer
 from tests.station_support import Daemon
 from tests.web_support import open_page

@@ -19,12 +19,12 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from station.api.problems import NOT_LOGGED_IN, Refusal
 from station.lab import users
+from station.lab.store import RunRow, Store
 from station.lab.users import AuthError, Permission, Principal, Role, User
 from station.service.artifacts import Artifacts
 from station.service.manager import TOKEN_USER, RunManager, RunNotFoundError
 from station.service.runs import Runs
 from station.service.settings import ServiceSettings, is_loopback
-from station.service.store import RunRow, Store
 
 bearer = HTTPBearer(auto_error=False, description="an API token: the station's (service.token or STATION_TOKEN, "
                     "acting for the administrator 'admin') or one issued to a user (POST /users/{name}/tokens)")

@@ -11,14 +11,13 @@ from typing import Any, Literal, overload
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from station.lab.store import RunState
 from station.run.procedure import StepState
-from station.service.store import RunState
+from station.vocabulary import Flag, Method, Model, Severity
 
 # closed sets of values: enumerations in the OpenAPI document (checked against their sources in the tests)
-MethodName = Literal["fd", "oe", "pso", "pso+", "rls"]  # station.ident.names.METHODS
-ModelName = Literal["sdof", "coupled", "h1", "h2"]  # station.ident.names.MODELS
-Flag = Literal["", "poorly_determined", "conditional"]
-Severity = Literal["info", "warning", "refused"]
+MethodName = Method  # the domain's closed sets (station.ident.names), not re-declared here
+ModelName = Model
 EStopSource = Literal["page", "api", "controller", "drive"]
 ModelChoiceName = Literal["auto", "sdof", "coupled", "h1", "h2"]  # station.config.ModelChoice
 MethodStatus = Literal["pending", "running", "done", "refused", "failed"]  # station.run.methods.STATUSES
@@ -155,7 +154,7 @@ class EstimateOut(OutModel):
     unit: str
     identifiable: bool
     reason: str = ""
-    flag: Flag = Field(default="", description="poorly_determined, or conditional (on an assumption)")
+    flag: Flag = Field(default=Flag.NONE, description="poorly_determined, or conditional (on an assumption)")
 
 
 class ParameterOut(EstimateOut):

@@ -44,7 +44,8 @@ def identify_one(path: Path, method: str | None = None, model: str | None = None
         stored = store_result(path, res) if store else ""
         return BatchItem(Path(path), rec.run_id, rec.transducer_id, rec.start_time, "ok", res.method, res.model,
                          {n: p.to_dict() for n, p in res.parameters.items()}, "", time.perf_counter() - t0, stored,
-                         time.process_time() - c0, dict(res.assumptions.get("structure") or {}),
+                         time.process_time() - c0,
+                         {} if res.assumptions.structure is None else res.assumptions.structure.to_dict(),
                          [{"name": c.name, "severity": c.severity, "message": c.message}
                           for c in res.checks if c.severity != "info"])
     except Exception as exc:  # one bad recording must not stop the night's batch

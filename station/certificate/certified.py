@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from station.ident.result import Check, Covariance, Estimate, estimates_from_dict
+from station.ident.uncertainty import determined_to_dict
 from station.report.data import RunData
-from station.report.html import mass_std
 
 CAMPAIGN = "campaign"  # station.ident.campaign.identify.RESULT_NAME
 
@@ -86,6 +86,6 @@ def certified_of(d: RunData) -> Certified:
     if camp is not None:
         return camp
     i = d.ident
-    return Certified("run", i.method, i.model, d.ident_source, dict(i.parameters), dict(i.budget),
-                     dict(i.determined), dict(i.assumptions), tuple(i.checks), i.covariance, d.mass_kg,
-                     mass_std(i.assumptions))
+    return Certified("run", i.method, i.model, d.ident_source, dict(i.parameters), i.budget.to_dict(),
+                     determined_to_dict(i.determined), i.assumptions.to_dict(), tuple(i.checks), i.covariance,
+                     d.mass_kg, i.assumptions.mass_std_kg)

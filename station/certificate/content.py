@@ -30,6 +30,7 @@ from station.ident.inputs import DEFAULT_END_MASS_REL_STD
 from station.ident.models import make_model
 from station.ident.names import METHOD_DESCRIPTIONS
 from station.ident.result import Check, Covariance, Estimate
+from station.ident.uncertainty import ParameterBudget, UncertaintyBudget
 from station.lab.traceability import use_text
 from station.recording import start_metadata
 from station.report.data import ModelCurve, RunData, load_run
@@ -85,7 +86,7 @@ def _result(name: str, value: float | None, budget_entry: dict[str, Any] | None,
         return {**base, "value": None, "text": "not certified" if status == "not certified" else "withheld",
                 "u": None, "k": None, "p": None, "U": None, "nu_eff": None, "u_text": "", "U_text": "",
                 "k_text": "", "status": status if status in NOT_STATED else "withheld"}
-    c = coverage(budget_entry, k2=True)
+    c = coverage(ParameterBudget.from_dict(budget_entry), k2=True)
     text, U_text, u_text = value_and_uncertainties(value, c.U, c.u)
     return {**base, "value": value, "u": c.u, "k": c.k, "p": c.p, "U": c.U,
             "nu_eff": None if math.isinf(c.nu_eff) else c.nu_eff,
@@ -263,6 +264,7 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
     item = calibrated_item(cfg)
     values = {n: p.value for n, p in ident.parameters.items()}
     budget_item = item_budget(ident.budget, values, item)
+    typed_budget = UncertaintyBudget.from_dict(budget_item)
     structure = ident.assumptions.get("structure")
     st_struct = structure if isinstance(structure, dict) else None
     findings = warnings_of(ident.checks)
@@ -287,7 +289,7 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
     u_mag, u_ph = pts.u_magnitude, pts.u_phase_rad
     response = []
     for i, f in enumerate(pts.f_hz):
-        c_mag = coverage({"contributions": {"all": float(u_mag[i])}, "combined": float(u_mag[i])}, k2=True)
+        c_mag = coverage(ParameterBudget.of({"all": float(u_mag[i])}, float(u_mag[i]), ""), k2=True)
         mag_text, U_text = value_and_uncertainties(float(pts.magnitude[i]), c_mag.k * float(u_mag[i]))
         ph_deg, U_ph = math.degrees(float(pts.phase_rad[i])), math.degrees(c_mag.k * float(u_ph[i]))
         ph_text, U_ph_text = value_and_uncertainties(ph_deg, U_ph)
@@ -344,8 +346,8 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
         "response_unit": item.unit, "response_unit_text": unit_text(item.unit),
         "end_mass": end_mass_statement(ident, budget_item),
         "budget": {"sources": budget_sources, "rows": budget},
-        "coverage": {n: c.to_dict() for n, c in coverages(budget_item, k2=True).items()},
-        "statement": [typeset(x) for x in uncertainty_statement(budget_item, ident.assumptions, k2=True)],
+        "coverage": {n: c.to_dict() for n, c in coverages(typed_budget, k2=True).items()},
+        "statement": [typeset(x) for x in uncertainty_statement(typed_budget, ident.assumptions, k2=True)],
         "correlation": correlation(ident.covariance),
         "validity": valid,
         "bode_model": model_grid(d, ident, item, valid["f_min_hz"], valid["f_max_hz"]),

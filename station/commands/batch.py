@@ -125,7 +125,7 @@ def check_first(cfg: StationConfig, args: argparse.Namespace) -> tuple[list[dict
 
     from station.batch.check import check_runs
     from station.lab import history, policy
-    from station.service.store import Store
+    from station.lab.store import Store
 
     rec_dir = Path(cfg.station.recordings_dir).expanduser()
     db = Path(cfg.service.database).expanduser()

@@ -22,8 +22,8 @@ def format_text(res: CampaignResult) -> str:
             lines.append(f"  {name:4s} = {p.value:.7g} {p.unit}  (std {p.std:.2g})" + (f"  [{flag}]" if flag else ""))
             b = res.budget.get(name)
             if b:
-                lines.append("       budget: " + ", ".join(f"{k} {v:.2g}" for k, v in b["contributions"].items()
-                                                           if v is not None) + f"; combined {b['combined']:.2g}")
+                lines.append("       budget: " + ", ".join(f"{k} {v:.2g}" for k, v in b.stds.items()
+                                                           if v is not None) + f"; combined {b.combined:.2g}")
         else:
             lines.append(f"  {name:4s}   not given: {p.reason}")
     for r in res.recordings:
@@ -31,11 +31,9 @@ def format_text(res: CampaignResult) -> str:
                      f"{len(r.steps_used)} steps {r.f_range_hz[0]:.4g}-{r.f_range_hz[1]:.4g} Hz, "
                      f"chi2 {r.chi2:.3g} on {2 * len(r.steps_used)}")
     lines.append(f"  fit: chi2/dof {res.chi2_per_dof:.3g} ({res.chi2:.4g} on {res.dof})")
-    st = (res.assumptions or {}).get("structure")
-    if st:
-        from station.report.quantities import structure_sentence
+    from station.report.quantities import structure_sentence
 
-        lines.append(f"  structure: {structure_sentence(st)}")
+    lines.append(f"  structure: {structure_sentence(res.assumptions.structure.to_dict())}")
     lines += [f"  note: {n}" for n in res.notes]
     return "\n".join(lines)
 

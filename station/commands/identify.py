@@ -49,24 +49,24 @@ def format_text(res: IdentificationResult) -> str:
             if b:
                 lines.append("       budget: " + ", ".join(
                     f"{k} {v:.2g}" if v is not None else f"{k} (conditional)"
-                    for k, v in b["contributions"].items()) + f"; combined {b['combined']:.2g}")
+                    for k, v in b.stds.items()) + f"; combined {b.combined:.2g}")
         else:
             lines.append(f"  {name:4s}   not identifiable: {p.reason}")
-    em = (res.assumptions or {}).get("end_mass_kg")
-    if em:
-        lines.append(f"  end mass m_e = {em['value']:g} kg ({em['source']}"
-                     + (f", std {em['std']:.2g} kg)" if em.get("std") is not None else ", no uncertainty: "
+    em = res.assumptions.end_mass
+    if em is not None:
+        lines.append(f"  end mass m_e = {em.value:g} kg ({em.source}"
+                     + (f", std {em.std:.2g} kg)" if em.std is not None else ", no uncertainty: "
                         "S, k_f, b_f are conditional on it)"))
     from station.report.quantities import range_text, structure_sentence
 
-    st = (res.assumptions or {}).get("structure")
-    if st:
-        lines.append(f"  structure: {structure_sentence(st)}")
-    for k, d in (res.determined or {}).items():
-        if "range" in d:
-            lines.append(f"  determined: {k} in {range_text(d['range'])} {d['unit']}, {d['conditional_on']}")
+    st = res.assumptions.structure
+    if st is not None:
+        lines.append(f"  structure: {structure_sentence(st.to_dict())}")
+    for k, d in res.determined.items():
+        if d.range is not None:
+            lines.append(f"  determined: {k} in {range_text(d.range)} {d.unit}, {d.conditional_on}")
         else:
-            lines.append(f"  determined: {k} = {d['value']:.7g} {d['unit']} (std {d['combined']:.2g})")
+            lines.append(f"  determined: {k} = {d.value:.7g} {d.unit} (std {d.combined:.2g})")
     rms = ", ".join(f"{v:.3g}" for v in res.fit.residual_rms_V)
     lines.append(f"  fit: MSE {res.fit.mse:.4g} V^2, residual RMS per step [{rms}] V")
     if res.identifiability is not None:

@@ -89,8 +89,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def open_store(args: argparse.Namespace) -> Any:
+    from station.lab.store import Store
     from station.service.settings import load_settings
-    from station.service.store import Store
 
     settings = load_settings(args.config, sim=True)
     return Store(settings.database), settings

@@ -95,7 +95,7 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
 def _demo_users(settings: ServiceSettings) -> None:
     """The simulated station's technician and approver, with this start's passwords (logged once)."""
     from station.lab.demo import demo_users
-    from station.service.store import Store
+    from station.lab.store import Store
 
     store = Store(settings.database)
     try:

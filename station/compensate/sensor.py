@@ -175,10 +175,11 @@ def from_result(res: IdentificationResult, mounted_mass_kg: float, mounted_mass_
     cov_core[np.ix_(known, known)] = res.covariance.array[np.ix_([idx[i] for i in known], [idx[i] for i in known])]
     theta_core = np.array([fixed[n] if n in fixed else float(res.parameters[n].value)  # type: ignore[arg-type]
                            for n in core])
-    em = (res.assumptions or {}).get("end_mass_kg") or {}
-    m_e = float(res.extra.get("m_e_kg", em.get("value", 0.0)))
-    m_l_cal = float(res.extra.get("m_l_kg", (res.assumptions or {}).get("load_mass_kg", {}).get("value", 0.0)))
-    u_me = em.get("std")
+    em, lm = res.assumptions.end_mass, res.assumptions.load_mass
+    m_e = float(res.extra.get("m_e_kg", 0.0 if em is None else em.value or 0.0))
+    m_l_cal = float(res.extra.get("m_l_kg", 0.0 if lm is None else lm.value or 0.0))
+    u_me = None if em is None else em.std
+    em_source = em.source if em is not None and em.source else ""
     n = len(core)
     cov = np.zeros((n + 2, n + 2))
     cov[:n, :n] = cov_core
@@ -187,10 +188,10 @@ def from_result(res: IdentificationResult, mounted_mass_kg: float, mounted_mass_
         g = np.array([-theta_core[0], theta_core[1], theta_core[2]]) / (m_e + m_l_cal)
         cov[:n, n] = cov[n, :n] = g * u_me**2
         cov[n, n] = u_me**2
-        me_note = (f"end mass m_e = {m_e:g} kg (std {u_me:.2g} kg, {em.get('source', 'stated')}), correlated "
+        me_note = (f"end mass m_e = {m_e:g} kg (std {u_me:.2g} kg, {em_source or 'stated'}), correlated "
                    "with S, k_f, b_f as the calibration's S M, k_f/M, b_f/M fix them")
     else:
-        me_note = (f"end mass m_e = {m_e:g} kg taken as exact ({em.get('source', 'assumed')}): the filter is "
+        me_note = (f"end mass m_e = {m_e:g} kg taken as exact ({em_source or 'assumed'}): the filter is "
                    "conditional on it")
         findings.append(Check("end_mass_conditional", "warning", None, me_note, {"m_e_kg": m_e}))
     cov[n + 1, n + 1] = mounted_mass_std_kg**2

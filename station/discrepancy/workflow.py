@@ -458,7 +458,7 @@ def _identify(rec: Recording) -> tuple[dict[str, Estimate], dict[str, Any]] | st
                                  float(q.std) if ok and q.std is not None else math.nan, q.unit, ok, q.reason)
     if len(out) != 3:
         return "identify gave no S, k_f and b_f"
-    return out, dict(res.budget or {})
+    return out, res.budget.to_dict()
 
 
 def gap_table(rep: DiscrepancyResult) -> list[tuple[str, list[float]]]:

@@ -2,9 +2,8 @@
 
 GUM G.4: nu_eff = u_c^4 / sum_i (u_i^4 / nu_i) over the sources (Welch-Satterthwaite), the Type B
 sources and a noise term resting on many samples with nu_i infinite; k is the t-distribution's
-(1 + p)/2 quantile at nu_eff (the normal one for infinite nu_eff), U = k u_c.  A budget entry is the
-stored form ``{"contributions": {source: u | None}, "combined": u_c, "unit": ..., "dof": {source:
-nu}}`` (``station.ident.fd.budget.Budget.to_dict``); sources missing from ``dof`` are infinite.
+(1 + p)/2 quantile at nu_eff (the normal one for infinite nu_eff), U = k u_c.  A budget entry is a
+``station.ident.uncertainty.ParameterBudget`` (its stored form read back by ``ParameterBudget.from_dict``).
 """
 
 from __future__ import annotations
@@ -12,9 +11,10 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 from scipy import stats
+
+from station.ident.uncertainty import ParameterBudget
 
 COVERAGE_PROBABILITY = 0.95
 K2_PROBABILITY = 0.9545  # the normal distribution's coverage probability of k = 2 (GUM G.1.3)
@@ -34,7 +34,7 @@ class Coverage:
     def U(self) -> float:
         return self.k * self.u
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"u": self.u, "nu_eff": None if math.isinf(self.nu_eff) else self.nu_eff, "k": self.k, "p": self.p,
                 "U": self.U}
 
@@ -56,18 +56,19 @@ def effective_dof(contributions: Mapping[str, float | None], dof: Mapping[str, f
     return uc2 * uc2 / denom
 
 
-def coverage(entry: Mapping[str, Any], p: float = COVERAGE_PROBABILITY, *, k2: bool = False) -> Coverage:
+def coverage(entry: ParameterBudget, p: float = COVERAGE_PROBABILITY, *, k2: bool = False) -> Coverage:
     """The Coverage of one budget entry (module docstring).  k2: the calibration certificate's
     convention (EA-4/02): k = 2 for a coverage probability of about 95.45 %, unless nu_eff is so
     small that the t-quantile exceeds 2 by more than its rounding (then that k, nu_eff stated)."""
-    nu = effective_dof(entry.get("contributions") or {}, entry.get("dof"))
+    nu = effective_dof(entry.stds, entry.dof)
     if k2:
         k = coverage_factor(nu, K2_PROBABILITY)
-        return Coverage(float(entry["combined"]), nu, 2.0 if k < 2.005 else k, K2_PROBABILITY)
-    return Coverage(float(entry["combined"]), nu, coverage_factor(nu, p), p)
+        return Coverage(entry.combined, nu, 2.0 if k < 2.005 else k, K2_PROBABILITY)
+    return Coverage(entry.combined, nu, coverage_factor(nu, p), p)
 
 
-def coverages(budget: Mapping[str, Mapping[str, Any]], p: float = COVERAGE_PROBABILITY, *,
+def coverages(budget: Mapping[str, ParameterBudget], p: float = COVERAGE_PROBABILITY, *,
               k2: bool = False) -> dict[str, Coverage]:
-    """Coverage per parameter of a stored budget (k2: ``coverage``'s certificate convention)."""
-    return {n: coverage(b, p, k2=k2) for n, b in budget.items() if b.get("combined") is not None}
+    """Coverage per parameter of a budget (k2: ``coverage``'s certificate convention); parameters
+    without a finite combined uncertainty are left out."""
+    return {n: coverage(b, p, k2=k2) for n, b in budget.items() if math.isfinite(b.combined)}

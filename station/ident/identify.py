@@ -12,6 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from station.errors import BadInputError
+from station.ident.assumptions import Assumptions
 from station.ident.fd.identify import identify_fd
 from station.ident.identifiability import Policy
 from station.ident.inputs import IdentInputs, inputs_for, model_for
@@ -22,6 +23,7 @@ from station.ident.paper.rls_uncertainty import RLS_BUDGET_NOTE, rls_assumptions
 from station.ident.response.checked import CheckedResponse, checked_response
 from station.ident.result import IdentificationResult
 from station.ident.structure import structure_statement
+from station.ident.uncertainty import ParameterBudget, UncertaintyBudget
 from station.recording import Recording, write_result
 
 DEFAULT_POLICY = Policy()
@@ -69,16 +71,17 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     res = identify_paper_method(checked, method, form, model_for(rec, form, inputs), seed=seed,
                                 protocol=protocol, policy=policy, swarm=swarm)
     statement = structure_statement(form, form == "h2", inputs)
-    statement["displacement_chain"]["note"] = (  # the swarm runs on the raw samples of one step
-        "the paper's methods take the displacement samples as recorded: no chain correction is applied")
+    statement = replace(statement, displacement_chain={  # the swarm runs on the raw samples of one step
+        **statement.displacement_chain,
+        "note": "the paper's methods take the displacement samples as recorded: no chain correction is applied"})
     terms = res.extra.get("budget_terms") or {}
-    budget = {n: {"contributions": terms.get(n) or {"noise": p.std}, "combined": p.std, "unit": p.unit}
-              for n, p in res.parameters.items() if p.identifiable and p.std is not None}
+    budget = UncertaintyBudget({n: ParameterBudget.of(terms.get(n) or {"noise": p.std}, p.std, p.unit)
+                                for n, p in res.parameters.items() if p.identifiable and p.std is not None})
     notes = (*res.notes, RLS_BUDGET_NOTE if method == "rls" else
              "budget: the noise of the step's steady-state gain and phase only (the swarm states no "
              "uncertainty of the parameters one frequency leaves undetermined, so a parameter whose "
              "uncertainty rests on them is withheld); the paper's methods state no systematic terms")
-    extra_assumptions = {"rls_uncertainty": rls_assumptions()} if method == "rls" else {}
-    return replace(res, assumptions={**inputs.to_dict(), "structure": statement, **extra_assumptions},
+    rls = rls_assumptions() if method == "rls" else None
+    return replace(res, assumptions=Assumptions.of(inputs, statement, rls),
                    checks=tuple(cr.checks),
                    budget=budget, notes=notes)

@@ -40,7 +40,7 @@ class MassInput:
     std: float | None
     source: str
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, float | str | None]:
         return {"value": self.value, "std": self.std, "source": self.source}
 
 
@@ -63,14 +63,6 @@ class IdentInputs:
     @property
     def m_l(self) -> float:
         return float(self.load_mass.value or 0.0)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The ``assumptions`` of the result JSON."""
-        return {"end_mass_kg": self.end_mass.to_dict(), "load_mass_kg": self.load_mass.to_dict(),
-                "measurement_chain": self.chain.model_dump(),
-                "displacement_chain": self.chain.displacement_statement(),
-                "crank_radius_std_m": self.crank_radius_std_m,
-                "unsupported_defaults": list(self.defaults)}
 
 
 def _num(d: Any, *keys: str) -> float | None:

@@ -63,7 +63,7 @@ class McParameter:
         """GUM S1 8.2: both ends of y +- k u within delta of the Monte Carlo interval's."""
         return self.d_low <= self.delta and self.d_high <= self.delta
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"name": self.name, "unit": self.unit, "y": self.y, "u_linear": self.u_linear, "k": self.k,
                 "mean": self.mean, "u_mc": self.u_mc, "interval": [self.low, self.high], "d_low": self.d_low,
                 "d_high": self.d_high, "delta": self.delta, "agrees": self.agrees}
@@ -80,7 +80,7 @@ class MonteCarloCheck:
     def agrees(self) -> bool:
         return all(p.agrees for p in self.parameters)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"trials": self.trials, "seed": self.seed, "sources": list(self.sources),
                 "parameters": [p.to_dict() for p in self.parameters], "agrees": self.agrees}
 
@@ -164,9 +164,9 @@ def check_result(rec: Any, result: Any, *, frf: FrequencyResponse | None = None,
     cov = coverages(result.budget, p)
     u = np.array([cov[n].u if n in cov else np.nan for n in names])
     k = np.array([cov[n].k if n in cov else np.nan for n in names])
-    contrib = [b.get("contributions") or {} for b in result.budget.values()]
+    contrib = [b.stds for b in result.budget.values()]
     sources = tuple(s for s in contrib[0] if any((c.get(s) or 0.0) > 0 for c in contrib))
-    dof = next((b["dof"]["noise"] for b in result.budget.values() if (b.get("dof") or {}).get("noise")), None)
+    dof = next((b.dof["noise"] for b in result.budget.values() if b.dof.get("noise")), None)
     scale = float(result.fit.chi2_per_dof) if dof else 1.0
     return monte_carlo(result.model, theta, frf, free, inputs, names=names, units=units, u_linear=u, k=k,
                        sources=sources, noise_scale=scale, noise_dof=dof, trials=trials, seed=seed)

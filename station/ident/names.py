@@ -1,11 +1,15 @@
-"""The identification methods and models by name, in a module without imports so that the CLI's
+"""The identification methods and models by name, in a module importing nothing heavy so that the CLI's
 parser can offer them as choices without loading the estimators.
 
 ``METHOD_REGISTRY`` is the one list of the methods: name, description (the report's and the
 certificate's words), whether it is a particle swarm (the report plots its convergence), in the
-report's order of preference; ``identify.py`` dispatches each name to its estimator."""
+report's order of preference; ``identify.py`` dispatches each name to its estimator.
+
+The names themselves are ``station.vocabulary.Method`` and ``Model``."""
 
 from typing import NamedTuple
+
+from station.vocabulary import Method, Model
 
 
 class MethodEntry(NamedTuple):
@@ -23,8 +27,8 @@ METHOD_REGISTRY: tuple[MethodEntry, ...] = (
     MethodEntry("pso", "the paper's particle swarm, PSO (Eq. 12–15), on one step cut as in Section 5.1", True),
     MethodEntry("rls", "the paper's recursive least squares (Eq. 17) on one step cut as in Section 5.1", False),
 )
-METHODS: tuple[str, ...] = ("fd", "oe", "pso", "pso+", "rls")  # the CLI's and the API's order
+METHODS: tuple[str, ...] = tuple(m.value for m in Method)  # the CLI's and the API's order
 METHOD_PREFERENCE: tuple[str, ...] = tuple(m.name for m in METHOD_REGISTRY)  # the report shows the first stored
 SWARM_METHODS: tuple[str, ...] = tuple(m.name for m in METHOD_REGISTRY if m.swarm)
 METHOD_DESCRIPTIONS: dict[str, str] = {m.name: m.description for m in METHOD_REGISTRY}
-MODELS: tuple[str, ...] = ("sdof", "coupled", "h1", "h2")
+MODELS: tuple[str, ...] = tuple(m.value for m in Model)

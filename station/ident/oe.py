@@ -31,6 +31,7 @@ from station.ident.models import Model, SdofModel
 from station.ident.response import frf as frfmod
 from station.ident.response.checked import StepSignal, checked_response
 from station.ident.result import FitSummary, IdentificationResult, estimated_covariance, estimates
+from station.ident.uncertainty import ParameterBudget, UncertaintyBudget
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -138,7 +139,7 @@ def identify_oe(rec: Recording, model_key: str = "sdof", policy: Policy | None =
     reasons = rep.reasons[: len(ident)] if rep else ("",) * len(ident)
     params = estimates(model.names, model.units, fit.theta, fit.cov, ident, reasons)
     covariance = estimated_covariance(params, model.names, fit.cov)  # correlations of the OE fit
-    budget = {}
+    budget: dict[str, ParameterBudget] = {}
     for name, p in params.items():  # OE's own noise term, the systematic terms of the FD budget
         b = fd.budget.get(name)
         if p.identifiable and name in fd.parameters and not fd.parameter(name).identifiable:
@@ -146,9 +147,8 @@ def identify_oe(rec: Recording, model_key: str = "sdof", policy: Policy | None =
             continue
         if b is None or not p.identifiable or p.std is None:
             continue
-        c = {**b["contributions"], "noise": p.std}
-        comb = float(np.sqrt(sum(v * v for v in c.values() if v is not None)))
-        budget[name] = {**b, "contributions": c, "combined": comb}
+        budget[name] = b.with_contribution("noise", p.std)
+        comb = budget[name].combined
         fdp = fd.parameter(name)
         params[name] = replace(p, std=comb, flag=fdp.flag, reason=fdp.reason if fdp.flag else p.reason)
     if covariance is not None:  # the same correlations at the combined standard uncertainties
@@ -159,5 +159,6 @@ def identify_oe(rec: Recording, model_key: str = "sdof", policy: Policy | None =
     summary = FitSummary(fit.mse, tuple(float(v) for v in fit.residual_rms_V), float("nan"),
                          int(sum(s.t.size for s in sigs)))
     return IdentificationResult("oe", fd.model, params, summary, rep, tuple(notes),
-                                {"offsets_V": fit.offsets_V.tolist()}, fd.checks, budget, fd.assumptions,
+                                {"offsets_V": fit.offsets_V.tolist()}, fd.checks,
+                                UncertaintyBudget(budget), fd.assumptions,
                                 fd.determined, covariance)

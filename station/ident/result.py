@@ -10,7 +10,6 @@ uncertainties.  ``IdentificationResult.to_dict`` is what is stored beside a reco
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -18,16 +17,17 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-
-def _finite_or_none(x: float | None) -> float | None:
-    if x is None or not math.isfinite(x):
-        return None
-    return float(x)
-
-
-def _float(x: Any) -> float:
-    """A stored number back as a float (JSON null is NaN)."""
-    return math.nan if x is None else float(x)
+from station.ident.assumptions import Assumptions
+from station.ident.uncertainty import (
+    Covariance,
+    DeterminedQuantity,
+    UncertaintyBudget,
+    determined_from_dict,
+    determined_to_dict,
+    finite_or_none,
+    float_or_nan,
+)
+from station.vocabulary import Flag
 
 
 @dataclass(frozen=True)
@@ -43,24 +43,24 @@ class Estimate:
     unit: str
     identifiable: bool = True
     reason: str = ""
-    flag: str = ""
+    flag: Flag = Flag.NONE
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Estimate:
         v, s = d.get("value"), d.get("std")
         return cls(None if v is None else float(v), None if s is None else float(s), str(d.get("unit", "")),
-                   bool(d.get("identifiable", True)), str(d.get("reason") or ""), str(d.get("flag") or ""))
+                   bool(d.get("identifiable", True)), str(d.get("reason") or ""), Flag(str(d.get("flag") or "")))
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         if not self.identifiable:
             return {"value": None, "std": None, "unit": self.unit, "identifiable": False,
                     "reason": self.reason}
-        out: dict[str, Any] = {"value": _finite_or_none(self.value), "std": _finite_or_none(self.std),
+        out: dict[str, object] = {"value": finite_or_none(self.value), "std": finite_or_none(self.std),
                                "unit": self.unit, "identifiable": True}
         if self.reason:
             out["reason"] = self.reason
         if self.flag:
-            out["flag"] = self.flag
+            out["flag"] = str(self.flag)
         return out
 
 
@@ -80,8 +80,8 @@ class Check:
     message: str
     values: dict[str, Any] = field(default_factory=dict)
 
-    def to_dict(self) -> dict[str, Any]:
-        vals = {k: (_finite_or_none(v) if isinstance(v, float) else v) for k, v in self.values.items()}
+    def to_dict(self) -> dict[str, object]:
+        vals = {k: (finite_or_none(v) if isinstance(v, float) else v) for k, v in self.values.items()}
         return {"name": self.name, "severity": self.severity, "step": self.step, "message": self.message,
                 "values": vals}
 
@@ -90,39 +90,6 @@ class Check:
         step = d.get("step")
         return cls(str(d["name"]), str(d["severity"]), None if step is None else int(step), str(d.get("message", "")),
                    dict(d.get("values") or {}))
-
-
-@dataclass(frozen=True)
-class Covariance:
-    """Covariance of estimated parameters: ``names`` and ``units`` (SI) in matrix order, ``matrix``
-    (n, n) as nested tuples in the product of the units (e.g. (N/m)^2 on the diagonal of k_f)."""
-
-    names: tuple[str, ...]
-    units: tuple[str, ...]
-    matrix: tuple[tuple[float, ...], ...]
-
-    @classmethod
-    def of(cls, names: Sequence[str], units: Sequence[str], matrix: NDArray[np.float64]) -> Covariance:
-        m = np.asarray(matrix, dtype=float)
-        if m.shape != (len(names), len(names)) or len(units) != len(names):
-            raise ValueError(f"covariance {m.shape} does not match {len(names)} names and {len(units)} units")
-        return cls(tuple(names), tuple(units), tuple(tuple(float(c) for c in row) for row in m))
-
-    @property
-    def array(self) -> NDArray[np.float64]:
-        return np.array(self.matrix, dtype=float).reshape(len(self.names), len(self.names))
-
-    def std(self, name: str) -> float:
-        i = self.names.index(name)
-        return math.sqrt(max(self.matrix[i][i], 0.0))
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"names": list(self.names), "units": list(self.units),
-                "matrix": [[_finite_or_none(c) for c in row] for row in self.matrix]}
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> Covariance:
-        return cls(tuple(d["names"]), tuple(d["units"]), tuple(tuple(_float(c) for c in row) for row in d["matrix"]))
 
 
 @dataclass(frozen=True)
@@ -139,15 +106,15 @@ class FitSummary:
     chi2_per_dof: float = float("nan")
     n_points: int = 0
 
-    def to_dict(self) -> dict[str, Any]:
-        return {"mse": _finite_or_none(self.mse),
-                "residual_rms_V": [_finite_or_none(v) for v in self.residual_rms_V],
-                "chi2_per_dof": _finite_or_none(self.chi2_per_dof), "n_points": self.n_points}
+    def to_dict(self) -> dict[str, object]:
+        return {"mse": finite_or_none(self.mse),
+                "residual_rms_V": [finite_or_none(v) for v in self.residual_rms_V],
+                "chi2_per_dof": finite_or_none(self.chi2_per_dof), "n_points": self.n_points}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> FitSummary:
-        return cls(_float(d.get("mse")), tuple(_float(v) for v in d.get("residual_rms_V") or ()),
-                   _float(d.get("chi2_per_dof")), int(d.get("n_points") or 0))
+        return cls(float_or_nan(d.get("mse")), tuple(float_or_nan(v) for v in d.get("residual_rms_V") or ()),
+                   float_or_nan(d.get("chi2_per_dof")), int(d.get("n_points") or 0))
 
 
 @dataclass(frozen=True)
@@ -167,15 +134,15 @@ class Identifiability:
     identifiable: tuple[bool, ...]
     reasons: tuple[str, ...]
 
-    def to_dict(self) -> dict[str, Any]:
-        return {"names": list(self.names), "condition_number": _finite_or_none(self.condition_number),
-                "correlations": [[_finite_or_none(c) for c in row] for row in self.correlations],
+    def to_dict(self) -> dict[str, object]:
+        return {"names": list(self.names), "condition_number": finite_or_none(self.condition_number),
+                "correlations": [[finite_or_none(c) for c in row] for row in self.correlations],
                 "identifiable": list(self.identifiable), "reasons": list(self.reasons)}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Identifiability:
-        return cls(tuple(d["names"]), _float(d.get("condition_number")),
-                   tuple(tuple(_float(c) for c in row) for row in d.get("correlations") or ()),
+        return cls(tuple(d["names"]), float_or_nan(d.get("condition_number")),
+                   tuple(tuple(float_or_nan(c) for c in row) for row in d.get("correlations") or ()),
                    tuple(bool(v) for v in d["identifiable"]), tuple(str(r) for r in d["reasons"]))
 
 
@@ -194,9 +161,9 @@ class IdentificationResult:
     notes: tuple[str, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict)
     checks: tuple[Check, ...] = ()
-    budget: dict[str, Any] = field(default_factory=dict)
-    assumptions: dict[str, Any] = field(default_factory=dict)
-    determined: dict[str, Any] = field(default_factory=dict)
+    budget: UncertaintyBudget = field(default_factory=UncertaintyBudget)
+    assumptions: Assumptions = field(default_factory=Assumptions)
+    determined: dict[str, DeterminedQuantity] = field(default_factory=dict)
     covariance: Covariance | None = None
 
     @property
@@ -207,27 +174,30 @@ class IdentificationResult:
     def parameter(self, name: str) -> Estimate:
         return self.parameters[name]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"method": self.method, "model": self.model,
                 "parameters": {n: p.to_dict() for n, p in self.parameters.items()},
                 "fit": self.fit.to_dict(),
                 "identifiability": None if self.identifiability is None else self.identifiability.to_dict(),
                 "notes": list(self.notes), "extra": self.extra,
-                "checks": [c.to_dict() for c in self.checks], "budget": self.budget,
-                "assumptions": self.assumptions, "determined": self.determined,
+                "checks": [c.to_dict() for c in self.checks], "budget": self.budget.to_dict(),
+                "budget_covariances": self.budget.covariances_to_dict(),
+                "assumptions": self.assumptions.to_dict(), "determined": determined_to_dict(self.determined),
                 "covariance": None if self.covariance is None else self.covariance.to_dict()}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> IdentificationResult:
         """Read back what ``to_dict`` gave (e.g. a stored result).  Results stored before the
-        covariance was kept have ``covariance`` None."""
+        covariance was kept have ``covariance`` None, those stored before the budget's per-source
+        covariances were kept have none."""
         ident, cov = d.get("identifiability"), d.get("covariance")
         return cls(str(d["method"]), str(d["model"]),
                    {n: Estimate.from_dict(p) for n, p in (d.get("parameters") or {}).items()},
                    FitSummary.from_dict(d.get("fit") or {}),
                    None if ident is None else Identifiability.from_dict(ident), tuple(d.get("notes") or ()),
                    dict(d.get("extra") or {}), tuple(Check.from_dict(c) for c in d.get("checks") or ()),
-                   dict(d.get("budget") or {}), dict(d.get("assumptions") or {}), dict(d.get("determined") or {}),
+                   UncertaintyBudget.from_dict(d.get("budget"), d.get("budget_covariances")),
+                   Assumptions.from_dict(d.get("assumptions")), determined_from_dict(d.get("determined")),
                    None if cov is None else Covariance.from_dict(cov))
 
 

@@ -24,7 +24,7 @@ H(f) by H_s; ``fd.budget.resonance_vectors`` give the budget's ``chain_resonance
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,10 +33,13 @@ from scipy.stats import ncx2
 
 from drivers.rig.params import DisplacementResonance
 from station.config import MeasurementChain
+from station.ident.assumptions import CouplingStatement, StructureStatement
 from station.ident.inputs import IdentInputs
 from station.ident.models import CoupledModel, SdofModel, make_model
 from station.ident.response import frf as frfmod
 from station.ident.result import Check, Estimate
+from station.ident.uncertainty import DeterminedQuantity
+from station.vocabulary import Flag
 
 if TYPE_CHECKING:
     from station.ident.fd.budget import Budget
@@ -88,7 +91,7 @@ class CouplingBound:
     lambda_needed: float
     threshold_chi2: float
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"k_c_lower_bound_N_per_m": None if self.k_c_min is None else float(self.k_c_min),
                 "k_c_lower_bound_over_k_s": None if self.k_c_min is None else self.k_c_min / self.k_s,
                 "k_f_alone_range_N_per_m": [self.k_s, self.k_f_high],
@@ -208,20 +211,14 @@ def coupling_suspected(frf: frfmod.FrequencyResponse, sdof_chi2: float, sdof_dof
 
 
 def structure_statement(model_key: str, stiff: bool, inputs: IdentInputs, bound: CouplingBound | None = None,
-                        suspected: bool = False) -> dict[str, Any]:
+                        suspected: bool = False) -> StructureStatement:
     """The ``structure`` entry of a result's assumptions: which model it rests on (stiff: the values
     are Eq. 9's, also when the coupled model was asked for and k_c is held in the stiff limit)."""
     coupled = not stiff
-    out: dict[str, Any] = {"model": COUPLED if coupled else STIFF, "equation": "Eq. 8" if coupled else "Eq. 9",
-                           "displacement_chain": inputs.chain.displacement_statement()}
-    if not coupled:
-        c: dict[str, Any] = {"assumed": "stiff", "data_determine": "the series stiffness 1/(1/k_f + 1/k_c)"}
-        if bound is not None:
-            c.update(bound.to_dict())
-        if suspected:
-            c["contradicted_by_the_data"] = True
-        out["coupling"] = c
-    return out
+    coupling = None if coupled else CouplingStatement("the series stiffness 1/(1/k_f + 1/k_c)",
+                                                      {} if bound is None else bound.to_dict(), suspected)
+    return StructureStatement(COUPLED if coupled else STIFF, "Eq. 8" if coupled else "Eq. 9",
+                              inputs.chain.displacement_statement(), coupling)
 
 
 @dataclass(frozen=True)
@@ -231,12 +228,12 @@ class StructureOutcome:
 
     parameters: dict[str, Estimate]
     checks: tuple[Check, ...]
-    determined: dict[str, Any]
-    statement: dict[str, Any]
+    determined: dict[str, DeterminedQuantity]
+    statement: StructureStatement
 
 
 def _conditional(p: Estimate, text: str) -> Estimate:
-    return replace(p, flag=p.flag or "conditional", reason=(p.reason + "; " if p.reason else "") + text)
+    return replace(p, flag=p.flag or Flag.CONDITIONAL, reason=(p.reason + "; " if p.reason else "") + text)
 
 
 def state_stiff(params: dict[str, Estimate], k_range: tuple[float, float | None] | None,
@@ -275,7 +272,7 @@ def apply_structure(model_key: str, stiff: bool, params: dict[str, Estimate], th
     stiff limit); theta: the fitted parameters (Eq. 9's three first); budget: their GUM budget."""
     out = dict(params)
     checks: list[Check] = []
-    determined: dict[str, Any] = {}
+    determined: dict[str, DeterminedQuantity] = {}
     kf = out["k_f"]
     if not (budget.free[1] and kf.identifiable):
         return StructureOutcome(out, (), {}, structure_statement(model_key, stiff, inputs))
@@ -286,10 +283,10 @@ def apply_structure(model_key: str, stiff: bool, params: dict[str, Estimate], th
     else:
         k_s, _ = series_stiffness("coupled", theta, budget.cov)
         grad[1], grad[3] = (k_s / theta[1]) ** 2, (k_s / theta[3]) ** 2
-    determined["series_stiffness"] = {
-        "value": k_s, **budget.std_of(grad), "unit": "N/m",
-        "note": "1/k_s = 1/k_f + 1/k_c: what the data determine below the coupling's own signature, "
-                + ("whatever the coupling" if stiff else "from the coupled fit")}
+    determined["series_stiffness"] = DeterminedQuantity(
+        k_s, "N/m", budget.budget_of(grad, "N/m"),
+        note="1/k_s = 1/k_f + 1/k_c: what the data determine below the coupling's own signature, "
+             + ("whatever the coupling" if stiff else "from the coupled fit"))
     bound = coupling_bound(frf, sdof, np.asarray(theta[:3], float), birge) if stiff else None
     if stiff and suspected is not None:
         checks.append(suspected)
@@ -315,10 +312,9 @@ def apply_structure(model_key: str, stiff: bool, params: dict[str, Estimate], th
             rng = (f"this plan cannot tell a coupling k_c >= {bound.k_c_min:.3g} N/m ({bound.k_c_min / k_s:.3g} k_s) "
                    f"from a stiff one, so k_f alone lies in [{k_s:.6g}, {k_hi:.6g}] N/m "
                    f"(+{100 * (k_hi / k_s - 1):.2g} %)")
-        determined["transducer_stiffness_alone"] = {
-            "value": None, "range": [k_s, k_hi], "unit": "N/m",
-            "k_c_lower_bound_N_per_m": bound.k_c_min,
-            "conditional_on": "a stiff coupling (k_c -> inf): " + rng}
+        determined["transducer_stiffness_alone"] = DeterminedQuantity(
+            None, "N/m", range=(k_s, k_hi), bounds={"k_c_lower_bound_N_per_m": bound.k_c_min},
+            conditional_on="a stiff coupling (k_c -> inf): " + rng)
         text = ("conditional on a stiff coupling (Eq. 9): the data determine the series stiffness of transducer "
                 "and coupling; " + rng)
         width = np.inf if k_hi is None else k_hi - k_s

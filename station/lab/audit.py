@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from station.lab import chain
-from station.service.store import Store
+from station.lab.store import Store
 
 SYSTEM = "system"  # the daemon itself (start-up seeding, identification); "" never appears
 

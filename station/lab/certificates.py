@@ -25,7 +25,7 @@ from typing import Any
 
 from station.lab import audit, users
 from station.lab.issued import FOLDER, CertificateError, CertificateNotFoundError
-from station.service.store import Store
+from station.lab.store import Store
 
 FILE_EXTS = ("html", "pdf", "xml", "json", "sig")
 

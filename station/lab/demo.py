@@ -10,7 +10,7 @@ import secrets
 from dataclasses import dataclass
 
 from station.lab import users
-from station.service.store import Store
+from station.lab.store import Store
 
 DEMO_BY = "station serve --sim"  # who the audit trail says made them
 DEMO_USERS: tuple[tuple[str, users.Role], ...] = (("technician", users.Role.TECHNICIAN),

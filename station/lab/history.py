@@ -12,8 +12,8 @@ from typing import Any
 from station.batch.summary import PARAMS, drift_checks
 from station.lab import audit, trends
 from station.lab.policy import AsLeft, Policy
+from station.lab.store import RunRow, Store
 from station.recording.stored import read_result
-from station.service.store import RunRow, Store
 
 PARAM_NAMES = tuple(name for name, _ in PARAMS)
 

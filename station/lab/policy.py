@@ -23,7 +23,7 @@ from typing import Any
 from station.lab import audit, chain
 from station.lab.integrity import RecordingTamperedError
 from station.lab.register import RegisterError
-from station.service.store import Store
+from station.lab.store import Store
 
 POLICY_CHANGED = "register.policy_changed"
 AS_LEFT_RECORDED = "calibration.as_left"

@@ -18,8 +18,8 @@ from typing import Any
 from station.config import StandardConfig, StationConfig, TransducerConfig
 from station.errors import StationError
 from station.lab import audit
+from station.lab.store import Store
 from station.lab.traceability import with_standards
-from station.service.store import Store
 
 MOUNTED_KEY = "mounted_transducer"
 

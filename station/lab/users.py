@@ -23,7 +23,7 @@ from typing import Any
 
 from station.errors import StationError
 from station.lab import audit
-from station.service.store import Store
+from station.lab.store import Store
 
 SCRYPT_N, SCRYPT_R, SCRYPT_P = 2**14, 8, 1  # 16 MiB, ~50 ms per check on this machine's class
 MIN_PASSWORD = 10

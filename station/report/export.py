@@ -44,14 +44,13 @@ def _num(x: float | None) -> float | None:
 
 def result_tables(path: str | Path) -> ResultTables:
     """The tables of the recording at ``path`` (RecordingFormatError when it has no results)."""
-    from station.report.html import mass_std
 
     d: RunData = load_run(path)
     ident = d.ident
     params = tuple((name, MEANING.get(name, name), _num(p.value), _num(p.std), p.unit, "yes" if p.identifiable
                     else "no", p.flag, p.reason) for name, p in ident.parameters.items())
     r = d.response
-    mag, u_mag, ph, u_ph = measured_sensitivity(r.H, r.cov, d.mass_kg, mass_std(ident.assumptions))
+    mag, u_mag, ph, u_ph = measured_sensitivity(r.H, r.cov, d.mass_kg, ident.assumptions.mass_std_kg)
     sdyn = tuple((r.step_index[i] + 1, float(f), _num(float(mag[i])), _num(float(u_mag[i])),
                   _num(COVERAGE_K * float(u_mag[i])), _num(math.degrees(float(ph[i]))),
                   _num(math.degrees(float(u_ph[i]))), _num(math.degrees(COVERAGE_K * float(u_ph[i]))))

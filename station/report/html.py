@@ -100,21 +100,20 @@ def _model(d: RunData) -> str:
                     f"χ²/dof {fmt_unc(fit.chi2_per_dof)}, {fit.n_points or '?'} points"],
             ["condition number", fmt_unc(None if ident.identifiability is None
                                          else ident.identifiability.condition_number)]]
-    for name, a in ident.assumptions.items():
-        if isinstance(a, dict) and "source" in a:
-            rows.append([esc(name), f"{a.get('value')} ({esc(a['source'])}"
-                         + (f", u = {fmt_unc(a['std'])})" if a.get("std") is not None
+    for name, a in (("end_mass_kg", ident.assumptions.end_mass), ("load_mass_kg", ident.assumptions.load_mass)):
+        if a is not None:
+            rows.append([esc(name), f"{a.value} ({esc(a.source)}"
+                         + (f", u = {fmt_unc(a.std)})" if a.std is not None
                             else "; no uncertainty: the results are conditional on it)")])
-    st = ident.assumptions.get("structure")
-    if st:
-        rows.append(["model structure", esc(structure_sentence(st))])
+    st = ident.assumptions.structure
+    if st is not None:
+        rows.append(["model structure", esc(structure_sentence(st.to_dict()))])
     notes = "".join(f"<li>{esc(n)}</li>" for n in ident.notes)
     checks = "".join(f'<li data-check="{esc(c.name)}">{esc(c.severity)}: {esc(c.name)}'
                      f'{"" if c.step is None else " (step " + str(c.step) + ")"}: {esc(c.message)}</li>'
                      for c in ident.checks)
-    det = [[esc(k), num(fmt_value(v.get("value"), v.get("combined")), v.get("value")), num(fmt_unc(v.get("combined"))),
-            esc(v.get("unit", ""))] if "range" not in v else
-           [esc(k), esc(range_text(v["range"])), esc(v.get("conditional_on", "")), esc(v.get("unit", ""))]
+    det = [[esc(k), num(fmt_value(v.value, v.combined), v.value), num(fmt_unc(v.combined)), esc(v.unit)]
+           if v.range is None else [esc(k), esc(range_text(v.range)), esc(v.conditional_on), esc(v.unit)]
            for k, v in ident.determined.items()]
     return ("<h2>Model and identification</h2>" + table(["", ""], rows)
             + (f'<h3>Input checks</h3><ul class="note">{checks}</ul>' if checks else "")
@@ -125,7 +124,7 @@ def _model(d: RunData) -> str:
 
 def _budget(d: RunData) -> str:
     """GUM budget: standard uncertainty of each parameter per source (k = 1), and combined."""
-    return budget_table(d.ident.budget, "budget.")
+    return budget_table(d.ident.budget.to_dict(), "budget.")
 
 
 def _parameters(d: RunData) -> str:
@@ -136,7 +135,7 @@ def _parameters(d: RunData) -> str:
 
 
 def _statement(d: RunData) -> str:
-    sentences = uncertainty_statement(d.ident.budget, d.ident.assumptions)
+    sentences = uncertainty_statement(d.ident.budget, d.ident.assumptions.to_dict())
     return ('<h2>Uncertainty statement</h2><ul class="statement">'
             + "".join(f"<li>{esc(s)}</li>" for s in sentences) + "</ul>")
 
@@ -164,12 +163,6 @@ def _monte_carlo(path: Path, d: RunData, trials: int) -> str:
             f"themselves scatter by about {2.7 / math.sqrt(mc.trials):.2g} u.</p>"
             + table(["parameter", "u linear", "u Monte Carlo", "ratio", "y ± U (linear)", "95 % interval (MC)",
                      "d_low / d_high", "δ", "agrees", "unit"], rows, "montecarlo"))
-
-
-def mass_std(assumptions: dict) -> float:
-    """u(M) of M = m_e + m_l from the result's assumptions (0 for a mass without one)."""
-    us = [(assumptions.get(k) or {}).get("std") for k in ("end_mass_kg", "load_mass_kg")]
-    return math.hypot(*[float(u) if isinstance(u, int | float) else 0.0 for u in us])
 
 
 def methods_section(d: RunData) -> str:
@@ -213,7 +206,7 @@ def methods_section(d: RunData) -> str:
 
 def _sensitivity(d: RunData) -> str:
     r = d.response
-    u_m = mass_std(d.ident.assumptions)
+    u_m = d.ident.assumptions.mass_std_kg
     mag, u_mag, ph, u_ph = measured_sensitivity(r.H, r.cov, d.mass_kg, u_m)
     model = model_sensitivity(d.curve, r.f_hz) if d.curve is not None else None
     if model is not None:

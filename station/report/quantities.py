@@ -12,6 +12,7 @@ U = 2 u the expanded one (k = 2; these points rest on thousands of samples each)
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -95,7 +96,7 @@ def fmt_rel(value: float | None, u: float | None) -> str:
     return f"{100 * abs(u / value):.2g}"
 
 
-def range_text(rng: list[float | None]) -> str:
+def range_text(rng: Sequence[float | None]) -> str:
     """'[lo, hi]' of a conditional range, 'from lo up (unbounded)' when hi is None."""
     lo, hi = rng
     if hi is None:

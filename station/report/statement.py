@@ -1,7 +1,7 @@
 """The uncertainty statement of a result, every sentence generated from the budget it describes.
 
-Input: the stored budget (``{parameter: {"contributions": {source: u | None}, "combined", "unit",
-"dof"}}``) and the result's assumptions (the masses with their source and standard uncertainty).
+Input: the budget (``{parameter: ParameterBudget}``, ``station.ident.uncertainty``) and the result's
+assumptions (the masses with their source and standard uncertainty).
 A source is said to be *propagated* when its contribution is a number above zero, *contributing
 nothing* when it is 0 for every parameter, and *not propagated* (the result conditional on it) when
 it is None.  The masses, the chain and the coverage factor are described from those facts only, so
@@ -15,6 +15,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from station.ident.coverage import coverages
+from station.ident.uncertainty import ParameterBudget
 from station.report.quantities import fmt_unc
 
 SOURCE_TEXT = {"noise": "the measurement noise propagated through the fit",
@@ -31,23 +32,23 @@ SOURCE_TEXT = {"noise": "the measurement noise propagated through the fit",
 MASSES = (("end_mass", "end_mass_kg", "end mass m_e"), ("load_mass", "load_mass_kg", "load mass m_l"))
 
 
-def _largest(budget: Mapping[str, Mapping[str, Any]]) -> dict[str, tuple[str, float]]:
+def _largest(budget: Mapping[str, ParameterBudget]) -> dict[str, tuple[str, float]]:
     """Per parameter: the source with the largest contribution and its share of u_c^2."""
     out = {}
     for n, b in budget.items():
-        c = {s: float(u) for s, u in (b.get("contributions") or {}).items() if u is not None}
-        uc = float(b.get("combined") or 0.0)
+        c = {s: float(u) for s, u in b.stds.items() if u is not None}
+        uc = b.combined if math.isfinite(b.combined) else 0.0
         if c and uc > 0:
             s = max(c, key=lambda k: c[k])
             out[n] = (s, c[s] ** 2 / uc**2)
     return out
 
 
-def source_status(budget: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
+def source_status(budget: Mapping[str, ParameterBudget]) -> dict[str, str]:
     """'propagated' | 'nothing' | 'conditional' per source (over all parameters)."""
     status: dict[str, str] = {}
     for b in budget.values():
-        for s, u in (b.get("contributions") or {}).items():
+        for s, u in b.stds.items():
             now = "conditional" if u is None else "propagated" if float(u) > 0 else "nothing"
             prev = status.get(s)
             status[s] = now if prev is None or now == "propagated" or prev == "nothing" else prev
@@ -55,7 +56,7 @@ def source_status(budget: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
 
 
 def _mass_sentence(source: str, key: str, label: str, status: str | None, assumptions: Mapping[str, Any],
-                   budget: Mapping[str, Mapping[str, Any]]) -> str:
+                   budget: Mapping[str, ParameterBudget]) -> str:
     a = assumptions.get(key) if isinstance(assumptions.get(key), Mapping) else {}
     assert isinstance(a, Mapping)
     val = a.get("value")
@@ -65,8 +66,8 @@ def _mass_sentence(source: str, key: str, label: str, status: str | None, assump
         return (f"The {label}{value} is assumed, not propagated: the results that depend on it are conditional "
                 "on its value and carry no uncertainty for it.")
     if status == "propagated":
-        per = ", ".join(f"{fmt_unc(b['contributions'][source])} {b.get('unit', '')} in u({n})"
-                        for n, b in budget.items() if (b.get("contributions") or {}).get(source))
+        per = ", ".join(f"{fmt_unc(b.stds[source])} {b.unit} in u({n})"
+                        for n, b in budget.items() if b.stds.get(source))
         std = a.get("std")
         return (f"The {label}{value} is an uncertain input"
                 + (f" with standard uncertainty {fmt_unc(std)} kg" if isinstance(std, int | float) else "")
@@ -79,7 +80,7 @@ def _mass_sentence(source: str, key: str, label: str, status: str | None, assump
     return f"The {label} is not a source of this budget."
 
 
-def uncertainty_statement(budget: Mapping[str, Mapping[str, Any]], assumptions: Mapping[str, Any] | None = None,
+def uncertainty_statement(budget: Mapping[str, ParameterBudget], assumptions: Mapping[str, Any] | None = None,
                           p: float = 0.95, *, k2: bool = False) -> list[str]:
     """The sentences of the uncertainty statement (module docstring); [] for an empty budget.
     k2: the certificate's convention (``station.ident.coverage.coverage``: k = 2, about 95.45 %)."""
@@ -122,7 +123,7 @@ def uncertainty_statement(budget: Mapping[str, Mapping[str, Any]], assumptions: 
                    + "; ".join(SOURCE_TEXT.get(s, s) for s in cond) + ".")
     finite: dict[str, float] = {}
     for b in budget.values():
-        finite.update({s: float(n) for s, n in (b.get("dof") or {}).items() if n is not None})
+        finite.update(b.dof)
     if finite:
         out.append("Finite degrees of freedom: " + "; ".join(f"{SOURCE_TEXT.get(s, s)} ν = {n:g}"
                                                               for s, n in sorted(finite.items()))

@@ -8,13 +8,15 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from station.config import (
-    MAX_CRANK_FREQUENCY_HZ,
-    MAX_CRANK_RADIUS_M,
     MAX_METHODS,
     MAX_STEPS,
     MAX_TOP_MASS_KG,
+    CrankFrequencyHz,
+    CrankRadiusM,
     EnvironmentConfig,
     MethodChoice,
+    RecordS,
+    SettleS,
     StationConfig,
     check_method_list,
 )
@@ -27,10 +29,10 @@ class StepSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    crank_frequency_hz: float = Field(gt=0, le=MAX_CRANK_FREQUENCY_HZ, description="crank frequency in Hz")
-    crank_radius_m: float = Field(gt=0, le=MAX_CRANK_RADIUS_M, description="crank radius in m")
-    settle_s: float | None = Field(default=None, ge=0, le=600, description="settling time in s")
-    record_s: float | None = Field(default=None, gt=0, le=3600, description="record time in s")
+    crank_frequency_hz: CrankFrequencyHz = Field(description="crank frequency in Hz")
+    crank_radius_m: CrankRadiusM = Field(description="crank radius in m")
+    settle_s: SettleS | None = Field(default=None, description="settling time in s")
+    record_s: RecordS | None = Field(default=None, description="record time in s")
 
     @field_validator("crank_frequency_hz", "crank_radius_m", "settle_s", "record_s", mode="before")
     @classmethod

@@ -22,12 +22,12 @@ from typing import Any
 from station.lab import audit, certificates, chain
 from station.lab.integrity import RecordingTamperedError, check_recording, sha256_file
 from station.lab.issued import CertificateNotFoundError
+from station.lab.store import RunRow, Store
 from station.recording.stored import results_version
 from station.report.names import PLOT_NAMES
 from station.service import worker
 from station.service.db import DbAccess
 from station.service.errors import ResultNotStoredError, RunStateError
-from station.service.store import RunRow, Store
 
 CACHE_ENTRIES = 64  # rendered plots and reports kept in memory (a few 100 kB each)
 

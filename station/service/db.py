@@ -30,8 +30,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+from station.lab.store import Store
 from station.service.errors import DatabaseBusyError
-from station.service.store import Store
 
 log = logging.getLogger(__name__)
 

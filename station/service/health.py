@@ -6,13 +6,13 @@ from __future__ import annotations
 import time
 from typing import Any
 
+from station.lab.store import JOB_STATES, Store
 from station.service import worker
 from station.service.db import DbAccess
 from station.service.disk import RecordingsDisk
 from station.service.errors import DatabaseBusyError
 from station.service.latch import EStopLatch
 from station.service.riglink import RigLink
-from station.service.store import JOB_STATES, Store
 
 DB_HEALTH_TIMEOUT_S = 1.0
 DB_STALL_S = 1.0  # a write waiting longer than this for the database makes it not ok

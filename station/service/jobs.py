@@ -20,13 +20,13 @@ from pathlib import Path
 from typing import Any
 
 from station.lab import audit
+from station.lab.store import Store
 from station.run.methods import SETTLED, MethodOutcome, write_outcomes
 from station.service import worker
 from station.service.artifacts import Artifacts
 from station.service.changes import Changes
 from station.service.db import DbAccess
 from station.service.errors import DatabaseBusyError
-from station.service.store import Store
 
 log = logging.getLogger(__name__)
 

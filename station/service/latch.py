@@ -17,8 +17,8 @@ from datetime import UTC, datetime
 from typing import Any
 
 from station.lab import audit
+from station.lab.store import EStopRow, Store
 from station.service.db import DbAccess
-from station.service.store import EStopRow, Store
 
 log = logging.getLogger(__name__)
 

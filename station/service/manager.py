@@ -21,6 +21,7 @@ from typing import Any
 from station.errors import StationError
 from station.lab import audit, certificates, chain, policy, register, users
 from station.lab.issued import FOLDER
+from station.lab.store import FINAL_STATES, RunRow, Store
 from station.recording.repair import FolderCheck, check_folder
 from station.service import worker
 from station.service.artifacts import Artifacts
@@ -43,7 +44,6 @@ from station.service.recovery import recover
 from station.service.riglink import RigConnector, RigLink, default_connector
 from station.service.runs import AckReport, LiveRun, Runs, StopReport
 from station.service.settings import ServiceSettings
-from station.service.store import FINAL_STATES, RunRow, Store
 
 __all__ = [
     "MAX_JOB_ATTEMPTS",

@@ -11,8 +11,8 @@ from pathlib import Path
 
 from station.lab import audit
 from station.lab.integrity import sha256_file
+from station.lab.store import ACTIVE_STATES, Store
 from station.recording import read_recording, recover_partial
-from station.service.store import ACTIVE_STATES, Store
 
 log = logging.getLogger(__name__)
 

@@ -78,7 +78,7 @@ def load_results(path: Path, result_name: str) -> dict[str, Any]:
 def _result_fields(res: IdentificationResult, keys: tuple[str, ...]) -> dict[str, Any]:
     """``keys`` of the result's JSON form, ``parameters`` as a list in the model's order (the API's)."""
     d = res.to_dict()
-    return {k: [{"name": n, **p} for n, p in d["parameters"].items()] if k == "parameters" else d[k]
+    return {k: [{"name": n, **p.to_dict()} for n, p in res.parameters.items()] if k == "parameters" else d[k]
             for k in keys if k in d}
 
 

@@ -22,6 +22,7 @@ from typing import Any
 from station.config import StationConfig
 from station.lab import audit, register
 from station.lab.integrity import sha256_file
+from station.lab.store import RunRow, Store
 from station.recording import new_run_id
 from station.run.procedure import Procedure, Progress, RunOutcome
 from station.run.request import Plan, RunRequest, plan_run
@@ -38,7 +39,6 @@ from station.service.errors import (
 )
 from station.service.latch import EStopLatch
 from station.service.riglink import DriveCheck, RigLink
-from station.service.store import RunRow, Store
 
 log = logging.getLogger(__name__)
 

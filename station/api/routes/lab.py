@@ -59,9 +59,9 @@ from station.api.lab_schemas import (
 from station.api.routes.runs import BODY_ERRORS, E401, E403, E404, E409, E422
 from station.api.schemas import ErrorOut
 from station.lab import audit, chain, history, policy, register, users
+from station.lab.store import Store
 from station.lab.users import NAME_PATTERN, Principal
 from station.service.errors import RunStateError
-from station.service.store import Store
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["lab"])

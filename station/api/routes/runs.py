@@ -31,13 +31,13 @@ from station.api.schemas import (
 )
 from station.errors import LimitError
 from station.lab.register import RegisterError, UnknownEntryError
+from station.lab.store import FINAL_STATES, RunRow
 from station.report.names import PLOT_NAMES
 from station.run.methods import SETTLED, MethodOutcome
 from station.run.request import RunRequest
 from station.service.artifacts import Artifacts
 from station.service.manager import RunStateError
 from station.service.results import load_results
-from station.service.store import FINAL_STATES, RunRow
 
 BINARY = {"type": "string", "format": "binary"}  # a file's bytes, as OpenAPI declares them
 

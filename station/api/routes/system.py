@@ -27,11 +27,11 @@ from station.api.schemas import (
 )
 from station.config import MAX_STEPS, MAX_TOP_MASS_KG, EnvironmentConfig, StationConfig
 from station.lab import users
+from station.lab.store import Store
 from station.lab.users import AuthError
 from station.limits import drive_profile, force_limit_N
 from station.service.runs import StopReport
 from station.service.settings import ServiceSettings
-from station.service.store import Store
 
 router = APIRouter(tags=["station"])
 

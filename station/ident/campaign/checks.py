@@ -25,6 +25,7 @@ from station.ident.fd.budget import resonance_vectors
 from station.ident.models import SdofModel
 from station.ident.response.frf import FrequencyResponse, fit_frf
 from station.ident.result import Check
+from station.ident.uncertainty import Covariance, ParameterBudget, UncertaintyBudget
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -90,8 +91,9 @@ def consistency(recs: list[Recording], own: list[FloatArray], policy: CampaignPo
 
 
 def campaign_budget(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], fit: jf.JointFit, separated: bool,
-                    chain: MeasurementChain, m_e_prior: jf.MassPrior | None) -> tuple[FloatArray, dict[str, Any]]:
-    """Covariance (4, 4) of (S, m_e, k_f, b_f) and the GUM budget per parameter (sources as the
+                    chain: MeasurementChain, m_e_prior: jf.MassPrior | None) -> tuple[FloatArray, UncertaintyBudget]:
+    """Covariance (4, 4) of (S, m_e, k_f, b_f) and the GUM budget per parameter with each source's
+    covariance over the budgeted parameters (sources as the
     single-recording ``fd.budget``).  noise, load_mass and (conditional case) end_mass: the Fisher
     information built up term by term (each contribution the covariance it adds; the noise term
     Birge-scaled when the fit was inflated).  chain_gain, chain_phase, chain_delay, chain_resonance:
@@ -152,13 +154,16 @@ def campaign_budget(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], f
                                       for j in range(len(per_rec[0]))] if per_rec else [])
     covs["radius"] = np.zeros((4, 4))
     total = np.asarray(sum(covs.values()))
-    budget: dict[str, Any] = {}
+    budget: dict[str, ParameterBudget] = {}
     for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)):
         if not free4[i]:
             continue
-        budget[n] = {"contributions": {k: float(np.sqrt(max(c[i, i], 0.0))) for k, c in covs.items()},
-                     "combined": float(np.sqrt(max(total[i, i], 0.0))), "unit": u}
-    return total, budget
+        budget[n] = ParameterBudget.of({k: float(np.sqrt(max(c[i, i], 0.0))) for k, c in covs.items()},
+                                       float(np.sqrt(max(total[i, i], 0.0))), u)
+    idx = np.nonzero(free4)[0]
+    names, units = [jf.NAMES[i] for i in idx], [jf.UNITS[i] for i in idx]
+    per_source = {k: Covariance.of(names, units, c[np.ix_(idx, idx)]) for k, c in covs.items()}
+    return total, UncertaintyBudget(budget, per_source)
 
 
 def separation(fit: jf.JointFit, cov: FloatArray, priors: list[jf.MassPrior], policy: CampaignPolicy) -> Check:

@@ -26,12 +26,12 @@ from __future__ import annotations
 import itertools
 import logging
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from station.errors import BadInputError
+from station.ident.assumptions import CampaignAssumptions, RunMass, StructureStatement
 from station.ident.campaign import jointfit as jf
 from station.ident.campaign.checks import (
     CampaignPolicy,
@@ -43,14 +43,16 @@ from station.ident.campaign.checks import (
     separation,
 )
 from station.ident.campaign.result import CampaignRecording, CampaignResult
-from station.ident.inputs import IdentInputs, inputs_for
+from station.ident.inputs import IdentInputs, MassInput, inputs_for
 from station.ident.models import SdofModel
 from station.ident.response.checked import checked_response
 from station.ident.response.frf import FrequencyResponse
 from station.ident.response.gate import IdentificationRefused
 from station.ident.result import Check, Covariance, Estimate
 from station.ident.structure import chain_corrected, coupling_bound, state_stiff, structure_statement
+from station.ident.uncertainty import DeterminedQuantity, ParameterBudget, UncertaintyBudget
 from station.recording import Recording
+from station.vocabulary import Flag
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -62,7 +64,7 @@ class CampaignRefused(IdentificationRefused):
 
 
 def _param(name: str, unit: str, value: float | None, std: float | None, reason: str = "",
-           flag: str = "") -> tuple[str, Estimate]:
+           flag: Flag = Flag.NONE) -> tuple[str, Estimate]:
     return name, Estimate(value, std, unit, value is not None, reason, flag)
 
 
@@ -120,20 +122,21 @@ def _distinct(priors: list[jf.MassPrior], k: float) -> int:
 
 
 def _determined(recs: list[Recording], priors: list[jf.MassPrior], own: list[FloatArray],
-                m_e: float) -> dict[str, Any]:
+                m_e: float) -> dict[str, tuple[DeterminedQuantity, ...]]:
     """What each recording determines whatever the end mass (names as the single-recording result's
     ``determined``, one entry per recording): S M in V s^2/m and the loaded natural frequency
     f_0 = sqrt(k_f / M) / (2 pi) in Hz, from its own fit (invariant to the m_e held)."""
-    out: dict[str, Any] = {"S_times_M": [], "natural_frequency_hz": []}
+    sm: list[DeterminedQuantity] = []
+    fn: list[DeterminedQuantity] = []
     for r, pr, o in zip(recs, priors, own, strict=True):
         M = m_e + pr.value
-        out["S_times_M"].append({"run_id": r.run_id, "value": float(o[0] * M), "combined": float(o[3] * M),
-                                 "unit": "V*s^2/m"})
+        sm.append(DeterminedQuantity(float(o[0] * M), "V*s^2/m", ParameterBudget.of({}, float(o[3] * M), "V*s^2/m"),
+                                     run_id=r.run_id))
         ok = o[1] > 0 and M > 0  # a fit gone wrong (e.g. a mistyped mass) has no natural frequency
         f0 = float(np.sqrt(o[1] / M) / (2 * np.pi)) if ok else None
-        out["natural_frequency_hz"].append({"run_id": r.run_id, "value": f0, "unit": "Hz",
-                                            "combined": float(f0 * o[4] / (2 * o[1])) if f0 else None})
-    return out
+        u = float(f0 * o[4] / (2 * o[1])) if f0 else float("nan")
+        fn.append(DeterminedQuantity(f0, "Hz", ParameterBudget.of({}, u, "Hz"), run_id=r.run_id))
+    return {"S_times_M": tuple(sm), "natural_frequency_hz": tuple(fn)}
 
 
 def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = None, *,
@@ -225,9 +228,10 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
                                                                                             strict=True))
     elif separated:
         status = "separated"
-        flag = "poorly_determined" if sep.severity == "warning" else ""
+        flag = Flag.POORLY_DETERMINED if sep.severity == "warning" else Flag.NONE
         params = dict(_param(n, u, float(fit.theta[i]), float(sd[i]), sep.message if flag and i < 2 else "",
-                              flag if i < 2 else "") for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
+                              flag if i < 2 else Flag.NONE)
+                      for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
     elif stated is not None:
         status = "conditional"
         src = inputs[0].end_mass.source
@@ -235,7 +239,7 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
                + (f"(std {stated.std:.2g} kg, propagated)" if stated.std > 0 else "(no uncertainty: not propagated)")
                + ": the top masses do not separate S from m_e")
         params = dict(_param(n, u, None, None, sep.message) if i == 1 else
-                       _param(n, u, float(fit.theta[i]), float(sd[i]), why, "conditional")
+                       _param(n, u, float(fit.theta[i]), float(sd[i]), why, Flag.CONDITIONAL)
                        for i, (n, u) in enumerate(zip(jf.NAMES, jf.UNITS, strict=True)))
     else:
         status = "refused"
@@ -243,25 +247,21 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
         params = dict(_param(n, u, None, None, why) for n, u in zip(jf.NAMES, jf.UNITS, strict=True))
     if status == "refused":
         cov = np.zeros((4, 4))
-        budget = {}
+        budget = UncertaintyBudget()
     rows = tuple(CampaignRecording(str(r.path), r.run_id, pr.value, pr.std, float(fit.load_mass[k]),
                                    float(fit.load_mass_std[k]), used[k],
                                    (float(frfs[k].f_hz.min()), float(frfs[k].f_hz.max())),
                                    float(fit.chi2_by_recording[k]), (float(own[k][0]), float(own[k][3])),
                                    (float(own[k][1]), float(own[k][4])))
                  for k, (r, pr) in enumerate(zip(recs, priors, strict=True)))
-    me = ({"value": float(fit.theta[1]), "std": float(sd[1]), "source": "campaign"} if status == "separated"
-          else {"value": stated.value, "std": stated.std, "source": inputs[0].end_mass.source} if stated
-          else None)
+    me = (MassInput(float(fit.theta[1]), float(sd[1]), "campaign") if status == "separated"
+          else MassInput(stated.value, stated.std, inputs[0].end_mass.source) if stated else None)
     structure = _structure(frfs, priors, fit.theta, fit.chi2_per_dof if fit.inflated else 1.0, inputs[0])
-    cpl = structure.get("coupling") or {}
-    params = state_stiff(params, cpl.get("k_f_alone_range_N_per_m"), "the recordings")
-    assumptions = {"model": "Eq. 9 (stiff coupling), one S, m_e, k_f, b_f for every recording",
-                   "end_mass_kg": me,
-                   "load_mass_kg": [{"run_id": r.run_id, "value": p.value, "std": p.std} for r, p in zip(recs, priors,
-                                                                                                        strict=True)],
-                   "measurement_chain": chain.model_dump(),
-                   "structure": structure}
+    params = state_stiff(params, None if structure.coupling is None else structure.coupling.k_f_alone_range,
+                         "the recordings")
+    masses = tuple(RunMass(r.run_id, p.value, p.std) for r, p in zip(recs, priors, strict=True))
+    assumptions = CampaignAssumptions("Eq. 9 (stiff coupling), one S, m_e, k_f, b_f for every recording", me,
+                                      masses, chain.model_dump(), structure)
     log.info("campaign of %d recordings: %s", len(recs), status)
     covariance = Covariance.of(jf.NAMES, jf.UNITS, cov)
     return CampaignResult(status, recs[0].transducer_id, params, covariance, rows, fit.chi2, fit.dof, fit.inflated,
@@ -270,7 +270,7 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
 
 
 def _structure(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], theta: FloatArray, birge: float,
-               inputs: IdentInputs) -> dict[str, Any]:
+               inputs: IdentInputs) -> StructureStatement:
     """The structure the joint fit rests on (Eq. 9, the displacement chain) and the softest coupling
     the best single recording cannot tell from a stiff one, with the range of k_f alone that follows
     (the joint k_f is the series stiffness of transducer and coupling, ``structure``)."""

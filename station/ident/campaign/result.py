@@ -4,7 +4,9 @@ JSON (``station identify REC1 REC2 ... --json``, ``POST /campaigns``): ``status`
 'conditional' or 'refused'), ``parameters`` {S, m_e, k_f, b_f: value, std, unit, identifiable[,
 flag, reason]}, ``covariance`` {names, units, matrix}, ``recordings`` (per recording: its load mass
 as weighed and as fitted, the steps used, its chi^2 share, S and k_f of its own fit), ``fit``
-{chi2, dof, chi2_per_dof, inflated}, ``checks``, ``budget``, ``assumptions``, ``determined``,
+{chi2, dof, chi2_per_dof, inflated}, ``checks``, ``budget`` (each source's covariance over the
+budgeted parameters is in ``CampaignResult.budget``, not in the JSON, whose ``covariance`` is their sum),
+``assumptions``, ``determined``,
 ``notes`` (shared conventions of the identification result).
 """
 
@@ -12,12 +14,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from station.ident.assumptions import CampaignAssumptions
 from station.ident.result import Check, Covariance, Estimate
+from station.ident.uncertainty import DeterminedQuantity, UncertaintyBudget
 
 FloatArray = NDArray[np.float64]
 
@@ -45,7 +48,7 @@ class CampaignRecording:
     S: tuple[float, float]
     k_f: tuple[float, float]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"path": self.path, "run_id": self.run_id,
                 "load_mass_kg": {"value": self.load_mass_kg, "std": self.load_mass_std_kg},
                 "load_mass_fitted_kg": {"value": _f(self.load_mass_fitted_kg),
@@ -75,9 +78,9 @@ class CampaignResult:
     dof: int
     inflated: bool
     checks: tuple[Check, ...]
-    budget: dict[str, Any]
-    assumptions: dict[str, Any]
-    determined: dict[str, Any]
+    budget: UncertaintyBudget
+    assumptions: CampaignAssumptions
+    determined: dict[str, tuple[DeterminedQuantity, ...]]
     notes: tuple[str, ...] = ()
 
     @property
@@ -87,7 +90,7 @@ class CampaignResult:
     def parameter(self, name: str) -> Estimate:
         return self.parameters[name]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         return {"kind": "campaign", "method": "fd", "model": "sdof", "status": self.status,
                 "transducer_id": self.transducer_id,
                 "parameters": {n: p.to_dict() for n, p in self.parameters.items()},
@@ -95,5 +98,7 @@ class CampaignResult:
                 "recordings": [r.to_dict() for r in self.recordings],
                 "fit": {"chi2": _f(self.chi2), "dof": self.dof, "chi2_per_dof": _f(self.chi2_per_dof),
                         "inflated": self.inflated},
-                "checks": [c.to_dict() for c in self.checks], "budget": self.budget,
-                "assumptions": self.assumptions, "determined": self.determined, "notes": list(self.notes)}
+                "checks": [c.to_dict() for c in self.checks], "budget": self.budget.to_dict(),
+                "assumptions": self.assumptions.to_dict(),
+                "determined": {n: [q.to_dict() for q in qs] for n, qs in self.determined.items()},
+                "notes": list(self.notes)}

@@ -23,8 +23,8 @@ The combined standard uncertainty is the root sum of squares (sources independen
 Degrees of freedom (GUM G.4): the Type B sources are taken as exactly known (infinite); the noise
 term has the fit's residual degrees of freedom 2 n_f - p when its covariance was scaled by chi^2/dof
 (Birge: the scale is then estimated from those few residuals), and is otherwise the sine fits' own,
-each resting on thousands of samples (infinite).  ``to_dict`` stores them per parameter as
-``dof: {source: nu}`` (only the finite ones); ``station.ident.coverage`` turns them into the
+each resting on thousands of samples (infinite).  ``Budget.uncertainty`` gives them per parameter and source
+(``station.ident.uncertainty``); ``station.ident.coverage`` turns them into the
 effective degrees of freedom (Welch-Satterthwaite) and k.
 """
 
@@ -32,7 +32,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,6 +40,7 @@ from station.config import MeasurementChain
 from station.ident.inputs import IdentInputs
 from station.ident.models import Model, make_model
 from station.ident.response.frf import FrequencyResponse, whiteners
+from station.ident.uncertainty import Covariance, ParameterBudget, UncertaintyBudget
 
 FloatArray = NDArray[np.float64]
 SOURCES = ("noise", "chain_gain", "chain_phase", "chain_delay", "chain_resonance", "end_mass", "load_mass",
@@ -69,26 +69,28 @@ class Budget:
         """Combined standard uncertainty per parameter, NaN where held."""
         return np.where(self.free, np.sqrt(np.clip(np.diag(self.cov), 0, None)), np.nan)
 
-    def std_of(self, grad: FloatArray, invariant: tuple[str, ...] = ()) -> dict[str, float | None]:
-        """Standard uncertainty per source and combined of a derived quantity with gradient grad;
-        sources in ``invariant`` do not change it (0; e.g. the masses for S M)."""
+    def budget_of(self, grad: FloatArray, unit: str, invariant: tuple[str, ...] = ()) -> ParameterBudget:
+        """The budget (standard uncertainty per source and combined, in ``unit``) of a derived quantity
+        with gradient grad; sources in ``invariant`` do not change it (0; e.g. the masses for S M)."""
         out: dict[str, float | None] = {}
         for s, c in self.covs.items():
             out[s] = 0.0 if s in invariant else None if c is None else float(np.sqrt(max(float(grad @ c @ grad),
                                                                                           0.0)))
-        out["combined"] = float(np.sqrt(sum(v * v for v in out.values() if v is not None)))
-        return out
+        return ParameterBudget.of(out, float(np.sqrt(sum(v * v for v in out.values() if v is not None))), unit)
 
-    def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for i, (n, u) in enumerate(zip(self.names, self.units, strict=True)):
-            if not self.free[i]:
-                continue
+    def uncertainty(self) -> UncertaintyBudget:
+        """The result's budget: per free parameter its contributions (degrees of freedom included)
+        and combined standard uncertainty, and each source's covariance over the free parameters."""
+        idx = np.nonzero(self.free)[0]
+        names = [self.names[i] for i in idx]
+        units = [self.units[i] for i in idx]
+        params = {}
+        for i in idx:
             c = {s: (None if v is None else float(np.sqrt(max(v[i, i], 0.0)))) for s, v in self.covs.items()}
-            out[n] = {"contributions": c, "combined": float(self.combined[i]), "unit": u}
-            if self.dof:
-                out[n]["dof"] = dict(self.dof)
-        return out
+            params[self.names[i]] = ParameterBudget.of(c, float(self.combined[i]), self.units[i], self.dof)
+        covs = {s: None if v is None else Covariance.of(names, units, v[np.ix_(idx, idx)])
+                for s, v in self.covs.items()}
+        return UncertaintyBudget(params, covs)
 
 
 def resonance_vectors(H: NDArray[np.complex128], f_hz: FloatArray,

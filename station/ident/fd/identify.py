@@ -12,11 +12,11 @@ flag 'conditional' when the end mass is assumed.  Reasons are computed at the es
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from station.ident.assumptions import Assumptions
 from station.ident.fd.budget import Budget, uncertainty_budget
 from station.ident.fd.core import fd_fit, start_values, summary_fd
 from station.ident.identifiability import Policy, effect_text
@@ -28,7 +28,9 @@ from station.ident.response.gate import sensitivity_check
 from station.ident.response.redundancy import beside_clock_skew, static_check
 from station.ident.result import Check, Estimate, IdentificationResult, estimated_covariance
 from station.ident.structure import apply_structure, chain_corrected, coupling_suspected, resonance_suspected
+from station.ident.uncertainty import DeterminedQuantity
 from station.recording import Recording
+from station.vocabulary import Flag
 
 FloatArray = NDArray[np.float64]
 
@@ -55,25 +57,26 @@ def _single_frequency_reasons(model: Model, fit: frfmod.FrfFit, frf: frfmod.Freq
                         + effect_text(model, th, frf.f_hz, 2)}
 
 
-def _determined(model: Model, theta: FloatArray, budget: Budget) -> dict[str, Any]:
+def _determined(model: Model, theta: FloatArray, budget: Budget) -> dict[str, DeterminedQuantity]:
     """What the data determine whatever the end mass: S M, the loaded natural frequency and the
     damping ratio (Eq. 9 depends on S M, k_f / M and b_f / M only)."""
     if not isinstance(model, SdofModel) or not budget.free[:2].all():
         return {}
     S, k, b = theta
     M = model.M
-    out: dict[str, Any] = {}
+    out: dict[str, DeterminedQuantity] = {}
     inv = ("end_mass", "load_mass")  # exactly invariant: H depends on S M, k_f / M, b_f / M only
-    out["S_times_M"] = {"value": S * M, **budget.std_of(np.array([M, 0.0, 0.0]), inv), "unit": "V*s^2/m"}
+    sm = "V*s^2/m"
+    out["S_times_M"] = DeterminedQuantity(float(S * M), sm, budget.budget_of(np.array([M, 0.0, 0.0]), sm, inv))
     f0 = np.sqrt(k / M) / (2 * np.pi)
-    out["natural_frequency_hz"] = {"value": f0, **budget.std_of(np.array([0.0, f0 / (2 * k), 0.0]), inv),
-                                   "unit": "Hz"}
+    out["natural_frequency_hz"] = DeterminedQuantity(
+        float(f0), "Hz", budget.budget_of(np.array([0.0, f0 / (2 * k), 0.0]), "Hz", inv))
     if budget.free[2]:
         # zeta = b / (2 sqrt(k M)) = (b/M) / (2 sqrt(k/M)): invariant too
         dz_db = 1 / (2 * np.sqrt(k * M))
         z = b * dz_db
-        out["damping_ratio"] = {"value": z, **budget.std_of(np.array([0.0, -z / (2 * k), dz_db]), inv),
-                                "unit": "1"}
+        out["damping_ratio"] = DeterminedQuantity(
+            float(z), "1", budget.budget_of(np.array([0.0, -z / (2 * k), dz_db]), "1", inv))
     return out
 
 
@@ -93,13 +96,13 @@ def _param_list(model: Model, theta: FloatArray, budget: Budget, rep_ok: tuple[b
             out[n] = Estimate(None, None, u, False, f"not determined by the data: relative "
                               f"uncertainty {rel:.2g} ({parts}); " + effect_text(model, theta, frf.f_hz, i))
             continue
-        flag, reason = "", ""
+        flag, reason = Flag.NONE, ""
         if rel > policy.max_rel_std or not rep_ok[i]:
-            flag = "poorly_determined"
+            flag = Flag.POORLY_DETERMINED
             reason = (f"poorly determined: relative uncertainty {rel:.2g} (> {policy.max_rel_std}; {parts}); "
                       + effect_text(model, theta, frf.f_hz, i))
         if not inputs.end_mass_given and i < 3:
-            flag = flag or "conditional"
+            flag = flag or Flag.CONDITIONAL
             reason = (reason + "; " if reason else "") + (
                 f"conditional on the assumed end mass m_e = {inputs.m_e:g} kg (not given): "
                 f"{'S' if i == 0 else n} scales as {'1/' if i == 0 else ''}(m_l + m_e)")
@@ -186,10 +189,10 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
     checks += [c] if c else []
     determined = {**_determined(model, fit.theta, budget), **structure.determined}
     if n_f == 1 and budget.free[0]:
-        determined["quasi_static_sensitivity"] = {
-            "value": float(cr.sign * np.abs(frf.H[0]) / model.M), **budget.std_of(np.eye(len(fit.theta))[0]),
-            "unit": "V/N", "note": "|H|/M at the one frequency: S only far below the resonance, HIGH by "
-                                   "(f/f_0)^2 / (1 - (f/f_0)^2) otherwise"}
+        determined["quasi_static_sensitivity"] = DeterminedQuantity(
+            float(cr.sign * np.abs(frf.H[0]) / model.M), "V/N", budget.budget_of(np.eye(len(fit.theta))[0], "V/N"),
+            note="|H|/M at the one frequency: S only far below the resonance, HIGH by "
+                 "(f/f_0)^2 / (1 - (f/f_0)^2) otherwise")
     if not inputs.end_mass_given:
         checks.append(Check("end_mass_not_given", "warning", None, "the end mass is not given: S, k_f, b_f are "
                             f"conditional on an assumed m_e = {inputs.m_e:g} kg; the data determine S (m_l + m_e), "
@@ -200,6 +203,6 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
              "H_phase_rad": np.angle(frf.H).tolist(),
              "H_std": np.sqrt(np.trace(frf.cov, axis1=1, axis2=2) / 2).tolist(), "steps_used": cr.used}
     return IdentificationResult("fd", model.key, params, summary_fd(frf, fit, cr.sigs), rep,
-                                tuple(notes), extra, tuple(checks), budget.to_dict(),
-                                {**inputs.to_dict(), "structure": structure.statement}, determined,
+                                tuple(notes), extra, tuple(checks), budget.uncertainty(),
+                                Assumptions.of(inputs, structure.statement), determined,
                                 estimated_covariance(params, model.names, budget.cov))

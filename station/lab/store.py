@@ -2,7 +2,7 @@
 
 Two connections, each behind its own lock: one for writes, one for reads (WAL lets the reads go on
 while a writer, this process's or another's, holds the write lock).  The daemon calls them from
-threads, never from its event loop (``db.py``).  Writes are autocommitted; WAL with
+threads, never from its event loop (``station.service.db``).  Writes are autocommitted; WAL with
 ``synchronous=NORMAL`` keeps a committed state change through a kill of the process (a power cut
 may lose the last few, never corrupt the file).
 """
