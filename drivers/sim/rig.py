@@ -262,10 +262,16 @@ class SimRigProcess:
         self.commands: list[tuple[str, float, float]] = []
         self.addresses: SimRigAddresses
 
+    def launch(self) -> SimRigProcess:
+        """Start the subprocess without waiting for it (:meth:`__enter__` waits until it serves)."""
+        if self._proc is None:
+            self._proc = subprocess.Popen(self._args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                          bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        return self
+
     def __enter__(self) -> SimRigProcess:
-        self._proc = subprocess.Popen(self._args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                      bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        assert self._proc.stdout is not None
+        self.launch()
+        assert self._proc is not None and self._proc.stdout is not None
         line = self._proc.stdout.readline()
         if not line:
             rc = self._proc.wait()
