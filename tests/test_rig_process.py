@@ -9,6 +9,7 @@ process of their own, against the emulators in a third process (their true state
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import time
@@ -24,13 +25,19 @@ from tests.station_support import Daemon, daemon_config, free_port
 pytestmark = pytest.mark.slow
 
 
-def _daemon(tmp_path: Path, emu: SimRigProcess, stop_port: int) -> Daemon:
+@contextlib.contextmanager
+def _daemon(tmp_path: Path, emu: SimRigProcess, stop_port: int) -> Iterator[Daemon]:
     host, port = emu.addresses.modbus_tcp
     cfg = daemon_config(tmp_path / "recordings", stop_port=stop_port)
     cfg.pop("simulation")  # a rig of real devices: the emulators' process
     cfg["devices"] = {"motor_url": f"modbus-tcp://{host}:{port}", "daq_port": emu.addresses.daq,
                       "crank_radius_m": 0.001}
-    return Daemon(tmp_path, workers=0, config=cfg)
+    d = Daemon(tmp_path, workers=0, config=cfg)
+    try:
+        yield d.start(timeout_s=120.0)  # three processes start on a machine that may be busy
+    finally:
+        if d.proc is not None and d.proc.poll() is None:
+            d.stop()
 
 
 def _children(pid: int) -> list[int]:
