@@ -288,6 +288,11 @@ class ChannelTransport:
     def connected(self) -> bool:
         return self.supervisor.connected
 
+    @property
+    def error(self) -> str | None:
+        """Why the rig process cannot be reached (for /health); None while it can."""
+        return None if self.supervisor.connected else self.supervisor.error
+
     async def open(self) -> None:
         await self.supervisor.start()
 

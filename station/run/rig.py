@@ -62,8 +62,10 @@ class ConnectedRig:
 
     def health(self) -> dict[str, Any]:
         """State of each device link, for /health."""
-        return {"motor": {"connected": bool(getattr(self.motor.transport, "connected", False)),
-                          "watchdog_error": str(self.motor.watchdog_error or "") or None},
+        t = self.motor.transport
+        return {"motor": {"connected": bool(getattr(t, "connected", False)),
+                          "watchdog_error": str(self.motor.watchdog_error or "") or None,
+                          "link_error": getattr(t, "error", None)},  # e.g. the rig process's end
                 "daq": {"link_error": str(self.daq.link_error or "") or None},
                 "simulated": self.simulated}
 
