@@ -346,15 +346,15 @@ def flood_busy(d: Daemon, emu: SimRigProcess, repeats: int, flood: int, via: str
             reniced = renice(proc.pid, drive_nice)
         with cores_busy(), idle_connections(d.port, flood) as (opened, est):
             time.sleep(2.0)  # the flood held during the record window: does the run survive it?
-            st = d.call("GET", f"/runs/{rid}").json()
-            if st["state"] != "running":
-                failed_runs.append(f"{st['state']}: {st['message']}")
             s = one_stop(d, emu, via, wait_s=10.0)
         s.update(opened=opened, established=est)
         samples.append(s)
         if s["status"] != 200 or s["latency_ms"] is None:  # lost: end the run all the same
             one_stop(d, emu, "stop_port" if d.stop_port else "main")
         wait_rig_free(d)
+        st = d.call("GET", f"/runs/{rid}").json()  # aborted by the stop, or failed before it on its own
+        if st["state"] != "aborted":
+            failed_runs.append(f"{st['state']}: {st['message']}")
         acknowledge(d)
     lat = [s["latency_ms"] for s in samples if s["latency_ms"] is not None]
     lost = sum(1 for s in samples if s["status"] != 200 or s["latency_ms"] is None)
