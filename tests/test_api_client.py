@@ -52,7 +52,7 @@ def test_closed_sets_are_enumerations_and_results_are_typed(tmp_path: Path) -> N
     assert enum("RunResults", "method") == list(METHODS) == list(get_args(MethodName))
     assert enum("RunResults", "model") == list(MODELS) == list(get_args(ModelName))
     assert enum("CampaignOut", "status") == ["separated", "conditional", "refused"]
-    assert enum("EStopState", "source") == ["page", "api", "controller", "drive"]
+    assert enum("EStopState", "source") == ["page", "api", "controller", "drive", "link"]
     results = schemas["RunResults"]["properties"]
     assert results["budget"]["additionalProperties"]["$ref"].endswith("/BudgetOut")
     assert results["assumptions"]["$ref"].endswith("/AssumptionsOut")

@@ -19,7 +19,7 @@ MethodName = Literal["fd", "oe", "pso", "pso+", "rls"]  # station.ident.names.ME
 ModelName = Literal["sdof", "coupled", "h1", "h2"]  # station.ident.names.MODELS
 Flag = Literal["", "poorly_determined", "conditional"]
 Severity = Literal["info", "warning", "refused"]
-EStopSource = Literal["page", "api", "controller", "drive"]
+EStopSource = Literal["page", "api", "controller", "drive", "link"]  # link: the rig process lost the web process
 ModelChoiceName = Literal["auto", "sdof", "coupled", "h1", "h2"]  # station.config.ModelChoice
 MethodStatus = Literal["pending", "running", "done", "refused", "failed"]  # station.run.methods.STATUSES
 

@@ -90,6 +90,34 @@ def error_of(exc: BaseException) -> dict[str, Any]:
             if not isinstance(exc, MotorError) else detail}
 
 
+class OneAtATime:
+    """A register transport carrying one exchange at a time (the Modbus client pairs a reply with
+    the one request in flight): the web process's questions, the keeper and the stop take turns."""
+
+    def __init__(self, inner: RegisterTransport) -> None:
+        self.inner = inner
+        self.description = inner.description
+        self.lock = asyncio.Lock()
+
+    @property
+    def connected(self) -> bool:
+        return bool(getattr(self.inner, "connected", False))
+
+    async def open(self) -> None:
+        await self.inner.open()
+
+    async def read(self, address: int, count: int, what: str, function: int = 0x03) -> list[int]:
+        async with self.lock:
+            return await self.inner.read(address, count, what, function)
+
+    async def write(self, address: int, words: Sequence[int], what: str, *, retry: bool = True) -> None:
+        async with self.lock:
+            await self.inner.write(address, words, what, retry=retry)
+
+    async def close(self) -> None:
+        await self.inner.close()
+
+
 class RigProcess:
     """The rig process's state, on its one event loop."""
 
@@ -319,9 +347,9 @@ async def run(spec: Spec) -> int:
     t = profile.transport
     motor = MotorController(profile)
     try:
-        await motor.connect(transport_from_url(spec.motor_url, device_id=spec.device_id or t.unit_id,
-                                               baudrate=t.baudrate, parity=t.parity, stopbits=t.stopbits,
-                                               inter_frame_delay_s=t.inter_frame_delay_s))
+        await motor.connect(OneAtATime(transport_from_url(
+            spec.motor_url, device_id=spec.device_id or t.unit_id, baudrate=t.baudrate, parity=t.parity,
+            stopbits=t.stopbits, inter_frame_delay_s=t.inter_frame_delay_s)))
         st = await motor.read_status()
         if not st.standstill:
             log.warning("the drive reports %g Hz: waiting for standstill before serving", st.actual_speed_hz)
@@ -381,6 +409,7 @@ async def run(spec: Spec) -> int:
 def main() -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s rig-process: %(message)s")
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # the driver's own errors say what failed
     line = sys.stdin.readline()
     try:
         spec = Spec.from_json(json.loads(line))
