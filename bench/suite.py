@@ -32,7 +32,8 @@ def _counts(tail: str) -> dict[str, int]:
 
 
 def run_suite(marker: str | None, repeat: int, workers: int = 3) -> dict[str, Any]:
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *(["-n", str(workers)] if workers else [])]
+    spread = ["-n", str(workers), "--dist", "loadgroup"] if workers else []
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *spread]
     if marker:
         cmd += ["-m", marker]
     times, cpu, last = [], [], ""
@@ -45,7 +46,7 @@ def run_suite(marker: str | None, repeat: int, workers: int = 3) -> dict[str, An
         r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         cpu.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
         last = res.stdout.strip().splitlines()[-1] if res.stdout.strip() else res.stderr[-500:]
-    return {"command": " ".join(["pytest", "-q", *(["-n", str(workers)] if workers else []),
+    return {"command": " ".join(["pytest", "-q", *(["-n", str(workers), "--dist", "loadgroup"] if workers else []),
                                  *(["-m", marker] if marker else [])]),
             "wall_s_median": round(statistics.median(times), 1), "wall_s_runs": [round(t, 1) for t in times],
             "cpu_s_median": round(statistics.median(cpu), 1),

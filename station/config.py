@@ -11,6 +11,7 @@ import datetime as dt
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_type_hints
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from pydantic_core import ErrorDetails
@@ -22,7 +23,6 @@ from drivers.motor.profile import load_profile
 from drivers.rig import params as rp
 from station.bounded import MAX_YAML_BYTES, load_yaml, quote, read_text_limited
 from station.errors import ConfigError
-from station.ident.inputs import MeasurementChain
 
 # inf and nan are refused everywhere: several fields (e.g. Range.max, mains amplitudes) have no
 # upper bound that would catch them.
@@ -32,8 +32,79 @@ Pos = Annotated[float, Field(gt=0)]
 
 # Bounds of every configuration, run request and the limits the daemon publishes (GET /station).
 MAX_TOP_MASS_KG = 500.0
+MAX_CRANK_FREQUENCY_HZ = 1000  # a step's crank frequency, wherever a step is declared
+MAX_CRANK_RADIUS_M = 1.0
 MAX_STEPS = 200
 
+DEFAULT_RESONANCE_REL_STD = 0.05  # u(f_r) of a displacement resonance stated without one, relative
+
+
+class MeasurementChain(BaseModel):
+    """Standard uncertainties of the measured H(f) that the noise does not show.
+
+    gain_rel_std: ratio of the force chain's to the displacement chain's gain (conditioner, ADC,
+    displacement sensor), the same at every frequency (correlated), relative;
+    flatness_rel_std: gain error independent from one frequency to the next, relative;
+    phase_offset_std_deg: constant phase offset between the channels (correlated), deg;
+    phase_std_deg: phase error independent from one frequency to the next, deg;
+    delay_std_s: time skew between the channels (phase 2 pi f tau, correlated across frequencies), s;
+    displacement_resonance_hz: the displacement sensor's own resonance f_r in Hz (its response
+    w_r^2 / (w_r^2 - w^2 + 2 j p w_r w), ``drivers.rig.params.DisplacementResonance``), None (the
+    default) for a flat displacement chain (its deviations within the flatness and phase terms);
+    when given, H(f) is corrected for it and its uncertainty enters the budget;
+    displacement_resonance_std_hz: standard uncertainty of f_r, Hz (default 5 % of f_r);
+    displacement_damping: the resonance's damping ratio p; displacement_damping_std: its standard
+    uncertainty (default 0.1).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    gain_rel_std: float = Field(default=1e-4, ge=0, le=0.5)
+    flatness_rel_std: float = Field(default=5e-5, ge=0, le=0.5)
+    phase_offset_std_deg: float = Field(default=0.005, ge=0, le=10)
+    phase_std_deg: float = Field(default=0.005, ge=0, le=10)
+    delay_std_s: float = Field(default=1e-7, ge=0, le=1e-2)
+    displacement_resonance_hz: float | None = Field(default=None, gt=0, le=1e6)
+    displacement_resonance_std_hz: float | None = Field(default=None, ge=0, le=1e6)
+    displacement_damping: float = Field(default=0.0, ge=0, le=10)
+    displacement_damping_std: float = Field(default=0.1, ge=0, le=10)
+
+    @property
+    def displacement_resonance(self) -> rp.DisplacementResonance | None:
+        """The configured resonance of the displacement sensor, None for a flat chain."""
+        if self.displacement_resonance_hz is None:
+            return None
+        return rp.DisplacementResonance(self.displacement_resonance_hz, self.displacement_damping)
+
+    @property
+    def resonance_std_hz(self) -> float:
+        """u(f_r) in Hz: as stated, else 5 % of f_r (0 for a flat chain)."""
+        if self.displacement_resonance_hz is None:
+            return 0.0
+        if self.displacement_resonance_std_hz is not None:
+            return float(self.displacement_resonance_std_hz)
+        return DEFAULT_RESONANCE_REL_STD * float(self.displacement_resonance_hz)
+
+    def displacement_statement(self) -> dict[str, Any]:
+        """The displacement chain's response as the result states it."""
+        if self.displacement_resonance_hz is None:
+            return {"response": "flat", "note": "the displacement chain is taken as flat: its gain and phase "
+                    "errors within flatness_rel_std and phase_std_deg at every frequency of the plan"}
+        return {"response": "resonance", "resonance_hz": self.displacement_resonance_hz,
+                "resonance_std_hz": self.resonance_std_hz, "damping": self.displacement_damping,
+                "damping_std": self.displacement_damping_std,
+                "note": "H(f) corrected for the displacement sensor's resonance w_r^2 / (w_r^2 - w^2 + 2 j p w_r w); "
+                        "its uncertainty is the budget's chain_resonance term"}
+
+    @property
+    def floor_gain(self) -> float:
+        """Per-frequency relative gain floor (correlated and independent parts together)."""
+        return float(np.hypot(self.gain_rel_std, self.flatness_rel_std))
+
+    @property
+    def floor_phase_rad(self) -> float:
+        """Per-frequency phase floor without the delay, rad."""
+        return float(np.deg2rad(np.hypot(self.phase_offset_std_deg, self.phase_std_deg)))
 
 class _Model(BaseModel):
     model_config = _STRICT
@@ -162,8 +233,8 @@ class DaqConfig(_Model):
 class StepConfig(_Model):
     """One step of a stepped-sine run."""
 
-    crank_frequency_hz: float = Field(gt=0, le=1000)
-    crank_radius_m: float = Field(gt=0, le=1.0)
+    crank_frequency_hz: float = Field(gt=0, le=MAX_CRANK_FREQUENCY_HZ)
+    crank_radius_m: float = Field(gt=0, le=MAX_CRANK_RADIUS_M)
     settle_s: float | None = Field(default=None, ge=0, le=600)
     record_s: float | None = Field(default=None, gt=0, le=3600)
 
@@ -238,6 +309,22 @@ class StandardConfig(_Model):
     uncertainty: float = Field(ge=0, le=1e6, description="the standard uncertainty it contributes, in "
                                "uncertainty_unit")
     uncertainty_unit: str = Field(min_length=1, max_length=32, description="e.g. m, kg, V/V, relative")
+
+
+class BatchSection(_Model):
+    """The nightly batch (``station batch``): the check transducer's short calibration it asks the
+    station daemon for before it re-identifies (docs/batch.md)."""
+
+    check_steps: list[StepConfig] = Field(
+        default_factory=list, max_length=10, description="the check run's steps (a short plan: 2-3 steps "
+        "where S, k_f and b_f are determined); empty: three of the plan's steps (first, middle, last)")
+    check_top_mass_kg: float | None = Field(default=None, gt=0, le=MAX_TOP_MASS_KG,
+                                            description="the check run's top mass; default rig.top_mass_kg")
+    check_timeout_s: float = Field(default=1800.0, gt=0, le=86_400.0, description="how long the batch waits "
+                                   "for the check run to be acquired and identified before it reports it unfinished")
+    station_url: str | None = Field(default=None, pattern=r"^https?://[^\s]+$", max_length=256,
+                                    description="the station daemon's address (default: http://service.host:"
+                                    "service.port); its token is STATION_TOKEN or service.token")
 
 
 class LabSection(_Model):
@@ -450,6 +537,7 @@ class StationConfig(_Model):
     simulation: SimulationConfig | None = None
     service: ServiceSection = ServiceSection()
     lab: LabSection = LabSection()
+    batch: BatchSection = BatchSection()
 
     @model_validator(mode="after")
     def _drive_profile(self) -> StationConfig:

@@ -23,8 +23,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from station.bounded import MAX_YAML_BYTES, load_yaml, quote, read_text_limited
+from station.config import MAX_CRANK_FREQUENCY_HZ, MAX_CRANK_RADIUS_M, MeasurementChain
 from station.errors import RecordingFormatError, StationError
-from station.ident.inputs import MeasurementChain
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id, read_recording
 
 log = logging.getLogger(__name__)
@@ -50,8 +50,9 @@ class CsvTransducer(_Strict):
 
 class CsvStep(_Strict):
     file: str = Field(min_length=1)
-    crank_frequency_hz: float = Field(gt=0, le=1000)
-    crank_radius_m: float | None = Field(default=None, gt=0, le=1.0, description="v2: this step's radius")
+    crank_frequency_hz: float = Field(gt=0, le=MAX_CRANK_FREQUENCY_HZ)
+    crank_radius_m: float | None = Field(default=None, gt=0, le=MAX_CRANK_RADIUS_M,
+                                         description="v2: this step's radius")
 
 
 class CsvRange(_Strict):

@@ -27,6 +27,18 @@ MULTI_RADIUS: Steps = ((4.0, 0.01), (30.0, 0.001), (100.0, 0.00015))  # each rad
 ONE_RADIUS: Steps = ((5.0, 0.0004), (20.0, 0.0004), (60.0, 0.0004))  # sinecal-csv v1 exports only these
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Once per run, before the xdist workers start: the simulated rig's compiled synthesis is read from
+    numba's cache, or compiled into it (tens of seconds of CPU on a fresh clone), so that workers and the
+    daemons the tests start do not all compile it at once while a test waits for them."""
+    if hasattr(config, "workerinput"):
+        return
+    from drivers.rig.presets import paper_5kN_physics
+    from drivers.sim.daq_source import RigSource
+
+    RigSource(paper_5kN_physics(), seed=0, crank_radius_m=1e-3).configure(20_000.0, 10.0, 10.0)
+
+
 def _shipped() -> dict[str, Any]:
     data = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
     assert isinstance(data, dict)

@@ -50,3 +50,13 @@ def killed_in_place_write(rec: Path) -> None:
         finally:
             os._exit(1)
     os.waitpid(pid, 0)
+
+
+def flip_bit(path: Path, at: float = 0.5) -> bytes:
+    """Flip the lowest bit of the byte at fraction ``at`` of the file (an edit outside the station);
+    returns the file's bytes before."""
+    data = path.read_bytes()
+    b = bytearray(data)
+    b[int(len(b) * at)] ^= 0x01
+    path.write_bytes(bytes(b))
+    return data

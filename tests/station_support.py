@@ -19,6 +19,7 @@ import contextlib
 import copy
 import json
 import os
+import shutil
 import signal
 import socket
 import sqlite3
@@ -305,8 +306,11 @@ class Daemon:
         self.port = free_port()
         env = {**os.environ, "STATION_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
         log = self.log_path.open("ab")
+        # the daemon dies with the test process, even one killed by a time-out (no daemon left
+        # synthesising the simulated rig's signals on a shared machine)
+        orphan_guard = ["setpriv", "--pdeathsig", "TERM"] if shutil.which("setpriv") else []
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "station.cli", "serve", *(["--sim"] if self.sim else []),
+            [*orphan_guard, sys.executable, "-m", "station.cli", "serve", *(["--sim"] if self.sim else []),
              "--config", str(self.cfg_path), "--port", str(self.port), "--workers", str(self.workers)],
             stdout=log, stderr=subprocess.STDOUT, env=env, cwd=self.tmp)
         log.close()

@@ -17,9 +17,9 @@ import pytest
 
 from station.backup import MANIFEST, BackupError, backup, check_backup, restore
 from station.certificate.issue import issue
-from station.certificate.register import FOLDER, read_issued
 from station.cli import main
 from station.lab.integrity import sha256_file
+from station.lab.issued import FOLDER, read_issued
 from station.recording import read_recording
 from tests.station_support import Seed, asgi_client, daemon_config, run_body, running_app, seed_runs
 

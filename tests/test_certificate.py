@@ -15,9 +15,10 @@ from pypdf import PdfReader
 
 from station.certificate.content import certificate_content
 from station.certificate.issue import CertificateError, draft, issue, list_issued, read_issued
-from station.certificate.render import certificate_html, html_to_pdf
+from station.certificate.render import certificate_html
 from station.ident.identify import identify_recording
 from station.recording import read_recording, write_result
+from station.report.render import html_to_pdf
 from tests.ident_support import sim
 
 TECH, APPROVER = "T. Technician", "A. Approver"

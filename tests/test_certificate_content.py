@@ -17,11 +17,12 @@ from pypdf import PdfReader
 
 from station.certificate.content import Approval, certificate_content
 from station.certificate.dcc import build_dcc
-from station.certificate.render import certificate_html, html_to_pdf
+from station.certificate.render import certificate_html
+from station.config import MeasurementChain
 from station.ident.identify import identify_recording
-from station.ident.inputs import MeasurementChain
 from station.ident.response.checked import checked_response
 from station.recording import read_recording, write_result
+from station.report.render import html_to_pdf
 from tests.ident_support import R, sim
 
 ISSUED = Approval("issued", "SC-2026-0042", "T. Technician", "A. Approver", "approver", "2026-11-24T12:00:00+00:00")

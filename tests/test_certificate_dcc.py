@@ -12,8 +12,8 @@ from lxml import etree
 
 from station.certificate.content import Approval, certificate_content
 from station.certificate.dcc import DCC_NS, DSI_UNITS, SI_NS, build_dcc, validate
-from station.certificate.register import CertificateError
 from station.ident.identify import identify_recording
+from station.lab.issued import CertificateError
 from station.recording import read_recording, write_result
 from tests.ident_support import sim
 

@@ -89,6 +89,17 @@ def test_method_status_literal_matches_the_outcomes() -> None:
     assert get_args(ModelChoiceName) == get_args(ModelChoice)
 
 
+def test_every_list_of_methods_reads_the_one_registry() -> None:
+    from typing import get_args
+
+    from station.config import MODELS_OF_METHOD, MethodKey
+    from station.ident.names import METHOD_DESCRIPTIONS, METHOD_PREFERENCE, METHOD_REGISTRY, METHODS, SWARM_METHODS
+
+    assert get_args(MethodKey) == METHODS  # a Literal for the configuration's schema, the same names
+    assert sorted(METHOD_PREFERENCE) == sorted(METHODS) == sorted(MODELS_OF_METHOD) == sorted(METHOD_DESCRIPTIONS)
+    assert len(METHOD_REGISTRY) == len(METHODS) and set(SWARM_METHODS) == {"pso", "pso+"}
+
+
 # ---------------------------------------------------------------------------------------- agreement
 def _result(method: str, **params: tuple[float | None, float | None, str]) -> IdentificationResult:
     ps = {n: Estimate(v, s, "N/m", v is not None, why) for n, (v, s, why) in params.items()}

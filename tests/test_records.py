@@ -15,6 +15,7 @@ import pytest
 
 from station.lab import audit, chain
 from station.service.store import Store
+from tests.recording_support import flip_bit
 
 
 def _trail(tmp_path: Path, n: int = 5) -> Store:
@@ -73,6 +74,8 @@ def test_a_change_behind_the_triggers_is_named_at_its_entry(tmp_path: Path, stmt
     st = _state(store)
     assert not st.ok and st.open_breaks[0].id == broken_at and words in st.open_breaks[0].reason
     assert f"broken at entry {broken_at}" in st.describe()
+    with store.reading() as db:  # a page of /audit marks it too (not an entry deleted from the end: no page has it)
+        assert chain.broken_among(db, range(1, 10)) == ([] if "from the end" in words else [broken_at])
     with pytest.raises(chain.ChainBrokenError, match=f"entry {broken_at}"):
         st.require()
     # an administrator's reviewed exception: still listed, no longer blocking; the exception is a link too
@@ -116,14 +119,6 @@ def test_an_older_trail_is_chained_as_it_stands(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- the daemon
-def _flip(path: Path, at: float = 0.5) -> bytes:
-    data = path.read_bytes()
-    b = bytearray(data)
-    b[int(len(b) * at)] ^= 0x01
-    path.write_bytes(bytes(b))
-    return data
-
-
 @pytest.mark.slow
 def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path) -> None:
     """A seeded, identified run (vouched for as the daemon vouches): its results file edited, its
@@ -157,13 +152,13 @@ def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path
 
             # 1. S and k_f edited in a results file
             target = results[0]
-            old = _flip(target, 0.9)
+            old = flip_bit(target, 0.9)
             await refused(target.name)
             target.write_bytes(old)
             assert (await c.get(f"/runs/{rid}/results")).status_code == 200
             # 2. a byte of the recording flipped and the runs table's SHA-256 rewritten to match
             recording = rec / f"{rid}.h5"
-            old = _flip(recording)
+            old = flip_bit(recording)
             from station.lab.integrity import sha256_file
             db = sqlite3.connect(manager.settings.database)
             db.execute("UPDATE runs SET recording_sha256 = ? WHERE id = ?", (sha256_file(recording), rid))
@@ -238,7 +233,7 @@ def _customer_checks(folder: Path, number: str, public_pem: str, where: Path) ->
         assert main(["verify", str(cert), "--key", str(key)]) == 0
         good = cert.read_bytes()
         for at in (0, len(good) // 3, len(good) - 1):
-            _flip(cert, at / len(good))
+            flip_bit(cert, at / len(good))
             assert main(["verify", str(cert), "--key", str(key)]) == 1
             cert.write_bytes(good)
     sig = where / f"{number}.sig"
@@ -436,12 +431,24 @@ def test_an_out_of_range_audit_cursor_is_422(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- logins
+def _count_scrypt(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """hashlib.scrypt counted from now on: one 1 in the list per call."""
+    import hashlib
+
+    calls: list[int] = []
+    real = hashlib.scrypt
+
+    def counted(*a: object, **k: object) -> bytes:
+        calls.append(1)
+        return real(*a, **k)  # type: ignore[arg-type]
+    monkeypatch.setattr(hashlib, "scrypt", counted)
+    return calls
+
+
 def test_every_kind_of_name_costs_one_password_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Unknown, known (wrong password), disabled and password-less names: one scrypt each, so no
     name can be told from another by the time a refusal takes (the measured medians are in
     docs/operations.md)."""
-    import hashlib
-
     from station.lab import users
 
     store = Store(tmp_path / "s.db")
@@ -449,12 +456,7 @@ def test_every_kind_of_name_costs_one_password_check(tmp_path: Path, monkeypatch
     users.put_user(store, "dora", users.Role.TECHNICIAN, "admin", password="dora-secret-pw", disabled=True)
     users.put_user(store, "tok", users.Role.TECHNICIAN, "admin")
     users.login_candidate(store, "nobody")  # the dummy hash made once
-    calls = []
-    real = hashlib.scrypt
-    def counted(*a: object, **k: object) -> bytes:
-        calls.append(1)
-        return real(*a, **k)  # type: ignore[arg-type]
-    monkeypatch.setattr(hashlib, "scrypt", counted)
+    calls = _count_scrypt(monkeypatch)
     for name in ("nobody", "tina", "dora", "tok", "Tina-Secret-PW!"):
         calls.clear()
         assert users.check_login(store, name, "wrong-password-1") is None
@@ -481,10 +483,12 @@ def test_the_password_pool_refuses_at_once_when_full() -> None:
     asyncio.run(go())
 
 
-def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path) -> None:
+def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     """Five wrong passwords, then each further one locks the name and the address out for a
     growing time (the right password is refused meanwhile, no password checked); the lock-out is
-    audited and listed for an administrator, who lifts it.  A password typed into the name field
+    audited and listed for an administrator, who lifts it; a locked login costs the same one
+    password check as any other.  A password typed into the name field
     never reaches the trail; a new password ends the user's sessions; tokens are listed and revoked."""
     from station.service import logins
     from tests.station_support import PASSWORDS, app_in_process, asgi_client, login
@@ -500,8 +504,11 @@ def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path
                 assert r.status_code == 401 and "wrong user name or password" in r.json()["detail"]
             r = await anon.post("/login", json={"name": "tina", "password": "not-her-password"})
             assert r.status_code == 401
+            calls = _count_scrypt(monkeypatch)
             r = await anon.post("/login", json={"name": "tina", "password": PASSWORDS["tina"]})
             assert r.status_code == 401 and "locked until" in r.json()["detail"]
+            assert len(calls) == 1  # the same password check as any login: a lock-out is not told by its time
+            monkeypatch.undo()
             locks = (await c.get("/logins/locks")).json()
             assert {x["key"] for x in locks} == {"user:tina", "client:127.0.0.1"}
             assert audit.entries(manager.store, action=audit.LOGIN_LOCKED)
@@ -556,3 +563,152 @@ def test_the_command_line_lists_and_revokes_tokens(tmp_path: Path, monkeypatch: 
     store = Store(tmp_path / "rec" / "station.db")
     assert users.user_of_token(store, text) is None
     store.close()
+
+
+# ---------------------------------------------------------------------------------------------- the lab's tables
+def _sql(path: Path, *stmts: str) -> None:
+    """What an insider with the database file does to a table the station keeps (no trigger there)."""
+    db = sqlite3.connect(path)
+    for s in stmts:
+        db.execute(s)
+    db.commit()
+    db.close()
+
+
+@pytest.mark.parametrize(("stmt", "words"), [
+    ("UPDATE transducer_policy SET check_standard = 0", "transducer_policy TX-CHECK-1: check_standard changed"),
+    ("UPDATE transducer_policy SET tolerances_json = '{\"S\": 0.5}'", "tolerances changed"),
+    ("UPDATE transducer_policy SET updated_by = 'mallory'", "updated_by changed"),
+    ("DELETE FROM transducer_policy", "transducer_policy TX-CHECK-1: deleted outside the station"),
+    ("UPDATE as_left SET value = value * 1.01", "as_left run001/S: value changed"),
+    ("DELETE FROM as_left", "as_left run001/S: deleted outside the station"),
+    ("INSERT INTO as_left SELECT 'run002', transducer_id, 'k_f', 1.0, 'N/m', '', at, by FROM as_left",
+     "as_left run002/k_f: not in the audit trail"),
+    ("UPDATE as_left SET transducer_id = 'OTHER'", "as_left run001/S: transducer_id changed"),
+])
+def test_policies_and_adjustments_changed_outside_the_station_are_refused(tmp_path: Path, stmt: str,
+                                                                         words: str) -> None:
+    """The chain vouches for every row of transducer_policy and as_left: an edit with sqlite3 is
+    refused by the reads (the history, the check transducers) and named by the integrity check; the
+    next change through the station records what it found and overwrote."""
+    from station.lab import policy
+    from tests.history_support import TX, add_runs, add_transducer
+
+    store = Store(tmp_path / "s.db")
+    add_transducer(store)
+    ids = add_runs(store, tmp_path, 3)
+    policy.put_policy(store, policy.Policy(TX, {"S": 0.005}, 365.0, True), "ada")
+    policy.record_as_left(store, policy.AsLeft(ids[1], TX, "S", 2.001e-3, "V/N", "gain set", 1.8e9, "anton"))
+    with store.reading() as db:
+        assert policy.record_mismatches(db) == [] and chain.verify_chain(db).ok
+    assert policy.check_transducers(store) == [TX] and policy.as_left_of(store, TX)[ids[1]]["S"].value == 2.001e-3
+    store.close()
+
+    _sql(tmp_path / "s.db", stmt)
+    store = Store(tmp_path / "s.db")
+    with store.reading() as db:
+        found = policy.record_mismatches(db)
+        report = chain.integrity_report(chain.verify_chain(db), {}, tmp_path, found)
+    assert len(found) == 1 and words in found[0], found
+    assert report["chain_ok"] and not report["ok"] and words in report["detail"]
+    with pytest.raises(policy.RecordTamperedError, match=words.split(":")[0]):
+        if "as_left" in stmt:
+            policy.as_left_of(store, TX)
+        else:
+            policy.check_transducers(store)
+    if "transducer_policy" in stmt:
+        with pytest.raises(policy.RecordTamperedError, match=r"changed outside|deleted outside"):
+            policy.policy(store, TX)
+        # the administrator sets the policy again: the entry says what was found and overwritten
+        policy.put_policy(store, policy.Policy(TX, {"S": 0.005}, 365.0, True), "ada")
+        e = audit.entries(store, action=policy.POLICY_CHANGED)[0]
+        assert e.details["found_changed_outside"] == found
+        assert policy.policy(store, TX).check_standard
+        with store.reading() as db:
+            assert policy.record_mismatches(db) == []
+    store.close()
+
+
+def test_a_lock_out_outlives_a_restart_and_its_doubling_goes_on(tmp_path: Path) -> None:
+    """A lock-out is kept in the database and loaded by the next daemon: still in force, and the
+    next failure after it runs out doubles it as before; lifting it forgets it there too.  Counts
+    below the first lock-out are not kept."""
+    from station.lab import users
+    from station.service.logins import BASE_LOCK_S, FREE_FAILURES, LoginThrottle
+
+    store = Store(tmp_path / "s.db")
+    now = [1000.0]
+
+    def throttle() -> LoginThrottle:
+        t = LoginThrottle(clock=lambda: now[0], save=lambda k, n, u: users.keep_lock(store, k, n, u))
+        t.load(users.kept_locks(store))
+        return t
+
+    t = throttle()
+    for _ in range(FREE_FAILURES):
+        assert t.failed(["user:tina", "user:other"]) == []
+    t.succeeded("user:other")
+    assert users.kept_locks(store) == []  # nothing kept below the first lock-out
+    assert t.failed(["user:tina"]) == [("user:tina", BASE_LOCK_S)]
+    assert users.kept_locks(store) == [("user:tina", FREE_FAILURES + 1, now[0] + BASE_LOCK_S)]
+    t = throttle()  # the daemon restarted
+    assert t.refusal(["user:tina"]) is not None and [x["key"] for x in t.locks()] == ["user:tina"]
+    now[0] += BASE_LOCK_S + 0.1
+    assert t.refusal(["user:tina"]) is None
+    assert t.failed(["user:tina"]) == [("user:tina", 2 * BASE_LOCK_S)]
+    assert throttle().refusal(["user:tina"]) is not None
+    assert t.lift("user:tina") and users.kept_locks(store) == []
+    store.close()
+
+
+def test_each_user_lists_and_revokes_their_own_tokens_and_an_admin_all(tmp_path: Path) -> None:
+    from tests.station_support import PASSWORDS, app_in_process, login
+
+    async def go() -> None:
+        async with app_in_process(tmp_path / "rec") as (_, c):
+            app = c._transport.app  # type: ignore[attr-defined]
+            for name, role in (("tina", "technician"), ("anton", "approver")):
+                assert (await c.put(f"/users/{name}", json={"role": role, "password": PASSWORDS[name]})).status_code \
+                    == 200
+                assert (await c.post(f"/users/{name}/tokens", json={"label": f"{name}-ci"})).status_code == 201
+            tina = await login(app, "tina")
+            mine = (await tina.get("/tokens")).json()
+            assert [(t["user"], t["label"]) for t in mine] == [("tina", "tina-ci")]
+            assert (await tina.get("/tokens", params={"user": "anton"})).status_code == 403
+            every = (await c.get("/tokens")).json()
+            assert {t["user"] for t in every} >= {"tina", "anton"}
+            [anton_token] = [t["id"] for t in every if t["user"] == "anton"]
+            r = await tina.delete(f"/tokens/{anton_token}")
+            assert r.status_code == 404 and "of user tina" in r.json()["detail"]
+            assert (await tina.delete(f"/tokens/{mine[0]['id']}")).status_code == 200
+            assert (await tina.get("/tokens")).json()[0]["revoked"] is not None
+            assert (await c.get("/tokens", params={"user": "anton"})).json()[0]["revoked"] is None
+            await tina.aclose()
+    asyncio.run(go())
+
+
+def test_station_verify_passes_on_a_clean_station_and_names_a_row_edited_outside(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import yaml
+
+    from station.cli import main
+    from station.lab import policy
+    from tests.history_support import TX, add_runs, add_transducer
+    from tests.station_support import daemon_config
+
+    cfg = tmp_path / "station.yaml"
+    cfg.write_text(yaml.safe_dump(daemon_config(tmp_path / "rec")))
+    (tmp_path / "rec").mkdir()
+    store = Store(tmp_path / "rec" / "station.db")
+    add_transducer(store)
+    ids = add_runs(store, tmp_path / "rec", 3)
+    policy.put_policy(store, policy.Policy(TX, {"S": 0.005}, 365.0, True), "ada")
+    policy.record_as_left(store, policy.AsLeft(ids[2], TX, "S", 2.001e-3, "V/N", "gain set", 1.9e9, "anton"))
+    store.close()
+    assert main(["verify", "--config", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "audit chain intact" in out and out.rstrip().endswith("OK")
+    _sql(tmp_path / "rec" / "station.db", "UPDATE as_left SET note = 'set by nobody'")
+    assert main(["verify", "--config", str(cfg)]) == 1
+    out = capsys.readouterr().out
+    assert "audit chain intact" in out and f"row as_left {ids[2]}/S: note changed" in out and "FAILED" in out

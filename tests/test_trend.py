@@ -190,3 +190,20 @@ def test_drift_risk_grows_towards_the_due_date_and_covers_the_truth():
     assert near.probability_out_of_tolerance < 0.05 < far.probability_out_of_tolerance
     with pytest.raises(ValueError):
         intervals.drift_risk([0, 1], [1, 1], [1, 1], due_day=2, nominal=1, tolerance=1)
+
+
+def test_the_drift_risk_does_not_depend_on_where_time_starts() -> None:
+    """Days counted from 1970 for runs minutes apart (a seeded history) once made the fit's variance
+    negative (a 500 on the history): the fit is the same whatever the origin of time."""
+    from station.trend import intervals
+
+    minutes = np.array([0.0, 7.0, 13.0, 30.0]) / 1440
+    values, u = [1.0, 1.0001, 0.9999, 1.0002], [1e-4] * 4
+    near = intervals.drift_risk(minutes, values, u, due_day=365.0, nominal=1.0, tolerance=0.005)
+    far = intervals.drift_risk(minutes + 20_776.0, values, u, due_day=20_776.0 + 365.0, nominal=1.0,
+                               tolerance=0.005)
+    assert np.isfinite(far.u_predicted) and far.u_predicted > 0
+    assert far.slope_per_day == pytest.approx(near.slope_per_day, rel=1e-6)
+    assert far.u_predicted == pytest.approx(near.u_predicted, rel=1e-6)
+    with pytest.raises(ValueError, match="different times"):
+        intervals.drift_risk([5.0] * 3, values[:3], u[:3], due_day=30.0, nominal=1.0, tolerance=0.005)

@@ -46,22 +46,43 @@ class Kinematics:
     jerk: np.ndarray
 
 
+ROTATION_ROW = 256  # samples per row of ``rotations`` (kernels.SYNTH_TILE: the compiled synthesis's tile)
+
+
+def rotations(phi0: float, dphi: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """exp(i phi_k), phi_k = phi0 + dphi*k, k = 0..n-1, as base[k // ROTATION_ROW] * table[k % ROTATION_ROW]:
+    (base, table) as real and imaginary parts, shapes (2, ceil(n / ROTATION_ROW)) and (2, ROTATION_ROW)."""
+    return rotation_base(phi0, dphi, n), rotation_table(dphi)
+
+
+def rotation_table(dphi: float) -> np.ndarray:
+    """The table of ``rotations``: exp(i dphi k), k < ROTATION_ROW, real and imaginary parts (2, ROTATION_ROW)."""
+    table = np.exp(1j * dphi * np.arange(ROTATION_ROW))
+    return np.stack([table.real, table.imag])
+
+
+def rotation_base(phi0: float, dphi: float, n: int) -> np.ndarray:
+    """The base of ``rotations``: exp(i (phi0 + dphi ROTATION_ROW j)), j < ceil(n / ROTATION_ROW), (2, rows)."""
+    m = ROTATION_ROW
+    base = np.exp(1j * (phi0 + dphi * m * np.arange(-(-n // m))))
+    return np.stack([base.real, base.imag])
+
+
 def cos_sin(phi0: float, dphi: float, c: float, n: int) -> tuple[np.ndarray, np.ndarray]:
     """cos and sin of phi_k = phi0 + dphi*k + c*k^2, k = 0..n-1.
 
-    For c == 0 (steady crank) the angles are built from a table of rotations by dphi (one complex
-    product per sample instead of two transcendental calls); otherwise np.cos/np.sin are used.
+    For c == 0 (steady crank) the angles are built from a table of rotations by dphi (``rotations``:
+    one complex product per sample instead of two transcendental calls), the product written out in
+    real arithmetic (numpy's complex product fuses a multiply-add on some CPUs: this gives the same
+    bits on every machine, and the same as the compiled synthesis); otherwise np.cos/np.sin are used.
     """
     if c != 0.0:
         k = np.arange(n, dtype=float)
         phi = phi0 + k * (dphi + c * k)
         return np.cos(phi), np.sin(phi)
-    m = 256
-    rows = -(-n // m)
-    table = np.exp(1j * dphi * np.arange(m))
-    base = np.exp(1j * (phi0 + dphi * m * np.arange(rows)))
-    e = np.multiply.outer(base, table).ravel()[:n]
-    return e.real.copy(), e.imag.copy()
+    (br, bi), (tr, ti) = rotations(phi0, dphi, n)
+    br, bi = br[:, None], bi[:, None]
+    return (br * tr - bi * ti).ravel()[:n], (br * ti + bi * tr).ravel()[:n]
 
 
 def harmonic_stack(cs: tuple[np.ndarray, np.ndarray], count: int) -> np.ndarray:
@@ -84,7 +105,7 @@ def harmonic_stack(cs: tuple[np.ndarray, np.ndarray], count: int) -> np.ndarray:
     return out
 
 
-def _weights(coeffs: np.ndarray) -> np.ndarray:
+def harmonic_weights(coeffs: np.ndarray) -> np.ndarray:
     """Rows that give x, dx/dphi, d2x/dphi2, d3x/dphi3 from ``harmonic_stack``; shape (4, 2K).
 
     With c_k = a_k - i b_k: x = sum a_k cos + b_k sin, x' = sum k (b_k cos - a_k sin),
@@ -108,7 +129,7 @@ def harmonic_sum(cs: tuple[np.ndarray, np.ndarray], W: np.ndarray) -> np.ndarray
 
 def _series(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """x(phi) and dx/dphi for x = sum_k a_k cos(k phi) + b_k sin(k phi), c_k = a_k - i b_k."""
-    xd = harmonic_sum(cs, _weights(coeffs)[:2])
+    xd = harmonic_sum(cs, harmonic_weights(coeffs)[:2])
     return xd[0], xd[1]
 
 
@@ -126,7 +147,7 @@ def evaluate(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray], omega: np.nd
             return Kinematics(displacement=x, acceleration=-w2 * x, jerk=-(w2 * omega) * d1)
         return Kinematics(displacement=x, acceleration=alpha * d1 - w2 * x,
                           jerk=-(w2 * omega) * d1 - 3.0 * alpha * omega * x)
-    x, d1, d2, d3 = harmonic_sum(cs, _weights(coeffs))
+    x, d1, d2, d3 = harmonic_sum(cs, harmonic_weights(coeffs))
     if alpha == 0.0:
         return Kinematics(displacement=x, acceleration=d2 * w2, jerk=d3 * (w2 * omega))
     return Kinematics(displacement=x, acceleration=d2 * w2 + d1 * alpha,
@@ -145,15 +166,18 @@ def displacement_and_slope(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]
 
 def shift_angle(cs: tuple[np.ndarray, np.ndarray], delta: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
     """cos and sin of (phi - delta) from cs = (cos phi, sin phi); delta in rad, scalar or (n,)."""
-    cd: np.ndarray | float
-    sd: np.ndarray | float
-    if np.ndim(delta) == 0:
-        cd, sd = np.cos(delta), np.sin(delta)
-    elif np.max(np.abs(delta)) < 0.1:  # Taylor to delta^6: error < 2e-12
-        d2 = delta * delta
-        cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 / 720.0))
-        sd = delta * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 / 5040.0)))
-    else:
-        cd, sd = np.cos(delta), np.sin(delta)
+    cd, sd = shift_cos_sin(delta)
     c, s = cs
     return c * cd + s * sd, s * cd - c * sd
+
+
+def shift_cos_sin(delta: np.ndarray | float) -> tuple[np.ndarray | float, np.ndarray | float]:
+    """cos and sin of the lag delta (rad, scalar or (n,)) as ``shift_angle`` uses them: a Taylor
+    series when every |delta| < 0.1 (the compiled synthesis computes the same per sample)."""
+    if np.ndim(delta) == 0:
+        return np.cos(delta), np.sin(delta)
+    if np.max(np.abs(delta)) < 0.1:  # Taylor to delta^6: error < 2e-12
+        d2 = delta * delta
+        return (1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 / 720.0)),
+                delta * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 / 5040.0))))
+    return np.cos(delta), np.sin(delta)

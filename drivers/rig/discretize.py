@@ -96,6 +96,20 @@ class FilterBank:
         # two states): the u-filters' steady state for u0, the u'-filters' rest at zero
         self._z = np.array(filters.zi_unit_u[:count] * u0, dtype=float)
 
+    @property
+    def coefficients(self) -> np.ndarray:
+        """(3, P, n+1): num_u, num_du and (in row [2, 0]) the denominator, normalised: what
+        ``kernels.synth_block`` takes for a filter."""
+        packed = np.zeros((3, *self._num_u.shape))
+        packed[0], packed[1], packed[2, 0] = self._num_u, self._num_du, self._den
+        return packed
+
+    @property
+    def state(self) -> np.ndarray:
+        """The transposed direct form states (P, n), carried over between blocks; updated in place by
+        ``run`` and by ``kernels.synth_block``."""
+        return self._z
+
     def run(self, u: np.ndarray, du: np.ndarray) -> list[np.ndarray]:
         """Filter one block; u, du: (n,) input and its time derivative (same unit per second)."""
         from drivers.rig import kernels  # numba: imported (and compiled or read from its cache) on first use

@@ -15,6 +15,7 @@ import numba
 import numpy as np
 
 TILE = 512  # samples per tile of harmonic_series (its scratch stays in the L1 cache)
+SYNTH_TILE = 256  # samples per tile of synth_block: one row of crank.cos_sin's rotations (crank.ROTATION_ROW)
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -23,38 +24,18 @@ def harmonic_series(c1, s1, W, out):
 
     c1, s1: cos phi, sin phi, shape (n,); W: (m, 2K); out: (m, n)."""
     m = W.shape[0]
-    K = W.shape[1] // 2
     n = c1.size
+    rows = np.empty((m, TILE))
     cprev = np.empty(TILE)
     ccur = np.empty(TILE)
     sprev = np.empty(TILE)
     scur = np.empty(TILE)
     for k0 in range(0, n, TILE):
         t = min(TILE, n - k0)
-        for q in range(t):
-            cprev[q] = 1.0
-            sprev[q] = 0.0
-            ccur[q] = c1[k0 + q]
-            scur[q] = s1[k0 + q]
+        _harmonics_tile(c1[k0:k0 + t], s1[k0:k0 + t], t, W, m, rows, cprev, ccur, sprev, scur)
         for i in range(m):
-            wc = W[i, 0]
-            ws = W[i, K]
             for q in range(t):
-                out[i, k0 + q] = wc * ccur[q] + ws * scur[q]
-        for h in range(1, K):  # harmonic h + 1 from h and h - 1
-            for q in range(t):
-                two_c1 = 2.0 * c1[k0 + q]
-                cn = two_c1 * ccur[q] - cprev[q]
-                sn = two_c1 * scur[q] - sprev[q]
-                cprev[q] = ccur[q]
-                sprev[q] = scur[q]
-                ccur[q] = cn
-                scur[q] = sn
-            for i in range(m):
-                wc = W[i, h]
-                ws = W[i, K + h]
-                for q in range(t):
-                    out[i, k0 + q] += wc * ccur[q] + ws * scur[q]
+                out[i, k0 + q] = rows[i, q]
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -74,3 +55,306 @@ def two_input_df2t(num_u, num_du, den, u, du, z, out):
                 z[p, i] = z[p, i + 1] + num_u[p, i + 1] * x1 + num_du[p, i + 1] * x2 - den[i + 1] * y
             z[p, n - 1] = num_u[p, n] * x1 + num_du[p, n] * x2 - den[n] * y
             out[p, k] = y
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _harmonics_tile(c1, s1, t, W, rows, out, cprev, ccur, sprev, scur):
+    """The harmonic sums of ``harmonic_series`` on one tile: out[i, q] for the first ``rows`` rows of W
+    and q < t (t at most the length of the scratch rows cprev, ccur, sprev, scur)."""
+    K = W.shape[1] // 2
+    for q in range(t):
+        cprev[q] = 1.0
+        sprev[q] = 0.0
+        ccur[q] = c1[q]
+        scur[q] = s1[q]
+    for i in range(rows):
+        wc = W[i, 0]
+        ws = W[i, K]
+        for q in range(t):
+            out[i, q] = wc * ccur[q] + ws * scur[q]
+    for h in range(1, K):
+        for q in range(t):
+            two_c1 = 2.0 * c1[q]
+            cn = two_c1 * ccur[q] - cprev[q]
+            sn = two_c1 * scur[q] - sprev[q]
+            cprev[q] = ccur[q]
+            sprev[q] = scur[q]
+            ccur[q] = cn
+            scur[q] = sn
+        for i in range(rows):
+            wc = W[i, h]
+            ws = W[i, K + h]
+            for q in range(t):
+                out[i, q] += wc * ccur[q] + ws * scur[q]
+
+
+MAX_ORDER = 8  # the highest filter order synth_block runs (its states are tuples of this length)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _df2t(b, c, a, n, z, x1, x2):
+    """One sample of ``two_input_df2t`` for one output of order n <= MAX_ORDER (the same operations):
+    b, c, a its num_u, num_du, den; z its state padded with zeros to a tuple of MAX_ORDER (kept in
+    registers, not in memory, across the samples).  Returns (y, the next state)."""
+    z0, z1, z2, z3, z4, z5, z6, z7 = z
+    y = z0 + b[0] * x1 + c[0] * x2
+    if n == 1:
+        return y, (b[1] * x1 + c[1] * x2 - a[1] * y, z1, z2, z3, z4, z5, z6, z7)
+    z0 = z1 + b[1] * x1 + c[1] * x2 - a[1] * y
+    if n == 2:
+        return y, (z0, b[2] * x1 + c[2] * x2 - a[2] * y, z2, z3, z4, z5, z6, z7)
+    z1 = z2 + b[2] * x1 + c[2] * x2 - a[2] * y
+    if n == 3:
+        return y, (z0, z1, b[3] * x1 + c[3] * x2 - a[3] * y, z3, z4, z5, z6, z7)
+    z2 = z3 + b[3] * x1 + c[3] * x2 - a[3] * y
+    if n == 4:
+        return y, (z0, z1, z2, b[4] * x1 + c[4] * x2 - a[4] * y, z4, z5, z6, z7)
+    z3 = z4 + b[4] * x1 + c[4] * x2 - a[4] * y
+    if n == 5:
+        return y, (z0, z1, z2, z3, b[5] * x1 + c[5] * x2 - a[5] * y, z5, z6, z7)
+    z4 = z5 + b[5] * x1 + c[5] * x2 - a[5] * y
+    if n == 6:
+        return y, (z0, z1, z2, z3, z4, b[6] * x1 + c[6] * x2 - a[6] * y, z6, z7)
+    z5 = z6 + b[6] * x1 + c[6] * x2 - a[6] * y
+    if n == 7:
+        return y, (z0, z1, z2, z3, z4, z5, b[7] * x1 + c[7] * x2 - a[7] * y, z7)
+    z6 = z7 + b[7] * x1 + c[7] * x2 - a[7] * y
+    return y, (z0, z1, z2, z3, z4, z5, z6, b[8] * x1 + c[8] * x2 - a[8] * y)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _load_state(z, p):
+    """Row p of a (P, n <= MAX_ORDER) state array as the padded tuple ``_df2t`` carries."""
+    n = z.shape[1]
+    return (z[p, 0] if n > 0 else 0.0, z[p, 1] if n > 1 else 0.0, z[p, 2] if n > 2 else 0.0,
+            z[p, 3] if n > 3 else 0.0, z[p, 4] if n > 4 else 0.0, z[p, 5] if n > 5 else 0.0,
+            z[p, 6] if n > 6 else 0.0, z[p, 7] if n > 7 else 0.0)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _store_state(zt, z, p):
+    """Write the tuple state zt back to row p of z (its first n entries)."""
+    n = z.shape[1]
+    z0, z1, z2, z3, z4, z5, z6, z7 = zt
+    for i, zi in enumerate((z0, z1, z2, z3, z4, z5, z6, z7)):
+        if i < n:
+            z[p, i] = zi
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _rotate_tile(base, table, j, t, c, s):
+    """c + i s = base[j] * table[q] for q < t, the product written out as ``crank.cos_sin`` does;
+    base, table: (2, rows), (2, SYNTH_TILE) real and imaginary parts."""
+    br = base[0, j]
+    bi = base[1, j]
+    for q in range(t):
+        c[q] = br * table[0, q] - bi * table[1, q]
+        s[q] = br * table[1, q] + bi * table[0, q]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _quantise(v, lsb, lo, hi, codes):
+    """codes = clip(rint(v / lsb), lo, hi) as int16; returns how many were clipped."""
+    clipped = 0
+    for k in range(v.size):
+        c = np.rint(v[k] / lsb)
+        if c < lo:
+            clipped += 1
+            c = lo
+        elif c > hi:
+            clipped += 1
+            c = hi
+        codes[k] = np.int16(c)
+    return clipped
+
+
+# C901: one fused pass on purpose: the filters' states stay in registers across the stages of a tile (the
+# same filter with its state in memory measured 6x slower); the staged path is RigSynth.advance_stages
+@numba.njit(cache=True, error_model="numpy")
+def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp, lp_z, mains_base, mains_tab, Wm,  # noqa: C901
+                noise_f, shift_cs, sen, sen_z, noise_d, out_x, out_fV, out_dV, codes_d, codes_f):
+    """One block of ``synth.RigSynth``: every stage of its signal chain for each tile of SYNTH_TILE samples
+    (the crank's and the mains' harmonics and every elementwise stage vectorised over the tile, the
+    three filters in one pass over it), the same operations as the staged numpy path in the same
+    order, so the same samples to the bit.  Returns the number of clipped samples (both channels).
+
+    fl (float64): [T, f0, rate, alpha, g, S, capacity, quadratic, cubic, gain, offset, drift_rate,
+    drift_quadratic, noise_V, cd, sd, delay, skew, disp_gain, disp_noise_scale, lsb_d, lsb_f, lo, hi]
+    (T s; f0 Hz; rate Hz/s; alpha rad/s^2; the rest as in ``params``); ints (int64): [n, k_abs,
+    ramp, has_nl, has_lp, has_drift, has_mains, has_fnoise, shift_mode, has_sen, has_dnoise];
+    shift_mode 0 none, 1 constant (cd, sd), 2 Taylor of the per-sample lag, 3 given (shift_cs).
+    crank_base, crank_tab, mains_base, mains_tab: (2, rows), (2, SYNTH_TILE) the rotations of ``crank.cos_sin``;
+    crank_cs: (2, n) cos and sin of the crank angle when ``ramp``; Wc (4, 2K), Wm (1, 2Km): weights
+    of ``harmonic_series``; mech, lp, sen: (3, P, n+1) num_u, num_du and the denominator (in row
+    [2, 0]) of a ``two_input_df2t``, with their states mech_z, lp_z, sen_z (P, n) carried over;
+    noise_f, noise_d: standard normal draws (n,); outputs (n,)."""
+    T, f0, rate, alpha, g = fl[0], fl[1], fl[2], fl[3], fl[4]
+    S, cap, quad, cub = fl[5], fl[6], fl[7], fl[8]
+    gain, offset, dr, dq, noise_V = fl[9], fl[10], fl[11], fl[12], fl[13]
+    cd0, sd0, delay, skew, dgain, dscale = fl[14], fl[15], fl[16], fl[17], fl[18], fl[19]
+    lsb_d, lsb_f, lo, hi = fl[20], fl[21], fl[22], fl[23]
+    n, k_abs, ramp, has_nl, has_lp = ints[0], ints[1], ints[2], ints[3], ints[4]
+    has_drift, has_mains, has_fnoise, shift_mode = ints[5], ints[6], ints[7], ints[8]
+    has_sen, has_dnoise = ints[9], ints[10]
+    two_pi = 2.0 * np.pi
+    K = Wc.shape[1] // 2
+    P = mech.shape[1]
+    mech_u, mech_du, mech_den = mech[0], mech[1], mech[2, 0]
+    lp_u, lp_du, lp_den = lp[0], lp[1], lp[2, 0]
+    sen_u, sen_du, sen_den = sen[0], sen[1], sen[2, 0]
+    c = np.empty(SYNTH_TILE)
+    s = np.empty(SYNTH_TILE)
+    om = np.empty(SYNTH_TILE)
+    u = np.empty(SYNTH_TILE)
+    jerk = np.empty(SYNTH_TILE)
+    cx = np.empty(SYNTH_TILE)
+    sx = np.empty(SYNTH_TILE)
+    du_s = np.empty(SYNTH_TILE)
+    v = np.empty(SYNTH_TILE)
+    xm = np.empty(SYNTH_TILE)
+    rows = np.empty((4, SYNTH_TILE))
+    mrow = np.empty((1, SYNTH_TILE))
+    cprev = np.empty(SYNTH_TILE)
+    ccur = np.empty(SYNTH_TILE)
+    sprev = np.empty(SYNTH_TILE)
+    scur = np.empty(SYNTH_TILE)
+    n_mech, n_lp, n_sen = mech_den.size - 1, lp_den.size - 1, sen_den.size - 1
+    zm0 = _load_state(mech_z, 0)
+    zm1 = _load_state(mech_z, P - 1)
+    zl = _load_state(lp_z, 0)
+    zs = _load_state(sen_z, 0)
+    for j in range((n + SYNTH_TILE - 1) // SYNTH_TILE):
+        k0 = j * SYNTH_TILE
+        t = min(SYNTH_TILE, n - k0)
+        # the crank angle and rate
+        if ramp:
+            for q in range(t):
+                c[q] = crank_cs[0, k0 + q]
+                s[q] = crank_cs[1, k0 + q]
+        else:
+            _rotate_tile(crank_base, crank_tab, j, t, c, s)
+        for q in range(t):
+            om[q] = two_pi * (f0 + rate * ((k0 + q) * T))
+        # kinematics (crank.evaluate): displacement, acceleration + g, jerk
+        x = out_x[k0:k0 + t]
+        if K == 1:
+            a = Wc[0, 0]
+            b = Wc[0, 1]
+            d1 = v  # scratch until the filter pass
+            if a == 0.0:
+                for q in range(t):
+                    x[q] = b * s[q]
+                    d1[q] = b * c[q]
+            else:
+                for q in range(t):
+                    x[q] = a * c[q] + b * s[q]
+                    d1[q] = b * c[q] - a * s[q]
+            if alpha == 0.0:
+                for q in range(t):
+                    w = om[q]
+                    w2 = w * w
+                    u[q] = -w2 * x[q] + g
+                    jerk[q] = -(w2 * w) * d1[q]
+            else:
+                for q in range(t):
+                    w = om[q]
+                    w2 = w * w
+                    u[q] = (alpha * d1[q] - w2 * x[q]) + g
+                    jerk[q] = -(w2 * w) * d1[q] - 3.0 * alpha * w * x[q]
+        else:
+            _harmonics_tile(c, s, t, Wc, 4, rows, cprev, ccur, sprev, scur)
+            if alpha == 0.0:
+                for q in range(t):
+                    w = om[q]
+                    w2 = w * w
+                    x[q] = rows[0, q]
+                    u[q] = rows[2, q] * w2 + g
+                    jerk[q] = rows[3, q] * (w2 * w)
+            else:
+                for q in range(t):
+                    w = om[q]
+                    w2 = w * w
+                    x[q] = rows[0, q]
+                    u[q] = (rows[2, q] * w2 + rows[1, q] * alpha) + g
+                    jerk[q] = rows[3, q] * (w2 * w) + 3.0 * alpha * rows[2, q] * w
+        # the displacement channel's angle: lagging by the channel delay less the clock skew's lead
+        if shift_mode == 1:
+            for q in range(t):
+                cx[q] = c[q] * cd0 + s[q] * sd0
+                sx[q] = s[q] * cd0 - c[q] * sd0
+        elif shift_mode == 2:
+            for q in range(t):
+                d = delay - skew * ((k_abs + k0 + q) * T)
+                delta = om[q] * d - 0.5 * alpha * d * d
+                d2 = delta * delta
+                cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 / 720.0))
+                sd = delta * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 / 5040.0)))
+                cx[q] = c[q] * cd + s[q] * sd
+                sx[q] = s[q] * cd - c[q] * sd
+        elif shift_mode == 3:
+            for q in range(t):
+                cd = shift_cs[0, k0 + q]
+                sd = shift_cs[1, k0 + q]
+                cx[q] = c[q] * cd + s[q] * sd
+                sx[q] = s[q] * cd - c[q] * sd
+        if shift_mode != 0:
+            _harmonics_tile(cx, sx, t, Wc, 2 if has_sen else 1, rows, cprev, ccur, sprev, scur)
+        elif has_sen:
+            _harmonics_tile(c, s, t, Wc, 2, rows, cprev, ccur, sprev, scur)
+        if has_sen:
+            for q in range(t):
+                du_s[q] = rows[1, q] * om[q]
+        # the three filters, one pass: mechanics -> transducer -> conditioner low-pass; the sensor
+        for q in range(t):
+            F, zm0 = _df2t(mech_u[0], mech_du[0], mech_den, n_mech, zm0, u[q], jerk[q])
+            if has_nl:
+                r = F / cap
+                vq = S * F * (1.0 + quad * r + cub * r * r)
+            else:
+                vq = S * F
+            if P > 1:
+                dF, zm1 = _df2t(mech_u[1], mech_du[1], mech_den, n_mech, zm1, u[q], jerk[q])
+                if has_lp:
+                    vr = S * dF * (1.0 + 2.0 * quad * r + 3.0 * cub * r * r) if has_nl else S * dF
+                    vq, zl = _df2t(lp_u[0], lp_du[0], lp_den, n_lp, zl, vq, vr)
+            v[q] = vq
+            if has_sen:
+                xm[q], zs = _df2t(sen_u[0], sen_du[0], sen_den, n_sen, zs, rows[0, q], du_s[q])
+        # the force channel: gain, offset, drift, mains, noise
+        fV = out_fV[k0:k0 + t]
+        for q in range(t):
+            fV[q] = gain * v[q] + offset
+        if has_drift:
+            for q in range(t):
+                ta = (k_abs + k0 + q) * T
+                fV[q] += dr * ta + dq * (ta * ta)
+        if has_mains:
+            _rotate_tile(mains_base, mains_tab, j, t, cx, sx)
+            _harmonics_tile(cx, sx, t, Wm, 1, mrow, cprev, ccur, sprev, scur)
+            for q in range(t):
+                fV[q] += mrow[0, q]
+        if has_fnoise:
+            for q in range(t):
+                fV[q] += noise_f[k0 + q] * noise_V
+        # the displacement channel
+        dV = out_dV[k0:k0 + t]
+        if has_sen:
+            for q in range(t):
+                dV[q] = dgain * xm[q]
+        elif shift_mode != 0:
+            for q in range(t):
+                dV[q] = dgain * rows[0, q]
+        else:
+            for q in range(t):
+                dV[q] = dgain * x[q]
+        if has_dnoise:
+            for q in range(t):
+                dV[q] += noise_d[k0 + q] * dscale
+    _store_state(zm0, mech_z, 0)
+    if P > 1:
+        _store_state(zm1, mech_z, 1)
+    if has_lp:
+        _store_state(zl, lp_z, 0)
+    if has_sen:
+        _store_state(zs, sen_z, 0)
+    return _quantise(out_dV, lsb_d, lo, hi, codes_d) + _quantise(out_fV, lsb_f, lo, hi, codes_f)

@@ -18,7 +18,7 @@ force ``k_f * Z2`` times the sensitivity: ``U = S * k_f * Z2``.  In the static l
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Annotated, Any
 
 from annotated_types import Ge, Gt, Le, MaxLen, MinLen
@@ -141,6 +141,25 @@ class DisplacementResonance:
 
 
 @dataclass(frozen=True)
+class TransducerAgeing:
+    """The transducer's slow change between calibrations: from ``onset_day`` on, its sensitivity and
+    its stiffness k_f change by the relative rates per day (1/d) of the rig's clock, counted from when
+    the rig was built: S(t) = S (1 + sensitivity_per_day (t - onset)), likewise k_f.  A run synthesises
+    the values at the moment it is loaded; within one run (minutes) a drift of 0.1 %/month moves S by
+    about 2e-8 of itself, so the run sees constant values.  Not an effect within a run: the discrepancy
+    fits cannot see it, the control charts over runs do."""
+
+    sensitivity_per_day: Annotated[float, Ge(-0.01), Le(0.01)] = 0.0
+    k_f_per_day: Annotated[float, Ge(-0.01), Le(0.01)] = 0.0
+    onset_day: Annotated[float, Ge(0), Le(36_500)] = 0.0
+
+    def factors(self, age_days: float) -> tuple[float, float]:
+        """(S, k_f) relative to the nominal ones at ``age_days`` days after the rig was built."""
+        t = max(0.0, age_days - self.onset_day)
+        return 1.0 + self.sensitivity_per_day * t, 1.0 + self.k_f_per_day * t
+
+
+@dataclass(frozen=True)
 class Effects:
     """The catalogue of effects; each is off (None) by default and they compose freely."""
 
@@ -153,6 +172,7 @@ class Effects:
     zero_drift: ZeroDrift | None = None
     displacement_resonance: DisplacementResonance | None = None
     clock_skew: ClockSkew | None = None
+    ageing: TransducerAgeing | None = None
 
     def active(self) -> list[str]:
         """Names of the effects that are switched on."""
@@ -169,6 +189,7 @@ EFFECT_NAMES: tuple[str, ...] = (
     "zero_drift",
     "displacement_resonance",
     "clock_skew",
+    "ageing",
 )
 
 
@@ -213,3 +234,12 @@ class RigPhysics:
     effects: Effects = field(default_factory=Effects)
     gravity_m_per_s2: float = G_STANDARD
     sample_rate_hz: float = 20_000.0
+
+    def aged(self, age_days: float) -> RigPhysics:
+        """These physics ``age_days`` days after the rig was built (``effects.ageing``; itself without it)."""
+        ageing = self.effects.ageing
+        if ageing is None:
+            return self
+        fs, fk = ageing.factors(age_days)
+        t = self.transducer
+        return replace(self, transducer=replace(t, sensitivity_V_per_N=t.sensitivity_V_per_N * fs, k_f=t.k_f * fk))

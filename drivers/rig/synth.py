@@ -75,9 +75,40 @@ class RigSynth:
             x0 = crank.displacement_at(self._coeffs, (np.array([np.cos(self._phi)]), np.array([np.sin(self._phi)])))
             self._sensor = FilterBank(hermite_discretize(sensor_resonance_state_space(eff.displacement_resonance),
                                                          self._T), u0=float(x0[0]))
+        self._mech_coefficients = self._mech.coefficients
+        self._lp_coefficients = (self._lowpass or _NO_FILTER).coefficients
+        self._sensor_coefficients = (self._sensor or _NO_FILTER).coefficients
+        self._mains_weights = (_mains_weights(eff.mains_interference) if eff.mains_interference is not None
+                               else np.zeros((1, 2)))
+        self._tables: dict[float, np.ndarray] = {}
+        self._fl, self._ints = self._kernel_arguments()
         disp_seq, force_seq = np.random.SeedSequence(seed).spawn(2)
         self._rng_disp = np.random.default_rng(disp_seq)
         self._rng_force = np.random.default_rng(force_seq)
+
+    def _kernel_arguments(self) -> tuple[np.ndarray, np.ndarray]:
+        """``kernels.synth_block``'s fl and ints with what stays the same from block to block; each
+        block fills in its own (f0, rate, alpha, cd, sd; n, the sample index, ramp, shift mode)."""
+        ph = self.physics
+        eff, t, cond, sens, adc = ph.effects, ph.transducer, ph.conditioner, ph.displacement_sensor, ph.adc
+        nl, drift = eff.transducer_nonlinearity, eff.zero_drift
+        lo, hi = -(2 ** (adc.bits - 1)), 2 ** (adc.bits - 1) - 1
+        fl = np.array([
+            self._T, 0.0, 0.0, 0.0, ph.gravity_m_per_s2,
+            t.sensitivity_V_per_N, t.capacity_N, nl.quadratic if nl else 0.0, nl.cubic if nl else 0.0,
+            cond.gain, cond.offset_V, drift.rate_V_per_s if drift else 0.0,
+            drift.quadratic_V_per_s2 if drift else 0.0, cond.noise_V,
+            1.0, 0.0, eff.channel_delay.delay_s if eff.channel_delay else 0.0,
+            eff.clock_skew.relative if eff.clock_skew else 0.0,
+            sens.gain_V_per_m, sens.noise_m * sens.gain_V_per_m,
+            adc.volts_per_count(adc.displacement_range_V), adc.volts_per_count(adc.force_range_V), lo, hi,
+        ], dtype=float)
+        ints = np.array([
+            0, 0, 0, nl is not None, self._lowpass is not None, drift is not None,
+            eff.mains_interference is not None, cond.noise_V > 0, 0, self._sensor is not None,
+            sens.noise_m > 0,
+        ], dtype=np.int64)
+        return fl, ints
 
     # -- state -------------------------------------------------------------------------------
     @property
@@ -107,6 +138,7 @@ class RigSynth:
             raise ValueError(f"crank radius must be >= 0 m, got {radius_m}")
         self._radius = float(radius_m)
         self._coeffs = crank.displacement_coefficients(self._radius, self.physics.effects.crank_harmonics)
+        self._weights = crank.harmonic_weights(self._coeffs)
 
     # -- synthesis -----------------------------------------------------------------------------
     def _transducer_output(self, F: np.ndarray) -> np.ndarray:
@@ -127,11 +159,86 @@ class RigSynth:
         return t.sensitivity_V_per_N * dF * (1.0 + 2.0 * nl.quadratic * x + 3.0 * nl.cubic * x * x)
 
     def advance(self, n: int, f_end_hz: float) -> SynthBlock:
-        """Synthesise the next n samples while the crank frequency moves linearly to f_end_hz."""
-        if n <= 0:
-            raise ValueError(f"block length must be positive, got {n}")
-        if f_end_hz < 0.0:
-            raise ValueError(f"crank frequency must be >= 0 Hz, got {f_end_hz}")
+        """Synthesise the next n samples while the crank frequency moves linearly to f_end_hz.
+
+        Every stage in one compiled pass (``kernels.synth_block``): the same samples to the bit as
+        ``advance_stages``."""
+        self._check(n, f_end_hz)
+        from drivers.rig import kernels  # numba: imported (and compiled or read from its cache) on first use
+
+        ph, T = self.physics, self._T
+        eff = ph.effects
+        f0 = self._f
+        rate = (f_end_hz - f0) / (n * T)  # Hz/s
+        alpha = 2.0 * np.pi * rate
+        dphi, c2 = 2.0 * np.pi * f0 * T, np.pi * rate * T * T
+        if c2 != 0.0:
+            crank_cs = np.stack(crank.cos_sin(self._phi, dphi, c2, n))
+            crank_base, crank_tab = _NO_ROTATION
+        else:
+            crank_cs = _NO_SAMPLES2
+            crank_base, crank_tab = crank.rotation_base(self._phi, dphi, n), self._table(dphi)
+        if eff.mains_interference is not None:
+            w = 2.0 * np.pi * eff.mains_interference.frequency_hz
+            mains_base, mains_tab = crank.rotation_base(w * (self._k * T), w * T, n), self._table(w * T)
+        else:
+            mains_base, mains_tab = _NO_ROTATION
+        noise_f = self._rng_force.standard_normal(n) if ph.conditioner.noise_V > 0 else _NO_SAMPLES
+        noise_d = self._rng_disp.standard_normal(n) if ph.displacement_sensor.noise_m > 0 else _NO_SAMPLES
+        shift_mode, cd, sd, shift_cs = self._shift(n, f0, f_end_hz, rate, alpha)
+        fl, ints = self._fl.copy(), self._ints.copy()
+        fl[1], fl[2], fl[3], fl[14], fl[15] = f0, rate, alpha, cd, sd
+        ints[0], ints[1], ints[2], ints[8] = n, self._k, c2 != 0.0, shift_mode
+        x, force_V, disp_V = np.empty(n), np.empty(n), np.empty(n)
+        dc, fc = np.empty(n, dtype=np.int16), np.empty(n, dtype=np.int16)
+        lp, sensor = self._lowpass or _NO_FILTER, self._sensor or _NO_FILTER
+        clipped = kernels.synth_block(
+            fl, ints, crank_base, crank_tab, crank_cs, self._weights, self._mech_coefficients, self._mech.state,
+            self._lp_coefficients, lp.state, mains_base, mains_tab, self._mains_weights, noise_f, shift_cs,
+            self._sensor_coefficients, sensor.state, noise_d, x, force_V, disp_V, dc, fc)
+        freq = f0 if rate == 0.0 else f0 + rate * (np.arange(n) * T)
+        return self._finish(n, f_end_hz, SynthBlock(
+            start_sample=self._k, displacement_counts=dc, force_counts=fc, displacement_V=disp_V,
+            force_V=force_V, displacement_m=x, crank_frequency_hz=np.broadcast_to(freq, (n,)),
+            clipped=int(clipped)))
+
+    def _table(self, dphi: float) -> np.ndarray:
+        """``crank.rotation_table(dphi)``, kept for the few steps (crank frequencies) a run repeats."""
+        table = self._tables.get(dphi)
+        if table is None:
+            if len(self._tables) >= 16:
+                self._tables.clear()
+            table = self._tables[dphi] = crank.rotation_table(dphi)
+        return table
+
+    def _shift(self, n: int, f0: float, f_end: float, rate: float,
+               alpha: float) -> tuple[int, float, float, np.ndarray]:
+        """How ``kernels.synth_block`` lags the displacement channel's crank angle in this block:
+        (mode, cos, sin, given (2, n)); 0 no lag, 1 one constant lag, 2 the per-sample Taylor series
+        of ``crank.shift_cos_sin`` (every lag certainly below its 0.1 rad), 3 given per sample."""
+        eff, T = self.physics.effects, self._T
+        if eff.channel_delay is None and eff.clock_skew is None:
+            return 0, 1.0, 0.0, _NO_SAMPLES2
+        if eff.clock_skew is None and rate == 0.0:
+            omega, d = 2.0 * np.pi * f0, eff.channel_delay.delay_s if eff.channel_delay else 0.0
+            cd, sd = crank.shift_cos_sin(omega * d - 0.5 * alpha * d * d)
+            return 1, float(cd), float(sd), _NO_SAMPLES2
+        # |delta| <= |omega| |d| + |alpha| d^2 / 2, d linear in t: its largest at either end
+        d_max = max(abs(float(_displacement_lag(eff, k * T))) for k in (self._k, self._k + n - 1))
+        if 2.0 * np.pi * max(f0, f_end) * d_max + 0.5 * abs(alpha) * d_max * d_max < 0.099:
+            return 2, 1.0, 0.0, _NO_SAMPLES2
+        freq = f0 + rate * (np.arange(n) * T)
+        omega_k = 2.0 * np.pi * freq
+        d_k = _displacement_lag(eff, (self._k + np.arange(n)) * T)
+        cd_k, sd_k = crank.shift_cos_sin(omega_k * d_k - 0.5 * alpha * d_k * d_k)
+        return 3, 1.0, 0.0, np.stack(np.broadcast_arrays(cd_k, sd_k)).astype(float)
+
+    def advance_stages(self, n: int, f_end_hz: float) -> SynthBlock:
+        """``advance`` stage by stage in numpy with the compiled harmonic sums and filter bank (the
+        synthesis as it was before ``kernels.synth_block``): slower; the definition the one-pass
+        kernel is tested against and the baseline ``bench/simulate.py`` measures it beside.
+        Interchangeable with ``advance`` block by block (the same states)."""
+        self._check(n, f_end_hz)
         ph, T = self.physics, self._T
         eff = ph.effects
         f0 = self._f
@@ -177,17 +284,29 @@ class RigSynth:
 
         dc, clip_d = _quantise(disp_V, ph.adc.volts_per_count(ph.adc.displacement_range_V), ph.adc.bits)
         fc, clip_f = _quantise(force_V, ph.adc.volts_per_count(ph.adc.force_range_V), ph.adc.bits)
-        block = SynthBlock(start_sample=self._k, displacement_counts=dc, force_counts=fc,
-                           displacement_V=disp_V, force_V=force_V, displacement_m=kin.displacement,
-                           crank_frequency_hz=np.broadcast_to(freq, (n,)), clipped=clip_d + clip_f)
-        self._phi = float(np.mod(self._phi + 2.0 * np.pi * n * T * (f0 + f_end_hz) / 2.0, 2.0 * np.pi))
+        return self._finish(n, f_end_hz, SynthBlock(
+            start_sample=self._k, displacement_counts=dc, force_counts=fc, displacement_V=disp_V,
+            force_V=force_V, displacement_m=kin.displacement, crank_frequency_hz=np.broadcast_to(freq, (n,)),
+            clipped=clip_d + clip_f))
+
+    @staticmethod
+    def _check(n: int, f_end_hz: float) -> None:
+        if n <= 0:
+            raise ValueError(f"block length must be positive, got {n}")
+        if f_end_hz < 0.0:
+            raise ValueError(f"crank frequency must be >= 0 Hz, got {f_end_hz}")
+
+    def _finish(self, n: int, f_end_hz: float, block: SynthBlock) -> SynthBlock:
+        """Move the crank angle, frequency and sample index past the block just synthesised."""
+        f0 = self._f
+        self._phi = float(np.mod(self._phi + 2.0 * np.pi * n * self._T * (f0 + f_end_hz) / 2.0, 2.0 * np.pi))
         self._f = float(f_end_hz)
         self._k += n
         return block
 
 
-def _displacement_lag(eff: Effects, t: np.ndarray) -> np.ndarray | float:
-    """How long before the force sample at t (s, shape (n,)) the displacement sample is taken, s:
+def _displacement_lag(eff: Effects, t: np.ndarray | float) -> np.ndarray | float:
+    """How long before the force sample at t (s, shape (n,) or a scalar) the displacement sample is taken, s:
     the channel delay, less the clock skew's growing lead (``params.ClockSkew``)."""
     d: np.ndarray | float = eff.channel_delay.delay_s if eff.channel_delay is not None else 0.0
     if eff.clock_skew is not None:
@@ -198,12 +317,31 @@ def _displacement_lag(eff: Effects, t: np.ndarray) -> np.ndarray | float:
 def _mains(m: MainsInterference, t0: float, T: float, n: int) -> np.ndarray:
     """Mains pick-up in V at the n sample instants t0 + k T (s)."""
     w = 2.0 * np.pi * m.frequency_hz
+    return crank.harmonic_sum(crank.cos_sin(w * t0, w * T, 0.0, n), _mains_weights(m))[0]
+
+
+def _mains_weights(m: MainsInterference) -> np.ndarray:
+    """The mains pick-up as ``crank.harmonic_sum`` weights (1, 2K) of cos(h w t), sin(h w t)."""
     k = len(m.amplitudes_V)
     amp = np.asarray(m.amplitudes_V)
     ph = np.array([m.phases_rad[h] if h < len(m.phases_rad) else 0.0 for h in range(k)])
     # sum_h A_h sin(h w t + ph_h) = sum_h A_h (sin(h w t) cos ph_h + cos(h w t) sin ph_h)
-    W = np.concatenate([amp * np.sin(ph), amp * np.cos(ph)])[None, :]
-    return crank.harmonic_sum(crank.cos_sin(w * t0, w * T, 0.0, n), W)[0]
+    return np.concatenate([amp * np.sin(ph), amp * np.cos(ph)])[None, :]
+
+
+_NO_SAMPLES = np.empty(0)
+_NO_SAMPLES2 = np.empty((2, 0))
+_NO_ROTATION = (np.empty((2, 0)), np.empty((2, 0)))
+
+
+class _NoFilter:
+    """The coefficients and state ``kernels.synth_block`` takes for a filter that is switched off."""
+
+    coefficients = np.array([[[0.0, 0.0]], [[0.0, 0.0]], [[1.0, 0.0]]])
+    state = np.zeros((1, 1))
+
+
+_NO_FILTER = _NoFilter()
 
 
 def _quantise(v: np.ndarray, lsb: float, bits: int) -> tuple[np.ndarray, int]:

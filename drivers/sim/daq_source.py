@@ -63,7 +63,7 @@ class RigSource:
         if RigSource._compiled or self.synth is None:
             return
         scratch = RigSynth(self.synth.physics, seed=self.seed, crank_radius_m=self.crank_radius_m)
-        scratch.advance(64, 1.0)
+        scratch.advance(64, 1.0)  # kernels.synth_block: one signature for every effect set and crank profile
         harmonic_sum((np.ones(8), np.zeros(8)), np.zeros((4, 2)))  # the crank's harmonics, if an effect needs them
         RigSource._compiled = True
 

@@ -84,6 +84,8 @@ class SimRig:
         ``daq_link_bytes_per_s``, about what a full-speed USB CDC port sustains)."""
         self.map = profile or load_profile()  # the drive the motor emulator behaves as
         self.clock = clock
+        self.built_s = clock.monotonic()  # the rig's age (the transducer's ageing) counts from here
+        self.idle_days = 0.0  # days the rig stood idle beyond its clock's time (``let_days_pass``)
         self.wire = wire
         self.motor = MotorModel(self.map.device, clock=clock.monotonic)
         self.image = MotorRegisterImage(self.map, self.motor)
@@ -172,12 +174,25 @@ class SimRig:
                     raise RuntimeError(f"crank radius change refused: {exc}") from exc
             await self.clock.asleep(0.02)
 
+    def age_days(self) -> float:
+        """Days since the rig was built: its clock's time and the days it was let stand idle."""
+        return (self.clock.monotonic() - self.built_s) / 86_400.0 + self.idle_days
+
+    def let_days_pass(self, days: float) -> None:
+        """The rig stands idle for ``days`` (e.g. until the next night's check run): the transducer
+        ages by them (``effects.ageing``) while the emulators' clock is not moved, so nothing has to
+        catch up with the time (a test's nights, a demonstration)."""
+        if not days >= 0:
+            raise ValueError(f"days cannot go backwards ({days})")
+        self.idle_days += days
+
     def load_physics(self, physics: RigPhysics) -> None:
-        """Synthesise the signals with other physics from now on (e.g. a run's top mass); the crank
-        keeps turning where it is.  Only for the rig-physics source (RuntimeError otherwise)."""
+        """Synthesise the signals with other physics from now on (e.g. a run's top mass), aged to the
+        rig's clock (``effects.ageing``: the transducer's slow drift between runs); the crank keeps
+        turning where it is.  Only for the rig-physics source (RuntimeError otherwise)."""
         if not isinstance(self.source, RigSource):
             raise RuntimeError("other physics need the rig-physics source (RigSource)")
-        self.source.load(physics)
+        self.source.load(physics.aged(self.age_days()))
 
     def radius_actuator(self) -> SimCrankRadius:
         """The crank-radius actuator of this rig, for the run procedure (``radius_m``, ``set_radius``)."""

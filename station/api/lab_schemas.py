@@ -184,6 +184,8 @@ class IntegrityReportOut(OutModel):
     head: str = Field(description="the newest entry's hash")
     breaks: list[ChainBreakOut]
     files: list[str] = Field(description="each file that is missing, differs, or is not in the trail")
+    records: list[str] = Field(default_factory=list, description="each row of the lab's tables (transducer "
+                               "policies, adjustments) changed, added or deleted outside the station")
     detail: str
 
 
@@ -195,6 +197,9 @@ class ExceptionIn(_In):
 class AuditOut(OutModel):
     count: int
     entries: list[AuditEntryOut]
+    broken: list[int] = Field(default_factory=list, description="entries of this page that do not hold (content "
+                              "not matching its hash, a link not matching the entry before; for deleted "
+                              "entries the first missing id): the trail was changed outside the station")
 
 
 class ApproveIn(_In):
@@ -232,6 +237,10 @@ class HistoryOut(OutModel):
         "the next due date and the intervals methods A3, S2 and variables recommend (docs/batch.md)")
     out_of_control: list[dict[str, Any]] = Field(default_factory=list,
                                                  description="every chart's out-of-control points")
+    hold: dict[str, Any] | None = Field(
+        default=None, description="the station's check transducer out of control: transducer_id, since (UNIX s, "
+        "its last good check), run_id, parameter, reason; approving and issuing the runs made since are refused "
+        "(null: no hold)")
 
 
 class PolicyIn(_In):

@@ -31,9 +31,9 @@ from station.api.downloads import declare_downloads
 from station.api.guard import BodyGuard
 from station.api.problems import NOT_LOGGED_IN, Refusal, declare_problems, errors_text, kind_of_status, problem_response
 from station.api.routes import campaign, certificates, compensation, exports, lab, proposal, runs, system
-from station.certificate.register import CertificateError, CertificateNotFoundError
 from station.errors import StationError
 from station.lab.integrity import RecordingTamperedError
+from station.lab.issued import CertificateError, CertificateNotFoundError
 from station.lab.register import RegisterError, UnknownEntryError
 from station.lab.users import AuthError, ForbiddenError, UnknownUserError, UserError
 from station.service.errors import DatabaseBusyError, ResultNotStoredError

@@ -33,6 +33,7 @@ PARAMS: tuple[tuple[str, str], ...] = (("S", "V/N"), ("k_f", "N/m"), ("b_f", "N*
 COLUMN_UNIT = {"V/N": "V_per_N", "N/m": "N_per_m", "N*s/m": "N_s_per_m"}
 K_DEFAULT = 3.0
 MIN_HISTORY = 3
+MAX_CHECK_RUNS = 1000  # check-run findings kept per transducer (about three years of nights)
 
 
 @dataclass(frozen=True)
@@ -160,19 +161,27 @@ def _charts(rows: list[dict[str, Any]]) -> tuple[dict[str, Any], list[dict[str, 
 
 
 def write_summaries(items: Iterable[BatchItem], out_dir: Path, *, k: float = K_DEFAULT,
-                    min_history: int = MIN_HISTORY) -> dict[str, dict[str, Any]]:
+                    min_history: int = MIN_HISTORY,
+                    check_runs: Iterable[dict[str, Any]] = ()) -> dict[str, dict[str, Any]]:
     """Merge the items into ``<out_dir>/<transducer>.json`` (rows keyed by run id and method: a
     re-identified run replaces its earlier row of that method; each method is its own drift
     series), recompute the drift checks over the whole history, and write the JSON and
-    ``<transducer>.csv``.  Returns transducer id -> the JSON document written."""
+    ``<transducer>.csv``.  ``check_runs``: the night's check-run findings (``batch.check.CheckRun``
+    as dicts), appended to their transducer's ``check_runs`` (the newest last, at most
+    ``MAX_CHECK_RUNS`` kept).  Returns transducer id -> the JSON document written."""
     out_dir.mkdir(parents=True, exist_ok=True)
     by_tx: dict[str, list[BatchItem]] = {}
     for it in items:
         by_tx.setdefault(it.transducer_id or "unknown", []).append(it)
+    checks: dict[str, list[dict[str, Any]]] = {}
+    for c in check_runs:
+        checks.setdefault(str(c["transducer_id"]), []).append(dict(c))
+        by_tx.setdefault(str(c["transducer_id"]), [])
     written = {}
     for tx, its in sorted(by_tx.items()):
         jpath = out_dir / f"{_safe(tx)}.json"
-        old = json.loads(jpath.read_text(encoding="utf-8")).get("runs", []) if jpath.exists() else []
+        before = json.loads(jpath.read_text(encoding="utf-8")) if jpath.exists() else {}
+        old = before.get("runs", [])
         rows = {_key(r): {k_: v for k_, v in r.items() if k_ != "drift"} for r in old}
         rows.update({_key(r): r for r in map(_row, its)})
         checked = _checked(list(rows.values()), k, min_history)
@@ -184,6 +193,9 @@ def write_summaries(items: Iterable[BatchItem], out_dir: Path, *, k: float = K_D
                         "text": "|x - m| > k u_c, u_c^2 = max(u^2, s^2) + max(sum u_i^2 / n^2, s^2 / n); "
                                 "history = earlier unflagged runs of the same method"},
                "units": dict(PARAMS), "flagged": flagged, "runs": checked}
+        found = [*before.get("check_runs", []), *checks.get(tx, [])]
+        if found:
+            doc["check_runs"] = found[-MAX_CHECK_RUNS:]
         doc["charts"], doc["out_of_control"] = _charts(checked)
         _atomic_write(jpath, json.dumps(doc, indent=1))
         _atomic_write(out_dir / f"{_safe(tx)}.csv", _csv(checked))

@@ -24,15 +24,16 @@ from station.certificate.item import CalibratedItem, calibrated_item, item_budge
 from station.certificate.present import QUANTITY, SYMBOL, plain, typeset, unit_text, value_and_uncertainties
 from station.certificate.sdyn import chain_of, sdyn_points
 from station.certificate.validity import validity
-from station.config import CertificateConfig
+from station.config import CertificateConfig, MeasurementChain
 from station.ident.coverage import K2_PROBABILITY, coverage, coverages
-from station.ident.inputs import DEFAULT_END_MASS_REL_STD, MeasurementChain
+from station.ident.inputs import DEFAULT_END_MASS_REL_STD
 from station.ident.models import make_model
+from station.ident.names import METHOD_DESCRIPTIONS
 from station.ident.result import Check, Covariance, Estimate
 from station.lab.traceability import use_text
 from station.recording import start_metadata
 from station.report.data import ModelCurve, RunData, load_run
-from station.report.html import METHODS, MODELS
+from station.report.html import MODELS
 from station.report.quantities import fmt_unc, model_sensitivity, range_text, structure_sentence
 from station.report.statement import uncertainty_statement
 
@@ -158,7 +159,7 @@ def end_mass_statement(ident: Certified, budget: dict[str, dict[str, Any]]) -> d
 
 def result_text(ident: Certified) -> str:
     """Which stored result the certificate states, in words (no internal names)."""
-    how = METHODS.get(ident.method, ident.method).split(" (")[0].replace("the paper's", "[1]'s")
+    how = METHOD_DESCRIPTIONS.get(ident.method, ident.method).split(" (")[0].replace("the paper's", "[1]'s")
     written = ident.source.rsplit("written ", 1)[-1].rstrip(")") if "written " in ident.source else ""
     what = ("the joint identification of the campaign's runs" if ident.kind == "campaign"
             else "the run's identification" if written else "an identification computed for this certificate "
@@ -331,7 +332,7 @@ def certificate_content(path: str | Path, approval: Approval | None = None,
                 "software_version": rec.software_version,
                 "steps": [{"f_hz": s.crank_frequency_hz, "radius_mm": 1e3 * s.crank_radius_m} for s in rec.steps]},
         "method": {"name": "dynamic calibration by stepped sine excitation on a crank (sine-mechanism) rig",
-                   "estimator": ident.method, "estimator_text": METHODS.get(ident.method, ""),
+                   "estimator": ident.method, "estimator_text": METHOD_DESCRIPTIONS.get(ident.method, ""),
                    "model": ident.model,
                    "model_text": typeset(MODELS.get(ident.model, "").replace("paper Eq.", "[1] Eq.")
                                          .replace("the paper's", "[1]'s")),

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from station import __version__
-from station.certificate.register import CertificateError
+from station.lab.issued import CertificateError
 
 DCC_NS = "https://ptb.de/dcc"
 SI_NS = "https://ptb.de/si"
@@ -60,37 +60,41 @@ def signature_declaration(approval: dict[str, Any]) -> list[str]:
             f"covers this DCC, the PDF and the HTML forms), key fingerprint {sig['key_fingerprint']}"]
 
 
-def build_dcc(content: dict[str, Any]) -> bytes:
-    """The DCC of a certificate's content (UTF-8 XML bytes): an issued one, or a draft marked as such
-    (uniqueIdentifier DRAFT-<run>, the draft statement first, no approver); CertificateError without
-    the laboratory's country."""
-    from lxml import etree
+class _Xml:
+    """The DCC's element builders (lxml, imported on first use)."""
 
     D, S = f"{{{DCC_NS}}}", f"{{{SI_NS}}}"
 
-    def el(parent: Any, tag: str, text: str | None = None, **attrib: str) -> Any:
-        e = etree.SubElement(parent, tag, attrib)
+    def __init__(self) -> None:
+        from lxml import etree
+
+        self.etree = etree
+
+    def el(self, parent: Any, tag: str, text: str | None = None, **attrib: str) -> Any:
+        e = self.etree.SubElement(parent, tag, attrib)
         if text is not None:
             e.text = text
         return e
 
-    def text_block(parent: Any, tag: str, *lines: str) -> Any:
-        e = el(parent, D + tag)
+    def text_block(self, parent: Any, tag: str, *lines: str) -> Any:
+        e = self.el(parent, self.D + tag)
         for line in lines:
-            el(e, D + "content", line, lang=LANG)
+            self.el(e, self.D + "content", line, lang=LANG)
         return e
 
-    def contact(parent: Any, party: dict[str, Any]) -> None:
-        text_block(parent, "name", party["name"])
+    def contact(self, parent: Any, party: dict[str, Any]) -> None:
+        D = self.D
+        self.text_block(parent, "name", party["name"])
         if party.get("email"):
-            el(parent, D + "eMail", party["email"])
-        loc = el(parent, D + "location")
+            self.el(parent, D + "eMail", party["email"])
+        loc = self.el(parent, D + "location")
         if party.get("country"):
-            el(loc, D + "countryCode", party["country"])
-        text_block(loc, "further", *(party.get("address") or ["not stated"]))
+            self.el(loc, D + "countryCode", party["country"])
+        self.text_block(loc, "further", *(party.get("address") or ["not stated"]))
 
-    def real(parent: Any, value: float, unit: str, U: float | None = None, k: float | None = None,
+    def real(self, parent: Any, value: float, unit: str, U: float | None = None, k: float | None = None,
              p: float | None = None, label: str | None = None) -> None:
+        el, S = self.el, self.S
         r = el(parent, S + "real")
         if label:
             el(r, S + "label", label)
@@ -102,27 +106,49 @@ def build_dcc(content: dict[str, Any]) -> bytes:
             el(mu, S + "coverageFactor", _num(k))
             el(mu, S + "coverageProbability", _num(p))
 
-    def real_list(parent: Any, values: list[float], unit: str, U: list[float], k: float, p: float,
+    def real_list(self, parent: Any, values: list[float], unit: str, U: list[float] | None, k: float, p: float,
                   label: str) -> None:
+        """A list quantity; with ``U`` None, values only (no uncertainty)."""
+        el, S = self.el, self.S
         r = el(parent, S + "realListXMLList")
         el(r, S + "labelXMLList", label)
         el(r, S + "valueXMLList", " ".join(_num(v) for v in values))
         el(r, S + "unitXMLList", dsi(unit))
+        if U is None:
+            return
         mu = el(el(r, S + "measurementUncertaintyUnivariateXMLList"), S + "expandedMUXMLList")
         el(mu, S + "valueExpandedMUXMLList", " ".join(_num(u) for u in U))
         el(mu, S + "coverageFactorXMLList", _num(k))
         el(mu, S + "coverageProbabilityXMLList", _num(p))
 
-    a, run, item = content["approval"], content["run"], content["item"]
+
+def build_dcc(content: dict[str, Any]) -> bytes:
+    """The DCC of a certificate's content (UTF-8 XML bytes): an issued one, or a draft marked as such
+    (uniqueIdentifier DRAFT-<run>, the draft statement first, no approver); CertificateError without
+    the laboratory's country."""
+    a = content["approval"]
     issued = a["status"] == "issued" and bool(a["number"])
     country = content["laboratory"].get("country")
     if not country:
         raise CertificateError("the DCC needs the laboratory's country: set certificate.laboratory.country "
                                "(ISO 3166-1 alpha-2, e.g. DE) in the configuration")
-    root = etree.Element(D + "digitalCalibrationCertificate", nsmap={"dcc": DCC_NS, "si": SI_NS, "xsi": XSI_NS})
+    x = _Xml()
+    D = x.D
+    root = x.etree.Element(D + "digitalCalibrationCertificate", nsmap={"dcc": DCC_NS, "si": SI_NS, "xsi": XSI_NS})
     root.set("schemaVersion", SCHEMA_VERSION)
     root.set(f"{{{XSI_NS}}}schemaLocation", f"{DCC_NS} {DCC_NS}/v{SCHEMA_VERSION}/dcc.xsd")
-    adm = el(root, D + "administrativeData")
+    _administrative_data(x, x.el(root, D + "administrativeData"), content, issued, country)
+    mr = x.el(x.el(root, D + "measurementResults"), D + "measurementResult")
+    _method_and_equipment(x, mr, content)
+    _influence_conditions(x, mr, content["environment"])
+    _results(x, x.el(mr, D + "results"), content)
+    return bytes(x.etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True))
+
+
+def _administrative_data(x: _Xml, adm: Any, content: dict[str, Any], issued: bool, country: str) -> None:
+    """dccSoftware, coreData, items, calibrationLaboratory, respPersons, customer, statements."""
+    el, text_block, D = x.el, x.text_block, x.D
+    a, run, item = content["approval"], content["run"], content["item"]
     sw = el(el(adm, D + "dccSoftware"), D + "software")
     text_block(sw, "name", "sinecal calibration station")
     el(sw, D + "release", f"v{__version__}")  # the DCC rules want a letter before the version
@@ -144,7 +170,7 @@ def build_dcc(content: dict[str, Any]) -> bytes:
     el(ident, D + "issuer", "customer")
     el(ident, D + "value", item["transducer_id"])
     text_block(ident, "name", "transducer id")
-    contact(el(el(adm, D + "calibrationLaboratory"), D + "contact"), content["laboratory"])
+    x.contact(el(el(adm, D + "calibrationLaboratory"), D + "contact"), content["laboratory"])
     persons = el(adm, D + "respPersons")
     signers = ((a["prepared_by"] or "not stated", "prepared", False),
                *(((a["approved_by"], a["approver_role"], True),) if issued else ()))
@@ -155,28 +181,40 @@ def build_dcc(content: dict[str, Any]) -> bytes:
         if main:
             el(rp, D + "mainSigner", "true")
     cust = el(adm, D + "customer")
-    contact(cust, content["customer"] or {"name": "not stated", "address": []})
+    x.contact(cust, content["customer"] or {"name": "not stated", "address": []})
     statements = el(adm, D + "statements")
-    masses = content["assumptions"]["masses"]
-    declarations = [*(() if issued else (DRAFT,)), content["relates_only"], f"item calibrated: {item['text']}",
-                    *content["statement"],
-                    *(f"assumption: {m['name']} = {m['value']} kg ({m['source']})" for m in masses),
-                    content["end_mass"]["text"],
-                    *(f"{r['meaning']} ({r['name']}): {r['note']}" for r in content["results"]
-                      if r["status"] != "certified" and r["note"]),
-                    *(f"finding ({f['severity']}) {f['name']}: {f['message']}" for f in content["checks"])]
-    corr = content.get("correlation")
-    if corr:
-        declarations.append(f"covariance matrix of ({', '.join(corr['names'])}) in ({', '.join(corr['units'])}): "
-                            + "; ".join(" ".join(_num(v) for v in row) for row in corr["matrix"]))
-    if content["assumptions"]["structure"]:
-        declarations.append("model structure: " + content["assumptions"]["structure"])
-    if a.get("replaces"):
-        declarations.append(f"This certificate replaces certificate {a['replaces']}, which is withdrawn: {a['reason']}")
-    for d in [*declarations, *signature_declaration(a)]:
+    for d in [*declarations(content, issued), *signature_declaration(a)]:
         text_block(el(statements, D + "statement"), "declaration", d)
 
-    mr = el(el(root, D + "measurementResults"), D + "measurementResult")
+
+def declarations(content: dict[str, Any], issued: bool) -> list[str]:
+    """The DCC's statements before the signature: the draft mark, what the results relate to, the
+    item, the uncertainty statement, the assumptions, the notes and findings, the correlation, the
+    model structure, a replaced certificate."""
+    a, item = content["approval"], content["item"]
+    masses = content["assumptions"]["masses"]
+    out = [*(() if issued else (DRAFT,)), content["relates_only"], f"item calibrated: {item['text']}",
+           *content["statement"],
+           *(f"assumption: {m['name']} = {m['value']} kg ({m['source']})" for m in masses),
+           content["end_mass"]["text"],
+           *(f"{r['meaning']} ({r['name']}): {r['note']}" for r in content["results"]
+             if r["status"] != "certified" and r["note"]),
+           *(f"finding ({f['severity']}) {f['name']}: {f['message']}" for f in content["checks"])]
+    corr = content.get("correlation")
+    if corr:
+        out.append(f"covariance matrix of ({', '.join(corr['names'])}) in ({', '.join(corr['units'])}): "
+                   + "; ".join(" ".join(_num(v) for v in row) for row in corr["matrix"]))
+    if content["assumptions"]["structure"]:
+        out.append("model structure: " + content["assumptions"]["structure"])
+    if a.get("replaces"):
+        out.append(f"This certificate replaces certificate {a['replaces']}, which is withdrawn: {a['reason']}")
+    return out
+
+
+def _method_and_equipment(x: _Xml, mr: Any, content: dict[str, Any]) -> None:
+    """usedMethods, usedSoftware and the reference standards as measuringEquipments."""
+    el, text_block, D = x.el, x.text_block, x.D
+    run = content["run"]
     text_block(mr, "name", "dynamic calibration of a force transducer")
     um = el(el(mr, D + "usedMethods"), D + "usedMethod")
     m = content["method"]
@@ -198,46 +236,48 @@ def build_dcc(content: dict[str, Any]) -> bytes:
             eid = el(el(eq, D + "identifications"), D + "identification")
             el(eid, D + "issuer", "calibrationLaboratory")
             el(eid, D + "value", s["id"])
-    env = content["environment"]
-    if env:
-        infl = el(mr, D + "influenceConditions")
-        for key, std, unit, name in (("temperature_c", "temperature_std_c", "degC", "air temperature"),
-                                     ("relative_humidity_pct", "relative_humidity_std_pct", "%", "relative humidity")):
-            if env.get(key) is None:
-                continue
-            ic = el(infl, D + "influenceCondition")
-            text_block(ic, "name", name)
-            text_block(ic, "description", str(env.get("source", "")))
-            q = el(el(ic, D + "data"), D + "quantity")
-            real(q, env[key], unit, 2 * env[std], 2.0, 0.95)
-    results = el(mr, D + "results")
+
+
+def _influence_conditions(x: _Xml, mr: Any, env: dict[str, Any] | None) -> None:
+    """The room's temperature and humidity with U (k = 2), those known."""
+    if not env:
+        return
+    el, text_block, D = x.el, x.text_block, x.D
+    infl = el(mr, D + "influenceConditions")
+    for key, std, unit, name in (("temperature_c", "temperature_std_c", "degC", "air temperature"),
+                                 ("relative_humidity_pct", "relative_humidity_std_pct", "%", "relative humidity")):
+        if env.get(key) is None:
+            continue
+        ic = el(infl, D + "influenceCondition")
+        text_block(ic, "name", name)
+        text_block(ic, "description", str(env.get("source", "")))
+        q = el(el(ic, D + "data"), D + "quantity")
+        x.real(q, env[key], unit, 2 * env[std], 2.0, 0.95)
+
+
+def _results(x: _Xml, results: Any, content: dict[str, Any]) -> None:
+    """Each parameter and determined quantity with its U, then S_dyn(f) as lists."""
+    el, text_block, D = x.el, x.text_block, x.D
     for r in content["results"]:
         if r.get("U") is None:
             continue
         res = el(results, D + "result")
         text_block(res, "name", f"{r['name']}: {r['meaning']}")
         q = el(el(res, D + "data"), D + "quantity", refType=f"sinecal_{r['name']}")
-        real(q, r["value"], r["unit"], r["U"], r["k"], r["p"], label=r["name"])
+        x.real(q, r["value"], r["unit"], r["U"], r["k"], r["p"], label=r["name"])
     pts = content["response"]
-    if pts:
-        res = el(results, D + "result")
-        text_block(res, "name", "dynamic sensitivity S_dyn(f) = -H(f)/M")
-        lst = el(el(res, D + "data"), D + "list")
-        k = float(content["response_k"])
-        for label, key, unit, ukey in (("frequency", "f_hz", "Hz", None),
-                                       ("magnitude", "magnitude", content["response_unit"], "U_magnitude"),
-                                       ("phase", "phase_deg", "deg", "U_phase_deg")):
-            q = el(lst, D + "quantity")
-            text_block(q, "name", label)
-            vals = [p[key] for p in pts]
-            if ukey is None:
-                r = el(q, S + "realListXMLList")
-                el(r, S + "labelXMLList", label)
-                el(r, S + "valueXMLList", " ".join(_num(v) for v in vals))
-                el(r, S + "unitXMLList", dsi(unit))
-            else:
-                real_list(q, vals, unit, [p[ukey] for p in pts], k, float(content["response_p"]), label)
-    return bytes(etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True))
+    if not pts:
+        return
+    res = el(results, D + "result")
+    text_block(res, "name", "dynamic sensitivity S_dyn(f) = -H(f)/M")
+    lst = el(el(res, D + "data"), D + "list")
+    k, p = float(content["response_k"]), float(content["response_p"])
+    for label, key, unit, ukey in (("frequency", "f_hz", "Hz", None),
+                                   ("magnitude", "magnitude", content["response_unit"], "U_magnitude"),
+                                   ("phase", "phase_deg", "deg", "U_phase_deg")):
+        q = el(lst, D + "quantity")
+        text_block(q, "name", label)
+        x.real_list(q, [pt[key] for pt in pts], unit, None if ukey is None else [pt[ukey] for pt in pts], k, p, label)
 
 
 def validate(xml: bytes, schema_path: str | Path) -> None:

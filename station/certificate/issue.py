@@ -29,7 +29,9 @@ from typing import Any, Protocol
 from station.certificate.content import Approval, certificate_content
 from station.certificate.dcc import build_dcc
 from station.certificate.dcc import validate as validate_dcc
-from station.certificate.register import (
+from station.certificate.render import certificate_html
+from station.config import CertificateConfig
+from station.lab.issued import (
     FOLDER,
     CertificateError,
     Issued,
@@ -38,9 +40,8 @@ from station.certificate.register import (
     list_issued,
     read_issued,
 )
-from station.certificate.render import certificate_html, html_to_pdf
-from station.config import CertificateConfig
 from station.recording import read_recording
+from station.report.render import html_to_pdf
 
 APPROVING_ROLES = ("approver", "admin")
 

@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from station.config import MeasurementChain
 from station.ident.fd.budget import resonance_vectors
-from station.ident.inputs import MeasurementChain
 from station.ident.response.frf import FrequencyResponse
 from station.ident.structure import chain_corrected
 from station.report.quantities import polar_uncertainty

@@ -24,8 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     from station.certificate.issue import folder_of, run_document
-    from station.certificate.register import list_issued
     from station.errors import BadInputError
+    from station.lab.issued import list_issued
     from station.recording import read_recording
 
     out: dict[str, object] = {}

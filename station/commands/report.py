@@ -18,9 +18,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from station.certificate.render import html_to_pdf
     from station.errors import StationError
     from station.report.html import render_report
+    from station.report.render import html_to_pdf
 
     if args.html is None and args.pdf is None:
         raise StationError("say where to write the report: --html FILE and/or --pdf FILE")

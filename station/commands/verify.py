@@ -1,7 +1,8 @@
-"""``station verify``: walk the station's audit chain and compare every recording, results file and
-certificate it vouches for (exit 0 when everything holds, 1 naming the first broken link and every
-file that differs); ``--except ENTRY --reason TEXT`` records an administrator's reviewed exception
-for a broken link (an audit entry: the break stays listed, it no longer blocks issuing).
+"""``station verify``: walk the station's audit chain and compare every recording, results file,
+certificate and row of the lab's tables it vouches for (exit 0 when everything holds, 1 naming the
+first broken link and every file or row that differs); ``--except ENTRY --reason TEXT`` records an
+administrator's reviewed exception for a broken link (an audit entry: the break stays listed, it no
+longer blocks issuing).
 ``station verify CERTIFICATE --key PUBLIC.pem`` checks one certificate file off-line, as a customer
 does: no station, no database, the lab's public key alone.  ``station keys`` makes the lab's key.
 
@@ -88,7 +89,7 @@ def _certificate(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     from station.commands.lab import cli_user, open_store
     from station.errors import BadInputError
-    from station.lab import audit, chain
+    from station.lab import audit, chain, policy
 
     if args.certificate is not None:
         return _certificate(args)
@@ -105,8 +106,8 @@ def _run(args: argparse.Namespace) -> int:
             audit.append(store, cli_user(), audit.AUDIT_EXCEPTION, "audit",
                          {"entry": args.exception, "reason": args.reason.strip()})
         with store.reading() as db:
-            state, latest = chain.verify_chain(db), chain.latest_files(db)
-        out = chain.integrity_report(state, latest, settings.recordings_dir)
+            state, latest, records = chain.verify_chain(db), chain.latest_files(db), policy.record_mismatches(db)
+        out = chain.integrity_report(state, latest, settings.recordings_dir, records)
     finally:
         store.close()
     if args.json:
@@ -118,5 +119,7 @@ def _run(args: argparse.Namespace) -> int:
                   + (f" (reviewed: exception {b['excepted_by']})" if b["excepted_by"] else ""))
         for f in out["files"]:
             print(f"  file {f}")
+        for r in out["records"]:
+            print(f"  row {r}")
         print("OK" if out["ok"] else "FAILED")
     return 0 if out["ok"] else 1

@@ -9,15 +9,17 @@ Link, Elster, Sensors 10 (2010) 7621; Elster, Link, Metrologia 45 (2008) 464)
 
 The first term is a quadratic form over a sliding window.  With U_b = sum_i lambda_i v_i v_i^T
 (eigenvalues below 1e-13 of the largest dropped: the design's U_b has the rank of the transducer's
-parameter count) it is sum_i lambda_i (v_i * x)[n]^2: a few FIR convolutions per block, no loop over
-samples.  Before the first sample the signal is taken as constant (x[-k] = x[0], its noise that of
-x[0]); the first taps-1 outputs' noise term is computed for that exactly.
+parameter count) it is sum_i lambda_i (v_i * x)[n]^2: rank + 1 FIR sums per sample, fused with the
+estimate's in one compiled pass (``kernel``; FFT convolutions beyond DIRECT_MAX_TAPS taps).  Before
+the first sample the signal is taken as constant (x[-k] = x[0], its noise that of x[0]);
+the first taps-1 outputs' noise term is computed for that exactly.
 """
 
 from __future__ import annotations
 
+import logging
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +31,7 @@ from station.compensate.design import CompensationFilter, coefficients_for
 from station.errors import BadInputError
 
 FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
 
 EIG_REL_TOL = 1e-13
 
@@ -67,8 +70,31 @@ def fir(x: FloatArray, w: FloatArray) -> FloatArray:
     """'valid' convolution of x (n + taps - 1,) with each row of w (r, taps) -> (r, n): direct up to
     DIRECT_MAX_TAPS taps (each output the same sum whatever the block), FFT overlap-add beyond."""
     if w.shape[1] <= DIRECT_MAX_TAPS:
-        return np.array([np.convolve(x, row, mode="valid") for row in w]).reshape(w.shape[0], -1)
+        out = np.empty((w.shape[0], x.size - w.shape[1] + 1))
+        for i, row in enumerate(w):
+            out[i] = np.convolve(x, row, mode="valid")
+        return out
     return oaconvolve(x[None, :], w, mode="valid", axes=1)
+
+
+def _kernel() -> Callable[[FloatArray, FloatArray, float], tuple[FloatArray, FloatArray]] | None:
+    """The compiled per-sample loop (``kernel``), or None without numba (numpy then convolves)."""
+    try:
+        from station.compensate.kernel import estimate_and_variance
+    except ImportError as exc:  # pragma: no cover - numba is a dependency
+        log.warning("compensation runs in numpy (slower): numba is unavailable: %s", exc)
+        return None
+    return estimate_and_variance
+
+
+def estimate_and_variance(xe: FloatArray, w: FloatArray, var0: float) -> tuple[FloatArray, FloatArray]:
+    """y = w_0 * x and var = var0 + sum_{i>=1} (w_i * x)^2 ('valid', (n,) each) for xe (n + taps - 1,)
+    and w (1 + r, taps): the compiled loop up to DIRECT_MAX_TAPS taps, FFT convolutions beyond."""
+    kern = _kernel() if w.shape[1] <= DIRECT_MAX_TAPS else None
+    if kern is not None:
+        return kern(xe, np.ascontiguousarray(w[:, ::-1]), float(var0))
+    Z = fir(xe, w)
+    return Z[0], np.sum(Z[1:] ** 2, axis=0) + var0
 
 
 class Compensator:
@@ -79,20 +105,21 @@ class Compensator:
     def __init__(self, filt: CompensationFilter, noise: Noise) -> None:
         self.filt = filt
         self.noise = noise
-        b = filt.b_array
+        self.b = b = filt.b_array
+        self.U = U = filt.b_cov_array  # (taps, taps), converted once: the filter keeps tuples
         self.N = N = b.size
-        w, V = np.linalg.eigh(filt.b_cov_array)
+        w, V = np.linalg.eigh(U)
         keep = w > EIG_REL_TOL * max(float(w.max()), 0.0) if w.max() > 0 else np.zeros(w.size, bool)
         self.W = np.vstack([b[None, :], (V[:, keep] * np.sqrt(w[keep])).T])  # (1 + r, N)
         R = noise.toeplitz(N)
-        self.var_noise = float(b @ R @ b + np.sum(filt.b_cov_array * R))
+        self.var_noise = float(b @ R @ b + np.sum(U * R))
         self._tail: FloatArray | None = None
         self.samples = 0
 
     def _start_noise(self, n: int) -> FloatArray:
         """Noise terms of outputs 0..n-1 (n < taps) with the signal constant before its first sample:
         output j sees x[j], ..., x[1] through b_0..b_{j-1} and x[0] through sum_{k>=j} b_k."""
-        b, U = self.filt.b_array, self.filt.b_cov_array
+        b, U = self.b, self.U
         r = self.noise.autocov
         if len(r) == 1 or not any(r[1:]):  # white: closed form with cumulative sums
             jj = np.arange(n)
@@ -121,9 +148,7 @@ class Compensator:
         tail = np.full(self.N - 1, x[0]) if self._tail is None else self._tail
         xe = np.concatenate([tail, x])
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below
-            Z = fir(xe, self.W)
-            y = Z[0]
-            var = np.sum(Z[1:] ** 2, axis=0) + self.var_noise
+            y, var = estimate_and_variance(xe, self.W, self.var_noise)
         if self.samples < self.N - 1:
             n0 = min(self.N - 1 - self.samples, x.size)
             var[:n0] += self._start_noise(self.samples + n0)[self.samples:] - self.var_noise
@@ -132,7 +157,7 @@ class Compensator:
                                 "rescale it (state it in a smaller unit)")
         self._tail = xe[xe.size - (self.N - 1):] if self.N > 1 else np.empty(0)
         self.samples += x.size
-        return y, np.sqrt(np.clip(var, 0, None))
+        return y, np.sqrt(np.maximum(var, 0.0, out=var), out=var)
 
 
 def compensate(filt: CompensationFilter, x: ArrayLike, noise: Noise,

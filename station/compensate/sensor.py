@@ -153,19 +153,32 @@ def from_result(res: IdentificationResult, mounted_mass_kg: float, mounted_mass_
     if res.covariance is None:
         raise BadInputError(f"the result {res.result_name} has no covariance: no uncertainty could be propagated")
     core = ("S", "k_f", "b_f") if res.model == "sdof" else ("S", "k_f", "b_f", "k_c", "b_c")
-    missing = [n for n in core if res.parameters.get(n) is None or res.parameters[n].value is None]
-    if missing or any(n not in res.covariance.names for n in core):
+    findings: list[Check] = [Check(f.name, f.severity, f.step, f.message, f.values) for f in res.checks
+                             if f.severity in ("warning", "refused")]
+    fixed: dict[str, float] = {}
+    bc = res.parameters.get("b_c")
+    if res.model == "coupled" and (bc is None or bc.value is None or "b_c" not in res.covariance.names):
+        # the coupling's damping hardly shows below the coupling's resonance: a calibration up to a few
+        # hundred hertz leaves it undetermined; the filter then assumes none, and says so
+        fixed["b_c"] = 0.0
+        findings.append(Check("coupling_damping_conditional", "warning", None,
+                              "the calibration does not determine the coupling's damping b_c"
+                              f"{' (' + bc.reason + ')' if bc is not None and bc.reason else ''}: the filter "
+                              "takes b_c = 0 N*s/m as exact and is conditional on it", {"b_c_N_s_per_m": 0.0}))
+    missing = [n for n in core if n not in fixed and (res.parameters.get(n) is None or res.parameters[n].value is None)]
+    if missing or any(n not in res.covariance.names for n in core if n not in fixed):
         raise BadInputError(f"the result {res.result_name} does not determine {', '.join(missing or core)}: "
                             "no filter can be built on it")
-    idx = [res.covariance.names.index(n) for n in core]
-    cov_core = res.covariance.array[np.ix_(idx, idx)]
-    theta_core = np.array([float(res.parameters[n].value) for n in core])  # type: ignore[arg-type]
+    idx = [res.covariance.names.index(n) if n not in fixed else -1 for n in core]
+    cov_core = np.zeros((len(core), len(core)))
+    known = [i for i, j in enumerate(idx) if j >= 0]
+    cov_core[np.ix_(known, known)] = res.covariance.array[np.ix_([idx[i] for i in known], [idx[i] for i in known])]
+    theta_core = np.array([fixed[n] if n in fixed else float(res.parameters[n].value)  # type: ignore[arg-type]
+                           for n in core])
     em = (res.assumptions or {}).get("end_mass_kg") or {}
     m_e = float(res.extra.get("m_e_kg", em.get("value", 0.0)))
     m_l_cal = float(res.extra.get("m_l_kg", (res.assumptions or {}).get("load_mass_kg", {}).get("value", 0.0)))
     u_me = em.get("std")
-    findings: list[Check] = [Check(f.name, f.severity, f.step, f.message, f.values) for f in res.checks
-                             if f.severity in ("warning", "refused")]
     n = len(core)
     cov = np.zeros((n + 2, n + 2))
     cov[:n, :n] = cov_core
@@ -184,7 +197,7 @@ def from_result(res: IdentificationResult, mounted_mass_kg: float, mounted_mass_
     cov = 0.5 * (cov + cov.T)
     f_cal = [float(v) for v in res.extra.get("f_hz") or ()]
     rng = (min(f_cal), max(f_cal)) if f_cal else (math.nan, math.nan)
-    units = (*tuple(res.covariance.units[i] for i in idx), "kg", "kg")
+    units = (*tuple(res.parameters[n].unit if n in res.parameters else "N*s/m" for n in core), "kg", "kg")
     assumptions = {
         "model": f"{'Eq. 9 (stiff coupling)' if res.model == 'sdof' else 'Eq. 8 (finite coupling)'} of the "
                  f"{res.method} result, base at rest, the force acting on the mounted mass",

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 from scipy import stats
@@ -23,10 +24,22 @@ from scipy.optimize import minimize_scalar
 
 from station.discrepancy.data import RigData
 from station.discrepancy.decompose import K_MAX
+from station.discrepancy.estimates import EstimateJson
 from station.discrepancy.model import crank_displacement_harmonics
 from station.ident.result import Estimate
 
 ALPHA = 1e-6
+
+
+class DriveJson(TypedDict):
+    """``DriveCheck.to_json``: the rod length (m) as an estimate, chi^2 (None if not finite), dof, findings,
+    the summary."""
+
+    rod_length_m: EstimateJson
+    chi2: float | None
+    dof: int
+    findings: list[str]
+    message: str
 
 
 @dataclass(frozen=True)
@@ -41,7 +54,7 @@ class DriveCheck:
     findings: tuple[str, ...]
     message: str
 
-    def to_json(self) -> dict[str, object]:
+    def to_json(self) -> DriveJson:
         return {"rod_length_m": self.rod_length_m.to_dict(), "chi2": _f(self.chi2), "dof": self.dof,
                 "findings": list(self.findings), "message": self.message}
 

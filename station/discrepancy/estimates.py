@@ -4,6 +4,7 @@ the coupling) and each catalogue effect's, in the units of ``drivers.rig.params`
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -11,6 +12,7 @@ from station.discrepancy.fit import ModelFit
 from station.ident.result import Estimate
 
 ORDER_AMBIGUITY = 10.0  # chi^2 units (times the Birge ratio): low-pass orders closer than this tie
+EstimateJson = Mapping[str, object]  # ``Estimate.to_dict``: value, std, unit (SI, as the quantity's name says)
 TRANSDUCER = (("S", "V/N"), ("k_f", "N/m"), ("b_f", "N*s/m"))
 
 

@@ -27,7 +27,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -64,6 +64,30 @@ class RunContext:
     steps: tuple[tuple[float, float], ...]
 
 
+class PairJson(TypedDict):
+    """A pair of tied models: the one taken as true, the one refitted, Delta chi^2 now and after the steps
+    (None if not finite)."""
+
+    truth: str
+    refitted: str
+    delta_chi2_now: float | None
+    delta_chi2_after: float | None
+
+
+class ProposalJson(TypedDict):
+    """``Proposal.to_json``: steps in Hz and m; the information gain as ``measure`` says (None if not finite)."""
+
+    reason: str
+    steps: list[dict[str, float]]  # crank_frequency_hz (Hz), crank_radius_m (m): a request's step
+    run_steps: list[dict[str, float]]
+    expected_information_gain: float | None
+    measure: str
+    current: float | None
+    separates: list[str]
+    record_s: float
+    pairs: list[PairJson]
+
+
 @dataclass(frozen=True)
 class Proposal:
     """Steps to add (crank frequency Hz, radius m), the whole run to make (the run's own steps and
@@ -81,7 +105,7 @@ class Proposal:
     record_s: float
     pairs: tuple[tuple[str, str, float, float], ...] = field(default_factory=tuple)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> ProposalJson:
         def steps(s: Sequence[tuple[float, float]]) -> list[dict[str, float]]:
             return [{"crank_frequency_hz": f, "crank_radius_m": r} for f, r in s]
         return {"reason": self.reason, "steps": steps(self.steps), "run_steps": steps(self.run_steps),

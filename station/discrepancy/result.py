@@ -1,4 +1,5 @@
-"""Frozen result types of the model-gap workflow and their JSON form (the ``--json`` contract).
+"""Frozen result types of the model-gap workflow and their JSON form (the ``--json`` contract); a
+candidate effect tried in a round is ``search.Candidate``.
 
 ``DiscrepancyResult`` is what ``analyse_recording`` returns and what is stored beside a recording as
 result ``discrepancy``; its parameters are ``station.ident.result.Estimate`` (the one estimate type of
@@ -8,16 +9,49 @@ the station).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TypedDict
 
+from station.discrepancy.drive import DriveCheck, DriveJson
+from station.discrepancy.estimates import EstimateJson
+from station.discrepancy.propose import Proposal, ProposalJson
+from station.discrepancy.search import Candidate
+from station.discrepancy.structure import Structure, StructureJson
+from station.discrepancy.ties import Tie, TieJson
 from station.ident.result import Estimate
 
 
-@dataclass(frozen=True)
-class Candidate:
-    """One catalogue effect tried in one round: chi^2 decrease (scaled by the Birge ratio of the
-    larger model), added parameters, p-value of the likelihood-ratio test, Delta BIC (> 0 favours the
-    effect), gap after (V)."""
+class EffectJson(TypedDict):
+    """An added effect in the ``--json`` contract: its parameters' estimates, the RMS force gap after
+    it (V), the evidence sentence, the other candidates of its round that fit as well."""
+
+    name: str
+    params: dict[str, EstimateJson]
+    gap_after: float
+    evidence: str
+    tied_with: list[str]
+
+
+class DiscrepancyJson(TypedDict):
+    """``DiscrepancyResult.to_json``: the stable ``--json`` contract (gaps in V, parameters as estimates
+    with their units, the sub-results' own JSON forms or None)."""
+
+    base_gap: float
+    effects: list[EffectJson]
+    final_gap: float
+    parameters_before: dict[str, EstimateJson]
+    parameters_after: dict[str, EstimateJson]
+    unexplained: list[str]
+    ties: list[TieJson]
+    notes: list[str]
+    drive: DriveJson | None
+    proposal: ProposalJson | None
+    proposal_note: str | None
+    structure: StructureJson | None
+
+
+class CandidateJson(TypedDict):
+    """A candidate of a round (``search.Candidate``): chi^2 decrease, added parameters, p-value, Delta BIC,
+    gap after (V)."""
 
     name: str
     delta_chi2: float
@@ -25,6 +59,33 @@ class Candidate:
     p_value: float
     delta_bic: float
     gap_V: float
+
+
+class DiscrepancyDict(DiscrepancyJson):
+    """``DiscrepancyResult.to_dict``: the contract plus the details stored beside the recording: the noise
+    floor (V), per step the recording's index, the frequency (Hz) and the gaps (V), the force
+    fundamental's rows (``fundamental_columns``: Hz, %, mrad, z), the rounds' and the last round's
+    rejected candidates."""
+
+    recording: str
+    noise_floor_V: float
+    steps: list[int]
+    f_hz: list[float]
+    base_gap_steps: list[float]
+    final_gap_steps: list[float]
+    effect_gap_steps: dict[str, list[float]]
+    base_findings: list[str]
+    mains_search: str
+    fundamental_columns: list[str]
+    base_fundamental: list[list[float]]
+    final_fundamental: list[list[float]]
+    rounds: list[list[CandidateJson]]
+    rejected: list[CandidateJson]
+
+
+def candidate_json(c: Candidate) -> CandidateJson:
+    return CandidateJson(name=c.name, delta_chi2=c.delta_chi2, added_params=c.added_params, p_value=c.p_value,
+                         delta_bic=c.delta_bic, gap_V=c.gap_V)
 
 
 @dataclass(frozen=True)
@@ -41,7 +102,7 @@ class AddedEffect:
     parameters: dict[str, Estimate]
     tied: tuple[str, ...] = ()  # the candidates of its round that fit as well (itself included)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> EffectJson:
         return {"name": self.name, "params": {k: v.to_dict() for k, v in self.params.items()},
                 "gap_after": float(self.gap_after), "evidence": self.evidence,
                 "tied_with": [t for t in self.tied if t != self.name]}
@@ -78,13 +139,13 @@ class DiscrepancyResult:
     mains_search: str = ""
     notes: tuple[str, ...] = field(default_factory=tuple)
     wall_s: float = 0.0
-    proposal: Any = None  # propose.Proposal: the next run that settles a tie, or None
+    proposal: Proposal | None = None  # the next run that settles a tie
     proposal_note: str = ""  # why there is no proposal ('' when there is one)
-    structure: Any = None  # structure.Structure: the model parameters_after rests on, and what a coupling changes
-    ties: tuple[Any, ...] = ()  # ties.Tie: models the data do not decide between
-    drive: Any = None  # drive.DriveCheck: the recorded frame motion against the slider crank
+    structure: Structure | None = None  # the model parameters_after rests on, and what a coupling changes
+    ties: tuple[Tie, ...] = ()  # models the data do not decide between
+    drive: DriveCheck | None = None  # the recorded frame motion against the slider crank
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> DiscrepancyJson:
         """The stable ``--json`` contract."""
         return {"base_gap": float(self.base_gap), "effects": [e.to_dict() for e in self.effects],
                 "final_gap": float(self.final_gap),
@@ -96,18 +157,17 @@ class DiscrepancyResult:
                 "proposal_note": self.proposal_note or None,
                 "structure": None if self.structure is None else self.structure.to_json()}
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> DiscrepancyDict:
         """Everything (the contract plus details), e.g. to store with the recording's results."""
-        out = self.to_json()
-        out.update({
-            "recording": self.recording, "noise_floor_V": self.noise_floor_V,
-            "steps": list(self.steps), "f_hz": list(self.f_hz),
-            "base_gap_steps": list(self.base_gap_steps), "final_gap_steps": list(self.final_gap_steps),
-            "effect_gap_steps": {e.name: list(e.gap_steps_after) for e in self.effects},
-            "base_findings": list(self.base_findings), "mains_search": self.mains_search,
-            "fundamental_columns": ["f_hz", "gain_error_percent", "phase_error_mrad", "z"],
-            "base_fundamental": [list(r) for r in self.base_fundamental],
-            "final_fundamental": [list(r) for r in self.final_fundamental],
-            "rounds": [[c.__dict__ for c in e.candidates] for e in self.effects],
-            "rejected": [c.__dict__ for c in self.rejected]})
-        return out
+        return DiscrepancyDict(
+            **self.to_json(),
+            recording=self.recording, noise_floor_V=self.noise_floor_V,
+            steps=list(self.steps), f_hz=list(self.f_hz),
+            base_gap_steps=list(self.base_gap_steps), final_gap_steps=list(self.final_gap_steps),
+            effect_gap_steps={e.name: list(e.gap_steps_after) for e in self.effects},
+            base_findings=list(self.base_findings), mains_search=self.mains_search,
+            fundamental_columns=["f_hz", "gain_error_percent", "phase_error_mrad", "z"],
+            base_fundamental=[list(r) for r in self.base_fundamental],
+            final_fundamental=[list(r) for r in self.final_fundamental],
+            rounds=[[candidate_json(c) for c in e.candidates] for e in self.effects],
+            rejected=[candidate_json(c) for c in self.rejected])

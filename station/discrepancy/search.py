@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -15,6 +15,20 @@ from station.discrepancy.eiv import base_start
 from station.discrepancy.fit import ModelFit, Problem, fit_model, profiled_chi2
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One catalogue effect tried in one round: chi^2 decrease (scaled by the Birge ratio of the
+    larger model), added parameters, p-value of the likelihood-ratio test, Delta BIC (> 0 favours the
+    effect), gap after (V)."""
+
+    name: str
+    delta_chi2: float
+    added_params: int
+    p_value: float
+    delta_bic: float
+    gap_V: float
 __all__ = ["base_start", "fit_candidate"]
 FUNDAMENTAL_ONLY = ("coupling_compliance", "conditioner_lowpass", "channel_delay", "displacement_resonance",
                     "clock_skew")

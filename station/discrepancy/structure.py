@@ -15,18 +15,31 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 
 from station.discrepancy.data import RigData
+from station.discrepancy.estimates import EstimateJson
 from station.discrepancy.fit import ModelFit
-from station.discrepancy.result import Candidate
-from station.discrepancy.search import fit_candidate
+from station.discrepancy.search import Candidate, fit_candidate
 from station.ident.result import Estimate
 
 COUPLING = "coupling_compliance"
 UNDETERMINED = 0.5  # relative standard uncertainty of k_f above which k_f alone is called not determined
+
+
+class StructureJson(TypedDict):
+    """``Structure.to_json``: stiffnesses in N/m as estimates (None when not fitted), the scaled Delta chi^2,
+    k_f alone's (low, high) range in N/m or None, the sentence."""
+
+    model: str
+    series_stiffness: EstimateJson
+    k_f_coupling_free: EstimateJson | None
+    k_c: EstimateJson | None
+    delta_chi2: float | None
+    k_f_alone_range: list[float] | None
+    message: str
 
 
 @dataclass(frozen=True)
@@ -45,7 +58,7 @@ class Structure:
     message: str
     coupled: ModelFit | None = field(default=None, compare=False, repr=False)  # the model with a coupling free
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> StructureJson:
         return {"model": self.model, "series_stiffness": self.series_stiffness.to_dict(),
                 "k_f_coupling_free": None if self.k_f_coupling_free is None else self.k_f_coupling_free.to_dict(),
                 "k_c": None if self.k_c is None else self.k_c.to_dict(),

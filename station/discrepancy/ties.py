@@ -36,22 +36,42 @@ import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 
 from station.discrepancy.data import RigData
-from station.discrepancy.estimates import ORDER_AMBIGUITY, effect_estimates
+from station.discrepancy.estimates import ORDER_AMBIGUITY, EstimateJson, effect_estimates
 from station.discrepancy.fit import ModelFit, fit_model
 from station.discrepancy.physical import implausible
-from station.discrepancy.result import Candidate
-from station.discrepancy.search import fit_candidate
+from station.discrepancy.search import Candidate, fit_candidate
 from station.ident.result import Estimate
 
 log = logging.getLogger(__name__)
 TIE_CHI2 = 10.0
 MATTERS = 0.1
 AVERAGED = (("S", "V/N"), ("k_f", "N/m"), ("b_f", "N*s/m"))
+
+
+class ModelJson(TypedDict):
+    """A tied model: its effects and their shown parameters as estimates, chi^2, BIC, its weight in the
+    average, why it is implausible (or None), and the transducer's S (V/N), k_f (N/m), b_f (N s/m) under it."""
+
+    effects: list[str]
+    parameters: dict[str, EstimateJson]
+    chi2: float
+    bic: float
+    weight: float
+    implausible: str | None
+    S: EstimateJson
+    k_f: EstimateJson
+    b_f: EstimateJson
+
+
+class TieJson(TypedDict):
+    kind: str
+    candidates: list[ModelJson]
+    message: str
 
 
 @dataclass(frozen=True)
@@ -62,16 +82,16 @@ class Model:
     weight: float
     implausible: str = ""  # why the fit is physically impossible ('' if it is not): not averaged
 
-    def to_json(self, show: Sequence[str]) -> dict[str, Any]:
+    def to_json(self, show: Sequence[str]) -> ModelJson:
         f = self.fit
-        params: dict[str, Any] = {}
+        params: dict[str, EstimateJson] = {}
         for name in show:
             if name in f.effects:
                 params.update({k: v.to_dict() for k, v in effect_estimates(f, name).items()})
+        S, k_f, b_f = (Estimate(f.values[k], f.std[k], u).to_dict() for k, u in AVERAGED)
         return {"effects": list(f.effects), "parameters": params, "chi2": float(f.chi2),
                 "bic": float(f.chi2 + f.n_par * math.log(f.n_obs)), "weight": float(self.weight),
-                "implausible": self.implausible or None,
-                **{k: Estimate(f.values[k], f.std[k], u).to_dict() for k, u in AVERAGED}}
+                "implausible": self.implausible or None, "S": S, "k_f": k_f, "b_f": b_f}
 
 
 @dataclass(frozen=True)
@@ -86,7 +106,7 @@ class Tie:
     differ: tuple[str, ...]
     message: str
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> TieJson:
         return {"kind": self.kind, "candidates": [m.to_json(self.differ) for m in self.models],
                 "message": self.message}
 

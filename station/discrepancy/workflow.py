@@ -36,8 +36,8 @@ from station.discrepancy.locate import fundamental_table, in_basis, out_of_basis
 from station.discrepancy.physical import implausible
 from station.discrepancy.plausible import withdraw
 from station.discrepancy.propose import FILL, KF_REL, RunContext, next_run
-from station.discrepancy.result import AddedEffect, Candidate, DiscrepancyResult
-from station.discrepancy.search import base_start, fit_candidate, with_order_alternatives
+from station.discrepancy.result import AddedEffect, DiscrepancyResult
+from station.discrepancy.search import Candidate, base_start, fit_candidate, with_order_alternatives
 from station.discrepancy.structure import COUPLING as COUPLING_EFFECT
 from station.discrepancy.structure import state_structure
 from station.discrepancy.ties import TIE_CHI2, averaged, tie_models, tied_names, undetectable

@@ -9,7 +9,7 @@
 * **Load mass m_l** (kg, top mass + adaption): weighed; standard uncertainty ``load_mass_std_kg``
   (station configuration ``rig.load_mass_std_kg``, RUN.yaml ``top_mass_std_kg``), default
   ``DEFAULT_LOAD_MASS_REL_STD`` of the value.
-* **Measurement chain** (``MeasurementChain``): what the conditioner, the DAQ and the displacement
+* **Measurement chain** (``station.config.MeasurementChain``): what the conditioner, the DAQ and the displacement
   sensor get wrong, as standard uncertainties of H(f).  Station configuration
   ``identification.chain``, RUN.yaml ``measurement_chain``; defaults documented per field.
 """
@@ -19,85 +19,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ValidationError
 
-from drivers.rig.params import DisplacementResonance
+from station.config import MeasurementChain
 from station.errors import BadInputError
 from station.ident.models import Model, make_model
 
 DEFAULT_END_MASS_REL_STD = 0.05
-DEFAULT_RESONANCE_REL_STD = 0.05
 DEFAULT_LOAD_MASS_REL_STD = 1e-4
 DEFAULT_CRANK_RADIUS_STD_M = 1e-7  # a motorised eccentric read by its encoder
 
-
-class MeasurementChain(BaseModel):
-    """Standard uncertainties of the measured H(f) that the noise does not show.
-
-    gain_rel_std: ratio of the force chain's to the displacement chain's gain (conditioner, ADC,
-    displacement sensor), the same at every frequency (correlated), relative;
-    flatness_rel_std: gain error independent from one frequency to the next, relative;
-    phase_offset_std_deg: constant phase offset between the channels (correlated), deg;
-    phase_std_deg: phase error independent from one frequency to the next, deg;
-    delay_std_s: time skew between the channels (phase 2 pi f tau, correlated across frequencies), s;
-    displacement_resonance_hz: the displacement sensor's own resonance f_r in Hz (its response
-    w_r^2 / (w_r^2 - w^2 + 2 j p w_r w), ``drivers.rig.params.DisplacementResonance``), None (the
-    default) for a flat displacement chain (its deviations within the flatness and phase terms);
-    when given, H(f) is corrected for it and its uncertainty enters the budget;
-    displacement_resonance_std_hz: standard uncertainty of f_r, Hz (default 5 % of f_r);
-    displacement_damping: the resonance's damping ratio p; displacement_damping_std: its standard
-    uncertainty (default 0.1).
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-    gain_rel_std: float = Field(default=1e-4, ge=0, le=0.5)
-    flatness_rel_std: float = Field(default=5e-5, ge=0, le=0.5)
-    phase_offset_std_deg: float = Field(default=0.005, ge=0, le=10)
-    phase_std_deg: float = Field(default=0.005, ge=0, le=10)
-    delay_std_s: float = Field(default=1e-7, ge=0, le=1e-2)
-    displacement_resonance_hz: float | None = Field(default=None, gt=0, le=1e6)
-    displacement_resonance_std_hz: float | None = Field(default=None, ge=0, le=1e6)
-    displacement_damping: float = Field(default=0.0, ge=0, le=10)
-    displacement_damping_std: float = Field(default=0.1, ge=0, le=10)
-
-    @property
-    def displacement_resonance(self) -> DisplacementResonance | None:
-        """The configured resonance of the displacement sensor, None for a flat chain."""
-        if self.displacement_resonance_hz is None:
-            return None
-        return DisplacementResonance(self.displacement_resonance_hz, self.displacement_damping)
-
-    @property
-    def resonance_std_hz(self) -> float:
-        """u(f_r) in Hz: as stated, else 5 % of f_r (0 for a flat chain)."""
-        if self.displacement_resonance_hz is None:
-            return 0.0
-        if self.displacement_resonance_std_hz is not None:
-            return float(self.displacement_resonance_std_hz)
-        return DEFAULT_RESONANCE_REL_STD * float(self.displacement_resonance_hz)
-
-    def displacement_statement(self) -> dict[str, Any]:
-        """The displacement chain's response as the result states it."""
-        if self.displacement_resonance_hz is None:
-            return {"response": "flat", "note": "the displacement chain is taken as flat: its gain and phase "
-                    "errors within flatness_rel_std and phase_std_deg at every frequency of the plan"}
-        return {"response": "resonance", "resonance_hz": self.displacement_resonance_hz,
-                "resonance_std_hz": self.resonance_std_hz, "damping": self.displacement_damping,
-                "damping_std": self.displacement_damping_std,
-                "note": "H(f) corrected for the displacement sensor's resonance w_r^2 / (w_r^2 - w^2 + 2 j p w_r w); "
-                        "its uncertainty is the budget's chain_resonance term"}
-
-    @property
-    def floor_gain(self) -> float:
-        """Per-frequency relative gain floor (correlated and independent parts together)."""
-        return float(np.hypot(self.gain_rel_std, self.flatness_rel_std))
-
-    @property
-    def floor_phase_rad(self) -> float:
-        """Per-frequency phase floor without the delay, rad."""
-        return float(np.deg2rad(np.hypot(self.phase_offset_std_deg, self.phase_std_deg)))
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,8 @@ from scipy.optimize import least_squares
 from scipy.stats import ncx2
 
 from drivers.rig.params import DisplacementResonance
-from station.ident.inputs import IdentInputs, MeasurementChain
+from station.config import MeasurementChain
+from station.ident.inputs import IdentInputs
 from station.ident.models import CoupledModel, SdofModel, make_model
 from station.ident.response import frf as frfmod
 from station.ident.result import Check, Estimate

@@ -23,8 +23,8 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from station.certificate.register import FOLDER, CertificateError, CertificateNotFoundError
 from station.lab import audit, users
+from station.lab.issued import FOLDER, CertificateError, CertificateNotFoundError
 from station.service.store import Store
 
 FILE_EXTS = ("html", "pdf", "xml", "json", "sig")

@@ -144,6 +144,25 @@ def verify_chain(db: sqlite3.Connection) -> ChainState:
     return ChainState(n, last, prev, [Break(b.id, b.reason, excepted.get(b.id)) for b in breaks])
 
 
+def broken_among(db: sqlite3.Connection, ids: Iterable[int]) -> list[int]:
+    """Of the entries ``ids`` (a page of the trail), those that do not hold: the content does not
+    match the hash, or the link does not match the entry before (for entries deleted before one,
+    the first missing id is named).  One indexed look-up per entry: cheap enough for every page."""
+    out: set[int] = set()
+    for i in sorted(set(ids)):
+        rows = _rows(db, "SELECT id, at, who, action, target, details, files, prev, hash FROM audit WHERE id = ?", (i,))
+        if not rows:
+            continue
+        before = db.execute("SELECT id, hash FROM audit WHERE id < ? ORDER BY id DESC LIMIT 1", (i,)).fetchone()
+        b_id, b_hash = (0, GENESIS) if before is None else (int(before[0]), str(before[1]))
+        if b_id != i - 1:  # the gap is the break; this entry's own content is still checked
+            out.add(b_id + 1)
+            b_hash = str(rows[0]["prev"])
+        if _link_reason(rows[0], b_hash) is not None:
+            out.add(i)
+    return sorted(out)
+
+
 # ------------------------------------------------------------------------------------------- files
 def run_files(run_id: str, recording: str | None) -> tuple[str, str]:
     """(recording key, results prefix) of a run's files in the chain (paths in the recordings folder)."""
@@ -180,14 +199,24 @@ def expected_files(db: sqlite3.Connection, target: str, *, check: bool = True) -
     entry relied on is checked (its hash, its link): ChainBrokenError naming the entry otherwise
     (``check`` False: not checked, for a writer that only needs to know what was vouched for)."""
     out: dict[str, str] = {}
-    for row in _rows(db, "SELECT id, at, who, action, target, details, files, prev, hash FROM audit "
-                         "WHERE target = ? AND files != '{}' ORDER BY id", (target,)):
-        before = db.execute("SELECT hash FROM audit WHERE id < ? ORDER BY id DESC LIMIT 1", (row["id"],)).fetchone()
-        why = _link_reason(row, GENESIS if before is None else str(before[0])) if check else None
-        if why is not None:
-            raise ChainBrokenError(f"audit entry {row['id']} vouching for run {target}'s files: {why}")
+    for row in checked_entries(db, "target = ? AND files != '{}'", (target,), f"run {target}'s files", check=check):
         _fold(out, row["files"])
     return out
+
+
+def checked_entries(db: sqlite3.Connection, where: str, args: Iterable[Any], what: str, *,
+                    check: bool = True) -> list[dict[str, Any]]:
+    """The entries matching ``where`` (an SQL condition on the audit table), oldest first, each
+    checked on the way (its own hash, its link to the entry before): ChainBrokenError naming the
+    entry and ``what`` it vouches for otherwise."""
+    rows = _rows(db, f"SELECT id, at, who, action, target, details, files, prev, hash FROM audit WHERE {where} "
+                     "ORDER BY id", args)
+    for row in rows if check else ():
+        before = db.execute("SELECT hash FROM audit WHERE id < ? ORDER BY id DESC LIMIT 1", (row["id"],)).fetchone()
+        why = _link_reason(row, GENESIS if before is None else str(before[0]))
+        if why is not None:
+            raise ChainBrokenError(f"audit entry {row['id']} vouching for {what}: {why}")
+    return rows
 
 
 def _fold(out: dict[str, str], files: str) -> None:
@@ -248,14 +277,18 @@ def file_mismatches(latest: Mapping[str, str], root: Path) -> list[str]:
     return out
 
 
-def integrity_report(state: ChainState, latest: Mapping[str, str], root: Path) -> dict[str, Any]:
+def integrity_report(state: ChainState, latest: Mapping[str, str], root: Path,
+                     records: list[str] | None = None) -> dict[str, Any]:
     """The whole check (``/integrity``, ``station verify``): the chain as walked (``state``), every
-    file it vouches for (``latest``) compared; ``ok`` only when both hold."""
-    files = file_mismatches(latest, root)
+    file it vouches for (``latest``) compared, and the rows of the lab's tables that differ from it
+    (``records``, ``station.lab.policy.record_mismatches``); ``ok`` only when all hold."""
+    files, records = file_mismatches(latest, root), list(records or [])
     detail = state.describe() + (f"; {len(files)} file(s) differ from the audit trail: " + "; ".join(files)
                                  if files else "; every file it vouches for is as recorded")
-    return {**state.to_dict(), "ok": state.ok and not files, "chain_ok": state.ok, "files": files,
-            "detail": detail}
+    if records:
+        detail += f"; {len(records)} row(s) of the lab's tables differ from it: " + "; ".join(records)
+    return {**state.to_dict(), "ok": state.ok and not files and not records, "chain_ok": state.ok,
+            "files": files, "records": records, "detail": detail}
 
 
 # ------------------------------------------------------------------------------------------- schema

@@ -99,6 +99,10 @@ STATEMENTS = (
         at REAL NOT NULL,
         by TEXT NOT NULL,
         PRIMARY KEY (run_id, parameter))""",
+    """CREATE TABLE IF NOT EXISTS login_locks (
+        key TEXT PRIMARY KEY,
+        failures INTEGER NOT NULL,
+        locked_until REAL NOT NULL)""",
     "CREATE INDEX IF NOT EXISTS audit_target ON audit(target, id)",
     "CREATE INDEX IF NOT EXISTS runs_transducer ON runs(transducer_id, created)",
     """CREATE TRIGGER IF NOT EXISTS audit_no_update BEFORE UPDATE ON audit

@@ -26,7 +26,7 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
-from station.certificate.register import CertificateError
+from station.lab.issued import CertificateError
 
 ALGORITHM = "Ed25519"
 SIG_FORMAT = "sinecal-certificate-signature/1"

@@ -151,7 +151,8 @@ def transducer_trends(series: dict[str, tuple[str, list[Point]]], pol: Policy,
         if points:
             last = points[-1]
             left = adjusted.get(last.run_id)
-            if pol.interval_days is not None and tol is not None and len(points) >= 3:
+            if pol.interval_days is not None and tol is not None and len(points) >= 3 \
+                    and len({p.at for p in points}) > 1:
                 due = last.at / DAY_S + pol.interval_days
                 nominal = left if left is not None else last.value
                 r = intervals.drift_risk([p.at / DAY_S for p in points], [p.value for p in points],
@@ -161,7 +162,8 @@ def transducer_trends(series: dict[str, tuple[str, list[Point]]], pol: Policy,
                                      "due": due * DAY_S, "predicted": r.predicted, "u_predicted": r.u_predicted,
                                      "probability_out_of_tolerance": r.probability_out_of_tolerance}
             else:
-                doc["drift_risk"] = {"note": "needs a tolerance, an assigned interval and 3 calibrations"}
+                doc["drift_risk"] = {"note": "needs a tolerance, an assigned interval and 3 calibrations "
+                                             "at different times"}
             doc["intervals"] = _intervals(found, pol, tol, last, left)
         out["parameters"][name] = doc
     return out

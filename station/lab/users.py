@@ -199,16 +199,17 @@ def tokens(store: Store, name: str | None = None) -> list[dict[str, Any]]:
              "revoked": r["revoked"]} for r in store.query(q, (name,) if name else ())]
 
 
-def revoke_token(store: Store, token_id: str, by: str) -> dict[str, Any]:
-    """Revoke a token by its id (:func:`tokens`); audited.  UnknownUserError when no live token has it."""
+def revoke_token(store: Store, token_id: str, by: str, owner: str | None = None) -> dict[str, Any]:
+    """Revoke a token by its id (:func:`tokens`); audited.  UnknownUserError when no live token has
+    it (or none of ``owner``'s, when given: a user revokes only their own)."""
     if not re.fullmatch(r"[0-9a-f]{12}", token_id):
         raise UserError(f"not a token id: {token_id[:20]!r} (12 hex digits, as GET /tokens lists them)")
     now = time.time()
     with store.transaction() as db:
         rows = db.execute("SELECT hash, user, label FROM tokens WHERE substr(hash, 1, 12) = ? AND revoked IS NULL",
                           (token_id,)).fetchall()
-        if len(rows) != 1:
-            raise UnknownUserError(f"no live token {token_id}")
+        if len(rows) != 1 or (owner is not None and rows[0][1] != owner):
+            raise UnknownUserError(f"no live token {token_id}" + (f" of user {owner}" if owner is not None else ""))
         db.execute("UPDATE tokens SET revoked = ? WHERE hash = ?", (now, rows[0][0]))
         audit.record(db, by, audit.TOKEN_REVOKED, f"user:{rows[0][1]}", {"token": token_id, "label": rows[0][2]},
                      at=now)
@@ -260,6 +261,23 @@ def refuse_login(store: Store, name: str, client: str = "") -> None:
     shown = name if valid else "?"
     audit.append(store, shown, audit.LOGIN_REFUSED, f"user:{shown}",
                  {"client": client, **({} if valid else {"name": "not a valid user name (not stored)"})})
+
+
+def keep_lock(store: Store, key: str, failures: int, locked_until: float) -> None:
+    """Keep a login lock-out (``service/logins.LoginThrottle``) across restarts; failures 0 forgets it."""
+    with store.transaction() as db:
+        if failures:
+            db.execute("INSERT OR REPLACE INTO login_locks (key, failures, locked_until) VALUES (?, ?, ?)",
+                       (key, int(failures), float(locked_until)))
+        else:
+            db.execute("DELETE FROM login_locks WHERE key = ?", (key,))
+
+
+def kept_locks(store: Store) -> list[tuple[str, int, float]]:
+    """The login lock-outs kept: (key, failures, locked until in UNIX s), also those run out (their
+    count still doubles the next lock-out)."""
+    return [(r["key"], int(r["failures"]), float(r["locked_until"]))
+            for r in store.query("SELECT key, failures, locked_until FROM login_locks")]
 
 
 def open_session(store: Store, user: User, minutes: float) -> tuple[str, float]:

@@ -1,7 +1,7 @@
 """What the report and the plots need from a recording, read from what is stored beside it.
 
 * the identification: the stored ``results/identify_<method>_<model>`` (an ``IdentificationResult``
-  with its covariance, read back by ``from_dict``) preferred in the order ``METHOD_PREFERENCE`` (the
+  with its covariance, read back by ``from_dict``) preferred in the order ``ident.names.METHOD_PREFERENCE`` (the
   latest written of a method); only when none is stored, computed now with the station's default
   (``identify_recording``: fd, model auto) and labelled as not stored;
 * H(f) at the steps and the displacement's harmonic phasors: ``processed/steps`` (arrays
@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from station.errors import RecordingFormatError, StationError
 from station.ident.identify import identify_recording
 from station.ident.models import Model, SdofModel, make_model
+from station.ident.names import METHOD_PREFERENCE
 from station.ident.response.checked import CheckedResponse, checked_response
 from station.ident.result import IdentificationResult
 from station.recording import Recording, read_recording
@@ -40,8 +41,6 @@ from station.run.methods import METHODS_RESULT
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
-METHOD_PREFERENCE = ("fd", "oe", "pso+", "pso", "rls")
-PAPER_METHODS = ("pso", "pso+")
 PROCESSED_ARRAYS = ("frequency_hz", "H", "H_cov")
 TRACE_ARRAYS = ("t_center_s", "X_h")
 

@@ -1,5 +1,5 @@
 """The calibration report of a run as one self-contained HTML page (Jinja2 template report.html.j2 of
-station/certificate/templates, the certificates' engine; plots embedded as base64 PNG,
+station/report/templates, the certificates' engine; plots embedded as base64 PNG,
 styles inline, no external assets).  Layout and definitions: docs/report.md."""
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ import numpy as np
 from markupsafe import Markup
 
 from station import __version__
-from station.certificate.render import render_template
 from station.errors import StationError
 from station.ident.coverage import coverages
 from station.ident.montecarlo import check_result
+from station.ident.names import METHOD_DESCRIPTIONS
 from station.ident.response.frf import FrequencyResponse
 from station.ident.result import IdentificationResult, estimates_from_dict
 from station.report.campaign import campaign_section
@@ -32,6 +32,7 @@ from station.report.quantities import (
     range_text,
     structure_sentence,
 )
+from station.report.render import render_template
 from station.report.statement import uncertainty_statement
 from station.report.tables import PARAM_HEADERS, budget_table, esc, num, param_rows, table
 from station.run.methods import METHODS_RESULT, MethodOutcome, agreement
@@ -42,13 +43,6 @@ MODELS = {
     "coupled": "finite coupling stiffness k_c and damping b_c, paper Eq. 8 (fourth order)",
     "h2": "the paper's digital Eq. 11 (bilinear transform of Eq. 9), mapped to S, k_f, b_f with the known masses",
     "h1": "the paper's digital Eq. 10 (bilinear transform of Eq. 8), mapped with the known masses",
-}
-METHODS = {
-    "fd": "sine fits per step → H(f) → linear start on 1/H → weighted Levenberg–Marquardt (frequency domain)",
-    "oe": "output error: Levenberg–Marquardt on the raw force samples of every step (time domain)",
-    "pso": "the paper's particle swarm, PSO (Eq. 12–15), on one step cut as in Section 5.1",
-    "pso+": "the paper's particle swarm, PSO+ (Eq. 12–16), on one step cut as in Section 5.1",
-    "rls": "the paper's recursive least squares (Eq. 17) on one step cut as in Section 5.1",
 }
 CSS = """body{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}
 table{border-collapse:collapse;margin:.5em 0 1.2em}td,th{border:1px solid #bbb;padding:3px 8px;text-align:left}
@@ -98,7 +92,7 @@ def _model(d: RunData) -> str:
     ident = d.ident
     fit = ident.fit
     rms = ", ".join(fmt_unc(v) for v in fit.residual_rms_V)
-    rows = [["method", f"{esc(ident.method)}: {esc(METHODS.get(ident.method, ''))}"],
+    rows = [["method", f"{esc(ident.method)}: {esc(METHOD_DESCRIPTIONS.get(ident.method, ''))}"],
             ["model", f"{esc(ident.model)}: {esc(MODELS.get(ident.model, ''))}"],
             ["result", esc(d.ident_source)],
             ["masses used", f"M = m_e + m_l = {d.mass_kg:g} kg"],
@@ -312,7 +306,7 @@ def render_report(recording_path: Path, monte_carlo: int = 0) -> str:
     title = f"Calibration report: {d.rec.transducer_id}, run {d.rec.run_id}"
     sections = [_statement(d), _conditions(d), _model(d), _parameters(d), _monte_carlo(path, d, monte_carlo),
                 methods_section(d), campaign_section(d), _sensitivity(d), _discrepancy(d), _plots(path)]
-    # the page skeleton is the certificates' template engine's (station.certificate.render); the
+    # the page skeleton is a template (report/templates, station.report.render); the
     # sections are HTML built (and escaped) here
-    return render_template("report.html.j2", title=title, css=Markup(CSS), generated=now, version=__version__,
-                           source=path.name, sections=sections) + "\n"
+    return render_template("station.report", "report.html.j2", title=title, css=Markup(CSS), generated=now,
+                           version=__version__, source=path.name, sections=sections) + "\n"

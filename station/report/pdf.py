@@ -1,5 +1,5 @@
 """The calibration report as PDF: the report's own HTML page (``html.render_report``) through the
-HTML-to-PDF engine the certificates use (WeasyPrint, ``station.certificate.render.html_to_pdf``),
+HTML-to-PDF engine the certificates use (WeasyPrint, ``station.report.render.html_to_pdf``),
 so the PDF says exactly what the page says and nothing runs off the page (the print stylesheet
 wraps every table inside the A4 width; images scale to it)."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from station.certificate.render import html_to_pdf
 from station.report.html import render_report
+from station.report.render import html_to_pdf
 
 
 def render_report_pdf(recording_path: Path) -> bytes:

@@ -26,7 +26,8 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from station.report.data import PAPER_METHODS, RunData, StepTrace, load_run
+from station.ident.names import SWARM_METHODS
+from station.report.data import RunData, StepTrace, load_run
 from station.report.names import PLOT_NAMES
 from station.report.quantities import COVERAGE_K, measured_sensitivity, model_sensitivity
 
@@ -169,7 +170,7 @@ def _placeholder(fig: Figure, d: RunData, text: str) -> None:
 
 def _convergence(d: RunData, fig: Figure) -> None:
     runs = sorted((r for r in d.results.values() if r.name.startswith("identify_")
-                   and r.payload.get("method") in PAPER_METHODS
+                   and r.payload.get("method") in SWARM_METHODS
                    and (r.payload.get("extra") or {}).get("mse_history")), key=lambda r: r.name)
     if runs:
         ax = fig.subplots()

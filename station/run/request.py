@@ -8,6 +8,8 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from station.config import (
+    MAX_CRANK_FREQUENCY_HZ,
+    MAX_CRANK_RADIUS_M,
     MAX_METHODS,
     MAX_STEPS,
     MAX_TOP_MASS_KG,
@@ -25,8 +27,8 @@ class StepSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    crank_frequency_hz: float = Field(gt=0, le=1000, description="crank frequency in Hz")
-    crank_radius_m: float = Field(gt=0, le=1.0, description="crank radius in m")
+    crank_frequency_hz: float = Field(gt=0, le=MAX_CRANK_FREQUENCY_HZ, description="crank frequency in Hz")
+    crank_radius_m: float = Field(gt=0, le=MAX_CRANK_RADIUS_M, description="crank radius in m")
     settle_s: float | None = Field(default=None, ge=0, le=600, description="settling time in s")
     record_s: float | None = Field(default=None, gt=0, le=3600, description="record time in s")
 

@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from station.certificate.register import CertificateNotFoundError
 from station.lab import audit, certificates, chain
 from station.lab.integrity import RecordingTamperedError, check_recording, sha256_file
+from station.lab.issued import CertificateNotFoundError
 from station.recording.stored import results_version
 from station.report.names import PLOT_NAMES
 from station.service import worker

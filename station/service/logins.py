@@ -3,11 +3,15 @@
 * **Lock-out** (:class:`LoginThrottle`): failed logins are counted per user name and per client
   address.  After ``FREE_FAILURES`` in a row, each further failure locks that name (or address) out
   for a growing time: ``BASE_LOCK_S`` doubled with each failure, at most ``MAX_LOCK_S``.  While
-  locked, a login is refused at once with the time it is lifted (no password is checked: a guess
-  costs nothing and reveals nothing).  A success clears the name's count (not the address's).  Each
-  lock-out is logged and audited (``user.login_locked``), listed for administrators (``GET
-  /logins/locks``) and lifted by them (``DELETE /logins/locks/{key}``) or by time.  Counts live in
-  the daemon's memory: a restart forgets them (a lock-out is short by design; the audit keeps them).
+  locked, a login is refused with the time it is lifted, whatever the password; the password is
+  still checked against the name's hash (or a hash nobody has) in the bounded pool below, so that a
+  lock-out cannot be told by the time a refusal takes, and the answer is not used.  A success clears
+  the name's count (not the address's).  Each lock-out is logged and audited
+  (``user.login_locked``), listed for administrators (``GET /logins/locks``) and lifted by them
+  (``DELETE /logins/locks/{key}``) or by time.  Counts live in the daemon's memory; each lock-out
+  (its key, failures and end) is also kept in the database (``login_locks``, written through the
+  daemon's writer) and loaded at start, so that a restart neither lifts a lock-out nor starts its
+  doubling again.  Counts below the first lock-out are not kept (a flood of names writes nothing).
 * **The password check's own pool** (:class:`PasswordPool`): the scrypt check (~0.1 s of CPU, 16 MiB)
   runs in ``WORKERS`` threads of its own with at most ``QUEUE`` logins waiting; a login beyond that
   is refused at once ("too many logins at once").  The database's read pool, which every other
@@ -20,6 +24,7 @@ import asyncio
 import concurrent.futures
 import logging
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,11 +44,26 @@ class _Count:
 
 
 class LoginThrottle:
-    """Failure counts and lock-outs per key (``user:<name>`` or ``client:<address>``)."""
+    """Failure counts and lock-outs per key (``user:<name>`` or ``client:<address>``).  ``save(key,
+    failures, locked_until)`` keeps a lock-out (failures 0: forget the key); :meth:`load` puts kept
+    ones back."""
 
-    def __init__(self, clock: Any = time.time) -> None:
+    def __init__(self, clock: Any = time.time, save: Callable[[str, int, float], None] | None = None) -> None:
         self._clock = clock
         self._counts: dict[str, _Count] = {}
+        self._save = save
+
+    def load(self, rows: Iterable[tuple[str, int, float]]) -> None:
+        """The lock-outs kept (key, failures, locked until in UNIX s) back in memory."""
+        for key, failures, until in rows:
+            self._counts[key] = _Count(int(failures), float(until))
+
+    def _keep(self, key: str, c: _Count | None) -> None:
+        if self._save is not None:
+            try:
+                self._save(key, 0 if c is None else c.failures, 0.0 if c is None else c.locked_until)
+            except Exception:  # the lock-out holds in memory whatever the database does
+                log.exception("login lock-out of %s not kept in the database", key)
 
     def refusal(self, keys: list[str]) -> str | None:
         """Why a login with these keys is refused now (a lock-out in force), or None."""
@@ -66,13 +86,16 @@ class LoginThrottle:
                 length = min(MAX_LOCK_S, BASE_LOCK_S * 2 ** (c.failures - FREE_FAILURES - 1))
                 c.locked_until = now + length
                 locked.append((k, length))
+                self._keep(k, c)
         if len(self._counts) > 100_000:  # bounded memory under a flood of names: the oldest unlocked go
             for k in [k for k, c in self._counts.items() if c.locked_until <= now][:50_000]:
                 del self._counts[k]
         return locked
 
     def succeeded(self, user_key: str) -> None:
-        self._counts.pop(user_key, None)
+        c = self._counts.pop(user_key, None)
+        if c is not None and c.failures > FREE_FAILURES:
+            self._keep(user_key, None)
 
     def locks(self) -> list[dict[str, Any]]:
         now = self._clock()
@@ -80,7 +103,10 @@ class LoginThrottle:
                 for k, c in sorted(self._counts.items()) if c.locked_until > now]
 
     def lift(self, key: str) -> bool:
-        return self._counts.pop(key, None) is not None
+        c = self._counts.pop(key, None)
+        if c is not None and c.failures > FREE_FAILURES:
+            self._keep(key, None)
+        return c is not None
 
 
 class PasswordPool:

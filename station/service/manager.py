@@ -18,9 +18,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from station.certificate.register import FOLDER
 from station.errors import StationError
-from station.lab import audit, certificates, chain, register, users
+from station.lab import audit, certificates, chain, policy, register, users
+from station.lab.issued import FOLDER
 from station.recording.repair import FolderCheck, check_folder
 from station.service import worker
 from station.service.artifacts import Artifacts
@@ -97,7 +97,8 @@ class RunManager:
         self.chain: chain.ChainState | None = None  # the audit chain as last walked (start-up, /integrity, issue)
         self.signing_key: Any = None  # the lab's Ed25519 key (station.lab.signing), loaded at start
         self.signing_problem = ""  # why there is none
-        self.logins = LoginThrottle()
+        self.logins = LoginThrottle(save=lambda key, n, until: self.db.post(
+            lambda s: users.keep_lock(s, key, n, until)))
         self.password_pool = PasswordPool()
 
     # ------------------------------------------------------------------ life cycle
@@ -164,9 +165,11 @@ class RunManager:
 
     def seed_lab(self) -> None:
         """Start-up: the configuration's transducer and standards into the register (when missing),
-        the user the configured token acts for, and the record of a database upgrade."""
+        the user the configured token acts for, the login lock-outs kept, and the record of a
+        database upgrade."""
         register.seed(self.store, self.cfg)
         users.ensure_user(self.store, TOKEN_USER, users.Role.ADMIN)
+        self.logins.load(users.kept_locks(self.store))  # a restart lifts no lock-out
         if self.store.upgraded_from is not None:
             audit.append(self.store, audit.SYSTEM, audit.DATABASE_UPGRADED, str(self.settings.database.name),
                          {"from_schema": self.store.upgraded_from, "backup": str(self.store.backup)})
@@ -292,13 +295,13 @@ class RunManager:
 
     async def integrity(self) -> dict[str, Any]:
         """The chain walked and every file it vouches for compared (``/integrity``)."""
-        def walk(store: Store) -> tuple[chain.ChainState, dict[str, str]]:
+        def walk(store: Store) -> tuple[chain.ChainState, dict[str, str], list[str]]:
             with store.reading() as db:
-                return chain.verify_chain(db), chain.latest_files(db)
-        state, latest = await self.db.read(walk, timeout_s=120.0)
+                return chain.verify_chain(db), chain.latest_files(db), policy.record_mismatches(db)
+        state, latest, records = await self.db.read(walk, timeout_s=120.0)
         self.chain = state
         # the files are hashed outside the database's read lock (other reads go on meanwhile)
-        return await asyncio.to_thread(chain.integrity_report, state, latest, self.settings.recordings_dir)
+        return await asyncio.to_thread(chain.integrity_report, state, latest, self.settings.recordings_dir, records)
 
     async def record_exception(self, admin: users.User, entry: int, reason: str) -> dict[str, Any]:
         """An administrator's reviewed exception for a broken link of the chain (itself an entry):

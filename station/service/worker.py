@@ -189,7 +189,7 @@ def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
 
     rep = analyse_recording(path, max_effects=max_effects)
     write_result(path, "discrepancy", {**rep.to_dict(), "max_effects": max_effects})
-    return rep.to_json()
+    return dict(rep.to_json())  # the contract (DiscrepancyJson) as the API's plain JSON
 
 
 @worker_job

@@ -242,14 +242,17 @@ def drift_risk(days: Sequence[float], values: Sequence[float], uncertainties: Se
         raise ValueError("a drift risk needs at least 3 values with finite uncertainties > 0")
     if not tolerance > 0:
         raise ValueError("the tolerance must be > 0")
-    X = np.column_stack([np.ones_like(t), t])
+    if not np.ptp(t) > 0:
+        raise ValueError("a drift risk needs values at different times")
     W = 1 / u**2
+    t0 = float(np.sum(W * t) / np.sum(W))  # the line about its weighted mean time: well conditioned
+    X = np.column_stack([np.ones_like(t), t - t0])  # for days counted from 1970 and runs minutes apart
     A = X.T @ (W[:, None] * X)
     cov = np.linalg.inv(A)
     beta = cov @ (X.T @ (W * y))
     chi2 = float(np.sum(W * (y - X @ beta) ** 2) / max(t.size - 2, 1))
     cov = cov * max(chi2, 1.0)
-    g = np.array([1.0, due_day])
+    g = np.array([1.0, due_day - t0])
     pred, u_pred = float(g @ beta), float(math.sqrt(g @ cov @ g))
     p = stats.norm.cdf((nominal - tolerance - pred) / u_pred) + stats.norm.sf((nominal + tolerance - pred) / u_pred)
     return DriftRisk(float(beta[1]), float(math.sqrt(cov[1, 1])), pred, u_pred, float(p))

@@ -17,7 +17,7 @@ from station.api.schemas import (
     ErrorOut,
     SigningKeyOut,
 )
-from station.certificate.register import MEDIA
+from station.lab.issued import MEDIA
 
 router = APIRouter(tags=["certificates"])
 Ext = Literal["html", "pdf", "xml"]

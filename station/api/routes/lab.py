@@ -8,11 +8,22 @@ import datetime as dt
 import logging
 import re
 import time
+from dataclasses import asdict
 from typing import Annotated
 
-from fastapi import APIRouter, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, Path, Query, Request, Response
 
-from station.api.deps import SESSION_COOKIE, Admin, Approver, ManagerDep, Operator, PrincipalDep, Reader, RunDep
+from station.api.deps import (
+    SESSION_COOKIE,
+    Admin,
+    Approver,
+    ManagerDep,
+    Operator,
+    PrincipalDep,
+    Reader,
+    RunDep,
+    require,
+)
 from station.api.lab_schemas import (
     ID_PATTERN,
     ApprovalOut,
@@ -56,6 +67,7 @@ log = logging.getLogger(__name__)
 router = APIRouter(tags=["lab"])
 EntryId = Annotated[str, Path(pattern=ID_PATTERN)]
 UserName = Annotated[str, Path(pattern=NAME_PATTERN)]
+SignedIn = Annotated[Principal, Depends(require(users.Permission.RUN))]  # any user of the lab (every role runs)
 
 
 def _me(who: Principal | None) -> MeOut:
@@ -68,23 +80,23 @@ def _me(who: Principal | None) -> MeOut:
 @router.post("/login", response_model=MeOut, responses={401: {"model": ErrorOut}, **E422, **BODY_ERRORS},
              summary="Log in on the page (sets an HttpOnly session cookie)")
 async def login(body: LoginIn, manager: ManagerDep, response: Response, request: Request) -> MeOut:
-    """A wrong name or password is refused alike (401), in the same time for any name.  After 5
-    failures in a row for a name or from an address, each further one locks it out for a growing
-    time (2 s doubling to 15 min; refused at once with the time it is lifted; an administrator lifts
-    it: `GET /logins/locks`).  The session expires after `lab.session_minutes`; the cookie is HttpOnly
-    and SameSite=Strict."""
+    """A wrong name or password is refused alike (401), in the same time for any name.  After 5 failures
+    in a row for a name or from an address, each further one locks it out for a growing time (2 s
+    doubling to 15 min; refused, whatever the password, with the time it is lifted, after the same
+    password check as any login; an administrator lifts it: `GET /logins/locks`).  The session expires
+    after `lab.session_minutes`; the cookie is HttpOnly and SameSite=Strict."""
     minutes = manager.cfg.lab.session_minutes
     client = request.client.host if request.client else ""
     user_key = f"user:{body.name}" if re.match(NAME_PATTERN, body.name) else "user:?"
     keys = [user_key, f"client:{client}"]
     why = manager.logins.refusal(keys)
-    if why is not None:
-        raise users.AuthError(why)
     candidate, stored = await manager.db.read(lambda s: users.login_candidate(s, body.name))
     # the scrypt check (~0.1 s) in the login pool: never in the read pool other requests need
     ok = await manager.password_pool.run(users.check_password, body.password, stored)
     if ok is None:
         raise users.AuthError("too many logins at once: try again in a moment")
+    if why is not None:  # locked out: the same work done (no lock-out told by its time), the answer unused
+        raise users.AuthError(why)
     user = candidate if ok else None
     if user is None:
         manager.db.post(lambda s: users.refuse_login(s, body.name, client))
@@ -169,17 +181,23 @@ async def lift_lock(key: Annotated[str, Path(pattern=r"^(user|client):[^/]{1,128
 
 
 @router.get("/tokens", response_model=list[TokenRowOut], responses={**E401, **E403, **E422},
-            summary="The API tokens (never their text), optionally of one user (admin)")
-async def list_tokens(manager: ManagerDep, who: Admin,
+            summary="The API tokens (never their text): the signed-in user's own; an admin's: all, or one user's")
+async def list_tokens(manager: ManagerDep, who: SignedIn,
                       user: Annotated[str | None, Query(pattern=NAME_PATTERN)] = None) -> list[TokenRowOut]:
+    if not who.user.may(users.Permission.ADMIN):
+        if user not in (None, who.name):
+            raise users.ForbiddenError(f"user {who.name} ({who.user.role}) sees only their own tokens; an admin "
+                                       "sees every user's")
+        user = who.name
     return [TokenRowOut(**t) for t in await manager.db.read(lambda s: users.tokens(s, user))]
 
 
 @router.delete("/tokens/{token_id}", response_model=TokenRowOut, responses={**E401, **E403, **E404, **E422},
-               summary="Revoke an API token (admin)")
+               summary="Revoke an API token (the signed-in user's own; an admin: any)")
 async def revoke_token(token_id: Annotated[str, Path(pattern=r"^[0-9a-f]{12}$")], manager: ManagerDep,
-                       who: Admin) -> TokenRowOut:
-    out = await manager.db.call(lambda s: users.revoke_token(s, token_id, who.name))
+                       who: SignedIn) -> TokenRowOut:
+    owner = None if who.user.may(users.Permission.ADMIN) else who.name
+    out = await manager.db.call(lambda s: users.revoke_token(s, token_id, who.name, owner))
     return TokenRowOut(**out, created=None)
 
 
@@ -233,9 +251,12 @@ async def get_audit(manager: ManagerDep, target: Annotated[str | None, Query(max
                     who: Annotated[str | None, Query(max_length=64)] = None,
                     before_id: Annotated[int | None, Query(ge=1, le=2**63 - 1)] = None,
                     limit: Annotated[int, Query(ge=1, le=1000)] = 200) -> AuditOut:
-    rows = await manager.db.read(lambda s: audit.entries(s, target=target, action=action, who=who,
-                                                         before_id=before_id, limit=limit))
-    return AuditOut(count=len(rows), entries=[AuditEntryOut(**e.to_dict()) for e in rows])
+    def read(s: Store) -> tuple[list[audit.AuditEntry], list[int]]:
+        rows = audit.entries(s, target=target, action=action, who=who, before_id=before_id, limit=limit)
+        with s.reading() as db:
+            return rows, chain.broken_among(db, [e.id for e in rows])
+    rows, broken = await manager.db.read(read)
+    return AuditOut(count=len(rows), entries=[AuditEntryOut(**e.to_dict()) for e in rows], broken=broken)
 
 
 # ---------------------------------------------------------------------------------------------- runs
@@ -293,8 +314,10 @@ async def transducer_history(entry_id: EntryId, manager: ManagerDep,
                                                            policy.as_left_of(s, entry_id)))
     doc = await asyncio.to_thread(history.history, rows, manager.settings.recordings_dir, approved, pol, left,
                                   lam=lam, L=L)
+    hold = await manager.db.read(lambda s: history.check_hold(s, manager.settings.recordings_dir))
     certs = await manager.artifacts.certificates(entry_id)
-    return HistoryOut(transducer=TransducerOut(**t.to_dict()), certificates=certs, **doc)
+    return HistoryOut(transducer=TransducerOut(**t.to_dict()), certificates=certs,
+                      hold=asdict(hold) if hold is not None else None, **doc)
 
 
 @router.put("/register/transducers/{entry_id}/policy", response_model=PolicyOut,

@@ -110,21 +110,6 @@ $("#logout").addEventListener("click", async () => {
   route();
 });
 
-// value ± std, both to the precision of 2 significant digits of the uncertainty
-function fmtU(v, s) {
-  if (v === null || v === undefined) return "—";
-  if (s === null || s === undefined || !(s > 0)) return Number(v).toPrecision(6);
-  const e = Math.floor(Math.log10(s)) - 1;
-  const scale = Math.floor(Math.log10(Math.abs(v) || s));
-  if (scale >= 5 || scale <= -4) {
-    const m = Math.pow(10, scale);
-    const digits = Math.max(0, scale - e);
-    return `(${(v / m).toFixed(digits)} ± ${(s / m).toFixed(digits)})e${scale}`;
-  }
-  const d = Math.max(0, -e);
-  return `${v.toFixed(d)} ± ${s.toFixed(d)}`;
-}
-
 // ------------------------------------------------------------------------------------------ header
 async function refreshHealth() {
   try {
@@ -151,7 +136,7 @@ function showLatch(e) {
   $("#latch").hidden = !latched;
   if (latched !== latchShown) $("#start").disabled = latched;  // leave a submission in progress alone
   latchShown = latched;
-  if (latched) $("#latch-text").textContent = `since ${e.since} (${e.source}: ${e.detail}). No run starts until it is acknowledged.`;
+  if (latched) $("#latch-text").textContent = `since ${localTime(e.since)} (${e.source}: ${e.detail}). No run starts until it is acknowledged.`;
 }
 
 $("#ack").addEventListener("click", async () => {
@@ -364,7 +349,7 @@ async function refreshRuns() {
     const tr = document.createElement("tr");
     tr.innerHTML = `<td><a href="#/runs/${esc(r.id)}">${esc(r.id)}</a></td><td class="state ${esc(r.state)}">${esc(r.state)}</td>` +
       `<td><a href="#/transducers/${encodeURIComponent(r.transducer_id)}">${esc(r.transducer_id)}</a></td>` +
-      `<td>${r.steps.map((s) => s.crank_frequency_hz).join(", ")} Hz</td><td>${new Date(r.created).toLocaleString()}</td><td>${r.lost_samples}</td>`;
+      `<td>${r.steps.map((s) => s.crank_frequency_hz).join(", ")} Hz</td><td>${esc(localTime(r.created))}</td><td>${r.lost_samples}</td>`;
     tb.appendChild(tr);
   }
 }
@@ -375,7 +360,8 @@ function showStatus(st) {
   $("#run-state").className = "state " + st.state;
   const stopping = st.state === "running" && st.step_state === "stopping";
   $("#run-step").textContent = st.current_step === null ? "" : stopping ? "all steps recorded; the crank ramps down to standstill" :
-    `step ${st.current_step + 1}/${st.n_steps} (${st.steps[st.current_step].crank_frequency_hz} Hz) ${st.step_state}`;
+    `step ${st.current_step + 1} of ${st.n_steps} (${withUnit(st.steps[st.current_step].crank_frequency_hz, "Hz")}) ${st.step_state}`;
+  $("#run-eta").textContent = timeLeftText(st);
   $("#run-history").href = `#/transducers/${encodeURIComponent(st.transducer_id)}`;
   $("#run-progress").value = st.progress;
   $("#run-samples").textContent = st.samples;
@@ -387,6 +373,15 @@ function showStatus(st) {
     if (st.state === "completed") loadResults(st.id);
     else if (st.recording) { $("#ended").hidden = false; $("#ended-recording").href = st.links.recording; }
   }
+}
+
+// the time left of a recording run, extrapolated from its progress so far (the rig's ramps, settling
+// and recording all count; a run queued or identifying has none)
+function timeLeftText(st) {
+  if (st.state !== "running" || !st.started || !(st.progress > 0.02) || st.progress >= 1) return "";
+  const elapsed = (Date.now() - new Date(st.started).getTime()) / 1000;
+  if (!(elapsed > 0)) return "";
+  return `about ${durationText(elapsed * (1 - st.progress) / st.progress)} left`;
 }
 
 function follow(id) {
@@ -425,7 +420,7 @@ function showMethods(methods) {
   const names = [];
   for (const m of methods) for (const p of m.parameters) if (!names.includes(p.name)) names.push(p.name);
   table.querySelector("thead").innerHTML = "<tr><th>method</th><th>status</th>" +
-    names.map((n) => `<th>${esc(n)}</th>`).join("") + "<th>time (s)</th><th>seed</th></tr>";
+    names.map((n) => `<th>${esc(n)}</th>`).join("") + "<th>time</th><th>seed</th></tr>";
   const tb = table.querySelector("tbody");
   tb.innerHTML = "";
   for (const m of methods) {
@@ -441,17 +436,54 @@ function showMethods(methods) {
       for (const n of names) {
         const p = ps[n];
         const a = (m.agreement || {})[n];
-        let c = !p ? "—" : p.identifiable ? `${fmtU(p.value, p.std)} ${esc(p.unit)}` : (/^withheld\b/.test(p.reason) ? esc(p.reason) : `withheld: ${esc(p.reason)}`);
+        let c = !p ? "—" : p.identifiable ? esc(withUnit(fmtU(p.value, p.std), p.unit)) : (/^withheld\b/.test(p.reason) ? esc(p.reason) : `withheld: ${esc(p.reason)}`);
         if (a && a.z !== null) c += ` <span class="z">(z = ${a.z.toFixed(2)})</span>`;
         else if (a && a.reason && p && p.identifiable) c += ` <span class="z">(no z: ${esc(a.reason)})</span>`;
         cells += `<td data-param="${esc(n)}">${c}</td>`;
       }
     }
-    cells += `<td>${m.compute_s === null ? "—" : m.compute_s.toFixed(2)}</td><td>${m.seed}</td>`;
+    cells += `<td>${m.compute_s === null ? "—" : withUnit(m.compute_s.toFixed(2), "s")}</td><td>${m.seed}</td>`;
     tr.innerHTML = cells;
     tb.appendChild(tr);
   }
   table.hidden = !methods.length;
+  $("#methods-summary").textContent = methodsSummary(methods);
+}
+
+// the result in a sentence: what was determined, from how many steps, and whether anything needs a look
+function resultSummary(d) {
+  const got = d.parameters.filter((p) => p.identifiable).map((p) => QUANTITY_WORDS[p.name] || p.name);
+  const missing = d.parameters.filter((p) => !p.identifiable).map((p) => QUANTITY_WORDS[p.name] || p.name);
+  const look = (d.checks || []).filter((c) => c.severity !== "info").length;
+  const conditional = d.parameters.filter((p) => p.identifiable && p.reason).length;
+  return (got.length ? `The run determined the ${listText(got)}, each with its uncertainty (below).` : "The run determined nothing.") +
+    (missing.length ? ` It could not determine the ${listText(missing)}.` : "") +
+    (conditional ? " Some values rest on a condition (see their remarks)." : "") +
+    (look ? ` ${look === 1 ? "One finding needs" : `${look} findings need`} checking before the results are used.` : " Nothing needs checking.");
+}
+
+const listText = (xs) => (xs.length < 2 ? xs.join("") : `${xs.slice(0, -1).join(", ")} and ${xs[xs.length - 1]}`);
+
+// a parameter's remark: plain first, the identification's reason behind "why"
+function parameterRemark(p) {
+  const why = p.reason ? ` <details><summary>why</summary>${esc(p.reason)}</details>` : "";
+  if (!p.identifiable) return `not determined by this run${why}`;
+  if (p.flag) return `${esc(p.flag)}${why}`;
+  return p.reason ? `determined, under a condition${why}` : "determined";
+}
+
+// the other methods in a sentence: do they agree with the primary within their uncertainties?
+function methodsSummary(methods) {
+  const others = methods.filter((m) => !m.primary);
+  if (!others.length) return "Only one method was run for this result.";
+  const open = others.filter((m) => m.status !== "done" && m.status !== "failed" && m.status !== "refused").length;
+  const zs = others.filter((m) => m.status === "done").flatMap((m) => Object.values(m.agreement || {}).map((a) => a && a.z))
+    .filter((z) => typeof z === "number");
+  const agree = zs.length && zs.every((z) => Math.abs(z) <= 2);
+  return `${others.length} other ${others.length === 1 ? "method checks" : "methods check"} the result` +
+    (open ? `; ${open} still computing` : "") +
+    (zs.length ? (agree ? ": they agree within their uncertainties." : ": some differ by more than their uncertainties (see the table).")
+      : others.some((m) => m.status === "done") ? ": none of their values can be compared with it (the table says why)." : ".");
 }
 
 async function loadResults(id) {
@@ -461,15 +493,12 @@ async function loadResults(id) {
   if (!res.ok) { $("#run-message").textContent = detailText(res.data); return; }
   const d = res.data;
   $("#results").dataset.run = id;
+  $("#res-summary").textContent = resultSummary(d);
   $("#res-model").textContent = `method ${d.method}, model ${d.model}` + (d.notes.length ? ` — ${d.notes.join("; ")}` : "");
-  const cl = $("#res-checks");
-  cl.innerHTML = "";
-  for (const c of d.checks || []) {
-    const li = document.createElement("li");
-    li.dataset.check = c.name;
-    li.textContent = `${c.severity}: ${c.name}: ${c.message}`;
-    cl.appendChild(li);
-  }
+  const nSteps = (shownStatus && shownStatus.n_steps) || d.frequency_response.length;
+  $("#res-checks").innerHTML = (d.checks || []).map((c) => `<li data-check="${esc(c.name)}" data-severity="${esc(c.severity)}">` +
+    `<span class="plain">${esc(findingText(c))}</span>` + (c.step === null || c.step === undefined ? "" : ` (step ${c.step + 1} of ${nSteps})`) +
+    `<details><summary>details</summary>${esc(c.name)}: ${esc(c.message)}</details></li>`).join("");
   const em = (d.assumptions || {}).end_mass_kg;
   $("#res-assumptions").textContent = em ? `end mass m_e = ${em.value} kg (${em.source}` +
     (em.std === null ? ": assumed, no uncertainty; S, k_f, b_f are conditional on it)" : `, u = ${em.std} kg)`) : "";
@@ -480,10 +509,14 @@ async function loadResults(id) {
   for (const p of d.parameters) {
     const tr = document.createElement("tr");
     tr.dataset.param = p.name;
-    tr.innerHTML = `<td>${esc(p.name)}</td><td class="value">${p.identifiable ? fmtU(p.value, p.std) : "not identifiable"}</td>` +
-      `<td>${esc(p.unit)}</td><td>${p.identifiable ? (p.flag ? esc(p.flag) + ": " + esc(p.reason) : "yes") : "no: " + esc(p.reason)}</td>`;
+    tr.innerHTML = `<td>${esc(QUANTITY_WORDS[p.name] || p.name)}, ${esc(p.name)}</td><td class="value">${p.identifiable ? fmtU(p.value, p.std) : "not determined"}</td>` +
+      `<td>${esc(unitText(p.unit))}</td><td>${parameterRemark(p)}</td>`;
     tb.appendChild(tr);
   }
+  const kept = d.frequency_response.length;
+  $("#frf-summary").textContent = `${kept} of ${nSteps} steps were evaluated` + (kept < nSteps ? " (the findings above say why the others were left out)" : "") +
+    `, from ${withUnit(Math.min(...d.frequency_response.map((s) => s.frequency_hz)).toPrecision(3), "Hz")} to ` +
+    `${withUnit(Math.max(...d.frequency_response.map((s) => s.frequency_hz)).toPrecision(3), "Hz")}.`;
   if (d.fit) {
     $("#res-fit").textContent = `fit: χ²/dof ${d.fit.chi2_per_dof === null ? "—" : d.fit.chi2_per_dof.toFixed(2)}, ` +
       `mean square residual ${d.fit.mse === null ? "—" : d.fit.mse.toExponential(2)} V², ${d.fit.n_points} points` +
@@ -493,7 +526,7 @@ async function loadResults(id) {
   fb.innerHTML = "";
   for (const s of d.frequency_response) {
     const tr = document.createElement("tr");
-    tr.innerHTML = `<td>${s.index + 1}</td><td>${s.frequency_hz.toFixed(4)}</td><td>${fmtU(s.H_magnitude, s.H_magnitude_std)}</td>` +
+    tr.innerHTML = `<td>${s.index + 1} of ${nSteps}</td><td>${s.frequency_hz.toFixed(4)}</td><td>${fmtU(s.H_magnitude, s.H_magnitude_std)}</td>` +
       `<td>${fmtU(s.H_phase_deg, s.H_phase_std_deg)}</td><td>${s.n_samples}</td>`;
     fb.appendChild(tr);
   }
@@ -503,7 +536,7 @@ async function loadResults(id) {
   if (!names.length) plots.textContent = "plots are not available on this station (the plots module is not installed)";
   for (const n of names) {
     const fig = document.createElement("figure");
-    fig.innerHTML = `<img alt="${esc(n)} plot" data-plot="${esc(n)}" src="${esc(d.plots[n])}"><figcaption class="small">${esc(n)}</figcaption>`;
+    fig.innerHTML = `<img alt="${esc(plotText(n))}" data-plot="${esc(n)}" src="${esc(d.plots[n])}"><figcaption class="small">${esc(plotText(n))}</figcaption>`;
     // a plot refused for the moment (the render worker busy, a further method being stored) is asked again
     const img = fig.querySelector("img"), src = d.plots[n];
     img.onerror = () => {
@@ -523,7 +556,200 @@ async function loadResults(id) {
   if (seq === methodsSeq) showMethods(d.methods || []);  // a later 'result' event's answer is newer
   $("#results").hidden = false;
   loadApprovals(id);
+  showCompensation(id);
   loadDiscrepancy(d.discrepancy);
+}
+
+// ------------------------------------------------------------------------------------------ compensation
+// a correction filter for the user's set-up from the run's identification (POST /runs/{id}/compensation),
+// its Bode plot, the filter as a file, and the filter tried on an uploaded signal (POST /compensation/apply)
+const COMP_MAX_SAMPLES = 200000;   // the API's bound; the command line takes more
+let compFilter = null;              // the filter document on screen
+let compUrls = [];                  // object URLs of the downloads and the plot, revoked when replaced
+
+function compUrl(blob) {
+  const u = URL.createObjectURL(blob);
+  compUrls.push(u);
+  return u;
+}
+
+function showCompensation(id) {
+  for (const u of compUrls) URL.revokeObjectURL(u);
+  compUrls = [];
+  compFilter = null;
+  $("#comp-result").hidden = true;
+  $("#comp-applied").hidden = true;
+  $("#comp-msg").textContent = "";
+  $("#comp-form").onsubmit = (ev) => { ev.preventDefault(); designFilter(id); };
+  $("#comp-apply-form").onsubmit = (ev) => { ev.preventDefault(); applyFilter(); };
+}
+
+function compBody() {
+  const v = (sel) => $(sel).value.trim();
+  for (const [sel, what] of [["#comp-fs", "your sample rate"], ["#comp-mass", "the mass on the transducer"], ["#comp-band", "up to which frequency to correct"]])
+    if (v(sel) === "" || !Number.isFinite(Number(v(sel)))) throw new Error(`state ${what}`);
+  return {sample_rate_hz: Number(v("#comp-fs")), mounted_mass_kg: Number(v("#comp-mass")),
+          mounted_mass_std_kg: Number(v("#comp-mass-u") || 0), band_hz: [0, Number(v("#comp-band"))],
+          allow_extrapolation: $("#comp-extrap").checked};
+}
+
+async function designFilter(id) {
+  const msg = $("#comp-msg");
+  let body;
+  try { body = compBody(); } catch (e) { msg.textContent = e.message; return; }
+  msg.textContent = "designing…";
+  $("#comp-design").disabled = true;
+  try {
+    const path = `/runs/${encodeURIComponent(id)}/compensation`;
+    const res = await api("POST", path, body);
+    if (shownRun !== id) return;
+    if (!res.ok) {
+      const why = refusal(res, "design the filter");
+      msg.textContent = why + (/calibrated range/.test(why) && !body.allow_extrapolation
+        ? " To accept it, tick “correct beyond the calibrated frequencies”." : "");
+      $("#comp-result").hidden = true;
+      return;
+    }
+    msg.textContent = "";
+    for (const u of compUrls) URL.revokeObjectURL(u);
+    compUrls = [];
+    compFilter = res.data;
+    showFilter(compFilter);
+    $("#comp-applied").hidden = true;
+    $("#comp-result").hidden = false;
+    const img = $("#comp-bode");
+    img.removeAttribute("src");
+    $("#comp-bode-cap").textContent = "drawing the frequency response…";
+    const r = await fetch(path + "/plot", {method: "POST", body: JSON.stringify(body),
+      headers: {"Content-Type": "application/json", "Accept": "image/png", "X-Station-Client": "page"}});
+    if (shownRun !== id || compFilter !== res.data) return;
+    if (r.ok) {
+      img.src = compUrl(await r.blob());
+      $("#comp-bode-cap").textContent = "how the transducer (blue), the filter (orange) and the corrected system (green) " +
+        "answer each frequency, with their uncertainty (k = 2); grey: the band you asked for; dashed: the cut-off";
+    } else $("#comp-bode-cap").textContent = `the plot is not available (${r.status})`;
+  } finally { $("#comp-design").disabled = false; }
+}
+
+const pct = (v) => (100 * v).toPrecision(2) + " %";
+function showFilter(d) {
+  const S = d.transducer.theta[0];  // the static sensitivity (S or S0), unit_in per unit_out
+  const [lo, hi] = d.band_hz;
+  $("#comp-summary").innerHTML =
+    `The filter corrects the force from ${esc(lo)} Hz to ${esc(hi)} Hz to within ${pct(d.dynamic_error_bound)} ` +
+    `(besides the uncertainty it states at every sample). Above ${esc(Number(d.cutoff_hz).toPrecision(4))} Hz it smooths ` +
+    `on purpose: correcting higher frequencies would amplify the noise too much. It delays the signal by ` +
+    `${esc((1000 * d.delay_s).toPrecision(3))} ms (taken out of the time axis when it is applied). Noise in your signal ` +
+    `comes out ${esc((d.noise_gain * S).toPrecision(3))} times larger than in a reading divided by the static sensitivity.`;
+  $("#comp-findings").innerHTML = (d.findings || []).map((c) => `<li data-finding="${esc(c.name)}">${esc(c.severity)}: ${esc(c.message)}</li>`).join("");
+  const t = d.transducer;
+  const rows = [["taps (coefficients)", d.taps], ["sample rate", `${d.sample_rate_hz} Hz`],
+    ["delay", `${d.delay_samples} samples (${(1000 * d.delay_s).toPrecision(4)} ms)${d.delay_given ? ", as given" : ", the one of least error"}`],
+    ["regularising low-pass", `cut-off ${Number(d.cutoff_hz).toPrecision(5)} Hz, order ${d.lowpass_order}`],
+    ["fit RMS over the band", Number(d.fit_rms_band).toExponential(2)],
+    ["dynamic error bound in the band", Number(d.dynamic_error_bound).toExponential(2)],
+    ["noise gain ‖b‖₂", `${Number(d.noise_gain).toPrecision(4)} ${esc(d.unit_out)}/${esc(d.unit_in)}`],
+    ["transducer model", `${esc(t.kind)}: ${esc((t.assumptions || {}).model || "")}`],
+    ["calibrated range", t.calibrated_range_hz.map((v) => (v === null ? "—" : v + " Hz")).join(" to ")]];
+  t.names.forEach((n, i) => rows.push([`${n} (${t.units[i]})`, fmtU(t.theta[i], Math.sqrt(t.cov[i][i]))]));
+  $("#comp-table tbody").innerHTML = rows.map(([k, v]) => `<tr><th>${esc(k)}</th><td>${v}</td></tr>`).join("");
+  $("#comp-assumptions").textContent = Object.entries(t.assumptions || {}).filter(([, v]) => typeof v === "string")
+    .map(([k, v]) => `${k}: ${v}`).join("; ");
+  for (const el of document.querySelectorAll(".comp-unit-in")) el.textContent = d.unit_in;
+  $("#comp-download").href = compUrl(new Blob([JSON.stringify(d, null, 1)], {type: "application/json"}));
+}
+
+// the uploaded CSV: a header, a time_s (or time) column and one value column, or one value column
+function parseSignal(text) {
+  const lines = text.split(/\r?\n/).filter((l) => l.trim() && !l.trim().startsWith("#"));
+  if (lines.length < 2) throw new Error("the file has a header and no samples");
+  const head = lines[0].split(",").map((h) => h.trim().toLowerCase());
+  const ti = head.findIndex((h) => h === "time_s" || h === "time");
+  const vi = head.map((_, i) => i).filter((i) => i !== ti);
+  if (vi.length !== 1) throw new Error(`the header names ${vi.length} value columns (${head.join(", ")}): give one, with a time_s column or without`);
+  if (lines.length - 1 > COMP_MAX_SAMPLES) throw new Error(`${lines.length - 1} samples: the page takes at most ${COMP_MAX_SAMPLES} (use station compensate apply)`);
+  const x = new Float64Array(lines.length - 1), t = ti >= 0 ? new Float64Array(lines.length - 1) : null;
+  for (let k = 1; k < lines.length; k++) {
+    const f = lines[k].split(",");
+    if (f.length !== head.length) throw new Error(`line ${k + 1}: ${f.length} fields, the header names ${head.length}`);
+    x[k - 1] = Number(f[vi[0]]);
+    if (f[vi[0]].trim() === "" || !Number.isFinite(x[k - 1])) throw new Error(`line ${k + 1}: "${f[vi[0]].trim()}" is not a finite number: nothing was corrected`);
+    if (t) {
+      t[k - 1] = Number(f[ti]);
+      if (!Number.isFinite(t[k - 1])) throw new Error(`line ${k + 1}: the time "${f[ti].trim()}" is not a number`);
+    }
+  }
+  let fs = null, t0 = 0;
+  if (t) {
+    if (t.length < 2) throw new Error("fewer than 2 samples");
+    const step = (t[t.length - 1] - t[0]) / (t.length - 1);
+    for (let k = 1; k < t.length; k++)
+      if (!(step > 0) || Math.abs(t[k] - t[k - 1] - step) > 1e-3 * step) throw new Error(`the time column is not uniformly sampled (at line ${k + 2}): resample it first`);
+    fs = 1 / step;
+    t0 = t[0];
+  }
+  return {x, fs, t0, column: head[vi[0]]};
+}
+
+async function applyFilter() {
+  const msg = $("#comp-apply-msg"), d = compFilter;
+  const file = $("#comp-file").files[0];
+  if (!d) { msg.textContent = "design a filter first"; return; }
+  if (!file) { msg.textContent = "choose a signal file"; return; }
+  let sig;
+  try { sig = parseSignal(await file.text()); } catch (e) { msg.textContent = `${file.name}: ${e.message}`; return; }
+  const noise = Number($("#comp-noise").value || 0);
+  if (!(noise >= 0)) { msg.textContent = "the noise's standard deviation must be a number ≥ 0"; return; }
+  // a time column within 1e-3 of the filter's rate is the filter's rate (a CSV rounds its times)
+  const fs = sig.fs === null || Math.abs(sig.fs / d.sample_rate_hz - 1) <= 1e-3 ? d.sample_rate_hz : sig.fs;
+  msg.textContent = "correcting…";
+  $("#comp-apply").disabled = true;
+  try {
+    const res = await api("POST", "/compensation/apply", {filter: d, signal: Array.from(sig.x), sample_rate_hz: fs, noise_std: noise});
+    if (compFilter !== d) return;
+    if (!res.ok) { msg.textContent = refusal(res, "correct the signal"); return; }
+    msg.textContent = "";
+    showApplied(d, sig, fs, res.data);
+  } finally { $("#comp-apply").disabled = false; }
+}
+
+function showApplied(d, sig, fs, r) {
+  const S = d.transducer.theta[0];
+  const y = r.estimate, u = r.u, t = r.time_s.map((v) => v + sig.t0);
+  let ip = 0, im = 0;
+  for (let k = 1; k < y.length; k++) if (Math.abs(y[k]) > Math.abs(y[ip])) ip = k;
+  for (let k = 1; k < sig.x.length; k++) if (Math.abs(sig.x[k]) > Math.abs(sig.x[im])) im = k;
+  $("#comp-applied-summary").textContent = `${y.length} samples corrected. Largest corrected force ${fmtU(y[ip], u[ip])} ${r.unit} ` +
+    `(± one standard uncertainty) at ${(t[ip] * 1000).toPrecision(5)} ms; the uncorrected reading (signal ÷ static sensitivity) ` +
+    `peaks at ${(sig.x[im] / S).toPrecision(4)} ${r.unit}. The delay of ${(1000 * r.delay_s).toPrecision(3)} ms is taken out of the time axis.`;
+  $("#comp-signal").innerHTML = signalPlot(sig, S, fs, t, y, u, r.unit);
+  const rows = ["time_s,estimate_" + r.unit + ",u_" + r.unit];
+  for (let k = 0; k < y.length; k++) rows.push(`${t[k]},${y[k]},${u[k]}`);
+  $("#comp-applied-download").href = compUrl(new Blob([rows.join("\n") + "\n"], {type: "text/csv"}));
+  $("#comp-applied").hidden = false;
+}
+
+// measured ÷ static sensitivity and the corrected force with its band (k = 2), at most ~1200 points drawn
+function signalPlot(sig, S, fs, t, y, u, unit) {
+  const W = 700, H = 260, pad = 50, n = y.length, step = Math.max(1, Math.ceil(n / 1200));
+  const idx = [];
+  for (let k = 0; k < n; k += step) idx.push(k);
+  const tm = (k) => sig.t0 + k / fs;  // the measured sample's time (the estimate's is earlier by the delay)
+  const vals = idx.flatMap((k) => [y[k] - 2 * u[k], y[k] + 2 * u[k], sig.x[k] / S]);
+  const lo = Math.min(...vals), hi = Math.max(...vals);
+  const ta = Math.min(t[0], tm(0)), tb = Math.max(t[n - 1], tm(n - 1));
+  const X = (v) => pad + (tb > ta ? (v - ta) / (tb - ta) : 0.5) * (W - 2 * pad);
+  const Y = (v) => H - pad / 2 - (hi > lo ? (v - lo) / (hi - lo) : 0.5) * (H - pad);
+  const line = (f) => idx.map((k, i) => `${i ? "L" : "M"}${X(f(k)[0]).toFixed(1)},${Y(f(k)[1]).toFixed(1)}`).join(" ");
+  const band = idx.map((k, i) => `${i ? "L" : "M"}${X(t[k]).toFixed(1)},${Y(y[k] + 2 * u[k]).toFixed(1)}`).join(" ") + " " +
+    idx.slice().reverse().map((k) => `L${X(t[k]).toFixed(1)},${Y(y[k] - 2 * u[k]).toFixed(1)}`).join(" ") + " Z";
+  return `<svg viewBox="0 0 ${W} ${H}" width="100%" role="img" aria-label="measured and corrected signal" class="hist-svg">` +
+    `<text x="4" y="14" font-size="12">${esc(unit)}: grey measured ÷ static sensitivity; blue corrected, band ± 2u</text>` +
+    `<path d="${band}" fill="#06c" fill-opacity="0.25" stroke="none"/>` +
+    `<path d="${line((k) => [tm(k), sig.x[k] / S])}" stroke="#888" fill="none"/>` +
+    `<path d="${line((k) => [t[k], y[k]])}" stroke="#06c" fill="none"/>` +
+    `<text x="4" y="${Y(hi) + 4}" font-size="10">${hi.toPrecision(4)}</text><text x="4" y="${Y(lo)}" font-size="10">${lo.toPrecision(4)}</text>` +
+    `<text x="${pad}" y="${H - 4}" font-size="10">${(ta * 1000).toPrecision(4)} ms</text><text x="${W - pad - 60}" y="${H - 4}" font-size="10">${(tb * 1000).toPrecision(4)} ms</text></svg>`;
 }
 
 // the run's certificate: the draft until a second person with the approver role issues it
@@ -558,7 +784,13 @@ async function loadDiscrepancy(url) {
   }
   const d = res.data;
   const mV = (v) => (v === null ? "—" : (v * 1000).toPrecision(3) + " mV");
-  let html = `<p>force residual (RMS) of the model: ${mV(d.base_gap)} → ${mV(d.final_gap)} after the effects below</p>`;
+  const plainGap = d.effects.length
+    ? `The measurement shows ${d.effects.length === 1 ? "an effect" : `${d.effects.length} effects`} the transducer model leaves out: ` +
+      `${listText(d.effects.map((e) => String(e.name).replace(/_/g, " ")))}.`
+    : "The transducer model explains the measurement: no known effect is missing.";
+  let html = `<p class="plain">${esc(plainGap)}${d.unexplained.length ? " Part of the difference stays unexplained." : ""}</p>` +
+    '<details class="tech"><summary>The numbers (for the expert)</summary>';
+  html += `<p>force residual (RMS) of the model: ${mV(d.base_gap)} → ${mV(d.final_gap)} after the effects below</p>`;
   html += d.effects.length ? "<ul>" + d.effects.map((e) => `<li>${esc(e.name)} (gap after: ${mV(e.gap_after)})</li>`).join("") + "</ul>"
     : "<p>no catalogue effect needed: the model explains the measurement</p>";
   if (d.ties && d.ties.length) {
@@ -568,7 +800,7 @@ async function loadDiscrepancy(url) {
   }
   if (d.unexplained.length) html += "<p>unexplained: " + d.unexplained.map(esc).join("; ") + "</p>";
   if (d.notes && d.notes.length) html += "<ul class=\"notes\">" + d.notes.map((n) => `<li>${esc(n)}</li>`).join("") + "</ul>";
-  html += proposalHtml(d.proposal);
+  html += "</details>" + proposalHtml(d.proposal);
   box.innerHTML = html;
   const btn = $("#run-proposal");
   if (btn) btn.addEventListener("click", () => runProposal(shownRun));
@@ -611,7 +843,7 @@ $("#abort").addEventListener("click", async () => {
 async function loadApprovals(id) {
   const r = await api("GET", `/audit?target=${encodeURIComponent(id)}&action=certificate.approved`);
   const list = r.ok ? r.data.entries : [];
-  $("#approvals").textContent = list.length ? list.map((e) => `approved by ${e.who} ${utcText(e.at)}` + (e.details.note ? ` (${e.details.note})` : "")).join("; ") + ". "
+  $("#approvals").textContent = list.length ? list.map((e) => `approved by ${e.who} ${localTime(e.at)}` + (e.details.note ? ` (${e.details.note})` : "")).join("; ") + ". "
     : "not approved yet. ";
   $("#approve").disabled = !may("approve");
   $("#approve").title = may("approve") ? "approve as " + me.name : "an approver (not who ran it) approves";
@@ -623,7 +855,6 @@ $("#approve").addEventListener("click", async () => {
   if (r.ok) loadApprovals(shownRun);
 });
 
-const utcText = (t) => new Date(t * 1000).toISOString().replace("T", " ").slice(0, 19);
 
 // ------------------------------------------------------------------------------------------ register, history, audit
 async function showRegister() {
@@ -669,7 +900,8 @@ $("#tx-form").addEventListener("submit", async (ev) => {
 });
 
 // k_f (or S) over time with its standard uncertainty, as an SVG: one point per completed run
-function historyPlot(runs, name, unit) {
+function historyPlot(runs, name, apiUnit) {
+  const unit = unitText(apiUnit);
   const pts = runs.map((r) => [r.created, (r.parameters[name] || {}).value, (r.parameters[name] || {}).std, (r.drift[name] || {}).flagged])
     .filter((p) => p[1] !== null && p[1] !== undefined);
   if (!pts.length) return `<p class="small">no identified ${esc(name)} yet</p>`;
@@ -679,10 +911,10 @@ function historyPlot(runs, name, unit) {
   const x = (t) => pad + (t1 > t0 ? (t - t0) / (t1 - t0) : 0.5) * (W - 2 * pad);
   const y = (v) => H - pad / 2 - (hi > lo ? (v - lo) / (hi - lo) : 0.5) * (H - pad);
   const marks = pts.map((p) => `<line x1="${x(p[0])}" x2="${x(p[0])}" y1="${y(p[1] - (p[2] || 0))}" y2="${y(p[1] + (p[2] || 0))}" stroke="#555"/>` +
-    `<circle cx="${x(p[0])}" cy="${y(p[1])}" r="4" fill="${p[3] ? "#c00" : "#06c"}"><title>${utcText(p[0])}: ${fmtU(p[1], p[2])} ${unit}</title></circle>`).join("");
+    `<circle cx="${x(p[0])}" cy="${y(p[1])}" r="4" fill="${p[3] ? "#c00" : "#06c"}"><title>${localTime(p[0])}: ${fmtU(p[1], p[2])} ${unit}</title></circle>`).join("");
   return `<svg viewBox="0 0 ${W} ${H}" width="100%" role="img" aria-label="${esc(name)} over time" class="hist-svg">` +
     `<text x="4" y="14" font-size="12">${esc(name)} (${esc(unit)}) ± u; red: drift flagged</text>` +
-    `<text x="4" y="${H - 4}" font-size="11">${utcText(t0).slice(0, 10)}</text><text x="${W - 80}" y="${H - 4}" font-size="11">${utcText(t1).slice(0, 10)}</text>` +
+    `<text x="4" y="${H - 4}" font-size="11">${localTime(t0).slice(0, 10)}</text><text x="${W - 80}" y="${H - 4}" font-size="11">${localTime(t1).slice(0, 10)}</text>` +
     `<text x="4" y="${y(hi) + 4}" font-size="10">${hi.toPrecision(4)}</text><text x="4" y="${y(lo)}" font-size="10">${lo.toPrecision(4)}</text>` +
     marks + "</svg>";
 }
@@ -738,7 +970,8 @@ async function showHistory(id) {
   $("#hist-transducer").textContent = [t.type, t.serial && `serial ${t.serial}`, `${t.capacity_N} N`, t.owner,
     `${d.runs.length} runs`].filter(Boolean).join(" · ");
   $("#hist-plot").innerHTML = historyPlot(d.runs, "k_f", d.units.k_f) + historyPlot(d.runs, "S", d.units.S);
-  $("#hist-trends").innerHTML = trendSection(d.trends);
+  $("#hist-trends").innerHTML = (d.hold ? `<p class="hold"><strong>Held for review:</strong> ${esc(d.hold.reason)} (since ${esc(localTime(d.hold.since))})</p>` : "") +
+    trendSection(d.trends);
   $("#hist-flagged").textContent = d.flagged.length ? "drift flagged: " + d.flagged.map((f) => `${f.run_id} ${f.parameter}`).join(", ")
     : "no drift flagged against earlier calibrations (the nightly batch's rule: |x − mean| > 3 u_c, after 3 runs)";
   const cell = (r, n) => { const p = r.parameters[n]; return p && p.value !== null ? fmtU(p.value, p.std) : "—"; };
@@ -753,7 +986,7 @@ async function showHistory(id) {
 async function showAudit() {
   const r = await api("GET", "/audit?limit=200");
   if (!r.ok) return;
-  $("#audit tbody").innerHTML = r.data.entries.map((e) => `<tr><td>${e.id}</td><td>${utcText(e.at)}</td><td>${esc(e.who)}</td>` +
+  $("#audit tbody").innerHTML = r.data.entries.map((e) => `<tr><td>${e.id}</td><td>${localTime(e.at)}</td><td>${esc(e.who)}</td>` +
     `<td>${esc(e.action)}</td><td>${esc(e.target)}</td><td class="details">${esc(JSON.stringify(e.details))}</td></tr>`).join("");
 }
 
@@ -803,7 +1036,7 @@ async function showUsers() {
   $("#user-password-rule").textContent = `at least ${policy.min_password} characters; empty: the password stays as it is`;
   $("#users tbody").innerHTML = r.data.map((u) => `<tr data-user="${esc(u.name)}"${u.disabled ? ' class="bad"' : ""}><td>${esc(u.name)}</td>` +
     `<td>${esc(u.role)}</td><td>${u.disabled ? "disabled" : "active"}</td>` +
-    `<td>${u.changed ? `${utcText(u.changed)} by ${esc(u.changed_by)}` : "—"}</td>` +
+    `<td>${u.changed ? `${localTime(u.changed)} by ${esc(u.changed_by)}` : "—"}</td>` +
     `<td><button type="button" class="user-edit" data-user="${esc(u.name)}">change</button></td></tr>`).join("");
   const keep = $("#token-user").value;
   $("#token-user").innerHTML = r.data.map((u) => `<option${u.disabled ? " disabled" : ""}>${esc(u.name)}</option>`).join("");

@@ -19,9 +19,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
+from station.config import MeasurementChain
 from station.ident.campaign import jointfit as jf
 from station.ident.fd.budget import resonance_vectors
-from station.ident.inputs import MeasurementChain
 from station.ident.models import SdofModel
 from station.ident.response.frf import FrequencyResponse, fit_frf
 from station.ident.result import Check

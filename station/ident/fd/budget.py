@@ -37,7 +37,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from station.ident.inputs import IdentInputs, MeasurementChain
+from station.config import MeasurementChain
+from station.ident.inputs import IdentInputs
 from station.ident.models import Model, make_model
 from station.ident.response.frf import FrequencyResponse, whiteners
 

@@ -70,8 +70,9 @@ def _determined(model: Model, theta: FloatArray, budget: Budget) -> dict[str, An
                                    "unit": "Hz"}
     if budget.free[2]:
         # zeta = b / (2 sqrt(k M)) = (b/M) / (2 sqrt(k/M)): invariant too
-        z = b / (2 * np.sqrt(k * M))
-        out["damping_ratio"] = {"value": z, **budget.std_of(np.array([0.0, -z / (2 * k), z / b]), inv),
+        dz_db = 1 / (2 * np.sqrt(k * M))
+        z = b * dz_db
+        out["damping_ratio"] = {"value": z, **budget.std_of(np.array([0.0, -z / (2 * k), dz_db]), inv),
                                 "unit": "1"}
     return out
 
@@ -86,7 +87,7 @@ def _param_list(model: Model, theta: FloatArray, budget: Budget, rep_ok: tuple[b
             out[n] = Estimate(None, None, u, False, reasons[i] or "held: not determined")
             continue
         rel = float(comb[i] / max(abs(theta[i]), 1e-300))
-        parts = ", ".join(f"{s} {np.sqrt(c[i, i]) / abs(theta[i]):.2g}" for s, c in budget.covs.items()
+        parts = ", ".join(f"{s} {np.sqrt(c[i, i]) / max(abs(theta[i]), 1e-300):.2g}" for s, c in budget.covs.items()
                           if c is not None and c[i, i] > (0.01 * comb[i]) ** 2)
         if rel > 1:
             out[n] = Estimate(None, None, u, False, f"not determined by the data: relative "

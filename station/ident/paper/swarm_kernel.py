@@ -91,69 +91,93 @@ def swarm_mse(X, form, n, xpad, y, L, out, C):
     for p0 in range(0, P, C):
         cc = min(C, P - p0)
         _coefficients(X, form, p0, cc, a, b)
-        for r in range(n + L):
-            for col in range(ncol):
-                z = Z[r, col]
-                for c in range(C):
-                    z[c] = 0.0
-        for col in range(nb):  # zero-state input part: the BLAS product's FMA chain
-            for i in range(L):
-                t = col * L + i
-                z = Z[n + i, col]
-                for m in range(nbc):
-                    xv = xpad[t + nbc - 1 - m]
-                    bm = b[m]
-                    for c in range(C):
-                        z[c] = _fma(xv, bm[c], z[c])
-        for i in range(n):  # homogeneous responses to y_{-1-i} = 1
-            z = Z[n - 1 - i, nb + i]
-            for c in range(C):
-                z[c] = 1.0
-        for j in range(n, n + L):
-            for col in range(ncol):
-                z = Z[j, col]
-                for i in range(n):
-                    ai = a[i]
-                    zp = Z[j - 1 - i, col]
-                    for c in range(C):
-                        z[c] -= ai[c] * zp[c]
-        for i in range(n):
-            v = prevs[0, i]
-            for c in range(C):
-                v[c] = 0.0
-        for bb in range(nb - 1):  # the state entering each block
-            for r in range(n):
-                v = prevs[bb + 1, r]
-                zr = Z[n + L - 1 - r, bb]
-                for c in range(C):
-                    v[c] = zr[c]
-                for i in range(n):
-                    g = Z[n + L - 1 - r, nb + i]
-                    pv = prevs[bb, i]
-                    for c in range(C):
-                        v[c] += g[c] * pv[c]
-        for i in range(n):  # free responses added
-            for col in range(nb):
-                pv = prevs[col, i]
-                for r in range(L):
-                    z = Z[n + r, col]
-                    g = Z[n + r, nb + i]
-                    for c in range(C):
-                        z[c] += g[c] * pv[c]
-        for c in range(C):
-            acc[c] = 0.0
-        for r in range(L):  # the sum in the order numpy's einsum takes it (padding weighted by 0)
-            for col in range(nb):
-                t = col * L + r
-                z = Z[n + r, col]
-                yt = y[t] if t < M else 0.0
-                wt = 1.0 if t < M else 0.0
-                for c in range(C):
-                    e = (z[c] - yt) * wt
-                    acc[c] += e * e
+        _block_responses(Z, xpad, a, b, n, L, nb, C)
+        _chain_blocks(Z, prevs, n, L, nb, C)
+        _squared_errors(Z, y, n, L, nb, acc, C)
         for c in range(cc):
             v_ = acc[c] / M
             out[p0 + c] = v_ if math.isfinite(v_) else np.inf
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _block_responses(Z, xpad, a, b, n, L, nb, C):
+    """Z of a chunk: each block's zero-state response to its input (the BLAS product's FMA chain) and
+    the homogeneous responses to y_{-1-i} = 1, through the recursion of A."""
+    ncol = nb + n
+    nbc = n + 1
+    for r in range(n + L):
+        for col in range(ncol):
+            z = Z[r, col]
+            for c in range(C):
+                z[c] = 0.0
+    for col in range(nb):  # zero-state input part: the BLAS product's FMA chain
+        for i in range(L):
+            t = col * L + i
+            z = Z[n + i, col]
+            for m in range(nbc):
+                xv = xpad[t + nbc - 1 - m]
+                bm = b[m]
+                for c in range(C):
+                    z[c] = _fma(xv, bm[c], z[c])
+    for i in range(n):  # homogeneous responses to y_{-1-i} = 1
+        z = Z[n - 1 - i, nb + i]
+        for c in range(C):
+            z[c] = 1.0
+    for j in range(n, n + L):
+        for col in range(ncol):
+            z = Z[j, col]
+            for i in range(n):
+                ai = a[i]
+                zp = Z[j - 1 - i, col]
+                for c in range(C):
+                    z[c] -= ai[c] * zp[c]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _chain_blocks(Z, prevs, n, L, nb, C):
+    """The state entering each block (the previous blocks' ends chained) and each block's free
+    response to it added to its zero-state response."""
+    for i in range(n):
+        v = prevs[0, i]
+        for c in range(C):
+            v[c] = 0.0
+    for bb in range(nb - 1):  # the state entering each block
+        for r in range(n):
+            v = prevs[bb + 1, r]
+            zr = Z[n + L - 1 - r, bb]
+            for c in range(C):
+                v[c] = zr[c]
+            for i in range(n):
+                g = Z[n + L - 1 - r, nb + i]
+                pv = prevs[bb, i]
+                for c in range(C):
+                    v[c] += g[c] * pv[c]
+    for i in range(n):  # free responses added
+        for col in range(nb):
+            pv = prevs[col, i]
+            for r in range(L):
+                z = Z[n + r, col]
+                g = Z[n + r, nb + i]
+                for c in range(C):
+                    z[c] += g[c] * pv[c]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _squared_errors(Z, y, n, L, nb, acc, C):
+    """acc[c]: the sum of squared errors of particle c in the order numpy's einsum takes it (padding
+    weighted by 0)."""
+    M = y.size
+    for c in range(C):
+        acc[c] = 0.0
+    for r in range(L):
+        for col in range(nb):
+            t = col * L + r
+            z = Z[n + r, col]
+            yt = y[t] if t < M else 0.0
+            wt = 1.0 if t < M else 0.0
+            for c in range(C):
+                e = (z[c] - yt) * wt
+                acc[c] += e * e
 
 
 @numba.njit(cache=True, error_model="numpy")
