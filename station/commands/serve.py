@@ -46,7 +46,7 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
     from station.rigproc.client import RigProcessConnector
 
     rig = RigProcessConnector(settings)  # the drive, its watchdog and the stop port in a process of their own
-    rig.launch_emulators()  # simulated: they start while the daemon does
+    rig.launch()  # the rig process and, simulated, the emulators start while the daemon does
     try:
         return _serve_on(args, settings, lock, rig)
     finally:

@@ -74,6 +74,7 @@ class RigSupervisor:
         self.on_event: Callable[[dict[str, Any]], None] | None = None  # events (a stop given there), rig loop
         self.page_port: int | None = None
         self.proc: subprocess.Popen[str] | None = None
+        self.spare: subprocess.Popen[str] | None = None  # started ahead, not yet given its specification
         self.ready: dict[str, Any] = {}  # the rig process's ready line
         self.error: str | None = None  # why there is none
         self.restarts = 0
@@ -102,11 +103,20 @@ class RigSupervisor:
                 "page_port": self.page_port, "header_timeout_s": min(5.0, svc.header_timeout_s),
                 "priority": svc.rig_priority, "link_timeout_s": LINK_TIMEOUT_S}
 
-    def _spawn(self) -> dict[str, Any]:
-        """Start a rig process and wait for its first line (blocking: run in a thread)."""
-        proc = subprocess.Popen([sys.executable, "-m", "station.rigproc"], stdin=subprocess.PIPE,
+    @staticmethod
+    def popen() -> subprocess.Popen[str]:
+        """A rig process, importing its modules until it reads its specification on stdin: started
+        while the daemon starts (:meth:`RigProcessConnector.launch`), given its specification later."""
+        return subprocess.Popen([sys.executable, "-m", "station.rigproc"], stdin=subprocess.PIPE,
                                 stdout=subprocess.PIPE, text=True, bufsize=1,
                                 env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+    def _spawn(self) -> dict[str, Any]:
+        """Start a rig process (or take the one started ahead) and wait for its first line (blocking:
+        run in a thread)."""
+        proc, self.spare = self.spare, None
+        if proc is None or proc.poll() is not None:
+            proc = self.popen()
         assert proc.stdin is not None and proc.stdout is not None
         proc.stdin.write(json.dumps(self._spec()) + "\n")
         proc.stdin.flush()
@@ -254,9 +264,10 @@ class RigSupervisor:
     def close(self, timeout_s: float = 15.0) -> None:
         """End the rig process (it stops a turning crank first); from any thread, after the rig loop."""
         self.closing = True
-        proc, self.proc = self.proc, None
-        if proc is not None:
-            self._end(proc, timeout_s)
+        for proc in (self.proc, self.spare):
+            if proc is not None:
+                self._end(proc, timeout_s)
+        self.proc = self.spare = None
         with contextlib.suppress(OSError):
             Path(self.socket).unlink(missing_ok=True)
             os.rmdir(self._dir)
@@ -321,9 +332,17 @@ class RigProcessConnector:
         self.emulators: Any = None  # drivers.sim.SimRigProcess when simulated
         self.supervisor: RigSupervisor | None = None
         self.on_event: Callable[[dict[str, Any]], None] | None = None  # a stop the rig process gave (rig loop)
+        self.spare: subprocess.Popen[str] | None = None  # the rig process started ahead (``launch``)
+
+    def launch(self) -> None:
+        """Start the rig process (it imports its modules, then waits for its specification) and,
+        simulated, the emulators' process now, while the daemon starts: they take seconds, in parallel."""
+        if self.supervisor is None and self.spare is None:
+            self.spare = RigSupervisor.popen()
+        self.launch_emulators()
 
     def launch_emulators(self) -> None:
-        """Simulated: start the emulators' process now, while the daemon starts (it takes seconds)."""
+        """Simulated: start the emulators' process now (:meth:`__enter__` waits until it serves)."""
         if self.settings.sim and self.emulators is None:
             from drivers.sim import SimRigProcess
 
@@ -344,6 +363,7 @@ class RigProcessConnector:
             log.info("simulated rig: the emulators in process %s (Modbus TCP %s, DAQ %s)", emu.pid,
                      url, emu.addresses.daq)
         self.supervisor = RigSupervisor(self.settings, url)
+        self.supervisor.spare, self.spare = self.spare, None
         self.supervisor.on_event = self._event
         return self.supervisor
 
@@ -380,6 +400,9 @@ class RigProcessConnector:
         """End the rig process, then the emulators (after the rig thread's loop ended)."""
         if self.supervisor is not None:
             self.supervisor.close()
+        if self.spare is not None:  # started ahead, never given its specification
+            RigSupervisor._end(self.spare, 5.0)
+            self.spare = None
         if self.emulators is not None:
             self.emulators.__exit__(None, None, None)
             self.emulators = None
