@@ -36,7 +36,7 @@ def _daemon(tmp_path: Path, emu: SimRigProcess, stop_port: int) -> Iterator[Daem
                       "crank_radius_m": 0.001}
     d = Daemon(tmp_path, workers=0, config=cfg)
     try:
-        yield d.start(timeout_s=120.0)  # three processes start on a machine that may be busy
+        yield d.start()
     finally:
         if d.proc is not None and d.proc.poll() is None:
             d.stop()
