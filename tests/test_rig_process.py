@@ -66,6 +66,14 @@ def _wait(predicate: object, timeout_s: float, what: str, d: Daemon | None = Non
     raise AssertionError(f"not within {timeout_s} s: {what}" + (f"\n{d.log()}" if d is not None else ""))
 
 
+def _answers(url: str) -> bool:
+    """``GET url`` answers 200 (False while nothing listens there yet)."""
+    try:
+        return httpx.get(url, timeout=5.0).status_code == 200
+    except httpx.TransportError:
+        return False
+
+
 def _estop(c: httpx.Client) -> dict[str, Any]:
     """The daemon's latch as /health shows it (empty while /health does not answer so)."""
     try:
@@ -149,8 +157,8 @@ def test_a_killed_rig_process_leaves_the_crank_to_the_drives_watchdog_and_a_new_
         assert d.wait_state(rid)["state"] == "failed"
         _wait(lambda: _rig_process(d) != old, 60.0, "a new rig process")
         assert "the rig process ended" in d.log()
-        _wait(lambda: httpx.get(f"http://127.0.0.1:{stop_port}/stop", timeout=5.0).status_code == 200, 30.0,
-              "the new rig process's stop port")
+        _wait(lambda: _answers(f"http://127.0.0.1:{stop_port}/stop"), 30.0,
+              "the new rig process's stop port")  # it listens once it has read the drive back
         # the drive's fault is never cleared behind the operator's back
         assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
         assert emu.status()["fault_code"] == 0

@@ -35,6 +35,7 @@ from typing import Any
 
 from drivers.motor.errors import RegisterMapError
 from drivers.motor.profile import load_profile
+from drivers.sim.daq_source import RigSource
 from drivers.sim.rig import SimRig, addresses_json
 
 _out = threading.Lock()
@@ -94,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
                 if name != "watchdog":
                     _say({"command": name, "value": value, "t_monotonic": t})
             rig.image.observers.append(seen)
+        if isinstance(rig.source, RigSource):
+            rig.source.warm()  # numba's kernels before the addresses: the first CONF is answered at once
         _say(addresses_json(rig.addresses))
         with contextlib.suppress(KeyboardInterrupt):
             for line in sys.stdin:  # ends at EOF
