@@ -303,7 +303,7 @@ class Daemon:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def start(self, timeout_s: float = 40.0) -> Daemon:
+    def start(self, timeout_s: float = 60.0) -> Daemon:  # three processes start (web, rig, emulators) in parallel
         self.port = free_port()
         env = {**os.environ, "STATION_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
         log = self.log_path.open("ab")

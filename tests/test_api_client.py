@@ -55,7 +55,7 @@ def test_closed_sets_are_enumerations_and_results_are_typed(tmp_path: Path) -> N
     # the domain's enumerations themselves, one schema each
     assert schemas["Severity"]["enum"] == [s.value for s in Severity] and schemas["Flag"]["enum"] == list(Flag)
     assert enum("CampaignOut", "status") == ["separated", "conditional", "refused"]
-    assert enum("EStopState", "source") == ["page", "api", "controller", "drive"]
+    assert enum("EStopState", "source") == ["page", "api", "controller", "drive", "link"]
     results = schemas["RunResults"]["properties"]
     assert results["budget"]["additionalProperties"]["$ref"].endswith("/BudgetOut")
     assert results["assumptions"]["$ref"].endswith("/AssumptionsOut")

@@ -63,3 +63,30 @@ def test_filter_bank_is_lfilter_with_carried_states(which: str) -> None:
     # one block or five: the same samples to the bit (the state carries over exactly)
     whole = np.array(FilterBank(filters, u0=9.8).run(u, du))
     np.testing.assert_array_equal(got, whole)
+
+
+@pytest.mark.parametrize("which", ["coupled", "lowpass", "sensor"])
+def test_transfer_functions_and_steady_states_are_scipy_signals(which: str) -> None:
+    """The simulated rig's process builds its filters without importing scipy.signal: the same
+    numerators, denominator and steady states as ``ss2tf`` and ``lfilter_zi`` compute."""
+    from drivers.rig.discretize import lfilter_zi, ss2tf
+
+    t = paper_5kN_physics(rp.Effects()).transducer
+    ss = {"coupled": mechanical_state_space(t, rp.CouplingCompliance(5e8, 400.0)),
+          "lowpass": lowpass_state_space(rp.ConditionerLowpass(4, 1000.0)),
+          "sensor": sensor_resonance_state_space(rp.DisplacementResonance(5000.0, 0.05))}[which]
+    rng = np.random.default_rng(3)
+    p, n = ss.C.shape
+    B2, D = np.hstack([ss.B, rng.normal(size=(n, 1))]), rng.normal(size=(p, 2))
+    for i in (0, 1):
+        num, den = ss2tf(ss.A, B2, ss.C, D, i)
+        ref_num, ref_den = signal.ss2tf(ss.A, B2, ss.C, D, input=i)
+        np.testing.assert_allclose(den, ref_den, rtol=1e-13)
+        np.testing.assert_allclose(num, ref_num, rtol=1e-12, atol=1e-12 * np.abs(ref_num).max())
+    filters = hermite_discretize(ss, 1 / 20_000)
+    for k in range(p):
+        ref_zi = signal.lfilter_zi(filters.num_u[k], filters.den)
+        np.testing.assert_allclose(filters.zi_unit_u[k], ref_zi, rtol=1e-9, atol=1e-12 * np.abs(ref_zi).max())
+    # a shorter numerator, a denominator not normalised
+    np.testing.assert_allclose(lfilter_zi(np.array([0.5, 0.2]), np.array([2.0, -1.0, 0.3])),
+                               signal.lfilter_zi([0.5, 0.2], [2.0, -1.0, 0.3]), rtol=1e-14)

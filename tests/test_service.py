@@ -148,6 +148,29 @@ def _children(pid: int) -> list[int]:
     return [int(p) for p in out.split()]
 
 
+def _daemon_children(pid: int) -> dict[str, list[int]]:
+    """The daemon's child processes by what they are: its identification workers, its rig process
+    and (simulated) the emulators' process; each must end with the daemon."""
+    kinds: dict[str, list[int]] = {"rig process": [], "emulators": [], "workers": []}
+    for p in _children(pid):
+        try:
+            cmd = Path(f"/proc/{p}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        kind = ("rig process" if b"station.rigproc" in cmd else "emulators" if b"drivers.sim" in cmd
+                else "workers")
+        kinds[kind].append(p)
+    return kinds
+
+
+def _wait_gone(pids: list[int], timeout_s: float = 20.0) -> list[int]:
+    """Those of ``pids`` still running after up to ``timeout_s`` (a loaded machine ends them slowly)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and _alive(pids):
+        time.sleep(0.1)
+    return _alive(pids)
+
+
 @pytest.mark.slow
 def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume(tmp_path: Path) -> None:
     data = tmp_path / "recordings"
@@ -202,8 +225,8 @@ def test_sigterm_mid_run_stops_the_run_closes_the_recording_and_the_workers(tmp_
     try:
         d.wait_state(d.seeded[0])  # the identification worker process has started
         assert d.proc is not None
-        workers = _children(d.proc.pid)
-        assert workers
+        kids = _daemon_children(d.proc.pid)
+        assert all(kids.values()), kids  # workers, the rig process and the emulators' process
         rid = d.start_run(freqs=(10.0,), record_s=30.0)
         d.wait_state(rid, ("running",), step_state="recording")
         t0 = time.monotonic()
@@ -220,30 +243,27 @@ def test_sigterm_mid_run_stops_the_run_closes_the_recording_and_the_workers(tmp_
     db = sqlite3.connect(d.data_dir / "station.db")
     state, reason = db.execute("SELECT state, reason FROM runs WHERE id = ?", (rid,)).fetchone()
     assert state == "interrupted" and "shut down" in reason
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline and _alive(workers):
-        time.sleep(0.1)
-    assert _alive(workers) == []
+    assert _wait_gone([p for ps in kids.values() for p in ps]) == [], kids
     with h5py.File(io.BytesIO(path.read_bytes()), "r") as f:
         assert f.attrs["exit_status"] == "interrupted"
 
 
 @pytest.mark.slow
 def test_worker_exits_when_the_daemon_is_killed(tmp_path: Path) -> None:
-    """No orphaned worker processes after kill -9 of the daemon."""
+    """No orphaned process after kill -9 of the daemon: its workers, its rig process and the emulators'
+    process end (the rig process and the emulators on the end of their stdin, the workers on
+    PR_SET_PDEATHSIG)."""
     d = Daemon(tmp_path, seeds=[Seed(identified=False)]).start()
     try:
         d.wait_state(d.seeded[0])  # identified by a worker process
         assert d.proc is not None
-        workers = _children(d.proc.pid)
-        assert workers
+        kids = _daemon_children(d.proc.pid)
+        assert all(kids.values()), kids  # workers, the rig process and the emulators' process
     finally:
         d.kill()
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline and _alive(workers):
-        time.sleep(0.1)
-    assert not _alive(workers), subprocess.run(
-        ["ps", "-o", "pid,ppid,stat,cmd", "-p", ",".join(map(str, workers))], capture_output=True, text=True).stdout
+    pids = [p for ps in kids.values() for p in ps]
+    assert not _wait_gone(pids), subprocess.run(
+        ["ps", "-o", "pid,ppid,stat,cmd", "-p", ",".join(map(str, pids))], capture_output=True, text=True).stdout
 
 
 def test_serve_refuses_a_bad_configuration_at_start_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,

@@ -19,7 +19,8 @@ import pytest
 
 from station.commands import stop as stop_command
 from station.commands.connections import ConnectionBounds
-from station.commands.stopport import MAX_HEAD_BYTES, StopPort, host_refusal, parse_head, station_names
+from station.commands.stopport import daemon_stop_port
+from station.rigproc.stopport import MAX_HEAD_BYTES, StopPort, host_refusal, parse_head, station_names
 from tests.station_support import app_in_process, run_body, served_on_a_socket, start, wait_state
 
 PAGE_PORT = 8080  # the main port the stop port names as the station's page (not listened on in these tests)
@@ -27,7 +28,7 @@ PAGE_PORT = 8080  # the main port the stop port names as the station's page (not
 
 @contextlib.asynccontextmanager
 async def stop_port(m: Any, **kw: Any) -> AsyncIterator[StopPort]:
-    port = await asyncio.to_thread(StopPort(m, m.settings, "127.0.0.1", 0, page_port=PAGE_PORT, **kw).start)
+    port = await asyncio.to_thread(daemon_stop_port(m, m.settings, "127.0.0.1", 0, page_port=PAGE_PORT, **kw).start)
     try:
         yield port
     finally:

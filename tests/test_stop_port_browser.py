@@ -20,7 +20,8 @@ from typing import Any
 
 import pytest
 
-from station.commands.stopport import StopPort
+from station.commands.stopport import daemon_stop_port
+from station.rigproc.stopport import StopPort
 from tests.station_support import HeldApp
 from tests.web_support import ARGS, CHROMIUM, sync_api
 
@@ -42,7 +43,7 @@ REBINDING = ["--host-resolver-rules=MAP rebind.test 127.0.0.1",
 def station(tmp_path: Path) -> Iterator[tuple[HeldApp, StopPort]]:
     app = HeldApp(tmp_path / "rec")
     try:
-        port = StopPort(app.manager, app.manager.settings, "127.0.0.1", 0).start()
+        port = daemon_stop_port(app.manager, app.manager.settings, "127.0.0.1", 0).start()
         try:
             yield app, port
         finally:

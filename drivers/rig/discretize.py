@@ -7,8 +7,10 @@ about (wT)^4/384 relative: 2.5e-9 at 100 Hz and 2.5e-5 at 1 kHz for T = 50 us, f
 first-order hold gives ((wT)^2/12).
 
 The result is written as two IIR filters per output (one for u, one for u') with a common
-denominator, so that a whole block is synthesised by ``scipy.signal.lfilter`` and the filter states
-carry over exactly from block to block.
+denominator, so that a whole block is synthesised as ``scipy.signal.lfilter`` would and the filter
+states carry over exactly from block to block.  The transfer functions and the filters' steady states
+are computed here with numpy (``ss2tf``, ``lfilter_zi``: what ``scipy.signal`` computes, without
+importing it, which costs the simulated rig's process a second of CPU at its start).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import linalg, signal
+from scipy import linalg
 
 from drivers.rig.model import StateSpace
 
@@ -43,6 +45,28 @@ class DiscreteFilters:
     @property
     def n_outputs(self) -> int:
         return self.num_u.shape[0]
+
+
+def ss2tf(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:
+    """Numerators (p, n+1) and the common denominator (n+1,) of the transfer functions from input
+    ``i`` of x' = A x + B u, y = C x + D u to each output (``scipy.signal.ss2tf``'s method:
+    num_k = poly(A - B_i C_k) + (D_ki - 1) poly(A))."""
+    den = np.poly(A)
+    b = B[:, i : i + 1]
+    num = np.stack([np.poly(A - b @ C[k : k + 1, :]) + (D[k, i] - 1.0) * den for k in range(C.shape[0])])
+    return num, den
+
+
+def lfilter_zi(b: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """The transposed-direct-form state of the filter b/a in steady state for a unit step input
+    (``scipy.signal.lfilter_zi``: z = A z + B solved for z, A the companion matrix of a)."""
+    b, a = np.asarray(b, dtype=float) / a[0], np.asarray(a, dtype=float) / a[0]
+    n = max(a.size, b.size)
+    a, b = np.pad(a, (0, n - a.size)), np.pad(b, (0, n - b.size))
+    companion = np.zeros((n - 1, n - 1))
+    companion[0, :] = -a[1:]
+    companion[np.arange(1, n - 1), np.arange(n - 2)] = 1.0
+    return np.asarray(np.linalg.solve(np.eye(n - 1) - companion.T, b[1:] - a[1:] * b[0]))
 
 
 def hermite_discretize(ss: StateSpace, T: float) -> DiscreteFilters:
@@ -73,11 +97,11 @@ def hermite_discretize(ss: StateSpace, T: float) -> DiscreteFilters:
     num_du = np.zeros((p, n + 1))
     den = None
     for i, target in enumerate((num_u, num_du)):
-        num, den_i = signal.ss2tf(Phi, Bd, C, D, input=i)
+        num, den_i = ss2tf(Phi, Bd, C, D, i)
         target[:] = num
         den = den_i
     assert den is not None
-    zi = np.stack([signal.lfilter_zi(num_u[k], den) for k in range(p)])
+    zi = np.stack([lfilter_zi(num_u[k], den) for k in range(p)])
     return DiscreteFilters(num_u=num_u, num_du=num_du, den=np.asarray(den), zi_unit_u=zi)
 
 

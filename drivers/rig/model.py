@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import signal
 
 from drivers.rig.params import (
     ConditionerLowpass,
@@ -62,6 +61,8 @@ def mechanical_state_space(t: Transducer, coupling: CouplingCompliance | None) -
 
 def lowpass_state_space(lp: ConditionerLowpass) -> StateSpace:
     """Analogue Butterworth low-pass of the conditioner (unit DC gain), as state space."""
+    from scipy import signal  # here: the simulated rig's process starts without it (a second of CPU)
+
     b, a = signal.butter(lp.order, 2.0 * np.pi * lp.cutoff_hz, btype="low", analog=True)
     A, B, C, D = signal.tf2ss(b, a)
     if np.any(np.abs(D) > 0):
@@ -109,6 +110,8 @@ def force_signal_per_displacement(physics: RigPhysics, f_hz: np.ndarray) -> np.n
     h = spring_force_per_acceleration(physics.transducer, e.coupling_compliance, f) * s**2
     h = h * physics.transducer.sensitivity_V_per_N * physics.conditioner.gain
     if e.conditioner_lowpass is not None:
+        from scipy import signal
+
         b, a = signal.butter(e.conditioner_lowpass.order, 2 * np.pi * e.conditioner_lowpass.cutoff_hz,
                              btype="low", analog=True)
         h = h * np.polyval(b, s) / np.polyval(a, s)

@@ -6,7 +6,12 @@ the emulators from another process (one JSON line answers each on stdout):
 - ``status``: the motor's true state, ``{"status": {"speed_hz", "enabled", "fault_code", "estop",
   "t_monotonic"}}``;
 - ``ignore-stops on`` / ``ignore-stops off``: the drive takes every command but keeps turning when
-  told to stop (see ``MotorModel.ignore_stops``), ``{"ignore_stops": true}``.
+  told to stop (see ``MotorModel.ignore_stops``), ``{"ignore_stops": true}``;
+- ``radius R``: change the crank radius to R m as a motorised eccentric does (waits up to 3 s for
+  standstill), ``{"radius_m": R}`` or ``{"error": ...}``;
+- ``load B``: synthesise other physics from now on (B: a :class:`~drivers.rig.params.RigPhysics`
+  pickled and base64-encoded, as :meth:`SimRigProcess.load_physics` sends it; the daemon that
+  started this process is the only writer of its stdin), ``{"loaded": true}``.
 
 With ``--commands`` every command the motor controller takes (each register written, except the
 watchdog refreshes) is printed as ``{"command": name, "value": v, "t_monotonic": t}``, with
@@ -17,9 +22,12 @@ process on the machine).
 from __future__ import annotations
 
 import argparse
+import asyncio
+import base64
 import contextlib
 import json
 import logging
+import pickle
 import sys
 import threading
 import time
@@ -27,6 +35,7 @@ from typing import Any
 
 from drivers.motor.errors import RegisterMapError
 from drivers.motor.profile import load_profile
+from drivers.sim.daq_source import RigSource
 from drivers.sim.rig import SimRig, addresses_json
 
 _out = threading.Lock()
@@ -47,7 +56,17 @@ def _command(rig: SimRig, line: str) -> dict[str, Any]:
     if len(words) == 2 and words[0] == "ignore-stops" and words[1] in ("on", "off"):
         rig.motor.ignore_stops(words[1] == "on")
         return {"ignore_stops": words[1] == "on"}
-    return {"error": f"unknown command {line[:80]!r}; expected 'status' or 'ignore-stops on|off'"}
+    try:
+        if len(words) == 2 and words[0] == "radius":
+            asyncio.run(rig.change_crank_radius(float(words[1])))
+            return {"radius_m": float(words[1])}
+        if len(words) == 2 and words[0] == "load":
+            rig.load_physics(pickle.loads(base64.b64decode(words[1])))
+            return {"loaded": True}
+    except (RuntimeError, ValueError, pickle.UnpicklingError) as exc:
+        return {"error": f"{words[0]}: {exc}"}
+    return {"error": f"unknown command {line[:80]!r}; expected 'status', 'ignore-stops on|off', 'radius R' "
+                     "or 'load B'"}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -59,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print the addresses as one JSON line")
     ap.add_argument("--profile", default=None, help="drive profile the motor emulator behaves as (shipped name "
                     "or YAML path; default sinecal-crank)")
+    ap.add_argument("--daq-link", default="uart", choices=("uart", "usb-cdc"),
+                    help="the link kind the DAQ bridge emulator reports")
     ap.add_argument("--commands", action="store_true",
                     help="print every command the motor controller takes as a JSON line")
     args = ap.parse_args(argv)
@@ -68,12 +89,14 @@ def main(argv: list[str] | None = None) -> int:
     except RegisterMapError as exc:
         ap.error(str(exc))
     with SimRig(seed=args.seed, modbus_port=args.modbus_port, crank_radius_m=args.crank_radius,
-                profile=profile) as rig:
+                profile=profile, daq_link=args.daq_link) as rig:
         if args.commands:
             def seen(name: str, value: float, t: float) -> None:
                 if name != "watchdog":
                     _say({"command": name, "value": value, "t_monotonic": t})
             rig.image.observers.append(seen)
+        if isinstance(rig.source, RigSource):
+            rig.source.warm()  # numba's kernels before the addresses: the first CONF is answered at once
         _say(addresses_json(rig.addresses))
         with contextlib.suppress(KeyboardInterrupt):
             for line in sys.stdin:  # ends at EOF

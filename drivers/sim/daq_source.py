@@ -55,14 +55,21 @@ class RigSource:
             self._new_synth(key)
             self._compile_once()
 
+    def warm(self) -> None:
+        """The synthesis kernels compiled (or read from numba's cache) now: the emulators' process does
+        it before it serves, so that the first configuration is answered within the station's 1 s."""
+        with self._lock:
+            self._compile_once()
+
     def _compile_once(self) -> None:
         """Synthesise a few samples on a throwaway synthesiser, once per process: the numba kernels are
         compiled (seconds on a fresh install, before their cache exists) at the first configuration,
         which the emulator makes before it answers, not at the first block synthesised while the
         station waits for a reply."""
-        if RigSource._compiled or self.synth is None:
+        if RigSource._compiled:
             return
-        scratch = RigSynth(self.synth.physics, seed=self.seed, crank_radius_m=self.crank_radius_m)
+        physics = self.synth.physics if self.synth is not None else self.physics
+        scratch = RigSynth(physics, seed=self.seed, crank_radius_m=self.crank_radius_m)
         scratch.advance(64, 1.0)  # kernels.synth_block: one signature for every effect set and crank profile
         harmonic_sum((np.ones(8), np.zeros(8)), np.zeros((4, 2)))  # the crank's harmonics, if an effect needs them
         RigSource._compiled = True

@@ -20,11 +20,13 @@ and (``commands=True``) logs every command the controller takes with its time.
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
 import json
 import logging
 import math
 import os
+import pickle
 import socket
 import subprocess
 import sys
@@ -259,9 +261,14 @@ class SimRigProcess:
     fault hook of ``MotorModel.ignore_stops`` across the process boundary."""
 
     def __init__(self, *, seed: int = 0, modbus_port: int = 0, crank_radius_m: float = 0.01,
-                 commands: bool = False) -> None:
+                 commands: bool = False, profile: str | None = None, daq_link: str = "uart") -> None:
+        """``profile``: the drive profile the motor emulator behaves as (a shipped name or a YAML
+        path; default the station's own); ``daq_link``: the link kind the bridge reports."""
         self._args = [sys.executable, "-m", "drivers.sim", "--json", "--seed", str(seed),
-                      "--modbus-port", str(modbus_port), "--crank-radius", str(crank_radius_m)]
+                      "--modbus-port", str(modbus_port), "--crank-radius", str(crank_radius_m),
+                      "--daq-link", daq_link]
+        if profile is not None:
+            self._args += ["--profile", profile]
         if commands:
             self._args.append("--commands")
         self._proc: subprocess.Popen[str] | None = None
@@ -270,10 +277,16 @@ class SimRigProcess:
         self.commands: list[tuple[str, float, float]] = []
         self.addresses: SimRigAddresses
 
+    def launch(self) -> SimRigProcess:
+        """Start the subprocess without waiting for it (:meth:`__enter__` waits until it serves)."""
+        if self._proc is None:
+            self._proc = subprocess.Popen(self._args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                          bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        return self
+
     def __enter__(self) -> SimRigProcess:
-        self._proc = subprocess.Popen(self._args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                      bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        assert self._proc.stdout is not None
+        self.launch()
+        assert self._proc is not None and self._proc.stdout is not None
         line = self._proc.stdout.readline()
         if not line:
             rc = self._proc.wait()
@@ -311,6 +324,26 @@ class SimRigProcess:
     def ignore_stops(self, on: bool = True) -> None:
         self._ask(f"ignore-stops {'on' if on else 'off'}")
 
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else self._proc.pid
+
+    def load_physics(self, physics: RigPhysics) -> None:
+        """Synthesise ``physics`` from now on (see :meth:`SimRig.load_physics`); RuntimeError if refused."""
+        reply = self._ask("load " + base64.b64encode(pickle.dumps(physics)).decode("ascii"))
+        if "error" in reply:
+            raise RuntimeError(reply["error"])
+
+    def set_crank_radius(self, radius_m: float) -> None:
+        """Change the crank radius (m) once the crank is at rest (see :meth:`SimRig.change_crank_radius`)."""
+        reply = self._ask(f"radius {radius_m!r}", timeout_s=10.0)
+        if "error" in reply:
+            raise RuntimeError(reply["error"])
+
+    def radius_actuator(self, radius_m: float) -> ProcessCrankRadius:
+        """The crank-radius actuator of this rig for the run procedure (its radius now: ``radius_m``)."""
+        return ProcessCrankRadius(self, radius_m)
+
     def wait_command(self, name: str, after: float, timeout_s: float = 10.0) -> float | None:
         """``time.monotonic()`` at which the controller took the first ``name`` command applied at or
         after ``after``; None if none within ``timeout_s``."""
@@ -330,6 +363,18 @@ class SimRigProcess:
             except subprocess.TimeoutExpired:
                 self._proc.kill()
                 self._proc.wait()
+
+
+class ProcessCrankRadius:
+    """The motorised crank radius of a simulated rig in another process (see :class:`SimCrankRadius`)."""
+
+    def __init__(self, rig: SimRigProcess, radius_m: float) -> None:
+        self._rig = rig
+        self.radius_m = radius_m
+
+    async def set_radius(self, radius_m: float) -> None:
+        await asyncio.to_thread(self._rig.set_crank_radius, radius_m)
+        self.radius_m = radius_m
 
 
 def addresses_json(addr: SimRigAddresses) -> str:

@@ -18,7 +18,7 @@ from station.vocabulary import Flag, Method, Model, Severity
 # closed sets of values: enumerations in the OpenAPI document (checked against their sources in the tests)
 MethodName = Method  # the domain's closed sets (station.ident.names), not re-declared here
 ModelName = Model
-EStopSource = Literal["page", "api", "controller", "drive"]
+EStopSource = Literal["page", "api", "controller", "drive", "link"]  # link: the rig process lost the web process
 ModelChoiceName = Literal["auto", "sdof", "coupled", "h1", "h2"]  # station.config.ModelChoice
 MethodStatus = Literal["pending", "running", "done", "refused", "failed"]  # station.run.methods.STATUSES
 

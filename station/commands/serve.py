@@ -6,10 +6,12 @@ import argparse
 import asyncio
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from station.rigproc.client import RigProcessConnector
     from station.service.instance import InstanceLock
+    from station.service.manager import RunManager
     from station.service.settings import ServiceSettings
 
 log = logging.getLogger("station.serve")
@@ -41,6 +43,18 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLock) -> int:
+    from station.rigproc.client import RigProcessConnector
+
+    rig = RigProcessConnector(settings)  # the drive, its watchdog and the stop port in a process of their own
+    rig.launch()  # the rig process and, simulated, the emulators start while the daemon does
+    try:
+        return _serve_on(args, settings, lock, rig)
+    finally:
+        rig.close()  # the rig process stops a turning crank and ends; then the emulators
+
+
+def _serve_on(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLock,
+              rig: RigProcessConnector) -> int:
     import uvicorn
 
     from station.api import create_app
@@ -80,16 +94,33 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
                               ceiling=fd_limit - FD_RESERVE // 2)
     log.info("HTTP: at most %d connections (%d with new ones still silent; open-files limit %d), request heads "
              "within %g s", bounds.max_connections, bounds.ceiling, fd_limit, bounds.header_timeout_s)
-    app = create_app(settings)
+    app = create_app(settings, manager_factory=lambda s: _manager(s, rig))
     from station.api.routes.system import stop_on_arrival
 
     bounds.on_head = stop_on_arrival(app)  # POST /stop goes to the rig as soon as its head is read
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_config=None, http=bounds.protocol(),
                             access_log=args.access_log, timeout_graceful_shutdown=5, lifespan="on",
                             headers=[keep_alive_header(bounds.header_timeout_s)])
-    server = StationServer(config, settings, on_listening=lambda host, port: lock.update(host=host, port=port))
+    server = StationServer(config, settings, on_listening=lambda host, port: lock.update(host=host, port=port),
+                           rig=rig)
     asyncio.run(server.serve())
     return 0 if server.started else 3  # 3: the daemon could not start (the log says why)
+
+
+def _manager(settings: ServiceSettings, rig: RigProcessConnector) -> RunManager:
+    """The run manager on the rig process; a stop the rig process gives is latched and recorded."""
+    from station.api.routes.system import who_stopped
+    from station.run.standstill import DriveCheck
+    from station.service.manager import RunManager
+
+    manager = RunManager(settings, connector=rig)
+
+    def stopped(msg: dict[str, Any]) -> None:
+        drive = DriveCheck.from_dict(msg["drive"]) if msg.get("drive") else None
+        manager.runs.stopped_elsewhere(str(msg.get("source", "rig")), str(msg.get("detail", "")),
+                                       who_stopped(msg.get("credentials") or {}, settings), drive)
+    rig.on_event = stopped
+    return manager
 
 
 def _demo_users(settings: ServiceSettings) -> None:

@@ -5,12 +5,17 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from types import FrameType
+from typing import TYPE_CHECKING
 
 import uvicorn
 
-from station.commands.stopport import StopPort
+from station.commands.stopport import daemon_stop_port
+from station.rigproc.stopport import StopPort
 from station.service.priority import raise_priority
 from station.service.settings import ServiceSettings
+
+if TYPE_CHECKING:
+    from station.rigproc.client import RigProcessConnector
 
 log = logging.getLogger("station.serve")
 
@@ -20,9 +25,12 @@ class StationServer(uvicorn.Server):
     drain), and the address is logged once the socket is bound."""
 
     def __init__(self, config: uvicorn.Config, settings: ServiceSettings,
-                 on_listening: Callable[[str, int], None] | None = None) -> None:
+                 on_listening: Callable[[str, int], None] | None = None,
+                 rig: RigProcessConnector | None = None) -> None:
+        """``rig``: the rig process, which owns the stop port (else it is opened here)."""
         super().__init__(config)
         self.settings = settings
+        self.rig = rig
         self.on_listening = on_listening
         self.stop_port: StopPort | None = None
 
@@ -44,7 +52,10 @@ class StationServer(uvicorn.Server):
                     self.on_listening(host, port)
         if self.started and self.stop_port is None:
             self._raise_rig_priority()
-            self._start_stop_port()
+            if self.rig is None:
+                self._start_stop_port()
+            else:
+                self._tell_rig_process()
 
     def _raise_rig_priority(self) -> None:
         """The rig thread asks for ``service.rig_priority`` (logged: what the system gave)."""
@@ -52,6 +63,18 @@ class StationServer(uvicorn.Server):
         wanted = self.settings.config.service.rig_priority
         if manager is not None and wanted != "normal":
             manager.link.thread.call_soon(raise_priority, "rig-control", wanted)
+
+    def _tell_rig_process(self) -> None:
+        """The rig process's stop port takes the station's own page (on the main port) as this station."""
+        manager = getattr(getattr(self.config.app, "state", None), "manager", None)
+        bound = [s.getsockname()[1] for server in self.servers for s in server.sockets]
+        sup = self.rig.supervisor if self.rig is not None else None
+        if manager is None or not bound or sup is None:
+            return
+        try:
+            manager.link.thread.submit(sup.tell_page_port(int(bound[0])))
+        except RuntimeError as exc:  # pragma: no cover - the rig thread runs once the manager started
+            log.error("the rig process cannot be told the main port: %s", exc)
 
     def _start_stop_port(self) -> None:
         """The stop port (``service.stop_port``), once the app's manager runs; a port that cannot be
@@ -62,7 +85,7 @@ class StationServer(uvicorn.Server):
         if port is None or manager is None:
             return
         try:
-            self.stop_port = StopPort(manager, self.settings, self.settings.host, port,
+            self.stop_port = daemon_stop_port(manager, self.settings, self.settings.host, port,
                                       page_port=int(bound[0]) if bound else None,
                                       header_timeout_s=min(5.0, self.settings.config.service.header_timeout_s),
                                       priority=self.settings.config.service.rig_priority).start()

@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -52,6 +52,7 @@ class ConnectedRig:
     simulated: bool = False
     on_load: Callable[[RigPhysics], None] = _mounted
     sim: SimRig | None = None
+    release: Callable[[], Awaitable[None]] | None = None  # tells the rig process an acknowledged stop is over
 
     def load(self, plan: Plan) -> None:
         """Ready the rig for ``plan`` (before its procedure starts).  A real rig's configuration
@@ -61,13 +62,15 @@ class ConnectedRig:
 
     def health(self) -> dict[str, Any]:
         """State of each device link, for /health."""
-        return {"motor": {"connected": bool(getattr(self.motor.transport, "connected", False)),
-                          "watchdog_error": str(self.motor.watchdog_error or "") or None},
+        t = self.motor.transport
+        return {"motor": {"connected": bool(getattr(t, "connected", False)),
+                          "watchdog_error": str(self.motor.watchdog_error or "") or None,
+                          "link_error": getattr(t, "error", None)},  # e.g. the rig process's end
                 "daq": {"link_error": str(self.daq.link_error or "") or None},
                 "simulated": self.simulated}
 
 
-async def _connect_drivers(cfg: StationConfig, profile: DriveProfile, motor_transport: RegisterTransport,
+async def connect_drivers(cfg: StationConfig, profile: DriveProfile, motor_transport: RegisterTransport,
                            open_daq: Callable[[], ByteLink],
                            clock: Clock = REAL_CLOCK) -> tuple[MotorController, DaqBridge]:
     """Both drivers connected, and the configuration checked against what the DAQ bridge reports
@@ -113,13 +116,13 @@ async def connect(cfg: StationConfig, *, sim: bool, seed: int | None = None,
             if sim_clock is not None:
                 rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, wire=False, clock=clock,
                              profile=profile, daq_link=cfg.devices.daq_link).start()
-                motor, daq = await _connect_drivers(cfg, profile, rig.motor_transport(), rig.daq_link, clock)
+                motor, daq = await connect_drivers(cfg, profile, rig.motor_transport(), rig.daq_link, clock)
                 desc = "simulated rig (in-process, no wire)"
             else:
                 rig = SimRig(physics=physics, seed=s, crank_radius_m=radius, rtu=False, profile=profile,
                              daq_link=cfg.devices.daq_link).start()
                 host, port = rig.addresses.modbus_tcp
-                motor, daq = await _connect_drivers(
+                motor, daq = await connect_drivers(
                     cfg, profile, ModbusTransport.tcp(host, port, device_id=profile.transport.unit_id),
                     lambda: SerialLink(rig.addresses.daq, baudrate=cfg.devices.daq_baudrate,
                                        kind=cfg.devices.daq_link))
@@ -131,7 +134,7 @@ async def connect(cfg: StationConfig, *, sim: bool, seed: int | None = None,
             transport = transport_from_url(dev.motor_url, device_id=dev.motor_device_id or t.unit_id,
                                            baudrate=t.baudrate, parity=t.parity, stopbits=t.stopbits,
                                            inter_frame_delay_s=t.inter_frame_delay_s)
-            motor, daq = await _connect_drivers(
+            motor, daq = await connect_drivers(
                 cfg, profile, transport, lambda: SerialLink(dev.daq_port, baudrate=dev.daq_baudrate, kind=dev.daq_link))
             actuator = FixedRadius(dev.crank_radius_m)
             desc = f"rig (motor {profile.name} at {dev.motor_url}, DAQ {dev.daq_port})"

@@ -41,6 +41,12 @@ class DriveCheck:
         return (f"the crank still turns at {self.speed_hz:g} Hz {self.waited_s:.1f} s after {self.after} "
                 "(the drive does not stop)")
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> DriveCheck:
+        """The inverse of :meth:`to_dict` (a read-back made in another process)."""
+        return cls(str(d["after"]), d["standstill"], d["speed_hz"], d["fault_code"], d["fault_name"],
+                   float(d["waited_s"]), datetime.fromisoformat(d["at"]).timestamp(), d.get("error"))
+
     def to_dict(self) -> dict[str, Any]:
         """For /health."""
         return {"after": self.after, "standstill": self.standstill, "speed_hz": self.speed_hz,

@@ -219,8 +219,13 @@ class RigLink:
                 return False, (f"the motor controller still reports fault {st.fault_code} ({st.fault_name}) "
                                f"after the reset (crank still turning at {st.actual_speed_hz:g} Hz?)")
             return True, f"motor controller fault {before} reset"
+        async def go_and_release() -> tuple[bool, str]:
+            ok, detail = await go()
+            if ok and rig.release is not None:  # the rig process holds the stop until acknowledged
+                await rig.release()
+            return ok, detail
         try:
-            return await self.thread.call(asyncio.wait_for(go(), STANDSTILL_WAIT_S + 5.0))
+            return await self.thread.call(asyncio.wait_for(go_and_release(), STANDSTILL_WAIT_S + 5.0))
         except Exception as exc:
             return False, f"the motor controller cannot be reached ({type(exc).__name__}: {exc})"
 

@@ -336,6 +336,21 @@ class Runs:
             detail = f"{detail}; {check.describe()}"
         return StopReport(bool(check is not None and check.standstill), aborted, detail, ok, check)
 
+    def stopped_elsewhere(self, source: str, detail: str, who: str | Callable[[Store], str],
+                          drive: DriveCheck | None) -> list[str]:
+        """A stop the rig process gave on its own (its stop port, a lost link): the runs aborted,
+        the latch tripped, the drive's read-back kept (from any thread); the aborted runs."""
+        aborted = []
+        for live in list(self.live.values()):
+            self._abort(live, "emergency stop")
+            aborted.append(live.row.id)
+        self.latch.trip(source, detail + (f"; aborted runs: {', '.join(aborted)}" if aborted else ""), who)
+        if drive is not None:
+            self.link.drive = drive
+            if drive.standstill is False:
+                self.latch.trip("drive", f"{drive.describe()}; use the hardware emergency stop")
+        return aborted
+
     async def acknowledge(self, by: str, note: str = "") -> AckReport:  # by: the user (audited by the latch)
         """An operator acknowledges the emergency stop: the controller's latched fault is reset (and
         read back) and the latch released; refused while the controller still reports a fault."""

@@ -30,25 +30,11 @@ from station.lab import users
 from station.lab.store import Store
 from station.lab.users import AuthError
 from station.limits import drive_profile, force_limit_N
+from station.rigproc.stopport import cross_site_refusal
 from station.service.runs import StopReport
 from station.service.settings import ServiceSettings
 
 router = APIRouter(tags=["station"])
-
-
-def cross_site_refusal(site: str | None, origin: str | None, host: str,
-                       page_origins: tuple[str, ...] = ()) -> str | None:
-    """Why a request another web site's page made the browser send is refused (None: it is not
-    one): browsers mark it with ``Sec-Fetch-Site: cross-site``/``same-site`` and an ``Origin`` that
-    is not this station's (``host``, or one of ``page_origins``: ``host:port`` of the station's own
-    page when it is served on another port).  API clients and curl (neither header) pass."""
-    own = origin is not None and origin.split("://", 1)[-1] in (host, *page_origins)
-    if site is not None and site not in ("same-origin", "none") and not (site == "same-site" and own):
-        return (f"cross-site request refused (Sec-Fetch-Site: {site}); use the station's own page, an API client "
-                "or the hardware emergency stop")
-    if origin is not None and not own:
-        return f"cross-site request refused: Origin {origin} is not this station ({host})"
-    return None
 
 
 async def not_cross_site(request: Request) -> None:

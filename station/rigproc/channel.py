@@ -1,0 +1,66 @@
+"""The channel between the daemon's web process and the rig process: a Unix stream socket carrying
+messages of at most :data:`MAX_MESSAGE` bytes, each a 4-byte big-endian length and a JSON object
+with the protocol version ``v`` (:data:`VERSION`).
+
+The web process asks (``op``), the rig process answers (``id`` of the question, ``ok`` or
+``error``) and tells (``event``) on its own:
+
+=================  ==============================================  ==========================================
+question (``op``)  fields                                          answer
+=================  ==============================================  ==========================================
+``hello``          --                                              ``profile``, ``latched`` (a stop it holds)
+``read``           ``address``, ``count``, ``what``, ``function``  ``words``
+``write``          ``address``, ``words``, ``what``, ``retry``     --; refused while it holds a stop and the
+                                                                   words would set a set-point other than 0
+``release``        --                                              -- (the operator acknowledged the stop)
+``page_port``      ``port``                                        -- (the main port: the station's own page)
+=================  ==============================================  ==========================================
+
+Events: ``stopped`` (a stop the rig process gave: ``source``, ``detail``, ``commanded``, ``drive``,
+``credentials`` of the request for the record).  A failure travels as ``error``: ``kind`` (``link``,
+``timeout``, ``exception``, ``protocol``, ``refused``, ``bad``) and ``detail``."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import struct
+from typing import Any
+
+VERSION = 1
+MAX_MESSAGE = 64 * 1024  # bytes of JSON; a register exchange is some 100
+_LEN = struct.Struct(">I")
+
+
+class ChannelError(Exception):
+    """A message that is not of this protocol (too long, not JSON, another version)."""
+
+
+def encode(msg: dict[str, Any]) -> bytes:
+    data = json.dumps({**msg, "v": VERSION}, separators=(",", ":")).encode()
+    if len(data) > MAX_MESSAGE:
+        raise ChannelError(f"a message of {len(data)} bytes (at most {MAX_MESSAGE})")
+    return _LEN.pack(len(data)) + data
+
+
+async def receive(reader: asyncio.StreamReader) -> dict[str, Any] | None:
+    """The next message; None at the end of the stream; :class:`ChannelError` for a bad one."""
+    try:
+        head = await reader.readexactly(_LEN.size)
+    except (asyncio.IncompleteReadError, ConnectionError):
+        return None
+    (n,) = _LEN.unpack(head)
+    if n > MAX_MESSAGE:
+        raise ChannelError(f"a message of {n} bytes announced (at most {MAX_MESSAGE})")
+    try:
+        data = await reader.readexactly(n)
+    except (asyncio.IncompleteReadError, ConnectionError):
+        return None
+    try:
+        msg = json.loads(data)
+    except ValueError as exc:
+        raise ChannelError(f"not JSON: {exc}") from None
+    if not isinstance(msg, dict) or msg.get("v") != VERSION:
+        raise ChannelError(f"expected a message of protocol version {VERSION}, got "
+                           f"{msg.get('v') if isinstance(msg, dict) else type(msg).__name__!r}")
+    return msg

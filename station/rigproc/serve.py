@@ -1,0 +1,419 @@
+"""The rig process itself (``python -m station.rigproc``; started by the daemon, ``client.py``).
+
+It holds the drive's one connection and, on its own, without waiting for the web process:
+
+* refreshes the drive's communication watchdog every 0.2 s (while it lives, the drive turns only
+  as the web process's set-points say; when it dies, the drive's own watchdog stops the crank);
+* serves the stop port (``commands/stopport.StopPort``): the emergency stop on the drive, then the
+  drive read back to standstill, answered from here; the web process is told afterwards;
+* stops the crank (ramp down, read back, the emergency stop if it still turns) when the web
+  process falls silent for ``link_timeout_s`` while the crank turns, or its connection closes while
+  the crank turns, or the daemon's end of the lifeline (stdin) closes; then it holds the stop;
+* while it holds a stop, refuses any set-point other than 0 the web process sends, until the
+  operator's acknowledgement releases it (``release``);
+* forwards the web process's register reads and writes (``channel.py``) to the drive.
+
+On start it connects and reads the drive back: it reports ready (one JSON line on stdout) only
+once the drive reports standstill, else it ends with exit code 4 and one line saying why."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from drivers.motor.controller import MotorController
+from drivers.motor.errors import (
+    MotorCommunicationError,
+    MotorError,
+    MotorExceptionReplyError,
+    MotorLinkError,
+    MotorProtocolError,
+    MotorTimeoutError,
+)
+from drivers.motor.profile import load_profile
+from drivers.motor.transport import RegisterTransport, transport_from_url
+from station.rigproc import channel
+from station.rigproc.stopport import StopPort
+from station.run.standstill import DriveCheck, read_back_standstill
+from station.service.priority import Priority, raise_priority
+
+log = logging.getLogger("station.rigproc")
+
+KEEPER_PERIOD_S = 0.2
+START_STANDSTILL_S = 30.0  # a new rig process waits at most this long for the crank to come to rest
+
+
+@dataclass(frozen=True)
+class Spec:
+    """What the daemon gives a rig process (one JSON line on its stdin)."""
+
+    socket: str  # the channel's Unix socket path
+    motor_url: str  # modbus-tcp://host:port or modbus-rtu:///dev/ttyX
+    device_id: int | None
+    profile: str | None  # the drive profile (shipped name or YAML path)
+    stop_host: str | None  # the stop port's address (None: no stop port)
+    stop_port: int
+    names: tuple[str, ...]  # taken in the stop port's Host header besides loopback names and addresses
+    page_port: int | None
+    header_timeout_s: float
+    priority: Priority
+    link_timeout_s: float
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Spec:
+        return cls(str(d["socket"]), str(d["motor_url"]), d.get("device_id"), d.get("profile"),
+                   d.get("stop_host"), int(d.get("stop_port", 0)), tuple(d.get("names", ())), d.get("page_port"),
+                   float(d.get("header_timeout_s", 5.0)), d.get("priority", "normal"),
+                   float(d.get("link_timeout_s", 3.0)))
+
+
+def error_of(exc: BaseException) -> dict[str, Any]:
+    """A driver failure as it travels over the channel (``client.raise_error`` raises it again)."""
+    register = getattr(exc, "register", "?")
+    if isinstance(exc, MotorExceptionReplyError):
+        return {"kind": "exception", "register": register, "function": exc.function_code, "code": exc.exception_code}
+    kind = ("link" if isinstance(exc, MotorLinkError) else "timeout" if isinstance(exc, MotorTimeoutError)
+            else "protocol" if isinstance(exc, MotorProtocolError) else "link")
+    detail = str(exc)
+    if isinstance(exc, MotorCommunicationError):
+        detail = detail.split(": ", 1)[-1]
+    return {"kind": kind, "register": register, "detail": f"{type(exc).__name__}: {detail}"
+            if not isinstance(exc, MotorError) else detail}
+
+
+class OneAtATime:
+    """A register transport carrying one exchange at a time (the Modbus client pairs a reply with
+    the one request in flight): the web process's questions, the keeper and the stop take turns."""
+
+    def __init__(self, inner: RegisterTransport) -> None:
+        self.inner = inner
+        self.description = inner.description
+        self.lock = asyncio.Lock()
+
+    @property
+    def connected(self) -> bool:
+        return bool(getattr(self.inner, "connected", False))
+
+    async def open(self) -> None:
+        await self.inner.open()
+
+    async def read(self, address: int, count: int, what: str, function: int = 0x03) -> list[int]:
+        async with self.lock:
+            return await self.inner.read(address, count, what, function)
+
+    async def write(self, address: int, words: Sequence[int], what: str, *, retry: bool = True) -> None:
+        async with self.lock:
+            await self.inner.write(address, words, what, retry=retry)
+
+    async def close(self) -> None:
+        await self.inner.close()
+
+
+class RigProcess:
+    """The rig process's state, on its one event loop."""
+
+    def __init__(self, spec: Spec, motor: MotorController) -> None:
+        self.spec = spec
+        self.motor = motor
+        self.transport: RegisterTransport = motor.transport
+        p = motor.profile
+        sp = p[p.setpoint]
+        self.setpoint = (sp.address, sp.words)
+        self.rewrite = p[p.watchdog.rewrite] if p.watchdog.rewrite is not None else None
+        self.rewrite_words: list[int] | None = None  # the last words the web process wrote there
+        self.io = asyncio.Lock()  # a rewrite refresh never interleaves with the web process's write of it
+        self.loop = asyncio.get_running_loop()
+        self.latched: dict[str, Any] | None = None  # the stop it holds
+        self.count = 0
+        self.drive: DriveCheck | None = None
+        self.web: asyncio.StreamWriter | None = None
+        self.heard = time.monotonic()  # the web process's last question
+        self.turning = False  # the web process has set a set-point other than 0 since the last stop
+        self.stop_port: StopPort | None = None
+        self.counter = 0
+        self.done = asyncio.Event()
+        self.keeper_error: str | None = None
+        self.answering: set[asyncio.Task[None]] = set()
+
+    # ------------------------------------------------------------------ the drive
+    async def keeper(self) -> None:
+        """Refresh the drive's watchdog the way it counts it, every :data:`KEEPER_PERIOD_S`."""
+        p = self.motor.profile
+        while True:
+            try:
+                if p.watchdog.refresh is not None:
+                    self.counter = (self.counter + 1) & 0xFFFF
+                    await self.motor.write(p.watchdog.refresh, self.counter)
+                elif self.rewrite is not None:
+                    reg = self.rewrite
+                    async with self.io:
+                        words = self.rewrite_words or await self.transport.read(
+                            reg.address, reg.words, f"{reg.name} (watchdog refresh)", reg.read_function)
+                        await self.transport.write(reg.address, words, f"{reg.name} (watchdog refresh)")
+                else:
+                    await self.motor.read_status()
+                if self.keeper_error is not None:
+                    log.info("watchdog refresh works again")
+                self.keeper_error = None
+            except MotorError as exc:
+                if self.keeper_error is None:
+                    log.error("watchdog refresh failed: %s (the drive stops the crank on its own)", exc)
+                self.keeper_error = str(exc)
+            await asyncio.sleep(KEEPER_PERIOD_S)
+
+    async def stop(self, source: str, why: str, credentials: dict[str, str] | None = None) -> dict[str, Any]:
+        """The emergency stop on the drive, the stop held, the drive read back; the web process told.
+        The answer has the shape of the main port's (``StopOut``)."""
+        self.hold(source, why)
+        try:
+            await asyncio.wait_for(self.motor.emergency_stop(), 2.0)
+            ok, detail = True, "emergency stop commanded on the motor controller"
+        except Exception as exc:
+            ok, detail = False, (f"the motor controller did not take the emergency stop ({type(exc).__name__}: "
+                                 f"{exc}); use the hardware emergency stop")
+        check = await self.read_back("the emergency stop") if ok else None
+        if check is not None:
+            detail = f"{detail}; {check.describe()}"
+        log.warning("EMERGENCY STOP (%s, rig process): %s", source, detail)
+        answer: dict[str, Any] = {"motor_stopped": bool(check is not None and check.standstill), "stop_commanded": ok,
+                  "drive": check.to_dict() if check is not None else None, "aborted_runs": [],
+                  "detail": detail + "; the daemon aborts the run and latches the stop when it hears of it"}
+        self.tell({"event": "stopped", "source": source, "detail": detail, "commanded": ok,
+                   "drive": answer["drive"], "credentials": credentials or {}})
+        return answer
+
+    async def ramp_down(self, why: str) -> None:
+        """A lost web process: ramp the crank down, read it back, the emergency stop if it still turns."""
+        log.error("%s: the crank is stopped", why)
+        self.hold("link", why)
+        try:
+            await asyncio.wait_for(self.motor.stop(), 3.0)
+        except Exception as exc:
+            log.error("the ramp-down was not taken (%s): the emergency stop", exc)
+        check = await self.read_back("the rig process's stop on a lost link")
+        if check is None or not check.standstill:
+            await self.stop("link", why)
+            return
+        self.tell({"event": "stopped", "source": "link", "detail": f"{why}; {check.describe()}", "commanded": True,
+                   "drive": check.to_dict(), "credentials": {}})
+
+    async def read_back(self, after: str) -> DriveCheck:
+        motor = self.motor
+        bound = motor.stop_time_bound_s(motor.map.device.max_frequency_hz) + 2.0
+        try:
+            check = await asyncio.wait_for(read_back_standstill(motor, after), bound)
+        except Exception as exc:
+            check = DriveCheck(after, None, None, None, None, bound, time.time(), f"{type(exc).__name__}: {exc}")
+        self.drive = check
+        return check
+
+    def hold(self, source: str, detail: str) -> None:
+        self.count += 1
+        self.turning = False
+        self.latched = {"latched": True, "since": time.time(), "source": source, "detail": detail,
+                        "count": self.count}
+
+    def state(self) -> dict[str, Any]:
+        estop = self.latched or {"latched": False, "since": None, "source": None, "detail": None, "count": self.count}
+        return {"estop": estop, "drive": self.drive.to_dict() if self.drive is not None else None}
+
+    # ------------------------------------------------------------------ the web process
+    def tell(self, event: dict[str, Any]) -> None:
+        web = self.web
+        if web is not None and not web.is_closing():
+            web.write(channel.encode(event))  # buffered by the kernel while the web process sleeps
+
+    async def serve_web(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """One web process at a time: a new connection replaces the old one."""
+        if self.web is not None:
+            self.web.close()
+        self.web = writer
+        self.heard = time.monotonic()
+        try:
+            while True:
+                try:
+                    msg = await channel.receive(reader)
+                except channel.ChannelError as exc:
+                    log.error("the web process sent %s: the channel is closed", exc)
+                    break
+                if msg is None:
+                    break
+                self.heard = time.monotonic()
+                task = asyncio.create_task(self.answer(writer, msg))
+                self.answering.add(task)
+                task.add_done_callback(self.answering.discard)
+        finally:
+            if self.web is writer:
+                self.web = None
+                if self.turning:
+                    await self.ramp_down("the daemon's web process closed the channel while the crank turns")
+            writer.close()
+
+    async def answer(self, writer: asyncio.StreamWriter, msg: dict[str, Any]) -> None:
+        reply: dict[str, Any] = {"id": msg.get("id")}
+        try:
+            reply.update(await self.do(msg))
+        except MotorExceptionReplyError as exc:
+            reply["error"] = error_of(exc)
+        except MotorError as exc:
+            reply["error"] = error_of(exc)
+        except (KeyError, TypeError, ValueError) as exc:
+            reply["error"] = {"kind": "bad", "detail": f"a malformed question: {exc!r}"[:300]}
+        if not writer.is_closing():
+            writer.write(channel.encode(reply))
+
+    async def do(self, msg: dict[str, Any]) -> dict[str, Any]:
+        op = msg["op"]
+        if op == "read":
+            words = await self.transport.read(int(msg["address"]), int(msg["count"]), str(msg["what"]),
+                                              int(msg.get("function", 3)))
+            return {"words": list(words)}
+        if op == "write":
+            return await self.write(int(msg["address"]), [int(w) for w in msg["words"]], str(msg["what"]),
+                                    bool(msg.get("retry", True)))
+        if op == "hello":
+            return {"profile": self.motor.profile.name, "latched": self.latched, "pid": os.getpid()}
+        if op == "release":
+            if self.latched is not None:
+                log.info("the stop held since %s released (acknowledged)", time.ctime(self.latched["since"]))
+            self.latched = None
+            return {}
+        if op == "page_port":
+            if self.stop_port is not None:
+                self.stop_port.page_port = int(msg["port"])
+            return {}
+        return {"error": {"kind": "bad", "detail": f"unknown question {str(op)[:40]!r}"}}
+
+    async def write(self, address: int, words: Sequence[int], what: str, retry: bool) -> dict[str, Any]:
+        addr, n = self.setpoint
+        moves = addr <= address < addr + n and any(words[: addr + n - address])
+        if moves and self.latched is not None:
+            return {"error": {"kind": "refused", "register": what,
+                              "detail": f"the rig process holds a stop ({self.latched['source']}: "
+                                        f"{self.latched['detail']}); an operator acknowledges it first"}}
+        if self.rewrite is not None and address == self.rewrite.address:
+            async with self.io:
+                await self.transport.write(address, words, what, retry=retry)
+                self.rewrite_words = list(words)
+        else:
+            await self.transport.write(address, words, what, retry=retry)
+        if addr <= address < addr + n:
+            self.turning = moves  # a set-point of 0: the drive ramps down on its own
+        return {}
+
+    async def watch_link(self) -> None:
+        """A web process silent for ``link_timeout_s`` while the crank turns: the crank is stopped."""
+        while True:
+            await asyncio.sleep(KEEPER_PERIOD_S)
+            silent = time.monotonic() - self.heard
+            if self.turning and silent > self.spec.link_timeout_s:
+                await self.ramp_down(f"the daemon's web process has been silent for {silent:.1f} s while the "
+                                     "crank turns")
+
+
+class RigStops:
+    """The stop port's stops in the rig process (``stopport.Stops``), handed to its loop."""
+
+    def __init__(self, rig: RigProcess) -> None:
+        self.rig = rig
+
+    def state(self) -> dict[str, Any]:
+        return self.rig.state()
+
+    async def stop(self, source: str, headers: dict[str, str]) -> dict[str, Any]:
+        credentials: dict[str, str] = {k: headers[k] for k in ("authorization", "cookie") if k in headers}
+        fut = asyncio.run_coroutine_threadsafe(self.rig.stop(source, "POST /stop on the stop port", credentials),
+                                               self.rig.loop)
+        return await asyncio.wrap_future(fut)
+
+
+def _say(obj: dict[str, Any]) -> None:
+    sys.stdout.write(json.dumps(obj) + "\n")
+    sys.stdout.flush()
+
+
+async def run(spec: Spec) -> int:
+    got = raise_priority("rig-process", spec.priority) if spec.priority != "normal" else "normal"
+    profile = load_profile(spec.profile)
+    t = profile.transport
+    motor = MotorController(profile)
+    try:
+        await motor.connect(OneAtATime(transport_from_url(
+            spec.motor_url, device_id=spec.device_id or t.unit_id, baudrate=t.baudrate, parity=t.parity,
+            stopbits=t.stopbits, inter_frame_delay_s=t.inter_frame_delay_s)))
+        st = await motor.read_status()
+        if not st.standstill:
+            log.warning("the drive reports %g Hz: waiting for standstill before serving", st.actual_speed_hz)
+            st = await motor.settle_to_standstill(START_STANDSTILL_S)
+    except Exception as exc:
+        _say({"error": f"the drive cannot be reached at {spec.motor_url}: {type(exc).__name__}: {exc}"})
+        return 4
+    if not st.standstill:
+        _say({"error": f"the drive still turns at {st.actual_speed_hz:g} Hz after {START_STANDSTILL_S:g} s: "
+                       "not started (use the hardware emergency stop)"})
+        return 4
+    rig = RigProcess(spec, motor)
+    rig.drive = DriveCheck.of("the rig process's start", st, 0.0)
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(spec.socket)
+    server = await asyncio.start_unix_server(rig.serve_web, spec.socket, limit=channel.MAX_MESSAGE + 8)
+    os.chmod(spec.socket, 0o600)
+    tasks = [asyncio.create_task(rig.keeper(), name="watchdog-keeper"),
+             asyncio.create_task(rig.watch_link(), name="link-watch")]
+    stop_port = None
+    if spec.stop_host is not None:
+        try:
+            stop_port = StopPort(RigStops(rig), frozenset(spec.names), spec.stop_host, spec.stop_port,
+                                 page_port=spec.page_port, header_timeout_s=spec.header_timeout_s,
+                                 priority=spec.priority)
+            await asyncio.to_thread(stop_port.start)
+            rig.stop_port = stop_port
+        except OSError as exc:
+            stop_port = None
+            log.error("the stop port %d cannot be opened (%s): POST /stop on the main port only", spec.stop_port, exc)
+
+    def lifeline() -> None:  # the daemon's end of stdin: EOF when it ends or dies
+        for _ in sys.stdin:
+            pass
+        rig.loop.call_soon_threadsafe(rig.done.set)
+
+    threading.Thread(target=lifeline, name="lifeline", daemon=True).start()
+    _say({"ready": {"pid": os.getpid(), "priority": got,
+                    "stop_port": stop_port.port if stop_port is not None else None,
+                    "drive": rig.drive.to_dict()}})
+    await rig.done.wait()
+    log.warning("the daemon ended: the crank is stopped and the rig process ends")
+    if rig.turning:
+        await rig.ramp_down("the daemon ended while the crank turns")
+    for task in tasks:
+        task.cancel()
+    if stop_port is not None:
+        stop_port.close()
+    server.close()
+    with contextlib.suppress(Exception):
+        await motor.close()
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(spec.socket)
+    return 0
+
+
+def main() -> int:
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s rig-process: %(message)s")
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # the driver's own errors say what failed
+    line = sys.stdin.readline()
+    try:
+        spec = Spec.from_json(json.loads(line))
+    except (ValueError, KeyError, TypeError) as exc:
+        _say({"error": f"expected the rig process's specification as one JSON line on stdin: {exc}"})
+        return 2
+    return asyncio.run(run(spec))

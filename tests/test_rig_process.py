@@ -1,0 +1,167 @@
+"""The rig process: a real ``station serve`` whose drive, watchdog keeper and stop port live in a
+process of their own, against the emulators in a third process (their true state read there).
+
+- the web process stopped (SIGSTOP) during a run: a stop on the stop port still stops the crank
+  and the drive is read back at standstill; the daemon latches the stop when it runs again; left
+  stopped with the crank turning, the rig process ramps the crank down on its own (3 s of silence);
+- the rig process killed (SIGKILL) during a run: the drive's own watchdog stops the crank, the
+  daemon starts a new rig process, and after the acknowledgement a later run works.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from drivers.sim import SimRigProcess
+from tests.station_support import Daemon, daemon_config, free_port
+
+pytestmark = pytest.mark.slow
+
+
+@contextlib.contextmanager
+def _daemon(tmp_path: Path, emu: SimRigProcess, stop_port: int) -> Iterator[Daemon]:
+    host, port = emu.addresses.modbus_tcp
+    cfg = daemon_config(tmp_path / "recordings", stop_port=stop_port)
+    cfg.pop("simulation")  # a rig of real devices: the emulators' process
+    cfg["devices"] = {"motor_url": f"modbus-tcp://{host}:{port}", "daq_port": emu.addresses.daq,
+                      "crank_radius_m": 0.001}
+    d = Daemon(tmp_path, workers=0, config=cfg)
+    try:
+        yield d.start()
+    finally:
+        if d.proc is not None and d.proc.poll() is None:
+            d.stop()
+
+
+def _children(pid: int) -> list[int]:
+    out: list[int] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        out += [int(p) for p in (task / "children").read_text().split()]
+    return out
+
+
+def _rig_process(d: Daemon) -> int:
+    assert d.proc is not None
+    found = [p for p in _children(d.proc.pid)
+             if b"station.rigproc" in Path(f"/proc/{p}/cmdline").read_bytes()]
+    assert len(found) == 1, found
+    return found[0]
+
+
+def _wait(predicate: object, timeout_s: float, what: str, d: Daemon | None = None) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():  # type: ignore[operator]
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"not within {timeout_s} s: {what}" + (f"\n{d.log()}" if d is not None else ""))
+
+
+def _answers(url: str) -> bool:
+    """``GET url`` answers 200 (False while nothing listens there yet)."""
+    try:
+        return httpx.get(url, timeout=5.0).status_code == 200
+    except httpx.TransportError:
+        return False
+
+
+def _estop(c: httpx.Client) -> dict[str, Any]:
+    """The daemon's latch as /health shows it (empty while /health does not answer so)."""
+    try:
+        h = c.get("/health").json()
+    except httpx.TransportError:  # a kept-alive connection the daemon closed after its header time-out
+        return {}
+    return dict(h.get("estop") or {})
+
+
+@pytest.fixture
+def emu() -> Iterator[SimRigProcess]:
+    with SimRigProcess(crank_radius_m=0.001, commands=True) as e:
+        yield e
+
+
+def test_with_the_web_process_stopped_the_stop_port_stops_the_crank_and_reads_it_back(
+        tmp_path: Path, emu: SimRigProcess) -> None:
+    stop_port = free_port()
+    with _daemon(tmp_path, emu, stop_port) as d:
+        rid = d.start_run(freqs=(10.0,), record_s=60.0)
+        d.wait_state(rid, ("running",), step_state="recording")
+        assert emu.status()["speed_hz"] == pytest.approx(10.0)
+        assert d.proc is not None
+        os.kill(d.proc.pid, signal.SIGSTOP)
+        try:
+            with pytest.raises(httpx.TimeoutException):  # the web process answers nothing now
+                httpx.get(f"{d.url}/health", timeout=1.0)
+            t0 = time.monotonic()
+            r = httpx.post(f"http://127.0.0.1:{stop_port}/stop", timeout=10.0)
+            arrived = emu.wait_command("emergency_stop", t0)
+            assert r.status_code == 200, r.text
+            body = r.json()
+            assert body["stop_commanded"] and body["motor_stopped"], body
+            assert body["drive"]["standstill"] is True and body["drive"]["speed_hz"] == 0.0
+            assert arrived is not None  # the drive took the emergency stop, not a lost link's ramp
+            assert emu.status()["speed_hz"] == 0.0
+            st = httpx.get(f"http://127.0.0.1:{stop_port}/stop", timeout=5.0).json()
+            assert st["estop"]["latched"] and st["drive"]["standstill"] is True
+        finally:
+            os.kill(d.proc.pid, signal.SIGCONT)
+        # the web process runs again: the run is aborted, the stop latched and recorded
+        assert d.wait_state(rid)["state"] == "aborted"
+        c = d.c()
+        _wait(lambda: _estop(c).get("latched"), 10.0, "the daemon latches the stop")
+        assert c.post("/runs", json={"transducer_id": "TX5K-0001", "top_mass_kg": 25.717, "steps": [
+            {"crank_frequency_hz": 10.0, "crank_radius_m": 0.001}]}).status_code == 409
+        assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
+        # a web process that hangs with the crank turning and nobody stopping it: the rig process
+        # ramps the crank down on its own (a lost link, not the emergency stop)
+        rid = d.start_run(freqs=(10.0,), record_s=60.0)
+        d.wait_state(rid, ("running",), step_state="recording")
+        os.kill(d.proc.pid, signal.SIGSTOP)
+        try:
+            t0 = time.monotonic()
+            _wait(lambda: emu.status()["speed_hz"] == 0.0, 15.0, "the rig process stops the crank")
+            assert emu.wait_command("emergency_stop", t0, timeout_s=0.0) is None
+            assert emu.status()["fault_code"] == 0  # ramped down, not stopped by the drive's watchdog
+        finally:
+            os.kill(d.proc.pid, signal.SIGCONT)
+        assert d.wait_state(rid)["state"] in ("aborted", "failed")
+        _wait(lambda: _estop(c).get("source") == "link", 10.0, "the daemon latches the stop", d)
+        assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
+        rid = d.start_run(freqs=(10.0,), record_s=0.3)
+        assert d.wait_state(rid, ("identifying", "completed", "failed", "aborted"))["state"] in (
+            "identifying", "completed"), d.log()
+
+
+def test_a_killed_rig_process_leaves_the_crank_to_the_drives_watchdog_and_a_new_one_serves(
+        tmp_path: Path, emu: SimRigProcess) -> None:
+    stop_port = free_port()
+    with _daemon(tmp_path, emu, stop_port) as d:
+        c = d.c()
+        rid = d.start_run(freqs=(10.0,), record_s=60.0)
+        d.wait_state(rid, ("running",), step_state="recording")
+        assert emu.status()["speed_hz"] == pytest.approx(10.0)
+        old = _rig_process(d)
+        os.kill(old, signal.SIGKILL)
+        # nobody refreshes the drive's watchdog now: the drive stops the crank on its own
+        _wait(lambda: emu.status()["speed_hz"] == 0.0, 10.0, "the drive's watchdog stops the crank")
+        assert emu.status()["fault_code"] != 0
+        assert d.wait_state(rid)["state"] == "failed"
+        _wait(lambda: _rig_process(d) != old, 60.0, "a new rig process")
+        assert "the rig process ended" in d.log()
+        _wait(lambda: _answers(f"http://127.0.0.1:{stop_port}/stop"), 30.0,
+              "the new rig process's stop port")  # it listens once it has read the drive back
+        # the drive's fault is never cleared behind the operator's back
+        assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
+        assert emu.status()["fault_code"] == 0
+        rid = d.start_run(freqs=(10.0,), record_s=0.3)
+        assert d.wait_state(rid, ("identifying", "completed", "failed", "aborted"))["state"] in (
+            "identifying", "completed"), d.log()
