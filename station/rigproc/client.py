@@ -256,6 +256,11 @@ class RigSupervisor:
         """The operator acknowledged: the rig process no longer holds its stop."""
         await self.ask({"op": "release"})
 
+    async def note_run(self, run_id: str | None) -> None:
+        """Tell the rig process which run the crank turns for (``None``: none), so that a stop on its
+        stop port names the run it stops."""
+        await self.ask({"op": "run", "run_id": run_id})
+
     async def tell_page_port(self, port: int) -> None:
         self.page_port = port
         if self.connected:
@@ -385,11 +390,12 @@ class RigProcessConnector:
                 actuator: RadiusActuator = emu.radius_actuator(cfg.plan.steps[0].crank_radius_m)
                 yield ConnectedRig(motor, daq, actuator, f"simulated rig (emulators' process {emu.pid}; drive via the "
                                    f"rig process {sup.ready.get('pid')}, DAQ {daq_port})", simulated=True,
-                                   on_load=emu.load_physics, release=sup.release)
+                                   on_load=emu.load_physics, release=sup.release, on_run=sup.note_run)
             else:
                 yield ConnectedRig(motor, daq, FixedRadius(dev.crank_radius_m),
                                    f"rig (motor {profile.name} at {dev.motor_url} via the rig process "
-                                   f"{sup.ready.get('pid')}, DAQ {dev.daq_port})", release=sup.release)
+                                   f"{sup.ready.get('pid')}, DAQ {dev.daq_port})", release=sup.release,
+                                   on_run=sup.note_run)
         finally:
             with contextlib.suppress(Exception):
                 await motor.close()

@@ -138,6 +138,7 @@ class RigProcess:
         self.web: asyncio.StreamWriter | None = None
         self.heard = time.monotonic()  # the web process's last question
         self.turning = False  # the web process has set a set-point other than 0 since the last stop
+        self.run_id: str | None = None  # the run the crank turns for, as the web process told (op "run")
         self.stop_port: StopPort | None = None
         self.counter = 0
         self.done = asyncio.Event()
@@ -185,7 +186,8 @@ class RigProcess:
             detail = f"{detail}; {check.describe()}"
         log.warning("EMERGENCY STOP (%s, rig process): %s", source, detail)
         answer: dict[str, Any] = {"motor_stopped": bool(check is not None and check.standstill), "stop_commanded": ok,
-                  "drive": check.to_dict() if check is not None else None, "aborted_runs": [],
+                  "drive": check.to_dict() if check is not None else None,
+                  "aborted_runs": [self.run_id] if self.run_id else [],
                   "detail": detail + "; the daemon aborts the run and latches the stop when it hears of it"}
         self.tell({"event": "stopped", "source": source, "detail": detail, "commanded": ok,
                    "drive": answer["drive"], "credentials": credentials or {}})
@@ -286,6 +288,9 @@ class RigProcess:
             if self.latched is not None:
                 log.info("the stop held since %s released (acknowledged)", time.ctime(self.latched["since"]))
             self.latched = None
+            return {}
+        if op == "run":  # the run the crank turns for (None: no run): a stop's answer names it
+            self.run_id = str(msg["run_id"])[:80] if msg.get("run_id") else None
             return {}
         if op == "page_port":
             if self.stop_port is not None:

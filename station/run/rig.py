@@ -53,6 +53,7 @@ class ConnectedRig:
     on_load: Callable[[RigPhysics], None] = _mounted
     sim: SimRig | None = None
     release: Callable[[], Awaitable[None]] | None = None  # tells the rig process an acknowledged stop is over
+    on_run: Callable[[str | None], Awaitable[None]] | None = None  # tells the rig process the run (its stop names it)
 
     def load(self, plan: Plan) -> None:
         """Ready the rig for ``plan`` (before its procedure starts).  A real rig's configuration

@@ -248,11 +248,25 @@ class Runs:
         if live.abort_reason:
             proc.abort(live.abort_reason)
         self._post(self._update, live, {"state": "running", "started": time.time(), "message": "starting"})
+        await self._note_run(rig, live.row.id)
         try:
             return await proc.execute()
         finally:
             if proc.drive_check is not None:
                 self.link.drive = proc.drive_check
+            await self._note_run(rig, None)
+
+    @staticmethod
+    async def _note_run(rig: ConnectedRig, run_id: str | None) -> None:
+        """Tell the rig process which run the crank turns for: a courtesy for the stop's answer (it
+        names the run), so a slow or lost channel never holds the run (the stop does not need it)."""
+        if rig.on_run is None:
+            return
+        try:
+            async with asyncio.timeout(1.0):
+                await rig.on_run(run_id)
+        except Exception as exc:  # the stop does not depend on it: logged, the run goes on
+            log.warning("the rig process was not told the run %s: %s", run_id, exc)
 
     def _finish(self, live: LiveRun, state: str, reason: str) -> None:
         try:
