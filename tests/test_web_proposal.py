@@ -49,7 +49,7 @@ def test_run_the_proposed_steps_with_one_click(page: object, daemon: Daemon) -> 
     [rid] = daemon.seeded
     assert daemon.c().get(f"/runs/{rid}").json()["state"] == "completed"
     assert daemon.c().get(f"/runs/{rid}/proposal").status_code == 404  # not analysed yet: a GET computes nothing
-    assert daemon.c().post(f"/runs/{rid}/discrepancy").status_code == 200
+    assert daemon.c().post(f"/runs/{rid}/discrepancy", timeout=180).status_code == 200  # the analysis itself
     api = daemon.c().get(f"/runs/{rid}/proposal").json()
     prop = api["proposal"]
     assert prop is not None and prop["steps"], api
