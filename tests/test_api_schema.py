@@ -33,7 +33,7 @@ def test_schemathesis_finds_no_server_error(tmp_path: Path) -> None:
         cfg.write_text(f'[parameters]\n"path.run_id" = "{rid}"\n"query.max_effects" = 2\n')
         r = subprocess.run(
             [sys.executable, "-m", "schemathesis.cli", "--config-file", str(cfg), "run", f"{d.url}/openapi.json",
-             "--checks", CHECKS, "-H", f"Authorization: Bearer {TOKEN}", "--max-examples", "25",
+             "--checks", CHECKS, "-H", f"Authorization: Bearer {TOKEN}", "--max-examples", "10",
              "--phases", "examples,coverage,fuzzing",
              "--request-timeout", "30", "--workers", "1", "--seed", "1", "--suppress-health-check", "all"],
             capture_output=True, text=True, timeout=240, cwd=tmp_path)

@@ -76,9 +76,11 @@ def _transducer_ok(rep: DiscrepancyResult, coupling: bool, transducer: str = "5k
         assert ebf <= 2e-2, f"b_f off by {100 * ebf:.3g} %"
 
 
+# each effect on one transducer, the two transducers in turn down the catalogue; every effect on both
+# (and more seeds) is bench/discrepancy.py's catalogue accuracy
 @pytest.mark.slow
-@pytest.mark.parametrize(("seed", "transducer"), CASES)
-@pytest.mark.parametrize("name", CATALOGUE)
+@pytest.mark.parametrize(("name", "seed", "transducer"),
+                         [(name, *CASES[i % len(CASES)]) for i, name in enumerate(CATALOGUE)])
 def test_each_catalogue_effect_is_named_estimated_and_removed(name: str, seed: int, transducer: str,
                                                               tmp_path: Path) -> None:
     eff = draw_scenario([name], seed=seed, transducer=transducer)
@@ -177,14 +179,15 @@ def test_cli_json_contract_and_plot(tmp_path: Path, capsys: pytest.CaptureFixtur
 
 
 @pytest.mark.slow
-def test_imported_run_gives_the_same_answer_either_polarity(tmp_path: Path) -> None:
-    """Export + ``station import`` (absolute step times kept), once as is and once with the force
-    polarity inverted (negative sensitivity): same effects, same k_f and b_f, S with the sign."""
+def test_an_imported_run_of_inverted_polarity_gives_the_same_answer(tmp_path: Path) -> None:
+    """Export + ``station import`` (absolute step times kept) with the force polarity inverted
+    (negative sensitivity): the station's own answer, same effects, same k_f and b_f, S with the
+    sign.  (The import as exported, polarity kept, is ``test_discrepancy_outside``'s and the
+    interchange tests' ground.)"""
     eff = draw_scenario(["mains_interference", "zero_drift"], seed=13)
     own = simulate_scenario(eff, tmp_path / "sim", seed=13)
     ref = analyse_recording(own)
     run = export_run(own, tmp_path / "exp")
-    same = analyse_recording(import_run(run, tmp_path / "imp"))
     doc = yaml.safe_load(run.read_text())
     doc["transducer"]["sensitivity_V_per_N"] *= -1
     run.write_text(yaml.safe_dump(doc))
@@ -195,13 +198,11 @@ def test_imported_run_gives_the_same_answer_either_polarity(tmp_path: Path) -> N
         np.savetxt(f, d, delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
     inv = analyse_recording(import_run(run, tmp_path / "inv"))
     names = sorted(eff)
-    for rep in (ref, same, inv):
+    for rep in (ref, inv):
         assert sorted(e.name for e in rep.effects) == names
         assert rep.final_gap <= 1.5 * rep.noise_floor_V
-    for rep in (same, inv):
-        for p in ("k_f", "b_f"):
-            assert rep.parameters_after[p].value == pytest.approx(ref.parameters_after[p].value, rel=1e-6)
-    assert same.parameters_after["S"].value == pytest.approx(ref.parameters_after["S"].value, rel=1e-6)
+    for p in ("k_f", "b_f"):
+        assert inv.parameters_after[p].value == pytest.approx(ref.parameters_after[p].value, rel=1e-6)
     assert inv.parameters_after["S"].value == pytest.approx(-ref.parameters_after["S"].value, rel=1e-6)
     drift = next(e for e in inv.effects if e.name == "zero_drift").params["rate_V_per_s"].value
     assert drift == pytest.approx(-eff["zero_drift"]["rate_V_per_s"], abs=4 * next(
