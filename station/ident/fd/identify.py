@@ -115,7 +115,9 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
     """Frequency-domain estimator with input checks, assumptions and budget (module docstring).
 
     model_key 'auto': Eq. 9, or Eq. 8 when Eq. 9 misfits (chi2/dof significantly > 1) and the
-    coupled model determines k_c and fits (chi2/dof consistent with the noise)."""
+    coupled model determines k_c and S, k_f, b_f with it and fits (chi2/dof consistent with the noise);
+    a coupled fit that leaves the transducer's parameters undetermined explains nothing, and would hide
+    Eq. 9's misfit and the findings that name its cause."""
     inputs = inputs or inputs_for(rec)
     policy = replace(policy or Policy(), phase_floor_rad=inputs.chain.floor_phase_rad,
                      gain_floor=inputs.chain.floor_gain)
@@ -137,7 +139,8 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
         th0 = np.r_[fit.theta, 10 * fit.theta[1], 0.1 * fit.theta[2]]
         cfit, crep = fd_fit(frf, cm, th0, policy)
         c2, s2 = cfit.chi2 / max(cfit.dof, 1), fit.chi2 / max(fit.dof, 1)
-        if crep.identifiable[3] and (not auto or (c2 < 0.25 * s2 and not cfit.inflated)):
+        determines = crep.identifiable[3] and (not auto or all(crep.identifiable[:3]))
+        if determines and (not auto or (c2 < 0.25 * s2 and not cfit.inflated)):
             if auto:
                 notes.append(f"model chosen: coupled (Eq. 8), chi2/dof {c2:.3g} against {s2:.3g} for Eq. 9")
             fit, rep, model = cfit, crep, cm
