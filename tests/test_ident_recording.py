@@ -25,7 +25,7 @@ def _cfg(steps: list[dict], record_s: float, effects: dict | None = None) -> obj
 def stepped(tmp_path_factory: pytest.TempPathFactory) -> Path:
     steps = [{"crank_frequency_hz": f, "crank_radius_m": r}
              for f, r in ((4.0, 0.01), (20.0, 0.002), (50.0, 6e-4), (100.0, 1.5e-4))]
-    return simulate_run(_cfg(steps, 1.0), tmp_path_factory.mktemp("st"), seed=5)
+    return simulate_run(_cfg(steps, 1.0), tmp_path_factory.mktemp("st"), seed=3)
 
 
 @pytest.fixture(scope="module")
@@ -134,3 +134,14 @@ def test_reported_correlations_are_those_of_the_estimate(stepped: Path) -> None:
     assert all(rep.identifiable)
     np.testing.assert_allclose(np.array(rep.correlations), correlations(fit.cov), atol=1e-12)
     assert identify_recording(rec).identifiability.correlations == rep.correlations
+
+
+def test_a_coupling_is_a_result_only_where_the_data_reject_the_rigid_limit() -> None:
+    """The likelihood-ratio judgement behind k_c: Eq. 8 must lower chi^2 by more than the 3-sigma
+    threshold of chi^2 with two degrees of freedom (11.8) for a finite k_c to be stated."""
+    from station.ident.fd.identify import coupling_shown
+
+    assert not coupling_shown(4.19, 2.96)  # a rigid rig's realisation that a local coupled fit overfits
+    assert "do not exclude a rigid coupling" in coupling_shown(4.19, 2.96).reason
+    assert coupling_shown(1.3e7, 3.4)  # k_c = 2 k_f on the same plan
+    assert 11.7 < coupling_shown(0.0, 0.0).threshold < 11.9
