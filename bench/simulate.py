@@ -3,11 +3,12 @@
 Prints JSON: ``realtime_factor`` (median over repeats of seconds of signal per second of wall time),
 ``realtime_factor_cpu`` (the same per second of this process's CPU time: what a loaded machine's
 other processes change least), each beside the same figure for the staged synthesis
-(``RigSynth.advance_stages``: the synthesis as it was before the one-pass kernel, the same samples
-to the bit) measured in the same run, interleaved repeat by repeat; the same with no effects, with a
-ramping crank, and in the DAQ emulator's blocks of 256 samples; and the load average
-(``os.getloadavg``) before and after.  The first block of every run (the ramp) is not timed: it also
-compiles the kernels or reads them from numba's cache.
+(``RigSynth.advance_stages``: the synthesis as it was before the one-pass kernel, but for its noise
+drawn from the same compiled counter-based streams; the same samples to the bit) measured in the
+same run, interleaved repeat by repeat; the same with no effects, with a ramping crank, and in the
+DAQ emulator's blocks of 256 samples; and the load average (``os.getloadavg``) before and after.
+The first block of every run (the ramp) is not timed: it also compiles the kernels or reads them
+from numba's cache.
 """
 
 from __future__ import annotations
@@ -77,8 +78,8 @@ def main() -> None:
     out |= _figures("realtime_factor_emulator_blocks", measure(ALL_EFFECTS, seconds=2.0, repeats=3,
                                                                 block_s=256 / 20000))
     out |= {
-        "before": "RigSynth.advance_stages: the staged synthesis (numpy stages, compiled harmonic sums and "
-                  "filter bank), the same samples to the bit, measured interleaved in this run",
+        "before": "RigSynth.advance_stages: the staged synthesis (numpy stages, compiled harmonic sums, "
+                  "filter bank and noise draws), the same samples to the bit, measured interleaved in this run",
         "target_realtime_factor": 1000,
         "effects": ALL_EFFECTS.active(),
         "sample_rate_hz": 20000,

@@ -4,6 +4,7 @@ frequency without a common clock, S/k_f/b_f from one step) is reported not ident
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -81,3 +82,15 @@ def test_one_step_is_analysed_not_refused(tmp_path: Path) -> None:
     for k in ("S", "k_f", "b_f"):
         assert not rep.parameters_after[k].identifiable and "one step" in rep.parameters_after[k].reason
     assert rep.effects == ()
+
+
+def test_a_parameter_the_steps_leave_free_has_infinite_not_zero_variance() -> None:
+    """The step proposal's variance: a Jacobian column of zeros (one step cannot move k_f) is an
+    undetermined parameter, not a perfectly known one (the pseudo-inverse alone says 0)."""
+    from station.discrepancy.propose import linear_variance
+
+    J = np.array([[1.0, 0.0, 2.0], [0.5, 0.0, -1.0], [2.0, 0.0, 0.3]])
+    assert linear_variance(J, 1) == math.inf
+    assert linear_variance(J, 0) == pytest.approx(float(np.linalg.inv(J[:, [0, 2]].T @ J[:, [0, 2]])[0, 0]))
+    # two parameters that only move together: neither is determined alone
+    assert linear_variance(np.array([[1.0, 1.0], [2.0, 2.0]]), 0) == math.inf

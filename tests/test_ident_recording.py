@@ -134,3 +134,38 @@ def test_reported_correlations_are_those_of_the_estimate(stepped: Path) -> None:
     assert all(rep.identifiable)
     np.testing.assert_allclose(np.array(rep.correlations), correlations(fit.cov), atol=1e-12)
     assert identify_recording(rec).identifiability.correlations == rep.correlations
+
+
+def test_a_coupling_is_a_result_only_where_the_data_reject_the_rigid_limit() -> None:
+    """The likelihood-ratio judgement behind k_c: Eq. 8 must lower chi^2 by more than the 3-sigma
+    threshold of chi^2 with two degrees of freedom (11.8) for a finite k_c to be stated."""
+    from station.ident.fd.identify import coupling_shown
+
+    assert not coupling_shown(4.19, 2.96)  # a rigid rig's realisation that a local coupled fit overfits
+    assert "do not exclude a rigid coupling" in coupling_shown(4.19, 2.96).reason
+    assert coupling_shown(1.3e7, 3.4)  # k_c = 2 k_f on the same plan
+    assert 11.7 < coupling_shown(0.0, 0.0).threshold < 11.9
+
+
+def test_a_coupled_fit_to_a_rigid_response_stays_finite() -> None:
+    """Eq. 9's H at four frequencies with 1e-4 relative noise (numpy's generator, seed 1), fitted with
+    Eq. 8: b_c, free along the rigid limit, used to walk to 1e293 and overflow its covariance; it now
+    stops at the end of the fit's range (1e15 times its start), every number finite, no warning."""
+    import warnings
+
+    from station.ident.models import make_model
+    from station.ident.response.frf import LOG_RANGE, FrequencyResponse, fit_frf
+
+    f = np.array([4.0, 20.0, 50.0, 100.0])
+    th = np.array([2e-3, TRUTH["k_f"], TRUTH["b_f"]])
+    H0 = make_model("sdof", 0.1, 1.0).response(th, f)
+    rng = np.random.default_rng(1)
+    s = 1e-4 * np.abs(H0)
+    frf = FrequencyResponse(f, H0 + s * (rng.normal(size=4) + 1j * rng.normal(size=4)),
+                            np.array([np.eye(2) * x ** 2 for x in s]), np.zeros(4), np.zeros(4))
+    start = np.r_[th, 10 * th[1], 0.1 * th[2]]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit = fit_frf(frf, make_model("coupled", 0.1, 1.0), start)
+    assert np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.cov))
+    assert fit.theta[4] <= start[4] * np.exp(LOG_RANGE) * (1 + 1e-9)

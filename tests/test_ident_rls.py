@@ -42,16 +42,18 @@ def test_the_sandwich_covariance_matches_the_scatter_of_rls_on_a_well_posed_arx(
     assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
 
 
-def test_rls_s_is_within_its_stated_uncertainty_where_the_noise_term_alone_misses(tmp_path: Path) -> None:
-    """Seed 10: S is 3.2 noise-only u from the truth (the old statement); the budget now names the
-    unidentified-dynamics term and the miss is within 2 combined u."""
+def test_rls_s_states_the_unidentified_dynamics_beside_the_noise_term(tmp_path: Path) -> None:
+    """One run: the budget names the unidentified-dynamics term beside the noise term, the larger of the
+    two (over seeds 1-20 it is 1.0-1.7 times the noise term: the old, noise-only statement is the
+    smaller part; the scatter that shows it is the twenty-seed test's), and the miss is within 2
+    combined u."""
     res = _rls(tmp_path, 10)
     p = res.parameters["S"]
     assert p.identifiable and p.value is not None and p.std is not None
     terms = res.budget["S"].stds
     assert set(terms) == {"noise", "unidentified_dynamics"}
     assert res.budget["S"].combined == pytest.approx(np.hypot(terms["noise"], terms["unidentified_dynamics"]))
-    assert abs(p.value - S) / terms["noise"] > 3  # the old, noise-only statement
+    assert terms["unidentified_dynamics"] > terms["noise"]
     assert abs(p.value - S) / p.std <= 2
     assert "unidentified_dynamics" in res.assumptions.rls_uncertainty
     assert any("unidentified_dynamics" in n for n in res.notes)
@@ -59,6 +61,9 @@ def test_rls_s_is_within_its_stated_uncertainty_where_the_noise_term_alone_misse
 
 
 def test_rls_s_covers_the_truth_over_twenty_noise_seeds(tmp_path: Path) -> None:
+    """The stated u covers the truth with an honest scatter of z; against the noise term alone the
+    scatter is well above 1 (1.77 over seeds 1-20: the station's old statement was too small), which
+    does not hang on one realisation crossing 3."""
     z, z_noise = [], []
     for seed in range(1, 21):
         res = _rls(tmp_path / str(seed), seed)
@@ -69,4 +74,8 @@ def test_rls_s_covers_the_truth_over_twenty_noise_seeds(tmp_path: Path) -> None:
     a = np.abs(z)
     assert np.mean(a <= 2) >= 0.9 and a.max() <= 3, np.round(z, 2)
     assert 0.5 < np.std(z) < 1.5, np.std(z)  # honest, and not inflated either
-    assert np.abs(z_noise).max() > 3  # what the station used to state missed
+    # what the station used to state: its z scatters beyond 1 (20 draws: the sample std's own relative
+    # scatter is about 1/sqrt(40) = 0.16), by the factor the unidentified-dynamics term adds per run
+    # (sqrt(1 + 1.0^2) to sqrt(1 + 1.7^2)), which does not depend on the draw
+    assert np.std(z_noise) > 1.2, np.round(z_noise, 2)
+    assert np.std(z_noise) > 1.3 * np.std(z), (np.std(z_noise), np.std(z))

@@ -23,6 +23,7 @@ from station.recording import read_recording
 from tests.ident_support import B, K, sim, via_csv
 
 PLAN_3_40 = tuple((f, 1.5e-3) for f in (3.0, 10.0, 20.0, 40.0))
+K_C = 20 * K  # a coupling below the 3-40 Hz plan's signature at 25 times the noise
 
 
 def effects(eff: dict[str, Any], noise: float = 1.0) -> Any:
@@ -40,21 +41,24 @@ def identify_json(rec: Path, capsys: pytest.CaptureFixture[str], *extra: str) ->
 
 def test_a_coupling_below_its_signature_leaves_k_f_alone_conditional_with_a_range_that_holds_the_truth(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """k_c = 10 k_f on a 3-40 Hz plan with noise enough that Eq. 9 fits: the series stiffness is right,
-    k_f alone is conditional and its range covers the truth, and the finding says so."""
-    rec = via_csv(sim(tmp_path, PLAN_3_40, edit=effects({"coupling_compliance": {"k_c": 10 * K, "b_c": 0.0}}, 25)),
+    """k_c = 20 k_f on a 3-40 Hz plan with noise enough that Eq. 9 fits: the series stiffness is right,
+    k_f alone is conditional and its range covers the truth, and the finding says so.  (At k_c = 10 k_f
+    this plan and noise show the coupling in about one realisation in four, and identify then rightly
+    withholds k_f as coupling_suspected, the soft-coupling test's case; at 20 k_f Eq. 9 fit in each of
+    seeds 1-12, with Eq. 9's k_f 17-20 u below the truth.)"""
+    rec = via_csv(sim(tmp_path, PLAN_3_40, edit=effects({"coupling_compliance": {"k_c": K_C, "b_c": 0.0}}, 25)),
                   tmp_path)
     doc = identify_json(rec, capsys)
     st = doc["assumptions"]["structure"]
     assert st["equation"] == "Eq. 9" and st["coupling"]["assumed"] == "stiff"
     ser = doc["determined"]["series_stiffness"]
-    assert abs(ser["value"] - 1 / (1 / K + 1 / (10 * K))) < 3 * ser["combined"]
+    assert abs(ser["value"] - 1 / (1 / K + 1 / K_C)) < 3 * ser["combined"]
     k = doc["parameters"]["k_f"]
-    assert abs(k["value"] - K) > 3 * k["std"]  # Eq. 9's k_f is the series stiffness: off by -9 %
+    assert abs(k["value"] - K) > 3 * k["std"]  # Eq. 9's k_f is the series stiffness: off by -4.8 %
     assert k["flag"] == "conditional" and "stiff coupling" in k["reason"]
     lo, hi = doc["determined"]["transducer_stiffness_alone"]["range"]
     assert lo <= K <= hi
-    assert st["coupling"]["k_c_lower_bound_N_per_m"] <= 10 * K  # the plan cannot exclude the truth
+    assert st["coupling"]["k_c_lower_bound_N_per_m"] <= K_C  # the plan cannot exclude the truth
     found = {c["name"]: c for c in doc["checks"]}
     assert found["coupling_not_excluded"]["severity"] == "warning"
 

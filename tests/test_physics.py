@@ -152,6 +152,23 @@ def test_channel_delay_shifts_phase_by_2_pi_f_dt() -> None:
             assert np.angle(ratio) == pytest.approx(2 * np.pi * f * dt, abs=1e-8)
 
 
+def test_a_large_drifting_lag_is_the_exact_shift() -> None:
+    """A lag of about half a radian that the clock skew moves sample by sample (beyond the 0.1 rad the
+    synthesis's Taylor series covers on its own): every displacement sample is the sine crank's
+    r sin(phi_k - 2 pi f d_k) at the lag d_k = delay - skew t_k, to rounding."""
+    ph = paper_5kN_physics(rp.Effects(channel_delay=rp.ChannelDelay(4e-3), clock_skew=rp.ClockSkew(1e-4)), noise=False)
+    s = RigSynth(ph, seed=0, crank_radius_m=1e-3)
+    f, r, gain = 20.0, 1e-3, ph.displacement_sensor.gain_V_per_m
+    s.advance(10_000, f)
+    s.advance(30_001, f)
+    phi0, k0 = s.crank_angle_rad, s.sample_index
+    b = s.advance(20_000, f)
+    k = np.arange(b.displacement_V.size)
+    lag = 4e-3 - 1e-4 * (k0 + k) / FS
+    want = gain * r * np.sin(phi0 + 2 * np.pi * f * k / FS - 2 * np.pi * f * lag)
+    assert np.max(np.abs(b.displacement_V - want)) < 1e-9 * gain * r
+
+
 def test_conditioner_lowpass_is_a_butterworth() -> None:
     base = paper_5kN_physics(noise=False)
     lp = rp.ConditionerLowpass(order=4, cutoff_hz=150.0)

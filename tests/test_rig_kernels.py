@@ -28,6 +28,22 @@ def test_harmonic_sum_is_the_weighted_chebyshev_stack(K: int, n: int) -> None:
     np.testing.assert_allclose(got, W @ np.vstack([np.cos(h * phi), np.sin(h * phi)]), rtol=0, atol=1e-11 * K**2)
 
 
+@pytest.mark.parametrize("rod", [None, 0.25, 0.01])
+def test_the_displacement_at_one_angle_is_the_series(rod: float | None) -> None:
+    """The starting displacement the synthesiser's sensor state takes (numpy, nothing compiled) is x_b(phi)."""
+    coeffs = crank.displacement_coefficients(0.004, rp.CrankHarmonics(rod) if rod else None)
+    for phi in (0.0, 1.0, 4.5):
+        want = crank.displacement_at(coeffs, (np.array([np.cos(phi)]), np.array([np.sin(phi)])))[0]
+        assert crank.displacement_at_angle(coeffs, phi) == pytest.approx(want, rel=0, abs=1e-17)
+    # and it is the slider-crank's geometry, not only the series: x = r sin phi - (L - sqrt(L^2 - r^2 cos^2 phi))
+    if rod:
+        x = 0.004 * np.sin(1.0) - (rod - np.sqrt(rod**2 - (0.004 * np.cos(1.0)) ** 2))
+        dc = np.mean(0.004 * np.sin(p := np.linspace(0, 2 * np.pi, 4096, endpoint=False))
+                     - (rod - np.sqrt(rod**2 - (0.004 * np.cos(p)) ** 2)))
+        # the series drops harmonics below 1e-12 r
+        assert crank.displacement_at_angle(coeffs, 1.0) == pytest.approx(x - dc, rel=0, abs=2e-14)
+
+
 def _lfilter_bank(filters, u0: float, u: np.ndarray, du: np.ndarray, cuts: list[int]) -> np.ndarray:
     """The filter bank written with lfilter: two filters per output, their states carried across cuts."""
     zu = filters.zi_unit_u * u0

@@ -38,9 +38,11 @@ CASES = {
                                                  displacement_resonance=rp.DisplacementResonance(3000.0))),
     "order-8": paper_5kN_physics(rp.Effects(conditioner_lowpass=rp.ConditionerLowpass(8, 2000.0),
                                             crank_harmonics=rp.CrankHarmonics(0.05))),
-    # lags beyond the Taylor series' 0.1 rad: the per-sample cos/sin given to the kernel
+    # lags beyond the Taylor series' 0.1 rad: a constant lag and the series about it in steady blocks,
+    # the per-sample cos/sin given to the kernel in ramps
     "long-lag": paper_5kN_physics(rp.Effects(channel_delay=rp.ChannelDelay(1e-3), clock_skew=rp.ClockSkew(1e-3),
                                              mains_interference=rp.MainsInterference((0.01,), 60.0))),
+    "far-lag-every-effect": paper_5kN_physics(replace(EVERY_EFFECT, channel_delay=rp.ChannelDelay(-7e-3))),
 }
 # (samples, crank frequency at the block's end in Hz): a ramp, steady blocks of odd lengths and of
 # one sample, a ramp down to standstill, standstill
@@ -65,6 +67,24 @@ def test_one_pass_synthesis_is_the_staged_synthesis_to_the_bit(case: str) -> Non
         _same(a, b)
         assert a.force_V.size == n and (n == 1 or np.ptp(a.force_V) > 0)  # a signal, not empty arrays
     assert (fast.crank_angle_rad, fast.sample_index) == (staged.crank_angle_rad, staged.sample_index)
+
+
+def test_every_way_of_lagging_the_displacement_is_exercised(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The cases above reach each of ``RigSynth._shift``'s modes (so the bit-for-bit test covers them)."""
+    seen: set[int] = set()
+    real = RigSynth._shift
+
+    def spy(self: RigSynth, *a: float) -> tuple:
+        got = real(self, *a)
+        seen.add(got[0])
+        return got
+
+    monkeypatch.setattr(RigSynth, "_shift", spy)
+    for case in CASES.values():
+        s = RigSynth(case, seed=0, crank_radius_m=0.002)
+        for n, f in PLAN:
+            s.advance(n, f)
+    assert seen == {0, 1, 2, 3, 4}
 
 
 def test_the_two_paths_carry_the_same_state_block_by_block() -> None:

@@ -63,9 +63,11 @@ def rotation_table(dphi: float) -> np.ndarray:
 
 def rotation_base(phi0: float, dphi: float, n: int) -> np.ndarray:
     """The base of ``rotations``: exp(i (phi0 + dphi ROTATION_ROW j)), j < ceil(n / ROTATION_ROW), (2, rows)."""
-    m = ROTATION_ROW
-    base = np.exp(1j * (phi0 + dphi * m * np.arange(-(-n // m))))
-    return np.stack([base.real, base.imag])
+    angle = phi0 + dphi * ROTATION_ROW * np.arange(-(-n // ROTATION_ROW))
+    base = np.empty((2, angle.size))
+    np.cos(angle, out=base[0])
+    np.sin(angle, out=base[1])
+    return base
 
 
 def cos_sin(phi0: float, dphi: float, c: float, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -157,6 +159,14 @@ def evaluate(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray], omega: np.nd
 def displacement_at(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """x_b(phi) in m for cs = (cos phi, sin phi), each (n,)."""
     return _series(coeffs, cs)[0]
+
+
+def displacement_at_angle(coeffs: np.ndarray, phi: float) -> float:
+    """x_b(phi) in m at one crank angle phi (rad): ``displacement_at`` in plain numpy (nothing compiled)."""
+    K = coeffs.size
+    h = np.arange(1, K + 1) * phi
+    w = harmonic_weights(coeffs)[0]
+    return float(w[:K] @ np.cos(h) + w[K:] @ np.sin(h))
 
 
 def displacement_and_slope(coeffs: np.ndarray, cs: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -7,9 +7,13 @@ cache, on the first block synthesised; never at the import of the rig).
 * ``two_input_df2t``: lfilter(num_u[p], den, u) + lfilter(num_du[p], den, du) for each output p in
   one pass: the two filters share their denominator, so one transposed direct form II state per
   output carries both (the sum of lfilter's two states).
+* ``standard_normal``, ``fill_standard_normal``: the rig's noise, counter-based standard normal draws
+  (draw k of a stream a function of its key and k alone).
 """
 
 from __future__ import annotations
+
+import math
 
 import numba
 import numpy as np
@@ -88,6 +92,118 @@ def _harmonics_tile(c1, s1, t, W, rows, out, cprev, ccur, sprev, scur):
                 out[i, q] += wc * ccur[q] + ws * scur[q]
 
 
+# -- the noise: counter-based standard normal draws ------------------------------------------------
+# Draw k of a stream is a function of the stream's key and of k alone, not of how a run is cut into
+# blocks: ``synth_block`` draws each sample's noise where it adds it, the staged synthesis a block at a
+# time (``fill_standard_normal``), and both give the same bits.  Uniforms: SplitMix64's output function
+# (Steele, Lea & Flood 2014) on the Weyl sequence key + (k + 1) gamma (the generator passes BigCrush;
+# two streams of random 64-bit keys overlap within a run with negligible probability).  Normals: the
+# ziggurat of Marsaglia & Tsang (2000) with 256 layers and 52-bit abscissae, the steps of numpy's
+# ``Generator.standard_normal`` (its tables recomputed here); the rare rejections (about 1 % of
+# draws) take their further uniforms from a sub-stream of (key, k).  (In this file, not a module of
+# its own: numba's cache of ``synth_block``, which inlines the draw, is invalidated by changes to its
+# own file only.)
+
+GAMMA = np.uint64(0x9E3779B97F4A7C15)  # SplitMix64's Weyl increment (the golden ratio's 64 bits)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_SUB = np.uint64(0xD1B54A32D192ED03)  # offsets a draw's sub-stream (its rejections' uniforms) from the stream
+_S8, _S9, _S11, _S27, _S30, _S31 = (np.uint64(s) for s in (8, 9, 11, 27, 30, 31))
+_ONE = np.uint64(1)
+_LOW8 = np.uint64(0xFF)
+_LOW52 = np.uint64(0x000FFFFFFFFFFFFF)
+
+ZIGGURAT_R = 3.6541528853610088  # where the ziggurat's base strip meets the tail
+_ZIGGURAT_V = 0.00492867323399  # the area of each of the 256 layers (normal density without 1/sqrt(2 pi))
+_INV_R = 1.0 / ZIGGURAT_R
+
+
+def _ziggurat_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ki, wi, fi), each (256,): Marsaglia & Tsang's zigset for 256 layers and 52-bit abscissae."""
+    m = 2.0 ** 52
+    ki = np.zeros(256, dtype=np.int64)
+    wi = np.zeros(256)
+    fi = np.zeros(256)
+    dn = tn = ZIGGURAT_R
+    q = _ZIGGURAT_V / math.exp(-0.5 * dn * dn)
+    ki[0] = int((dn / q) * m)
+    wi[0], wi[255] = q / m, dn / m
+    fi[0], fi[255] = 1.0, math.exp(-0.5 * dn * dn)
+    for i in range(254, 0, -1):
+        dn = math.sqrt(-2.0 * math.log(_ZIGGURAT_V / dn + math.exp(-0.5 * dn * dn)))
+        ki[i + 1] = int((dn / tn) * m)
+        tn = dn
+        fi[i] = math.exp(-0.5 * dn * dn)
+        wi[i] = dn / m
+    return ki, wi, fi
+
+
+_KI, _WI, _FI = _ziggurat_tables()
+
+
+@numba.njit(cache=True, inline="always")
+def mix64(z):
+    """SplitMix64's output function: a bijection of uint64 whose outputs on a Weyl sequence are uniform."""
+    z = (z ^ (z >> _S30)) * _M1
+    z = (z ^ (z >> _S27)) * _M2
+    return z ^ (z >> _S31)
+
+
+@numba.njit(cache=True, inline="always")
+def _unit(u):
+    """A uint64 as a double in [0, 1) (its top 53 bits)."""
+    return np.float64(u >> _S11) * (1.0 / 9007199254740992.0)
+
+
+@numba.njit(cache=True, inline="always")
+def standard_normal(key, k):
+    """Draw k (int, >= 0) of the stream with the uint64 ``key``: one standard normal.  Branch-free
+    but for the rare rejection (the sign as a factor, the 52-bit abscissa as a signed integer: half
+    the time of the literal form, the same bits)."""
+    r = mix64(key + (np.uint64(k) + _ONE) * GAMMA)
+    i = np.int64(r & _LOW8)
+    rabs = np.int64((r >> _S9) & _LOW52)
+    x = np.float64(rabs) * (1.0 - 2.0 * np.float64(np.int64((r >> _S8) & _ONE))) * _WI[i]
+    if rabs < _KI[i]:
+        return x
+    return _rejected(key, k, np.uint64(i), np.uint64(rabs), x)
+
+
+@numba.njit(cache=True)
+def _rejected(key, k, i, rabs, x):
+    """The ziggurat's rare path for draw k (a wedge or the tail), with the uniforms of its sub-stream."""
+    s = mix64((key ^ _SUB) + (np.uint64(k) + _ONE) * GAMMA)
+    j = np.uint64(0)
+    while True:
+        if i == 0:  # the tail beyond ZIGGURAT_R (Marsaglia 1964)
+            while True:
+                j += _ONE
+                xx = -_INV_R * np.log1p(-_unit(mix64(s + j * GAMMA)))
+                j += _ONE
+                yy = -np.log1p(-_unit(mix64(s + j * GAMMA)))
+                if yy + yy > xx * xx:
+                    return -(ZIGGURAT_R + xx) if (rabs >> _S8) & _ONE else ZIGGURAT_R + xx
+        j += _ONE
+        if (_FI[i - 1] - _FI[i]) * _unit(mix64(s + j * GAMMA)) + _FI[i] < np.exp(-0.5 * x * x):
+            return x
+        j += _ONE
+        r = mix64(s + j * GAMMA)
+        i = r & _LOW8
+        rabs = (r >> _S9) & _LOW52
+        x = np.float64(rabs) * _WI[i]
+        if (r >> _S8) & _ONE:
+            x = -x
+        if np.int64(rabs) < _KI[i]:
+            return x
+
+
+@numba.njit(cache=True)
+def fill_standard_normal(key, start, out):
+    """out[q] = draw start + q of the stream ``key`` (uint64), q < out.size."""
+    for q in range(out.size):
+        out[q] = standard_normal(key, start + q)
+
+
 MAX_ORDER = 8  # the highest filter order synth_block runs (its states are tuples of this length)
 
 
@@ -152,6 +268,20 @@ def _rotate_tile(base, table, j, t, c, s):
         s[q] = br * table[1, q] + bi * table[0, q]
 
 
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _taylor_shift(c, s, om, t, delay, skew, k, T, alpha, centre, cx, sx):
+    """cx + i sx = (c + i s) exp(-i (delta_q - centre)), q < t, the lag delta_q of sample k + q (rad) by
+    the Taylor series of ``crank.shift_cos_sin`` (|delta_q - centre| < 0.1 rad)."""
+    for q in range(t):
+        d = delay - skew * ((k + q) * T)
+        delta = om[q] * d - 0.5 * alpha * d * d - centre
+        d2 = delta * delta
+        cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 / 720.0))
+        sd = delta * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 / 5040.0)))
+        cx[q] = c[q] * cd + s[q] * sd
+        sx[q] = s[q] * cd - c[q] * sd
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _quantise(v, lsb, lo, hi, codes):
     """codes = clip(rint(v / lsb), lo, hi) as int16; returns how many were clipped."""
@@ -172,27 +302,30 @@ def _quantise(v, lsb, lo, hi, codes):
 # same filter with its state in memory measured 6x slower); the staged path is RigSynth.advance_stages
 @numba.njit(cache=True, error_model="numpy")
 def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp, lp_z, mains_base, mains_tab, Wm,  # noqa: C901
-                noise_f, shift_cs, sen, sen_z, noise_d, out_x, out_fV, out_dV, codes_d, codes_f):
+                keys, shift_cs, sen, sen_z, out_x, out_fV, out_dV, codes_d, codes_f):
     """One block of ``synth.RigSynth``: every stage of its signal chain for each tile of SYNTH_TILE samples
     (the crank's and the mains' harmonics and every elementwise stage vectorised over the tile, the
     three filters in one pass over it), the same operations as the staged numpy path in the same
     order, so the same samples to the bit.  Returns the number of clipped samples (both channels).
 
     fl (float64): [T, f0, rate, alpha, g, S, capacity, quadratic, cubic, gain, offset, drift_rate,
-    drift_quadratic, noise_V, cd, sd, delay, skew, disp_gain, disp_noise_scale, lsb_d, lsb_f, lo, hi]
+    drift_quadratic, noise_V, cd, sd, delay, skew, disp_gain, disp_noise_scale, lsb_d, lsb_f, lo, hi,
+    centre]
     (T s; f0 Hz; rate Hz/s; alpha rad/s^2; the rest as in ``params``); ints (int64): [n, k_abs,
     ramp, has_nl, has_lp, has_drift, has_mains, has_fnoise, shift_mode, has_sen, has_dnoise];
-    shift_mode 0 none, 1 constant (cd, sd), 2 Taylor of the per-sample lag, 3 given (shift_cs).
+    shift_mode 0 none, 1 constant (cd, sd), 2 Taylor of the per-sample lag, 3 given (shift_cs), 4 the
+    constant lag centre (rad; its cos and sin cd, sd) and the Taylor series of the per-sample lag less it.
     crank_base, crank_tab, mains_base, mains_tab: (2, rows), (2, SYNTH_TILE) the rotations of ``crank.cos_sin``;
     crank_cs: (2, n) cos and sin of the crank angle when ``ramp``; Wc (4, 2K), Wm (1, 2Km): weights
     of ``harmonic_series``; mech, lp, sen: (3, P, n+1) num_u, num_du and the denominator (in row
     [2, 0]) of a ``two_input_df2t``, with their states mech_z, lp_z, sen_z (P, n) carried over;
-    noise_f, noise_d: standard normal draws (n,); outputs (n,)."""
+    keys (uint64): the streams of the force's and the displacement's noise (``standard_normal``, drawn at
+    each sample's index k_abs + k); outputs (n,)."""
     T, f0, rate, alpha, g = fl[0], fl[1], fl[2], fl[3], fl[4]
     S, cap, quad, cub = fl[5], fl[6], fl[7], fl[8]
     gain, offset, dr, dq, noise_V = fl[9], fl[10], fl[11], fl[12], fl[13]
     cd0, sd0, delay, skew, dgain, dscale = fl[14], fl[15], fl[16], fl[17], fl[18], fl[19]
-    lsb_d, lsb_f, lo, hi = fl[20], fl[21], fl[22], fl[23]
+    lsb_d, lsb_f, lo, hi, centre = fl[20], fl[21], fl[22], fl[23], fl[24]
     n, k_abs, ramp, has_nl, has_lp = ints[0], ints[1], ints[2], ints[3], ints[4]
     has_drift, has_mains, has_fnoise, shift_mode = ints[5], ints[6], ints[7], ints[8]
     has_sen, has_dnoise = ints[9], ints[10]
@@ -283,14 +416,13 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
                 cx[q] = c[q] * cd0 + s[q] * sd0
                 sx[q] = s[q] * cd0 - c[q] * sd0
         elif shift_mode == 2:
+            _taylor_shift(c, s, om, t, delay, skew, k_abs + k0, T, alpha, 0.0, cx, sx)
+        elif shift_mode == 4:
             for q in range(t):
-                d = delay - skew * ((k_abs + k0 + q) * T)
-                delta = om[q] * d - 0.5 * alpha * d * d
-                d2 = delta * delta
-                cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 / 720.0))
-                sd = delta * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 / 5040.0)))
-                cx[q] = c[q] * cd + s[q] * sd
-                sx[q] = s[q] * cd - c[q] * sd
+                cq, sq = c[q], s[q]
+                c[q] = cq * cd0 + sq * sd0  # c, s: the crank's angle less the centre (the crank's not needed again)
+                s[q] = sq * cd0 - cq * sd0
+            _taylor_shift(c, s, om, t, delay, skew, k_abs + k0, T, alpha, centre, cx, sx)
         elif shift_mode == 3:
             for q in range(t):
                 cd = shift_cs[0, k0 + q]
@@ -334,8 +466,9 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
             for q in range(t):
                 fV[q] += mrow[0, q]
         if has_fnoise:
+            key = keys[0]
             for q in range(t):
-                fV[q] += noise_f[k0 + q] * noise_V
+                fV[q] += standard_normal(key, k_abs + k0 + q) * noise_V
         # the displacement channel
         dV = out_dV[k0:k0 + t]
         if has_sen:
@@ -348,8 +481,9 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
             for q in range(t):
                 dV[q] = dgain * x[q]
         if has_dnoise:
+            key = keys[1]
             for q in range(t):
-                dV[q] += noise_d[k0 + q] * dscale
+                dV[q] += standard_normal(key, k_abs + k0 + q) * dscale
     _store_state(zm0, mech_z, 0)
     if P > 1:
         _store_state(zm1, mech_z, 1)

@@ -10,7 +10,8 @@ Signal chain per sample k (t_k = k / fs):
     -> displacement sensor gain + noise -> displacement ADC.
 
 Every effect is off unless configured (``params.Effects``).  Blocks may have any length; the
-result does not depend on how a run is cut into blocks except for the noise draws.
+result does not depend on how a run is cut into blocks (the noise of sample k is draw k of its
+channel's counter-based stream, ``kernels.standard_normal``, keyed by the seed).
 """
 
 from __future__ import annotations
@@ -72,23 +73,24 @@ class RigSynth:
             self._lowpass = FilterBank(lp, u0=float(self._transducer_output(np.array([F0]))[0]))
         self._sensor: FilterBank | None = None
         if eff.displacement_resonance is not None:
-            x0 = crank.displacement_at(self._coeffs, (np.array([np.cos(self._phi)]), np.array([np.sin(self._phi)])))
+            x0 = crank.displacement_at_angle(self._coeffs, self._phi)
             self._sensor = FilterBank(hermite_discretize(sensor_resonance_state_space(eff.displacement_resonance),
-                                                         self._T), u0=float(x0[0]))
+                                                         self._T), u0=x0)
         self._mech_coefficients = self._mech.coefficients
         self._lp_coefficients = (self._lowpass or _NO_FILTER).coefficients
         self._sensor_coefficients = (self._sensor or _NO_FILTER).coefficients
         self._mains_weights = (_mains_weights(eff.mains_interference) if eff.mains_interference is not None
                                else np.zeros((1, 2)))
         self._tables: dict[float, np.ndarray] = {}
+        self._steady_freq = np.broadcast_to(0.0, (0,))
         self._fl, self._ints = self._kernel_arguments()
         disp_seq, force_seq = np.random.SeedSequence(seed).spawn(2)
-        self._rng_disp = np.random.default_rng(disp_seq)
-        self._rng_force = np.random.default_rng(force_seq)
+        # the keys of the force's and the displacement's noise streams (``kernels.standard_normal``)
+        self._noise_keys = np.concatenate([s.generate_state(1, np.uint64) for s in (force_seq, disp_seq)])
 
     def _kernel_arguments(self) -> tuple[np.ndarray, np.ndarray]:
         """``kernels.synth_block``'s fl and ints with what stays the same from block to block; each
-        block fills in its own (f0, rate, alpha, cd, sd; n, the sample index, ramp, shift mode)."""
+        block fills in its own (f0, rate, alpha, cd, sd, centre; n, the sample index, ramp, shift mode)."""
         ph = self.physics
         eff, t, cond, sens, adc = ph.effects, ph.transducer, ph.conditioner, ph.displacement_sensor, ph.adc
         nl, drift = eff.transducer_nonlinearity, eff.zero_drift
@@ -101,7 +103,7 @@ class RigSynth:
             1.0, 0.0, eff.channel_delay.delay_s if eff.channel_delay else 0.0,
             eff.clock_skew.relative if eff.clock_skew else 0.0,
             sens.gain_V_per_m, sens.noise_m * sens.gain_V_per_m,
-            adc.volts_per_count(adc.displacement_range_V), adc.volts_per_count(adc.force_range_V), lo, hi,
+            adc.volts_per_count(adc.displacement_range_V), adc.volts_per_count(adc.force_range_V), lo, hi, 0.0,
         ], dtype=float)
         ints = np.array([
             0, 0, 0, nl is not None, self._lowpass is not None, drift is not None,
@@ -183,24 +185,30 @@ class RigSynth:
             mains_base, mains_tab = crank.rotation_base(w * (self._k * T), w * T, n), self._table(w * T)
         else:
             mains_base, mains_tab = _NO_ROTATION
-        noise_f = self._rng_force.standard_normal(n) if ph.conditioner.noise_V > 0 else _NO_SAMPLES
-        noise_d = self._rng_disp.standard_normal(n) if ph.displacement_sensor.noise_m > 0 else _NO_SAMPLES
-        shift_mode, cd, sd, shift_cs = self._shift(n, f0, f_end_hz, rate, alpha)
+        shift_mode, cd, sd, shift_cs, centre = self._shift(n, f0, f_end_hz, rate, alpha)
         fl, ints = self._fl.copy(), self._ints.copy()
-        fl[1], fl[2], fl[3], fl[14], fl[15] = f0, rate, alpha, cd, sd
+        fl[1], fl[2], fl[3], fl[14], fl[15], fl[24] = f0, rate, alpha, cd, sd, centre
         ints[0], ints[1], ints[2], ints[8] = n, self._k, c2 != 0.0, shift_mode
         x, force_V, disp_V = np.empty(n), np.empty(n), np.empty(n)
         dc, fc = np.empty(n, dtype=np.int16), np.empty(n, dtype=np.int16)
         lp, sensor = self._lowpass or _NO_FILTER, self._sensor or _NO_FILTER
         clipped = kernels.synth_block(
             fl, ints, crank_base, crank_tab, crank_cs, self._weights, self._mech_coefficients, self._mech.state,
-            self._lp_coefficients, lp.state, mains_base, mains_tab, self._mains_weights, noise_f, shift_cs,
-            self._sensor_coefficients, sensor.state, noise_d, x, force_V, disp_V, dc, fc)
-        freq = f0 if rate == 0.0 else f0 + rate * (np.arange(n) * T)
+            self._lp_coefficients, lp.state, mains_base, mains_tab, self._mains_weights, self._noise_keys,
+            shift_cs, self._sensor_coefficients, sensor.state, x, force_V, disp_V, dc, fc)
         return self._finish(n, f_end_hz, SynthBlock(
             start_sample=self._k, displacement_counts=dc, force_counts=fc, displacement_V=disp_V,
-            force_V=force_V, displacement_m=x, crank_frequency_hz=np.broadcast_to(freq, (n,)),
+            force_V=force_V, displacement_m=x, crank_frequency_hz=self._frequencies(n, f0, rate),
             clipped=int(clipped)))
+
+    def _frequencies(self, n: int, f0: float, rate: float) -> np.ndarray:
+        """The crank frequency (Hz) at the block's n samples; a steady block's is one read-only view,
+        kept while blocks repeat it."""
+        if rate != 0.0:
+            return f0 + rate * (np.arange(n) * self._T)
+        if self._steady_freq.shape != (n,) or self._steady_freq[0] != f0:
+            self._steady_freq = np.broadcast_to(f0, (n,))
+        return self._steady_freq
 
     def _table(self, dphi: float) -> np.ndarray:
         """``crank.rotation_table(dphi)``, kept for the few steps (crank frequencies) a run repeats."""
@@ -212,31 +220,62 @@ class RigSynth:
         return table
 
     def _shift(self, n: int, f0: float, f_end: float, rate: float,
-               alpha: float) -> tuple[int, float, float, np.ndarray]:
+               alpha: float) -> tuple[int, float, float, np.ndarray, float]:
         """How ``kernels.synth_block`` lags the displacement channel's crank angle in this block:
-        (mode, cos, sin, given (2, n)); 0 no lag, 1 one constant lag, 2 the per-sample Taylor series
-        of ``crank.shift_cos_sin`` (every lag certainly below its 0.1 rad), 3 given per sample."""
+        (mode, cos, sin, given (2, n), centre); 0 no lag, 1 one constant lag (its cos, sin), 2 the
+        per-sample Taylor series of ``crank.shift_cos_sin`` (every lag certainly below its 0.1 rad),
+        4 a constant lag ``centre`` (rad; its cos, sin) and the Taylor series of the per-sample lag
+        less it (a clock skew's lag grown large over a run, every lag within 0.1 rad of the centre),
+        3 given per sample."""
         eff, T = self.physics.effects, self._T
         if eff.channel_delay is None and eff.clock_skew is None:
-            return 0, 1.0, 0.0, _NO_SAMPLES2
+            return 0, 1.0, 0.0, _NO_SAMPLES2, 0.0
         if eff.clock_skew is None and rate == 0.0:
             omega, d = 2.0 * np.pi * f0, eff.channel_delay.delay_s if eff.channel_delay else 0.0
             cd, sd = crank.shift_cos_sin(omega * d - 0.5 * alpha * d * d)
-            return 1, float(cd), float(sd), _NO_SAMPLES2
+            return 1, float(cd), float(sd), _NO_SAMPLES2, 0.0
         # |delta| <= |omega| |d| + |alpha| d^2 / 2, d linear in t: its largest at either end
-        d_max = max(abs(float(_displacement_lag(eff, k * T))) for k in (self._k, self._k + n - 1))
+        d_ends = (float(_displacement_lag(eff, self._k * T)), float(_displacement_lag(eff, (self._k + n - 1) * T)))
+        d_max = max(abs(d_ends[0]), abs(d_ends[1]))
         if 2.0 * np.pi * max(f0, f_end) * d_max + 0.5 * abs(alpha) * d_max * d_max < 0.099:
-            return 2, 1.0, 0.0, _NO_SAMPLES2
-        freq = f0 + rate * (np.arange(n) * T)
-        omega_k = 2.0 * np.pi * freq
-        d_k = _displacement_lag(eff, (self._k + np.arange(n)) * T)
-        cd_k, sd_k = crank.shift_cos_sin(omega_k * d_k - 0.5 * alpha * d_k * d_k)
-        return 3, 1.0, 0.0, np.stack(np.broadcast_arrays(cd_k, sd_k)).astype(float)
+            return 2, 1.0, 0.0, _NO_SAMPLES2, 0.0
+        lo, hi = self._lag_range(n, f0, rate, alpha)
+        if hi - lo < 0.198:
+            centre = 0.5 * (lo + hi)
+            cd, sd = crank.shift_cos_sin(centre)
+            return 4, float(cd), float(sd), _NO_SAMPLES2, centre
+        cd_k, sd_k = crank.shift_cos_sin(self._lag_angle(np.arange(n), f0, rate, alpha))
+        return 3, 1.0, 0.0, np.stack(np.broadcast_arrays(cd_k, sd_k)).astype(float), 0.0
+
+    def _lag_angle(self, k: np.ndarray, f0: float, rate: float, alpha: float) -> np.ndarray:
+        """The displacement channel's lag behind the crank (rad) at the block's samples k (shape (m,))."""
+        d = _displacement_lag(self.physics.effects, (self._k + k) * self._T)
+        return 2.0 * np.pi * (f0 + rate * (k * self._T)) * d - 0.5 * alpha * d * d
+
+    def _lag_range(self, n: int, f0: float, rate: float, alpha: float) -> tuple[float, float]:
+        """The smallest and largest lag (rad) over the block's n samples: the lag is quadratic in the
+        sample index (the crank rate and the lag time both linear in it), so at either end or its vertex."""
+        eff, T, k_abs = self.physics.effects, self._T, self._k
+
+        def lag(k: float) -> float:
+            d = float(_displacement_lag(eff, (k_abs + k) * T))
+            return 2.0 * np.pi * (f0 + rate * (k * T)) * d - 0.5 * alpha * d * d
+
+        h = 0.5 * (n - 1)
+        d0, d1, d2 = lag(0.0), lag(h), lag(n - 1.0)
+        lags = [d0, d2]
+        curve = d0 - 2.0 * d1 + d2
+        if h > 0.0 and curve != 0.0:
+            vertex = h - h * (d2 - d0) / (2.0 * curve)
+            if 0.0 < vertex < n - 1.0:
+                lags.append(lag(vertex))
+        return min(lags), max(lags)
 
     def advance_stages(self, n: int, f_end_hz: float) -> SynthBlock:
         """``advance`` stage by stage in numpy with the compiled harmonic sums and filter bank (the
-        synthesis as it was before ``kernels.synth_block``): slower; the definition the one-pass
-        kernel is tested against and the baseline ``bench/simulate.py`` measures it beside.
+        synthesis as it was before ``kernels.synth_block``, its noise drawn as the one pass draws it):
+        slower; the definition the one-pass kernel is tested against and the baseline
+        ``bench/simulate.py`` measures it beside.
         Interchangeable with ``advance`` block by block (the same states)."""
         self._check(n, f_end_hz)
         ph, T = self.physics, self._T
@@ -266,13 +305,18 @@ class RigSynth:
         if eff.mains_interference is not None:
             force_V += _mains(eff.mains_interference, self._k * T, T, n)
         if cond.noise_V > 0:
-            force_V += self._rng_force.standard_normal(n) * cond.noise_V
+            force_V += self._noise(0, n) * cond.noise_V
 
         x = kin.displacement
         cs_x = cs
         if eff.channel_delay is not None or eff.clock_skew is not None:
             d = _displacement_lag(eff, (self._k + np.arange(n)) * T)
-            cs_x = crank.shift_angle(cs, omega * d - 0.5 * alpha * d * d)
+            delta = omega * d - 0.5 * alpha * d * d
+            mode, _, _, _, centre = self._shift(n, f0, f_end_hz, rate, alpha)
+            if mode == 4:  # the constant lag, then what is left of each sample's
+                cs_x = crank.shift_angle(crank.shift_angle(cs, centre), delta - centre)
+            else:
+                cs_x = crank.shift_angle(cs, delta)
             x = crank.displacement_at(self._coeffs, cs_x)
         if self._sensor is not None:
             x, dx_dphi = crank.displacement_and_slope(self._coeffs, cs_x)
@@ -280,7 +324,7 @@ class RigSynth:
         sens = ph.displacement_sensor
         disp_V = sens.gain_V_per_m * x
         if sens.noise_m > 0:
-            disp_V += self._rng_disp.standard_normal(n) * (sens.noise_m * sens.gain_V_per_m)
+            disp_V += self._noise(1, n) * (sens.noise_m * sens.gain_V_per_m)
 
         dc, clip_d = _quantise(disp_V, ph.adc.volts_per_count(ph.adc.displacement_range_V), ph.adc.bits)
         fc, clip_f = _quantise(force_V, ph.adc.volts_per_count(ph.adc.force_range_V), ph.adc.bits)
@@ -288,6 +332,14 @@ class RigSynth:
             start_sample=self._k, displacement_counts=dc, force_counts=fc, displacement_V=disp_V,
             force_V=force_V, displacement_m=kin.displacement, crank_frequency_hz=np.broadcast_to(freq, (n,)),
             clipped=clip_d + clip_f))
+
+    def _noise(self, channel: int, n: int) -> np.ndarray:
+        """The standard normal draws of the block's n samples for channel 0 (force) or 1 (displacement)."""
+        from drivers.rig import kernels  # numba: imported (and compiled or read from its cache) on first use
+
+        out = np.empty(n)
+        kernels.fill_standard_normal(self._noise_keys[channel], self._k, out)
+        return out
 
     @staticmethod
     def _check(n: int, f_end_hz: float) -> None:
@@ -329,7 +381,6 @@ def _mains_weights(m: MainsInterference) -> np.ndarray:
     return np.concatenate([amp * np.sin(ph), amp * np.cos(ph)])[None, :]
 
 
-_NO_SAMPLES = np.empty(0)
 _NO_SAMPLES2 = np.empty((2, 0))
 _NO_ROTATION = (np.empty((2, 0)), np.empty((2, 0)))
 

@@ -9,7 +9,6 @@ from typing import Protocol
 
 import numpy as np
 
-from drivers.rig.crank import harmonic_sum
 from drivers.rig.params import RigPhysics
 from drivers.rig.synth import RigSynth
 
@@ -71,7 +70,6 @@ class RigSource:
         physics = self.synth.physics if self.synth is not None else self.physics
         scratch = RigSynth(physics, seed=self.seed, crank_radius_m=self.crank_radius_m)
         scratch.advance(64, 1.0)  # kernels.synth_block: one signature for every effect set and crank profile
-        harmonic_sum((np.ones(8), np.zeros(8)), np.zeros((4, 2)))  # the crank's harmonics, if an effect needs them
         RigSource._compiled = True
 
     def _new_synth(self, key: tuple[float, float, float]) -> None:

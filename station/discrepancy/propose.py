@@ -34,7 +34,7 @@ import numpy as np
 from drivers.rig.model import spring_force_per_acceleration
 from drivers.rig.params import CouplingCompliance, Transducer
 from station.config import StationConfig
-from station.discrepancy.data import G, RigData
+from station.discrepancy.data import FloatArray, G, RigData
 from station.discrepancy.design import (
     expected_chi2,
     linearised,
@@ -162,6 +162,19 @@ def _floor3(x: float) -> float:
     return float(f"{math.floor(x / 10**e) * 10**e:.3g}")
 
 
+def linear_variance(J: FloatArray, i: int, tol: float = 1e-6) -> float:
+    """Variance of internal variable ``i`` from the Fisher information ``J^T J`` (J: rows x params,
+    whitened); ``inf`` when the rows do not determine it (e_i outside the row space of J: the
+    pseudo-inverse would report 0 there, i.e. a perfectly known parameter)."""
+    M = J.T @ J
+    P = np.linalg.pinv(M)
+    e = np.zeros(M.shape[0])
+    e[i] = 1.0
+    if not np.linalg.norm(M @ P[:, i] - e) < tol:
+        return math.inf
+    return float(P[i, i])
+
+
 def _greedy(score: Any, n_cand: int, stop: Any) -> list[int]:
     chosen: list[int] = []
     for _ in range(MAX_NEW_STEPS):
@@ -235,10 +248,14 @@ def propose_parameter(data: RigData, final: ModelFit, ctx: RunContext, name: str
 
     def var(sel: list[int]) -> float:
         keep = np.isin(rows, np.r_[np.arange(n0), n0 + np.array(sel, dtype=int)])
-        Js = J[keep]
-        return float(np.linalg.pinv(Js.T @ Js)[i, i])
+        return linear_variance(J[keep], i)
 
     v0 = var([])
+    if not 0.0 < v0 < math.inf:
+        # The measured steps leave the parameter free to first order (e.g. one step): no ratio of
+        # variances to aim at or report; the parameter's own statement says it is not identifiable.
+        log.info("no step proposal for %s: the measured steps do not determine it to first order", name)
+        return None
     target = v0 * (KF_REL_TARGET / rel) ** 2
     chosen = sorted(_greedy(lambda s: -var(s), len(cands), lambda s: -s <= target), key=lambda j: cands[j][0])
     new = [cands[j] for j in chosen]

@@ -97,11 +97,16 @@ def state_structure(data: RigData, final: ModelFit, last: Sequence[tuple[Candida
     model = "stiff coupling (paper Eq. 9): k_f is of the transducer alone only if the coupling is stiff"
     k, u_k = float(cpl.values["k_f"]), float(cpl.std["k_f"])
     s_k, u_s = float(final.values["k_f"]), float(final.std["k_f"])
-    if not (math.isfinite(u_k) and u_k < UNDETERMINED * abs(k)):
+    u_c = float(cpl.std["k_c"])
+    k_c_free = not (math.isfinite(u_c) and u_c < UNDETERMINED * abs(float(cpl.values["k_c"])))
+    if not (math.isfinite(u_k) and u_k < UNDETERMINED * abs(k)) or k_c_free:
+        # with k_c undetermined (the coupled fit resting in the rigid limit) k_f's linearised u is
+        # conditional on that k_c: any stiffer transducer with a softer coupling fits as well
         why = (f"k_f rests on a stiff coupling: these data determine the series stiffness of transducer "
                f"and coupling, {s_k:.6g} N/m (series_stiffness); with a coupling free (Delta chi2 "
-               f"{d:.3g}) k_f alone is {k:.4g} ± {u_k:.2g} N/m: not determined by this plan "
-               "(steps near the resonances would separate them: see proposal)")
+               f"{d:.3g}) " + (f"k_c is not determined ({kc.value:.3g} ± {kc.std:.2g} N/m), so neither is "
+                               "k_f alone" if k_c_free else f"k_f alone is {k:.4g} ± {u_k:.2g} N/m") +
+               ": not determined by this plan (steps near the resonances would separate them: see proposal)")
         return Structure(model, stiff, kf, kc, d, None, why, coupled=cpl)
     lo, hi = max(k - 2 * u_k, s_k - 2 * u_s), k + 2 * u_k
     return Structure(model, stiff, kf, kc, d, (lo, hi),

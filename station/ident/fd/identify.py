@@ -11,10 +11,11 @@ flag 'conditional' when the end mass is assumed.  Reasons are computed at the es
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2 as chi2_dist
 
 from station.ident.assumptions import Assumptions
 from station.ident.fd.budget import Budget, uncertainty_budget
@@ -110,12 +111,42 @@ def _param_list(model: Model, theta: FloatArray, budget: Budget, rep_ok: tuple[b
     return out
 
 
+@dataclass(frozen=True)
+class CouplingShown:
+    """Whether the data exclude a rigid coupling: Eq. 8's chi^2 below Eq. 9's by more than the
+    likelihood-ratio threshold for its two extra parameters (k_c, b_c) at ``COUPLING_P``."""
+
+    delta_chi2: float
+    threshold: float
+
+    def __bool__(self) -> bool:
+        return self.delta_chi2 > self.threshold
+
+    @property
+    def reason(self) -> str:
+        return (f"not identifiable: the data do not exclude a rigid coupling (Eq. 8 lowers chi2 by "
+                f"{self.delta_chi2:.3g} against Eq. 9, below the {self.threshold:.3g} that two more "
+                f"parameters need at p = {COUPLING_P}); a local fit's k_c and its linearised u mean nothing then")
+
+
+COUPLING_P = 0.0027  # 3 sigma, two-sided
+
+
+def coupling_shown(chi2_stiff: float, chi2_coupled: float) -> CouplingShown:
+    """The likelihood-ratio test of Eq. 8 against Eq. 9 (nested: k_c -> inf, b_c -> 0): a finite k_c
+    is a result only where the data reject the rigid limit; where they do not, k_c at any value the
+    optimiser stops at (e.g. 64 k_f with a 0.6 % linearised u on a rigid rig) is confidently wrong."""
+    return CouplingShown(float(chi2_stiff - chi2_coupled), float(chi2_dist.isf(COUPLING_P, 2)))
+
+
 def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None = None, *,
                 inputs: IdentInputs | None = None, response: CheckedResponse | None = None) -> IdentificationResult:
     """Frequency-domain estimator with input checks, assumptions and budget (module docstring).
 
     model_key 'auto': Eq. 9, or Eq. 8 when Eq. 9 misfits (chi2/dof significantly > 1) and the
-    coupled model determines k_c and fits (chi2/dof consistent with the noise)."""
+    coupled model determines k_c and S, k_f, b_f with it and fits (chi2/dof consistent with the noise);
+    a coupled fit that leaves the transducer's parameters undetermined explains nothing, and would hide
+    Eq. 9's misfit and the findings that name its cause."""
     inputs = inputs or inputs_for(rec)
     policy = replace(policy or Policy(), phase_floor_rad=inputs.chain.floor_phase_rad,
                      gain_floor=inputs.chain.floor_gain)
@@ -137,7 +168,12 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
         th0 = np.r_[fit.theta, 10 * fit.theta[1], 0.1 * fit.theta[2]]
         cfit, crep = fd_fit(frf, cm, th0, policy)
         c2, s2 = cfit.chi2 / max(cfit.dof, 1), fit.chi2 / max(fit.dof, 1)
-        if crep.identifiable[3] and (not auto or (c2 < 0.25 * s2 and not cfit.inflated)):
+        shown = coupling_shown(fit.chi2, cfit.chi2)
+        if crep.identifiable[3] and not shown:
+            crep = replace(crep, identifiable=(*crep.identifiable[:3], False, False), reasons=(
+                *crep.reasons[:3], shown.reason, "b_c is meaningless without k_c"))
+        determines = crep.identifiable[3] and (not auto or all(crep.identifiable[:3]))
+        if determines and (not auto or (c2 < 0.25 * s2 and not cfit.inflated)):
             if auto:
                 notes.append(f"model chosen: coupled (Eq. 8), chi2/dof {c2:.3g} against {s2:.3g} for Eq. 9")
             fit, rep, model = cfit, crep, cm

@@ -140,19 +140,24 @@ def whitened_jacobian(model: Model, theta: FloatArray, frf: FrequencyResponse,
     return np.einsum("fij,fjk->fik", W, Jr).reshape(-1, theta.size)
 
 
+LOG_RANGE = float(np.log(1e15))  # a parameter moves at most 1e15-fold from its start in a fit
+
+
 def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
             free: NDArray[np.bool_] | None = None, inflate: bool = True) -> FrfFit:
     """Weighted nonlinear LS (Levenberg-Marquardt) of the free parameters, others held at theta0.
 
     Parameters are optimised as p = ln(theta/theta0) (all physical parameters are positive except
-    that S may be negative for an inverted channel; its sign is kept)."""
+    that S may be negative for an inverted channel; its sign is kept), within +-``LOG_RANGE``: a
+    parameter the data leave free along a limit at infinity (b_c of a rigid coupling) would otherwise
+    walk to 1e293 and overflow its covariance; at 1e15 times its start it is in that limit already."""
     theta0 = np.asarray(theta0, float)
     free = np.ones(theta0.size, bool) if free is None else np.asarray(free, bool)
     W = whiteners(frf.cov)
 
     def theta_of(p: FloatArray) -> FloatArray:
         th = theta0.copy()
-        th[free] = theta0[free] * np.exp(p)
+        th[free] = theta0[free] * np.exp(np.clip(p, -LOG_RANGE, LOG_RANGE))
         return th
 
     history: list[float] = []
@@ -169,7 +174,9 @@ def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
 
     def jac(p: FloatArray) -> FloatArray:
         history.extend(last)  # the cost at the point the iteration starts from
-        return whitened_jacobian(model, theta_of(p), frf)[:, free]
+        J = whitened_jacobian(model, theta_of(p), frf)[:, free]
+        J[:, np.abs(p) >= LOG_RANGE] = 0.0  # held at the end of its range: the residual no longer moves
+        return J
 
     n_res = 2 * frf.f_hz.size
     method = "lm" if n_res >= int(free.sum()) else "trf"
