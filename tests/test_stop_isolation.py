@@ -530,3 +530,34 @@ def test_real_daemon_stop_with_the_database_locked_and_a_drive_that_ignores_it(t
             emu.ignore_stops(False)
             assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
             assert c.get("/health").json()["drive"]["standstill"] is True
+
+
+class _IdleConnection:
+    """An idle keep-alive connection as the cap sees it: a real socket behind a transport, closed by
+    ``_close`` (what ``make_room`` calls)."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock, self.closed = sock, False
+        self.transport = self
+
+    def get_extra_info(self, name: str) -> Any:
+        return self.sock if name == "socket" else None
+
+    def _close(self) -> None:
+        self.closed = True
+
+
+def test_the_cap_never_closes_an_idle_connection_whose_next_request_is_in_the_kernel() -> None:
+    """An idle keep-alive connection reused just as a flood arrives: its request's bytes are in the
+    kernel, unread; closing it would answer the client with a reset.  The cap passes it over and
+    closes the next idle one."""
+    bounds = ConnectionBounds(max_connections=1, header_timeout_s=10.0)
+    a_server, a_client = socket.socketpair()
+    b_server, b_client = socket.socketpair()
+    with a_server, a_client, b_server, b_client:
+        reused, quiet = _IdleConnection(a_server), _IdleConnection(b_server)
+        bounds.idle[1], bounds.idle[2] = reused, quiet  # type: ignore[assignment]  # the oldest first
+        a_client.sendall(b"GET /health HTTP/1.1\r\nHost: localhost\r\n\r\n")
+        bounds.open = 2
+        bounds.make_room()
+        assert not reused.closed and quiet.closed and bounds.evicted == 1

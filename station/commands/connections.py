@@ -118,11 +118,21 @@ class ConnectionBounds:
     def make_room(self) -> None:
         """Close idle, then silent, connections until the cap holds (or nothing may be closed)."""
         while self.open > self.max_connections:
-            oldest = self.idle.popitem(last=False)[1] if self.idle else self._silent(any_age=self.open > self.ceiling)
+            oldest = self._idle() or self._silent(any_age=self.open > self.ceiling)
             if oldest is None:
                 return
             self.note_eviction()
             oldest._close()
+
+    def _idle(self) -> BoundedH11Protocol | None:
+        """The oldest idle connection with nothing of its next request waiting in the kernel (one
+        whose request is waiting is reused just now: its head is arriving, and closing it would
+        answer the client with a reset)."""
+        while self.idle:
+            conn = self.idle.popitem(last=False)[1]
+            if pending_bytes(conn.transport) == 0:
+                return conn
+        return None
 
     def _silent(self, *, any_age: bool) -> BoundedH11Protocol | None:
         """The oldest new connection with nothing received, not even in the kernel (those whose
