@@ -247,8 +247,8 @@ class Runs:
         live.proc = proc
         if live.abort_reason:
             proc.abort(live.abort_reason)
+        await self._note_run(rig, live.row.id)  # before the run shows as running: a stop then names it
         self._post(self._update, live, {"state": "running", "started": time.time(), "message": "starting"})
-        await self._note_run(rig, live.row.id)
         try:
             return await proc.execute()
         finally:
