@@ -19,7 +19,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -96,12 +95,8 @@ def linearised(design: RigData, fit: ModelFit, eps: float = 1e-4
     (forward differences), for choosing steps by linear algebra on row subsets."""
     prob = Problem(design, fit.effects, fit.values)
     u = np.zeros(len(prob.params))
-    r0 = prob.residual(cast(Sequence[float], u))
-    J = np.empty((r0.size, u.size))
-    for j in range(u.size):
-        du = u.copy()
-        du[j] += eps
-        J[:, j] = (prob.residual(cast(Sequence[float], du)) - r0) / eps
+    r0 = prob.residual(u)
+    J = prob.jacobian(u, step=eps)
     rows = np.concatenate([np.nonzero(prob.valid_f)[0], np.nonzero(prob.valid_d)[0]])
     return r0, J, rows, prob
 

@@ -10,6 +10,11 @@ The time-domain gap of a model is  gap = sqrt(sum_s (ssr_s + sigma_s^2 ||W_f (c_
 R_x (c_f - m_f)||^2) / sum_s N_s) (the last term: lines outside the catalogue, see ``data``),
 the RMS of the force signal minus the simulated force signal over all record windows (V).
 
+The Jacobian: forward differences in the internal variables for the parameters the model depends on
+non-linearly (or through a product with another parameter); for the additive ones (the offset, the
+zero drift, the per-step mains phasors: m is affine in each, with a coefficient no other parameter
+changes) its column is constant and taken once per problem.
+
 Covariance of the estimates: (J^T J)^-1 of the whitened Jacobian, inflated by chi^2/dof when that is
 significantly above 1 (p < 1 %; Birge ratio: a model that does not describe the data gets honest,
 larger uncertainties).
@@ -19,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -82,6 +88,16 @@ class ModelFit:
 
 
 _EIV: dict[int, tuple[RigData, FloatArray]] = {}
+_REL_STEP = math.sqrt(np.finfo(float).eps)
+_ADDITIVE = re.compile(r"offset_V|rate_V_per_s|quadratic_V_per_s2|(dc|slope|curv)_s\d+|(re|im)_\d+_s\d+")
+
+
+def is_additive(name: str) -> bool:
+    """Whether the model is affine in the parameter with a coefficient no other parameter changes
+    (``predict``): the offset, the zero drift (common clock or per step) and the per-step mains
+    phasors.  The common-clock mains phasors are not (their coefficient depends on the mains
+    frequency), nor is S (it multiplies the force)."""
+    return _ADDITIVE.fullmatch(name) is not None
 
 
 def _whitening(data: RigData, Wf: FloatArray) -> FloatArray:
@@ -120,6 +136,9 @@ class Problem:
         # the residual E W_f (c_f - m) as E W_f c_f - (E W_f) m: one product per evaluation
         self.EW = np.einsum("sij,sjk->sik", self.eiv, self.Wf)
         self.EWc = np.einsum("sij,sj->si", self.EW, data.cf)
+        self.additive = tuple(i for i, q in enumerate(self.params) if is_additive(q.name))
+        self._columns: FloatArray | None = None
+        self._last: tuple[bytes, FloatArray] | None = None
 
     def to_value(self, q: Param, u: float) -> float:
         c, s = self.centre[q.name], self.scale[q.name]
@@ -157,8 +176,54 @@ class Problem:
     def residual(self, u: Sequence[float] | FloatArray) -> FloatArray:
         """The EIV-whitened force residual rows (the model takes the measured motion as its input:
         no displacement rows, ``valid_d``)."""
+        key = np.asarray(u, dtype=float).tobytes()
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
         m, _, _ = predict(self.data, self.values(u), self.effects)
-        return (self.EWc - np.einsum("sij,sj->si", self.EW, m))[self.valid_f]
+        r = (self.EWc - np.einsum("sij,sj->si", self.EW, m))[self.valid_f]
+        r.flags.writeable = False
+        self._last = (key, r)
+        return r
+
+    def _additive_columns(self) -> FloatArray:
+        """The constant Jacobian columns of the additive parameters, (n_rows, n_additive): the exact
+        difference of a unit step in each (m is affine in it)."""
+        if self._columns is None:
+            u0 = np.zeros(len(self.params))
+            r0 = self.residual(u0)
+            cols = np.empty((r0.size, len(self.additive)))
+            for c, j in enumerate(self.additive):
+                du = u0.copy()
+                du[j] = 1.0
+                cols[:, c] = self.residual(du) - r0
+            self._columns = cols
+        return self._columns
+
+    def jacobian(self, u: Sequence[float] | FloatArray, step: float | None = None) -> FloatArray:
+        """d residual / d u, (n_rows, n_par): forward differences (relative step sqrt(machine
+        epsilon) as ``least_squares`` takes them, reversed at an upper bound; or the absolute
+        ``step``) for the non-additive parameters, the constant columns for the additive ones."""
+        x = np.asarray(u, dtype=float)
+        r0 = self.residual(x)
+        J = np.empty((r0.size, x.size))
+        if self.additive:
+            J[:, list(self.additive)] = self._additive_columns()
+        lo, hi = self.bounds()
+        additive = set(self.additive)
+        for j in range(x.size):
+            if j in additive:
+                continue
+            if step is None:
+                h = _REL_STEP * (1.0 if x[j] >= 0 else -1.0) * max(1.0, abs(x[j]))
+                if not lo[j] <= x[j] + h <= hi[j] and lo[j] <= x[j] - h <= hi[j]:
+                    h = -h
+            else:
+                h = step
+            du = x.copy()
+            du[j] += h
+            h = du[j] - x[j]
+            J[:, j] = (self.residual(du) - r0) / h
+        return J
 
     def n_obs(self) -> int:
         return int(self.valid_f.sum() + self.valid_d.sum())
@@ -200,7 +265,7 @@ def _fit_model(data: RigData, effects: Mapping[str, int], start: Mapping[str, fl
     prob = Problem(data, effects, start)
     lo, hi = prob.bounds()
     u0 = np.clip(np.zeros(len(prob.params)), lo, hi)
-    res = least_squares(prob.residual, u0, bounds=(lo, hi), method="trf", x_scale=1.0,
+    res = least_squares(prob.residual, u0, jac=prob.jacobian, bounds=(lo, hi), method="trf", x_scale=1.0,
                         xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev)
     return finish(prob, res.x, res.jac, bool(res.success))
 
@@ -236,11 +301,7 @@ def profiled_chi2(prob: Problem, u: FloatArray, eps: float = 1e-4) -> float:
     """chi^2 minimised over all free parameters to first order around u: ||(I - P_J) r||^2 with J
     the numerical Jacobian (forward differences of step eps in u).  Exact for linear parameters."""
     r0 = prob.residual(u)
-    J = np.empty((r0.size, u.size))
-    for j in range(u.size):
-        du = u.copy()
-        du[j] += eps
-        J[:, j] = (prob.residual(du) - r0) / eps
+    J = prob.jacobian(u, step=eps)
     coef, *_ = np.linalg.lstsq(J, r0, rcond=None)
     r = r0 - J @ coef
     return float(r @ r)

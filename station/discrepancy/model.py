@@ -28,8 +28,10 @@ Output: model coefficients in the force slots (n, n_f) and displacement-harmonic
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections import OrderedDict
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import TypeVar, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +45,7 @@ from station.discrepancy.eiv import measured_motion
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
 N_GRID = 64
+_T = TypeVar("_T")
 
 
 def crank_displacement_harmonics(x1: ComplexArray, kappa: float, K: int) -> ComplexArray:
@@ -118,6 +121,49 @@ def _drive(data: RigData) -> _Drive:
     return out
 
 
+_STAGES: OrderedDict[tuple[object, ...], tuple[RigData, object]] = OrderedDict()
+
+
+def _stage(data: RigData, key: tuple[object, ...], make: Callable[[], _T]) -> _T:
+    """A stage of ``predict`` for ``data`` given again for the same inputs ``key``: a Jacobian's
+    forward differences change one parameter at a time, so most stages of each evaluation are those
+    of the point it is taken at (the values are exactly those computed anew, read-only; the most
+    recently used are kept)."""
+    k = (id(data), *key)
+    hit = _STAGES.get(k)
+    if hit is not None and hit[0] is data:
+        _STAGES.move_to_end(k)
+        return cast(_T, hit[1])
+    value = make()
+    for a in value if isinstance(value, tuple) else (value,):
+        if isinstance(a, np.ndarray):
+            a.flags.writeable = False
+    _STAGES[k] = (data, value)
+    if len(_STAGES) > 48:
+        _STAGES.popitem(last=False)
+    return value
+
+
+def _motion(data: RigData, dr: _Drive, p: Mapping[str, float], effects: Mapping[str, int]) -> ComplexArray:
+    """The frame motion at the force sample instants, x_k (n, K) m (steps 1-2 of the module)."""
+    Om, x = dr.Om, dr.D
+    if "channel_delay" in effects:
+        x = x * np.exp(1j * Om * p["delay_s"])
+    if "clock_skew" in effects:  # the displacement sample taken clock_skew * t after the force sample at t
+        x = x * np.exp(-1j * Om * p["clock_skew"] * data.t_mid_s[:, None])
+    if "displacement_resonance" in effects:  # the recorded motion is H_s x_b: the frame's is D / H_s
+        x = x / DisplacementResonance(p["sensor_resonance_hz"], p["sensor_damping"]).response(dr.f)
+    return x
+
+
+def _spring(data: RigData, dr: _Drive, p: Mapping[str, float], coupled: bool) -> ComplexArray:
+    """G(Omega_k) s^2 (n, K) N/m (step 3), S not involved."""
+    t = Transducer(k_f=p["k_f"], b_f=p["b_f"], m_e=data.end_mass_kg, m_l=data.load_mass_kg,
+                   sensitivity_V_per_N=1.0, capacity_N=data.capacity_N)
+    cpl = CouplingCompliance(p["k_c"], p["b_c"]) if coupled else None
+    return np.asarray(spring_force_per_acceleration(t, cpl, dr.f) * dr.s2, dtype=np.complex128)
+
+
 def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
             ) -> tuple[FloatArray, FloatArray, ComplexArray]:
     """Model coefficients (force (n, n_f), displacement harmonics (n, n_d)) and V_1/X_1 (n,).
@@ -126,24 +172,24 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     effects: names of the effects switched on (value: the low-pass order, else ignored)."""
     n, K = data.n_steps, K_MAX
     dr = _drive(data)
-    Om, s, D = dr.Om, dr.s, dr.D
-    x = D * np.exp(1j * Om * p["delay_s"]) if "channel_delay" in effects else D
-    if "clock_skew" in effects:  # the displacement sample taken clock_skew * t after the force sample at t
-        x = x * np.exp(-1j * Om * p["clock_skew"] * data.t_mid_s[:, None])
-    if "displacement_resonance" in effects:  # the recorded motion is H_s x_b: the frame's is D / H_s
-        x = x / DisplacementResonance(p["sensor_resonance_hz"], p["sensor_damping"]).response(dr.f)
-    t = Transducer(k_f=p["k_f"], b_f=p["b_f"], m_e=data.end_mass_kg, m_l=data.load_mass_kg,
-                   sensitivity_V_per_N=p["S"], capacity_N=data.capacity_N)
-    cpl = CouplingCompliance(p["k_c"], p["b_c"]) if "coupling_compliance" in effects else None
-    Gk = spring_force_per_acceleration(t, cpl, dr.f) * dr.s2
-    Fk = Gk * x
+    s = dr.s
+    ident = tuple(effects.items())
+    xkey = (p.get("delay_s"), p.get("clock_skew"), p.get("sensor_resonance_hz"), p.get("sensor_damping"))
+    x = _stage(data, (*ident, "x", *xkey), lambda: _motion(data, dr, p, effects))
+    coupled = "coupling_compliance" in effects
+    gkey = (p["k_f"], p["b_f"], p.get("k_c") if coupled else None, p.get("b_c") if coupled else None)
+    Gk = _stage(data, (*ident, "G", *gkey), lambda: _spring(data, dr, p, coupled))
+    Fk = _stage(data, (*ident, "F", *xkey, *gkey), lambda: Gk * x)
     F0 = -data.total_mass_kg * G
     if "transducer_nonlinearity" in effects:
-        V0, Vk = _nonlinear_output(F0, Fk, p["S"], p["quadratic"], p["cubic"], data.capacity_N, K)
+        V0, Vk = _stage(data, (*ident, "V", *xkey, *gkey, p["S"], p["quadratic"], p["cubic"]),
+                        lambda: _nonlinear_output(F0, Fk, p["S"], p["quadratic"], p["cubic"],
+                                                  data.capacity_N, K))
     else:
         V0, Vk = np.full(n, p["S"] * F0), np.asarray(p["S"] * Fk, dtype=np.complex128)
     if "conditioner_lowpass" in effects:
-        Vk = Vk * butterworth(int(effects["conditioner_lowpass"]), p["cutoff_hz"], s)
+        order = int(effects["conditioner_lowpass"])
+        Vk = Vk * _stage(data, (*ident, "B", order, p["cutoff_hz"]), lambda: butterworth(order, p["cutoff_hz"], s))
     Vk = Vk * data.kmask
     h1 = Vk[:, 0] / data.x1
     nm = data.n_mains
