@@ -82,6 +82,7 @@ def completed(daemon: Daemon) -> dict:
 
 
 # ---------------------------------------------------------------------------------------- reading
+@pytest.mark.slow
 def test_health_reports_each_device_link(tmp_path: Path) -> None:
     rec_dir = tmp_path / "recordings"  # what an older station may have left: one flagged recording, one unreadable
     rec_dir.mkdir()
@@ -107,6 +108,7 @@ def test_health_reports_each_device_link(tmp_path: Path) -> None:
     assert [u["file"] for u in h["recordings"]["unreadable"]] == ["garbage.h5"]
 
 
+@pytest.mark.slow
 def test_station_shows_the_limits(tmp_path: Path) -> None:
     async def go(c: httpx.AsyncClient) -> dict:
         return (await c.get("/station")).json()
@@ -116,6 +118,7 @@ def test_station_shows_the_limits(tmp_path: Path) -> None:
     assert s["limits"]["peak_force_limit_N"] == pytest.approx(4000.0)
 
 
+@pytest.mark.slow
 def test_openapi_documents_every_endpoint(tmp_path: Path) -> None:
     async def go(c: httpx.AsyncClient) -> dict:
         return (await c.get("/openapi.json")).json()
@@ -134,6 +137,7 @@ def test_openapi_documents_every_endpoint(tmp_path: Path) -> None:
     assert "text/event-stream" in paths["/runs/{run_id}/events"]["get"]["responses"]["200"]["content"]
 
 
+@pytest.mark.slow
 def test_web_page_and_assets_are_served(tmp_path: Path) -> None:
     async def go(c: httpx.AsyncClient) -> tuple[httpx.Response, httpx.Response, httpx.Response]:
         return await c.get("/"), await c.get("/static/app.js"), await c.get("/static/style.css")
@@ -176,6 +180,7 @@ def test_results_of_a_live_run(daemon: Daemon, completed: dict) -> None:
     assert [round(s["frequency_hz"]) for s in res["frequency_response"]] == [10, 20]
 
 
+@pytest.mark.slow
 def test_runs_list_and_state_filter(seeded: tuple[Path, str]) -> None:
     rec, rid = seeded
 
@@ -190,6 +195,7 @@ def test_runs_list_and_state_filter(seeded: tuple[Path, str]) -> None:
     in_app(rec, go, token=False)
 
 
+@pytest.mark.slow
 def test_results_have_parameters_with_uncertainties_and_frf(seeded: tuple[Path, str]) -> None:
     rec, rid = seeded
 
@@ -257,6 +263,7 @@ def test_plots_report_recording_and_discrepancy(seeded: tuple[Path, str]) -> Non
     in_app(rec_dir, go, token=False, render=True)
 
 
+@pytest.mark.slow
 def test_discrepancy_takes_zero_to_eight_effects_as_an_integer(seeded: tuple[Path, str]) -> None:
     rec, rid = seeded
 
@@ -326,6 +333,7 @@ def test_malformed_json_is_422_not_500(tmp_path: Path) -> None:
     in_app(tmp_path, go)
 
 
+@pytest.mark.slow
 def test_unknown_runs_are_404_and_bad_ids_422(tmp_path: Path) -> None:
     async def go(c: httpx.AsyncClient) -> None:
         for path in ("", "/events", "/results", "/plots/bode.png", "/report", "/recording", "/discrepancy",
@@ -342,6 +350,7 @@ def test_unknown_runs_are_404_and_bad_ids_422(tmp_path: Path) -> None:
     in_app(tmp_path, go)
 
 
+@pytest.mark.slow
 def test_busy_rig_409_abort_and_results_states(tmp_path: Path) -> None:
     async def go(c: httpx.AsyncClient) -> None:
         rid = await start(c, freqs=(10.0,), record_s=30.0)
@@ -419,6 +428,7 @@ def test_emergency_stop_is_always_accepted(daemon: Daemon, tmp_path: Path) -> No
     assert h["estop"]["last_acknowledged_by"] == "admin"
 
 
+@pytest.mark.slow
 def test_reading_from_another_machine_needs_the_token_and_foreign_hosts_are_refused(tmp_path: Path) -> None:
     from station.api import create_app
     from station.service.settings import load_settings

@@ -37,6 +37,7 @@ def openapi(tmp: Path) -> dict[str, Any]:
     return app.openapi()
 
 
+@pytest.mark.slow
 def test_closed_sets_are_enumerations_and_results_are_typed(tmp_path: Path) -> None:
     spec = openapi(tmp_path)
     schemas = spec["components"]["schemas"]

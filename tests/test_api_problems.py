@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 
 from station.api.problems import KINDS, MEDIA_TYPE, TYPE_PREFIX
 from station.api.schemas import Problem, ValidationProblem
@@ -30,6 +31,7 @@ def _check(r: httpx.Response, status: int, kind: str) -> dict[str, Any]:
     return body
 
 
+@pytest.mark.slow
 def test_every_error_response_of_the_openapi_document_is_problem_details(tmp_path: Path) -> None:
     async def go() -> dict[str, Any]:
         async with app_in_process(tmp_path / "rec") as (_, c):

@@ -67,6 +67,7 @@ def history(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
 
 # -- the drift rule -------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_drift_rule_flags_an_injected_step_and_nothing_on_stable_histories() -> None:
     rng = np.random.default_rng(0)
     flags = judged = 0
@@ -170,6 +171,7 @@ def test_scope_selection(history: dict) -> None:
         parse_when("yesterday")
 
 
+@pytest.mark.slow
 def test_station_batch_flags_the_injected_drift(history: dict, tmp_path: Path,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "summary"
@@ -229,6 +231,7 @@ def test_each_listed_method_is_its_own_drift_series(tmp_path: Path) -> None:
     assert len(doc["runs"]) == 13 and doc["flagged"] == []
 
 
+@pytest.mark.slow
 def test_a_recording_gives_one_item_per_listed_method(history: dict, tmp_path: Path) -> None:
     from station.batch.worker import identify_listed
 

@@ -54,6 +54,7 @@ def _check_against_the_truth(out: dict[str, Any], truth: dict[str, float]) -> No
         assert f.attrs["software_version"]
 
 
+@pytest.mark.slow
 def test_calibration_on_the_virtual_clock_identifies_the_truth(tmp_path: Path) -> None:
     d = _config()
     cfg = parse_config(d, "e2e")

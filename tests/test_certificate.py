@@ -46,6 +46,7 @@ def _pdf_text(pdf: bytes) -> str:
     return "\n".join(p.extract_text() for p in PdfReader(io.BytesIO(pdf)).pages)
 
 
+@pytest.mark.slow
 def test_draft_states_the_iso17025_content(stored: Path) -> None:
     c = certificate_content(stored)
     html = certificate_html(c)

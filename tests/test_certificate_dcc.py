@@ -29,6 +29,7 @@ def issued_content(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
                                              "2026-11-24T12:00:00+00:00"))
 
 
+@pytest.mark.slow
 def test_dcc_passes_ptbs_schematron_and_carries_the_results(issued_content: dict[str, Any]) -> None:
     from dcclib.validation.schematron import SchematronValidator
     from dsi_unit import DsiUnit

@@ -61,6 +61,7 @@ def test_effective_dof_and_k() -> None:
     assert coverage(ParameterBudget.of({"noise": 1.0}, 1.0, "N/m")).k == pytest.approx(1.95996, abs=1e-5)
 
 
+@pytest.mark.slow
 def test_monte_carlo_agrees_with_the_linear_budget(identified) -> None:  # type: ignore[no-untyped-def]
     """GUM S1: 600 refits of draws of every propagated source; u and the 95 % interval of the trials
     against the linear budget's u and y +- k u (within the Monte Carlo's own sampling error)."""

@@ -75,6 +75,7 @@ def test_drift_without_common_clock_names_nothing_implausible(seed: int, tmp_pat
     _honest(rep)
 
 
+@pytest.mark.slow
 def test_one_step_is_analysed_not_refused(tmp_path: Path) -> None:
     """One step (35 Hz): the report is made; S, k_f, b_f are not identifiable from one fundamental."""
     rep = analyse_recording(_imported(tmp_path, {}, 5, keep=[2], own_origins=False, n_steps=4))

@@ -62,6 +62,7 @@ def _truth(name: str, cfg: dict, fs_S: float) -> dict[str, float]:
 
 
 @pytest.mark.parametrize("name", CATALOGUE)
+@pytest.mark.slow
 def test_model_reproduces_the_simulator(name: str, tmp_path) -> None:
     """Recording with one effect drawn at random: the model with the true parameters leaves a
     whitened residual at the noise level (chi2/n near 1), while the model without the effect does

@@ -65,6 +65,7 @@ def test_planned_step_weights_match_a_measured_decomposition(tmp_path: Path) -> 
     assert expected_chi2(with_model(plan, base), base) < 1e-6
 
 
+@pytest.mark.slow
 def test_candidate_steps_stay_within_the_limits_under_every_model(tmp_path: Path) -> None:
     cfg = tie_config()
     rec = simulate_run(cfg, tmp_path, seed=SEED)

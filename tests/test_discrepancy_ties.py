@@ -102,6 +102,7 @@ def test_small_delay_is_named_or_shown_undetectable(delay_s: float, tmp_path: Pa
     _honest(rep)
 
 
+@pytest.mark.slow
 def test_json_carries_every_note_the_text_shows(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Three steps: the text output notes that coupling, low-pass and delay are hardly separable; the
     JSON carries the same notes."""

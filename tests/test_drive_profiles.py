@@ -182,6 +182,7 @@ def calibrate(tmp_path: Path, profile: str, *, wire: bool = False) -> tuple[obje
 
 
 @pytest.mark.parametrize("name", PROFILES)
+@pytest.mark.slow
 def test_simulated_calibration_on_every_profile(tmp_path: Path, name: str) -> None:
     outcome, writes, commands = calibrate(tmp_path, name)
     assert outcome.exit_status == "completed", outcome.reason  # type: ignore[attr-defined]
@@ -241,6 +242,7 @@ watchdog: {register: comm_loss, timeout_s: 1.0, min_s: 0.1}
 """
 
 
+@pytest.mark.slow
 def test_a_profile_added_from_yaml_alone_runs(tmp_path: Path) -> None:
     path = tmp_path / "acme-vfd.yaml"
     path.write_text(NEW_DRIVE)

@@ -328,6 +328,7 @@ class SilentOnWrites:
             return
 
 
+@pytest.mark.slow
 def test_a_command_word_is_sent_once_a_set_point_may_be_sent_again() -> None:
     """With two retries in the link policy, a command word that gets no reply went out once (the
     error says so); the set point, which the profile lists as idempotent, is sent three times."""

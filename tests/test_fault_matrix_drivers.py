@@ -58,6 +58,7 @@ time.sleep(60)
 """
 
 
+@pytest.mark.slow
 def test_station_killed_mid_run_then_a_new_run() -> None:
     """the station killed mid-run, then a new run | refused with a traceback: the bridge is still
     streaming (`ERR 3 busy: expected STOP before CONF`)"""
@@ -90,6 +91,7 @@ def test_station_killed_mid_run_then_a_new_run() -> None:
             daq.close()
 
 
+@pytest.mark.slow
 def test_a_daq_command_that_times_out(bridge_pty: tuple[DaqEmulator, str]) -> None:
     """a DAQ command that times out | its late reply is taken as the answer to the next command"""
     emu, path = bridge_pty

@@ -57,6 +57,7 @@ def _assert_clear_4xx(r: httpx.Response, expected: tuple[int, ...], what: str) -
     assert r.json()["detail"], what
 
 
+@pytest.mark.slow
 def test_every_bad_body_on_every_post_endpoint_is_a_clear_4xx(tmp_path: Path) -> None:
     """| non-UTF-8 bodies | 500 with a 5.4 kB traceback on `POST /runs`, `/stop/acknowledge`,
     `/campaigns` for every non-JSON content type (octet-stream, text/plain, form, multipart) |"""
@@ -203,6 +204,7 @@ def test_configuration_yaml_is_bounded_the_same_way(tmp_path: Path) -> None:
 
 
 # --------------------------------------------------------------------------------------- secrets
+@pytest.mark.slow
 def test_an_invalid_token_is_never_printed(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                            monkeypatch: pytest.MonkeyPatch) -> None:
     """| token echoed | an invalid configured token (e.g. with spaces) is printed in the start-up error |"""
@@ -391,6 +393,7 @@ def _station_db(rec: Path, runs: int = 200) -> Path:
 
 
 @pytest.mark.parametrize("damage", ["truncated", "garbage", "locked"])
+@pytest.mark.slow
 def test_a_damaged_or_locked_database_at_start_is_one_clear_message(
         damage: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
     """| damaged database at start | truncated, garbage or locked `station.db`: exit 3 with a traceback

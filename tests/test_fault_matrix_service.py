@@ -43,6 +43,7 @@ from tests.station_support import (
 
 
 # ---------------------------------------------------------------------------------------- row 1
+@pytest.mark.slow
 def test_stop_latches_until_an_operator_acknowledges(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """| `POST /stop`, or the controller's e-stop fault, then a new run | the next run clears the latched
     fault itself (`reset_faults()` at every start) and moves the crank; nothing is logged |"""
@@ -84,6 +85,7 @@ def test_stop_latches_until_an_operator_acknowledges(tmp_path: Path, caplog: pyt
     assert "emergency stop latched (source page)" in text and "acknowledged by admin" in text and "A. Tech" in text
 
 
+@pytest.mark.slow
 def test_controller_estop_fault_latches_and_a_fault_at_start_is_not_cleared(tmp_path: Path) -> None:
     """| `POST /stop`, or the controller's e-stop fault, then a new run | the next run clears the latched
     fault itself (`reset_faults()` at every start) and moves the crank; nothing is logged |"""
@@ -236,6 +238,7 @@ def _open_fds(name: str) -> list[str]:
 
 
 @pytest.mark.parametrize("guard", ["writer guard off", "writer guard on"])
+@pytest.mark.slow
 def test_a_real_full_disk_fails_the_run_with_its_cause_and_frees_the_rig(
         tmp_path: Path, small_disk: Path, guard: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """| a real ENOSPC during a run | the API says failed, the database says running, the run holds the

@@ -296,6 +296,7 @@ def test_samples_lost_before_the_core_are_a_gap_of_whole_frames_at_their_positio
         ("3", "1"), ("11", "1"), ("12", "2"), ("14", "1")]
 
 
+@pytest.mark.slow
 def test_fifo_overflow_is_reported_as_a_gap_at_the_dropped_frames(start_firmware) -> None:
     # the link stops taking bytes at frame 5 for 0.4 s: a 16 KiB FIFO holds ~14 frames of the ~31 produced
     fw = start_firmware("--source", "counter", "--fifo-bytes", "16384", "--tx-block-at", "5", "--tx-block-ms", "400")

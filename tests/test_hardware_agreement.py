@@ -65,6 +65,7 @@ def test_the_shipped_crank_drive_refuses_ramps_above_100_hz_per_s() -> None:
         assert plan_run(cfg, default_request(cfg)).config.rig.acceleration_hz_per_s == at_limit
 
 
+@pytest.mark.slow
 def test_the_api_answers_422_at_the_configuration_field_and_writes_nothing_to_the_drive(tmp_path: Path) -> None:
     hi = load_profile("sinecal-crank").device.max_ramp_hz_per_s
     d = daemon_config(tmp_path)
@@ -89,6 +90,7 @@ def test_the_api_answers_422_at_the_configuration_field_and_writes_nothing_to_th
     asyncio.run(go())
 
 
+@pytest.mark.slow
 def test_at_the_drives_fastest_ramp_a_run_goes_through_and_the_drive_takes_it(tmp_path: Path) -> None:
     hi = load_profile("sinecal-crank").device.max_ramp_hz_per_s
     d = daemon_config(tmp_path)

@@ -155,6 +155,7 @@ def test_the_api_sets_the_policy_records_an_adjustment_and_serves_the_trends(tmp
     asyncio.run(go())
 
 
+@pytest.mark.slow
 def test_an_out_of_control_check_transducer_holds_the_certificates_since_its_last_good_point(lab) -> None:
     store, rec = lab
     ids = add_runs(store, rec, 14, step_at=13, step_u=8.0)

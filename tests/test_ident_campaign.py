@@ -43,6 +43,7 @@ def alike(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     return _sim(tmp_path_factory.mktemp("alike"), (25.717, 25.9), seed=31)
 
 
+@pytest.mark.slow
 def test_three_top_masses_recover_the_end_mass_within_its_uncertainty(three: list[Path]) -> None:
     res = identify_campaign([read_recording(p) for p in three])
     assert res.status == "separated"
@@ -72,6 +73,7 @@ def test_three_top_masses_recover_the_end_mass_within_its_uncertainty(three: lis
     assert res.assumptions.structure.to_dict()["coupling"]["assumed"] == "stiff"
 
 
+@pytest.mark.slow
 def test_nearly_equal_top_masses_are_too_alike(alike: list[Path]) -> None:
     res = identify_campaign([read_recording(p) for p in alike])
     sep = next(c for c in res.checks if c.name == "end_mass_separation")
@@ -83,6 +85,7 @@ def test_nearly_equal_top_masses_are_too_alike(alike: list[Path]) -> None:
     assert "end_mass" in res.budget["S"].stds
 
 
+@pytest.mark.slow
 def test_too_alike_without_a_stated_end_mass_is_refused(alike: list[Path]) -> None:
     recs = [replace(read_recording(p), end_mass_kg=None) for p in alike]
     res = identify_campaign(recs)
@@ -94,6 +97,7 @@ def test_too_alike_without_a_stated_end_mass_is_refused(alike: list[Path]) -> No
         assert abs(d.value - truth) < 4 * d.combined + 2e-4 * truth
 
 
+@pytest.mark.slow
 def test_one_recording_is_conditional_or_refused(three: list[Path]) -> None:
     rec = read_recording(three[2])
     res = identify_campaign([rec])
@@ -121,6 +125,7 @@ def test_recordings_of_different_transducers_are_refused(three: list[Path]) -> N
         identify_campaign(recs)
 
 
+@pytest.mark.slow
 def test_a_mistyped_top_mass_is_not_a_confident_number(three: list[Path]) -> None:
     recs = [read_recording(p) for p in three]
     recs[0] = replace(recs[0], load_mass_kg=recs[0].load_mass_kg * 1.02)  # 2 % typo
@@ -130,6 +135,7 @@ def test_a_mistyped_top_mass_is_not_a_confident_number(three: list[Path]) -> Non
     assert res.status == "refused" and all(p.value is None for p in res.parameters.values())
 
 
+@pytest.mark.slow
 def test_with_four_masses_the_mistyped_one_is_named(three: list[Path], tmp_path: Path) -> None:
     recs = [read_recording(p) for p in [*three, *_sim(tmp_path, (10.0,), seed=41)]]
     recs[2] = replace(recs[2], load_mass_kg=recs[2].load_mass_kg * 1.01)
@@ -148,6 +154,7 @@ def test_two_masses_fit_any_stated_masses_but_the_stated_end_mass_catches_a_typo
     assert "end_mass_negative" in names
 
 
+@pytest.mark.slow
 def test_polarity_is_kept_and_a_mixed_polarity_refused(three: list[Path]) -> None:
     recs = [read_recording(p) for p in three]
     flipped = [replace(r, force_V=-r.force_V) for r in recs]

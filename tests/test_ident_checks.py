@@ -54,6 +54,7 @@ def test_clean_run_no_findings_and_the_budget_adds_up(base: Path) -> None:
     assert res.assumptions.end_mass.to_dict() == {"value": ME, "std": pytest.approx(0.006), "source": "config"}
 
 
+@pytest.mark.slow
 def test_missing_end_mass_is_conditional_and_the_data_still_give_S_M_and_f0(base: Path, tmp_path: Path) -> None:
     rec = via_csv(base, tmp_path, doc=lambda d: d.pop("end_mass_kg"))
     res = identify_recording(read_recording(rec))
@@ -71,6 +72,7 @@ def test_missing_end_mass_is_conditional_and_the_data_still_give_S_M_and_f0(base
     assert res.parameter("S").value / S - 1 == pytest.approx(ME / ML, rel=0.02)
 
 
+@pytest.mark.slow
 def test_end_mass_with_its_uncertainty_from_run_yaml(base: Path, tmp_path: Path) -> None:
     rec = via_csv(base, tmp_path, doc=lambda d: d.update(end_mass_std_kg=0.03))
     res = identify_recording(read_recording(rec))
@@ -80,6 +82,7 @@ def test_end_mass_with_its_uncertainty_from_run_yaml(base: Path, tmp_path: Path)
     assert within(res.parameter("k_f"), K)
 
 
+@pytest.mark.slow
 def test_inverted_polarity_gives_a_negative_S_and_the_right_k_f(base: Path, tmp_path: Path) -> None:
     def neg(a: np.ndarray) -> np.ndarray:
         a[:, 2] *= -1
@@ -92,6 +95,7 @@ def test_inverted_polarity_gives_a_negative_S_and_the_right_k_f(base: Path, tmp_
     assert pol and pol[0].severity == "info" and pol[0].values["sign"] == -1
 
 
+@pytest.mark.slow
 def test_polarity_against_the_nominal_sign_is_a_warning(base: Path, tmp_path: Path) -> None:
     rec = via_csv(base, tmp_path, doc=lambda d: d["transducer"].update(sensitivity_V_per_N=-2e-3))
     res = identify_recording(read_recording(rec))
@@ -104,6 +108,7 @@ def test_polarity_against_the_nominal_sign_is_a_warning(base: Path, tmp_path: Pa
     ("noise only", lambda a: np.column_stack([a[:, :2], np.random.default_rng(1).normal(0, 1e-3, len(a))]),
      "no_signal"),
 ])
+@pytest.mark.slow
 def test_a_bad_force_channel_leaves_its_step_out(base: Path, tmp_path: Path, case: str, fn: Callable,
                                                  check: str) -> None:
     rec = via_csv(base, tmp_path, step={2: fn})
@@ -125,6 +130,7 @@ def test_clipped_channels_leave_their_step_out(tmp_path: Path) -> None:
     assert within(res.parameter("k_f"), K) and within(res.parameter("b_f"), B)
 
 
+@pytest.mark.slow
 def test_displacement_in_mm_is_refused(base: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     def mm(a: np.ndarray) -> np.ndarray:
         a[:, 1] *= 1000
@@ -137,6 +143,7 @@ def test_displacement_in_mm_is_refused(base: Path, tmp_path: Path, capsys: pytes
     assert doc["refused"] and "displacement_units" in {c["name"] for c in doc["checks"]}
 
 
+@pytest.mark.slow
 def test_swapped_columns_are_refused(base: Path, tmp_path: Path) -> None:
     rec = via_csv(base, tmp_path, step=each_step(len(PLAN), lambda a: a[:, [0, 2, 1]]))
     with pytest.raises(IdentificationRefused, match="swapped") as exc:
@@ -144,6 +151,7 @@ def test_swapped_columns_are_refused(base: Path, tmp_path: Path) -> None:
     assert "channels_swapped" in {c.name for c in exc.value.checks if c.severity == "refused"}
 
 
+@pytest.mark.slow
 def test_top_mass_ten_times_too_small_is_refused(base: Path, tmp_path: Path) -> None:
     rec = via_csv(base, tmp_path, doc=lambda d: d.update(top_mass_kg=d["top_mass_kg"] / 10))
     with pytest.raises(IdentificationRefused, match="top mass") as exc:
@@ -153,6 +161,7 @@ def test_top_mass_ten_times_too_small_is_refused(base: Path, tmp_path: Path) -> 
                                                                             rel=0.01)
 
 
+@pytest.mark.slow
 def test_a_slipping_crank_is_fitted_at_its_real_frequency(tmp_path: Path) -> None:
     slow = tuple((0.98 * f, r) for f, r in PLAN)
     rec = via_csv(sim(tmp_path, slow), tmp_path,
@@ -164,6 +173,7 @@ def test_a_slipping_crank_is_fitted_at_its_real_frequency(tmp_path: Path) -> Non
     assert within(res.parameter("k_f"), K) and within(res.parameter("b_f"), B)
 
 
+@pytest.mark.slow
 def test_a_step_labelled_9_hz_that_ran_at_8_is_named_and_fitted_at_8(tmp_path: Path) -> None:
     plan = tuple((f, R) for f in (4.0, 8.0, 30.0, 60.0, 100.0))
     rec = via_csv(sim(tmp_path, plan), tmp_path, doc=lambda d: d["steps"][1].update(crank_frequency_hz=9.0))
@@ -193,6 +203,7 @@ def test_4_hz_reason_numbers_come_from_the_estimate(tmp_path: Path) -> None:
     assert deg == pytest.approx(truth, rel=0.05)
 
 
+@pytest.mark.slow
 def test_3_to_40_hz_plan_gives_b_f_with_value_and_uncertainty(tmp_path: Path) -> None:
     plan = tuple((f, 1.5e-3) for f in (3.0, 10.0, 20.0, 40.0))
     path = sim(tmp_path, plan)
@@ -207,6 +218,7 @@ def test_3_to_40_hz_plan_gives_b_f_with_value_and_uncertainty(tmp_path: Path) ->
     assert "poorly determined" in b.reason and res.budget["b_f"].stds["chain_phase"] > 0.1 * B
 
 
+@pytest.mark.slow
 def test_a_channel_delay_is_covered_by_the_correlated_delay_term(tmp_path: Path) -> None:
     """A 20 us skew biases k_f and b_f; stated as the chain's delay uncertainty, the budget covers it."""
     def skew(d: dict[str, Any]) -> None:
@@ -239,6 +251,7 @@ def test_report_and_results_show_checks_assumptions_and_budget(base: Path, tmp_p
     assert set(page["budget"]) == {"S", "k_f", "b_f"}
 
 
+@pytest.mark.slow
 def test_stated_uncertainties_survive_export_and_import(base: Path, tmp_path: Path) -> None:
     chain = {"phase_std_deg": 0.02, "delay_std_s": 1e-6}
     rec = via_csv(base, tmp_path, doc=lambda d: d.update(end_mass_std_kg=0.01, measurement_chain=chain))
@@ -268,6 +281,7 @@ def test_budget_noise_term_matches_the_scatter_over_40_simulated_runs(tmp_path: 
     assert np.all(np.abs(est - [S, K, B]) < 3 * comb)
 
 
+@pytest.mark.slow
 def test_the_papers_methods_pass_the_same_gate(tmp_path: Path) -> None:
     """RLS (Eq. 17) on the Section 5.1 step: a dead lowest step is left out, not fitted as zeros."""
     base = sim(tmp_path / "sim", ((4.0, 0.004), (12.0, 0.004)), record_s=1.5)
@@ -280,6 +294,7 @@ def test_the_papers_methods_pass_the_same_gate(tmp_path: Path) -> None:
             top_mass_kg=d["top_mass_kg"] / 10))), "rls", "h2")
 
 
+@pytest.mark.slow
 def test_an_end_mass_stated_on_the_command_line(base: Path, tmp_path: Path,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
     rec = via_csv(base, tmp_path, doc=lambda d: d.pop("end_mass_kg"))

@@ -33,6 +33,7 @@ def test_fd_recovers_k_f_within_0p1_percent_and_b_f_within_2_percent() -> None:
     assert np.all(std > 0)
 
 
+@pytest.mark.slow
 def test_fd_standard_deviations_reach_the_cramer_rao_bound_over_200_draws() -> None:
     draws = [_estimate(seed) for seed in range(200)]
     est = np.array([d[0] for d in draws])
@@ -79,6 +80,7 @@ def test_four_parameter_fit_finds_the_frequency() -> None:
     assert abs(f4.phasor) == pytest.approx(2.0, rel=1e-3)
 
 
+@pytest.mark.slow
 def test_oe_reported_uncertainty_matches_monte_carlo() -> None:
     from station.ident.oe import fit_oe
     from station.ident.response.checked import StepSignal

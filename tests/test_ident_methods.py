@@ -63,6 +63,7 @@ def test_a_request_names_its_own_methods_and_the_recording_keeps_them() -> None:
         cfg.identification.methods
 
 
+@pytest.mark.slow
 def test_the_api_refuses_a_bad_list_at_its_field_and_runs_a_good_one(tmp_path: Path) -> None:
     async def go() -> tuple[httpx.Response, dict[str, Any]]:
         async with app_in_process(tmp_path) as (_, c):  # no worker: the run stops at identifying
@@ -119,6 +120,7 @@ def test_agreement_is_the_difference_in_combined_standard_uncertainties() -> Non
 
 
 # ---------------------------------------------------------------------------------------- one recording
+@pytest.mark.slow
 def test_a_refusing_secondary_method_leaves_the_primary_result(tmp_path: Path) -> None:
     """1 s records: too short for the paper's protocol (200 + 400 points at 500 Hz), so PSO+ refuses."""
     path = sim(tmp_path, ((10.0, 1e-3), (30.0, 1e-3)), record_s=0.6)

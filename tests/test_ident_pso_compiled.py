@@ -90,6 +90,7 @@ def test_case_i_swarm_equals_the_plain_implementation_to_the_bit(variant: str) -
     assert_same_swarm("h2", x, y, replace(CASE_I, n_iterations=200, variant=variant), seed=3)
 
 
+@pytest.mark.slow
 def test_section5_eq11_and_eq10_swarms_equal_the_plain_implementation_to_the_bit() -> None:
     x, y = eq11_data(200, 1)
     assert_same_swarm("h2", x, y, replace(SECTION5_H2, n_iterations=120), seed=0)

@@ -44,6 +44,7 @@ def test_fd_on_a_stepped_sine_recording_recovers_the_truth(stepped: Path) -> Non
     assert res.identifiability is not None and np.isfinite(res.identifiability.condition_number)
 
 
+@pytest.mark.slow
 def test_oe_agrees_with_fd_within_uncertainty(stepped: Path) -> None:
     rec = read_recording(stepped)
     fd, oe = identify_recording(rec, "fd"), identify_recording(rec, "oe")
@@ -52,6 +53,7 @@ def test_oe_agrees_with_fd_within_uncertainty(stepped: Path) -> None:
         assert abs(a.value - b.value) < 3 * np.hypot(a.std, b.std)
 
 
+@pytest.mark.slow
 def test_coupled_model_on_rigid_coupling_reports_k_c_not_identifiable(stepped: Path) -> None:
     res = identify_recording(read_recording(stepped), "fd", "coupled")
     assert not res.parameter("k_c").identifiable and res.parameter("k_c").value is None
@@ -77,6 +79,7 @@ def test_single_4hz_record_b_f_and_coupled_model_not_identifiable(single_4hz: Pa
     assert not pso.parameter("b_f").identifiable and pso.parameter("b_f").value is None
 
 
+@pytest.mark.slow
 def test_auto_model_picks_eq8_when_the_coupling_is_compliant(tmp_path: Path) -> None:
     steps = [{"crank_frequency_hz": f, "crank_radius_m": r}
              for f, r in ((4.0, 0.01), (20.0, 0.002), (50.0, 6e-4), (100.0, 1.5e-4))]
@@ -98,6 +101,7 @@ def test_auto_model_picks_eq8_when_the_coupling_is_compliant(tmp_path: Path) -> 
     assert res.fit.chi2_per_dof < 5
 
 
+@pytest.mark.slow
 def test_cli_identify_json_and_stored_result(stepped: Path, tmp_path: Path, capsys) -> None:
     path = tmp_path / "rec.h5"
     path.write_bytes(stepped.read_bytes())

@@ -26,6 +26,7 @@ def _rls(folder: Path, seed: int) -> IdentificationResult:
     return identify_recording(read_recording(sim(folder, STEP, seed=seed, record_s=1.5)), "rls", "h2")
 
 
+@pytest.mark.slow
 def test_the_sandwich_covariance_matches_the_scatter_of_rls_on_a_well_posed_arx() -> None:
     """A broadband input and an equation error that is white (an ARX system, no errors in variables):
     P Omega P is the Monte Carlo covariance of RLS's theta."""
@@ -60,6 +61,7 @@ def test_rls_s_states_the_unidentified_dynamics_beside_the_noise_term(tmp_path: 
     assert not res.parameters["k_f"].identifiable and not res.parameters["b_f"].identifiable
 
 
+@pytest.mark.slow
 def test_rls_s_covers_the_truth_over_twenty_noise_seeds(tmp_path: Path) -> None:
     """The stated u covers the truth with an honest scatter of z; against the noise term alone the
     scatter is well above 1 (1.77 over seeds 1-20: the station's old statement was too small), which

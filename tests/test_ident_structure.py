@@ -39,6 +39,7 @@ def identify_json(rec: Path, capsys: pytest.CaptureFixture[str], *extra: str) ->
     return dict(json.loads(capsys.readouterr().out))
 
 
+@pytest.mark.slow
 def test_a_coupling_below_its_signature_leaves_k_f_alone_conditional_with_a_range_that_holds_the_truth(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """k_c = 20 k_f on a 3-40 Hz plan with noise enough that Eq. 9 fits: the series stiffness is right,
@@ -104,6 +105,7 @@ def test_a_clean_run_states_its_structure_and_bounds_the_coupling(tmp_path: Path
 
 
 @pytest.mark.parametrize("damping", [0.3, 1.0])
+@pytest.mark.slow
 def test_a_displacement_sensor_resonance_is_flagged_or_corrected_when_stated(
         tmp_path: Path, damping: float) -> None:
     """A displacement sensor with its own resonance at 600 Hz: with the default (flat) chain the

@@ -119,6 +119,7 @@ def test_a_scripted_day_is_in_the_audit_trail(tmp_path: Path) -> None:
     asyncio.run(day())
 
 
+@pytest.mark.slow
 def test_credentials_are_refused_with_the_reason(tmp_path: Path) -> None:
     rec = tmp_path / "rec"
 
@@ -153,6 +154,7 @@ def test_credentials_are_refused_with_the_reason(tmp_path: Path) -> None:
     asyncio.run(go())
 
 
+@pytest.mark.slow
 def test_the_users_list_names_each_last_change_and_the_rules_are_published(tmp_path: Path) -> None:
     """GET /users: each user's last change (when, by whom) from the trail; GET /users/policy: the roles
     with their permissions and the password rule the API applies; both for administrators only."""
@@ -184,6 +186,7 @@ def test_the_users_list_names_each_last_change_and_the_rules_are_published(tmp_p
 
 
 @pytest.mark.parametrize("policy", ["refuse", "warn"])
+@pytest.mark.slow
 def test_a_standard_past_its_due_date_refuses_or_warns(tmp_path: Path, policy: str) -> None:
     rec = tmp_path / "rec"
     late = [{**STANDARDS[0], "due_date": "2020-03-31"}, STANDARDS[1]]
@@ -211,6 +214,7 @@ def test_a_standard_past_its_due_date_refuses_or_warns(tmp_path: Path, policy: s
     asyncio.run(go())
 
 
+@pytest.mark.slow
 def test_a_tampered_recording_is_refused_naming_the_file(tmp_path: Path) -> None:
     rec = tmp_path / "rec"
 

@@ -107,16 +107,19 @@ def import_cycles(package: str) -> list[list[str]]:
     return cycles
 
 
+@pytest.mark.slow
 def test_no_private_helper_is_imported_across_modules() -> None:
     assert private_imports(("station", "drivers")) == []
 
 
+@pytest.mark.slow
 def test_tests_use_public_names_and_share_through_support_modules() -> None:
     assert private_imports(("tests",)) == []
     assert imports_of_test_modules("tests") == []
 
 
 @pytest.mark.parametrize("package", ["station", "drivers"])
+@pytest.mark.slow
 def test_modules_import_each_other_without_a_circle(package: str) -> None:
     assert import_cycles(package) == []
 

@@ -64,6 +64,7 @@ async def connected(rig: SimRig, kind: str = "tcp") -> MotorController:
 
 
 @pytest.mark.parametrize("kind", ["tcp", "rtu", "inprocess"])
+@pytest.mark.slow
 def test_ramp_to_setpoint_and_back(request: pytest.FixtureRequest, kind: str) -> None:
     """Over Modbus TCP and RTU in real time; in-process on a virtual clock (the driver keeps the
     rig's clock: its status stamps, its watchdog keeper and ``wait_for_speed`` run on it)."""
@@ -164,6 +165,7 @@ def test_exception_replies_and_local_limits_are_typed_errors(rig: SimRig) -> Non
 
 
 @pytest.mark.parametrize("kind", ["tcp", "rtu"])
+@pytest.mark.slow
 def test_timeouts_are_retried_then_reported(rig: SimRig, kind: str) -> None:
     async def run() -> None:
         motor = await connected(rig, kind)
@@ -181,6 +183,7 @@ def test_timeouts_are_retried_then_reported(rig: SimRig, kind: str) -> None:
     asyncio.run(run())
 
 
+@pytest.mark.slow
 def test_lost_link_is_typed_the_emulator_stops_and_the_driver_reconnects(rig: SimRig) -> None:
     async def run() -> None:
         motor = await connected(rig)

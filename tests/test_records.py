@@ -419,6 +419,7 @@ def test_an_import_refuses_fifos_loops_and_too_many_bytes(tmp_path: Path) -> Non
     assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())
 
 
+@pytest.mark.slow
 def test_an_out_of_range_audit_cursor_is_422(tmp_path: Path) -> None:
     from tests.station_support import app_in_process
 
@@ -445,6 +446,7 @@ def _count_scrypt(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     return calls
 
 
+@pytest.mark.slow
 def test_every_kind_of_name_costs_one_password_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Unknown, known (wrong password), disabled and password-less names: one scrypt each, so no
     name can be told from another by the time a refusal takes (the measured medians are in
@@ -483,6 +485,7 @@ def test_the_password_pool_refuses_at_once_when_full() -> None:
     asyncio.run(go())
 
 
+@pytest.mark.slow
 def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """Five wrong passwords, then each further one locks the name and the address out for a
@@ -666,6 +669,7 @@ def test_a_lock_out_outlives_a_restart_and_its_doubling_goes_on(tmp_path: Path) 
     store.close()
 
 
+@pytest.mark.slow
 def test_each_user_lists_and_revokes_their_own_tokens_and_an_admin_all(tmp_path: Path) -> None:
     from tests.station_support import PASSWORDS, app_in_process, login
 

@@ -122,6 +122,7 @@ def test_convergence_shows_a_stored_pso_history(full_recording: Path, tmp_path: 
 
 # -- HTML report -------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_report_shows_the_stored_identification_with_u_and_U(sim_recording: Path, tmp_path: Path) -> None:
     rec_path = _copy(sim_recording, tmp_path)
     res = identify_recording(read_recording(rec_path))
@@ -149,6 +150,7 @@ def test_report_shows_the_stored_identification_with_u_and_U(sim_recording: Path
     assert all(base64.b64decode(b)[:8] == PNG_MAGIC for b in imgs)
 
 
+@pytest.mark.slow
 def test_report_prefers_a_stored_result_and_processed_steps(sim_recording: Path, tmp_path: Path) -> None:
     rec_path = _copy(sim_recording, tmp_path)
     payload = identify_recording(read_recording(rec_path)).to_dict()
@@ -250,6 +252,7 @@ def test_pdf_report_is_the_html_and_cuts_no_budget_line(sim_recording: Path) -> 
         assert f"page {i} of {n}" in flat and run_id in flat, i
 
 
+@pytest.mark.slow
 def test_report_of_an_imported_run(sim_recording_one_radius: Path, tmp_path: Path) -> None:
     from station.interchange import export_run, import_run
 

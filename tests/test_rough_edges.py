@@ -13,6 +13,7 @@ from station.cli import main
 from tests.station_support import app_in_process
 
 
+@pytest.mark.slow
 def test_api_docs_load_nothing_from_another_host(tmp_path: Path) -> None:
     async def go() -> None:
         async with app_in_process(tmp_path / "rec") as (_, c):

@@ -41,6 +41,7 @@ def recording_after(outcome: object) -> object:
 
 
 @pytest.mark.parametrize("wire", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["virtual", "wire"])
+@pytest.mark.slow
 def test_completed_run_records_every_step(tmp_path: Path, wire: bool) -> None:
     outcome, _, motor = run_with(tmp_path, None, lambda r, p: None, wire=wire)
     assert outcome.exit_status == "completed", outcome.reason
@@ -156,6 +157,7 @@ def test_lost_daq_link_stops_the_run(tmp_path: Path) -> None:
     assert len(rec.steps) == 1  # the first step was recorded before the link went
 
 
+@pytest.mark.slow
 def test_a_few_lost_frames_mark_the_step(tmp_path: Path) -> None:
     seqs: list[int] = []
 
@@ -245,6 +247,7 @@ def small_disk(tmp_path: Path) -> Iterator[Path]:
         yield mnt
 
 
+@pytest.mark.slow
 def test_full_disk_fails_the_run_keeps_the_samples_and_stops_the_motor(tmp_path: Path, small_disk: Path) -> None:
     d = small_config(record_s=3.0)
     d["station"]["min_free_mb"] = 2.5  # 3 MiB disk, 2.5 MiB reserve: about 0.5 MiB of room

@@ -67,6 +67,7 @@ def test_both_channels_move_with_the_emulated_motor() -> None:
     assert np.corrcoef(d1, f1)[0, 1] > 0.95
 
 
+@pytest.mark.slow
 def test_inprocess_daq_backend_streams_without_loss() -> None:
     with SimRig(seed=6, rtu=False) as rig:
         emu, link = rig.inprocess_daq()
@@ -123,6 +124,7 @@ def test_station_sim_rig_prints_where_it_listens_and_stops_on_ctrl_c() -> None:
             proc.wait()
 
 
+@pytest.mark.slow
 def test_crank_radius_changes_only_at_standstill() -> None:
     with SimRig(seed=7, rtu=False, crank_radius_m=0.01) as rig:
         rig.set_crank_radius(0.005)

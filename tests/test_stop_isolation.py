@@ -139,6 +139,7 @@ def test_a_stop_from_another_thread_during_an_acknowledgement_stays_latched(tmp_
 
 
 # ------------------------------------------------------------------------------------ database locked
+@pytest.mark.slow
 def test_stop_reaches_the_drive_while_another_process_holds_the_database_write_lock(tmp_path: Path) -> None:
     async def go() -> None:
         async with app_in_process(tmp_path / "rec") as (m, c):
@@ -183,6 +184,7 @@ def test_stop_reaches_the_drive_while_another_process_holds_the_database_write_l
 
 
 # ------------------------------------------------------------------------------------ disk full
+@pytest.mark.slow
 def test_stop_reaches_the_drive_on_a_full_disk_and_its_record_follows(tmp_path: Path) -> None:
     with mounted_tmpfs(tmp_path, 24) as disk:
         filler = disk / "filler.bin"
@@ -260,6 +262,7 @@ def test_stop_is_served_past_hundreds_of_idle_connections_and_a_trickling_one(tm
 FLOOD = 100  # connections of the flood: beyond the ceiling of 32
 
 
+@pytest.mark.slow
 def test_a_stop_accepted_before_a_flood_is_answered_and_never_closed_for_it(tmp_path: Path) -> None:
     """A stop whose connection was accepted (its head still in the kernel's buffer) just before a
     flood of new connections: they make room among themselves, never by closing the stop's."""
@@ -289,6 +292,7 @@ def test_a_stop_accepted_before_a_flood_is_answered_and_never_closed_for_it(tmp_
     asyncio.run(go())
 
 
+@pytest.mark.slow
 def test_the_main_port_hands_a_stop_to_the_rig_as_its_head_arrives(tmp_path: Path) -> None:
     """POST /stop reaches the drive while everything else of its request (middleware, routing, the
     app) is held back; the route then answers with that one stop.  A cross-site one is left to the
@@ -333,6 +337,7 @@ def test_the_main_port_hands_a_stop_to_the_rig_as_its_head_arrives(tmp_path: Pat
     asyncio.run(go())
 
 
+@pytest.mark.slow
 def test_silent_connections_make_room_after_their_grace_and_idle_ones_first() -> None:
     async def app(scope: Any, receive: Any, send: Any) -> None:
         await send({"type": "http.response.start", "status": 200, "headers": [(b"content-length", b"2")]})
@@ -365,6 +370,7 @@ def test_silent_connections_make_room_after_their_grace_and_idle_ones_first() ->
     asyncio.run(go())
 
 
+@pytest.mark.slow
 def test_an_idle_keep_alive_connection_is_kept_to_its_limit_never_reset_on_reuse_and_closed_cleanly() -> None:
     """On real sockets: uvicorn's own shorter idle timer does not close a keep-alive connection before
     the header timeout; a request already waiting in the kernel when the limit comes is answered, not

@@ -90,6 +90,7 @@ def test_the_station_names_are_the_configured_ones_and_a_named_listen_address(tm
     assert names("rig-3", []) == {"rig-3"}
 
 
+@pytest.mark.slow
 def test_stop_port_stops_the_drive_and_refuses_bad_and_cross_site_requests_without_effect(tmp_path: Path) -> None:
     async def go() -> None:
         async with app_in_process(tmp_path / "rec") as (m, c), stop_port(m) as sp:

@@ -127,6 +127,7 @@ def _consistent(rec: Path) -> dict[str, Any]:
     return out
 
 
+@pytest.mark.slow
 def test_thirty_kills_while_results_are_written_leave_everything_readable(rec: Path) -> None:
     """SIGKILL of a process writing results at 30 random instants: the recording is untouched and
     every result reads whole (the last complete one of each name); no kill corrupts anything."""
