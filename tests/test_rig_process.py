@@ -96,6 +96,11 @@ def test_with_the_web_process_stopped_the_stop_port_stops_the_crank_and_reads_it
         rid = d.start_run(freqs=(10.0,), record_s=60.0)
         d.wait_state(rid, ("running",), step_state="recording")
         assert emu.status()["speed_hz"] == pytest.approx(10.0)
+        # one keeper refreshes the drive (the rig process's, every 0.2 s), not the web process's too
+        n0, t0 = emu.status()["watchdog_refreshes"], time.monotonic()
+        time.sleep(2.0)
+        n1, t1 = emu.status()["watchdog_refreshes"], time.monotonic()
+        assert 3 <= n1 - n0 <= (t1 - t0) / 0.2 + 3, (n1 - n0, t1 - t0)
         assert d.proc is not None
         os.kill(d.proc.pid, signal.SIGSTOP)
         try:

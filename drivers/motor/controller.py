@@ -41,7 +41,7 @@ from drivers.motor.errors import (
     MotorValueError,
 )
 from drivers.motor.profile import PSEUDO_ESTOP, PSEUDO_FAULT, CommandStep, DriveProfile, load_profile
-from drivers.motor.transport import RegisterTransport
+from drivers.motor.transport import PeerKeptWatchdog, RegisterTransport
 
 log = logging.getLogger(__name__)
 
@@ -507,14 +507,20 @@ class MotorController:
         """Refresh the watchdog every ``period_s`` in a background task until :meth:`stop_watchdog`.
 
         A failing refresh is logged and kept in ``watchdog_error``; the task keeps trying (the
-        controller will stop the motor on its own if the link stays down).
+        controller will stop the motor on its own if the link stays down).  Over a transport whose
+        peer refreshes the watchdog itself (``PeerKeptWatchdog``) the drive is refreshed by one
+        keeper only: this one asks the peer whether its refreshes go through.
         """
         await self.stop_watchdog()
+        peer = self.transport if isinstance(self.transport, PeerKeptWatchdog) else None
 
         async def keeper() -> None:
             while True:
                 try:
-                    await self.refresh_watchdog()
+                    if peer is not None:
+                        await peer.watchdog_status()
+                    else:
+                        await self.refresh_watchdog()
                     self.watchdog_error = None
                 except MotorError as exc:
                     log.error("watchdog refresh failed: %s", exc)

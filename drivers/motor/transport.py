@@ -15,7 +15,7 @@ import math
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 from urllib.parse import parse_qs, urlparse
 
 from pymodbus import FramerType
@@ -47,6 +47,17 @@ class RegisterTransport(Protocol):
         """``retry=False``: sent once, never again after a time-out (a write that is not idempotent)."""
 
     async def close(self) -> None: ...
+
+
+@runtime_checkable
+class PeerKeptWatchdog(Protocol):
+    """A transport whose other end refreshes the drive's communication watchdog itself (a process
+    that owns the drive's connection): the controller's keeper asks it whether the refreshes still
+    go through instead of refreshing the drive a second time, and that question is the peer's sign
+    that this side lives."""
+
+    async def watchdog_status(self) -> None:
+        """Return while the peer's refreshes go through; raise ``MotorError`` naming why not."""
 
 
 @dataclass(frozen=True)

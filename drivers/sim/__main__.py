@@ -4,7 +4,7 @@ Prints one line with the addresses (JSON with ``--json``) and then serves.  Line
 the emulators from another process (one JSON line answers each on stdout):
 
 - ``status``: the motor's true state, ``{"status": {"speed_hz", "enabled", "fault_code", "estop",
-  "t_monotonic"}}``;
+  "watchdog_refreshes", "t_monotonic"}}`` (the refreshes the drive took since it started);
 - ``ignore-stops on`` / ``ignore-stops off``: the drive takes every command but keeps turning when
   told to stop (see ``MotorModel.ignore_stops``), ``{"ignore_stops": true}``;
 - ``radius R``: change the crank radius to R m as a motorised eccentric does (waits up to 3 s for
@@ -52,7 +52,8 @@ def _command(rig: SimRig, line: str) -> dict[str, Any]:
     if words == ["status"]:
         s = rig.motor.snapshot()
         return {"status": {"speed_hz": s.speed_hz, "enabled": s.enabled, "fault_code": s.fault_code,
-                           "estop": s.estop, "t_monotonic": time.monotonic()}}
+                           "estop": s.estop, "watchdog_refreshes": rig.motor.watchdog_refreshes,
+                           "t_monotonic": time.monotonic()}}
     if len(words) == 2 and words[0] == "ignore-stops" and words[1] in ("on", "off"):
         rig.motor.ignore_stops(words[1] == "on")
         return {"ignore_stops": words[1] == "on"}

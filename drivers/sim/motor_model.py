@@ -71,6 +71,7 @@ class MotorModel:
         self._estop = False
         self._wd_timeout = device.default_watchdog_timeout_s
         self._wd_deadline = math.inf
+        self.watchdog_refreshes = 0  # refreshes taken since the drive started
         self._wd_expired = False
         self._ignore_stops = False
         self._stuck_hz: float | None = None  # the speed a drive that ignores stops keeps turning at
@@ -218,6 +219,8 @@ class MotorModel:
         with self._lock:
             now = self._advance()
             self._wd_deadline = now + self._wd_timeout
+            self.watchdog_refreshes += 1
+
 
     def play_drive_defaults(self, watchdog_timeout_s: float) -> None:
         """Behave as a drive out of the box: its communication time-out as the factory set it (0: off)

@@ -14,6 +14,11 @@ question (``op``)  fields                                          answer
                                                                    words would set a set-point other than 0
 ``release``        --                                              -- (the operator acknowledged the stop)
 ``page_port``      ``port``                                        -- (the main port: the station's own page)
+``run``            ``run_id`` (or null)                            -- (the run the crank turns for)
+``keeper``         --                                              ``keeper_error``: null while the drive's
+                                                                   watchdog refreshes go through (the web
+                                                                   process's keeper asks it instead of
+                                                                   refreshing the drive a second time)
 =================  ==============================================  ==========================================
 
 Events: ``stopped`` (a stop the rig process gave: ``source``, ``detail``, ``commanded``, ``drive``,
@@ -27,7 +32,7 @@ import json
 import struct
 from typing import Any
 
-VERSION = 1
+VERSION = 2  # 2: ``keeper`` (the drive's watchdog refreshed by the rig process alone)
 MAX_MESSAGE = 64 * 1024  # bytes of JSON; a register exchange is some 100
 _LEN = struct.Struct(">I")
 

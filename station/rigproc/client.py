@@ -324,6 +324,15 @@ class ChannelTransport:
         await self.supervisor.ask({"op": "write", "address": address, "words": [int(w) for w in words],
                                    "what": what, "retry": retry})
 
+    async def watchdog_status(self) -> None:
+        """The rig process refreshes the drive's watchdog (its keeper is the drive's only one): ask
+        whether its refreshes go through (``drivers.motor.transport.PeerKeptWatchdog``); the question
+        is also this process's sign of life to it."""
+        reply = await self.supervisor.ask({"op": "keeper"})
+        err = reply.get("keeper_error")
+        if err:
+            raise MotorLinkError("watchdog refresh (rig process)", str(err)[:300])
+
     async def close(self) -> None:
         """The web process's driver lets go; the rig process and its connection stay."""
 

@@ -11,7 +11,9 @@ It holds the drive's one connection and, on its own, without waiting for the web
   the crank turns, or the daemon's end of the lifeline (stdin) closes; then it holds the stop;
 * while it holds a stop, refuses any set-point other than 0 the web process sends, until the
   operator's acknowledgement releases it (``release``);
-* forwards the web process's register reads and writes (``channel.py``) to the drive.
+* forwards the web process's register reads and writes (``channel.py``) to the drive; its keeper
+  is the drive's only one (the web process's keeper asks it, ``keeper``, whether the refreshes go
+  through, and that question keeps the link alive).
 
 On start it connects and reads the drive back: it reports ready (one JSON line on stdout) only
 once the drive reports standstill, else it ends with exit code 4 and one line saying why."""
@@ -282,6 +284,8 @@ class RigProcess:
         if op == "write":
             return await self.write(int(msg["address"]), [int(w) for w in msg["words"]], str(msg["what"]),
                                     bool(msg.get("retry", True)))
+        if op == "keeper":  # the web process's keeper: whether the drive's refreshes go through
+            return {"keeper_error": self.keeper_error}
         if op == "hello":
             return {"profile": self.motor.profile.name, "latched": self.latched, "pid": os.getpid()}
         if op == "release":
