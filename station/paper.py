@@ -21,6 +21,7 @@ from station.ident.fd.identify import identify_fd
 from station.ident.identify import identify_recording
 from station.ident.paper.protocol import PaperProtocol, paper_data
 from station.ident.paper.pso import CASE_I, CASE_II, PsoResult, output_error_objective, run_pso
+from station.ident.result import json_floats
 from station.recording import read_recording
 
 log = logging.getLogger(__name__)
@@ -121,10 +122,10 @@ def section5(out: Path, seeds: list[int], quick: bool) -> dict[str, Any]:
         d = paper_data(rec, PaperProtocol())
         half = d.x_test.size // 2
         with np.errstate(all="ignore"):
-            e_rls = lfilter(rls.extra["b"], rls.extra["a"], d.x_test) - d.y_test
+            e_rls = lfilter(json_floats(rls.extra, "b"), json_floats(rls.extra, "a"), d.x_test) - d.y_test
         row[f"rls_{cases[0]}"] = {"testing_mse_V2": rls.extra["testing_mse_V2"],
                                   "testing_mse_second_half_V2": float(np.mean(e_rls[half:] ** 2)),
-                                  "poles_abs": np.abs(np.roots(rls.extra["a"])).tolist()}
+                                  "poles_abs": np.abs(np.roots(json_floats(rls.extra, "a"))).tolist()}
         for case, form in zip(cases, ("h2", "h1"), strict=True):
             runs = [identify_recording(rec, "pso+", form, seed=s) for s in seeds]
             row[f"pso+_{case}"] = {
@@ -135,7 +136,7 @@ def section5(out: Path, seeds: list[int], quick: bool) -> dict[str, Any]:
                 "reasons": {n: p.reason for n, p in runs[0].parameters.items() if not p.identifiable}}
             if form == "h2":
                 row["_pso_h2"] = runs[0]
-                e = lfilter(runs[0].extra["b"], runs[0].extra["a"], d.x_test) - d.y_test
+                e = lfilter(json_floats(runs[0].extra, "b"), json_floats(runs[0].extra, "a"), d.x_test) - d.y_test
                 row[f"pso+_{case}"]["testing_mse_second_half_V2"] = float(np.mean(e[half:] ** 2))
         row["_rls"] = rls
         single = replace(rec, steps=[rec.steps[0]])

@@ -37,7 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from station.errors import BadInputError
 from station.ident.models import numeric_jacobian
-from station.ident.result import Check, IdentificationResult
+from station.ident.result import Check, IdentificationResult, json_float, json_floats
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
@@ -176,8 +176,8 @@ def from_result(res: IdentificationResult, mounted_mass_kg: float, mounted_mass_
     theta_core = np.array([fixed[n] if n in fixed else float(res.parameters[n].value)  # type: ignore[arg-type]
                            for n in core])
     em, lm = res.assumptions.end_mass, res.assumptions.load_mass
-    m_e = float(res.extra.get("m_e_kg", 0.0 if em is None else em.value or 0.0))
-    m_l_cal = float(res.extra.get("m_l_kg", 0.0 if lm is None else lm.value or 0.0))
+    m_e = json_float(res.extra, "m_e_kg", 0.0 if em is None else em.value or 0.0)
+    m_l_cal = json_float(res.extra, "m_l_kg", 0.0 if lm is None else lm.value or 0.0)
     u_me = None if em is None else em.std
     em_source = em.source if em is not None and em.source else ""
     n = len(core)
@@ -196,7 +196,7 @@ def from_result(res: IdentificationResult, mounted_mass_kg: float, mounted_mass_
         findings.append(Check("end_mass_conditional", "warning", None, me_note, {"m_e_kg": m_e}))
     cov[n + 1, n + 1] = mounted_mass_std_kg**2
     cov = 0.5 * (cov + cov.T)
-    f_cal = [float(v) for v in res.extra.get("f_hz") or ()]
+    f_cal = json_floats(res.extra, "f_hz") if "f_hz" in res.extra else []
     rng = (min(f_cal), max(f_cal)) if f_cal else (math.nan, math.nan)
     units = (*tuple(res.parameters[n].unit if n in res.parameters else "N*s/m" for n in core), "kg", "kg")
     assumptions = {

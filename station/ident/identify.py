@@ -23,7 +23,6 @@ from station.ident.paper.rls_uncertainty import RLS_BUDGET_NOTE, rls_assumptions
 from station.ident.response.checked import CheckedResponse, checked_response
 from station.ident.result import IdentificationResult
 from station.ident.structure import structure_statement
-from station.ident.uncertainty import ParameterBudget, UncertaintyBudget
 from station.recording import Recording, write_result
 
 DEFAULT_POLICY = Policy()
@@ -74,9 +73,6 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     statement = replace(statement, displacement_chain={  # the swarm runs on the raw samples of one step
         **statement.displacement_chain,
         "note": "the paper's methods take the displacement samples as recorded: no chain correction is applied"})
-    terms = res.extra.get("budget_terms") or {}
-    budget = UncertaintyBudget({n: ParameterBudget.of(terms.get(n) or {"noise": p.std}, p.std, p.unit)
-                                for n, p in res.parameters.items() if p.identifiable and p.std is not None})
     notes = (*res.notes, RLS_BUDGET_NOTE if method == "rls" else
              "budget: the noise of the step's steady-state gain and phase only (the swarm states no "
              "uncertainty of the parameters one frequency leaves undetermined, so a parameter whose "
@@ -84,4 +80,4 @@ def identify_recording(rec: Recording, method: str | None = None, model: str | N
     rls = rls_assumptions() if method == "rls" else None
     return replace(res, assumptions=Assumptions.of(inputs, statement, rls),
                    checks=tuple(cr.checks),
-                   budget=budget, notes=notes)
+                   notes=notes)

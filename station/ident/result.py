@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,6 +28,29 @@ from station.ident.uncertainty import (
     float_or_nan,
 )
 from station.vocabulary import Flag
+
+JsonValue: TypeAlias = "float | int | str | bool | Sequence[JsonValue] | Mapping[str, JsonValue] | None"
+"""A number, text, flag or nothing, or a list or mapping of them: what a finding's numbers and a
+method's own outputs (``Check.values``, ``IdentificationResult.extra``) hold, as stored."""
+
+
+def json_float(values: Mapping[str, JsonValue], key: str, default: float | None = None) -> float:
+    """``values[key]`` as a float; ``default`` when it is missing or null; else ``ValueError``."""
+    v = values.get(key)
+    if v is None and default is not None:
+        return default
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ValueError(f"{key!r} is not a number: {v!r}"[:200])
+    return float(v)
+
+
+def json_floats(values: Mapping[str, JsonValue], key: str) -> list[float]:
+    """``values[key]`` as a list of floats (null as NaN); else ``ValueError``."""
+    v = values.get(key)
+    if not isinstance(v, list | tuple) or not all(x is None or (isinstance(x, int | float) and not isinstance(x, bool))
+                                          for x in v):
+        raise ValueError(f"{key!r} is not a list of numbers"[:200])
+    return [float("nan") if x is None else float(x) for x in v if isinstance(x, int | float) or x is None]
 
 
 @dataclass(frozen=True)
@@ -78,7 +101,7 @@ class Check:
     severity: str
     step: int | None
     message: str
-    values: dict[str, Any] = field(default_factory=dict)
+    values: dict[str, JsonValue] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, object]:
         vals = {k: (finite_or_none(v) if isinstance(v, float) else v) for k, v in self.values.items()}
@@ -159,7 +182,7 @@ class IdentificationResult:
     fit: FitSummary
     identifiability: Identifiability | None = None
     notes: tuple[str, ...] = ()
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, JsonValue] = field(default_factory=dict)
     checks: tuple[Check, ...] = ()
     budget: UncertaintyBudget = field(default_factory=UncertaintyBudget)
     assumptions: Assumptions = field(default_factory=Assumptions)

@@ -37,7 +37,7 @@ from station.ident.assumptions import CouplingStatement, StructureStatement
 from station.ident.inputs import IdentInputs
 from station.ident.models import CoupledModel, SdofModel, make_model
 from station.ident.response import frf as frfmod
-from station.ident.result import Check, Estimate
+from station.ident.result import Check, Estimate, JsonValue
 from station.ident.uncertainty import DeterminedQuantity
 from station.vocabulary import Flag
 
@@ -91,7 +91,7 @@ class CouplingBound:
     lambda_needed: float
     threshold_chi2: float
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {"k_c_lower_bound_N_per_m": None if self.k_c_min is None else float(self.k_c_min),
                 "k_c_lower_bound_over_k_s": None if self.k_c_min is None else self.k_c_min / self.k_s,
                 "k_f_alone_range_N_per_m": [self.k_s, self.k_f_high],

@@ -34,7 +34,7 @@ from station.ident.identify import identify_recording
 from station.ident.models import Model, SdofModel, make_model
 from station.ident.names import METHOD_PREFERENCE
 from station.ident.response.checked import CheckedResponse, checked_response
-from station.ident.result import IdentificationResult
+from station.ident.result import IdentificationResult, json_float
 from station.recording import Recording, read_recording
 from station.recording.stored import read_processed, read_stored, results_version
 from station.run.methods import METHODS_RESULT
@@ -107,8 +107,8 @@ class RunData:
     def mass_kg(self) -> float:
         """M = m_e + m_l of the model (m_e taken as 0 when unknown)."""
         extra = self.ident.extra
-        return float(extra.get("m_e_kg", self.rec.end_mass_kg or 0.0)) + float(
-            extra.get("m_l_kg", self.rec.load_mass_kg))
+        return (json_float(extra, "m_e_kg", self.rec.end_mass_kg or 0.0)
+                + json_float(extra, "m_l_kg", self.rec.load_mass_kg))
 
 
 def read_groups(path: Path) -> tuple[dict[str, StoredResult], dict[str, Any] | None]:
@@ -141,8 +141,8 @@ def model_curve(ident: IdentificationResult, rec: Recording) -> tuple[ModelCurve
     """The identified model with its parameters and stored covariance, or None and why it cannot
     be drawn."""
     params = ident.parameters
-    m_e = float(ident.extra.get("m_e_kg", rec.end_mass_kg or 0.0))
-    m_l = float(ident.extra.get("m_l_kg", rec.load_mass_kg))
+    m_e = json_float(ident.extra, "m_e_kg", rec.end_mass_kg or 0.0)
+    m_l = json_float(ident.extra, "m_l_kg", rec.load_mass_kg)
     try:
         model: Model = make_model(ident.model, m_e, m_l)
     except ValueError as exc:

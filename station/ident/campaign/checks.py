@@ -24,7 +24,7 @@ from station.ident.campaign import jointfit as jf
 from station.ident.fd.budget import resonance_vectors
 from station.ident.models import SdofModel
 from station.ident.response.frf import FrequencyResponse, fit_frf
-from station.ident.result import Check
+from station.ident.result import Check, JsonValue
 from station.ident.uncertainty import Covariance, ParameterBudget, UncertaintyBudget
 from station.recording import Recording
 
@@ -76,7 +76,8 @@ def consistency(recs: list[Recording], own: list[FloatArray], policy: CampaignPo
     for name, i, j in (("S", 0, 3), ("k_f", 1, 4)):
         res[name] = _homogeneity(o[:, i], np.maximum(o[:, j], 1e-300))
     p = min(r[2] for r in res.values())
-    vals: dict[str, Any] = {f"{n}_chi2": r[0] for n, r in res.items()} | {f"{n}_p": r[2] for n, r in res.items()}
+    vals: dict[str, JsonValue] = {f"{n}_chi2": r[0] for n, r in res.items()}
+    vals |= {f"{n}_p": r[2] for n, r in res.items()}
     vals |= {"dof": res["S"][1], "S_per_recording": o[:, 0].tolist(), "k_f_per_recording": o[:, 1].tolist()}
     txt = "; ".join(f"{n} chi2 {r[0]:.3g} on {r[1]} dof (p {r[2]:.2g})" for n, r in res.items())
     if p >= policy.consistency_p_warn:
@@ -177,7 +178,8 @@ def separation(fit: jf.JointFit, cov: FloatArray, priors: list[jf.MassPrior], po
     ms = [pr.value for pr in priors]
     spread = float(np.ptp(ms))
     needed = spread * rel_S / policy.poor_S_rel_std  # u(S) scales as 1 / (mass spread)
-    vals = {"load_masses_kg": ms, "mass_spread_kg": spread, "S_rel_std": rel_S, "m_e_std_kg": u_me,
+    vals: dict[str, JsonValue] = {
+            "load_masses_kg": ms, "mass_spread_kg": spread, "S_rel_std": rel_S, "m_e_std_kg": u_me,
             "S_m_e_correlation": corr, "condition_number": cond, "max_S_rel_std": policy.max_S_rel_std,
             "poor_S_rel_std": policy.poor_S_rel_std, "spread_needed_kg": needed}
     txt = (f"load masses {', '.join(f'{m:.6g}' for m in ms)} kg (spread {spread:.3g} kg) determine S to "

@@ -41,8 +41,16 @@ from station.ident.paper.rls import RlsResult, rls_h2
 from station.ident.paper.rls_uncertainty import DYNAMICS_TERM, NOISE_TERM, rls_uncertainty
 from station.ident.response.frf import FrequencyResponse, ratio_cov, whitened_jacobian
 from station.ident.response.sinefit import fit3
-from station.ident.result import FitSummary, Identifiability, IdentificationResult, estimated_covariance, estimates
+from station.ident.result import (
+    FitSummary,
+    Identifiability,
+    IdentificationResult,
+    JsonValue,
+    estimated_covariance,
+    estimates,
+)
 from station.ident.structure import MIN_PLAUSIBLE_COUPLING_RATIO, plausible_coupling
+from station.ident.uncertainty import ParameterBudget, UncertaintyBudget
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -137,19 +145,19 @@ def withhold_unstated(rep: Identifiability, cov: FloatArray, names: tuple[str, .
 
 
 def _rls_budget(model: Model, theta: FloatArray, data: PaperData, r: RlsResult, cov_noise: FloatArray,
-                rep: Identifiability, extra: dict) -> FloatArray:
+                rep: Identifiability, extra: dict[str, JsonValue]) -> tuple[FloatArray, dict[str, dict[str, float]]]:
     """The covariance the station states for RLS: the steady-state noise term plus
-    ``unidentified_dynamics`` (``rls_uncertainty``); the terms per parameter go to extra['budget_terms']."""
+    ``unidentified_dynamics`` (``rls_uncertainty``), and the two terms' standard uncertainties per
+    parameter (the budget's contributions); the estimator's own std and the lags go to ``extra``."""
     unc = rls_uncertainty(model, theta, data, r, step_frf(data), rep.identifiable)
     cov = cov_noise + unc.cov_dynamics
-    extra["budget_terms"] = {
-        n: {NOISE_TERM: float(np.sqrt(max(cov_noise[i, i], 0.0))),
-            DYNAMICS_TERM: float(np.sqrt(max(unc.cov_dynamics[i, i], 0.0)))}
-        for i, n in enumerate(model.names) if rep.identifiable[i]}
+    terms = {n: {NOISE_TERM: float(np.sqrt(max(cov_noise[i, i], 0.0))),
+                 DYNAMICS_TERM: float(np.sqrt(max(unc.cov_dynamics[i, i], 0.0)))}
+             for i, n in enumerate(model.names) if rep.identifiable[i]}
     extra["rls_estimator_std"] = {n: float(np.sqrt(max(unc.cov_estimator[i, i], 0.0)))
                                   for i, n in enumerate(model.names)}
     extra["newey_west_lags"] = unc.lags
-    return cov
+    return cov, terms
 
 
 def identify_paper_method(rec: Recording, method: str, form: str, model: Model, *, seed: int = 0,
@@ -159,7 +167,8 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
     the swarm's answer is checked for stability and plausibility (module docstring).  ``swarm``:
     another size than Section 5.1's (quick checks)."""
     data = paper_data(rec, protocol)
-    extra: dict = {"step_index": data.step_index, "f_hz": data.f_hz, "T_s": data.T, "form": form}
+    extra: dict[str, JsonValue] = {"step_index": data.step_index, "f_hz": data.f_hz, "T_s": data.T, "form": form}
+    terms: dict[str, dict[str, float]] = {}
     others: dict[int, FloatArray] = {}
     settings = swarm.applied(replace(SECTION5_H2 if form == "h2" else SECTION5_H1,
                                      variant="pso+" if method == "pso+" else "pso"))
@@ -181,7 +190,7 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
     if np.all(np.isfinite(theta)):
         cov, rep = steady_state_uncertainty(model, theta, data, policy)
         if rls is not None:
-            cov = _rls_budget(model, theta, data, rls, cov, rep, extra)
+            cov, terms = _rls_budget(model, theta, data, rls, cov, rep, extra)
         else:  # the swarm states no uncertainty of what the step leaves undetermined
             cov = cov + carried_to_determined(model, theta, step_frf(data), rep.identifiable,
                                               np.full_like(cov, np.nan))
@@ -210,5 +219,7 @@ def identify_paper_method(rec: Recording, method: str, form: str, model: Model, 
     summary = FitSummary(mse, (float(np.sqrt(mse)),), float("nan"), int(data.x_id.size))
     notes = (f"paper protocol (Section 5.1) on step {data.step_index} ({data.f_hz:g} Hz): resampled to "
              f"{1 / data.T:g} Hz, {data.x_id.size} identification and {data.x_test.size} test points",)
-    return IdentificationResult(method, form, params, summary, rep, notes, extra,
+    budget = UncertaintyBudget({n: ParameterBudget.of(terms.get(n) or {NOISE_TERM: p.std}, p.std, p.unit)
+                                for n, p in params.items() if p.identifiable and p.std is not None})
+    return IdentificationResult(method, form, params, summary, rep, notes, extra, budget=budget,
                                 covariance=estimated_covariance(params, model.names, cov))

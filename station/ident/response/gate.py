@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from station.errors import BadInputError
 from station.ident.response import frf as frfmod
-from station.ident.result import Check
+from station.ident.result import Check, json_float
 
 FloatArray = NDArray[np.float64]
 MIN_SNR = 10.0  # fundamental amplitude over its standard deviation
@@ -156,10 +156,10 @@ def run_checks(items: dict[int, tuple], step_checks: list[Check], radii: dict[in
     out: list[Check] = []
     used = sorted(items)
     amp = {c.step: c.values for c in step_checks if c.name == "displacement_amplitude"}
-    bad = [i for i in used if i in amp and not 1 / 3 < amp[i]["ratio"] < 3]
+    bad = [i for i in used if i in amp and not 1 / 3 < json_float(amp[i], "ratio") < 3]
     if used and len(bad) == len(used):
-        r = float(np.median([amp[i]["ratio"] for i in bad]))
-        swapped = [i for i in bad if abs(amp[i]["force_amplitude_V"] / radii[i] - 1) < 0.25]
+        r = float(np.median([json_float(amp[i], "ratio") for i in bad]))
+        swapped = [i for i in bad if abs(json_float(amp[i], "force_amplitude_V") / radii[i] - 1) < 0.25]
         if len(swapped) == len(bad):
             out.append(Check("channels_swapped", "refused", None, "the displacement and force columns look "
                              f"swapped: the force channel's amplitude matches the crank radius, the "
