@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from station.ident.inputs import IdentInputs, MassInput
+from station.jsonvalue import JsonValue
 
 _COUPLING_FIELDS = ("assumed", "data_determine", "contradicted_by_the_data")
 
@@ -34,19 +35,20 @@ class CouplingStatement:
     empty when not tested) and whether the data contradict it."""
 
     data_determine: str
-    bound: Mapping[str, object] = field(default_factory=dict)
+    bound: Mapping[str, JsonValue] = field(default_factory=dict)
     contradicted_by_the_data: bool = False
 
     @property
     def k_f_alone_range(self) -> tuple[float, float | None] | None:
         """(k_s, high) in N/m of k_f alone under the couplings not excluded (high None: unbounded)."""
         rng = self.bound.get("k_f_alone_range_N_per_m")
-        if not isinstance(rng, list | tuple) or len(rng) != 2 or not isinstance(rng[0], int | float):
+        if not isinstance(rng, list | tuple) or len(rng) != 2 or not isinstance(rng[0], int | float) \
+                or not (rng[1] is None or isinstance(rng[1], int | float)):
             return None
         return float(rng[0]), None if rng[1] is None else float(rng[1])
 
-    def to_dict(self) -> dict[str, object]:
-        out: dict[str, object] = {"assumed": "stiff", "data_determine": self.data_determine, **self.bound}
+    def to_dict(self) -> dict[str, JsonValue]:
+        out: dict[str, JsonValue] = {"assumed": "stiff", "data_determine": self.data_determine, **self.bound}
         if self.contradicted_by_the_data:
             out["contradicted_by_the_data"] = True
         return out
@@ -59,11 +61,11 @@ class StructureStatement:
 
     model: str
     equation: str
-    displacement_chain: Mapping[str, object]
+    displacement_chain: Mapping[str, JsonValue]
     coupling: CouplingStatement | None = None
 
-    def to_dict(self) -> dict[str, object]:
-        out: dict[str, object] = {"model": self.model, "equation": self.equation,
+    def to_dict(self) -> dict[str, JsonValue]:
+        out: dict[str, JsonValue] = {"model": self.model, "equation": self.equation,
                                   "displacement_chain": dict(self.displacement_chain)}
         if self.coupling is not None:
             out["coupling"] = self.coupling.to_dict()
@@ -89,8 +91,8 @@ class Assumptions:
 
     end_mass: MassInput | None = None
     load_mass: MassInput | None = None
-    measurement_chain: Mapping[str, object] = field(default_factory=dict)
-    displacement_chain: Mapping[str, object] = field(default_factory=dict)
+    measurement_chain: Mapping[str, JsonValue] = field(default_factory=dict)
+    displacement_chain: Mapping[str, JsonValue] = field(default_factory=dict)
     crank_radius_std_m: float | None = None
     unsupported_defaults: tuple[str, ...] = ()
     structure: StructureStatement | None = None
@@ -109,8 +111,8 @@ class Assumptions:
         return math.hypot(*[float(m.std) if m is not None and m.std is not None else 0.0
                             for m in (self.end_mass, self.load_mass)])
 
-    def to_dict(self) -> dict[str, object]:
-        out: dict[str, object] = {}
+    def to_dict(self) -> dict[str, JsonValue]:
+        out: dict[str, JsonValue] = {}
         if self.end_mass is not None:
             out["end_mass_kg"] = self.end_mass.to_dict()
         if self.load_mass is not None:
@@ -159,10 +161,10 @@ class CampaignAssumptions:
     model: str
     end_mass: MassInput | None
     load_masses: tuple[RunMass, ...]
-    measurement_chain: Mapping[str, object]
+    measurement_chain: Mapping[str, JsonValue]
     structure: StructureStatement
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {"model": self.model, "end_mass_kg": None if self.end_mass is None else self.end_mass.to_dict(),
                 "load_mass_kg": [{"run_id": m.run_id, "value": m.value, "std": m.std} for m in self.load_masses],
                 "measurement_chain": dict(self.measurement_chain), "structure": self.structure.to_dict()}

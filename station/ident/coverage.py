@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from scipy import stats
 
 from station.ident.uncertainty import ParameterBudget
+from station.jsonvalue import JsonValue
 
 COVERAGE_PROBABILITY = 0.95
 K2_PROBABILITY = 0.9545  # the normal distribution's coverage probability of k = 2 (GUM G.1.3)
@@ -34,7 +35,7 @@ class Coverage:
     def U(self) -> float:
         return self.k * self.u
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {"u": self.u, "nu_eff": None if math.isinf(self.nu_eff) else self.nu_eff, "k": self.k, "p": self.p,
                 "U": self.U}
 

@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from station.ident.inputs import IdentInputs
 from station.ident.models import make_model
 from station.ident.response.frf import FrequencyResponse, fit_frf
+from station.jsonvalue import JsonValue
 
 FloatArray = NDArray[np.float64]
 
@@ -63,7 +64,7 @@ class McParameter:
         """GUM S1 8.2: both ends of y +- k u within delta of the Monte Carlo interval's."""
         return self.d_low <= self.delta and self.d_high <= self.delta
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {"name": self.name, "unit": self.unit, "y": self.y, "u_linear": self.u_linear, "k": self.k,
                 "mean": self.mean, "u_mc": self.u_mc, "interval": [self.low, self.high], "d_low": self.d_low,
                 "d_high": self.d_high, "delta": self.delta, "agrees": self.agrees}
@@ -80,7 +81,7 @@ class MonteCarloCheck:
     def agrees(self) -> bool:
         return all(p.agrees for p in self.parameters)
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {"trials": self.trials, "seed": self.seed, "sources": list(self.sources),
                 "parameters": [p.to_dict() for p in self.parameters], "agrees": self.agrees}
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, TypeAlias
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,31 +27,10 @@ from station.ident.uncertainty import (
     finite_or_none,
     float_or_nan,
 )
+from station.jsonvalue import JsonValue, json_float, json_floats
 from station.vocabulary import Flag
 
-JsonValue: TypeAlias = "float | int | str | bool | Sequence[JsonValue] | Mapping[str, JsonValue] | None"
-"""A number, text, flag or nothing, or a list or mapping of them: what a finding's numbers and a
-method's own outputs (``Check.values``, ``IdentificationResult.extra``) hold, as stored."""
-
-
-def json_float(values: Mapping[str, JsonValue], key: str, default: float | None = None) -> float:
-    """``values[key]`` as a float; ``default`` when it is missing or null; else ``ValueError``."""
-    v = values.get(key)
-    if v is None and default is not None:
-        return default
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        raise ValueError(f"{key!r} is not a number: {v!r}"[:200])
-    return float(v)
-
-
-def json_floats(values: Mapping[str, JsonValue], key: str) -> list[float]:
-    """``values[key]`` as a list of floats (null as NaN); else ``ValueError``."""
-    v = values.get(key)
-    if not isinstance(v, list | tuple) or not all(x is None or (isinstance(x, int | float) and not isinstance(x, bool))
-                                          for x in v):
-        raise ValueError(f"{key!r} is not a list of numbers"[:200])
-    return [float("nan") if x is None else float(x) for x in v if isinstance(x, int | float) or x is None]
-
+__all__ = ["JsonValue", "json_float", "json_floats"]
 
 @dataclass(frozen=True)
 class Estimate:
@@ -74,11 +53,11 @@ class Estimate:
         return cls(None if v is None else float(v), None if s is None else float(s), str(d.get("unit", "")),
                    bool(d.get("identifiable", True)), str(d.get("reason") or ""), Flag(str(d.get("flag") or "")))
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         if not self.identifiable:
             return {"value": None, "std": None, "unit": self.unit, "identifiable": False,
                     "reason": self.reason}
-        out: dict[str, object] = {"value": finite_or_none(self.value), "std": finite_or_none(self.std),
+        out: dict[str, JsonValue] = {"value": finite_or_none(self.value), "std": finite_or_none(self.std),
                                "unit": self.unit, "identifiable": True}
         if self.reason:
             out["reason"] = self.reason
@@ -103,7 +82,7 @@ class Check:
     message: str
     values: dict[str, JsonValue] = field(default_factory=dict)
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         vals = {k: (finite_or_none(v) if isinstance(v, float) else v) for k, v in self.values.items()}
         return {"name": self.name, "severity": self.severity, "step": self.step, "message": self.message,
                 "values": vals}
@@ -129,7 +108,7 @@ class FitSummary:
     chi2_per_dof: float = float("nan")
     n_points: int = 0
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {"mse": finite_or_none(self.mse),
                 "residual_rms_V": [finite_or_none(v) for v in self.residual_rms_V],
                 "chi2_per_dof": finite_or_none(self.chi2_per_dof), "n_points": self.n_points}
@@ -157,7 +136,7 @@ class Identifiability:
     identifiable: tuple[bool, ...]
     reasons: tuple[str, ...]
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {"names": list(self.names), "condition_number": finite_or_none(self.condition_number),
                 "correlations": [[finite_or_none(c) for c in row] for row in self.correlations],
                 "identifiable": list(self.identifiable), "reasons": list(self.reasons)}
@@ -197,7 +176,7 @@ class IdentificationResult:
     def parameter(self, name: str) -> Estimate:
         return self.parameters[name]
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {"method": self.method, "model": self.model,
                 "parameters": {n: p.to_dict() for n, p in self.parameters.items()},
                 "fit": self.fit.to_dict(),

@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from station.jsonvalue import JsonValue
+
 
 def finite_or_none(x: float | None) -> float | None:
     """x as a float, None when it is None or not finite (JSON has no NaN)."""
@@ -61,7 +63,7 @@ class Covariance:
         i = self.names.index(name)
         return math.sqrt(max(self.matrix[i][i], 0.0))
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {"names": list(self.names), "units": list(self.units),
                 "matrix": [[finite_or_none(c) for c in row] for row in self.matrix]}
 
@@ -118,8 +120,8 @@ class ParameterBudget:
         comb = math.sqrt(sum(v * v for v in c.values() if v is not None))
         return ParameterBudget.of(c, comb, self.unit, self.dof)
 
-    def to_dict(self) -> dict[str, object]:
-        out: dict[str, object] = {"contributions": {c.source: finite_or_none(c.std) for c in self.contributions},
+    def to_dict(self) -> dict[str, JsonValue]:
+        out: dict[str, JsonValue] = {"contributions": {c.source: finite_or_none(c.std) for c in self.contributions},
                                "combined": finite_or_none(self.combined), "unit": self.unit}
         if self.dof:
             out["dof"] = self.dof
@@ -151,10 +153,10 @@ class UncertaintyBudget(Mapping[str, ParameterBudget]):
     def __len__(self) -> int:
         return len(self.parameters)
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {n: b.to_dict() for n, b in self.parameters.items()}
 
-    def covariances_to_dict(self) -> dict[str, object]:
+    def covariances_to_dict(self) -> dict[str, JsonValue]:
         return {s: None if c is None else c.to_dict() for s, c in self.covariances.items()}
 
     @classmethod
@@ -194,8 +196,8 @@ class DeterminedQuantity:
         """The combined standard uncertainty (None without a budget)."""
         return None if self.budget is None else self.budget.combined
 
-    def to_dict(self) -> dict[str, object]:
-        out: dict[str, object] = {"run_id": self.run_id} if self.run_id else {}
+    def to_dict(self) -> dict[str, JsonValue]:
+        out: dict[str, JsonValue] = {"run_id": self.run_id} if self.run_id else {}
         out["value"] = None if self.value is None else float(self.value)
         if self.budget is not None:
             out |= {c.source: finite_or_none(c.std) for c in self.budget.contributions}
@@ -226,7 +228,7 @@ class DeterminedQuantity:
                    str(d.get("run_id") or ""))
 
 
-def determined_to_dict(determined: Mapping[str, DeterminedQuantity]) -> dict[str, object]:
+def determined_to_dict(determined: Mapping[str, DeterminedQuantity]) -> dict[str, JsonValue]:
     return {n: q.to_dict() for n, q in determined.items()}
 
 

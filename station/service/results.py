@@ -4,12 +4,13 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict, cast
 
 import numpy as np
 
-from station.ident.result import IdentificationResult
+from station.ident.result import IdentificationResult, JsonValue
 from station.recording import read_documents, read_result, start_metadata
 from station.recording.stored import read_processed
 from station.run.methods import agreement, read_outcomes
@@ -30,13 +31,68 @@ def finite(obj: Any) -> Any:
     return obj
 
 
-def frequency_response(path: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, str]]:
+class StepResponse(TypedDict):
+    """H(f) of one step (``station.api.schemas.StepResponseOut``): V/(m/s^2), its magnitude and
+    phase (deg) with standard uncertainties, the amplitudes (m, V) and the samples it rests on."""
+
+    index: int
+    frequency_hz: float | None
+    frequency_std_hz: float | None
+    H_real: float | None
+    H_imag: float | None
+    H_magnitude: float | None
+    H_magnitude_std: float | None
+    H_phase_deg: float | None
+    H_phase_std_deg: float | None
+    displacement_amplitude_m: float | None
+    force_amplitude_V: float | None
+    n_samples: int | None
+
+
+class MethodEntry(TypedDict, total=False):
+    """A listed identification (``station.run.methods.MethodOutcome``'s fields) with its stored
+    result's parameters, fit, identifiability, notes, checks and budget, and its agreement with
+    the primary result, per parameter (``station.api.schemas.MethodResultOut``)."""
+
+    agreement: Mapping[str, JsonValue]
+    parameters: list[JsonValue]
+    fit: JsonValue
+    identifiability: JsonValue
+    notes: list[JsonValue]
+    checks: list[JsonValue]
+    budget: JsonValue
+
+
+class StoredResults(TypedDict):
+    """What ``load_results`` gives (``station.api.schemas.RunResults`` without the run's own fields):
+    the stored identification's JSON form, parameters as a list in the model's order, the processed
+    H(f), the skipped steps, the units, every listed method and the room conditions."""
+
+    method: str | None
+    model: str | None
+    parameters: list[JsonValue]
+    fit: JsonValue
+    identifiability: JsonValue
+    notes: list[JsonValue]
+    checks: list[JsonValue]
+    budget: JsonValue
+    assumptions: JsonValue
+    determined: JsonValue
+    covariance: JsonValue
+    frequency_response: list[StepResponse]
+    skipped_steps: list[JsonValue]
+    units: dict[str, str]
+    methods: list[MethodEntry]
+    environment: JsonValue
+
+
+def frequency_response(path: Path) -> tuple[list[StepResponse], list[JsonValue], dict[str, str]]:
     """(per-step H(f) with standard uncertainties of magnitude and phase, skipped steps, units)."""
     stored = read_processed(path)
     if stored is None:
         return [], [], {}
     doc, cov = stored.doc, stored.arrays.get("H_cov")
-    out = []
+    out: list[StepResponse] = []
     for k, st in enumerate(doc.get("steps", [])):
         re, im = (float(v) for v in st["H"])
         mag = math.hypot(re, im)
@@ -55,15 +111,15 @@ def frequency_response(path: Path) -> tuple[list[dict[str, Any]], list[dict[str,
                     "force_amplitude_V": st.get("force_amplitude_V"), "n_samples": st.get("n_samples")})
     units = {"frequency_hz": "Hz", "H": "V/(m/s^2)", "H_phase_deg": "deg", "displacement_amplitude_m": "m",
              "force_amplitude_V": "V"}
-    return finite(out), finite(doc.get("skipped", [])), units
+    return cast(list[StepResponse], finite(out)), cast(list[JsonValue], finite(doc.get("skipped", []))), units
 
 
-def load_results(path: Path, result_name: str) -> dict[str, Any]:
+def load_results(path: Path, result_name: str) -> StoredResults:
     """The identification stored as result ``result_name`` (an ``IdentificationResult``, with its
     covariance) and the processed H(f), as stored beside the recording; nothing is re-fitted."""
     doc = read_result(path, result_name)
     steps, skipped, units = frequency_response(path)
-    out: dict[str, Any] = {"method": None, "model": None, "parameters": [], "fit": None, "identifiability": None,
+    out: dict[str, JsonValue] = {"method": None, "model": None, "parameters": [], "fit": None, "identifiability": None,
                            "notes": [], "checks": [], "budget": {}, "assumptions": {}, "determined": {},
                            "covariance": None}
     primary = None if doc is None else IdentificationResult.from_dict(doc)
@@ -71,11 +127,11 @@ def load_results(path: Path, result_name: str) -> dict[str, Any]:
         out.update(_result_fields(primary, tuple(out)))
     methods = method_results(path, primary)
     env = start_metadata(read_documents(path)).get("environment")
-    return finite({**out, "frequency_response": steps, "skipped_steps": skipped, "units": units, "methods": methods,
-                   "environment": env if isinstance(env, dict) else None})
+    return cast(StoredResults, finite({**out, "frequency_response": steps, "skipped_steps": skipped, "units": units,
+                                       "methods": methods, "environment": env if isinstance(env, dict) else None}))
 
 
-def _result_fields(res: IdentificationResult, keys: tuple[str, ...]) -> dict[str, Any]:
+def _result_fields(res: IdentificationResult, keys: tuple[str, ...]) -> dict[str, JsonValue]:
     """``keys`` of the result's JSON form, ``parameters`` as a list in the model's order (the API's)."""
     d = res.to_dict()
     return {k: [{"name": n, **p.to_dict()} for n, p in res.parameters.items()] if k == "parameters" else d[k]
@@ -85,16 +141,16 @@ def _result_fields(res: IdentificationResult, keys: tuple[str, ...]) -> dict[str
 METHOD_KEYS = ("parameters", "fit", "identifiability", "notes", "checks", "budget")
 
 
-def method_results(path: Path, primary: IdentificationResult | None) -> list[dict[str, Any]]:
+def method_results(path: Path, primary: IdentificationResult | None) -> list[MethodEntry]:
     """Every listed identification's outcome with its stored result and its agreement with the
     primary (``station.run.methods``), in the listed order; [] when none were listed."""
-    out = []
+    out: list[MethodEntry] = []
     for o in read_outcomes(path):
-        entry: dict[str, Any] = {**o.to_dict(), "agreement": {}}
+        entry = cast(MethodEntry, {**o.to_dict(), "agreement": {}})
         doc = read_result(path, o.result_name) if o.status == "done" and o.result_name else None
         if doc is not None:
             res = IdentificationResult.from_dict(doc)
-            entry.update(_result_fields(res, METHOD_KEYS))
+            entry.update(cast(MethodEntry, _result_fields(res, METHOD_KEYS)))
             if primary is not None and not o.primary:
                 entry["agreement"] = agreement(primary, res)
         out.append(entry)

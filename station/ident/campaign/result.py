@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.ident.assumptions import CampaignAssumptions
-from station.ident.result import Check, Covariance, Estimate
+from station.ident.result import Check, Covariance, Estimate, JsonValue
 from station.ident.uncertainty import DeterminedQuantity, UncertaintyBudget
 
 FloatArray = NDArray[np.float64]
@@ -48,7 +48,7 @@ class CampaignRecording:
     S: tuple[float, float]
     k_f: tuple[float, float]
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {"path": self.path, "run_id": self.run_id,
                 "load_mass_kg": {"value": self.load_mass_kg, "std": self.load_mass_std_kg},
                 "load_mass_fitted_kg": {"value": _f(self.load_mass_fitted_kg),
@@ -90,7 +90,7 @@ class CampaignResult:
     def parameter(self, name: str) -> Estimate:
         return self.parameters[name]
 
-    def to_dict(self) -> dict[str, object]:
+    def to_dict(self) -> dict[str, JsonValue]:
         return {"kind": "campaign", "method": "fd", "model": "sdof", "status": self.status,
                 "transducer_id": self.transducer_id,
                 "parameters": {n: p.to_dict() for n, p in self.parameters.items()},
