@@ -44,6 +44,7 @@ from station.discrepancy.ties import TIE_CHI2, averaged, tie_models, tied_names,
 from station.errors import StationError
 from station.ident.result import Estimate
 from station.ident.structure import state_stiff
+from station.ident.uncertainty import UncertaintyBudget
 from station.recording import Recording, read_recording
 
 if TYPE_CHECKING:
@@ -361,7 +362,7 @@ BUDGET_NOTE = ("parameters_after: the standard uncertainties combine the model g
                "chain, masses, radius), scaled to the value")
 
 
-def with_budget(after: dict[str, Estimate], ident: dict[str, Estimate], budget: dict[str, Any]
+def with_budget(after: dict[str, Estimate], ident: dict[str, Estimate], budget: UncertaintyBudget
                 ) -> dict[str, Estimate]:
     """``after`` with the systematic terms of ``station identify``'s GUM budget (every source but its
     noise, the model gap's own noise and model spread taking its place, as identify's output-error
@@ -374,8 +375,8 @@ def with_budget(after: dict[str, Estimate], ident: dict[str, Estimate], budget: 
                 or est.value is None or est.std is None):
             continue
         scale = abs(est.value / ref.value)
-        sys2 = sum((scale * float(v)) ** 2 for k, v in (b.get("contributions") or {}).items()
-                   if k != "noise" and v is not None and math.isfinite(float(v)))
+        sys2 = sum((scale * c.std) ** 2 for c in b.contributions
+                   if c.source != "noise" and c.std is not None and math.isfinite(c.std))
         out[name] = replace(est, std=math.sqrt(est.std**2 + sys2))
     return out
 
@@ -433,7 +434,7 @@ def run_context(rec: Recording, station: StationConfig | None = None) -> RunCont
         return why
 
 
-def _identify(rec: Recording) -> tuple[dict[str, Estimate], dict[str, Any]] | str:
+def _identify(rec: Recording) -> tuple[dict[str, Estimate], UncertaintyBudget] | str:
     """The base model's S, k_f, b_f as ``station identify --json`` reports them (frequency-domain fit
     of paper Eq. 9, ``station.ident``) and its uncertainty budget, or why identify gives none (its
     refusal, or its failure): the caller then withholds the parameters rather than report them with
@@ -458,7 +459,7 @@ def _identify(rec: Recording) -> tuple[dict[str, Estimate], dict[str, Any]] | st
                                  float(q.std) if ok and q.std is not None else math.nan, q.unit, ok, q.reason)
     if len(out) != 3:
         return "identify gave no S, k_f and b_f"
-    return out, res.budget.to_dict()
+    return out, res.budget
 
 
 def gap_table(rep: DiscrepancyResult) -> list[tuple[str, list[float]]]:
