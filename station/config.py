@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal, get_type_hints
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_core import ErrorDetails
 from sinecal_config import config_file
 
@@ -115,6 +115,13 @@ class MeasurementChain(BaseModel):
 
 class _Model(BaseModel):
     model_config = _STRICT
+
+
+def number_only(v: object) -> object:
+    """Numbers only: ``true`` or ``"10"`` are not a frequency (pydantic would convert them)."""
+    if isinstance(v, bool | str | bytes):
+        raise ValueError(f"a number expected, got {type(v).__name__} {v!r}")
+    return v
 
 
 class Range(_Model):
@@ -237,13 +244,19 @@ class DaqConfig(_Model):
     force_range_V: float = Field(default=10.0, gt=0, le=10)
 
 
-class StepConfig(_Model):
-    """One step of a stepped-sine run."""
+class StepSpec(_Model):
+    """One step of a stepped-sine run, as the configuration's plan, a run request (the API's and the
+    CLI's) and a proposal state it; settle and record times default to the plan's."""
 
-    crank_frequency_hz: CrankFrequencyHz
-    crank_radius_m: CrankRadiusM
-    settle_s: SettleS | None = None
-    record_s: RecordS | None = None
+    crank_frequency_hz: CrankFrequencyHz = Field(description="crank frequency in Hz")
+    crank_radius_m: CrankRadiusM = Field(description="crank radius in m")
+    settle_s: SettleS | None = Field(default=None, description="settling time in s")
+    record_s: RecordS | None = Field(default=None, description="record time in s")
+
+    @field_validator("crank_frequency_hz", "crank_radius_m", "settle_s", "record_s", mode="before")
+    @classmethod
+    def _a_number(cls, v: object) -> object:
+        return number_only(v)
 
 
 class PlanConfig(_Model):
@@ -251,7 +264,7 @@ class PlanConfig(_Model):
 
     settle_s: SettleS = 1.0
     record_s: RecordS = 2.0
-    steps: list[StepConfig] = Field(min_length=1, max_length=MAX_STEPS)
+    steps: list[StepSpec] = Field(min_length=1, max_length=MAX_STEPS)
 
 
 class TruthConfig(_Model):
@@ -322,7 +335,7 @@ class BatchSection(_Model):
     """The nightly batch (``station batch``): the check transducer's short calibration it asks the
     station daemon for before it re-identifies (docs/batch.md)."""
 
-    check_steps: list[StepConfig] = Field(
+    check_steps: list[StepSpec] = Field(
         default_factory=list, max_length=10, description="the check run's steps (a short plan: 2-3 steps "
         "where S, k_f and b_f are determined); empty: three of the plan's steps (first, middle, last)")
     check_top_mass_kg: float | None = Field(default=None, gt=0, le=MAX_TOP_MASS_KG,

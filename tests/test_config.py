@@ -335,13 +335,15 @@ def test_limits_need_a_step(cfg5k: StationConfig) -> None:
 
 
 def test_every_step_type_has_the_one_declaration_of_a_steps_bounds() -> None:
-    """The configuration's plan, the run request (the API's body) and the interchange file refuse the
-    same crank frequency and radius: their bounds come from one declaration."""
-    from station.config import MAX_CRANK_FREQUENCY_HZ, MAX_CRANK_RADIUS_M, StepConfig
+    """The configuration's plan and the run request (the API's body) share one step type, and the
+    interchange file's step refuses the same crank frequency and radius: their bounds come from one
+    declaration."""
+    from station.config import MAX_CRANK_FREQUENCY_HZ, MAX_CRANK_RADIUS_M, PlanConfig, StepSpec
     from station.interchange import CsvStep
-    from station.run.request import StepSpec
+    from station.run.request import RunRequest
 
-    for model, extra in ((StepConfig, {}), (StepSpec, {}), (CsvStep, {"file": "a.csv"})):
+    assert RunRequest.model_fields["steps"].annotation == PlanConfig.model_fields["steps"].annotation == list[StepSpec]
+    for model, extra in ((StepSpec, {}), (CsvStep, {"file": "a.csv"})):
         ok = {"crank_frequency_hz": MAX_CRANK_FREQUENCY_HZ, "crank_radius_m": MAX_CRANK_RADIUS_M, **extra}
         model.model_validate(ok)
         for key, bad in (("crank_frequency_hz", MAX_CRANK_FREQUENCY_HZ * 1.001), ("crank_frequency_hz", 0.0),

@@ -11,33 +11,15 @@ from station.config import (
     MAX_METHODS,
     MAX_STEPS,
     MAX_TOP_MASS_KG,
-    CrankFrequencyHz,
-    CrankRadiusM,
     EnvironmentConfig,
     MethodChoice,
-    RecordS,
-    SettleS,
     StationConfig,
+    StepSpec,
     check_method_list,
+    number_only,
 )
 from station.errors import LimitError
 from station.limits import StepRequest, check_drive, check_steps, max_radius_m
-
-
-class StepSpec(BaseModel):
-    """One requested step; settle and record times default to the configured plan's."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    crank_frequency_hz: CrankFrequencyHz = Field(description="crank frequency in Hz")
-    crank_radius_m: CrankRadiusM = Field(description="crank radius in m")
-    settle_s: SettleS | None = Field(default=None, description="settling time in s")
-    record_s: RecordS | None = Field(default=None, description="record time in s")
-
-    @field_validator("crank_frequency_hz", "crank_radius_m", "settle_s", "record_s", mode="before")
-    @classmethod
-    def _a_number(cls, v: object) -> object:
-        return _number_only(v)
 
 
 class RunRequest(BaseModel):
@@ -62,19 +44,12 @@ class RunRequest(BaseModel):
     @field_validator("top_mass_kg", mode="before")
     @classmethod
     def _a_number(cls, v: object) -> object:
-        return _number_only(v)
+        return number_only(v)
 
     @field_validator("methods")
     @classmethod
     def _methods(cls, v: list[MethodChoice] | None) -> list[MethodChoice] | None:
         return None if v is None else check_method_list(v)
-
-
-def _number_only(v: object) -> object:
-    """Numbers only: ``true`` or ``"10"`` are not a frequency (pydantic would convert them)."""
-    if isinstance(v, bool | str | bytes):
-        raise ValueError(f"a number expected, got {type(v).__name__} {v!r}")
-    return v
 
 
 @dataclass(frozen=True)
