@@ -23,6 +23,7 @@ from drivers.motor.profile import load_profile
 from drivers.rig import params as rp
 from station.bounded import MAX_YAML_BYTES, load_yaml, quote, read_text_limited
 from station.errors import ConfigError
+from station.vocabulary import MODELS_OF_METHOD, Method
 
 # inf and nan are refused everywhere: several fields (e.g. Range.max, mains amplitudes) have no
 # upper bound that would catch them.
@@ -461,11 +462,7 @@ class CertificateConfig(_Model):
     users: list[CertificateUser] = Field(default_factory=list, max_length=200)
 
 
-MethodKey = Literal["fd", "oe", "pso", "pso+", "rls"]  # station.ident.names.METHODS
 ModelChoice = Literal["auto", "sdof", "coupled", "h1", "h2"]  # "auto": fd picks Eq. 9 or Eq. 8 from the data
-MODELS_OF_METHOD: dict[str, tuple[str, ...]] = {  # the models each method is defined for
-    "fd": ("auto", "sdof", "coupled"), "oe": ("sdof", "coupled"),
-    "pso": ("h2", "h1"), "pso+": ("h2", "h1"), "rls": ("h2",)}
 MAX_METHODS = 6
 
 
@@ -474,7 +471,7 @@ class MethodChoice(_Model):
     model it fits (``auto``: Eq. 9, or Eq. 8 when the data demand and determine it; ``h2``/``h1``:
     the paper's digital Eq. 11/10) and the seed of its random draws (the swarm's)."""
 
-    method: MethodKey
+    method: Method
     model: ModelChoice | None = Field(default=None, description="default: the method's first model "
                                       "(fd: auto, oe: sdof, pso/pso+/rls: h2)")
     seed: int = Field(default=0, ge=0, le=2**31 - 1, description="seed of the method's random draws")
@@ -497,7 +494,7 @@ class MethodChoice(_Model):
 
 
 def _default_methods() -> list[MethodChoice]:
-    return [MethodChoice(method="fd", model="auto"), MethodChoice(method="pso+", model="h2")]
+    return [MethodChoice(method=Method.FD, model="auto"), MethodChoice(method=Method.PSO_PLUS, model="h2")]
 
 
 def check_method_list(methods: list[MethodChoice]) -> list[MethodChoice]:

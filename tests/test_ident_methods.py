@@ -91,14 +91,16 @@ def test_method_status_literal_matches_the_outcomes() -> None:
 
 
 def test_every_list_of_methods_reads_the_one_registry() -> None:
-    from typing import get_args
+    from station.config import MethodChoice
+    from station.ident.names import METHOD_DESCRIPTIONS, METHOD_PREFERENCE, METHODS, SWARM_METHODS
+    from station.vocabulary import METHOD_REGISTRY, MODELS_OF_METHOD, Method
 
-    from station.config import MODELS_OF_METHOD, MethodKey
-    from station.ident.names import METHOD_DESCRIPTIONS, METHOD_PREFERENCE, METHOD_REGISTRY, METHODS, SWARM_METHODS
-
-    assert get_args(MethodKey) == METHODS  # a Literal for the configuration's schema, the same names
+    # the configuration's (and the request's) method choice is the vocabulary's enumeration
+    assert MethodChoice.model_fields["method"].annotation is Method
     assert sorted(METHOD_PREFERENCE) == sorted(METHODS) == sorted(MODELS_OF_METHOD) == sorted(METHOD_DESCRIPTIONS)
     assert len(METHOD_REGISTRY) == len(METHODS) and set(SWARM_METHODS) == {"pso", "pso+"}
+    with pytest.raises(ValueError, match="defined for the models h2"):
+        MethodChoice.model_validate({"method": "rls", "model": "h1"})
 
 
 # ---------------------------------------------------------------------------------------- agreement

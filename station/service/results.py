@@ -49,7 +49,7 @@ class StepResponse(TypedDict):
     n_samples: int | None
 
 
-class MethodEntry(TypedDict, total=False):
+class StoredMethod(TypedDict, total=False):
     """A listed identification (``station.run.methods.MethodOutcome``'s fields) with its stored
     result's parameters, fit, identifiability, notes, checks and budget, and its agreement with
     the primary result, per parameter (``station.api.schemas.MethodResultOut``)."""
@@ -82,7 +82,7 @@ class StoredResults(TypedDict):
     frequency_response: list[StepResponse]
     skipped_steps: list[JsonValue]
     units: dict[str, str]
-    methods: list[MethodEntry]
+    methods: list[StoredMethod]
     environment: JsonValue
 
 
@@ -141,16 +141,16 @@ def _result_fields(res: IdentificationResult, keys: tuple[str, ...]) -> dict[str
 METHOD_KEYS = ("parameters", "fit", "identifiability", "notes", "checks", "budget")
 
 
-def method_results(path: Path, primary: IdentificationResult | None) -> list[MethodEntry]:
+def method_results(path: Path, primary: IdentificationResult | None) -> list[StoredMethod]:
     """Every listed identification's outcome with its stored result and its agreement with the
     primary (``station.run.methods``), in the listed order; [] when none were listed."""
-    out: list[MethodEntry] = []
+    out: list[StoredMethod] = []
     for o in read_outcomes(path):
-        entry = cast(MethodEntry, {**o.to_dict(), "agreement": {}})
+        entry = cast(StoredMethod, {**o.to_dict(), "agreement": {}})
         doc = read_result(path, o.result_name) if o.status == "done" and o.result_name else None
         if doc is not None:
             res = IdentificationResult.from_dict(doc)
-            entry.update(cast(MethodEntry, _result_fields(res, METHOD_KEYS)))
+            entry.update(cast(StoredMethod, _result_fields(res, METHOD_KEYS)))
             if primary is not None and not o.primary:
                 entry["agreement"] = agreement(primary, res)
         out.append(entry)
