@@ -3,8 +3,8 @@ identification, ``Severity`` of a finding, ``Flag`` of an estimate; and the regi
 (``METHOD_REGISTRY``: name, description, order, models).  ``StrEnum``s without imports, so
 that every layer can use them: the API's enumerations are these (``station.api.schemas``), and a
 member is its string wherever a result compares or stores it (the stored JSON holds the strings).
-``Estimate.flag`` is a ``Flag``; ``Check.severity`` and the identification result's method and model
-are still plain strings holding these values."""
+``Estimate.flag`` is a ``Flag`` and ``Check.severity`` a ``Severity``; the identification result's
+method and model are still plain strings holding these values."""
 
 from enum import StrEnum
 from typing import NamedTuple

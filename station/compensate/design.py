@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from station.compensate.sensor import Sensor
 from station.errors import BadInputError
 from station.ident.result import Check
+from station.vocabulary import Severity
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
@@ -220,7 +221,7 @@ def design_filter(sensor: Sensor, spec: DesignSpec) -> CompensationFilter:
                "not on measured values")
         if not spec.allow_extrapolation:
             raise BadInputError(msg + "; refused (accept it with --allow-extrapolation)")
-        findings.append(Check("extrapolation", "warning", None, msg,
+        findings.append(Check("extrapolation", Severity.WARNING, None, msg,
                               {"band_hz": list(spec.band_hz), "calibrated_range_hz": [lo_cal, hi_cal]}))
     fs, N = spec.sample_rate_hz, spec.taps
     basis = Basis.of(N, fs, sensor)
@@ -249,7 +250,7 @@ def design_filter(sensor: Sensor, spec: DesignSpec) -> CompensationFilter:
     Hc = Fb[i] * Gb * np.exp(2j * np.pi * fb * tau / fs)
     bound = float(np.max(np.abs(Hc - 1.0)))
     if bound > 0.1:
-        findings.append(Check("dynamic_error", "warning", None,
+        findings.append(Check("dynamic_error", Severity.WARNING, None,
                               f"within the band the compensated system departs from 1 by up to {bound:.3g} "
                               "(relative): widen the cut-off, add taps or narrow the band", {"bound": bound}))
     return CompensationFilter(tuple(float(v) for v in b), tuple(tuple(float(v) for v in r) for r in Ub), spec, tau,

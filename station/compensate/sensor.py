@@ -38,6 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from station.errors import BadInputError
 from station.ident.models import numeric_jacobian
 from station.ident.result import Check, IdentificationResult, json_float, json_floats
+from station.vocabulary import Severity
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
@@ -161,7 +162,7 @@ def from_result(res: IdentificationResult, mounted_mass_kg: float, mounted_mass_
         # the coupling's damping hardly shows below the coupling's resonance: a calibration up to a few
         # hundred hertz leaves it undetermined; the filter then assumes none, and says so
         fixed["b_c"] = 0.0
-        findings.append(Check("coupling_damping_conditional", "warning", None,
+        findings.append(Check("coupling_damping_conditional", Severity.WARNING, None,
                               "the calibration does not determine the coupling's damping b_c"
                               f"{' (' + bc.reason + ')' if bc is not None and bc.reason else ''}: the filter "
                               "takes b_c = 0 N*s/m as exact and is conditional on it", {"b_c_N_s_per_m": 0.0}))
@@ -193,7 +194,7 @@ def from_result(res: IdentificationResult, mounted_mass_kg: float, mounted_mass_
     else:
         me_note = (f"end mass m_e = {m_e:g} kg taken as exact ({em_source or 'assumed'}): the filter is "
                    "conditional on it")
-        findings.append(Check("end_mass_conditional", "warning", None, me_note, {"m_e_kg": m_e}))
+        findings.append(Check("end_mass_conditional", Severity.WARNING, None, me_note, {"m_e_kg": m_e}))
     cov[n + 1, n + 1] = mounted_mass_std_kg**2
     cov = 0.5 * (cov + cov.T)
     f_cal = json_floats(res.extra, "f_hz") if "f_hz" in res.extra else []
@@ -316,12 +317,12 @@ def fit_table(table: Table, unit_in: str = "N", unit_out: str = "V", origin: str
         raise BadInputError("the table does not determine S0, f0 and delta (singular fit)") from None
     if not has_u:
         cov *= chi2 / dof
-        findings.append(Check("table_without_uncertainty", "warning", None,
+        findings.append(Check("table_without_uncertainty", Severity.WARNING, None,
                               "the table states no uncertainties: the model's covariance is taken from the fit's "
                               "scatter alone", {"residual_rms": math.sqrt(chi2 / (2 * len(f)))}))
     elif chi2 / dof > 1:
         cov *= chi2 / dof
-        findings.append(Check("table_misfit", "warning", None,
+        findings.append(Check("table_misfit", Severity.WARNING, None,
                               f"the model misfits the table beyond its stated uncertainties (chi^2/dof "
                               f"{chi2 / dof:.3g}): the covariance is scaled by it", {"chi2_per_dof": chi2 / dof}))
     x[2] = abs(x[2])

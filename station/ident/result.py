@@ -28,7 +28,7 @@ from station.ident.uncertainty import (
     float_or_nan,
 )
 from station.jsonvalue import JsonValue, json_float, json_floats
-from station.vocabulary import Flag
+from station.vocabulary import Flag, Severity
 
 __all__ = ["JsonValue", "json_float", "json_floats"]
 
@@ -77,7 +77,7 @@ class Check:
     'refused', step index or None for the run, message for the operator, the numbers behind it."""
 
     name: str
-    severity: str
+    severity: Severity
     step: int | None
     message: str
     values: dict[str, JsonValue] = field(default_factory=dict)
@@ -90,7 +90,8 @@ class Check:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Check:
         step = d.get("step")
-        return cls(str(d["name"]), str(d["severity"]), None if step is None else int(step), str(d.get("message", "")),
+        return cls(str(d["name"]), Severity(str(d["severity"])), None if step is None else int(step),
+                   str(d.get("message", "")),
                    dict(d.get("values") or {}))
 
 

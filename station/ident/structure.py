@@ -39,7 +39,7 @@ from station.ident.models import CoupledModel, SdofModel, make_model
 from station.ident.response import frf as frfmod
 from station.ident.result import Check, Estimate, JsonValue
 from station.ident.uncertainty import DeterminedQuantity
-from station.vocabulary import Flag
+from station.vocabulary import Flag, Severity
 
 if TYPE_CHECKING:
     from station.ident.fd.budget import Budget
@@ -201,7 +201,7 @@ def coupling_suspected(frf: frfmod.FrequencyResponse, sdof_chi2: float, sdof_dof
     if not (c2 < 0.5 * s2 and plausible_coupling(coupled_theta)):
         return None
     k_f, k_c = float(coupled_theta[1]), float(coupled_theta[3])
-    return Check("coupling_suspected", "warning", None,
+    return Check("coupling_suspected", Severity.WARNING, None,
                  f"Eq. 9 (stiff coupling) misfits the measured H(f) (chi2/dof {s2:.3g}) and a finite coupling "
                  f"explains it (Eq. 8: chi2/dof {c2:.3g}, k_c about {k_c:.3g} N/m = {k_c / k_f:.2g} k_f, k_f about "
                  f"{k_f:.3g} N/m): this plan determines the series stiffness of transducer and coupling, not the "
@@ -329,7 +329,7 @@ def apply_structure(model_key: str, stiff: bool, params: dict[str, Estimate], th
             lead = ("k_f rests on a stiff coupling that this plan cannot confirm: " if soft else
                     "k_f rests on a stiff coupling; this plan excludes the soft ones, but not all that would move "
                     "k_f by more than 3 u: ")
-            checks.append(Check("coupling_not_excluded", "warning" if soft else "info", None,
+            checks.append(Check("coupling_not_excluded", Severity.WARNING if soft else Severity.INFO, None,
                                 lead + rng + f"; u(k_f) = {u_k:.3g} N/m; steps at higher frequencies narrow the range",
                                 bound.to_dict()))
         ib = "b_f"
@@ -378,7 +378,7 @@ def resonance_suspected(frf: frfmod.FrequencyResponse, sdof: SdofModel, theta: F
     f_r, p = f_max * float(np.exp(best[1][3])), float(np.exp(best[1][4]))
     if not (c2 < 0.5 * s2 and f_r > f_max and p <= 10):
         return None
-    return Check("displacement_resonance_suspected", "warning", None,
+    return Check("displacement_resonance_suspected", Severity.WARNING, None,
                  f"Eq. 9 misfits the measured H(f) (chi2/dof {s2:.3g}) and a resonance of the displacement sensor "
                  f"explains it (f_r about {f_r:.3g} Hz, damping ratio about {p:.2g}: chi2/dof {c2:.3g}): state the "
                  "sensor's resonance in the measurement chain (displacement_resonance_hz, displacement_damping, "

@@ -27,6 +27,7 @@ from station.ident.response.frf import FrequencyResponse, fit_frf
 from station.ident.result import Check, JsonValue
 from station.ident.uncertainty import Covariance, ParameterBudget, UncertaintyBudget
 from station.recording import Recording
+from station.vocabulary import Severity
 
 FloatArray = NDArray[np.float64]
 
@@ -81,9 +82,9 @@ def consistency(recs: list[Recording], own: list[FloatArray], policy: CampaignPo
     vals |= {"dof": res["S"][1], "S_per_recording": o[:, 0].tolist(), "k_f_per_recording": o[:, 1].tolist()}
     txt = "; ".join(f"{n} chi2 {r[0]:.3g} on {r[1]} dof (p {r[2]:.2g})" for n, r in res.items())
     if p >= policy.consistency_p_warn:
-        return Check("same_transducer_model", "info", None, f"one Eq. 9 transducer explains every top mass: {txt}",
-                       vals)
-    sev = "refused" if p < policy.consistency_p_refuse else "warning"
+        return Check("same_transducer_model", Severity.INFO, None,
+                     f"one Eq. 9 transducer explains every top mass: {txt}", vals)
+    sev = Severity.REFUSED if p < policy.consistency_p_refuse else Severity.WARNING
     return Check("same_transducer_model", sev, None,
                    f"S and k_f of the recordings' own fits disagree beyond their uncertainties ({txt}); the "
                    "recordings are not one Eq. 9 transducer with these top masses (a mistyped top mass, a "
@@ -186,14 +187,14 @@ def separation(fit: jf.JointFit, cov: FloatArray, priors: list[jf.MassPrior], po
            f"{rel_S:.2g} (relative) and m_e to {u_me:.2g} kg, measurement chain included (S-m_e correlation "
            f"{corr:.4f}, condition number {cond:.3g})")
     if rel_S > policy.max_S_rel_std:
-        return Check("end_mass_separation", "refused", None,
+        return Check("end_mass_separation", Severity.REFUSED, None,
                      f"the top masses are too alike to separate S from m_e: {txt}; a spread of about "
                      f"{needed:.3g} kg would give S to {policy.poor_S_rel_std:g}", vals)
     if rel_S > policy.poor_S_rel_std:
-        return Check("end_mass_separation", "warning", None,
+        return Check("end_mass_separation", Severity.WARNING, None,
                      f"S and m_e are separated, but poorly: {txt}; a spread of about {needed:.3g} kg would "
                      f"give S to {policy.poor_S_rel_std:g}", vals)
-    return Check("end_mass_separation", "info", None, f"S and m_e separated: {txt}", vals)
+    return Check("end_mass_separation", Severity.INFO, None, f"S and m_e separated: {txt}", vals)
 
 
 def odd_one_out(frfs: list[FrequencyResponse], priors: list[jf.MassPrior], recs: list[Recording],
@@ -223,17 +224,18 @@ def end_mass_plausibility(fit: jf.JointFit, std_m_e: float, stated: jf.MassPrior
     out = []
     m_e = float(fit.theta[1])
     if m_e < -3 * std_m_e:
-        out.append(Check("end_mass_negative", "warning", None, f"the campaign's end mass {m_e:.4g} kg (std "
+        out.append(Check("end_mass_negative", Severity.WARNING, None, f"the campaign's end mass {m_e:.4g} kg (std "
                            f"{std_m_e:.2g}) is negative: a stated top mass is likely wrong",
                            {"m_e_kg": m_e, "std_kg": std_m_e}))
     if stated is not None:
         z = (m_e - stated.value) / float(np.hypot(std_m_e, stated.std))
-        sev = "warning" if abs(z) > 3 else "info"
+        sev = Severity.WARNING if abs(z) > 3 else Severity.INFO
         out.append(Check("end_mass_stated", sev, None, f"the campaign's end mass {m_e:.4g} kg (std {std_m_e:.2g}) "
                            f"{'differs from' if sev == 'warning' else 'agrees with'} the stated {stated.value:g} kg "
                            f"(std {stated.std:.2g}): z = {z:.2f}", {"z": float(z), "stated_kg": stated.value}))
     if n_distinct == 2:
-        out.append(Check("mass_redundancy", "info", None, "two distinct top masses: they fix S and m_e exactly, so an "
-                           "error of a stated top mass goes into m_e unseen; a third mass would check them",
+        out.append(Check("mass_redundancy", Severity.INFO, None, "two distinct top masses: they fix S and m_e "
+                           "exactly, so an error of a stated top mass goes into m_e unseen; a third mass would "
+                           "check them",
                            {"distinct": n_distinct}))
     return out

@@ -52,7 +52,7 @@ from station.ident.result import Check, Covariance, Estimate
 from station.ident.structure import chain_corrected, coupling_bound, state_stiff, structure_statement
 from station.ident.uncertainty import DeterminedQuantity, ParameterBudget, UncertaintyBudget
 from station.recording import Recording
-from station.vocabulary import Flag
+from station.vocabulary import Flag, Severity
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -81,14 +81,14 @@ def check_inputs(recs: list[Recording]) -> None:
     if len(ids) > 1:
         per = ", ".join(f"{r.path.name}: {r.transducer_id!r}" for r in recs)
         raise CampaignRefused(f"recordings of different transducers cannot be identified jointly: {per}",
-                              [Check("same_transducer", "refused", None, "different transducer ids",
+                              [Check("same_transducer", Severity.REFUSED, None, "different transducer ids",
                                      {"transducer_ids": sorted(ids)})])
     sens = np.array([r.sensitivity_V_per_N for r in recs])
     if np.ptp(sens) > 1e-9 * np.max(np.abs(sens)):
         per = ", ".join(f"{r.path.name}: {r.sensitivity_V_per_N:.6g} V/N" for r in recs)
         raise CampaignRefused("the nominal sensitivity of the force signal (bridge x conditioner gain) "
                               f"differs between the recordings, so one S cannot hold for all: {per}",
-                              [Check("same_chain", "refused", None, "different nominal sensitivities",
+                              [Check("same_chain", Severity.REFUSED, None, "different nominal sensitivities",
                                      {"sensitivity_V_per_N": sens.tolist()})])
     runs = [r.run_id for r in recs]
     dup = sorted({x for x in runs if runs.count(x) > 1})
@@ -103,7 +103,7 @@ def _stated_end_mass(inputs: list[IdentInputs], checks: list[Check]) -> jf.MassP
         return None
     vals = [float(m.value or 0.0) for m in given]
     if len(given) < len(inputs) or np.ptp(vals) > 1e-9 * max(map(abs, vals)):
-        checks.append(Check("end_mass_stated", "warning", None, "the recordings state different end masses "
+        checks.append(Check("end_mass_stated", Severity.WARNING, None, "the recordings state different end masses "
                             f"({', '.join(f'{v:g}' for v in vals)} kg); their mean is used where one is assumed",
                             {"end_mass_kg": vals}))
     return jf.MassPrior(float(np.mean(vals)), float(max(m.std or 0.0 for m in given)))
@@ -177,7 +177,7 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
                               "sign): check the wiring or the conditioner setting before a joint fit", checks)
     chain = inputs[0].chain
     if any(i.chain != chain for i in inputs):
-        checks.append(Check("same_chain", "warning", None, "the recordings state different measurement chains; "
+        checks.append(Check("same_chain", Severity.WARNING, None, "the recordings state different measurement chains; "
                             f"the first one's ({recs[0].path.name}) is used for the budget", {}))
     priors = [_load_mass(i) for i in inputs]
     stated = _stated_end_mass(inputs, checks)
@@ -191,7 +191,7 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
         cov, budget = campaign_budget(frfs, priors, fit, True, chain, None)
         sep = separation(fit, cov, priors, policy)
     else:
-        sep = Check("end_mass_separation", "refused", None,
+        sep = Check("end_mass_separation", Severity.REFUSED, None,
                       f"{len(recs)} recording(s) with {n_distinct} distinct top mass: the data determine "
                       "S (m_e + m_l) and the loaded natural frequency only, not S and m_e separately; "
                       "record the transducer with at least two different top masses",
@@ -218,7 +218,7 @@ def identify_campaign(recs: list[Recording], policy: CampaignPolicy | None = Non
     notes: list[str] = []
     if fit.inflated:
         notes.append(f"chi2/dof = {fit.chi2_per_dof:.3g}: the noise terms inflated by sqrt(chi2/dof)")
-        checks.append(Check("model_misfit", "warning", None, f"Eq. 9 with one S, m_e, k_f, b_f misfits the "
+        checks.append(Check("model_misfit", Severity.WARNING, None, f"Eq. 9 with one S, m_e, k_f, b_f misfits the "
                             f"recordings: chi2/dof = {fit.chi2_per_dof:.3g} on {fit.dof}; the noise terms are "
                             "inflated by sqrt(chi2/dof)", {"chi2_per_dof": fit.chi2_per_dof, "dof": fit.dof}))
     refused_model = cons is not None and cons.severity == "refused"

@@ -31,7 +31,7 @@ from station.ident.result import Check, Estimate, IdentificationResult, estimate
 from station.ident.structure import apply_structure, chain_corrected, coupling_suspected, resonance_suspected
 from station.ident.uncertainty import DeterminedQuantity
 from station.recording import Recording
-from station.vocabulary import Flag
+from station.vocabulary import Flag, Severity
 
 FloatArray = NDArray[np.float64]
 
@@ -210,7 +210,7 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
         reasons = [_single_frequency_reasons(model, fit, frf, budget)[i] for i in range(3)]
     if fit.inflated:
         notes.append(f"chi2/dof = {fit.chi2 / fit.dof:.3g}: uncertainties inflated by sqrt(chi2/dof)")
-        checks.append(Check("model_misfit", "warning", None, f"the model misfits the measured H(f): chi2/dof "
+        checks.append(Check("model_misfit", Severity.WARNING, None, f"the model misfits the measured H(f): chi2/dof "
                             f"{fit.chi2 / fit.dof:.3g}; noise uncertainties inflated by its square root",
                             {"chi2_per_dof": fit.chi2 / fit.dof}))
     params = _param_list(model, fit.theta, budget, rep.identifiable, reasons, inputs, policy, frf)
@@ -230,7 +230,7 @@ def identify_fd(rec: Recording, model_key: str = "sdof", policy: Policy | None =
             note="|H|/M at the one frequency: S only far below the resonance, HIGH by "
                  "(f/f_0)^2 / (1 - (f/f_0)^2) otherwise")
     if not inputs.end_mass_given:
-        checks.append(Check("end_mass_not_given", "warning", None, "the end mass is not given: S, k_f, b_f are "
+        checks.append(Check("end_mass_not_given", Severity.WARNING, None, "the end mass is not given: S, k_f, b_f are "
                             f"conditional on an assumed m_e = {inputs.m_e:g} kg; the data determine S (m_l + m_e), "
                             "the loaded natural frequency and the damping ratio (see 'determined')",
                             {"assumed_end_mass_kg": inputs.m_e}))

@@ -14,6 +14,7 @@ from station.ident.response.redundancy import clock_check, radius_check
 from station.ident.response.sinefit import SineFit
 from station.ident.result import Check
 from station.recording import Recording
+from station.vocabulary import Severity
 
 FloatArray = NDArray[np.float64]
 
@@ -62,7 +63,7 @@ def checked_response(rec: Recording, inputs: IdentInputs | None = None,
     radii = {}
     for st in rec.steps:
         if not st.usable:
-            checks.append(Check("samples_lost", "warning", st.index, f"step {st.index} skipped: "
+            checks.append(Check("samples_lost", Severity.WARNING, st.index, f"step {st.index} skipped: "
                                 f"{st.lost_in_window} samples lost in its window", {"lost": st.lost_in_window}))
             continue
         x, u = rec.step_signals(st)

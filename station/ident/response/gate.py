@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from station.errors import BadInputError
 from station.ident.response import frf as frfmod
 from station.ident.result import Check, json_float
+from station.vocabulary import Severity
 
 FloatArray = NDArray[np.float64]
 MIN_SNR = 10.0  # fundamental amplitude over its standard deviation
@@ -72,17 +73,17 @@ def _clipped(y: FloatArray) -> float | None:
 
 def _channel_checks(idx: int, name: str, y: FloatArray) -> Check | None:
     if not np.all(np.isfinite(y)):
-        return Check("non_finite_channel", "warning", idx, f"step {idx} left out: the {name} channel "
+        return Check("non_finite_channel", Severity.WARNING, idx, f"step {idx} left out: the {name} channel "
                      f"holds {int(np.count_nonzero(~np.isfinite(y)))} non-finite samples", {"channel": name})
     if np.all(y == 0):
-        return Check("dead_channel", "warning", idx, f"step {idx} left out: the {name} channel is all "
+        return Check("dead_channel", Severity.WARNING, idx, f"step {idx} left out: the {name} channel is all "
                      "zeros (not connected, or a dead channel)", {"channel": name})
     if np.ptp(y) == 0:
-        return Check("constant_channel", "warning", idx, f"step {idx} left out: the {name} channel is "
+        return Check("constant_channel", Severity.WARNING, idx, f"step {idx} left out: the {name} channel is "
                      f"constant ({float(y[0]):.6g}) over the step", {"channel": name, "value": float(y[0])})
     frac = _clipped(y)
     if frac is not None:
-        return Check("clipped_channel", "warning", idx, f"step {idx} left out: the {name} channel sits "
+        return Check("clipped_channel", Severity.WARNING, idx, f"step {idx} left out: the {name} channel sits "
                      f"on its extreme value in {100 * frac:.2g} % of the samples (clipped)",
                      {"channel": name, "fraction": frac})
     return None
@@ -100,7 +101,7 @@ def screen_step(idx: int, t: FloatArray, x: FloatArray, u: FloatArray, f_label_h
     try:
         item = frfmod.step_response(t, x, u, f0, n_harmonics=n_harmonics)
     except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
-        return None, [Check("step_failed", "warning", idx, f"step {idx} left out: its sine fit failed "
+        return None, [Check("step_failed", Severity.WARNING, idx, f"step {idx} left out: its sine fit failed "
                             f"({exc})", {})]
     fx, fu = item[2], item[3]
     f = fx.frequency_hz
@@ -118,24 +119,24 @@ def screen_step(idx: int, t: FloatArray, x: FloatArray, u: FloatArray, f_label_h
             fx, fu = item[2], item[3]
             f = fx.frequency_hz
     if not np.isfinite(f) or abs(f - f0) > bin_hz:
-        return None, [Check("frequency_fit_diverged", "warning", idx, f"step {idx} left out: the frequency "
+        return None, [Check("frequency_fit_diverged", Severity.WARNING, idx, f"step {idx} left out: the frequency "
                             f"fit went from {f0:.6g} Hz to {f:.6g} Hz", {"spectral_peak_hz": f0,
                                                                          "fitted_hz": float(f)})]
     for name, fit in (("displacement", fx), ("force", fu)):
         snr = abs(fit.phasor) / max(np.sqrt(np.trace(fit.phasor_cov) / 2), 1e-300)
         if snr < MIN_SNR:
-            return None, [Check("no_signal", "warning", idx, f"step {idx} left out: the {name} channel "
+            return None, [Check("no_signal", Severity.WARNING, idx, f"step {idx} left out: the {name} channel "
                                 f"shows no sine at {f:.6g} Hz (amplitude {snr:.2g} standard deviations, "
                                 f"{MIN_SNR:g} needed): noise only", {"channel": name, "snr": float(snr)})]
     rel = f / f_label_hz - 1
     if abs(rel) > FREQ_TOL and abs(f - f_label_hz) > 5 * fx.frequency_std_hz:
-        checks.append(Check("frequency_mismatch", "warning", idx, f"step {idx} ran at {f:.6g} Hz, labelled "
+        checks.append(Check("frequency_mismatch", Severity.WARNING, idx, f"step {idx} ran at {f:.6g} Hz, labelled "
                             f"{f_label_hz:g} Hz ({100 * rel:+.3g} %): crank slip or a mislabelled step; "
                             "fitted at the measured frequency", {"measured_hz": float(f),
                                                                   "labelled_hz": f_label_hz, "relative": rel}))
     ratio = abs(fx.phasor) / radius_m
     if abs(ratio - 1) > AMP_TOL:
-        checks.append(Check("displacement_amplitude", "warning", idx, f"step {idx}: displacement amplitude "
+        checks.append(Check("displacement_amplitude", Severity.WARNING, idx, f"step {idx}: displacement amplitude "
                             f"{abs(fx.phasor):.4g} m against a crank radius of {radius_m:.4g} m "
                             f"(ratio {ratio:.4g})", {"amplitude_m": abs(fx.phasor), "radius_m": radius_m,
                                                      "ratio": ratio, "force_amplitude_V": abs(fu.phasor)}))
@@ -161,21 +162,21 @@ def run_checks(items: dict[int, tuple], step_checks: list[Check], radii: dict[in
         r = float(np.median([json_float(amp[i], "ratio") for i in bad]))
         swapped = [i for i in bad if abs(json_float(amp[i], "force_amplitude_V") / radii[i] - 1) < 0.25]
         if len(swapped) == len(bad):
-            out.append(Check("channels_swapped", "refused", None, "the displacement and force columns look "
+            out.append(Check("channels_swapped", Severity.REFUSED, None, "the displacement and force columns look "
                              f"swapped: the force channel's amplitude matches the crank radius, the "
                              f"displacement's is {r:.4g} times it", {"ratio": r}))
         else:
-            out.append(Check("displacement_units", "refused", None, f"the displacement amplitude is {r:.4g} "
+            out.append(Check("displacement_units", Severity.REFUSED, None, f"the displacement amplitude is {r:.4g} "
                              f"times the crank radius in every step{_units_hint(r)}; displacement in m "
                              "expected", {"ratio": r}))
     else:
         for i in bad:
             used.remove(i)
-            out.append(Check("displacement_amplitude", "warning", i, f"step {i} left out: its displacement "
+            out.append(Check("displacement_amplitude", Severity.WARNING, i, f"step {i} left out: its displacement "
                              f"amplitude is {amp[i]['ratio']:.4g} times its crank radius", amp[i]))
     if not used or any(c.severity == "refused" for c in out):
         if not any(c.severity == "refused" for c in out):
-            out.append(Check("no_usable_step", "refused", None, "no usable step is left", {}))
+            out.append(Check("no_usable_step", Severity.REFUSED, None, "no usable step is left", {}))
         raise IdentificationRefused("; ".join(c.message for c in out if c.severity == "refused"),
                                     step_checks + out)
     low = min(used, key=lambda i: items[i][2].frequency_hz)
@@ -184,11 +185,11 @@ def run_checks(items: dict[int, tuple], step_checks: list[Check], radii: dict[in
     nominal_sign = 1.0 if sensitivity_nominal > 0 else -1.0
     if sign < 0 or nominal_sign < 0:
         agree = sign == nominal_sign
-        out.append(Check("polarity", "info" if agree else "warning", None, "inverted polarity: the force "
+        out.append(Check("polarity", Severity.INFO if agree else Severity.WARNING, None, "inverted polarity: the force "
                          "signal rises with the inertia force, S is negative" if sign < 0 else
                          "normal polarity: S is positive", {"sign": sign, "nominal_sign": nominal_sign}))
         if not agree:
-            out[-1] = Check("polarity", "warning", None, f"the data give S the sign {sign:+.0f}, the nominal "
+            out[-1] = Check("polarity", Severity.WARNING, None, f"the data give S the sign {sign:+.0f}, the nominal "
                             f"sensitivity has {nominal_sign:+.0f}; S is reported with the data's sign",
                             {"sign": sign, "nominal_sign": nominal_sign})
     f_low = items[low][2].frequency_hz
@@ -200,16 +201,16 @@ def run_checks(items: dict[int, tuple], step_checks: list[Check], radii: dict[in
     lag = float(np.degrees(abs(np.angle(-H * sign))))  # ~0 far below the resonance, whatever the masses
     vals["phase_lag_deg"] = lag
     if not 1 / GAIN_REFUSE < g < GAIN_REFUSE and lag < MAX_QUASI_STATIC_LAG_DEG:
-        out.append(Check("low_frequency_gain", "refused", None, text + ": a top mass or the sensitivity "
+        out.append(Check("low_frequency_gain", Severity.REFUSED, None, text + ": a top mass or the sensitivity "
                          "typed wrong (e.g. by a factor 10), or the force signal in other units", vals))
         raise IdentificationRefused(out[-1].message, step_checks + out)
     if not 1 / GAIN_REFUSE < g < GAIN_REFUSE:
-        out.append(Check("low_frequency_gain", "warning", None, text + f" with a phase lag of {lag:.3g} deg: "
+        out.append(Check("low_frequency_gain", Severity.WARNING, None, text + f" with a phase lag of {lag:.3g} deg: "
                          "the lowest step is near the resonance, so the gain cannot tell a mass or "
                          "sensitivity typed wrong", vals))
         return out, used, sign
     if abs(g - 1) > GAIN_WARN:
-        out.append(Check("low_frequency_gain", "warning", None, text + " (resonance amplification, or a "
+        out.append(Check("low_frequency_gain", Severity.WARNING, None, text + " (resonance amplification, or a "
                          "mass or the nominal sensitivity off)", vals))
     return out, used, sign
 
@@ -221,6 +222,6 @@ def sensitivity_check(S: float | None, nominal: float, conditional: bool) -> Che
     r = S / nominal
     if abs(abs(r) - 1) <= GAIN_WARN:
         return None
-    return Check("sensitivity_vs_nominal", "warning", None, f"identified S = {S:.6g} V/N is {abs(r):.4g} times "
+    return Check("sensitivity_vs_nominal", Severity.WARNING, None, f"identified S = {S:.6g} V/N is {abs(r):.4g} times "
                  f"the nominal {nominal:.6g} V/N" + (" (conditional on the assumed end mass)" if conditional
                                                     else ""), {"ratio": float(abs(r))})

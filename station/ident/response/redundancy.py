@@ -36,6 +36,7 @@ import numpy as np
 from station.ident.inputs import IdentInputs
 from station.ident.response.sinefit import SineFit, estimate_frequency
 from station.ident.result import Check, Estimate
+from station.vocabulary import Severity
 
 Z_FINDING = 3.0  # combined standard uncertainties beyond which a disagreement is a finding
 CLOCK_SAMPLES = 4000  # force samples per step the clock comparison fits (at most)
@@ -93,7 +94,7 @@ def radius_check(fits: dict[int, SineFit], radii: dict[int, float], inputs: Iden
              "check the displacement sensor's calibration (its gain) and the crank radius setting")
     used = [x for x in inputs.defaults if x.startswith(("crank radius", "measurement chain gain"))]
     dflt = f"; defaults no certificate supports: {', '.join(used)}" if used else ""
-    return Check("displacement_vs_radius", "warning", None,
+    return Check("displacement_vs_radius", Severity.WARNING, None,
                  f"the measured displacement amplitude is {1 + d:.6g} times the stated crank radius (z {z:+.3g}; "
                  f"combined standard uncertainty {u:.2g}: noise, crank radius u = {u_r:.3g} m, displacement "
                  f"chain gain u = {u_gain:.2g}{dflt}): the two standards disagree; {which}. S scales with the "
@@ -155,7 +156,7 @@ def clock_check(steps: dict[int, tuple[np.ndarray, np.ndarray, SineFit]], n_harm
     z = eps / u
     if abs(z) <= Z_CLOCK:
         return None
-    return Check("clock_skew", "warning", None,
+    return Check("clock_skew", Severity.WARNING, None,
                  f"the force channel runs at {1e6 * eps:+.3g} ppm of the displacement channel's frequency "
                  f"(standard uncertainty {1e6 * u:.2g} ppm, z {z:+.3g}, over {len(rel)} steps): the two converters' "
                  "clocks disagree, which shows as a force phase that grows with time within each step and biases "
@@ -213,7 +214,7 @@ def static_check(offsets: tuple[tuple[float, float, float], ...], S: Estimate, m
              "calibration (the acceleration S rests on) first, then the force channel's zero" if displacement_off
              else "check the force channel's zero (the conditioner's stated offset) and the displacement sensor's "
              "calibration (the acceleration S rests on); then the local gravity")
-    return Check("static_force_vs_weight", "warning", None,
+    return Check("static_force_vs_weight", Severity.WARNING, None,
                  f"the static force (the force channel's mean {mean:.6g} V less the stated zero {zero:.6g} V, over "
                  f"the identified S) is {q:.6g} times the weight of the stated masses ({mass_kg:.6g} kg x "
                  f"{G_STANDARD} m/s^2) (z {z:+.3g}; combined standard uncertainty {u:.2g}: S's budget, the steps' "
