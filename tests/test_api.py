@@ -37,6 +37,8 @@ from tests.station_support import (
     wait_state,
 )
 
+pytestmark = pytest.mark.xdist_group("api")  # its module fixture is built once: the module's tests on one worker
+
 T = TypeVar("T")
 
 

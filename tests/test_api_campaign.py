@@ -10,7 +10,8 @@ import pytest
 
 from tests.station_support import HeldApp, Seed, daemon_config, seed_runs
 
-pytestmark = pytest.mark.slow  # the campaign is computed in the render worker (a process start)
+# the campaign is computed in the render worker (a process start)
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("api_campaign")]
 Runs = tuple[HeldApp, list[str]]
 END_MASS = 0.12  # the simulated transducer's (config/sim-5kN.yaml)
 

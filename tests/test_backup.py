@@ -23,7 +23,8 @@ from station.lab.issued import FOLDER, read_issued
 from station.recording import read_recording
 from tests.station_support import Seed, asgi_client, daemon_config, run_body, running_app, seed_runs
 
-pytestmark = pytest.mark.slow  # a simulated, identified run seeded, one recorded on the virtual clock (~10 s)
+# a simulated, identified run seeded, one recorded on the virtual clock (~10 s)
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("backup")]
 
 
 class Roles:

@@ -25,6 +25,9 @@ from station.recording import read_recording, write_result
 from station.report.render import html_to_pdf
 from tests.ident_support import R, sim
 
+# its module fixture is built once: the module's tests on one worker
+pytestmark = pytest.mark.xdist_group("certificate_content")
+
 ISSUED = Approval("issued", "SC-2026-0042", "T. Technician", "A. Approver", "approver", "2026-11-24T12:00:00+00:00")
 REFERENCE = {"calibrated": "transducer", "gain_rel_std": 2e-4, "excitation_V": 5.0, "excitation_rel_std": 1e-4}
 

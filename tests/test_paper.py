@@ -12,7 +12,7 @@ import pytest
 
 from station.cli import main
 
-pytestmark = pytest.mark.slow  # the quick paper reproduction alone takes ~7 s
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("paper")]  # the quick paper reproduction alone takes ~7 s
 
 
 @pytest.fixture(scope="module")

@@ -29,6 +29,8 @@ from station.run.processing import process_recording
 from station.simulate import simulate_run
 from tests.conftest import fast_dict
 
+pytestmark = pytest.mark.xdist_group("report")  # its module fixture is built once: the module's tests on one worker
+
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
