@@ -149,6 +149,7 @@ NOT_IN_THE_WEB_PROCESS = ("scipy", "numba", "matplotlib", "openpyxl", "drivers.s
                           "station.ident.identify", "station.report.data", "station.trend.charts")
 
 
+@pytest.mark.slow  # a process that imports the daemon's API (2 s of CPU)
 def test_the_daemons_processes_load_only_what_they_need_at_start() -> None:
     code = ("import sys\n"
             "import station.rigproc.serve\n"  # the rig process
