@@ -19,6 +19,7 @@ import h5py
 import pytest
 import yaml
 
+import drivers.sim.rig as simrig
 import station.run.rig as rigmod
 from drivers.daq.bridge import parse_hardware
 from drivers.motor import load_profile, shipped_profiles
@@ -130,7 +131,8 @@ def test_station_calibrate_says_it_in_one_line_and_moves_nothing(tmp_path: Path,
 
 # ------------------------------------------------------------------------------------------- the DAQ
 class _Rigs:
-    """The simulated rigs ``connect`` starts (their emulators are read after the refusal)."""
+    """The simulated rigs ``connect`` starts (their emulators are read after the refusal; ``connect``
+    imports ``SimRig`` from ``drivers.sim.rig`` when it builds one)."""
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch, **override: Any) -> None:
         self.made: list[SimRig] = []
@@ -141,7 +143,7 @@ class _Rigs:
                 super().__init__(**{**kw, **override})
                 made.append(self)
 
-        monkeypatch.setattr(rigmod, "SimRig", Recorded)
+        monkeypatch.setattr(simrig, "SimRig", Recorded)
 
 
 def _connect_refused(cfg: Any) -> HardwareMismatchError:

@@ -3,11 +3,14 @@ imports another module's private (``_name``) helper, the tests included (a test 
 public name, or the helper gets one); a test module never imports another test module (what tests
 share lives in ``tests/*_support.py`` or ``tests/conftest.py``); and the modules of ``station`` and of
 ``drivers`` import each other without a circle (every import counts: top-level, in a function, under
-TYPE_CHECKING)."""
+TYPE_CHECKING).  And what the daemon's processes load as they start: the rig process no numpy, the
+web process none of the identification, the report, the control charts (scipy), matplotlib or the
+emulators (each daemon start costs their import otherwise)."""
 
 from __future__ import annotations
 
 import ast
+import subprocess
 import sys
 from pathlib import Path
 
@@ -141,3 +144,23 @@ def test_the_rules_see_what_they_forbid(tmp_path: Path, monkeypatch: pytest.Monk
     assert import_cycles("station.ident") == [["station.ident.a", "station.ident.b"]]
     assert private_imports(("tests",)) == ["tests.test_x: from station.ident.b import _helper"]
     assert imports_of_test_modules("tests") == ["tests.test_y: imports tests.test_x"] * 2
+
+
+# loaded where they are used (a worker, the request's thread, the emulators' process), never at the
+# web process's start
+NOT_IN_THE_WEB_PROCESS = ("scipy", "numba", "matplotlib", "openpyxl", "drivers.sim.rig", "drivers.rig.synth",
+                          "station.ident.identify", "station.report.data", "station.trend.charts")
+
+
+@pytest.mark.slow  # a process that imports the daemon's API (2 s of CPU)
+def test_the_daemons_processes_load_only_what_they_need_at_start() -> None:
+    code = ("import sys\n"
+            "import station.rigproc.serve\n"  # the rig process
+            "print(sorted(m for m in ('numpy', 'scipy', 'h5py', 'fastapi') if m in sys.modules))\n"
+            "import drivers.sim.process\n"  # how the web process starts the emulators' process
+            "print('numpy' in sys.modules)\n"
+            "import station.api, station.commands.serve, station.commands.server, station.rigproc.client\n"
+            f"print(sorted(m for m in {NOT_IN_THE_WEB_PROCESS!r} if m in sys.modules))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split("\n")[:3] == ["[]", "False", "[]"], r.stdout

@@ -24,8 +24,8 @@ import yaml
 
 from drivers.motor.controller import MotorController
 from drivers.motor.transport import ModbusTransport
+from drivers.sim import SimRigProcess
 from drivers.sim.clock import VirtualClock
-from drivers.sim.rig import SimRigProcess
 from station.config import load_config, parse_config
 from station.recording import read_recording
 from station.run.procedure import Procedure

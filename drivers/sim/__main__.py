@@ -36,7 +36,8 @@ from typing import Any
 from drivers.motor.errors import RegisterMapError
 from drivers.motor.profile import load_profile
 from drivers.sim.daq_source import RigSource
-from drivers.sim.rig import SimRig, addresses_json
+from drivers.sim.process import addresses_json
+from drivers.sim.rig import SimRig
 
 _out = threading.Lock()
 

@@ -7,13 +7,16 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from station.batch.summary import PARAMS, drift_checks
-from station.lab import audit, trends
+from station.lab import audit
 from station.lab.policy import AsLeft, Policy
 from station.lab.store import RunRow, Store
 from station.recording.stored import read_result
+
+if TYPE_CHECKING:  # the trends (scipy's statistics) load with the first history that has them, not with the daemon
+    from station.lab import trends
 
 PARAM_NAMES = tuple(name for name, _ in PARAMS)
 
@@ -54,6 +57,8 @@ def parameters_of(path: Path, result_name: str | None) -> dict[str, dict[str, An
 def series_of(rows: list[RunRow], entries: list[dict[str, Any]]) -> dict[str, tuple[str, list[trends.Point]]]:
     """The completed runs' values per parameter (S, k_f, b_f and f_0 from k_f with the end mass of the
     register's record the run used), time-ordered, for the trends."""
+    from station.lab import trends
+
     out: dict[str, tuple[str, list[trends.Point]]] = {}
     for r, e in zip(rows, entries, strict=True):
         if e["state"] != "completed":
@@ -99,6 +104,8 @@ def history(rows: list[RunRow], recordings_dir: Path, approved: dict[str, list[d
                                 "u_c": check.u_c})
     doc: dict[str, Any] = {"runs": entries, "flagged": flagged, "units": dict(PARAMS)}
     if policy is not None:
+        from station.lab import trends
+
         doc["trends"] = trends.transducer_trends(series_of(rows, entries), policy, as_left or {}, **chart_options)
         doc["out_of_control"] = trends.out_of_control(doc["trends"])
     return doc

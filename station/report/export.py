@@ -107,8 +107,6 @@ def workbook(t: ResultTables) -> bytes:
 
 
 EXPORTS = {"parameters.csv": parameters_csv, "sdyn.csv": sdyn_csv, "results.xlsx": workbook}
-MEDIA_TYPES = {"parameters.csv": "text/csv; charset=utf-8", "sdyn.csv": "text/csv; charset=utf-8",
-               "results.xlsx": "application/vnd.openxmlformats-officedocument.spreadsheetml.sheet"}
 
 
 def export_bytes(path: str | Path, name: str) -> bytes:

@@ -4,7 +4,7 @@
 is the daemon's rig connector (``service/riglink.RigConnector``) that puts them together.
 
 With the simulated rig (``--sim``) the emulators run in a process of their own too
-(``drivers.sim.SimRigProcess``): the rig process reaches the drive emulator over Modbus TCP and
+(``drivers.sim.process.SimRigProcess``): the rig process reaches the drive emulator over Modbus TCP and
 the web process the DAQ emulator over its pseudo-terminal, as they would real devices.
 
 Everything here runs on the rig thread's loop (``service/rigthread.py``), except :meth:`close`."""
@@ -343,7 +343,7 @@ class RigProcessConnector:
 
     def __init__(self, settings: ServiceSettings) -> None:
         self.settings = settings
-        self.emulators: Any = None  # drivers.sim.SimRigProcess when simulated
+        self.emulators: Any = None  # drivers.sim.process.SimRigProcess when simulated
         self.supervisor: RigSupervisor | None = None
         self.on_event: Callable[[dict[str, Any]], None] | None = None  # a stop the rig process gave (rig loop)
         self.spare: subprocess.Popen[str] | None = None  # the rig process started ahead (``launch``)
@@ -358,7 +358,7 @@ class RigProcessConnector:
     def launch_emulators(self) -> None:
         """Simulated: start the emulators' process now (:meth:`__enter__` waits until it serves)."""
         if self.settings.sim and self.emulators is None:
-            from drivers.sim import SimRigProcess
+            from drivers.sim.process import SimRigProcess
 
             cfg = self.settings.config
             seed = cfg.simulation.seed if cfg.simulation else 0

@@ -14,7 +14,7 @@ import contextlib
 import logging
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from drivers.clock import REAL_CLOCK, Clock
 from drivers.daq.bridge import DaqBridge
@@ -23,11 +23,13 @@ from drivers.motor.controller import MotorController
 from drivers.motor.profile import DriveProfile, load_profile
 from drivers.motor.transport import ModbusTransport, RegisterTransport, transport_from_url
 from drivers.rig.params import RigPhysics
-from drivers.sim.rig import SimRig
 from station.config import StationConfig, to_rig_physics
 from station.run.hardware import check_daq_hardware
 from station.run.procedure import FixedRadius, RadiusActuator
 from station.run.request import Plan
+
+if TYPE_CHECKING:
+    from drivers.sim.rig import SimRig
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +113,8 @@ async def connect(cfg: StationConfig, *, sim: bool, seed: int | None = None,
     profile = load_profile(cfg.rig.motor.profile)
     try:
         if sim:
+            from drivers.sim.rig import SimRig  # the emulators (numpy's filters, scipy): only where they run
+
             physics = to_rig_physics(cfg)
             radius = first_radius_m or cfg.plan.steps[0].crank_radius_m
             s = cfg.simulation.seed if seed is None and cfg.simulation else (seed or 0)

@@ -4,13 +4,14 @@ archive with a manifest of hashes (``station.recording.archive``)."""
 
 from __future__ import annotations
 
+from pathlib import Path as PathLib
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Path, Response
 
 from station.api.deps import ArtifactsDep, Reader, RunDep
 from station.api.routes.runs import BINARY, NON_JSON_ERRORS, ended_recording
-from station.report.export import MEDIA_TYPES, export_bytes
+from station.report.names import EXPORT_MEDIA_TYPES
 from station.service.manager import RunStateError
 
 router = APIRouter(prefix="/runs", tags=["runs"])
@@ -22,7 +23,7 @@ ExportName = Literal["parameters.csv", "sdyn.csv", "results.xlsx"]
             responses={200: {"description": "parameters.csv: the identified parameters with their standard "
                              "uncertainties and units; sdyn.csv: S_dyn(f) of the measured steps with u and U "
                              "(k = 2), units in the headers; results.xlsx: both as sheets of a workbook",
-                             "content": {"text/csv": {"schema": BINARY}, MEDIA_TYPES["results.xlsx"]: {
+                             "content": {"text/csv": {"schema": BINARY}, EXPORT_MEDIA_TYPES["results.xlsx"]: {
                                  "schema": BINARY}}},
                        **NON_JSON_ERRORS},
             summary="The results as CSV or an Excel workbook")
@@ -31,9 +32,17 @@ async def run_export(run: RunDep, artifacts: ArtifactsDep,
     if run.state != "completed":
         raise RunStateError(f"run {run.id} is {run.state}: its results can be exported once it is completed")
     path = artifacts.recording_path(run)
-    data = await artifacts.read_file(run.id, lambda p: export_bytes(p, name))
-    return Response(data, media_type=MEDIA_TYPES[name],
+    data = await artifacts.read_file(run.id, lambda p: _export(p, name))
+    return Response(data, media_type=EXPORT_MEDIA_TYPES[name],
                     headers={"Content-Disposition": f'attachment; filename="{path.stem}.{name}"'})
+
+
+def _export(path: PathLib, name: str) -> bytes:
+    """Export ``name`` of the recording at ``path`` (in a thread: the report's modules, which import
+    the identification's and scipy, are loaded on the first export, not with the daemon)."""
+    from station.report.export import export_bytes
+
+    return export_bytes(path, name)
 
 
 @router.get("/{run_id}/archive.zip", response_class=Response, dependencies=[Reader],
