@@ -14,7 +14,8 @@ import pytest
 from tests.station_support import Daemon, daemon_config, run_body
 from tests.web_support import log_in, open_page
 
-pytestmark = pytest.mark.slow  # a real daemon, a real run and a real browser: the end-to-end layer
+# a real daemon, a real run and a real browser: the end-to-end layer
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web")]
 
 
 

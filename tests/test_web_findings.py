@@ -16,7 +16,8 @@ import pytest
 
 from tests.web_support import open_page
 
-pytestmark = pytest.mark.slow  # a real browser (launched once for the module; the cases take under a second)
+# a real browser (launched once for the module; the cases take under a second)
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web_findings")]
 
 WORDS = Path(__file__).resolve().parent.parent / "station" / "api" / "static" / "words.js"
 EXPLAINED = "The transducer model explains the measurement"

@@ -15,7 +15,7 @@ import pytest
 from tests.station_support import Daemon, Seed
 from tests.web_support import log_in, open_page
 
-pytestmark = pytest.mark.slow  # a real daemon, runs and a browser
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web_lab")]  # a real daemon, runs and a browser
 
 DESKTOP = {"width": 1200, "height": 1000}  # the viewport of the desktop flows (CSS px)
 PAGES = ("#/", "#/register", "#/audit", "#/transducers/TX5K-0001")

@@ -17,6 +17,9 @@ import pytest
 from tests.station_support import Daemon, Seed, daemon_config
 from tests.web_support import log_in, open_page
 
+# its module's daemon is started once: the module's tests on one worker
+pytestmark = pytest.mark.xdist_group("web_proposal")
+
 K_F, B_F = 2.91e7, 17136.0  # the truth of config/sim-5kN.yaml (N/m, N*s/m)
 TIE_STEPS = (3.0, 5.036, 8.455, 14.193, 23.827, 40.0)
 

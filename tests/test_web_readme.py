@@ -28,7 +28,7 @@ from pypdf import PdfReader
 from tests.station_support import Daemon, daemon_config
 from tests.web_support import log_in, open_page
 
-pytestmark = pytest.mark.slow  # a real daemon, a real run and a real browser
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web_readme")]  # a real daemon, a real run and a real browser
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 NS = {"dcc": "https://ptb.de/dcc", "si": "https://ptb.de/si"}
