@@ -83,6 +83,7 @@ def coupling_2kf(tmp_path_factory: pytest.TempPathFactory) -> tuple[StationConfi
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("coupling_2kf")  # one analysis of the coupling run, one worker
 def test_coupling_twice_as_stiff_is_in_the_average_and_covered(
         coupling_2kf: tuple[StationConfig, DiscrepancyResult]) -> None:
     """k_c = 2 k_f: a coupling, a low-pass and a (negative, so unphysical) delay fit alike.  The coupling
@@ -261,6 +262,7 @@ def test_a_refusal_under_json_is_a_json_document(tmp_path: Path, capsys: pytest.
 # -- end to end: tie -> proposal -> the proposed run recorded elsewhere -> sinecal-csv v2 -> named --
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("coupling_2kf")  # one analysis of the coupling run, one worker
 def test_the_tie_gets_a_proposal_within_the_rig_limits(coupling_2kf: tuple[StationConfig, DiscrepancyResult]
                                                        ) -> None:
     """The tie this scenario is about (coupling, a low-pass and a negative, so never named, delay) gets
@@ -297,6 +299,7 @@ def follow_up(coupling_2kf: tuple[StationConfig, DiscrepancyResult], tmp_path_fa
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("coupling_2kf")  # one analysis of the coupling run, one worker
 def test_the_proposed_run_recorded_elsewhere_and_imported_names_the_coupling(
         follow_up: tuple[list[tuple[float, float]], Path, DiscrepancyResult]) -> None:
     run_steps, elsewhere, after = follow_up
