@@ -83,11 +83,14 @@ def _harmonics_tile(c1, s1, t, W, rows, out, cprev, ccur, sprev, scur):
                 _harmonics_rows(c1, s1, t, W[i + r - 1:i + r], 1, out[i + r - 1:i + r], cprev, ccur, sprev, scur)
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
+@numba.njit(cache=True, error_model="numpy")
 def _harmonics_rows(c1, s1, t, W, R, out, cprev, ccur, sprev, scur):
-    """``_harmonics_tile`` for R (a constant where it is inlined: 1, 2 or 4) rows: each pass over the tile
-    takes the recurrence two harmonics on and adds both to every row's sum (the operations, and their
-    order, of a harmonic and a row at a time; a third of the memory traffic)."""
+    """``_harmonics_tile`` for R rows (a literal: compiled for each of 1, 2 and 4, the row branches gone and
+    the tile's loops vectorised): each pass over the tile takes the recurrence two harmonics on and adds
+    both to every row's sum (the operations, and their order, of a harmonic and a row at a time; a third
+    of the memory traffic).  Not inlined: numba's inlining of it took the kernels' compilation from 18 s
+    to 58 s of CPU."""
+    numba.literally(R)
     K = W.shape[1] // 2
     w = np.zeros((4, 4))  # row i: this pass's weights (cos, sin of the first harmonic, of the second)
     for i in range(R):
@@ -305,6 +308,68 @@ def _df2t(b, c, a, n, z, x1, x2):
     return y, (z0, z1, z2, z3, z4, z5, z6, b[8] * x1 + c[8] * x2 - a[8] * y)
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _filter_loop(b, c, a, N, z, x1, x2, y, t):
+    """y[q] = ``_df2t`` of x1[q], x2[q] for q < t, state z in and out; compiled for each order N (a
+    literal: the loop without branches, its state in registers), N == 0 for any order."""
+    numba.literally(N)
+    n = a.size - 1
+    for q in range(t):
+        y[q], z = _df2t(b, c, a, N if N > 0 else n, z, x1[q], x2[q])
+    return z
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _filter_pass(b, c, a, n, z, x1, x2, y, t):
+    """``_filter_loop`` for the order n: the second order (the sensor, the rigid mechanics) compiled for
+    its own."""
+    if n == 2:
+        return _filter_loop(b, c, a, 2, z, x1, x2, y, t)
+    return _filter_loop(b, c, a, 0, z, x1, x2, y, t)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _lp_sensor_loop(b, c, a, N, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t):
+    """``_filter_loop`` of the low-pass (order N) and of the second-order sensor in one loop: two
+    independent recurrences side by side."""
+    numba.literally(N)
+    n = a.size - 1
+    for q in range(t):
+        y[q], z = _df2t(b, c, a, N if N > 0 else n, z, x1[q], x2[q])
+        ys[q], zs = _df2t(bs, cs, as_, 2, zs, x1s[q], x2s[q])
+    return z, zs
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _lp_sensor_pass(b, c, a, n, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t):
+    """``_lp_sensor_loop`` for the low-pass's order n: the fourth compiled for its own."""
+    if n == 4:
+        return _lp_sensor_loop(b, c, a, 4, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t)
+    return _lp_sensor_loop(b, c, a, 0, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _mech_loop(num_u, num_du, den, N, z0, z1, x1, x2, y0, y1, t):
+    """The mechanics' two outputs (the force and its rate) side by side, order N as in ``_filter_loop``."""
+    numba.literally(N)
+    n = den.size - 1
+    b0, c0, b1, c1 = num_u[0], num_du[0], num_u[1], num_du[1]
+    for q in range(t):
+        y0[q], z0 = _df2t(b0, c0, den, N if N > 0 else n, z0, x1[q], x2[q])
+        y1[q], z1 = _df2t(b1, c1, den, N if N > 0 else n, z1, x1[q], x2[q])
+    return z0, z1
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _mech_pass(num_u, num_du, den, n, P, z0, z1, x1, x2, y0, y1, t):
+    """The mechanics' P outputs over a tile: the coupled chain's two (order 4) compiled for their own."""
+    if P == 1:
+        return _filter_pass(num_u[0], num_du[0], den, n, z0, x1, x2, y0, t), z1
+    if n == 4:
+        return _mech_loop(num_u, num_du, den, 4, z0, z1, x1, x2, y0, y1, t)
+    return _mech_loop(num_u, num_du, den, 0, z0, z1, x1, x2, y0, y1, t)
+
+
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _load_state(z, p):
     """Row p of a (P, n <= MAX_ORDER) state array as the padded tuple ``_df2t`` carries."""
@@ -365,15 +430,18 @@ def _quantise(v, lsb, lo, hi, codes):
     return clipped
 
 
-# C901: one fused pass on purpose: the filters' states stay in registers across the stages of a tile (the
-# same filter with its state in memory measured 6x slower); the staged path is RigSynth.advance_stages
+# C901: one fused pass over the tiles on purpose (every stage's scratch stays in the L1 cache); the filters
+# keep their states in registers across a tile (the same filter with its state in memory measured 6x
+# slower); the staged path is RigSynth.advance_stages
 @numba.njit(cache=True, error_model="numpy")
 def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp, lp_z, mains_base, mains_tab, Wm,  # noqa: C901
                 keys, shift_cs, sen, sen_z, out_x, out_fV, out_dV, codes_d, codes_f):
     """One block of ``synth.RigSynth``: every stage of its signal chain for each tile of SYNTH_TILE samples
-    (the crank's and the mains' harmonics and every elementwise stage vectorised over the tile, the
-    three filters in one pass over it), the same operations as the staged numpy path in the same
-    order, so the same samples to the bit.  Returns the number of clipped samples (both channels).
+    (the crank's and the mains' harmonics and every elementwise stage vectorised over the tile; the
+    mechanics' outputs side by side in one loop over it, then the conditioner's low-pass beside the
+    sensor's resonance in another, each loop compiled for its filter order: ``_mech_pass``,
+    ``_lp_sensor_pass``), the same operations as the staged numpy path in the same order, so the same
+    samples to the bit.  Returns the number of clipped samples (both channels).
 
     fl (float64): [T, f0, rate, alpha, g, S, capacity, quadratic, cubic, gain, offset, drift_rate,
     drift_quadratic, noise_V, cd, sd, delay, skew, disp_gain, disp_noise_scale, lsb_d, lsb_f, lo, hi,
@@ -412,6 +480,9 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
     du_s = np.empty(SYNTH_TILE)
     v = np.empty(SYNTH_TILE)
     xm = np.empty(SYNTH_TILE)
+    Fs = np.empty(SYNTH_TILE)
+    dFs = np.empty(SYNTH_TILE)
+    vr_s = np.empty(SYNTH_TILE)
     rows = np.empty((4, SYNTH_TILE))
     mrow = np.empty((1, SYNTH_TILE))
     cprev = np.empty(SYNTH_TILE)
@@ -462,7 +533,7 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
                     u[q] = (alpha * d1[q] - w2 * x[q]) + g
                     jerk[q] = -(w2 * w) * d1[q] - 3.0 * alpha * w * x[q]
         else:
-            _harmonics_tile(c, s, t, Wc, 4, rows, cprev, ccur, sprev, scur)
+            _harmonics_rows(c, s, t, Wc, 4, rows, cprev, ccur, sprev, scur)
             if alpha == 0.0:
                 for q in range(t):
                     w = om[q]
@@ -497,28 +568,43 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
                 cx[q] = c[q] * cd + s[q] * sd
                 sx[q] = s[q] * cd - c[q] * sd
         if shift_mode != 0:
-            _harmonics_tile(cx, sx, t, Wc, 2 if has_sen else 1, rows, cprev, ccur, sprev, scur)
+            if has_sen:
+                _harmonics_rows(cx, sx, t, Wc, 2, rows, cprev, ccur, sprev, scur)
+            else:
+                _harmonics_rows(cx, sx, t, Wc, 1, rows, cprev, ccur, sprev, scur)
         elif has_sen:
-            _harmonics_tile(c, s, t, Wc, 2, rows, cprev, ccur, sprev, scur)
+            _harmonics_rows(c, s, t, Wc, 2, rows, cprev, ccur, sprev, scur)
         if has_sen:
             for q in range(t):
                 du_s[q] = rows[1, q] * om[q]
-        # the three filters, one pass: mechanics -> transducer -> conditioner low-pass; the sensor
-        for q in range(t):
-            F, zm0 = _df2t(mech_u[0], mech_du[0], mech_den, n_mech, zm0, u[q], jerk[q])
-            if has_nl:
+        # the filters: the mechanics, the transducer, the conditioner's low-pass beside the sensor
+        zm0, zm1 = _mech_pass(mech_u, mech_du, mech_den, n_mech, P, zm0, zm1, u, jerk, Fs, dFs, t)
+        rate_path = P > 1 and has_lp
+        if has_nl and rate_path:
+            for q in range(t):
+                F = Fs[q]
                 r = F / cap
-                vq = S * F * (1.0 + quad * r + cub * r * r)
-            else:
-                vq = S * F
-            if P > 1:
-                dF, zm1 = _df2t(mech_u[1], mech_du[1], mech_den, n_mech, zm1, u[q], jerk[q])
-                if has_lp:
-                    vr = S * dF * (1.0 + 2.0 * quad * r + 3.0 * cub * r * r) if has_nl else S * dF
-                    vq, zl = _df2t(lp_u[0], lp_du[0], lp_den, n_lp, zl, vq, vr)
-            v[q] = vq
+                v[q] = S * F * (1.0 + quad * r + cub * r * r)
+                vr_s[q] = S * dFs[q] * (1.0 + 2.0 * quad * r + 3.0 * cub * r * r)
+        elif has_nl:
+            for q in range(t):
+                F = Fs[q]
+                r = F / cap
+                v[q] = S * F * (1.0 + quad * r + cub * r * r)
+        else:
+            for q in range(t):
+                v[q] = S * Fs[q]
+            if rate_path:
+                for q in range(t):
+                    vr_s[q] = S * dFs[q]
+        if rate_path and has_sen and n_sen == 2:
+            zl, zs = _lp_sensor_pass(lp_u[0], lp_du[0], lp_den, n_lp, zl, v, vr_s, v,
+                                     sen_u[0], sen_du[0], sen_den, zs, rows[0], du_s, xm, t)
+        else:
+            if rate_path:
+                zl = _filter_pass(lp_u[0], lp_du[0], lp_den, n_lp, zl, v, vr_s, v, t)
             if has_sen:
-                xm[q], zs = _df2t(sen_u[0], sen_du[0], sen_den, n_sen, zs, rows[0, q], du_s[q])
+                zs = _filter_pass(sen_u[0], sen_du[0], sen_den, n_sen, zs, rows[0], du_s, xm, t)
         # the force channel: gain, offset, drift, mains, noise
         fV = out_fV[k0:k0 + t]
         for q in range(t):
@@ -529,7 +615,7 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
                 fV[q] += dr * ta + dq * (ta * ta)
         if has_mains:
             _rotate_tile(mains_base, mains_tab, j, t, cx, sx)
-            _harmonics_tile(cx, sx, t, Wm, 1, mrow, cprev, ccur, sprev, scur)
+            _harmonics_rows(cx, sx, t, Wm, 1, mrow, cprev, ccur, sprev, scur)
             for q in range(t):
                 fV[q] += mrow[0, q]
         if has_fnoise:
