@@ -83,6 +83,12 @@ def _harmonics_tile(c1, s1, t, W, rows, out, cprev, ccur, sprev, scur):
                 _harmonics_rows(c1, s1, t, W[i + r - 1:i + r], 1, out[i + r - 1:i + r], cprev, ccur, sprev, scur)
 
 
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _chebyshev(two_c1, c, s, c_prev, s_prev):
+    """The next harmonic's cos and sin from this one's and the one before (2 cos(phi) = two_c1)."""
+    return two_c1 * c - c_prev, two_c1 * s - s_prev
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _harmonics_rows(c1, s1, t, W, R, out, cprev, ccur, sprev, scur):
     """``_harmonics_tile`` for R rows (a literal: compiled for each of 1, 2 and 4, the row branches gone and
@@ -125,12 +131,9 @@ def _harmonics_rows(c1, s1, t, W, R, out, cprev, ccur, sprev, scur):
         if two:
             for q in range(t):
                 two_c1 = 2.0 * c1[q]
-                cc = ccur[q]
-                sc = scur[q]
-                cn = two_c1 * cc - cprev[q]
-                sn = two_c1 * sc - sprev[q]
-                cm = two_c1 * cn - cc
-                sm = two_c1 * sn - sc
+                cc, sc = ccur[q], scur[q]
+                cn, sn = _chebyshev(two_c1, cc, sc, cprev[q], sprev[q])
+                cm, sm = _chebyshev(two_c1, cn, sn, cc, sc)
                 cprev[q] = cn
                 sprev[q] = sn
                 ccur[q] = cm
@@ -144,11 +147,8 @@ def _harmonics_rows(c1, s1, t, W, R, out, cprev, ccur, sprev, scur):
             h += 2
         else:
             for q in range(t):
-                two_c1 = 2.0 * c1[q]
-                cc = ccur[q]
-                sc = scur[q]
-                cn = two_c1 * cc - cprev[q]
-                sn = two_c1 * sc - sprev[q]
+                cc, sc = ccur[q], scur[q]
+                cn, sn = _chebyshev(2.0 * c1[q], cc, sc, cprev[q], sprev[q])
                 cprev[q] = cc
                 sprev[q] = sc
                 ccur[q] = cn
