@@ -9,18 +9,27 @@ same run, interleaved repeat by repeat; the same with no effects, with a ramping
 DAQ emulator's blocks of 256 samples; and the load average (``os.getloadavg``) before and after.
 The first block of every run (the ramp) is not timed: it also compiles the kernels or reads them
 from numba's cache.
+
+One BLAS thread, as the station's processes run the synthesis (``station.cli``, ``station.blas_env``;
+a value the user set is kept): with OpenBLAS's default pool, its worker thread spins for a while after
+each synthesiser's set-up (the discretisation's eigenvalues, solves and matrix products) and that
+spinning, on the other core, was measured as synthesis: half the CPU time of a run on 2 cores.
 """
 
 from __future__ import annotations
 
-import json
 import os
-import statistics
-import time
 
-from drivers.rig import params as rp
-from drivers.rig.presets import paper_5kN_physics
-from drivers.rig.synth import RigSynth
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # before numpy is imported
+
+import json  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+
+from drivers.rig import params as rp  # noqa: E402
+from drivers.rig.presets import paper_5kN_physics  # noqa: E402
+from drivers.rig.synth import RigSynth  # noqa: E402
 
 ALL_EFFECTS = rp.Effects(
     coupling_compliance=rp.CouplingCompliance(5e8, 400.0),
@@ -84,6 +93,7 @@ def main() -> None:
         "effects": ALL_EFFECTS.active(),
         "sample_rate_hz": 20000,
         "channels": 2,
+        "blas_threads": os.environ["OPENBLAS_NUM_THREADS"],
         "load_average_before": load_before,
         "load_average_after": os.getloadavg(),
     }

@@ -28,6 +28,22 @@ def test_harmonic_sum_is_the_weighted_chebyshev_stack(K: int, n: int) -> None:
     np.testing.assert_allclose(got, W @ np.vstack([np.cos(h * phi), np.sin(h * phi)]), rtol=0, atol=1e-11 * K**2)
 
 
+
+def test_harmonic_sums_of_any_row_count_are_each_rows_own() -> None:
+    """The compiled sums take 1, 2 and 4 rows in passes of their own and split other counts into those:
+    each row's sum is the same, to the bit, as that row summed alone, for odd and even harmonic counts."""
+    rng = np.random.default_rng(0)
+    phi = rng.uniform(0, 2 * np.pi, 600)
+    cs = (np.cos(phi), np.sin(phi))
+    for K in (1, 2, 3, 4, 5):
+        for rows in range(1, 8):
+            W = rng.normal(size=(rows, 2 * K))
+            got = crank.harmonic_sum(cs, W)
+            for i in range(rows):
+                alone = crank.harmonic_sum(cs, W[i:i + 1])[0]
+                np.testing.assert_array_equal(got[i], alone, err_msg=f"{K=} {rows=} {i=}")
+            np.testing.assert_allclose(got, W @ crank.harmonic_stack(cs, K), rtol=0, atol=1e-13 * np.abs(W).sum())
+
 @pytest.mark.parametrize("rod", [None, 0.25, 0.01])
 def test_the_displacement_at_one_angle_is_the_series(rod: float | None) -> None:
     """The starting displacement the synthesiser's sensor state takes (numpy, nothing compiled) is x_b(phi)."""

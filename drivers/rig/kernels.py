@@ -64,32 +64,102 @@ def two_input_df2t(num_u, num_du, den, u, du, z, out):
 @numba.njit(cache=True, error_model="numpy")
 def _harmonics_tile(c1, s1, t, W, rows, out, cprev, ccur, sprev, scur):
     """The harmonic sums of ``harmonic_series`` on one tile: out[i, q] for the first ``rows`` rows of W
-    and q < t (t at most the length of the scratch rows cprev, ccur, sprev, scur)."""
+    and q < t (t at most the length of the scratch rows cprev, ccur, sprev, scur).  The synthesis's
+    1, 2 and 4 rows each by a pass of its own (``_harmonics_rows``)."""
+    if rows == 4:
+        _harmonics_rows(c1, s1, t, W, 4, out, cprev, ccur, sprev, scur)
+    elif rows == 2:
+        _harmonics_rows(c1, s1, t, W, 2, out, cprev, ccur, sprev, scur)
+    elif rows == 1:
+        _harmonics_rows(c1, s1, t, W, 1, out, cprev, ccur, sprev, scur)
+    else:
+        for i in range(0, rows, 4):
+            r = min(4, rows - i)
+            if r == 4:
+                _harmonics_rows(c1, s1, t, W[i:i + 4], 4, out[i:i + 4], cprev, ccur, sprev, scur)
+            elif r == 2 or r == 3:
+                _harmonics_rows(c1, s1, t, W[i:i + 2], 2, out[i:i + 2], cprev, ccur, sprev, scur)
+            if r == 1 or r == 3:
+                _harmonics_rows(c1, s1, t, W[i + r - 1:i + r], 1, out[i + r - 1:i + r], cprev, ccur, sprev, scur)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _chebyshev(two_c1, c, s, c_prev, s_prev):
+    """The next harmonic's cos and sin from this one's and the one before (2 cos(phi) = two_c1)."""
+    return two_c1 * c - c_prev, two_c1 * s - s_prev
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _harmonics_rows(c1, s1, t, W, R, out, cprev, ccur, sprev, scur):
+    """``_harmonics_tile`` for R rows (a literal: compiled for each of 1, 2 and 4, the row branches gone and
+    the tile's loops vectorised): each pass over the tile takes the recurrence two harmonics on and adds
+    both to every row's sum (the operations, and their order, of a harmonic and a row at a time; a third
+    of the memory traffic).  Not inlined: numba's inlining of it took the kernels' compilation from 18 s
+    to 58 s of CPU."""
+    numba.literally(R)
     K = W.shape[1] // 2
+    w = np.zeros((4, 4))  # row i: this pass's weights (cos, sin of the first harmonic, of the second)
+    for i in range(R):
+        w[i, 0] = W[i, 0]
+        w[i, 1] = W[i, K]
+    a0, b0, a1, b1, a2, b2, a3, b3 = w[0, 0], w[0, 1], w[1, 0], w[1, 1], w[2, 0], w[2, 1], w[3, 0], w[3, 1]
     for q in range(t):
+        c = c1[q]
+        s = s1[q]
         cprev[q] = 1.0
         sprev[q] = 0.0
-        ccur[q] = c1[q]
-        scur[q] = s1[q]
-    for i in range(rows):
-        wc = W[i, 0]
-        ws = W[i, K]
-        for q in range(t):
-            out[i, q] = wc * ccur[q] + ws * scur[q]
-    for h in range(1, K):
-        for q in range(t):
-            two_c1 = 2.0 * c1[q]
-            cn = two_c1 * ccur[q] - cprev[q]
-            sn = two_c1 * scur[q] - sprev[q]
-            cprev[q] = ccur[q]
-            sprev[q] = scur[q]
-            ccur[q] = cn
-            scur[q] = sn
-        for i in range(rows):
-            wc = W[i, h]
-            ws = W[i, K + h]
+        ccur[q] = c
+        scur[q] = s
+        out[0, q] = a0 * c + b0 * s
+        if R > 1:
+            out[1, q] = a1 * c + b1 * s
+        if R > 2:
+            out[2, q] = a2 * c + b2 * s
+            out[3, q] = a3 * c + b3 * s
+    h = 1
+    while h < K:
+        two = h + 1 < K  # two harmonics in this pass
+        for i in range(R):
+            w[i, 0] = W[i, h]
+            w[i, 1] = W[i, K + h]
+            w[i, 2] = W[i, h + 1] if two else 0.0
+            w[i, 3] = W[i, K + h + 1] if two else 0.0
+        a0, b0, c0, d0 = w[0, 0], w[0, 1], w[0, 2], w[0, 3]
+        a1, b1, c1_, d1 = w[1, 0], w[1, 1], w[1, 2], w[1, 3]
+        a2, b2, c2, d2 = w[2, 0], w[2, 1], w[2, 2], w[2, 3]
+        a3, b3, c3, d3 = w[3, 0], w[3, 1], w[3, 2], w[3, 3]
+        if two:
             for q in range(t):
-                out[i, q] += wc * ccur[q] + ws * scur[q]
+                two_c1 = 2.0 * c1[q]
+                cc, sc = ccur[q], scur[q]
+                cn, sn = _chebyshev(two_c1, cc, sc, cprev[q], sprev[q])
+                cm, sm = _chebyshev(two_c1, cn, sn, cc, sc)
+                cprev[q] = cn
+                sprev[q] = sn
+                ccur[q] = cm
+                scur[q] = sm
+                out[0, q] = (out[0, q] + (a0 * cn + b0 * sn)) + (c0 * cm + d0 * sm)
+                if R > 1:
+                    out[1, q] = (out[1, q] + (a1 * cn + b1 * sn)) + (c1_ * cm + d1 * sm)
+                if R > 2:
+                    out[2, q] = (out[2, q] + (a2 * cn + b2 * sn)) + (c2 * cm + d2 * sm)
+                    out[3, q] = (out[3, q] + (a3 * cn + b3 * sn)) + (c3 * cm + d3 * sm)
+            h += 2
+        else:
+            for q in range(t):
+                cc, sc = ccur[q], scur[q]
+                cn, sn = _chebyshev(2.0 * c1[q], cc, sc, cprev[q], sprev[q])
+                cprev[q] = cc
+                sprev[q] = sc
+                ccur[q] = cn
+                scur[q] = sn
+                out[0, q] += a0 * cn + b0 * sn
+                if R > 1:
+                    out[1, q] += a1 * cn + b1 * sn
+                if R > 2:
+                    out[2, q] += a2 * cn + b2 * sn
+                    out[3, q] += a3 * cn + b3 * sn
+            h += 1
 
 
 # -- the noise: counter-based standard normal draws ------------------------------------------------
@@ -238,6 +308,68 @@ def _df2t(b, c, a, n, z, x1, x2):
     return y, (z0, z1, z2, z3, z4, z5, z6, b[8] * x1 + c[8] * x2 - a[8] * y)
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _filter_loop(b, c, a, N, z, x1, x2, y, t):
+    """y[q] = ``_df2t`` of x1[q], x2[q] for q < t, state z in and out; compiled for each order N (a
+    literal: the loop without branches, its state in registers), N == 0 for any order."""
+    numba.literally(N)
+    n = a.size - 1
+    for q in range(t):
+        y[q], z = _df2t(b, c, a, N if N > 0 else n, z, x1[q], x2[q])
+    return z
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _filter_pass(b, c, a, n, z, x1, x2, y, t):
+    """``_filter_loop`` for the order n: the second order (the sensor, the rigid mechanics) compiled for
+    its own."""
+    if n == 2:
+        return _filter_loop(b, c, a, 2, z, x1, x2, y, t)
+    return _filter_loop(b, c, a, 0, z, x1, x2, y, t)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _lp_sensor_loop(b, c, a, N, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t):
+    """``_filter_loop`` of the low-pass (order N) and of the second-order sensor in one loop: two
+    independent recurrences side by side."""
+    numba.literally(N)
+    n = a.size - 1
+    for q in range(t):
+        y[q], z = _df2t(b, c, a, N if N > 0 else n, z, x1[q], x2[q])
+        ys[q], zs = _df2t(bs, cs, as_, 2, zs, x1s[q], x2s[q])
+    return z, zs
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _lp_sensor_pass(b, c, a, n, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t):
+    """``_lp_sensor_loop`` for the low-pass's order n: the fourth compiled for its own."""
+    if n == 4:
+        return _lp_sensor_loop(b, c, a, 4, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t)
+    return _lp_sensor_loop(b, c, a, 0, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _mech_loop(num_u, num_du, den, N, z0, z1, x1, x2, y0, y1, t):
+    """The mechanics' two outputs (the force and its rate) side by side, order N as in ``_filter_loop``."""
+    numba.literally(N)
+    n = den.size - 1
+    b0, c0, b1, c1 = num_u[0], num_du[0], num_u[1], num_du[1]
+    for q in range(t):
+        y0[q], z0 = _df2t(b0, c0, den, N if N > 0 else n, z0, x1[q], x2[q])
+        y1[q], z1 = _df2t(b1, c1, den, N if N > 0 else n, z1, x1[q], x2[q])
+    return z0, z1
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _mech_pass(num_u, num_du, den, n, P, z0, z1, x1, x2, y0, y1, t):
+    """The mechanics' P outputs over a tile: the coupled chain's two (order 4) compiled for their own."""
+    if P == 1:
+        return _filter_pass(num_u[0], num_du[0], den, n, z0, x1, x2, y0, t), z1
+    if n == 4:
+        return _mech_loop(num_u, num_du, den, 4, z0, z1, x1, x2, y0, y1, t)
+    return _mech_loop(num_u, num_du, den, 0, z0, z1, x1, x2, y0, y1, t)
+
+
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _load_state(z, p):
     """Row p of a (P, n <= MAX_ORDER) state array as the padded tuple ``_df2t`` carries."""
@@ -298,15 +430,18 @@ def _quantise(v, lsb, lo, hi, codes):
     return clipped
 
 
-# C901: one fused pass on purpose: the filters' states stay in registers across the stages of a tile (the
-# same filter with its state in memory measured 6x slower); the staged path is RigSynth.advance_stages
+# C901: one fused pass over the tiles on purpose (every stage's scratch stays in the L1 cache); the filters
+# keep their states in registers across a tile (the same filter with its state in memory measured 6x
+# slower); the staged path is RigSynth.advance_stages
 @numba.njit(cache=True, error_model="numpy")
 def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp, lp_z, mains_base, mains_tab, Wm,  # noqa: C901
                 keys, shift_cs, sen, sen_z, out_x, out_fV, out_dV, codes_d, codes_f):
     """One block of ``synth.RigSynth``: every stage of its signal chain for each tile of SYNTH_TILE samples
-    (the crank's and the mains' harmonics and every elementwise stage vectorised over the tile, the
-    three filters in one pass over it), the same operations as the staged numpy path in the same
-    order, so the same samples to the bit.  Returns the number of clipped samples (both channels).
+    (the crank's and the mains' harmonics and every elementwise stage vectorised over the tile; the
+    mechanics' outputs side by side in one loop over it, then the conditioner's low-pass beside the
+    sensor's resonance in another, each loop compiled for its filter order: ``_mech_pass``,
+    ``_lp_sensor_pass``), the same operations as the staged numpy path in the same order, so the same
+    samples to the bit.  Returns the number of clipped samples (both channels).
 
     fl (float64): [T, f0, rate, alpha, g, S, capacity, quadratic, cubic, gain, offset, drift_rate,
     drift_quadratic, noise_V, cd, sd, delay, skew, disp_gain, disp_noise_scale, lsb_d, lsb_f, lo, hi,
@@ -345,6 +480,9 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
     du_s = np.empty(SYNTH_TILE)
     v = np.empty(SYNTH_TILE)
     xm = np.empty(SYNTH_TILE)
+    Fs = np.empty(SYNTH_TILE)
+    dFs = np.empty(SYNTH_TILE)
+    vr_s = np.empty(SYNTH_TILE)
     rows = np.empty((4, SYNTH_TILE))
     mrow = np.empty((1, SYNTH_TILE))
     cprev = np.empty(SYNTH_TILE)
@@ -395,7 +533,7 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
                     u[q] = (alpha * d1[q] - w2 * x[q]) + g
                     jerk[q] = -(w2 * w) * d1[q] - 3.0 * alpha * w * x[q]
         else:
-            _harmonics_tile(c, s, t, Wc, 4, rows, cprev, ccur, sprev, scur)
+            _harmonics_rows(c, s, t, Wc, 4, rows, cprev, ccur, sprev, scur)
             if alpha == 0.0:
                 for q in range(t):
                     w = om[q]
@@ -430,28 +568,43 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
                 cx[q] = c[q] * cd + s[q] * sd
                 sx[q] = s[q] * cd - c[q] * sd
         if shift_mode != 0:
-            _harmonics_tile(cx, sx, t, Wc, 2 if has_sen else 1, rows, cprev, ccur, sprev, scur)
+            if has_sen:
+                _harmonics_rows(cx, sx, t, Wc, 2, rows, cprev, ccur, sprev, scur)
+            else:
+                _harmonics_rows(cx, sx, t, Wc, 1, rows, cprev, ccur, sprev, scur)
         elif has_sen:
-            _harmonics_tile(c, s, t, Wc, 2, rows, cprev, ccur, sprev, scur)
+            _harmonics_rows(c, s, t, Wc, 2, rows, cprev, ccur, sprev, scur)
         if has_sen:
             for q in range(t):
                 du_s[q] = rows[1, q] * om[q]
-        # the three filters, one pass: mechanics -> transducer -> conditioner low-pass; the sensor
-        for q in range(t):
-            F, zm0 = _df2t(mech_u[0], mech_du[0], mech_den, n_mech, zm0, u[q], jerk[q])
-            if has_nl:
+        # the filters: the mechanics, the transducer, the conditioner's low-pass beside the sensor
+        zm0, zm1 = _mech_pass(mech_u, mech_du, mech_den, n_mech, P, zm0, zm1, u, jerk, Fs, dFs, t)
+        rate_path = P > 1 and has_lp
+        if has_nl and rate_path:
+            for q in range(t):
+                F = Fs[q]
                 r = F / cap
-                vq = S * F * (1.0 + quad * r + cub * r * r)
-            else:
-                vq = S * F
-            if P > 1:
-                dF, zm1 = _df2t(mech_u[1], mech_du[1], mech_den, n_mech, zm1, u[q], jerk[q])
-                if has_lp:
-                    vr = S * dF * (1.0 + 2.0 * quad * r + 3.0 * cub * r * r) if has_nl else S * dF
-                    vq, zl = _df2t(lp_u[0], lp_du[0], lp_den, n_lp, zl, vq, vr)
-            v[q] = vq
+                v[q] = S * F * (1.0 + quad * r + cub * r * r)
+                vr_s[q] = S * dFs[q] * (1.0 + 2.0 * quad * r + 3.0 * cub * r * r)
+        elif has_nl:
+            for q in range(t):
+                F = Fs[q]
+                r = F / cap
+                v[q] = S * F * (1.0 + quad * r + cub * r * r)
+        else:
+            for q in range(t):
+                v[q] = S * Fs[q]
+            if rate_path:
+                for q in range(t):
+                    vr_s[q] = S * dFs[q]
+        if rate_path and has_sen and n_sen == 2:
+            zl, zs = _lp_sensor_pass(lp_u[0], lp_du[0], lp_den, n_lp, zl, v, vr_s, v,
+                                     sen_u[0], sen_du[0], sen_den, zs, rows[0], du_s, xm, t)
+        else:
+            if rate_path:
+                zl = _filter_pass(lp_u[0], lp_du[0], lp_den, n_lp, zl, v, vr_s, v, t)
             if has_sen:
-                xm[q], zs = _df2t(sen_u[0], sen_du[0], sen_den, n_sen, zs, rows[0, q], du_s[q])
+                zs = _filter_pass(sen_u[0], sen_du[0], sen_den, n_sen, zs, rows[0], du_s, xm, t)
         # the force channel: gain, offset, drift, mains, noise
         fV = out_fV[k0:k0 + t]
         for q in range(t):
@@ -462,7 +615,7 @@ def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp,
                 fV[q] += dr * ta + dq * (ta * ta)
         if has_mains:
             _rotate_tile(mains_base, mains_tab, j, t, cx, sx)
-            _harmonics_tile(cx, sx, t, Wm, 1, mrow, cprev, ccur, sprev, scur)
+            _harmonics_rows(cx, sx, t, Wm, 1, mrow, cprev, ccur, sprev, scur)
             for q in range(t):
                 fV[q] += mrow[0, q]
         if has_fnoise:
