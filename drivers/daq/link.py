@@ -51,7 +51,8 @@ class SerialLink:
         try:
             if self._ser.timeout != timeout_s:
                 self._ser.timeout = timeout_s
-            return self._ser.read(max_bytes)
+            data: bytes = self._ser.read(max_bytes)
+            return data
         except (serial.SerialException, OSError, TypeError) as exc:
             raise DaqLinkError(f"{self.description}: read failed: {exc}") from exc
 

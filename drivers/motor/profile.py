@@ -644,7 +644,7 @@ def shipped_profiles() -> list[str]:
     return sorted(p.stem for p in folder.glob("*.yaml"))
 
 
-class _UniqueKeys(yaml.SafeLoader):
+class _UniqueKeys(yaml.SafeLoader):  # type: ignore[misc]  # PyYAML ships no annotations (types-PyYAML not installed)
     """SafeLoader that refuses a key written twice in one mapping, naming both lines."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
@@ -655,7 +655,8 @@ class _UniqueKeys(yaml.SafeLoader):
             if isinstance(key, str | int | float | bool) and lines.setdefault(key, line) != line:
                 raise yaml.constructor.ConstructorError(None, None, f"key {key!r} on line {lines[key]} and again "
                                                         f"on line {line}", k.start_mark)
-        return super().construct_mapping(node, deep)
+        mapping: dict[Any, Any] = super().construct_mapping(node, deep)
+        return mapping
 
 
 def load_profile(name_or_path: str | Path | None = None) -> DriveProfile:

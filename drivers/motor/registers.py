@@ -157,6 +157,7 @@ def wire_address(number: Any, numbering: Any, function: str, where: str) -> int:
     expect(isinstance(number, int) and not isinstance(number, bool), f"{where}.address", "an integer", number)
     expect(numbering in NUMBERINGS, f"{where}.numbering", "0 (wire address), 1 (register number) or "
            "'modicon' (40001-based holding, 30001-based input references)", numbering)
+    addr: int
     if numbering == 0:
         addr = number
     elif numbering == 1:

@@ -44,7 +44,8 @@ class DiscreteFilters:
 
     @property
     def n_outputs(self) -> int:
-        return self.num_u.shape[0]
+        n: int = self.num_u.shape[0]
+        return n
 
 
 def ss2tf(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:

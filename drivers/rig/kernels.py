@@ -17,13 +17,18 @@ import math
 
 import numba
 import numpy as np
+from numpy.typing import NDArray
 
 TILE = 512  # samples per tile of harmonic_series (its scratch stays in the L1 cache)
 SYNTH_TILE = 256  # samples per tile of synth_block: one row of crank.cos_sin's rotations (crank.ROTATION_ROW)
+F64 = NDArray[np.float64]  # the kernels' arrays (their shapes in each docstring)
+I16 = NDArray[np.int16]
+I64 = NDArray[np.int64]
+U64 = NDArray[np.uint64]
 
 
 @numba.njit(cache=True, error_model="numpy")
-def harmonic_series(c1, s1, W, out):
+def harmonic_series(c1: F64, s1: F64, W: F64, out: F64) -> None:
     """out[i, k] = sum_h W[i, h-1] cos(h phi_k) + W[i, K+h-1] sin(h phi_k), h = 1..K.
 
     c1, s1: cos phi, sin phi, shape (n,); W: (m, 2K); out: (m, n)."""
@@ -43,7 +48,7 @@ def harmonic_series(c1, s1, W, out):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def two_input_df2t(num_u, num_du, den, u, du, z, out):
+def two_input_df2t(num_u: F64, num_du: F64, den: F64, u: F64, du: F64, z: F64, out: F64) -> None:
     """out[p] = lfilter(num_u[p], den, u) + lfilter(num_du[p], den, du), state z (P, n) in and out.
 
     num_u, num_du: (P, n+1), den: (n+1,) with den[0] == 1; u, du: (N,); out: (P, N)."""
@@ -62,7 +67,8 @@ def two_input_df2t(num_u, num_du, den, u, du, z, out):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _harmonics_tile(c1, s1, t, W, rows, out, cprev, ccur, sprev, scur):
+def _harmonics_tile(c1: F64, s1: F64, t: int, W: F64, rows: int, out: F64,
+                    cprev: F64, ccur: F64, sprev: F64, scur: F64) -> None:
     """The harmonic sums of ``harmonic_series`` on one tile: out[i, q] for the first ``rows`` rows of W
     and q < t (t at most the length of the scratch rows cprev, ccur, sprev, scur).  The synthesis's
     1, 2 and 4 rows each by a pass of its own (``_harmonics_rows``)."""
@@ -212,7 +218,7 @@ _KI, _WI, _FI = _ziggurat_tables()
 
 
 @numba.njit(cache=True, inline="always")
-def mix64(z):
+def mix64(z: np.uint64) -> np.uint64:
     """SplitMix64's output function: a bijection of uint64 whose outputs on a Weyl sequence are uniform."""
     z = (z ^ (z >> _S30)) * _M1
     z = (z ^ (z >> _S27)) * _M2
@@ -220,27 +226,27 @@ def mix64(z):
 
 
 @numba.njit(cache=True, inline="always")
-def _unit(u):
+def _unit(u: np.uint64) -> float:
     """A uint64 as a double in [0, 1) (its top 53 bits)."""
     return np.float64(u >> _S11) * (1.0 / 9007199254740992.0)
 
 
 @numba.njit(cache=True, inline="always")
-def standard_normal(key, k):
+def standard_normal(key: np.uint64, k: int) -> float:
     """Draw k (int, >= 0) of the stream with the uint64 ``key``: one standard normal.  Branch-free
     but for the rare rejection (the sign as a factor, the 52-bit abscissa as a signed integer: half
     the time of the literal form, the same bits)."""
     r = mix64(key + (np.uint64(k) + _ONE) * GAMMA)
     i = np.int64(r & _LOW8)
     rabs = np.int64((r >> _S9) & _LOW52)
-    x = np.float64(rabs) * (1.0 - 2.0 * np.float64(np.int64((r >> _S8) & _ONE))) * _WI[i]
+    x: float = np.float64(rabs) * (1.0 - 2.0 * np.float64(np.int64((r >> _S8) & _ONE))) * _WI[i]
     if rabs < _KI[i]:
         return x
     return _rejected(key, k, np.uint64(i), np.uint64(rabs), x)
 
 
 @numba.njit(cache=True)
-def _rejected(key, k, i, rabs, x):
+def _rejected(key: np.uint64, k: int, i: np.uint64, rabs: np.uint64, x: float) -> float:
     """The ziggurat's rare path for draw k (a wedge or the tail), with the uniforms of its sub-stream."""
     s = mix64((key ^ _SUB) + (np.uint64(k) + _ONE) * GAMMA)
     j = np.uint64(0)
@@ -248,7 +254,7 @@ def _rejected(key, k, i, rabs, x):
         if i == 0:  # the tail beyond ZIGGURAT_R (Marsaglia 1964)
             while True:
                 j += _ONE
-                xx = -_INV_R * np.log1p(-_unit(mix64(s + j * GAMMA)))
+                xx: float = -_INV_R * np.log1p(-_unit(mix64(s + j * GAMMA)))
                 j += _ONE
                 yy = -np.log1p(-_unit(mix64(s + j * GAMMA)))
                 if yy + yy > xx * xx:
@@ -268,17 +274,18 @@ def _rejected(key, k, i, rabs, x):
 
 
 @numba.njit(cache=True)
-def fill_standard_normal(key, start, out):
+def fill_standard_normal(key: np.uint64, start: int, out: F64) -> None:
     """out[q] = draw start + q of the stream ``key`` (uint64), q < out.size."""
     for q in range(out.size):
         out[q] = standard_normal(key, start + q)
 
 
 MAX_ORDER = 8  # the highest filter order synth_block runs (its states are tuples of this length)
+State = tuple[float, float, float, float, float, float, float, float]  # a filter's state held in registers
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _df2t(b, c, a, n, z, x1, x2):
+def _df2t(b: F64, c: F64, a: F64, n: int, z: State, x1: float, x2: float) -> tuple[float, State]:
     """One sample of ``two_input_df2t`` for one output of order n <= MAX_ORDER (the same operations):
     b, c, a its num_u, num_du, den; z its state padded with zeros to a tuple of MAX_ORDER (kept in
     registers, not in memory, across the samples).  Returns (y, the next state)."""
@@ -371,7 +378,7 @@ def _mech_pass(num_u, num_du, den, n, P, z0, z1, x1, x2, y0, y1, t):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _load_state(z, p):
+def _load_state(z: F64, p: int) -> State:
     """Row p of a (P, n <= MAX_ORDER) state array as the padded tuple ``_df2t`` carries."""
     n = z.shape[1]
     return (z[p, 0] if n > 0 else 0.0, z[p, 1] if n > 1 else 0.0, z[p, 2] if n > 2 else 0.0,
@@ -380,7 +387,7 @@ def _load_state(z, p):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _store_state(zt, z, p):
+def _store_state(zt: State, z: F64, p: int) -> None:
     """Write the tuple state zt back to row p of z (its first n entries)."""
     n = z.shape[1]
     z0, z1, z2, z3, z4, z5, z6, z7 = zt
@@ -390,7 +397,7 @@ def _store_state(zt, z, p):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _rotate_tile(base, table, j, t, c, s):
+def _rotate_tile(base: F64, table: F64, j: int, t: int, c: F64, s: F64) -> None:
     """c + i s = base[j] * table[q] for q < t, the product written out as ``crank.cos_sin`` does;
     base, table: (2, rows), (2, SYNTH_TILE) real and imaginary parts."""
     br = base[0, j]
@@ -401,7 +408,8 @@ def _rotate_tile(base, table, j, t, c, s):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _taylor_shift(c, s, om, t, delay, skew, k, T, alpha, centre, cx, sx):
+def _taylor_shift(c: F64, s: F64, om: F64, t: int, delay: float, skew: float, k: int, T: float, alpha: float,
+                  centre: float, cx: F64, sx: F64) -> None:
     """cx + i sx = (c + i s) exp(-i (delta_q - centre)), q < t, the lag delta_q of sample k + q (rad) by
     the Taylor series of ``crank.shift_cos_sin`` (|delta_q - centre| < 0.1 rad)."""
     for q in range(t):
@@ -415,7 +423,7 @@ def _taylor_shift(c, s, om, t, delay, skew, k, T, alpha, centre, cx, sx):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _quantise(v, lsb, lo, hi, codes):
+def _quantise(v: F64, lsb: float, lo: float, hi: float, codes: I16) -> int:
     """codes = clip(rint(v / lsb), lo, hi) as int16; returns how many were clipped."""
     clipped = 0
     for k in range(v.size):
@@ -434,8 +442,10 @@ def _quantise(v, lsb, lo, hi, codes):
 # keep their states in registers across a tile (the same filter with its state in memory measured 6x
 # slower); the staged path is RigSynth.advance_stages
 @numba.njit(cache=True, error_model="numpy")
-def synth_block(fl, ints, crank_base, crank_tab, crank_cs, Wc, mech, mech_z, lp, lp_z, mains_base, mains_tab, Wm,  # noqa: C901
-                keys, shift_cs, sen, sen_z, out_x, out_fV, out_dV, codes_d, codes_f):
+def synth_block(fl: F64, ints: I64, crank_base: F64, crank_tab: F64, crank_cs: F64, Wc: F64,  # noqa: C901
+                mech: F64, mech_z: F64, lp: F64, lp_z: F64, mains_base: F64, mains_tab: F64, Wm: F64,
+                keys: U64, shift_cs: F64, sen: F64, sen_z: F64, out_x: F64, out_fV: F64, out_dV: F64,
+                codes_d: I16, codes_f: I16) -> int:
     """One block of ``synth.RigSynth``: every stage of its signal chain for each tile of SYNTH_TILE samples
     (the crank's and the mains' harmonics and every elementwise stage vectorised over the tile; the
     mechanics' outputs side by side in one loop over it, then the conditioner's low-pass beside the

@@ -220,7 +220,8 @@ class Adc:
 
     def volts_per_count(self, range_V: float) -> float:
         """Size of one code in V for a symmetric range of +-range_V."""
-        return 2.0 * range_V / 2**self.bits
+        codes: int = 2**self.bits
+        return 2.0 * range_V / codes
 
 
 @dataclass(frozen=True)

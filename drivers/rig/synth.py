@@ -369,7 +369,8 @@ def _displacement_lag(eff: Effects, t: np.ndarray | float) -> np.ndarray | float
 def _mains(m: MainsInterference, t0: float, T: float, n: int) -> np.ndarray:
     """Mains pick-up in V at the n sample instants t0 + k T (s)."""
     w = 2.0 * np.pi * m.frequency_hz
-    return crank.harmonic_sum(crank.cos_sin(w * t0, w * T, 0.0, n), _mains_weights(m))[0]
+    pickup: np.ndarray = crank.harmonic_sum(crank.cos_sin(w * t0, w * T, 0.0, n), _mains_weights(m))[0]
+    return pickup
 
 
 def _mains_weights(m: MainsInterference) -> np.ndarray:

@@ -15,12 +15,12 @@ import contextlib
 import logging
 import threading
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
 from pymodbus.pdu import ExceptionResponse
-from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.server import ModbusBaseServer, ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -78,21 +78,26 @@ class _ScreeningHandler(ServerRequestHandler):
                 return used
             if verdict is not None:
                 log.info("motor emulator: function 0x%02X answered with exception %d", pdu[0], verdict)
-                self.server_send(ExceptionResponse(pdu[0], verdict, device_id=unit, transaction=tid), addr)
+                # pymodbus leaves server_send (and the servers' shutdown) without annotations
+                self.server_send(ExceptionResponse(pdu[0], verdict, device_id=unit, transaction=tid), addr)  # type: ignore[no-untyped-call]
                 return used
         return int(super().callback_data(data, addr))
 
 
-def _screening(server_cls: type[Any], device_id: int, functions: tuple[int, ...], max_read: int) -> type[Any]:
-    handler = type("ScreeningHandler", (_ScreeningHandler,),
-                   {"device_id": device_id, "functions": functions, "max_read": max_read})
+_Server = TypeVar("_Server", bound=ModbusBaseServer)
 
-    class Screened(server_cls):
-        def callback_new_connection(self) -> ServerRequestHandler:
-            return handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
 
-    Screened.__name__ = f"Screened{server_cls.__name__}"
-    return Screened
+def _screening(server_cls: type[_Server], device_id: int, functions: tuple[int, ...], max_read: int) -> type[_Server]:
+    """``server_cls`` whose connections are handled by a :class:`_ScreeningHandler` for this drive."""
+    handler: type[_ScreeningHandler] = type("ScreeningHandler", (_ScreeningHandler,),
+                                            {"device_id": device_id, "functions": functions, "max_read": max_read})
+
+    def callback_new_connection(self: ModbusBaseServer) -> ServerRequestHandler:
+        return handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+    screened: type[_Server] = type(f"Screened{server_cls.__name__}", (server_cls,),
+                                   {"callback_new_connection": callback_new_connection})
+    return screened
 
 
 @dataclass
@@ -232,7 +237,7 @@ class MotorEmulator:
     async def stop_tcp(self) -> None:
         """Close the TCP listener and its connections (fault injection: lost link)."""
         if self._tcp is not None:
-            await self._tcp.shutdown()
+            await self._tcp.shutdown()  # type: ignore[no-untyped-call]  # unannotated in pymodbus
             self._tcp = None
 
     async def restart_tcp(self) -> None:
@@ -246,7 +251,7 @@ class MotorEmulator:
         await self.stop_tcp()
         if self._serial is not None:
             with contextlib.suppress(Exception):
-                await self._serial.shutdown()
+                await self._serial.shutdown()  # type: ignore[no-untyped-call]  # unannotated in pymodbus
             self._serial = None
         if self._bridge is not None:
             await asyncio.to_thread(self._bridge.close)

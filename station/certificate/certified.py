@@ -14,8 +14,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from station.ident.result import Check, Covariance, Estimate, estimates_from_dict
-from station.ident.uncertainty import determined_to_dict
+from station.ident.result import Check, Estimate, estimates_from_dict
+from station.ident.uncertainty import Covariance, determined_to_dict
 from station.report.data import RunData
 
 CAMPAIGN = "campaign"  # station.ident.campaign.identify.RESULT_NAME

@@ -29,8 +29,8 @@ from station.ident.coverage import K2_PROBABILITY, coverage, coverages
 from station.ident.inputs import DEFAULT_END_MASS_REL_STD
 from station.ident.models import make_model
 from station.ident.names import METHOD_DESCRIPTIONS
-from station.ident.result import Check, Covariance, Estimate
-from station.ident.uncertainty import ParameterBudget, UncertaintyBudget
+from station.ident.result import Check, Estimate
+from station.ident.uncertainty import Covariance, ParameterBudget, UncertaintyBudget
 from station.lab.traceability import use_text
 from station.recording import start_metadata
 from station.report.data import ModelCurve, RunData, load_run

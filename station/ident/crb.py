@@ -43,7 +43,8 @@ def h_variance(model: Model, theta: ArrayLike, f_hz: ArrayLike, n_samples: Array
     w2 = (2 * np.pi * f) ** 2
     H = model.response(theta, f)
     A = w2 * np.asarray(displacement_amplitude_m, float)
-    return 2.0 / np.asarray(n_samples, float) * (sigma_u_V**2 + np.abs(H) ** 2 * w2**2 * sigma_x_m**2) / A**2
+    var: FloatArray = 2.0 / np.asarray(n_samples, float) * (sigma_u_V**2 + np.abs(H) ** 2 * w2**2 * sigma_x_m**2) / A**2
+    return var
 
 
 def crb_stepped_sine(model: Model, theta: ArrayLike, f_hz: ArrayLike, n_samples: ArrayLike,

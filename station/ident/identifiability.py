@@ -51,7 +51,7 @@ def correlations(cov: FloatArray) -> FloatArray:
     """Correlation matrix of a covariance (zeros where a variance is 0)."""
     s = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(all="ignore"):
-        c = cov / np.outer(s, s)
+        c: FloatArray = cov / np.outer(s, s)
     c[~np.isfinite(c)] = 0.0
     return c
 

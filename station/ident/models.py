@@ -16,6 +16,7 @@ transfer function's coefficients never fix.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,7 +68,8 @@ class SdofModel:
         """H(j 2 pi f) in V/(m/s^2), shape of f_hz.  Eq. 9 times -S k_f."""
         S, k, b = np.asarray(theta, dtype=float)
         s = 2j * np.pi * np.asarray(f_hz, dtype=float)
-        return -S * self.M * k / (self.M * s**2 + b * s + k)
+        H: ComplexArray = -S * self.M * k / (self.M * s**2 + b * s + k)
+        return H
 
     def jacobian(self, theta: ArrayLike, f_hz: ArrayLike) -> ComplexArray:
         """dH/dtheta, shape (n_f, 3), analytic."""
@@ -160,8 +162,8 @@ def make_model(key: str, m_e: float, m_l: float) -> Model:
     raise ValueError(f"unknown model {key!r}")
 
 
-def numeric_jacobian(fun, theta: ArrayLike, f_hz: ArrayLike, rel_step: float = 1e-6,
-                     typical: ArrayLike | None = None) -> ComplexArray:
+def numeric_jacobian(fun: Callable[[FloatArray, ArrayLike], ComplexArray], theta: ArrayLike, f_hz: ArrayLike,
+                     rel_step: float = 1e-6, typical: ArrayLike | None = None) -> ComplexArray:
     """Central-difference Jacobian of a complex model fun(theta, f) -> (n_f,), shape (n_f, n_theta);
     step rel_step * max(|theta_i|, typical_i)."""
     th = np.asarray(theta, dtype=float)

@@ -359,7 +359,8 @@ def resonance_suspected(frf: frfmod.FrequencyResponse, sdof: SdofModel, theta: F
         th = theta * np.exp(q[:3])
         res = DisplacementResonance(f_max * float(np.exp(q[3])), float(np.exp(q[4])))
         d = sdof.response(th, frf.f_hz) / res.response(frf.f_hz) - frf.H
-        return np.einsum("fij,fj->fi", W, np.column_stack([d.real, d.imag])).ravel()
+        r: FloatArray = np.einsum("fij,fj->fi", W, np.column_stack([d.real, d.imag])).ravel()
+        return r
 
     best: tuple[float, FloatArray] | None = None
     for fr0, p0 in ((3.0, 0.3), (10.0, 0.5), (30.0, 1.0)):

@@ -48,9 +48,9 @@ from station.ident.models import SdofModel
 from station.ident.response.checked import checked_response
 from station.ident.response.frf import FrequencyResponse
 from station.ident.response.gate import IdentificationRefused
-from station.ident.result import Check, Covariance, Estimate
+from station.ident.result import Check, Estimate
 from station.ident.structure import chain_corrected, coupling_bound, state_stiff, structure_statement
-from station.ident.uncertainty import DeterminedQuantity, ParameterBudget, UncertaintyBudget
+from station.ident.uncertainty import Covariance, DeterminedQuantity, ParameterBudget, UncertaintyBudget
 from station.recording import Recording
 from station.vocabulary import Flag, Severity
 

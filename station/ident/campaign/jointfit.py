@@ -86,7 +86,8 @@ def _response_and_jacobian(p: FloatArray, m_l: float, f_hz: FloatArray) -> tuple
     return H, np.column_stack([-M * k / D, dM, H * (1.0 / k - 1.0 / D), -H * s / D, dM])
 
 
-def _system(frfs: list[FrequencyResponse], priors: list[MassPrior], cov_of: list[FloatArray] | None = None):
+def _system(frfs: list[FrequencyResponse], priors: list[MassPrior], cov_of: list[FloatArray] | None = None,
+            ) -> tuple[Callable[[FloatArray], tuple[FloatArray, FloatArray]], list[bool]]:
     """Whitened residual and Jacobian functions of the scaled parameters x = p / scale."""
     W = [whiteners(f.cov if cov_of is None else cov_of[i]) for i, f in enumerate(frfs)]
     R = len(frfs)
@@ -156,7 +157,7 @@ def fit_joint(frfs: list[FrequencyResponse], priors: list[MassPrior], theta0: Fl
         free[1] = False
 
     def full(x: FloatArray) -> FloatArray:
-        p = p0.copy()
+        p: FloatArray = p0.copy()
         p[free] = p0[free] + x * scale[free]
         return p
 
@@ -204,7 +205,8 @@ def fisher_relative(frfs: list[FrequencyResponse], priors: list[MassPrior], p: F
     keep = np.r_[np.ones(4, bool), ~np.array(held)]
     F = J[:, keep].T @ J[:, keep]
     A, B, C = F[:4, :4], F[:4, 4:], F[4:, 4:]
-    return A - B @ np.linalg.pinv(C) @ B.T if C.size else A
+    fisher: FloatArray = A - B @ np.linalg.pinv(C) @ B.T if C.size else A
+    return fisher
 
 
 def data_sensitivity(frfs: list[FrequencyResponse], priors: list[MassPrior], p: FloatArray,

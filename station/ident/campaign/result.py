@@ -19,8 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.ident.assumptions import CampaignAssumptions
-from station.ident.result import Check, Covariance, Estimate, JsonValue
-from station.ident.uncertainty import DeterminedQuantity, UncertaintyBudget
+from station.ident.result import Check, Estimate, JsonValue
+from station.ident.uncertainty import Covariance, DeterminedQuantity, UncertaintyBudget
 
 FloatArray = NDArray[np.float64]
 

@@ -84,6 +84,6 @@ def batch_mse(B: FloatArray, A: FloatArray, x: FloatArray, y: FloatArray) -> Flo
         w = np.zeros(nb * L)
         w[:M] = 1.0
         R = (Yb - dp.reshape(nb, L).T[:, :, None]) * w.reshape(nb, L).T[:, :, None]
-        mse = np.einsum("ijp,ijp->p", R, R) / M
+        mse: FloatArray = np.einsum("ijp,ijp->p", R, R) / M
     mse[~np.isfinite(mse)] = np.inf
     return mse

@@ -36,7 +36,7 @@ from scipy.signal import lfilter
 from station.ident.identifiability import Policy, assess, carried_to_determined
 from station.ident.models import DigitalTF, Model
 from station.ident.paper.protocol import PUBLISHED_SWARM, PaperData, PaperProtocol, SwarmSize, paper_data, testing_mse
-from station.ident.paper.pso import SECTION5_H1, SECTION5_H2, PsoSettings, identify_digital
+from station.ident.paper.pso import SECTION5_H1, SECTION5_H2, PsoResult, PsoSettings, identify_digital
 from station.ident.paper.rls import RlsResult, rls_h2
 from station.ident.paper.rls_uncertainty import DYNAMICS_TERM, NOISE_TERM, rls_uncertainty
 from station.ident.response.frf import FrequencyResponse, ratio_cov, whitened_jacobian
@@ -57,12 +57,15 @@ FloatArray = NDArray[np.float64]
 DEFAULT_POLICY = Policy()
 DEFAULT_PROTOCOL = PaperProtocol()
 STABILITY_SEEDS = (0, 1, 2)
+_SwarmKey = tuple[str, PsoSettings, int, float, str]  # form, settings, seed, T, a digest of the data
 
 
-_SWARMS: OrderedDict[tuple, tuple] = OrderedDict()  # the last few swarm runs: the stability seeds are shared
+# the last few swarm runs, (b, a, result) of identify_digital: the stability seeds are shared
+_SWARMS: OrderedDict[_SwarmKey, tuple[FloatArray, FloatArray, PsoResult]] = OrderedDict()
 
 
-def _swarm(form: str, data: PaperData, settings: PsoSettings, seed: int) -> tuple:
+def _swarm(form: str, data: PaperData, settings: PsoSettings,
+           seed: int) -> tuple[FloatArray, FloatArray, PsoResult]:
     """identify_digital, remembered for the last 16 (form, settings, seed, data) in this process."""
     key = (form, settings, seed, data.T, hashlib.sha1(data.x_id.tobytes() + data.y_id.tobytes()).hexdigest())
     if key not in _SWARMS:

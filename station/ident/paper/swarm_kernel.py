@@ -19,31 +19,46 @@ station's CLI at start-up.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import cast
 
 import numba
 import numpy as np
 from llvmlite import ir
 from numba.core import cgutils, types
+from numba.core.base import BaseContext
+from numba.core.typing.context import BaseContext as TypingContext
+from numba.core.typing.templates import Signature
 from numba.extending import intrinsic
+from numpy.typing import NDArray
 
 CHUNK = 32  # particles evaluated together
+F64 = NDArray[np.float64]  # the kernels' arrays (their shapes in each docstring)
+# an intrinsic's code generator: (target context, LLVM IR builder, signature, arguments) -> the result
+_Codegen = Callable[[BaseContext, ir.IRBuilder, Signature, list[ir.Value]], ir.Value]
 
 
 @intrinsic
-def _fma(typingctx, a, b, c):
+def _fma_intrinsic(typingctx: TypingContext, a: types.Type, b: types.Type, c: types.Type) -> tuple[Signature, _Codegen]:
     """a * b + c rounded once (llvm.fma: the hardware instruction, or an exact software fallback)."""
     sig = types.float64(types.float64, types.float64, types.float64)
 
-    def codegen(context, builder, signature, args):
+    def codegen(context: BaseContext, builder: ir.IRBuilder, signature: Signature, args: list[ir.Value]) -> ir.Value:
         d = ir.DoubleType()
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(d, [d, d, d]), "llvm.fma.f64")
+        fn = cgutils.get_or_insert_function(  # type: ignore[no-untyped-call]  # unannotated in numba
+            builder.module, ir.FunctionType(d, [d, d, d]), "llvm.fma.f64")
         return builder.call(fn, args)
 
     return sig, codegen
 
 
+# numba's stubs give an intrinsic its typing function's signature (the typing context first, returning
+# Never); compiled code calls it without the context and gets the float: _fma(a, b, c) = a * b + c
+_fma = cast(Callable[[float, float, float], float], _fma_intrinsic)
+
+
 @numba.njit(cache=True, error_model="numpy")
-def _coefficients(X, form, p0, cc, a, b):
+def _coefficients(X: F64, form: int, p0: int, cc: int, a: F64, b: F64) -> None:
     """a (n, CHUNK) = A[1:]/A[0], b (nbc, CHUNK) = B/A[0] of particles p0..p0+cc-1 (zeros beyond).
 
     form 0: Eq. 11 positions (b1', a0', a1', a2'), B = (b1'/2, b1', b1'/2); form 1: Eq. 10 (b0..b4, a0..a4)."""
@@ -70,7 +85,7 @@ def _coefficients(X, form, p0, cc, a, b):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def swarm_mse(X, form, n, xpad, y, L, out, C):
+def swarm_mse(X: F64, form: int, n: int, xpad: F64, y: F64, L: int, out: F64, C: int) -> None:
     """Eq. 15 of every particle (rows of X) into out (P,); n the filter order, L the block length,
     C the particles per chunk (``CHUNK``; an argument so that the compiler vectorises over it),
     xpad: x with n zeros ahead (the FIR's past) and zeros to the end of the last block.
@@ -100,7 +115,7 @@ def swarm_mse(X, form, n, xpad, y, L, out, C):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _block_responses(Z, xpad, a, b, n, L, nb, C):
+def _block_responses(Z: F64, xpad: F64, a: F64, b: F64, n: int, L: int, nb: int, C: int) -> None:
     """Z of a chunk: each block's zero-state response to its input (the BLAS product's FMA chain) and
     the homogeneous responses to y_{-1-i} = 1, through the recursion of A."""
     ncol = nb + n
@@ -134,7 +149,7 @@ def _block_responses(Z, xpad, a, b, n, L, nb, C):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _chain_blocks(Z, prevs, n, L, nb, C):
+def _chain_blocks(Z: F64, prevs: F64, n: int, L: int, nb: int, C: int) -> None:
     """The state entering each block (the previous blocks' ends chained) and each block's free
     response to it added to its zero-state response."""
     for i in range(n):
@@ -163,7 +178,7 @@ def _chain_blocks(Z, prevs, n, L, nb, C):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _squared_errors(Z, y, n, L, nb, acc, C):
+def _squared_errors(Z: F64, y: F64, n: int, L: int, nb: int, acc: F64, C: int) -> None:
     """acc[c]: the sum of squared errors of particle c in the order numpy's einsum takes it (padding
     weighted by 0)."""
     M = y.size
@@ -181,7 +196,8 @@ def _squared_errors(Z, y, n, L, nb, acc, C):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def move(X, V, pbest, gbest, r1, r2, w, c1, c2, v_max, x_max):
+def move(X: F64, V: F64, pbest: F64, gbest: F64, r1: F64, r2: F64, w: float, c1: float, c2: float,
+         v_max: float, x_max: float) -> None:
     """Eq. 12 and 13 in place, each clipped, in numpy's order of operations."""
     P, N = X.shape
     for p in range(P):
@@ -197,7 +213,8 @@ def move(X, V, pbest, gbest, r1, r2, w, c1, c2, v_max, x_max):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def remember(X, mse, fit, pbest, pbest_fit, pbest_mse, gbest, gbest_state):
+def remember(X: F64, mse: F64, fit: F64, pbest: F64, pbest_fit: F64, pbest_mse: F64, gbest: F64,
+             gbest_state: F64) -> int:
     """Step 7: Pbest and Gbest by the fitness ``fit``; returns the decisions that differ from the
     MSE's own.  gbest_state: [fit, mse] of Gbest, updated in place."""
     P, N = X.shape

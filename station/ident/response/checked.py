@@ -57,7 +57,7 @@ def checked_response(rec: Recording, inputs: IdentInputs | None = None,
     H(f) of the steps left."""
     inputs = inputs or inputs_for(rec)
     fs = rec.sample_rate_hz
-    items: dict[int, tuple] = {}
+    items: dict[int, frfmod.StepItem] = {}
     sigs: dict[int, StepSignal] = {}
     checks: list[Check] = []
     radii = {}

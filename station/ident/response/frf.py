@@ -25,6 +25,8 @@ from station.ident.response.sinefit import SineFit, estimate_frequency, fit_chan
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
+# one step's measurement: H, cov (2, 2) of (Re H, Im H), the displacement's and the force's sine fits
+StepItem = tuple[complex, FloatArray, SineFit, SineFit]
 log = logging.getLogger(__name__)
 
 
@@ -51,8 +53,7 @@ def ratio_cov(U: complex, Cu: FloatArray, A: complex, Ca: FloatArray) -> tuple[c
 
 
 def step_response(t: FloatArray, x_m: FloatArray, u_V: FloatArray, f_nominal_hz: float,
-                  *, n_harmonics: int = 3, fit_frequency: bool = True) -> tuple[complex, FloatArray,
-                                                                               SineFit, SineFit]:
+                  *, n_harmonics: int = 3, fit_frequency: bool = True) -> StepItem:
     """H at one step: 4-parameter fit of the displacement (frequency), 3-parameter fit of the force
     at that frequency, both with harmonics up to n_harmonics as nuisance; a channel's quantisation
     error that its noise does not dither is in its phasor's covariance (``sinefit.quantisation_cov``).
@@ -69,7 +70,7 @@ def step_response(t: FloatArray, x_m: FloatArray, u_V: FloatArray, f_nominal_hz:
     return H, C, fit_x, fit_u
 
 
-def assemble(items: list[tuple[complex, FloatArray, SineFit, SineFit]]) -> FrequencyResponse:
+def assemble(items: list[StepItem]) -> FrequencyResponse:
     """Stack step results into a FrequencyResponse (sorted as given)."""
     return FrequencyResponse(
         np.array([it[2].frequency_hz for it in items]), np.array([it[0] for it in items]),
@@ -137,7 +138,8 @@ def whitened_jacobian(model: Model, theta: FloatArray, frf: FrequencyResponse,
     W = whiteners(frf.cov if cov is None else cov)
     Jc = model.jacobian(theta, frf.f_hz) * (theta if scale is None else scale)[None, :]
     Jr = np.stack([Jc.real, Jc.imag], axis=1)  # (n_f, 2, n_theta)
-    return np.einsum("fij,fjk->fik", W, Jr).reshape(-1, theta.size)
+    J: FloatArray = np.einsum("fij,fjk->fik", W, Jr).reshape(-1, theta.size)
+    return J
 
 
 LOG_RANGE = float(np.log(1e15))  # a parameter moves at most 1e15-fold from its start in a fit
@@ -168,7 +170,7 @@ def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
         # are then not finite and the LM rejects the step and shortens the next, as it should
         with np.errstate(over="ignore", invalid="ignore"):
             d = model.response(theta_of(p), frf.f_hz) - frf.H
-        r = np.einsum("fij,fj->fi", W, np.column_stack([d.real, d.imag])).ravel()
+        r: FloatArray = np.einsum("fij,fj->fi", W, np.column_stack([d.real, d.imag])).ravel()
         last[:] = [float(r @ r)]
         return r
 

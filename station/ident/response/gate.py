@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from station.errors import BadInputError
 from station.ident.response import frf as frfmod
 from station.ident.result import Check, json_float
+from station.jsonvalue import JsonValue
 from station.vocabulary import Severity
 
 FloatArray = NDArray[np.float64]
@@ -90,7 +91,7 @@ def _channel_checks(idx: int, name: str, y: FloatArray) -> Check | None:
 
 
 def screen_step(idx: int, t: FloatArray, x: FloatArray, u: FloatArray, f_label_hz: float, radius_m: float,
-                fs_hz: float, n_harmonics: int = 3) -> tuple[tuple | None, list[Check]]:
+                fs_hz: float, n_harmonics: int = 3) -> tuple[frfmod.StepItem | None, list[Check]]:
     """Checks one step and measures its H.  Returns (step_response item or None if left out, checks)."""
     for name, y in (("displacement", x), ("force", u)):
         c = _channel_checks(idx, name, y)
@@ -150,7 +151,7 @@ def _units_hint(ratio: float) -> str:
     return ""
 
 
-def run_checks(items: dict[int, tuple], step_checks: list[Check], radii: dict[int, float],
+def run_checks(items: dict[int, frfmod.StepItem], step_checks: list[Check], radii: dict[int, float],
                sensitivity_nominal: float, mass_kg: float) -> tuple[list[Check], list[int], float]:
     """Run-level checks on the screened steps.  Returns (new checks, steps still used, polarity sign
     +1/-1 of S).  Raises IdentificationRefused with every check when the run cannot be identified."""
@@ -194,7 +195,7 @@ def run_checks(items: dict[int, tuple], step_checks: list[Check], radii: dict[in
                             {"sign": sign, "nominal_sign": nominal_sign})
     f_low = items[low][2].frequency_hz
     g = abs(H) / (abs(sensitivity_nominal) * mass_kg)
-    vals = {"frequency_hz": f_low, "gain_ratio": g, "H_abs": abs(H), "mass_kg": mass_kg,
+    vals: dict[str, JsonValue] = {"frequency_hz": f_low, "gain_ratio": g, "H_abs": abs(H), "mass_kg": mass_kg,
             "sensitivity_nominal_V_per_N": sensitivity_nominal}
     text = (f"|H| at {f_low:.4g} Hz is {g:.4g} times |S_nominal| (m_l + m_e) = "
             f"{abs(sensitivity_nominal):.4g} V/N x {mass_kg:.5g} kg")

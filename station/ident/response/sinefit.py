@@ -104,7 +104,7 @@ def fit3(t: FloatArray, y: FloatArray, f_hz: float, *, t_center_s: float | None 
 
 def _dw(t: FloatArray, J0: FloatArray, p: FloatArray, n_harmonics: int) -> FloatArray:
     """d(model)/dw for the design J0 and coefficients p (A cos + B sin per harmonic h)."""
-    d = t * (-p[0] * J0[:, 1] + p[1] * J0[:, 0])
+    d: FloatArray = t * (-p[0] * J0[:, 1] + p[1] * J0[:, 0])
     for h in range(2, n_harmonics + 1):
         a, b = p[2 * h - 1], p[2 * h]
         d += h * t * (-a * J0[:, 2 * h] + b * J0[:, 2 * h - 1])
