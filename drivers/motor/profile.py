@@ -635,7 +635,7 @@ def profile_path(name_or_path: str | Path) -> Path:
     p = Path(name_or_path)
     if p.suffix in (".yaml", ".yml") or p.is_file():
         return p
-    return config_file(f"{PROFILE_DIR}/{name_or_path}.yaml")
+    return Path(config_file(f"{PROFILE_DIR}/{name_or_path}.yaml"))
 
 
 def shipped_profiles() -> list[str]:

@@ -90,13 +90,14 @@ def _harmonics_tile(c1: F64, s1: F64, t: int, W: F64, rows: int, out: F64,
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _chebyshev(two_c1, c, s, c_prev, s_prev):
+def _chebyshev(two_c1: float, c: float, s: float, c_prev: float, s_prev: float) -> tuple[float, float]:
     """The next harmonic's cos and sin from this one's and the one before (2 cos(phi) = two_c1)."""
     return two_c1 * c - c_prev, two_c1 * s - s_prev
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _harmonics_rows(c1, s1, t, W, R, out, cprev, ccur, sprev, scur):
+def _harmonics_rows(c1: F64, s1: F64, t: int, W: F64, R: int, out: F64,
+                    cprev: F64, ccur: F64, sprev: F64, scur: F64) -> None:
     """``_harmonics_tile`` for R rows (a literal: compiled for each of 1, 2 and 4, the row branches gone and
     the tile's loops vectorised): each pass over the tile takes the recurrence two harmonics on and adds
     both to every row's sum (the operations, and their order, of a harmonic and a row at a time; a third
@@ -316,7 +317,7 @@ def _df2t(b: F64, c: F64, a: F64, n: int, z: State, x1: float, x2: float) -> tup
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _filter_loop(b, c, a, N, z, x1, x2, y, t):
+def _filter_loop(b: F64, c: F64, a: F64, N: int, z: State, x1: F64, x2: F64, y: F64, t: int) -> State:
     """y[q] = ``_df2t`` of x1[q], x2[q] for q < t, state z in and out; compiled for each order N (a
     literal: the loop without branches, its state in registers), N == 0 for any order."""
     numba.literally(N)
@@ -327,7 +328,7 @@ def _filter_loop(b, c, a, N, z, x1, x2, y, t):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _filter_pass(b, c, a, n, z, x1, x2, y, t):
+def _filter_pass(b: F64, c: F64, a: F64, n: int, z: State, x1: F64, x2: F64, y: F64, t: int) -> State:
     """``_filter_loop`` for the order n: the second order (the sensor, the rigid mechanics) compiled for
     its own."""
     if n == 2:
@@ -336,7 +337,8 @@ def _filter_pass(b, c, a, n, z, x1, x2, y, t):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _lp_sensor_loop(b, c, a, N, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t):
+def _lp_sensor_loop(b: F64, c: F64, a: F64, N: int, z: State, x1: F64, x2: F64, y: F64, bs: F64, cs: F64,
+                    as_: F64, zs: State, x1s: F64, x2s: F64, ys: F64, t: int) -> tuple[State, State]:
     """``_filter_loop`` of the low-pass (order N) and of the second-order sensor in one loop: two
     independent recurrences side by side."""
     numba.literally(N)
@@ -348,7 +350,8 @@ def _lp_sensor_loop(b, c, a, N, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _lp_sensor_pass(b, c, a, n, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t):
+def _lp_sensor_pass(b: F64, c: F64, a: F64, n: int, z: State, x1: F64, x2: F64, y: F64, bs: F64, cs: F64,
+                    as_: F64, zs: State, x1s: F64, x2s: F64, ys: F64, t: int) -> tuple[State, State]:
     """``_lp_sensor_loop`` for the low-pass's order n: the fourth compiled for its own."""
     if n == 4:
         return _lp_sensor_loop(b, c, a, 4, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t)
@@ -356,7 +359,8 @@ def _lp_sensor_pass(b, c, a, n, z, x1, x2, y, bs, cs, as_, zs, x1s, x2s, ys, t):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _mech_loop(num_u, num_du, den, N, z0, z1, x1, x2, y0, y1, t):
+def _mech_loop(num_u: F64, num_du: F64, den: F64, N: int, z0: State, z1: State, x1: F64, x2: F64, y0: F64,
+               y1: F64, t: int) -> tuple[State, State]:
     """The mechanics' two outputs (the force and its rate) side by side, order N as in ``_filter_loop``."""
     numba.literally(N)
     n = den.size - 1
@@ -368,7 +372,8 @@ def _mech_loop(num_u, num_du, den, N, z0, z1, x1, x2, y0, y1, t):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _mech_pass(num_u, num_du, den, n, P, z0, z1, x1, x2, y0, y1, t):
+def _mech_pass(num_u: F64, num_du: F64, den: F64, n: int, P: int, z0: State, z1: State, x1: F64, x2: F64,
+               y0: F64, y1: F64, t: int) -> tuple[State, State]:
     """The mechanics' P outputs over a tile: the coupled chain's two (order 4) compiled for their own."""
     if P == 1:
         return _filter_pass(num_u[0], num_du[0], den, n, z0, x1, x2, y0, t), z1
