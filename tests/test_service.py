@@ -248,6 +248,57 @@ def test_sigterm_mid_run_stops_the_run_closes_the_recording_and_the_workers(tmp_
         assert f.attrs["exit_status"] == "interrupted"
 
 
+@pytest.mark.slow  # a run on the simulated rig, started and stopped
+def test_a_second_shutdown_call_never_cuts_short_the_stop_and_the_closing_of_the_recording(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A daemon begins its shutdown twice: from the signal handler, then from the lifespan's close.
+    The run on the rig is cancelled once: the second call, arriving while the procedure stops the
+    motor, must not cut that stop short, nor the closing of the recording; the run's row names the
+    closed recording and the audit chain holds its SHA-256."""
+    import threading
+
+    from station.lab import audit
+    from station.lab.integrity import sha256_file
+    from station.run.procedure import Procedure
+    from tests.station_support import app_in_process, start, wait_state
+
+    stopping, second_call_made = threading.Event(), threading.Event()
+    stop_motor = Procedure._stop_motor
+
+    async def stop_after_the_second_call(self: Procedure, *, hard: bool) -> None:
+        stopping.set()
+        await asyncio.to_thread(second_call_made.wait, 30.0)  # the second call reaches the rig loop first
+        await stop_motor(self, hard=hard)
+    monkeypatch.setattr(Procedure, "_stop_motor", stop_after_the_second_call)
+    rec_dir = tmp_path / "rec"
+
+    async def go() -> str:
+        async with app_in_process(rec_dir) as (m, c):
+            rid = await start(c, freqs=(10.0,), record_s=30.0)
+            await wait_state(c, rid, ("running",), step_state="recording")
+            tasks = m.begin_shutdown()  # the signal handler
+            assert await asyncio.to_thread(stopping.wait, 30.0)
+            m.begin_shutdown()  # the lifespan's close, while the procedure stops the motor
+            second_call_made.set()
+            _, pending = await asyncio.wait(tasks, timeout=60.0)
+            assert not pending
+            return rid
+    rid = asyncio.run(go())
+    store = Store(rec_dir / "station.db")
+    try:
+        row = store.get_run(rid)
+        assert row is not None and row.state == "interrupted" and "shut down" in row.reason
+        assert row.recording == f"{rid}.h5", row
+        path = rec_dir / row.recording
+        assert not (rec_dir / f"{rid}.h5.partial").exists()
+        rec = read_recording(path)
+        assert rec.complete and rec.exit_status == "interrupted"
+        [ended] = audit.entries(store, target=rid, action=audit.RUN_ENDED)
+        assert ended.files == {path.name: sha256_file(path)} and row.recording_sha256 == sha256_file(path)
+    finally:
+        store.close()
+
+
 @pytest.mark.slow
 def test_worker_exits_when_the_daemon_is_killed(tmp_path: Path) -> None:
     """No orphaned process after kill -9 of the daemon: its workers, its rig process and the emulators'
