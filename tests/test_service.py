@@ -242,6 +242,7 @@ def test_sigterm_mid_run_stops_the_run_closes_the_recording_and_the_workers(tmp_
     log = d.log()
     assert "interrupted: the station was stopped during the run" in log
     assert "did not end within" not in log  # the run ended itself: no emergency stop after the shutdown's wait
+    assert "Traceback" not in log  # the rig process's channel ends cleanly too
     # the daemon ended its rig process (which stops a turning crank) and then the emulators itself,
     # before it ended: none is left to end on its own once the daemon is gone
     assert _alive(kids["rig process"] + kids["emulators"]) == [], kids
