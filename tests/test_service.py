@@ -25,6 +25,10 @@ from station.service.manager import RunManager, RunStateError
 from station.service.settings import build_settings
 from tests.station_support import Daemon, Seed, daemon_config
 
+# an identification in a worker process takes seconds of CPU, several times more on a loaded machine:
+# the daemon tests wait for it this long
+IDENTIFIED_WITHIN_S = 180.0
+
 
 def _row(run_id: str, state: str = "queued", created: float | None = None) -> RunRow:
     return RunRow(id=run_id, state=state, transducer_id="TX", top_mass_kg=1.0, request_json="{}",
@@ -204,7 +208,7 @@ def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume
         r = read_recording(path)
         assert r.exit_status == "interrupted" and r.complete and r.displacement_m.size > 20_000
         # the queued job of run A resumed in the new daemon's worker
-        st = second.wait_state(a, ("completed", "failed"), timeout_s=60)
+        st = second.wait_state(a, ("completed", "failed"), timeout_s=IDENTIFIED_WITHIN_S)
         assert st["state"] == "completed", st
         res = c.get(f"/runs/{a}/results").json()
         assert {p["name"] for p in res["parameters"] if p["identifiable"]} >= {"S", "k_f", "b_f"}
@@ -216,36 +220,94 @@ def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume
         assert jobs.get("done") == 1, jobs
         # and the rig takes new runs
         n = second.start_run(freqs=(10.0,))
-        assert second.wait_state(n)["state"] == "completed"
+        assert second.wait_state(n, timeout_s=IDENTIFIED_WITHIN_S)["state"] == "completed"
 
 
 @pytest.mark.slow
 def test_sigterm_mid_run_stops_the_run_closes_the_recording_and_the_workers(tmp_path: Path) -> None:
     d = Daemon(tmp_path, seeds=[Seed(identified=False)]).start()
     try:
-        d.wait_state(d.seeded[0])  # the identification worker process has started
+        d.wait_state(d.seeded[0], timeout_s=IDENTIFIED_WITHIN_S)  # the identification worker process has started
         assert d.proc is not None
         kids = _daemon_children(d.proc.pid)
         assert all(kids.values()), kids  # workers, the rig process and the emulators' process
         rid = d.start_run(freqs=(10.0,), record_s=30.0)
         d.wait_state(rid, ("running",), step_state="recording")
-        t0 = time.monotonic()
-        assert d.stop(signal.SIGTERM) in (0, -signal.SIGTERM)  # uvicorn re-raises the signal after its shutdown
-        assert time.monotonic() - t0 < 15
+        # uvicorn >= 0.29: killed by the signal, raised again once the daemon has shut down (within
+        # ``Daemon.stop``'s bound)
+        assert d.stop(signal.SIGTERM) in (0, -signal.SIGTERM)
     finally:
         if d.proc is not None and d.proc.poll() is None:
             d.kill()
-    assert "stopped during the run" in d.log() or "interrupted" in d.log()
+    log = d.log()
+    assert "interrupted: the station was stopped during the run" in log
+    assert "did not end within" not in log  # the run ended itself: no emergency stop after the shutdown's wait
+    assert "Traceback" not in log  # the rig process's channel ends cleanly too
+    # the daemon ended its rig process (which stops a turning crank) and then the emulators itself,
+    # before it ended: none is left to end on its own once the daemon is gone
+    assert _alive(kids["rig process"] + kids["emulators"]) == [], kids
     path = d.data_dir / f"{rid}.h5"
     assert path.exists() and not (d.data_dir / f"{rid}.h5.partial").exists()
     rec = read_recording(path)  # closed properly by the procedure (it stops the motor first)
     assert rec.complete and rec.exit_status == "interrupted"
     db = sqlite3.connect(d.data_dir / "station.db")
-    state, reason = db.execute("SELECT state, reason FROM runs WHERE id = ?", (rid,)).fetchone()
-    assert state == "interrupted" and "shut down" in reason
+    state, reason, recording = db.execute("SELECT state, reason, recording FROM runs WHERE id = ?",
+                                          (rid,)).fetchone()
+    assert state == "interrupted" and "shut down" in reason and recording == path.name
     assert _wait_gone([p for ps in kids.values() for p in ps]) == [], kids
     with h5py.File(io.BytesIO(path.read_bytes()), "r") as f:
         assert f.attrs["exit_status"] == "interrupted"
+
+
+@pytest.mark.slow  # a run on the simulated rig, started and stopped
+def test_a_second_shutdown_call_never_cuts_short_the_stop_and_the_closing_of_the_recording(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A daemon begins its shutdown twice: from the signal handler, then from the lifespan's close.
+    The run on the rig is cancelled once: the second call, arriving while the procedure stops the
+    motor, must not cut that stop short, nor the closing of the recording; the run's row names the
+    closed recording and the audit chain holds its SHA-256."""
+    import threading
+
+    from station.lab import audit
+    from station.lab.integrity import sha256_file
+    from station.run.procedure import Procedure
+    from tests.station_support import app_in_process, start, wait_state
+
+    stopping, second_call_made = threading.Event(), threading.Event()
+    stop_motor = Procedure._stop_motor
+
+    async def stop_after_the_second_call(self: Procedure, *, hard: bool) -> None:
+        stopping.set()
+        await asyncio.to_thread(second_call_made.wait, 30.0)  # the second call reaches the rig loop first
+        await stop_motor(self, hard=hard)
+    monkeypatch.setattr(Procedure, "_stop_motor", stop_after_the_second_call)
+    rec_dir = tmp_path / "rec"
+
+    async def go() -> str:
+        async with app_in_process(rec_dir) as (m, c):
+            rid = await start(c, freqs=(10.0,), record_s=30.0)
+            await wait_state(c, rid, ("running",), step_state="recording")
+            tasks = m.begin_shutdown()  # the signal handler
+            assert await asyncio.to_thread(stopping.wait, 30.0)
+            m.begin_shutdown()  # the lifespan's close, while the procedure stops the motor
+            second_call_made.set()
+            _, pending = await asyncio.wait(tasks, timeout=60.0)
+            assert not pending
+            return rid
+    rid = asyncio.run(go())
+    store = Store(rec_dir / "station.db")
+    try:
+        row = store.get_run(rid)
+        assert row is not None and row.state == "interrupted" and "shut down" in row.reason
+        assert row.recording == f"{rid}.h5", row
+        path = rec_dir / row.recording
+        assert not (rec_dir / f"{rid}.h5.partial").exists()
+        rec = read_recording(path)
+        assert rec.complete and rec.exit_status == "interrupted"
+        [ended] = audit.entries(store, target=rid, action=audit.RUN_ENDED)
+        assert ended.files == {path.name: sha256_file(path)} and row.recording_sha256 == sha256_file(path)
+    finally:
+        store.close()
 
 
 @pytest.mark.slow
@@ -255,7 +317,7 @@ def test_worker_exits_when_the_daemon_is_killed(tmp_path: Path) -> None:
     PR_SET_PDEATHSIG)."""
     d = Daemon(tmp_path, seeds=[Seed(identified=False)]).start()
     try:
-        d.wait_state(d.seeded[0])  # identified by a worker process
+        d.wait_state(d.seeded[0], timeout_s=IDENTIFIED_WITHIN_S)  # identified by a worker process
         assert d.proc is not None
         kids = _daemon_children(d.proc.pid)
         assert all(kids.values()), kids  # workers, the rig process and the emulators' process

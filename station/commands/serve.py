@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import signal
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -35,26 +36,30 @@ def run(args: argparse.Namespace) -> int:
     from station.service.settings import load_settings
 
     settings = load_settings(args.config, sim=args.sim, host=args.host, port=args.port, workers=args.workers)
+    stopped_by: list[int] = []
     # one daemon per recordings folder, before anything is touched (recovery, database, devices)
     with InstanceLock.acquire(settings.recordings_dir, "station serve", host=settings.host,
                               port=settings.port or None) as lock:
         check_database(settings.database)
-        return _serve(args, settings, lock)
+        code = _serve(args, settings, lock, stopped_by)
+    for sig in reversed(stopped_by):  # the signal's own end (SIGTERM: killed by it), after the whole shutdown
+        signal.raise_signal(sig)
+    return code
 
 
-def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLock) -> int:
+def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLock, stopped_by: list[int]) -> int:
     from station.rigproc.client import RigProcessConnector
 
     rig = RigProcessConnector(settings)  # the drive, its watchdog and the stop port in a process of their own
     rig.launch()  # the rig process and, simulated, the emulators start while the daemon does
     try:
-        return _serve_on(args, settings, lock, rig)
+        return _serve_on(args, settings, lock, rig, stopped_by)
     finally:
         rig.close()  # the rig process stops a turning crank and ends; then the emulators
 
 
 def _serve_on(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLock,
-              rig: RigProcessConnector) -> int:
+              rig: RigProcessConnector, stopped_by: list[int]) -> int:
     import uvicorn
 
     from station.api import create_app
@@ -103,7 +108,10 @@ def _serve_on(args: argparse.Namespace, settings: ServiceSettings, lock: Instanc
                             headers=[keep_alive_header(bounds.header_timeout_s)])
     server = StationServer(config, settings, on_listening=lambda host, port: lock.update(host=host, port=port),
                            rig=rig)
-    asyncio.run(server.serve())
+    try:
+        asyncio.run(server.serve())
+    finally:
+        stopped_by.extend(server.stopped_by)  # raised again by ``run`` once the rig process has ended
     return 0 if server.started else 3  # 3: the daemon could not start (the log says why)
 
 

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from types import FrameType
 from typing import TYPE_CHECKING
 
@@ -22,7 +23,8 @@ log = logging.getLogger("station.serve")
 
 class StationServer(uvicorn.Server):
     """uvicorn, plus: a shutdown signal stops the run on the rig at once (before open connections
-    drain), and the address is logged once the socket is bound."""
+    drain), the address is logged once the socket is bound, and the signal that stopped the server
+    is kept in ``stopped_by`` (not raised again as uvicorn does when it stops)."""
 
     def __init__(self, config: uvicorn.Config, settings: ServiceSettings,
                  on_listening: Callable[[str, int], None] | None = None,
@@ -33,6 +35,20 @@ class StationServer(uvicorn.Server):
         self.rig = rig
         self.on_listening = on_listening
         self.stop_port: StopPort | None = None
+        self.stopped_by: list[int] = []  # the signals that stopped the server, in the order received
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Iterator[None]:
+        """uvicorn's, without raising the signals again as the server stops: SIGTERM's default action
+        would end the process there, before the rest of the daemon's shutdown (the rig process, which
+        stops a turning crank, then the emulators).  The caller raises them once that is done."""
+        with super().capture_signals():
+            try:
+                yield
+            finally:
+                captured = getattr(self, "_captured_signals", [])  # uvicorn >= 0.29 raises these again
+                self.stopped_by.extend(captured)
+                captured.clear()
 
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
         manager = getattr(self.config.app.state, "manager", None) if hasattr(self.config.app, "state") else None

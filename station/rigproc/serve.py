@@ -138,6 +138,7 @@ class RigProcess:
         self.count = 0
         self.drive: DriveCheck | None = None
         self.web: asyncio.StreamWriter | None = None
+        self.serving: set[asyncio.Task[Any]] = set()  # ``serve_web``, one per connection of the web process
         self.heard = time.monotonic()  # the web process's last question
         self.turning = False  # the web process has set a set-point other than 0 since the last stop
         self.run_id: str | None = None  # the run the crank turns for, as the web process told (op "run")
@@ -242,6 +243,10 @@ class RigProcess:
             self.web.close()
         self.web = writer
         self.heard = time.monotonic()
+        me = asyncio.current_task()
+        if me is not None:
+            self.serving.add(me)
+            me.add_done_callback(self.serving.discard)
         try:
             while True:
                 try:
@@ -408,6 +413,10 @@ async def run(spec: Spec) -> int:
     if stop_port is not None:
         stop_port.close()
     server.close()
+    if rig.web is not None:  # the channel ends as an end of file, not as a task cancelled at the exit
+        rig.web.close()
+    if rig.serving:
+        await asyncio.wait(rig.serving, timeout=1.0)
     with contextlib.suppress(Exception):
         await motor.close()
     with contextlib.suppress(FileNotFoundError):

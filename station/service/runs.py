@@ -386,6 +386,11 @@ class Runs:
 
     @staticmethod
     def _cancel_on_rig(live: LiveRun) -> None:
+        """Cancel the run's procedure, once: the shutdown begins twice (the signal handler, then the
+        lifespan's close), and a second cancellation would land in the procedure's own stop, cutting
+        short the motor's stop and the closing of the recording."""
+        if live.cancelled:
+            return
         live.cancelled = True
         if live.rig_task is not None and not live.rig_task.done():
             live.rig_task.cancel()
