@@ -186,7 +186,12 @@ def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume
         assert st["recording"] == f"{a}.h5"
         b = first.start_run(freqs=(10.0,), record_s=30.0)
         first.wait_state(b, ("running",), step_state="recording")
-        time.sleep(1.5)  # past a flush of the recording
+        # 2 s of samples acquired (on a loaded machine the acquisition's clock is not the wall's), then
+        # past the writer's next flush (every 0.5 s): at least the first second is on the disk
+        deadline = time.monotonic() + 60.0
+        while first.c().get(f"/runs/{b}").json()["samples"] < 40_000 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(1.5)
         assert (data / f"{b}.h5.partial").exists()
     finally:
         first.kill()
