@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from station.lab.store import RunState
 from station.run.procedure import StepState
+from station.service.results import StepResponse
 from station.vocabulary import Flag, Method, Model, Severity
 
 # closed sets of values: enumerations in the OpenAPI document (checked against their sources in the tests)
@@ -196,23 +197,6 @@ class IdentifiabilityOut(OutModel):
     reasons: list[str]
 
 
-class StepResponseOut(OutModel):
-    """H(f) = force signal / frame acceleration of one step, V/(m/s^2)."""
-
-    index: int
-    frequency_hz: float | None
-    frequency_std_hz: float | None
-    H_real: float | None
-    H_imag: float | None
-    H_magnitude: float | None
-    H_magnitude_std: float | None
-    H_phase_deg: float | None
-    H_phase_std_deg: float | None
-    displacement_amplitude_m: float | None
-    force_amplitude_V: float | None
-    n_samples: int | None
-
-
 class BudgetOut(OutModel):
     """A parameter's uncertainty budget: each source's standard uncertainty and their combination."""
 
@@ -335,7 +319,7 @@ class RunResults(OutModel):
                                                  "coupling)")
     covariance: CovarianceOut | None = Field(default=None, description="of the parameters that have a value, as "
                                              "the identification stored it (null for results stored before it was)")
-    frequency_response: list[StepResponseOut]
+    frequency_response: list[StepResponse]
     skipped_steps: list[SkippedStepOut]
     units: dict[str, str]
     plots: dict[str, str] = Field(description="plot name -> URL of its PNG")

@@ -6,9 +6,10 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, TypedDict, cast
+from typing import Any, cast
 
 import numpy as np
+from typing_extensions import TypedDict  # pydantic reads it (the API's schema) on Python < 3.12
 
 from station.ident.result import IdentificationResult, JsonValue
 from station.recording import read_documents, read_result, start_metadata
@@ -32,8 +33,9 @@ def finite(obj: Any) -> Any:
 
 
 class StepResponse(TypedDict):
-    """H(f) of one step (``station.api.schemas.StepResponseOut``): V/(m/s^2), its magnitude and
-    phase (deg) with standard uncertainties, the amplitudes (m, V) and the samples it rests on."""
+    """H(f) = force signal / frame acceleration of one step, V/(m/s^2): its magnitude and phase (deg)
+    with standard uncertainties, the amplitudes (m, V) and the samples it rests on (the API's
+    schema of a step's response is this type)."""
 
     index: int
     frequency_hz: float | None
@@ -49,12 +51,10 @@ class StepResponse(TypedDict):
     n_samples: int | None
 
 
-class StoredMethod(TypedDict, total=False):
-    """A listed identification (``station.run.methods.MethodOutcome``'s fields) with its stored
-    result's parameters, fit, identifiability, notes, checks and budget, and its agreement with
-    the primary result, per parameter (``station.api.schemas.MethodResultOut``)."""
+class ResultFields(TypedDict, total=False):
+    """A stored identification's parameters (a list in the model's order), fit, identifiability,
+    notes, checks and budget, in their JSON form."""
 
-    agreement: Mapping[str, JsonValue]
     parameters: list[JsonValue]
     fit: JsonValue
     identifiability: JsonValue
@@ -63,19 +63,22 @@ class StoredMethod(TypedDict, total=False):
     budget: JsonValue
 
 
-class StoredResults(TypedDict):
+class StoredMethod(ResultFields, total=False):
+    """A listed identification (``station.run.methods.MethodOutcome``'s fields) with its stored
+    result's fields and its agreement with the primary result, per parameter
+    (``station.api.schemas.MethodResultOut``)."""
+
+    agreement: Mapping[str, JsonValue]
+
+
+class StoredResults(ResultFields):
     """What ``load_results`` gives (``station.api.schemas.RunResults`` without the run's own fields):
-    the stored identification's JSON form, parameters as a list in the model's order, the processed
-    H(f), the skipped steps, the units, every listed method and the room conditions."""
+    the stored identification (its method, model, result fields, assumptions, determined quantities
+    and covariance), the processed H(f), the skipped steps, the units, every listed method and the
+    room conditions."""
 
     method: str | None
     model: str | None
-    parameters: list[JsonValue]
-    fit: JsonValue
-    identifiability: JsonValue
-    notes: list[JsonValue]
-    checks: list[JsonValue]
-    budget: JsonValue
     assumptions: JsonValue
     determined: JsonValue
     covariance: JsonValue
