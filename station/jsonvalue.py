@@ -28,4 +28,4 @@ def json_floats(values: Mapping[str, JsonValue], key: str) -> list[float]:
     if not isinstance(v, list | tuple) or not all(x is None or (isinstance(x, int | float) and not isinstance(x, bool))
                                           for x in v):
         raise ValueError(f"{key!r} is not a list of numbers"[:200])
-    return [float("nan") if x is None else float(x) for x in v if isinstance(x, int | float) or x is None]
+    return [float("nan") if x is None else float(x) for x in v]

@@ -88,4 +88,13 @@ def test_model_reproduces_the_simulator(name: str, tmp_path) -> None:
     without = Problem(data, {}, truth)
     r0 = without.residual(np.zeros(len(without.params)))
     assert chi2_per < 1.6, f"{name}: chi2/n = {chi2_per:.3g} with the true parameters"
+    # a parameter declared additive has the same Jacobian column everywhere: the one the fit takes
+    # once equals a central difference at another point
+    u1 = np.random.default_rng(31).normal(0.0, 0.3, len(with_effect.params))
+    J = with_effect.jacobian(u1)
+    for j in with_effect.additive:
+        e = np.zeros_like(u1)
+        e[j] = 1e-3
+        d = (with_effect.residual(u1 + e) - with_effect.residual(u1 - e)) / 2e-3
+        assert np.allclose(J[:, j], d, rtol=1e-6, atol=1e-9 * np.abs(d).max()), with_effect.params[j].name
     assert float(r0 @ r0) > 20 * float(r @ r), f"{name}: the effect is invisible in this recording"

@@ -23,19 +23,22 @@ LOWPASS_ORDERS: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8)
 
 @dataclass(frozen=True)
 class Param:
-    """One fit parameter: name, SI unit, log (fitted as log of a positive value), lower/upper bound."""
+    """One fit parameter: name, SI unit, log (fitted as log of a positive value), lower/upper bound,
+    additive (the model is affine in it with a coefficient no other parameter changes: its Jacobian
+    column is constant, ``fit.Problem.jacobian``)."""
 
     name: str
     unit: str
     log: bool = False
     lower: float = -np.inf
     upper: float = np.inf
+    additive: bool = False
 
 
 BASE_PARAMS: tuple[Param, ...] = (
     Param("S", "V/N"), Param("k_f", "N/m", log=True, lower=1.0, upper=1e13),
     Param("b_f", "N*s/m", log=True, lower=1e-6, upper=1e9),
-    Param("offset_V", "V"),
+    Param("offset_V", "V", additive=True),
 )
 
 
@@ -53,7 +56,7 @@ def effect_params(name: str, data: RigData) -> tuple[Param, ...]:
         return (Param("quadratic", "1", lower=-1.0, upper=1.0), Param("cubic", "1", lower=-1.0, upper=1.0))
     if name == "mains_interference":
         if not data.common_clock:  # phases not comparable between steps: a phasor per step and line
-            return tuple(Param(f"{c}_{h}_s{i}", "V") for i in range(data.n_steps)
+            return tuple(Param(f"{c}_{h}_s{i}", "V", additive=True) for i in range(data.n_steps)
                          for h in range(1, data.n_mains + 1) for c in ("re", "im"))
         out = [Param("frequency_hz", "Hz", lower=40.0, upper=70.0)]
         for h in range(1, data.n_mains + 1):
@@ -66,9 +69,10 @@ def effect_params(name: str, data: RigData) -> tuple[Param, ...]:
         return (Param("clock_skew", "1", lower=-1e-3, upper=1e-3),)
     if name == "zero_drift":
         if not data.common_clock:  # no common time axis: each step's own offset, slope and curvature
-            return tuple([Param(f"dc_s{i}", "V") for i in range(1, data.n_steps)]
-                         + [Param(f"{c}_s{i}", "V") for i in range(data.n_steps) for c in ("slope", "curv")])
-        return (Param("rate_V_per_s", "V/s"), Param("quadratic_V_per_s2", "V/s^2"))
+            return tuple([Param(f"dc_s{i}", "V", additive=True) for i in range(1, data.n_steps)]
+                         + [Param(f"{c}_s{i}", "V", additive=True) for i in range(data.n_steps)
+                            for c in ("slope", "curv")])
+        return (Param("rate_V_per_s", "V/s", additive=True), Param("quadratic_V_per_s2", "V/s^2", additive=True))
     raise KeyError(f"unknown effect {name!r}; the catalogue is {', '.join(CATALOGUE)}")
 
 

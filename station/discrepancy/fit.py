@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import logging
 import math
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -89,15 +88,6 @@ class ModelFit:
 
 _EIV: dict[int, tuple[RigData, FloatArray]] = {}
 _REL_STEP = math.sqrt(np.finfo(float).eps)
-_ADDITIVE = re.compile(r"offset_V|rate_V_per_s|quadratic_V_per_s2|(dc|slope|curv)_s\d+|(re|im)_\d+_s\d+")
-
-
-def is_additive(name: str) -> bool:
-    """Whether the model is affine in the parameter with a coefficient no other parameter changes
-    (``predict``): the offset, the zero drift (common clock or per step) and the per-step mains
-    phasors.  The common-clock mains phasors are not (their coefficient depends on the mains
-    frequency), nor is S (it multiplies the force)."""
-    return _ADDITIVE.fullmatch(name) is not None
 
 
 def _whitening(data: RigData, Wf: FloatArray) -> FloatArray:
@@ -136,7 +126,8 @@ class Problem:
         # the residual E W_f (c_f - m) as E W_f c_f - (E W_f) m: one product per evaluation
         self.EW = np.einsum("sij,sjk->sik", self.eiv, self.Wf)
         self.EWc = np.einsum("sij,sj->si", self.EW, data.cf)
-        self.additive = tuple(i for i, q in enumerate(self.params) if is_additive(q.name))
+        self.additive = tuple(i for i, q in enumerate(self.params) if q.additive)
+        self._lo, self._hi = self.bounds()
         self._columns: FloatArray | None = None
         self._last: tuple[bytes, FloatArray] | None = None
 
@@ -208,7 +199,7 @@ class Problem:
         J = np.empty((r0.size, x.size))
         if self.additive:
             J[:, list(self.additive)] = self._additive_columns()
-        lo, hi = self.bounds()
+        lo, hi = self._lo, self._hi
         additive = set(self.additive)
         for j in range(x.size):
             if j in additive:

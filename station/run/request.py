@@ -110,7 +110,7 @@ def default_request(cfg: StationConfig, frequencies_hz: list[float] | None = Non
     limits (capped by the plan's first radius) is chosen for each frequency."""
     if not frequencies_hz:
         return RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg,
-                          steps=[StepSpec(**s.model_dump()) for s in cfg.plan.steps])
+                          steps=list(cfg.plan.steps))
     r_cap = min(cfg.plan.steps[0].crank_radius_m, cfg.rig.crank_radius_m.max)
     steps = []
     fr = cfg.rig.crank_frequency_hz
