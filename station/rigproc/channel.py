@@ -15,7 +15,7 @@ question (``op``)  fields                                          answer
 ``release``        --                                              -- (the operator acknowledged the stop)
 ``page_port``      ``port``                                        -- (the main port: the station's own page)
 ``run``            ``run_id`` (or null)                            -- (the run the crank turns for)
-``keeper``         --                                              ``keeper_error``: null while the drive's
+``keeper``         ``run_id`` (or null, as ``run``)                ``keeper_error``: null while the drive's
                                                                    watchdog refreshes go through (the web
                                                                    process's keeper asks it instead of
                                                                    refreshing the drive a second time)

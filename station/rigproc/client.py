@@ -77,6 +77,7 @@ class RigSupervisor:
         self.spare: subprocess.Popen[str] | None = None  # started ahead, not yet given its specification
         self.ready: dict[str, Any] = {}  # the rig process's ready line
         self.error: str | None = None  # why there is none
+        self.run_id: str | None = None  # the run the crank turns for (``note_run``; again in every keeper question)
         self.restarts = 0
         self._dir = tempfile.mkdtemp(prefix="sinecal-rig-")
         self.socket = os.path.join(self._dir, "channel")
@@ -259,6 +260,7 @@ class RigSupervisor:
     async def note_run(self, run_id: str | None) -> None:
         """Tell the rig process which run the crank turns for (``None``: none), so that a stop on its
         stop port names the run it stops."""
+        self.run_id = run_id
         await self.ask({"op": "run", "run_id": run_id})
 
     async def tell_page_port(self, port: int) -> None:
@@ -327,8 +329,9 @@ class ChannelTransport:
     async def watchdog_status(self) -> None:
         """The rig process refreshes the drive's watchdog (its keeper is the drive's only one): ask
         whether its refreshes go through (``drivers.motor.transport.PeerKeptWatchdog``); the question
-        is also this process's sign of life to it."""
-        reply = await self.supervisor.ask({"op": "keeper"})
+        is also this process's sign of life to it, and names the run the crank turns for (a ``run``
+        message lost to a channel being re-established is made good within one keeper period)."""
+        reply = await self.supervisor.ask({"op": "keeper", "run_id": self.supervisor.run_id})
         err = reply.get("keeper_error")
         if err:
             raise MotorLinkError("watchdog refresh (rig process)", str(err)[:300])

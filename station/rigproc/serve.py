@@ -290,6 +290,8 @@ class RigProcess:
             return await self.write(int(msg["address"]), [int(w) for w in msg["words"]], str(msg["what"]),
                                     bool(msg.get("retry", True)))
         if op == "keeper":  # the web process's keeper: whether the drive's refreshes go through
+            if "run_id" in msg:  # and the run the crank turns for, as op "run" told
+                self.run_id = str(msg["run_id"])[:80] if msg["run_id"] else None
             return {"keeper_error": self.keeper_error}
         if op == "hello":
             return {"profile": self.motor.profile.name, "latched": self.latched, "pid": os.getpid()}
