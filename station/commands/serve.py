@@ -124,6 +124,9 @@ def _manager(settings: ServiceSettings, rig: RigProcessConnector) -> RunManager:
     manager = RunManager(settings, connector=rig)
 
     def stopped(msg: dict[str, Any]) -> None:
+        if msg.get("event") == "stopping":
+            manager.runs.stopping_elsewhere()
+            return
         drive = DriveCheck.from_dict(msg["drive"]) if msg.get("drive") else None
         manager.runs.stopped_elsewhere(str(msg.get("source", "rig")), str(msg.get("detail", "")),
                                        who_stopped(msg.get("credentials") or {}, settings), drive)

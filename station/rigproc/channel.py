@@ -21,8 +21,10 @@ question (``op``)  fields                                          answer
                                                                    refreshing the drive a second time)
 =================  ==============================================  ==========================================
 
-Events: ``stopped`` (a stop the rig process gave: ``source``, ``detail``, ``commanded``, ``drive``,
-``credentials`` of the request for the record).  A failure travels as ``error``: ``kind`` (``link``,
+Events: ``stopping`` (a stop the rig process is about to give, told before it commands the drive:
+``source``; the runs are aborted before any answer can show them the drive's emergency-stop fault)
+and ``stopped`` (the stop given: ``source``, ``detail``, ``commanded``, ``drive``, ``credentials`` of
+the request for the record).  A failure travels as ``error``: ``kind`` (``link``,
 ``timeout``, ``exception``, ``protocol``, ``refused``, ``bad``) and ``detail``."""
 
 from __future__ import annotations

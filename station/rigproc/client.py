@@ -227,7 +227,10 @@ class RigSupervisor:
             self._drop()
 
     def _event(self, msg: dict[str, Any]) -> None:
-        log.warning("the rig process reports a stop (%s): %s", msg.get("source"), msg.get("detail"))
+        if msg.get("event") == "stopping":
+            log.warning("the rig process gives a stop (%s)", msg.get("source"))
+        else:
+            log.warning("the rig process reports a stop (%s): %s", msg.get("source"), msg.get("detail"))
         if self.on_event is not None:
             try:
                 self.on_event(msg)

@@ -176,8 +176,11 @@ class RigProcess:
 
     async def stop(self, source: str, why: str, credentials: dict[str, str] | None = None) -> dict[str, Any]:
         """The emergency stop on the drive, the stop held, the drive read back; the web process told.
-        The answer has the shape of the main port's (``StopOut``)."""
+        The answer has the shape of the main port's (``StopOut``); it names the run the crank turned
+        for when the stop was given (the run may end, and say so, while the drive is read back)."""
+        stopped_run = self.run_id
         self.hold(source, why)
+        self.tell({"event": "stopping", "source": source})  # ahead of every answer that shows the stop
         try:
             await asyncio.wait_for(self.motor.emergency_stop(), 2.0)
             ok, detail = True, "emergency stop commanded on the motor controller"
@@ -190,7 +193,7 @@ class RigProcess:
         log.warning("EMERGENCY STOP (%s, rig process): %s", source, detail)
         answer: dict[str, Any] = {"motor_stopped": bool(check is not None and check.standstill), "stop_commanded": ok,
                   "drive": check.to_dict() if check is not None else None,
-                  "aborted_runs": [self.run_id] if self.run_id else [],
+                  "aborted_runs": [stopped_run] if stopped_run else [],
                   "detail": detail + "; the daemon aborts the run and latches the stop when it hears of it"}
         self.tell({"event": "stopped", "source": source, "detail": detail, "commanded": ok,
                    "drive": answer["drive"], "credentials": credentials or {}})

@@ -98,6 +98,7 @@ class Runs:
         self.live: dict[str, LiveRun] = {}
         self._stopping = 0  # emergency stops being commanded (not latched yet): no run may start meanwhile
         self._stopping_lock = threading.Lock()
+        self._aborted_elsewhere: list[str] = []  # runs aborted on a stop the rig process is giving (its event)
         self.loop_thread = threading.get_ident()
         self.web_loop: asyncio.AbstractEventLoop | None = None
 
@@ -350,14 +351,23 @@ class Runs:
             detail = f"{detail}; {check.describe()}"
         return StopReport(bool(check is not None and check.standstill), aborted, detail, ok, check)
 
-    def stopped_elsewhere(self, source: str, detail: str, who: str | Callable[[Store], str],
-                          drive: DriveCheck | None) -> list[str]:
-        """A stop the rig process gave on its own (its stop port, a lost link): the runs aborted,
-        the latch tripped, the drive's read-back kept (from any thread); the aborted runs."""
+    def stopping_elsewhere(self) -> list[str]:
+        """The rig process is about to give a stop (its stop port): the runs aborted now, before the
+        procedure can read the drive's emergency-stop fault and end as failed; the aborted runs
+        (named again by :meth:`stopped_elsewhere`)."""
         aborted = []
         for live in list(self.live.values()):
             self._abort(live, "emergency stop")
             aborted.append(live.row.id)
+        self._aborted_elsewhere.extend(r for r in aborted if r not in self._aborted_elsewhere)
+        return aborted
+
+    def stopped_elsewhere(self, source: str, detail: str, who: str | Callable[[Store], str],
+                          drive: DriveCheck | None) -> list[str]:
+        """A stop the rig process gave on its own (its stop port, a lost link): the runs aborted,
+        the latch tripped, the drive's read-back kept (from any thread); the aborted runs."""
+        self.stopping_elsewhere()
+        aborted, self._aborted_elsewhere = self._aborted_elsewhere, []
         self.latch.trip(source, detail + (f"; aborted runs: {', '.join(aborted)}" if aborted else ""), who)
         if drive is not None:
             self.link.drive = drive
