@@ -38,6 +38,7 @@ from station.service.errors import (
 from station.service.health import database_state, health
 from station.service.instance import InstanceLock
 from station.service.jobs import MAX_JOB_ATTEMPTS, JobQueue
+from station.service.lab import LabService
 from station.service.latch import EStopLatch
 from station.service.logins import LoginThrottle, PasswordPool
 from station.service.recovery import recover
@@ -100,6 +101,8 @@ class RunManager:
         self.logins = LoginThrottle(save=lambda key, n, until: self.db.post(
             lambda s: users.keep_lock(s, key, n, until)))
         self.password_pool = PasswordPool()
+        self.lab = LabService(self.db, self.logins, self.password_pool, self.cfg.lab.session_minutes,
+                              self.cfg.lab.overdue_standards, settings.recordings_dir, self.artifacts)
 
     # ------------------------------------------------------------------ life cycle
     async def start(self) -> None:

@@ -3,11 +3,7 @@
 
 from __future__ import annotations
 
-import asyncio
-import datetime as dt
 import logging
-import re
-import time
 from dataclasses import asdict
 from typing import Annotated
 
@@ -58,8 +54,7 @@ from station.api.lab_schemas import (
 )
 from station.api.routes.runs import BODY_ERRORS, E401, E403, E404, E409, E422
 from station.api.schemas import ErrorOut
-from station.lab import audit, chain, history, policy, register, users
-from station.lab.store import Store
+from station.lab import chain, register, users
 from station.lab.users import NAME_PATTERN, Principal
 from station.service.errors import RunStateError
 
@@ -85,37 +80,17 @@ async def login(body: LoginIn, manager: ManagerDep, response: Response, request:
     doubling to 15 min; refused, whatever the password, with the time it is lifted, after the same
     password check as any login; an administrator lifts it: `GET /logins/locks`).  The session expires
     after `lab.session_minutes`; the cookie is HttpOnly and SameSite=Strict."""
-    minutes = manager.cfg.lab.session_minutes
-    client = request.client.host if request.client else ""
-    user_key = f"user:{body.name}" if re.match(NAME_PATTERN, body.name) else "user:?"
-    keys = [user_key, f"client:{client}"]
-    why = manager.logins.refusal(keys)
-    candidate, stored = await manager.db.read(lambda s: users.login_candidate(s, body.name))
-    # the scrypt check (~0.1 s) in the login pool: never in the read pool other requests need
-    ok = await manager.password_pool.run(users.check_password, body.password, stored)
-    if ok is None:
-        raise users.AuthError("too many logins at once: try again in a moment")
-    # locked out: the same work done (no lock-out told by its time), the answer unused.  Every login,
-    # refused or not, awaits one write (the session, or the refusal's audit entry) through the writer
-    user = candidate if ok and why is None else None
-    if user is None:
-        for key, seconds in [] if why is not None else manager.logins.failed(keys):  # counted before any wait
-            log.warning("login lock-out: %s for %.0f s after repeated failures", key, seconds)
-            manager.db.post(lambda s, k=key, t=seconds: audit.append(  # type: ignore[misc]
-                s, audit.SYSTEM, audit.LOGIN_LOCKED, k, {"seconds": t}))
-        await manager.db.call(lambda s: users.refuse_login(s, body.name, client, locked=why is not None))
-        raise users.AuthError(why or users.REFUSED)
-    manager.logins.succeeded(user_key)
-    text, expires = await manager.db.call(lambda s: users.open_session(s, user, minutes))
-    response.set_cookie(SESSION_COOKIE, text, max_age=int(minutes * 60), httponly=True, samesite="strict", path="/")
-    return MeOut(user=UserOut.model_validate(user.to_dict()), via="session", expires=expires)
+    session = await manager.lab.login(body.name, body.password, request.client.host if request.client else "")
+    response.set_cookie(SESSION_COOKIE, session.text, max_age=int(session.minutes * 60), httponly=True,
+                        samesite="strict", path="/")
+    return MeOut(user=UserOut.model_validate(session.user.to_dict()), via="session", expires=session.expires)
 
 
 @router.post("/logout", response_model=MeOut, responses={**E401, **BODY_ERRORS}, summary="End the page session")
 async def logout(request: Request, manager: ManagerDep, response: Response) -> MeOut:
     session = request.cookies.get(SESSION_COOKIE)
     if session:
-        await manager.db.call(lambda s: users.logout(s, session))
+        await manager.lab.logout(session)
     response.delete_cookie(SESSION_COOKIE, path="/")
     return MeOut(user=None)
 
@@ -131,14 +106,8 @@ async def me(who: PrincipalDep) -> MeOut:
 @router.get("/users", response_model=list[UserRowOut], responses={**E401, **E403}, summary="The users (admin)")
 async def list_users(manager: ManagerDep, who: Admin) -> list[UserRowOut]:
     """Each user with the last change of the account (when, by whom; from the audit trail)."""
-    def read(s: Store) -> list[UserRowOut]:
-        changed = users.last_changes(s)
-        rows = []
-        for u in users.users(s):
-            at, by = changed.get(u.name, (None, None))
-            rows.append(UserRowOut.model_validate({**u.to_dict(), "changed": at, "changed_by": by}))
-        return rows
-    return await manager.db.read(read)
+    return [UserRowOut.model_validate({**r.user.to_dict(), "changed": r.changed, "changed_by": r.changed_by})
+            for r in await manager.lab.user_rows()]
 
 
 @router.get("/users/policy", response_model=UsersPolicyOut, responses={**E401, **E403},
@@ -152,85 +121,70 @@ async def users_policy(who: Admin) -> UsersPolicyOut:
             summary="Add or change a user (admin)")
 async def put_user(name: UserName, body: UserIn, manager: ManagerDep, who: Admin) -> UserOut:
     """Role, password (hashed with scrypt; at least 10 characters), disabled (ends the user's sessions)."""
-    u = await manager.db.call(lambda s: users.put_user(s, name, body.role, who.name, password=body.password,
-                                                       disabled=body.disabled))
+    u = await manager.lab.put_user(name, body.role, who, password=body.password, disabled=body.disabled)
     return UserOut.model_validate(u.to_dict())
 
 
 @router.post("/users/{name}/tokens", response_model=TokenOut, status_code=201,
              responses={**E401, **E403, **E404, **E422, **BODY_ERRORS}, summary="Issue an API token for a user (admin)")
 async def issue_token(name: UserName, body: TokenIn, manager: ManagerDep, who: Admin) -> TokenOut:
-    text = await manager.db.call(lambda s: users.issue_token(s, name, body.label, who.name))
+    text = await manager.lab.issue_token(name, body.label, who)
     return TokenOut(user=name, label=body.label, token=text)
 
 
 @router.get("/logins/locks", response_model=list[LockOut], responses={**E401, **E403},
             summary="Names and client addresses locked out after failed logins (admin)")
 async def login_locks(manager: ManagerDep, who: Admin) -> list[LockOut]:
-    return [LockOut(**x) for x in manager.logins.locks()]
+    return [LockOut(**x) for x in manager.lab.locks()]
 
 
 @router.delete("/logins/locks/{key}", response_model=list[LockOut], responses={**E401, **E403, **E404},
                summary="Lift a lock-out (admin)")
 async def lift_lock(key: Annotated[str, Path(pattern=r"^(user|client):[^/]{1,128}$")], manager: ManagerDep,
                     who: Admin) -> list[LockOut]:
-    if not manager.logins.lift(key):
-        raise users.UnknownUserError(f"no lock-out or failure count for {key}")
-    await manager.db.call(lambda s: audit.append(s, who.name, audit.LOGIN_LOCKED, key, {"lifted": True}))
-    return [LockOut(**x) for x in manager.logins.locks()]
+    return [LockOut(**x) for x in await manager.lab.lift_lock(key, who)]
 
 
 @router.get("/tokens", response_model=list[TokenRowOut], responses={**E401, **E403, **E422},
             summary="The API tokens (never their text): the signed-in user's own; an admin's: all, or one user's")
 async def list_tokens(manager: ManagerDep, who: SignedIn,
                       user: Annotated[str | None, Query(pattern=NAME_PATTERN)] = None) -> list[TokenRowOut]:
-    if not who.user.may(users.Permission.ADMIN):
-        if user not in (None, who.name):
-            raise users.ForbiddenError(f"user {who.name} ({who.user.role}) sees only their own tokens; an admin "
-                                       "sees every user's")
-        user = who.name
-    return [TokenRowOut(**t) for t in await manager.db.read(lambda s: users.tokens(s, user))]
+    return [TokenRowOut(**t) for t in await manager.lab.tokens(who, user)]
 
 
 @router.delete("/tokens/{token_id}", response_model=TokenRowOut, responses={**E401, **E403, **E404, **E422},
                summary="Revoke an API token (the signed-in user's own; an admin: any)")
 async def revoke_token(token_id: Annotated[str, Path(pattern=r"^[0-9a-f]{12}$")], manager: ManagerDep,
                        who: SignedIn) -> TokenRowOut:
-    owner = None if who.user.may(users.Permission.ADMIN) else who.name
-    out = await manager.db.call(lambda s: users.revoke_token(s, token_id, who.name, owner))
-    return TokenRowOut(**out, created=None)
+    return TokenRowOut(**await manager.lab.revoke_token(token_id, who), created=None)
 
 
 # ---------------------------------------------------------------------------------------------- register
-def _standard_out(s: register.Standard, today: dt.date) -> StandardOut:
-    return StandardOut(**s.to_dict(), overdue=s.overdue(today))
+def _standard_out(s: register.Standard, overdue: bool) -> StandardOut:
+    return StandardOut(**s.to_dict(), overdue=overdue)
 
 
 @router.get("/register", response_model=RegisterOut, dependencies=[Reader], responses=E401,
             summary="Transducers, reference standards, the mounted transducer")
 async def get_register(manager: ManagerDep) -> RegisterOut:
-    def read(s: Store) -> RegisterOut:
-        today = dt.date.today()
-        return RegisterOut(mounted=register.mounted(s),
-                           transducers=[TransducerOut(**t.to_dict()) for t in register.transducers(s)],
-                           standards=[_standard_out(x, today) for x in register.standards(s)],
-                           overdue_policy=manager.cfg.lab.overdue_standards)
-    return await manager.db.read(read)
+    reg = await manager.lab.read_register()
+    return RegisterOut(mounted=reg.mounted, transducers=[TransducerOut(**t.to_dict()) for t in reg.transducers],
+                       standards=[_standard_out(x, overdue) for x, overdue in reg.standards],
+                       overdue_policy=reg.overdue_policy)
 
 
 @router.put("/register/transducers/{entry_id}", response_model=TransducerOut,
             responses={**E401, **E403, **E422, **BODY_ERRORS}, summary="Add or change a transducer (admin)")
 async def put_transducer(entry_id: EntryId, body: TransducerIn, manager: ManagerDep, who: Admin) -> TransducerOut:
     t = register.Transducer(id=entry_id, **body.model_dump())
-    return TransducerOut(**(await manager.db.call(lambda s: register.put_transducer(s, t, who.name))).to_dict())
+    return TransducerOut(**(await manager.lab.put_transducer(t, who)).to_dict())
 
 
 @router.put("/register/standards/{entry_id}", response_model=StandardOut,
             responses={**E401, **E403, **E422, **BODY_ERRORS}, summary="Add or change a reference standard (admin)")
 async def put_standard(entry_id: EntryId, body: StandardIn, manager: ManagerDep, who: Admin) -> StandardOut:
     st = register.Standard(id=entry_id, **body.model_dump())
-    out = await manager.db.call(lambda s: register.put_standard(s, st, who.name))
-    return _standard_out(out, dt.date.today())
+    return _standard_out(*await manager.lab.put_standard(st, who))
 
 
 @router.post("/register/mount", response_model=TransducerOut,
@@ -238,8 +192,7 @@ async def put_standard(entry_id: EntryId, body: StandardIn, manager: ManagerDep,
              summary="Choose the transducer mounted on the station")
 async def mount(body: MountIn, manager: ManagerDep, who: Operator) -> TransducerOut:
     """The page's form defaults to it; a run may name any registered transducer."""
-    t = await manager.db.call(lambda s: register.mount(s, body.transducer_id, who.name))
-    return TransducerOut(**t.to_dict())
+    return TransducerOut(**(await manager.lab.mount(body.transducer_id, who)).to_dict())
 
 
 # ---------------------------------------------------------------------------------------------- audit
@@ -251,12 +204,10 @@ async def get_audit(manager: ManagerDep, target: Annotated[str | None, Query(max
                     who: Annotated[str | None, Query(max_length=64)] = None,
                     before_id: Annotated[int | None, Query(ge=1, le=2**63 - 1)] = None,
                     limit: Annotated[int, Query(ge=1, le=1000)] = 200) -> AuditOut:
-    def read(s: Store) -> tuple[list[audit.AuditEntry], list[int]]:
-        rows = audit.entries(s, target=target, action=action, who=who, before_id=before_id, limit=limit)
-        with s.reading() as db:
-            return rows, chain.broken_among(db, [e.id for e in rows])
-    rows, broken = await manager.db.read(read)
-    return AuditOut(count=len(rows), entries=[AuditEntryOut(**e.to_dict()) for e in rows], broken=broken)
+    page = await manager.lab.audit_page(target=target, action=action, who=who, before_id=before_id,
+                                        limit=limit)
+    return AuditOut(count=len(page.entries), entries=[AuditEntryOut(**e.to_dict()) for e in page.entries],
+                    broken=page.broken)
 
 
 # ---------------------------------------------------------------------------------------------- runs
@@ -308,33 +259,23 @@ async def transducer_history(entry_id: EntryId, manager: ManagerDep,
                              lam: Annotated[float, Query(gt=0, le=1, description="EWMA weight λ")] = 0.2,
                              L: Annotated[float, Query(gt=0, le=6, description="EWMA limit factor")] = 3.0,
                              ) -> HistoryOut:
-    t, rows = await manager.db.read(lambda s: (register.transducer(s, entry_id), history.runs_of(s, entry_id, limit)))
-    ids = [r.id for r in rows]
-    approved, pol, left = await manager.db.read(lambda s: (history.approvals(s, ids), policy.policy(s, entry_id),
-                                                           policy.as_left_of(s, entry_id)))
-    doc = await asyncio.to_thread(history.history, rows, manager.settings.recordings_dir, approved, pol, left,
-                                  lam=lam, L=L)
-    hold = await manager.db.read(lambda s: history.check_hold(s, manager.settings.recordings_dir))
-    certs = await manager.artifacts.certificates(entry_id)
-    return HistoryOut(transducer=TransducerOut(**t.to_dict()), certificates=certs,
-                      hold=asdict(hold) if hold is not None else None, **doc)
+    h = await manager.lab.transducer_history(entry_id, limit, lam, L)
+    return HistoryOut(transducer=TransducerOut(**h.transducer.to_dict()), certificates=h.certificates,
+                      hold=asdict(h.hold) if h.hold is not None else None, **h.document)
 
 
 @router.put("/register/transducers/{entry_id}/policy", response_model=PolicyOut,
             responses={**E401, **E403, **E404, **E409, **E422, **BODY_ERRORS},
             summary="Set a transducer's tolerances, assigned interval and check-transducer mark (admin)")
 async def put_policy(entry_id: EntryId, body: PolicyIn, manager: ManagerDep, who: Admin) -> PolicyOut:
-    def write(s: Store) -> policy.Policy:
-        register.transducer(s, entry_id)  # 404 for an unknown one
-        return policy.put_policy(s, policy.Policy(entry_id, dict(body.tolerances), body.interval_days,
-                                                  body.check_standard), who.name)
-    return PolicyOut(**(await manager.db.call(write)).to_dict())
+    pol = await manager.lab.put_policy(entry_id, dict(body.tolerances), body.interval_days, body.check_standard, who)
+    return PolicyOut(**pol.to_dict())
 
 
 @router.post("/runs/{run_id}/as-left", response_model=AsLeftOut, tags=["runs"],
              responses={**E401, **E403, **E404, **E409, **E422, **BODY_ERRORS},
              summary="Record an adjustment after a calibration (the as-left value set in the user's instrument)")
 async def as_left(run: RunDep, body: AsLeftIn, manager: ManagerDep, who: Approver) -> AsLeftOut:
-    a = policy.AsLeft(run.id, run.transducer_id, body.parameter, body.value, body.unit, body.note,
-                      time.time(), who.name)
-    return AsLeftOut(**(await manager.db.call(lambda s: policy.record_as_left(s, a))).to_dict())
+    a = await manager.lab.record_as_left(run.id, run.transducer_id, body.parameter, body.value, body.unit,
+                                         body.note, who)
+    return AsLeftOut(**a.to_dict())
