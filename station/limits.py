@@ -10,7 +10,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from typing import Protocol
 
 from drivers.motor.profile import DriveProfile, load_profile
 from station.config import StationConfig
@@ -19,12 +19,15 @@ from station.errors import LimitError
 G = 9.80665
 
 
-@dataclass(frozen=True)
-class StepRequest:
-    """A requested step: crank frequency in Hz, crank radius in m."""
+class CrankStep(Protocol):
+    """What the limits read of a step (``station.config.StepSpec``, the one step type): its crank
+    frequency in Hz and crank radius in m, checked here whatever their values (not-a-number too)."""
 
-    crank_frequency_hz: float
-    crank_radius_m: float
+    @property
+    def crank_frequency_hz(self) -> float: ...
+
+    @property
+    def crank_radius_m(self) -> float: ...
 
 
 def moving_mass_kg(cfg: StationConfig) -> float:
@@ -32,7 +35,7 @@ def moving_mass_kg(cfg: StationConfig) -> float:
     return cfg.rig.load_mass_kg + (cfg.transducer.end_mass_kg or 0.0)
 
 
-def peak_force_N(cfg: StationConfig, step: StepRequest) -> float:
+def peak_force_N(cfg: StationConfig, step: CrankStep) -> float:
     """Peak transducer force in N: M (g + r w^2).
 
     The preload of gravity is included: the transducer sees the static weight plus the inertial
@@ -60,7 +63,7 @@ def drive_profile(name_or_path: str) -> DriveProfile:
     return load_profile(name_or_path)
 
 
-def check_drive(cfg: StationConfig, steps: Sequence[StepRequest] = ()) -> None:
+def check_drive(cfg: StationConfig, steps: Sequence[CrankStep] = ()) -> None:
     """Refuse (:class:`LimitError`) what the drive profile ``cfg`` names does not declare: the
     configuration's ``rig.acceleration_hz_per_s`` outside the ramp rates its ramp register(s) take (a
     configuration field), then a step's crank frequency outside its set-point range."""
@@ -83,11 +86,11 @@ def check_drive(cfg: StationConfig, steps: Sequence[StepRequest] = ()) -> None:
                              limit=(dev.min_frequency_hz, dev.max_frequency_hz))
 
 
-def _where(i: int, s: StepRequest) -> str:
+def _where(i: int, s: CrankStep) -> str:
     return f"step {i + 1} ({s.crank_frequency_hz:g} Hz, {s.crank_radius_m:g} m)"  # people count from 1
 
 
-def check_steps(cfg: StationConfig, steps: list[StepRequest]) -> None:
+def check_steps(cfg: StationConfig, steps: Sequence[CrankStep]) -> None:
     """Refuse the whole run at the first step that breaks a limit: a :class:`LimitError` naming the
     step, the field to change, its value and the limit (a peak force beyond the limit names the
     radius, and the largest radius allowed at that frequency).  What the drive takes is

@@ -14,7 +14,7 @@ from pathlib import Path
 from drivers.rig.synth import RigSynth
 from station.config import StationConfig, config_to_yaml, to_rig_physics
 from station.environment import run_environment
-from station.limits import StepRequest, check_steps
+from station.limits import check_steps
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id
 
 log = logging.getLogger(__name__)
@@ -67,7 +67,7 @@ def schedule(cfg: StationConfig) -> list[Segment]:
 def simulate_run(cfg: StationConfig, out_dir: str | Path, seed: int | None = None,
                  block: int = 20_000) -> Path:
     """Write a recording of the configured plan from the physics; returns its path."""
-    check_steps(cfg, [StepRequest(s.crank_frequency_hz, s.crank_radius_m) for s in cfg.plan.steps])
+    check_steps(cfg, cfg.plan.steps)
     physics = to_rig_physics(cfg)
     assert cfg.simulation is not None
     seed = cfg.simulation.seed if seed is None else seed

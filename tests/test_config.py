@@ -14,6 +14,7 @@ import yaml
 
 from station.config import (
     StationConfig,
+    StepSpec,
     config_to_yaml,
     default_config_path,
     load_config,
@@ -21,7 +22,12 @@ from station.config import (
     to_rig_physics,
 )
 from station.errors import BadInputError, ConfigError, LimitError
-from station.limits import G, StepRequest, check_steps, force_limit_N, peak_force_N
+from station.limits import G, check_steps, force_limit_N, peak_force_N
+
+
+def _step(f: float, r: float) -> StepSpec:
+    """A step as asked, its values not yet checked (the limits check them)."""
+    return StepSpec.model_construct(crank_frequency_hz=f, crank_radius_m=r)
 
 WriteConfig = Callable[..., Path]
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
@@ -62,7 +68,7 @@ def test_shipped_station_configs_load_with_their_values(path: Path) -> None:
     # PyYAML (YAML 1.1) reads an exponent without a sign ("2.91e7") as a string; pydantic parses it
     assert cfg.simulation.truth.k_f == float(raw["simulation"]["truth"]["k_f"])
     # every shipped plan respects the rig limits it declares
-    check_steps(cfg, [StepRequest(s.crank_frequency_hz, s.crank_radius_m) for s in cfg.plan.steps])
+    check_steps(cfg, cfg.plan.steps)
 
 
 def test_default_config_path_is_the_5kN_simulation() -> None:
@@ -296,8 +302,8 @@ def cfg5k(base_config_dict: dict[str, Any]) -> StationConfig:
 def test_peak_force_includes_gravity_and_end_mass(cfg5k: StationConfig) -> None:
     m = 25.717 + 0.45 + 0.12
     w = 2 * math.pi * 30.0
-    assert peak_force_N(cfg5k, StepRequest(30.0, 0.001)) == pytest.approx(m * (G + 0.001 * w * w))
-    assert peak_force_N(cfg5k, StepRequest(1.0, 0.0)) == pytest.approx(m * G)  # the static preload
+    assert peak_force_N(cfg5k, _step(30.0, 0.001)) == pytest.approx(m * (G + 0.001 * w * w))
+    assert peak_force_N(cfg5k, _step(1.0, 0.0)) == pytest.approx(m * G)  # the static preload
     assert force_limit_N(cfg5k) == pytest.approx(0.8 * 5000)
 
 
@@ -311,7 +317,7 @@ def test_peak_force_includes_gravity_and_end_mass(cfg5k: StationConfig) -> None:
 ])
 def test_limits_refuse_the_step_and_name_it(cfg5k: StationConfig, freq: float, radius: float,
                                             fragment: str) -> None:
-    steps = [StepRequest(4.0, 0.01), StepRequest(freq, radius)]
+    steps = [_step(4.0, 0.01), _step(freq, radius)]
     with pytest.raises(LimitError) as exc:
         check_steps(cfg5k, steps)
     assert str(exc.value).startswith(f"step 2 ({freq:g} Hz, {radius:g} m)")  # counted from 1
@@ -320,13 +326,13 @@ def test_limits_refuse_the_step_and_name_it(cfg5k: StationConfig, freq: float, r
 
 def test_force_limit_message_gives_the_largest_radius(cfg5k: StationConfig) -> None:
     with pytest.raises(LimitError) as exc:
-        check_steps(cfg5k, [StepRequest(100.0, 0.001)])
+        check_steps(cfg5k, [_step(100.0, 0.001)])
     msg = str(exc.value)
     assert "exceeds the limit 4000 N (0.8 x capacity 5000 N)" in msg
     r_max = float(msg.rsplit("below ", 1)[1].split(" m")[0])
     # the radius named is (to 3 digits) the one at which the peak force reaches the limit
-    assert peak_force_N(cfg5k, StepRequest(100.0, r_max)) == pytest.approx(4000.0, rel=2e-3)
-    check_steps(cfg5k, [StepRequest(100.0, r_max * 0.99)])
+    assert peak_force_N(cfg5k, _step(100.0, r_max)) == pytest.approx(4000.0, rel=2e-3)
+    check_steps(cfg5k, [_step(100.0, r_max * 0.99)])
 
 
 def test_limits_need_a_step(cfg5k: StationConfig) -> None:

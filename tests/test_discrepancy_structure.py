@@ -20,16 +20,21 @@ import pytest
 import yaml
 
 from station.cli import main as station_main
-from station.config import StationConfig, parse_config
+from station.config import StationConfig, StepSpec, parse_config
 from station.discrepancy import analyse_recording
 from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import plan_steps, scenario_config
 from station.ident.identify import identify_recording
 from station.ident.response.gate import screen_step
 from station.interchange import export_run, import_run
-from station.limits import StepRequest, check_steps
+from station.limits import check_steps
 from station.recording import read_recording
 from station.simulate import simulate_run
+
+
+def _step(f: float, r: float) -> StepSpec:
+    """A step as asked, its values not yet checked (the limits check them)."""
+    return StepSpec.model_construct(crank_frequency_hz=f, crank_radius_m=r)
 
 _cfg = scenario_config({})
 assert _cfg.simulation is not None
@@ -277,7 +282,7 @@ def test_the_tie_gets_a_proposal_within_the_rig_limits(coupling_2kf: tuple[Stati
     assert prop.current < 10 < prop.expected_information_gain
     assert prop.run_steps[: len(cfg.plan.steps)] == tuple((s.crank_frequency_hz, s.crank_radius_m)
                                                           for s in cfg.plan.steps)
-    check_steps(cfg, [StepRequest(f, r) for f, r in prop.run_steps])
+    check_steps(cfg, [_step(f, r) for f, r in prop.run_steps])
     js = rep.to_json()["proposal"]
     assert js["steps"][0] == {"crank_frequency_hz": prop.steps[0][0], "crank_radius_m": prop.steps[0][1]}
     assert len({r for _, r in prop.run_steps}) > 1  # a radius per step: what v1 could not carry

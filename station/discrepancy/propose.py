@@ -33,7 +33,7 @@ import numpy as np
 
 from drivers.rig.model import spring_force_per_acceleration
 from drivers.rig.params import CouplingCompliance, Transducer
-from station.config import StationConfig
+from station.config import StationConfig, StepSpec
 from station.discrepancy.data import FloatArray, G, RigData
 from station.discrepancy.design import (
     expected_chi2,
@@ -44,7 +44,7 @@ from station.discrepancy.design import (
 )
 from station.discrepancy.fit import ModelFit
 from station.errors import LimitError
-from station.limits import StepRequest, check_steps, force_limit_N
+from station.limits import check_steps, force_limit_N
 
 log = logging.getLogger(__name__)
 TARGET_DCHI2 = 50.0
@@ -149,7 +149,7 @@ def candidate_steps(cfg: StationConfig, data: RigData, fits: Sequence[ModelFit])
         if r < rr.min:
             continue
         try:
-            check_steps(cfg, [StepRequest(float(f), float(r))])
+            check_steps(cfg, [StepSpec.model_construct(crank_frequency_hz=float(f), crank_radius_m=float(r))])
         except LimitError:
             continue
         out.append((float(f), r))

@@ -19,7 +19,7 @@ from station.config import (
     number_only,
 )
 from station.errors import LimitError
-from station.limits import StepRequest, check_drive, check_steps, max_radius_m
+from station.limits import check_drive, check_steps, max_radius_m
 
 
 class RunRequest(BaseModel):
@@ -94,9 +94,8 @@ def plan_run(cfg: StationConfig, request: RunRequest) -> Plan:
     if request.methods is not None:  # stored with the recording's configuration: the worker reads it there
         eff = eff.model_copy(update={"identification": eff.identification.model_copy(
             update={"methods": list(request.methods)})})
-    asked = [StepRequest(s.crank_frequency_hz, s.crank_radius_m) for s in request.steps]
-    check_steps(eff, asked)
-    check_drive(eff, asked)
+    check_steps(eff, request.steps)
+    check_drive(eff, request.steps)
     steps = tuple(
         PlannedStep(i, s.crank_frequency_hz, s.crank_radius_m,
                     cfg.plan.settle_s if s.settle_s is None else s.settle_s,
