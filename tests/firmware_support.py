@@ -35,16 +35,18 @@ def build(target: str, *tools: str) -> Path:
 
 def stream(path: str, kind: str, seconds: float) -> tuple[list, dict[str, str], StreamSummary]:
     """Connect the driver to the bridge on ``path``, stream 20 kHz in frames of 256 for ``seconds``,
-    stop: the sample events (blocks and gaps), ``STAT?`` just before STOP and the STOP summary."""
+    stop: the sample events (blocks and gaps), ``STAT?`` once stopped (its counts are those of the
+    whole stream: a starved host may still be dropping frames just before STOP) and the STOP summary."""
     daq = DaqBridge(stall_timeout_s=1.0)
     daq.connect(SerialLink(path, kind=kind))
     try:
         daq.configure(rate_hz=20_000, frame_samples=256)
         daq.start()
         time.sleep(seconds)
-        status = daq.status()
         summary = daq.stop()  # the trailing events are queued when it returns
         events = [e for e in daq.events(timeout_s=0.05) if isinstance(e, SampleBlock | SampleGap)]
+        status = daq.status()
+        assert status["state"] == "idle", status
     finally:
         daq.close()
     return events, status, summary
