@@ -22,6 +22,9 @@ or exhaust the process's file descriptors (used by ``station serve``):
   kept below it;
 * repeated identical log records (e.g. "Too many open files" while accepting) are logged once per
   interval with a count (:class:`RepeatFilter`).
+
+Behind the daemon's accept gate (``commands/gate.py``) a connection reaches the loop only once its
+first bytes came: the silent ones are the gate's (``ConnectionBounds.held``), under the same rules.
 """
 
 from __future__ import annotations
