@@ -63,6 +63,15 @@ def until_closed(sock: socket.socket) -> bytes:
     return got
 
 
+async def settle(cond: Any, what: str) -> None:
+    """Wait (letting this loop run) until ``cond()``; fails after :data:`BOUND_S`."""
+    deadline = time.monotonic() + BOUND_S
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not within {BOUND_S:g} s: {what}")
+        await asyncio.sleep(0.01)
+
+
 def until(cond: Any, what: str) -> None:
     """Wait (blocking this thread) until ``cond()``; fails after :data:`BOUND_S`."""
     deadline = time.monotonic() + BOUND_S
@@ -120,44 +129,54 @@ def test_a_stop_reaches_the_drive_past_a_thousand_silent_connections_while_the_w
     asyncio.run(go())
 
 
-def test_silent_connections_are_held_off_the_loop_closed_cleanly_at_the_header_timeout_and_make_room() -> None:
-    """The gate keeps the connection rules for the connections it holds: the cap (the oldest silent
-    ones past their grace make room), the header timeout (a FIN: the client reads a clean close);
-    a connection that sends is served by the loop, its header timeout counted from its opening."""
+def test_the_gate_keeps_the_cap_silent_connections_past_their_grace_after_idle_ones() -> None:
+    """Silent connections are held off the loop and count against the cap: beyond it the oldest
+    silent ones past their grace make room (closed with a FIN), but an idle connection of the loop
+    (read and answered) goes first."""
     async def go() -> None:
-        bounds = ConnectionBounds(max_connections=4, header_timeout_s=0.6, grace_s=0.15)
+        bounds = ConnectionBounds(max_connections=4, header_timeout_s=30.0, grace_s=0.1)
         async with served_on_a_socket(ok_app, bounds, gated=True) as port:
             with silent(port, 6) as socks:
-                await asyncio.sleep(0.35)  # past the grace: the two oldest made room
-                assert bounds.held == 4 and bounds.evicted == 2 and bounds.open == 0
-                first, second, *rest = socks
-                for s in (first, second):
-                    s.setblocking(True)
-                    assert s.recv(1) == b""  # closed with a FIN, not reset
-                # one of the held ones asks: served by the loop, kept alive
-                asker = rest[0]
-                asker.setblocking(True)
-                asker.settimeout(BOUND_S)
-                asker.sendall(f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode())
-                got = await asyncio.to_thread(whole_answer, asker)
-                assert got.startswith(b"HTTP/1.1 200") and got.endswith(b"ok")
-                assert bounds.open == 1 and bounds.held == 3
-                # the rest reach their header timeout silent; the one that asked is idle, then closed too
-                for s in rest:
+                await settle(lambda: bounds.evicted == 2, "the two oldest made room")
+                assert bounds.held == 4 and bounds.open == 0
+                first, second, asker, *_ = socks
+                for s in (first, second, asker):
                     s.setblocking(True)
                     s.settimeout(BOUND_S)
-                    assert await asyncio.to_thread(s.recv, 1) == b""
-                assert bounds.held == 0 and bounds.timed_out == 4
+                for s in (first, second):
+                    assert s.recv(1) == b""  # closed with a FIN, not reset
+                asker.sendall(f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode())
+                got = await asyncio.to_thread(whole_answer, asker)
+                assert got.startswith(b"HTTP/1.1 200") and got.endswith(b"ok")  # served by the loop, kept alive
+                assert bounds.open == 1 and bounds.held == 3
+                with silent(port, 1):  # one more: the idle one makes room, not a silent one
+                    assert await asyncio.to_thread(asker.recv, 1) == b""
+                    await settle(lambda: bounds.open == 0, "the idle one closed")
+                    assert bounds.held == 4 and bounds.evicted == 3
+    asyncio.run(go())
+
+
+def test_silent_connections_are_closed_cleanly_at_the_header_timeout_and_a_silent_close_never_reaches_the_loop(
+        ) -> None:
+    async def go() -> None:
+        bounds = ConnectionBounds(max_connections=64, header_timeout_s=0.5)
+        async with served_on_a_socket(ok_app, bounds, gated=True) as port:
+            with silent(port, 3) as socks:
+                for s in socks:
+                    s.setblocking(True)
+                    s.settimeout(BOUND_S)
+                    assert await asyncio.to_thread(s.recv, 1) == b""  # our FIN: a clean close
+                assert bounds.held == 0 and bounds.timed_out == 3 and bounds.open == 0
             # a head that trickles in after a silent start is closed by the header timeout
             with socket.create_connection(("127.0.0.1", port)) as late:
                 late.settimeout(BOUND_S)
-                time.sleep(0.3)
+                time.sleep(0.2)
                 late.sendall(b"GET / HTTP/1.1\r\n")  # never completed
                 with contextlib.suppress(ConnectionResetError):  # closed with its unread head
                     assert await asyncio.to_thread(late.recv, 1) == b""
-                assert bounds.timed_out == 5
+                assert bounds.timed_out == 4
             # a client that closes without a word never reaches the loop
             socket.create_connection(("127.0.0.1", port)).close()
-            await asyncio.sleep(0.1)
-            assert bounds.open == 0 and bounds.held == 0
+            await settle(lambda: bounds.held == 0, "the silent close seen")
+            assert bounds.open == 0 and bounds.timed_out == 4
     asyncio.run(go())

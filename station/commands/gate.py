@@ -115,6 +115,7 @@ class AcceptGate:
         self._wake_r, self._wake_w = socket.socketpair()
         self._closing = False
         self._paused_until: float | None = None
+        self._room_asked = False  # the loop was asked to close idle connections and has not yet
         self._thread: threading.Thread | None = None
 
     # ------------------------------------------------------------------ lifetime
@@ -166,14 +167,17 @@ class AcceptGate:
                 time.sleep(0.05)
 
     def _wait_s(self) -> float:
-        """Until the oldest silent connection's header timeout or the end of a pause (at most 1 s)."""
+        """Until the oldest silent connection's header timeout, the end of its grace when beyond the
+        cap, or the end of a pause (at most 1 s; never 0 for a grace already past: no spinning while
+        the loop closes idle connections)."""
         now = time.monotonic()
         wait = 1.0
         if self.held:
             _, opened = next(iter(self.held.values()))
             wait = min(wait, opened + self.bounds.header_timeout_s - now)
-            if self.bounds.open + len(self.held) > self.bounds.max_connections:  # silent ones come of age
-                wait = min(wait, opened + self.bounds.grace_s - now)
+            of_age = opened + self.bounds.grace_s
+            if of_age > now and self.bounds.open + len(self.held) > self.bounds.max_connections:
+                wait = min(wait, of_age - now)
         if self._paused_until is not None:
             wait = min(wait, self._paused_until - now)
         return max(0.0, wait)
@@ -261,9 +265,10 @@ class AcceptGate:
         if excess <= 0:
             return
         idle = len(b.idle)
-        if idle:
+        if idle and not self._room_asked:  # once until the loop has done it
+            self._room_asked = True
             with contextlib.suppress(RuntimeError):
-                self.loop.call_soon_threadsafe(b.make_room)
+                self.loop.call_soon_threadsafe(self._loop_makes_room)
         any_age = b.open + len(self.held) > b.ceiling
         now = time.monotonic()
         for _ in range(excess - idle):
@@ -276,6 +281,10 @@ class AcceptGate:
                 return
             self._drop(fd, sock)
             b.note_eviction()
+
+    def _loop_makes_room(self) -> None:
+        self._room_asked = False
+        self.bounds.make_room()
 
     def _drop_oldest_silent(self) -> bool:
         if not self.held:
