@@ -128,9 +128,10 @@ class StopOnArrival:
             if manager is None:
                 return
             runs = manager.runs
+            aborted = runs.abort_all()  # first, as in early()
             commanded = runs.link.command_emergency_stop()
             task = asyncio.get_running_loop().create_task(
-                runs.emergency_stop(self._source(headers), who_stopped(headers, self.settings), commanded))
+                runs.emergency_stop(self._source(headers), who_stopped(headers, self.settings), commanded, aborted))
         scope.setdefault("state", {})[STOP_ON_ARRIVAL] = task
 
     @staticmethod
