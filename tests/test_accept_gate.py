@@ -20,7 +20,7 @@ import pytest
 
 from station.api.routes.system import stop_on_arrival
 from station.commands.connections import ConnectionBounds
-from station.commands.gate import stop_head
+from station.commands.gate import bind, stop_head
 from tests.station_support import app_in_process, served_on_a_socket, start, wait_state
 
 BOUND_S = 10.0  # every wait below ends by this (never reached when the code is right)
@@ -91,6 +91,17 @@ def test_a_stop_head_is_recognised_only_whole_and_at_the_stop_path() -> None:
     assert stop_head(b"POST /stop/acknowledge HTTP/1.1\r\n" + host + b"\r\n") is None
     assert stop_head(b"GET /stop HTTP/1.1\r\n" + host + b"\r\n") is None
     assert stop_head(b"POST /stop HTTP/1.1\r\nbroken\r\n\r\n") is None  # the loop answers it (400)
+
+
+def test_the_gate_listens_on_every_address_of_a_name_on_one_port() -> None:
+    socks = bind("localhost", 0, 16)
+    try:
+        assert socks and len({s.getsockname()[1] for s in socks}) == 1
+        with socket.create_connection(("localhost", socks[0].getsockname()[1]), timeout=BOUND_S):
+            pass  # the kernel completed the handshake: it listens
+    finally:
+        for s in socks:
+            s.close()
 
 
 @pytest.mark.slow  # ~3 s: a run on the simulated rig, a thousand connections
