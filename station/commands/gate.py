@@ -43,6 +43,7 @@ from uvicorn.config import STARTUP_FAILURE
 
 from station.commands.connections import ConnectionBounds, pending_bytes_of
 from station.rigproc.stopport import BadRequest, parse_head
+from station.service.priority import Priority, raise_priority
 
 log = logging.getLogger("station.serve")
 
@@ -96,14 +97,22 @@ def stop_head(data: bytes) -> tuple[str, str, dict[str, str]] | None:
     return (method, path, headers) if path == "/stop" else None
 
 
+def gate_priority(rig_priority: Priority) -> Priority:
+    """What the gate's thread asks for, given ``service.rig_priority``: a raised priority at most (a
+    thread that accepts a flood must not take a core from everything else, as a real-time one could)."""
+    return "normal" if rig_priority == "normal" else "raised"
+
+
 class AcceptGate:
     """Accepts on ``listeners`` in a thread of its own and holds each new connection until its
     first bytes; ``hand(sock, opened_at, early)`` is then called on ``loop`` (``early``: what
-    ``bounds.on_head.early`` returned for a stop's head, else None)."""
+    ``bounds.on_head.early`` returned for a stop's head, else None).  ``priority``: what its thread
+    asks for (logged: what it got)."""
 
     def __init__(self, listeners: list[socket.socket], bounds: ConnectionBounds, loop: asyncio.AbstractEventLoop,
-                 hand: Any) -> None:
+                 hand: Any, priority: Priority = "normal") -> None:
         self.listeners = listeners
+        self.priority = priority
         self.bounds = bounds
         self.loop = loop
         self.hand = hand
@@ -148,6 +157,8 @@ class AcceptGate:
 
     # ------------------------------------------------------------------ the thread
     def _run(self) -> None:
+        if self.priority != "normal":
+            raise_priority("accept-gate", self.priority)
         while not self._closing:
             try:
                 events = self._sel.select(self._wait_s())
@@ -318,11 +329,12 @@ class AcceptGate:
 class GatedServer(uvicorn.Server):
     """uvicorn with its listening sockets served by an :class:`AcceptGate` (its loop sees a
     connection once its first bytes have come); ``bounds``: the server's :class:`ConnectionBounds`
-    (``config.http`` must be ``bounds.protocol()``)."""
+    (``config.http`` must be ``bounds.protocol()``); ``priority``: what the gate's thread asks for."""
 
-    def __init__(self, config: uvicorn.Config, bounds: ConnectionBounds) -> None:
+    def __init__(self, config: uvicorn.Config, bounds: ConnectionBounds, priority: Priority = "normal") -> None:
         super().__init__(config)
         self.bounds = bounds
+        self.priority = priority
         self.gate: AcceptGate | None = None
         self.listeners: list[socket.socket] = []
         self._adopting: set[asyncio.Task[Any]] = set()
@@ -342,7 +354,8 @@ class GatedServer(uvicorn.Server):
             await self.lifespan.shutdown()
             sys.exit(STARTUP_FAILURE)
         self.servers = []
-        self.gate = AcceptGate(self.listeners, self.bounds, asyncio.get_running_loop(), self._adopt).start()
+        self.gate = AcceptGate(self.listeners, self.bounds, asyncio.get_running_loop(), self._adopt,
+                               self.priority).start()
         self._log_started_message(self.listeners)
         self.started = True
 

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import uvicorn
 
 from station.commands.connections import ConnectionBounds
-from station.commands.gate import GatedServer
+from station.commands.gate import GatedServer, gate_priority
 from station.commands.stopport import daemon_stop_port
 from station.rigproc.stopport import StopPort
 from station.service.priority import raise_priority
@@ -34,7 +34,7 @@ class StationServer(GatedServer):
                  rig: RigProcessConnector | None = None) -> None:
         """``bounds``: the connections' (``config.http`` is ``bounds.protocol()``); ``rig``: the rig
         process, which owns the stop port (else it is opened here)."""
-        super().__init__(config, bounds)
+        super().__init__(config, bounds, gate_priority(settings.config.service.rig_priority))
         self.settings = settings
         self.rig = rig
         self.on_listening = on_listening
