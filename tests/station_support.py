@@ -256,13 +256,18 @@ def free_port() -> int:
 
 
 @contextlib.asynccontextmanager
-async def served_on_a_socket(app: Any, bounds: ConnectionBounds, **config: Any) -> AsyncIterator[int]:
+async def served_on_a_socket(app: Any, bounds: ConnectionBounds, *, gated: bool = False,
+                             **config: Any) -> AsyncIterator[int]:
     """The in-process ``app`` served by uvicorn on a free loopback port in this event loop, with the
     daemon's connection ``bounds`` (cap and header timeout) and uvicorn's ``config`` options; yields
-    the port; stopped on leaving."""
+    the port; stopped on leaving.  ``gated``: behind the daemon's accept gate (``commands/gate.py``),
+    else uvicorn accepts on its loop."""
+    from station.commands.gate import GatedServer
+
     port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, http=bounds.protocol(),
-                                           lifespan="off", log_config=None, **config))
+    cfg = uvicorn.Config(app, host="127.0.0.1", port=port, http=bounds.protocol(), lifespan="off", log_config=None,
+                         **config)
+    server = GatedServer(cfg, bounds) if gated else uvicorn.Server(cfg)
     serving = asyncio.create_task(server.serve())
     try:
         while not server.started:

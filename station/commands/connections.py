@@ -22,6 +22,9 @@ or exhaust the process's file descriptors (used by ``station serve``):
   kept below it;
 * repeated identical log records (e.g. "Too many open files" while accepting) are logged once per
   interval with a count (:class:`RepeatFilter`).
+
+Behind the daemon's accept gate (``commands/gate.py``) a connection reaches the loop only once its
+first bytes came: the silent ones are the gate's (``ConnectionBounds.held``), under the same rules.
 """
 
 from __future__ import annotations
@@ -36,8 +39,7 @@ import resource
 import termios
 import threading
 import time
-from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
@@ -68,8 +70,11 @@ def connection_cap(wanted: int, fd_limit: int) -> int:
 def pending_bytes(transport: asyncio.BaseTransport) -> int:
     """Bytes received by the kernel on ``transport``'s socket and not yet read (0 if unknown)."""
     sock = transport.get_extra_info("socket")
-    if sock is None:
-        return 0
+    return 0 if sock is None else pending_bytes_of(sock)
+
+
+def pending_bytes_of(sock: Any) -> int:
+    """Bytes received by the kernel on socket ``sock`` and not yet read (0 if unknown)."""
     buf = array.array("i", [0])
     try:
         fcntl.ioctl(sock.fileno(), termios.FIONREAD, buf, True)
@@ -84,11 +89,24 @@ def keep_alive_header(header_timeout_s: float) -> tuple[str, str]:
     return "Keep-Alive", f"timeout={max(1, math.ceil(header_timeout_s) - 1)}"
 
 
+class HeadHook(Protocol):
+    """What the server does with a request head as soon as it is read (``ConnectionBounds.on_head``)."""
+
+    def __call__(self, scope: dict[str, Any], given: object = None) -> None:
+        """On the server's loop, before the app runs the request; ``given``: what :meth:`early`
+        returned for this connection's first request when the accept gate saw its head."""
+
+    def early(self, method: str, path: str, headers: dict[str, str], loop: asyncio.AbstractEventLoop) -> object | None:
+        """In the accept gate's thread (``commands/gate.py``), for a complete ``POST /stop`` head
+        among a connection's first bytes, before the server's ``loop`` sees the connection."""
+
+
 class ConnectionBounds:
     """State shared by every connection of one server: the idle ones and the silent new ones,
     oldest first.  ``ceiling``: open connections beyond which silent ones make room whatever their
     age (default twice the cap); ``grace_s``: how long a new connection may stay silent before it
-    may make room below the ceiling."""
+    may make room below the ceiling.  ``held``: silent connections an accept gate holds outside the
+    loop (``commands/gate.py``), counted against the cap too."""
 
     def __init__(self, max_connections: int, header_timeout_s: float, *, ceiling: int | None = None,
                  grace_s: float = 1.0) -> None:
@@ -99,15 +117,22 @@ class ConnectionBounds:
         self.idle: collections.OrderedDict[int, BoundedH11Protocol] = collections.OrderedDict()
         self.fresh: collections.OrderedDict[int, BoundedH11Protocol] = collections.OrderedDict()
         self.open = 0
+        self.held = 0
         self.evicted = 0
         self.timed_out = 0
         self._warned = -math.inf
+        self._count = threading.Lock()  # the counters: the loop and an accept gate's thread both count
         # called with a request's scope as soon as its head is read, before the app runs it (the
         # daemon hands POST /stop to the rig there: ``station.api.routes.system.stop_on_arrival``)
-        self.on_head: Callable[[dict[str, Any]], None] | None = None
+        self.on_head: HeadHook | None = None
+
+    def count_timeout(self) -> None:
+        with self._count:
+            self.timed_out += 1
 
     def note_eviction(self) -> None:
-        self.evicted += 1
+        with self._count:
+            self.evicted += 1
         now = time.monotonic()
         if now - self._warned >= WARN_INTERVAL_S:
             self._warned = now
@@ -117,8 +142,8 @@ class ConnectionBounds:
 
     def make_room(self) -> None:
         """Close idle, then silent, connections until the cap holds (or nothing may be closed)."""
-        while self.open > self.max_connections:
-            oldest = self._idle() or self._silent(any_age=self.open > self.ceiling)
+        while self.open + self.held > self.max_connections:
+            oldest = self._idle() or self._silent(any_age=self.open + self.held > self.ceiling)
             if oldest is None:
                 return
             self.note_eviction()
@@ -163,16 +188,19 @@ class BoundedH11Protocol(H11Protocol):
         self._head_timer: asyncio.TimerHandle | None = None
         self._counted = False  # in ``bounds.open``
         self._extended = False  # the head timer was extended once for a request found waiting
-        self.opened_at = time.monotonic()
+        self.opened_at = time.monotonic()  # an accept gate sets the time it accepted the connection
+        self.given_stop: object = None  # what the accept gate's ``on_head.early`` returned for it
 
     def _busy(self) -> bool:
         return self.cycle is not None and not self.cycle.response_complete
 
-    def _start_head_timer(self) -> None:
+    def _start_head_timer(self, since: float | None = None) -> None:
+        """The header timeout from now, or from ``since`` (monotonic, s)."""
         if self._head_timer is not None:
             self._head_timer.cancel()
         self._extended = False
-        self._head_timer = self.loop.call_later(self.bounds.header_timeout_s, self._head_timeout)
+        left = self.bounds.header_timeout_s - (0.0 if since is None else time.monotonic() - since)
+        self._head_timer = self.loop.call_later(max(0.0, left), self._head_timeout)
 
     def _mark_idle(self) -> None:
         """Answered, and nothing of a next request yet: the first to make room."""
@@ -212,7 +240,7 @@ class BoundedH11Protocol(H11Protocol):
             self._head_timer = self.loop.call_later(self.bounds.header_timeout_s, self._head_timeout)
             self._extended = True
             return
-        self.bounds.timed_out += 1
+        self.bounds.count_timeout()
         self._close()  # nothing unread in the kernel: our FIN, no reset (a head too slow may be reset)
 
     def _head_begun(self) -> bool:
@@ -224,9 +252,8 @@ class BoundedH11Protocol(H11Protocol):
         b = self.bounds
         b.open += 1
         self._counted = True
-        self.opened_at = time.monotonic()
         b.fresh[id(self)] = self  # not idle: its request has not been read and answered yet
-        self._start_head_timer()
+        self._start_head_timer(since=self.opened_at)  # (a connection held by an accept gate: since then)
         b.make_room()
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -241,8 +268,9 @@ class BoundedH11Protocol(H11Protocol):
         super().handle_events()
         hook = self.bounds.on_head
         if hook is not None and self.cycle is not None and self.cycle is not cycle:  # a new request's head
+            given, self.given_stop = self.given_stop, None  # the gate's, for the first request only
             try:
-                hook(self.cycle.scope)  # type: ignore[arg-type]
+                hook(self.cycle.scope, given)  # type: ignore[arg-type]
             except Exception:
                 log.exception("handling a request head on its arrival failed (the app still handles the request)")
 

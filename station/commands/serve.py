@@ -16,6 +16,7 @@ if TYPE_CHECKING:
     from station.service.settings import ServiceSettings
 
 log = logging.getLogger("station.serve")
+BACKLOG = 4096  # the main port's accept backlog (the kernel caps it at net.core.somaxconn)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -105,8 +106,8 @@ def _serve_on(args: argparse.Namespace, settings: ServiceSettings, lock: Instanc
     bounds.on_head = stop_on_arrival(app)  # POST /stop goes to the rig as soon as its head is read
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_config=None, http=bounds.protocol(),
                             access_log=args.access_log, timeout_graceful_shutdown=5, lifespan="on",
-                            headers=[keep_alive_header(bounds.header_timeout_s)])
-    server = StationServer(config, settings, on_listening=lambda host, port: lock.update(host=host, port=port),
+                            headers=[keep_alive_header(bounds.header_timeout_s)], backlog=BACKLOG)
+    server = StationServer(config, settings, bounds, on_listening=lambda host, port: lock.update(host=host, port=port),
                            rig=rig)
     try:
         asyncio.run(server.serve())

@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING
 
 import uvicorn
 
+from station.commands.connections import ConnectionBounds
+from station.commands.gate import GatedServer, gate_priority
 from station.commands.stopport import daemon_stop_port
 from station.rigproc.stopport import StopPort
 from station.service.priority import raise_priority
@@ -21,16 +23,18 @@ if TYPE_CHECKING:
 log = logging.getLogger("station.serve")
 
 
-class StationServer(uvicorn.Server):
-    """uvicorn, plus: a shutdown signal stops the run on the rig at once (before open connections
-    drain), the address is logged once the socket is bound, and the signal that stopped the server
-    is kept in ``stopped_by`` (not raised again as uvicorn does when it stops)."""
+class StationServer(GatedServer):
+    """uvicorn behind the accept gate (``gate.py``), plus: a shutdown signal stops the run on the
+    rig at once (before open connections drain), the address is logged once the socket is bound,
+    and the signal that stopped the server is kept in ``stopped_by`` (not raised again as uvicorn
+    does when it stops)."""
 
-    def __init__(self, config: uvicorn.Config, settings: ServiceSettings,
+    def __init__(self, config: uvicorn.Config, settings: ServiceSettings, bounds: ConnectionBounds,
                  on_listening: Callable[[str, int], None] | None = None,
                  rig: RigProcessConnector | None = None) -> None:
-        """``rig``: the rig process, which owns the stop port (else it is opened here)."""
-        super().__init__(config)
+        """``bounds``: the connections' (``config.http`` is ``bounds.protocol()``); ``rig``: the rig
+        process, which owns the stop port (else it is opened here)."""
+        super().__init__(config, bounds, gate_priority(settings.config.service.rig_priority))
         self.settings = settings
         self.rig = rig
         self.on_listening = on_listening
@@ -58,14 +62,13 @@ class StationServer(uvicorn.Server):
 
     async def startup(self, sockets: list | None = None) -> None:
         await super().startup(sockets)
-        for server in self.servers:
-            for sock in server.sockets:
-                host, port = sock.getsockname()[:2]
-                shown = f"[{host}]" if ":" in host else host
-                log.info("station daemon ready: open http://%s:%d/ (API docs: /docs); rig: %s", shown, port,
-                         "simulated" if self.settings.sim else "real devices")
-                if self.on_listening is not None:
-                    self.on_listening(host, port)
+        for sock in self.bound_sockets():
+            host, port = sock.getsockname()[:2]
+            shown = f"[{host}]" if ":" in host else host
+            log.info("station daemon ready: open http://%s:%d/ (API docs: /docs); rig: %s", shown, port,
+                     "simulated" if self.settings.sim else "real devices")
+            if self.on_listening is not None:
+                self.on_listening(host, port)
         if self.started and self.stop_port is None:
             self._raise_rig_priority()
             if self.rig is None:
@@ -83,7 +86,7 @@ class StationServer(uvicorn.Server):
     def _tell_rig_process(self) -> None:
         """The rig process's stop port takes the station's own page (on the main port) as this station."""
         manager = getattr(getattr(self.config.app, "state", None), "manager", None)
-        bound = [s.getsockname()[1] for server in self.servers for s in server.sockets]
+        bound = [s.getsockname()[1] for s in self.bound_sockets()]
         sup = self.rig.supervisor if self.rig is not None else None
         if manager is None or not bound or sup is None:
             return
@@ -95,7 +98,7 @@ class StationServer(uvicorn.Server):
     def _start_stop_port(self) -> None:
         """The stop port (``service.stop_port``), once the app's manager runs; a port that cannot be
         bound is logged as an error (the main port's ``POST /stop`` still stops)."""
-        bound = [s.getsockname()[1] for server in self.servers for s in server.sockets]
+        bound = [s.getsockname()[1] for s in self.bound_sockets()]
         port = self.settings.stop_port
         manager = getattr(getattr(self.config.app, "state", None), "manager", None)
         if port is None or manager is None:

@@ -14,7 +14,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -321,20 +321,28 @@ class Runs:
         if proc is not None:
             self.link.thread.call_soon(proc.abort, live.abort_reason)
 
+    def abort_all(self, reason: str = "emergency stop") -> list[str]:
+        """Abort every run on the rig now (from any thread: each procedure is told on the rig thread,
+        before anything handed to it later, e.g. the emergency stop's command); their ids."""
+        aborted = []
+        for live in list(self.live.values()):
+            self._abort(live, reason)
+            aborted.append(live.row.id)
+        return aborted
+
     async def emergency_stop(self, source: str = "api", who: str | Callable[[Store], str] = "anonymous",
-                             commanded: concurrent.futures.Future[None] | None = None) -> StopReport:
+                             commanded: concurrent.futures.Future[None] | None = None,
+                             aborted_before: Sequence[str] = ()) -> StopReport:
         """Abort every run on the rig, command an emergency stop on the motor right away, latch (no
         run starts until an operator acknowledges it), then read the drive back until it reports
         standstill: a crank still turning after its bound latches a fault of its own (``drive``).
         ``commanded``: the command already handed to the rig thread
-        (``RigLink.command_emergency_stop``, as the main port does on a stop's arrival).
+        (``RigLink.command_emergency_stop``, as the main port does on a stop's arrival), after
+        :meth:`abort_all` aborted the runs ``aborted_before``.
 
         Nothing here waits on the database: the command goes to the rig thread, the latch is in
         memory and its record is handed to the database's writer."""
-        aborted = []
-        for live in list(self.live.values()):
-            self._abort(live, "emergency stop")
-            aborted.append(live.row.id)
+        aborted = [*aborted_before, *(r for r in self.abort_all() if r not in aborted_before)]
         with self._stopping_lock:  # the stop port's thread gives stops too
             self._stopping += 1
         try:
@@ -355,10 +363,7 @@ class Runs:
         """The rig process is about to give a stop (its stop port): the runs aborted now, before the
         procedure can read the drive's emergency-stop fault and end as failed; the aborted runs
         (named again by :meth:`stopped_elsewhere`)."""
-        aborted = []
-        for live in list(self.live.values()):
-            self._abort(live, "emergency stop")
-            aborted.append(live.row.id)
+        aborted = self.abort_all()
         self._aborted_elsewhere.extend(r for r in aborted if r not in self._aborted_elsewhere)
         return aborted
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
 from typing import Annotated, Any
@@ -61,7 +62,7 @@ async def emergency_stop(runs: RunsDep, settings: SettingsDep, request: Request)
     controller took the command, `drive` its last state.  The stop latches: no run starts until an
     operator acknowledges it (`POST /stop/acknowledge`); a drive still turning latches too (source
     `drive`) and shows in `/health`."""
-    arrived: asyncio.Task[StopReport] | None = getattr(request.state, STOP_ON_ARRIVAL, None)
+    arrived: asyncio.Future[StopReport] | None = getattr(request.state, STOP_ON_ARRIVAL, None)
     if arrived is not None:  # handed to the rig as the request head arrived (stop_on_arrival)
         return stop_answer(await asyncio.shield(arrived))
     source = "page" if request.headers.get("x-station-client") == "page" else "api"
@@ -72,31 +73,70 @@ STOP_ON_ARRIVAL = "station_stop"  # the request's state: the stop begun on its h
 LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1", "[::1]")  # what the daemon on loopback takes as Host
 
 
-def stop_on_arrival(app: FastAPI) -> Callable[[dict[str, Any]], None]:
-    """For the server's connections (``ConnectionBounds.on_head``): as soon as the head of a
-    ``POST /stop`` is read, before its connection does any other work (middleware, routing,
-    dependencies, the body), the emergency stop is handed to the rig thread and carried on as a
-    task of its own; the route answers with that task's report.  A request the route would refuse
-    (another site's page, a Host the daemon does not take) is left to it."""
-    settings: ServiceSettings = app.state.settings
+def stop_on_arrival(app: FastAPI) -> StopOnArrival:
+    """For the server's connections (``ConnectionBounds.on_head``): :class:`StopOnArrival`."""
+    return StopOnArrival(app)
 
-    def on_head(scope: dict[str, Any]) -> None:
-        manager = getattr(app.state, "manager", None)
-        if scope.get("method") != "POST" or scope.get("path") != "/stop" or manager is None:
-            return
-        headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope.get("headers", [])}
+
+class StopOnArrival:
+    """As soon as the head of a ``POST /stop`` is read, before its connection does any other work
+    (middleware, routing, dependencies, the body), the emergency stop is handed to the rig thread
+    and carried on as a task of its own; the route answers with that task's report.  The main
+    port's accept gate (``commands/gate.py``) hands it over earlier still, from its own thread, when
+    a connection's first bytes are such a head (:meth:`early`).  A request the route would refuse
+    (another site's page, a Host the daemon does not take) is left to it."""
+
+    def __init__(self, app: FastAPI) -> None:
+        self.app = app
+        self.settings: ServiceSettings = app.state.settings
+
+    def _manager(self, method: str, path: str, headers: Mapping[str, str]) -> Any:
+        """The run manager when this is a stop the route takes, else None."""
+        manager = getattr(self.app.state, "manager", None)
+        if method != "POST" or path != "/stop" or manager is None:
+            return None
         host = headers.get("host", "")
-        if settings.loopback_only and host.split(":")[0] not in LOOPBACK_HOSTS:
-            return  # as TrustedHostMiddleware: refused by the app
+        if self.settings.loopback_only and host.split(":")[0] not in LOOPBACK_HOSTS:
+            return None  # as TrustedHostMiddleware: refused by the app
         if cross_site_refusal(headers.get("sec-fetch-site"), headers.get("origin"), host) is not None:
-            return
+            return None
+        return manager
+
+    def early(self, method: str, path: str, headers: dict[str, str],
+              loop: asyncio.AbstractEventLoop) -> concurrent.futures.Future[StopReport] | None:
+        """From any thread but the rig thread's (the accept gate's): the runs aborted and the stop
+        handed to the rig thread now, and the rest of the stop (latch, record, read-back) begun on
+        the server's ``loop``, whatever becomes of the connection; its future (None if this is not a
+        stop the route takes)."""
+        manager = self._manager(method, path, headers)
+        if manager is None:
+            return None
         runs = manager.runs
+        aborted = runs.abort_all()  # first: a procedure reading the drive's fault ends as aborted, not failed
         commanded = runs.link.command_emergency_stop()
-        source = "page" if headers.get("x-station-client") == "page" else "api"
-        task = asyncio.get_running_loop().create_task(
-            runs.emergency_stop(source, who_stopped(headers, settings), commanded))
+        return asyncio.run_coroutine_threadsafe(
+            runs.emergency_stop(self._source(headers), who_stopped(headers, self.settings), commanded, aborted), loop)
+
+    def __call__(self, scope: dict[str, Any], given: object = None) -> None:
+        """On the server's loop; ``given``: :meth:`early`'s stop for this request, if any."""
+        task: asyncio.Future[StopReport]
+        if isinstance(given, concurrent.futures.Future):
+            task = asyncio.wrap_future(given)
+        else:
+            headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope.get("headers", [])}
+            manager = self._manager(str(scope.get("method")), str(scope.get("path")), headers)
+            if manager is None:
+                return
+            runs = manager.runs
+            aborted = runs.abort_all()  # first, as in early()
+            commanded = runs.link.command_emergency_stop()
+            task = asyncio.get_running_loop().create_task(
+                runs.emergency_stop(self._source(headers), who_stopped(headers, self.settings), commanded, aborted))
         scope.setdefault("state", {})[STOP_ON_ARRIVAL] = task
-    return on_head
+
+    @staticmethod
+    def _source(headers: Mapping[str, str]) -> str:
+        return "page" if headers.get("x-station-client") == "page" else "api"
 
 
 def stop_answer(rep: StopReport) -> StopOut:
