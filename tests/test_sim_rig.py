@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -102,26 +103,35 @@ def test_subprocess_rig_serves_both_devices() -> None:
 
 
 @pytest.mark.slow
-def test_station_sim_rig_prints_where_it_listens_and_stops_on_ctrl_c() -> None:
-    proc = subprocess.Popen([sys.executable, "-m", "station.cli", "sim-rig", "--seed", "3"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout is not None
-        lines = [proc.stdout.readline() for _ in range(3)]
-        tcp = re.search(r"Modbus TCP\s+modbus-tcp://127\.0\.0\.1:(\d+)", lines[0])
-        rtu = re.search(r"Modbus RTU\s+(/dev/pts/\d+)", lines[1])
-        daq_path = re.search(r"serial\s+(/dev/pts/\d+)", lines[2])
-        assert tcp and rtu and daq_path, lines
-        daq = DaqBridge()
-        daq.connect(SerialLink(daq_path.group(1)))
-        assert daq.status()["state"] == "idle"
-        daq.close()
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=30) == 130  # a hang's bound (it ends in about 1 s; far longer on a starved host)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+def test_station_sim_rig_prints_where_it_listens_and_stops_on_ctrl_c(tmp_path: Path) -> None:
+    # its log goes to a file (a pipe nobody reads could fill and block it); a hang dumps its threads there
+    with open(tmp_path / "stderr.txt", "w+") as err:
+        proc = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "station.cli", "sim-rig", "--seed", "3"],
+                                stdout=subprocess.PIPE, stderr=err, text=True)
+        try:
+            assert proc.stdout is not None
+            lines = [proc.stdout.readline() for _ in range(3)]
+            tcp = re.search(r"Modbus TCP\s+modbus-tcp://127\.0\.0\.1:(\d+)", lines[0])
+            rtu = re.search(r"Modbus RTU\s+(/dev/pts/\d+)", lines[1])
+            daq_path = re.search(r"serial\s+(/dev/pts/\d+)", lines[2])
+            assert tcp and rtu and daq_path, lines
+            daq = DaqBridge()
+            daq.connect(SerialLink(daq_path.group(1)))
+            assert daq.status()["state"] == "idle"
+            daq.close()
+            proc.send_signal(signal.SIGINT)
+            try:
+                code = proc.wait(timeout=30)  # a hang's bound (it ends in about 1 s; longer on a starved host)
+            except subprocess.TimeoutExpired:
+                proc.send_signal(signal.SIGABRT)  # faulthandler: every thread's stack into the log
+                proc.wait(10)
+                err.seek(0)
+                pytest.fail(f"sim-rig did not end within 30 s of Ctrl-C; its log:\n{err.read()[-8000:]}")
+            assert code == 130
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
 
 
 @pytest.mark.slow
