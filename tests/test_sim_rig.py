@@ -104,10 +104,13 @@ def test_subprocess_rig_serves_both_devices() -> None:
 
 @pytest.mark.slow
 def test_station_sim_rig_prints_where_it_listens_and_stops_on_ctrl_c(tmp_path: Path) -> None:
-    # its log goes to a file (a pipe nobody reads could fill and block it); a hang dumps its threads there
+    # its log goes to a file (a pipe nobody reads could fill and block it); a hang dumps its threads there.
+    # Ctrl-C as from a terminal: a suite started in the background (``cmd &``) runs with SIGINT ignored,
+    # which a child inherits and Python then keeps
     with open(tmp_path / "stderr.txt", "w+") as err:
         proc = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "station.cli", "sim-rig", "--seed", "3"],
-                                stdout=subprocess.PIPE, stderr=err, text=True)
+                                stdout=subprocess.PIPE, stderr=err, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         try:
             assert proc.stdout is not None
             lines = [proc.stdout.readline() for _ in range(3)]
