@@ -45,6 +45,7 @@ from drivers.motor.profile import load_profile
 from drivers.motor.transport import RegisterTransport, transport_from_url
 from station.rigproc import channel
 from station.rigproc.stopport import StopPort
+from station.rigproc.turns import OneAtATime, Urgency, set_task_urgency, urgency
 from station.run.standstill import DriveCheck, read_back_standstill
 from station.service.priority import Priority, raise_priority
 
@@ -92,34 +93,6 @@ def error_of(exc: BaseException) -> dict[str, Any]:
             if not isinstance(exc, MotorError) else detail}
 
 
-class OneAtATime:
-    """A register transport carrying one exchange at a time (the Modbus client pairs a reply with
-    the one request in flight): the web process's questions, the keeper and the stop take turns."""
-
-    def __init__(self, inner: RegisterTransport) -> None:
-        self.inner = inner
-        self.description = inner.description
-        self.lock = asyncio.Lock()
-
-    @property
-    def connected(self) -> bool:
-        return bool(getattr(self.inner, "connected", False))
-
-    async def open(self) -> None:
-        await self.inner.open()
-
-    async def read(self, address: int, count: int, what: str, function: int = 0x03) -> list[int]:
-        async with self.lock:
-            return await self.inner.read(address, count, what, function)
-
-    async def write(self, address: int, words: Sequence[int], what: str, *, retry: bool = True) -> None:
-        async with self.lock:
-            await self.inner.write(address, words, what, retry=retry)
-
-    async def close(self) -> None:
-        await self.inner.close()
-
-
 class RigProcess:
     """The rig process's state, on its one event loop."""
 
@@ -152,6 +125,7 @@ class RigProcess:
     async def keeper(self) -> None:
         """Refresh the drive's watchdog the way it counts it, every :data:`KEEPER_PERIOD_S`."""
         p = self.motor.profile
+        set_task_urgency(Urgency.KEEPER)  # its exchanges go before the web process's (``turns``)
         while True:
             try:
                 if p.watchdog.refresh is not None:
@@ -178,6 +152,10 @@ class RigProcess:
         """The emergency stop on the drive, the stop held, the drive read back; the web process told.
         The answer has the shape of the main port's (``StopOut``); it names the run the crank turned
         for when the stop was given (the run may end, and say so, while the drive is read back)."""
+        with urgency(Urgency.STOP):  # its exchanges go first on the drive's link (``turns``)
+            return await self._stop(source, why, credentials)
+
+    async def _stop(self, source: str, why: str, credentials: dict[str, str] | None) -> dict[str, Any]:
         stopped_run = self.run_id
         self.hold(source, why)
         self.tell({"event": "stopping", "source": source})  # ahead of every answer that shows the stop
@@ -203,11 +181,12 @@ class RigProcess:
         """A lost web process: ramp the crank down, read it back, the emergency stop if it still turns."""
         log.error("%s: the crank is stopped", why)
         self.hold("link", why)
-        try:
-            await asyncio.wait_for(self.motor.stop(), 3.0)
-        except Exception as exc:
-            log.error("the ramp-down was not taken (%s): the emergency stop", exc)
-        check = await self.read_back("the rig process's stop on a lost link")
+        with urgency(Urgency.STOP):
+            try:
+                await asyncio.wait_for(self.motor.stop(), 3.0)
+            except Exception as exc:
+                log.error("the ramp-down was not taken (%s): the emergency stop", exc)
+            check = await self.read_back("the rig process's stop on a lost link")
         if check is None or not check.standstill:
             await self.stop("link", why)
             return
