@@ -11,8 +11,9 @@ import pytest
 from station.discrepancy.catalogue import CATALOGUE
 from station.discrepancy.data import prepare
 from station.discrepancy.decompose import fit_channel, harmonic_columns, robust_sigma
-from station.discrepancy.fit import Problem
-from station.discrepancy.scenarios import draw_scenario, scenario_config
+from station.discrepancy.fit import Problem, fit_model
+from station.discrepancy.scenarios import draw_scenario, scenario_config, simulate_scenario
+from station.discrepancy.search import base_start, fit_candidate
 from station.recording import read_recording
 from station.simulate import simulate_run
 
@@ -98,3 +99,21 @@ def test_model_reproduces_the_simulator(name: str, tmp_path) -> None:
         d = (with_effect.residual(u1 + e) - with_effect.residual(u1 - e)) / 2e-3
         assert np.allclose(J[:, j], d, rtol=1e-6, atol=1e-9 * np.abs(d).max()), with_effect.params[j].name
     assert float(r0 @ r0) > 20 * float(r @ r), f"{name}: the effect is invisible in this recording"
+
+
+@pytest.mark.slow
+def test_an_effect_the_data_do_not_hold_fits_back_to_its_absence(tmp_path) -> None:
+    """A coupling simulated and fitted: a low-pass (or a sensor resonance) added on top fits at least
+    as well as the model without it (its absence, no filter, is a bound the fit reaches: with the
+    cut-off fitted in logarithm, the fit crawled towards it for its whole budget and stopped above
+    the nested model's chi^2), and converges; k_f and b_f stay within their uncertainty."""
+    eff = draw_scenario(["coupling_compliance"], seed=1003)
+    data = prepare(read_recording(simulate_scenario(eff, tmp_path, seed=1003)))
+    current = fit_candidate(data, fit_model(data, {}, base_start(data)), "coupling_compliance")
+    assert current is not None and current.converged
+    for name in ("conditioner_lowpass", "displacement_resonance"):
+        fit = fit_candidate(data, current, name)
+        assert fit is not None and fit.converged, name
+        assert fit.chi2 <= current.chi2 + 0.01, (name, fit.chi2, current.chi2)
+        for k in ("k_f", "b_f"):
+            assert abs(fit.values[k] - current.values[k]) <= 3 * fit.std[k], (name, k, fit.values[k])

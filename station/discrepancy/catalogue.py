@@ -1,8 +1,13 @@
 """The effect catalogue as the fits see it: parameters, units, scales, bounds and start values.
 
 Internal fit variables u are O(1): a linear parameter is value = centre + scale * u, a positive one
-fitted in logarithm is value = centre * exp(u * scale).  Effects are named as in
-``drivers.rig.params.Effects``; the low-pass order is a discrete parameter fitted by enumeration.
+fitted in logarithm is value = centre * exp(u * scale).  A stiffness or frequency whose effect vanishes
+as it grows (the coupling's k_c, the low-pass cut-off, the displacement sensor's resonance) is fitted as
+its reciprocal, 1 / value = 1 / centre + scale * u: the effect's absence (a rigid coupling, no low-pass)
+is then a bound at a finite distance, which the fit reaches in a few steps, where in logarithm the model
+flattens towards it and the fit would crawl there for its whole budget of evaluations.  Effects are
+named as in ``drivers.rig.params.Effects``; the low-pass order is a discrete parameter fitted by
+enumeration.
 """
 
 from __future__ import annotations
@@ -23,13 +28,14 @@ LOWPASS_ORDERS: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8)
 
 @dataclass(frozen=True)
 class Param:
-    """One fit parameter: name, SI unit, log (fitted as log of a positive value), lower/upper bound,
-    additive (the model is affine in it with a coefficient no other parameter changes: its Jacobian
-    column is constant, ``fit.Problem.jacobian``)."""
+    """One fit parameter: name, SI unit, log (fitted as log of a positive value), reciprocal (fitted as
+    1 / value, module docstring), lower/upper bound, additive (the model is affine in it with a
+    coefficient no other parameter changes: its Jacobian column is constant, ``fit.Problem.jacobian``)."""
 
     name: str
     unit: str
     log: bool = False
+    reciprocal: bool = False
     lower: float = -np.inf
     upper: float = np.inf
     additive: bool = False
@@ -45,9 +51,9 @@ BASE_PARAMS: tuple[Param, ...] = (
 def effect_params(name: str, data: RigData) -> tuple[Param, ...]:
     """Parameters an effect adds to the model."""
     if name == "coupling_compliance":
-        return (Param("k_c", "N/m", log=True, lower=1e2, upper=1e14), Param("b_c", "N*s/m", lower=0.0))
+        return (Param("k_c", "N/m", reciprocal=True, lower=1e2, upper=1e14), Param("b_c", "N*s/m", lower=0.0))
     if name == "conditioner_lowpass":
-        return (Param("cutoff_hz", "Hz", log=True, lower=0.1, upper=1e7),)
+        return (Param("cutoff_hz", "Hz", reciprocal=True, lower=0.1, upper=1e7),)
     if name == "channel_delay":
         return (Param("delay_s", "s", lower=-5e-3, upper=5e-3),)
     if name == "crank_harmonics":
@@ -63,7 +69,8 @@ def effect_params(name: str, data: RigData) -> tuple[Param, ...]:
             out += [Param(f"re_{h}", "V"), Param(f"im_{h}", "V")]
         return tuple(out)
     if name == "displacement_resonance":  # the sensor's own resonance (drivers.rig.params.DisplacementResonance)
-        return (Param("sensor_resonance_hz", "Hz", log=True, lower=float(data.f_hz.max()), upper=1e6),
+        return (Param("sensor_resonance_hz", "Hz", reciprocal=True, lower=float(data.f_hz.max()),
+                      upper=1e6),
                 Param("sensor_damping", "1", lower=0.0, upper=10.0))
     if name == "clock_skew":  # the force converter's clock against the displacement converter's
         return (Param("clock_skew", "1", lower=-1e-3, upper=1e-3),)
@@ -83,14 +90,28 @@ NEUTRAL: dict[str, float] = {
 }
 
 
+# the top of the start grids of the reciprocal parameters: k_c / k_f, cut-off and sensor resonance over the
+# highest crank frequency (``start_grid``; ``scales`` takes a reciprocal's step from them)
+KC_TOP, CUTOFF_TOP, RESONANCE_TOP = 3000.0, 300.0, 300.0
+
+
 def scales(p: dict[str, float], data: RigData) -> dict[str, float]:
-    """Typical size of one fit step per parameter (linear: absolute, log: relative)."""
+    """Typical size of one fit step per parameter (linear: absolute, log: relative, reciprocal: of
+    1 / value, a tenth of 1 / value at the start, or of the top of its start grid where the start is
+    beyond that top (a start in the rigid limit still moves in a few steps))."""
     sig = float(np.median(data.sigma_f))
     T = float(data.t_mid_s.max() + data.half_s.max())
-    out = {"S": 1e-3 * abs(p["S"]), "k_f": 1e-3, "b_f": 1e-2, "offset_V": 1e2 * sig, "k_c": 0.1,
-           "b_c": 0.1 * p["b_f"], "cutoff_hz": 0.1, "delay_s": 1e-6, "inverse_rod_length_per_m": 0.1,
+    fmax = float(data.f_hz.max())
+
+    def recip(name: str, top: float) -> float:
+        return 0.1 / min(abs(p.get(name, np.inf)), top)
+
+    out = {"S": 1e-3 * abs(p["S"]), "k_f": 1e-3, "b_f": 1e-2, "offset_V": 1e2 * sig,
+           "k_c": recip("k_c", KC_TOP * p["k_f"]), "b_c": 0.1 * p["b_f"],
+           "cutoff_hz": recip("cutoff_hz", CUTOFF_TOP * fmax), "delay_s": 1e-6, "inverse_rod_length_per_m": 0.1,
            "quadratic": 1e-3, "cubic": 1e-3, "frequency_hz": 1e-3,
-           "sensor_resonance_hz": 0.1, "sensor_damping": 0.05, "rate_V_per_s": 10 * sig / T,
+           "sensor_resonance_hz": recip("sensor_resonance_hz", RESONANCE_TOP * fmax), "sensor_damping": 0.05,
+           "rate_V_per_s": 10 * sig / T,
            "quadratic_V_per_s2": 10 * sig / T**2, "clock_skew": 1e-6}
     for i in range(data.n_steps):
         out[f"dc_s{i}"] = out[f"slope_s{i}"] = out[f"curv_s{i}"] = 10 * sig
@@ -101,21 +122,32 @@ def scales(p: dict[str, float], data: RigData) -> dict[str, float]:
     return out
 
 
+def absent(name: str, data: RigData) -> dict[str, float] | None:
+    """The effect's parameters where it (all but) vanishes from the model, for an effect whose absence
+    is a bound (a reciprocal parameter at its upper bound: a rigid coupling, no low-pass; the others at
+    their neutral value); None for the others (their neutral values are in their start grids)."""
+    params = effect_params(name, data)
+    if not any(q.reciprocal for q in params):
+        return None
+    return {q.name: q.upper if q.reciprocal else NEUTRAL[q.name] for q in params}
+
+
 def start_grid(name: str, data: RigData, p: dict[str, float]) -> list[dict[str, float]]:
-    """Start values of an effect's parameters (several for the nonlinear ones); a grid search on
-    the profiled chi^2 picks one of them before the Levenberg-Marquardt fit."""
+    """Start values of an effect's parameters (several for the nonlinear ones); ``search`` picks the
+    best of them (or the effect's absence, ``absent``) before the Levenberg-Marquardt fit."""
     fmax = float(data.f_hz.max())
     if name == "coupling_compliance":
-        return [{"k_c": p["k_f"] * r, "b_c": b} for r in np.geomspace(0.3, 3000, 9)
+        return [{"k_c": p["k_f"] * r, "b_c": b} for r in np.geomspace(0.3, KC_TOP, 9)
                 for b in (0.0, p["b_f"])]
     if name == "conditioner_lowpass":
-        return [{"cutoff_hz": fc} for fc in np.geomspace(0.5 * fmax, 300 * fmax, 13)]
+        return [{"cutoff_hz": fc} for fc in np.geomspace(0.5 * fmax, CUTOFF_TOP * fmax, 13)]
     if name == "channel_delay":
         return [{"delay_s": d} for d in (0.0, -1e-4, 1e-4, -5e-4, 5e-4)]
     if name == "clock_skew":
         return [{"clock_skew": e} for e in (0.0, -1e-4, 1e-4)]
     if name == "displacement_resonance":
-        return [{"sensor_resonance_hz": fr, "sensor_damping": z} for fr in np.geomspace(3 * fmax, 300 * fmax, 5)
+        return [{"sensor_resonance_hz": fr, "sensor_damping": z}
+                for fr in np.geomspace(3 * fmax, RESONANCE_TOP * fmax, 5)
                 for z in (0.1, 0.7)]
     if name == "crank_harmonics":
         r = np.abs(data.x1)

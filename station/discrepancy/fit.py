@@ -112,7 +112,8 @@ class Problem:
         self.params: tuple[Param, ...] = BASE_PARAMS + tuple(
             q for e in self.effects for q in effect_params(e, data))
         # a per-step parameter of a step added by a proposal's plan has no value yet: 0 (all such are linear)
-        self.centre = {q.name: float(start[q.name] if q.name in start or q.log else 0.0) for q in self.params}
+        self.centre = {q.name: float(start[q.name] if q.name in start or q.log or q.reciprocal else 0.0)
+                       for q in self.params}
         sc = scales(dict(start), data)
         self.scale = {q.name: sc[q.name] for q in self.params}
         self.fixed = {**NEUTRAL, **{k: v for k, v in start.items() if k not in self.centre}}
@@ -133,15 +134,23 @@ class Problem:
 
     def to_value(self, q: Param, u: float) -> float:
         c, s = self.centre[q.name], self.scale[q.name]
+        if q.reciprocal:
+            return 1.0 / (1.0 / c + s * u)
         return c * math.exp(s * u) if q.log else c + s * u
 
     def dvalue(self, q: Param, u: float) -> float:
+        if q.reciprocal:
+            return -self.scale[q.name] * self.to_value(q, u) ** 2
         return self.to_value(q, u) * self.scale[q.name] if q.log else self.scale[q.name]
 
     def bounds(self) -> tuple[FloatArray, FloatArray]:
         lo, hi = [], []
         for q in self.params:
-            if q.log:
+            if q.reciprocal:  # 1 / value within [1 / upper, 1 / lower] (both bounds positive)
+                c, s = self.centre[q.name], self.scale[q.name]
+                lo.append((1.0 / q.upper - 1.0 / c) / s)
+                hi.append((1.0 / q.lower - 1.0 / c) / s)
+            elif q.log:
                 c, s = self.centre[q.name], self.scale[q.name]
                 lo.append(math.log(q.lower / c) / s if q.lower > 0 else -np.inf)
                 hi.append(math.log(q.upper / c) / s if np.isfinite(q.upper) else np.inf)

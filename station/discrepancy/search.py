@@ -4,12 +4,13 @@
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from station.discrepancy.catalogue import LOWPASS_ORDERS, start_grid
+from station.discrepancy.catalogue import LOWPASS_ORDERS, absent, start_grid
 from station.discrepancy.data import RigData
 from station.discrepancy.eiv import base_start
 from station.discrepancy.fit import ModelFit, Problem, fit_model, profiled_chi2
@@ -34,13 +35,15 @@ FUNDAMENTAL_ONLY = ("coupling_compliance", "conditioner_lowpass", "channel_delay
                     "clock_skew")
 # LM runs from the best grid points
 MULTI_START: dict[str, int] = {"coupling_compliance": 3, "displacement_resonance": 2}
+# the smallest chi^2 decrease any use of a candidate's fit looks at (``ties.undetectable``: Delta chi^2 / B >= 1)
+SMALLEST_DCHI2 = 1.0
 
 
 def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | None:
-    """Add effect ``name`` to the current model with its parameters free, start from the best point
-    of its start grid (profiled chi^2, all other parameters free to first order), and fit.  The
-    low-pass order is enumerated; the best order by chi^2 is kept.  None if the effect cannot be
-    fitted on this recording (e.g. mains lines without a mains line found)."""
+    """Add effect ``name`` to the current model with its parameters free and fit, from the best
+    points of its start grid (``_fits``: for an effect whose absence is a bound, from that absence
+    first).  The low-pass order is enumerated; the best order by chi^2 is kept.  None if the effect
+    cannot be fitted on this recording (e.g. mains lines without a mains line found)."""
     if name == "mains_interference" and data.n_mains == 0:
         return None
     if name == "coupling_compliance" and data.end_mass_kg <= 0:
@@ -61,21 +64,13 @@ def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | Non
         variants = [{**current.effects, name: 0}]
     best: ModelFit | None = None
     alts: list[tuple[int, float, float, float]] = []
-    n_starts = MULTI_START.get(name, 1)
+    grid = start_grid(name, data, current.values)
     for effects in variants:
         order = effects.get(lp, 0)
-        grid = start_grid(name, data, current.values)
-        best_order: ModelFit | None = None
-        for start in _best_starts(data, effects, current.values, grid, n_starts):
-            try:
-                fit = fit_model(data, effects, start)
-            except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
-                log.info("candidate %s (order %d) failed: %s", name, order, exc)
-                continue
-            if best_order is None or fit.chi2 < best_order.chi2:
-                best_order = fit
-        if best_order is None:
+        fits = _fits(data, effects, current.values, grid, MULTI_START.get(name, 1), absent(name, data))
+        if not fits:
             continue
+        best_order = min(fits, key=lambda f: f.chi2)
         alts.append((order, best_order.chi2, best_order.values["k_f"], best_order.values["b_f"]))
         if best is None or best_order.chi2 < best.chi2:
             best = best_order
@@ -84,20 +79,39 @@ def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | Non
     return best
 
 
-def _best_starts(data: RigData, effects: Mapping[str, int], values: Mapping[str, float],
-                 grid: list[dict[str, float]], n: int) -> list[dict[str, float]]:
-    """The n grid points with the lowest profiled chi^2, as full start dictionaries."""
-    if len(grid) == 1:
-        return [{**values, **grid[0]}]
+def _fit(data: RigData, effects: Mapping[str, int], start: dict[str, float]) -> list[ModelFit]:
+    """``fit_model`` as a list of none or one fit (a fit that fails is logged, not raised)."""
+    try:
+        return [fit_model(data, effects, start)]
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
+        log.info("candidate %s failed: %s", effects, exc)
+        return []
+
+
+def _fits(data: RigData, effects: Mapping[str, int], values: Mapping[str, float], grid: list[dict[str, float]],
+          n: int, none: dict[str, float] | None) -> list[ModelFit]:
+    """The fits from the n grid points with the lowest profiled chi^2.  For an effect whose absence
+    ``none`` is a bound (a rigid coupling, no low-pass) the fit from that absence comes first (a few
+    steps when the effect is not in the data, where a fit from a grid point crawls through the model's
+    flat directions back towards it for its whole budget, or stops in a local minimum above it); the
+    grid is then fitted only if a grid point's profiled chi^2 promises at least ``SMALLEST_DCHI2``
+    below what the absence reached."""
+    if len(grid) == 1 and none is None:
+        return _fit(data, effects, {**values, **grid[0]})
+    out = [] if none is None else _fit(data, effects, {**values, **none})
     scores = []
     for g in grid:
-        start = {**values, **g}
-        prob = Problem(data, effects, start)
+        prob = Problem(data, effects, {**values, **g})
         try:
             scores.append(profiled_chi2(prob, np.zeros(len(prob.params))))
         except (ValueError, np.linalg.LinAlgError, FloatingPointError):
             scores.append(np.inf)
-    return [{**values, **grid[int(i)]} for i in np.argsort(scores)[:n]]
+    reached = min((f.chi2 for f in out), default=math.inf)
+    if out and not min(scores) < reached - SMALLEST_DCHI2:
+        return out
+    for i in np.argsort(scores)[:n]:
+        out += _fit(data, effects, {**values, **grid[int(i)]})
+    return out
 
 
 def with_order_alternatives(data: RigData, final: ModelFit) -> ModelFit:
