@@ -19,6 +19,7 @@ from typing import TypedDict
 
 import numpy as np
 
+from station.discrepancy.catalogue import KC_TOP
 from station.discrepancy.data import RigData
 from station.discrepancy.estimates import EstimateJson
 from station.discrepancy.fit import ModelFit
@@ -98,7 +99,10 @@ def state_structure(data: RigData, final: ModelFit, last: Sequence[tuple[Candida
     k, u_k = float(cpl.values["k_f"]), float(cpl.std["k_f"])
     s_k, u_s = float(final.values["k_f"]), float(final.std["k_f"])
     u_c = float(cpl.std["k_c"])
-    k_c_free = not (math.isfinite(u_c) and u_c < UNDETERMINED * abs(float(cpl.values["k_c"])))
+    # k_c undetermined: a large u(k_c), or the fit resting beyond the stiffest coupling of its start grid
+    # (the rigid limit, where k_c's linearised u is that of a model that no longer depends on it)
+    k_c = float(cpl.values["k_c"])
+    k_c_free = not (math.isfinite(u_c) and u_c < UNDETERMINED * abs(k_c)) or k_c >= KC_TOP * k
     if not (math.isfinite(u_k) and u_k < UNDETERMINED * abs(k)) or k_c_free:
         # with k_c undetermined (the coupled fit resting in the rigid limit) k_f's linearised u is
         # conditional on that k_c: any stiffer transducer with a softer coupling fits as well

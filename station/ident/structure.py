@@ -241,7 +241,8 @@ def state_stiff(params: dict[str, Estimate], k_range: tuple[float, float | None]
     """k_f and b_f of an Eq. 9 result (the joint fit of a campaign, the model gap's) stated as
     ``apply_structure`` states them: k_f is the series stiffness of transducer and coupling; with the
     range of k_f alone (``k_range``: (k_s, high), high None when unbounded; None: the coupling is not
-    tested) wider than u(k_f), k_f and b_f are flagged 'conditional', else k_f only says so."""
+    tested) wider than u(k_f) or reaching outside k_f +- u(k_f), k_f and b_f are flagged 'conditional', else
+    k_f only says so."""
     out = dict(params)
     kf, bf = out.get("k_f"), out.get("b_f")
     if kf is None or not kf.identifiable or kf.value is None:
@@ -253,7 +254,10 @@ def state_stiff(params: dict[str, Estimate], k_range: tuple[float, float | None]
     else:
         where = (f"k_f alone lies in [{k_range[0]:.6g}, {k_range[1]:.6g}] N/m under the couplings {subject} "
                  "cannot exclude")
-        soft = k_range[1] - k_range[0] > float(kf.std or 0.0)
+        # conditional when the range is wider than u(k_f), or reaches outside k_f +- u(k_f) (a coupled fit
+        # that puts k_f alone away from the series stiffness the stiff model states)
+        u = float(kf.std or 0.0)
+        soft = (k_range[1] - k_range[0] > u or k_range[0] < kf.value - u or k_range[1] > kf.value + u)
     text = (f"conditional on a stiff coupling (Eq. 9): {subject} determine the series stiffness of transducer and "
             f"coupling; {where}")
     out["k_f"] = _conditional(kf, text) if soft else replace(kf, reason="; ".join(filter(None, (kf.reason, text))))
