@@ -1,5 +1,6 @@
-"""The emulated drives for the drive tests: a profile's drive in-process on a virtual clock, and a
-short calibration's configuration on a given drive profile."""
+"""The emulated drives for the drive tests: a profile's drive in-process on a virtual clock, a short
+calibration's configuration on a given drive profile, and the specification of a rig process built
+in-process on such a drive (no channel, no stop port)."""
 
 from __future__ import annotations
 
@@ -15,8 +16,11 @@ from drivers.sim.clock import VirtualClock
 from drivers.sim.motor_image import MotorRegisterImage
 from drivers.sim.motor_inprocess import InProcessTransport
 from drivers.sim.motor_model import MotorModel
+from station.rigproc.serve import Spec
 
 ROOT = Path(__file__).resolve().parent.parent
+RIG_SPEC = Spec(socket="", motor_url="modbus-tcp://127.0.0.1:1", device_id=None, profile=None, stop_host=None,
+                stop_port=0, names=(), page_port=None, header_timeout_s=5.0, priority="normal", link_timeout_s=3.0)
 
 
 def drive(profile: DriveProfile, body: Callable[[MotorController, MotorModel, MotorRegisterImage, VirtualClock],

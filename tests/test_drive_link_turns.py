@@ -18,7 +18,7 @@ from drivers.sim.motor_inprocess import InProcessTransport
 from drivers.sim.motor_model import MotorModel
 from station.rigproc.serve import RigProcess
 from station.rigproc.turns import OneAtATime, TurnLock, Urgency
-from tests.test_rig_process_state import SPEC
+from tests.drive_support import RIG_SPEC
 
 WEB_READS = 20
 WEB = "status (web)"
@@ -83,7 +83,7 @@ def _rig(body: object) -> Wire:
     async def go() -> None:
         motor = MotorController(profile, clock=clock)
         await motor.connect(OneAtATime(wire))
-        rig = RigProcess(SPEC, motor)
+        rig = RigProcess(RIG_SPEC, motor)
         await body(rig)  # type: ignore[operator]
         await motor.close()
 

@@ -14,11 +14,9 @@ from drivers.sim.clock import VirtualClock
 from drivers.sim.motor_image import MotorRegisterImage
 from drivers.sim.motor_model import MotorModel
 from station.rigproc import channel
-from station.rigproc.serve import RigProcess, Spec
+from station.rigproc.serve import RigProcess
+from tests.drive_support import RIG_SPEC as SPEC
 from tests.drive_support import drive
-
-SPEC = Spec(socket="", motor_url="modbus-tcp://127.0.0.1:1", device_id=None, profile=None, stop_host=None,
-            stop_port=0, names=(), page_port=None, header_timeout_s=5.0, priority="normal", link_timeout_s=3.0)
 
 
 class WebEnd:
