@@ -337,9 +337,10 @@ def cores_busy(n: int = 2) -> Iterator[None]:
 
 
 def flood_busy(d: Daemon, emu: SimRigProcess, repeats: int, flood: int, via: str,
-               drive_nice: int | None = None) -> dict[str, Any]:
-    """The stop during a run, with both cores busy and ``flood`` idle connections on the main port
-    (``drive_nice``: the emulator's threads at this nice value once the run records)."""
+               drive_nice: int | None = None, hogs: int = 2) -> dict[str, Any]:
+    """The stop during a run, with ``hogs`` processes spinning (2: both cores busy) and ``flood`` idle
+    connections on the main port (``drive_nice``: the emulator's threads at this nice value once the
+    run records)."""
     samples, failed_runs, not_ended = [], [], []
     reniced = None
     for _ in range(repeats):
@@ -348,7 +349,7 @@ def flood_busy(d: Daemon, emu: SimRigProcess, repeats: int, flood: int, via: str
             proc = emu._proc  # the emulator's process (a bench may look inside)
             assert proc is not None
             reniced = renice(proc.pid, drive_nice)
-        with cores_busy(), idle_connections(d.port, flood) as (opened, est):
+        with cores_busy(hogs), idle_connections(d.port, flood) as (opened, est):
             time.sleep(2.0)  # the flood held during the record window: does the run survive it?
             s = one_stop(d, emu, via, wait_s=10.0)
         s.update(opened=opened, established=est)
@@ -366,7 +367,7 @@ def flood_busy(d: Daemon, emu: SimRigProcess, repeats: int, flood: int, via: str
     lat = [s["latency_ms"] for s in samples if s["latency_ms"] is not None]
     lost = sum(1 for s in samples if s["status"] != 200 or s["latency_ms"] is None)
     return {"case": "flood_busy", "via": via, "repeats": repeats, "flood_connections": flood,
-            "drive_emulator": reniced or "nice 0 (as everything else)",
+            "drive_emulator": reniced or "nice 0 (as everything else)", "spinning_processes": hogs,
             "stops_lost": lost, "runs_failed_by_the_flood": len(failed_runs), "run_failures": failed_runs[:5],
             "runs_not_ended_30_s_after_the_stop": not_ended,
             "latency_ms_median": round(statistics.median(lat), 2) if lat else None,
@@ -399,6 +400,8 @@ def main() -> int:
                     help="run the emulator's threads at this nice value (a real drive's timing does not share the "
                     "station's CPU; needs the right to lower it)")
     ap.add_argument("--flood", type=int, default=5_000, help="idle connections of the flood_busy case")
+    ap.add_argument("--hogs", type=int, default=2,
+                    help="processes spinning during the flood_busy case (2: both cores of the station PC busy)")
     ap.add_argument("--cases", default="idle,run_recording,database_locked,idle_connections,disk_full",
                     help="comma-separated cases to run (default: all)")
     ap.add_argument("--via", default="main,stop_port",
@@ -469,7 +472,7 @@ def main() -> int:
                 for via in args.via.split(","):
                     if via == "stop_port" and d.stop_port is None:
                         continue
-                    out["cases"].append(flood_busy(d, emu, args.repeats, args.flood, via, args.drive_nice))
+                    out["cases"].append(flood_busy(d, emu, args.repeats, args.flood, via, args.drive_nice, args.hogs))
             if why_no_tmpfs is not None and "disk_full" in wanted:
                 out["cases"].append({"case": "disk_full", "skipped": f"no tmpfs could be mounted: {why_no_tmpfs}"})
             text = d.log_path.read_text(errors="replace")
