@@ -214,6 +214,10 @@ class RigProcess:
         return {"estop": estop, "drive": self.drive.to_dict() if self.drive is not None else None}
 
     # ------------------------------------------------------------------ the web process
+    def note_run(self, msg: dict[str, Any]) -> None:
+        """The run the crank turns for, as a message's ``run_id`` says (empty or None: no run)."""
+        self.run_id = str(msg["run_id"])[:80] if msg.get("run_id") else None
+
     def tell(self, event: dict[str, Any]) -> None:
         web = self.web
         if web is not None and not web.is_closing():
@@ -273,7 +277,7 @@ class RigProcess:
                                     bool(msg.get("retry", True)))
         if op == "keeper":  # the web process's keeper: whether the drive's refreshes go through
             if "run_id" in msg:  # and the run the crank turns for, as op "run" told
-                self.run_id = str(msg["run_id"])[:80] if msg["run_id"] else None
+                self.note_run(msg)
             return {"keeper_error": self.keeper_error}
         if op == "hello":
             return {"profile": self.motor.profile.name, "latched": self.latched, "pid": os.getpid()}
@@ -283,7 +287,7 @@ class RigProcess:
             self.latched = None
             return {}
         if op == "run":  # the run the crank turns for (None: no run): a stop's answer names it
-            self.run_id = str(msg["run_id"])[:80] if msg.get("run_id") else None
+            self.note_run(msg)
             return {}
         if op == "page_port":
             if self.stop_port is not None:
