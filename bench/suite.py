@@ -36,7 +36,7 @@ def run_suite(marker: str | None, repeat: int, workers: int = 3) -> dict[str, An
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *spread]
     if marker:
         cmd += ["-m", marker]
-    times, cpu, last = [], [], ""
+    times, cpu, last, failed = [], [], "", []
     load_before = os.getloadavg()[0]
     for _ in range(repeat):
         r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -46,11 +46,13 @@ def run_suite(marker: str | None, repeat: int, workers: int = 3) -> dict[str, An
         r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         cpu.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
         last = res.stdout.strip().splitlines()[-1] if res.stdout.strip() else res.stderr[-500:]
+        failed += [line.split(" - ")[0].split(" ", 1)[1] for line in res.stdout.splitlines()
+                   if line.startswith(("FAILED ", "ERROR "))]
     return {"command": " ".join(["pytest", "-q", *(["-n", str(workers), "--dist", "loadgroup"] if workers else []),
                                  *(["-m", marker] if marker else [])]),
             "wall_s_median": round(statistics.median(times), 1), "wall_s_runs": [round(t, 1) for t in times],
             "cpu_s_median": round(statistics.median(cpu), 1),
-            "counts": _counts(last), "summary": last,
+            "counts": _counts(last), "summary": last, "failed_tests": failed,
             "load_avg_1min_before": round(load_before, 2), "load_avg_1min_after": round(os.getloadavg()[0], 2)}
 
 
