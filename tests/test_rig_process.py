@@ -5,7 +5,8 @@ process of their own, against the emulators in a third process (their true state
   and the drive is read back at standstill; the daemon latches the stop when it runs again; left
   stopped with the crank turning, the rig process ramps the crank down on its own (3 s of silence);
 - the rig process killed (SIGKILL) during a run: the drive's own watchdog stops the crank, the
-  daemon starts a new rig process, and after the acknowledgement a later run works.
+  daemon starts a new rig process, and after the acknowledgement a later run works, its DAQ stream
+  (under the rig process) losing no sample while the web process is stopped for 2.3 s.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import h5py
 import httpx
 import pytest
 
@@ -53,6 +55,13 @@ def _rig_process(d: Daemon) -> int:
     assert d.proc is not None
     found = [p for p in _children(d.proc.pid)
              if b"station.rigproc" in Path(f"/proc/{p}/cmdline").read_bytes()]
+    assert len(found) == 1, found
+    return found[0]
+
+
+def _stream_process(rig: int) -> int:
+    """The stream process: the rig process's one child (the DAQ stream into the recording)."""
+    found = [p for p in _children(rig) if b"station.rigproc.streamproc" in Path(f"/proc/{p}/cmdline").read_bytes()]
     assert len(found) == 1, found
     return found[0]
 
@@ -155,11 +164,19 @@ def test_a_killed_rig_process_leaves_the_crank_to_the_drives_watchdog_and_a_new_
         d.wait_state(rid, ("running",), step_state="recording")
         assert emu.status()["speed_hz"] == pytest.approx(10.0)
         old = _rig_process(d)
+        stream = _stream_process(old)
         os.kill(old, signal.SIGKILL)
         # nobody refreshes the drive's watchdog now: the drive stops the crank on its own
         _wait(lambda: emu.status()["speed_hz"] == 0.0, 10.0, "the drive's watchdog stops the crank")
         assert emu.status()["fault_code"] != 0
         assert d.wait_state(rid)["state"] == "failed"
+        # the stream process saw its lifeline close: it closed the recording as interrupted and ended
+        _wait(lambda: not Path(f"/proc/{stream}").exists(), 10.0, "the stream process ends")
+        with h5py.File(tmp_path / "recordings" / f"{rid}.h5", "r") as f:
+            assert f.attrs["exit_status"] == "interrupted", dict(f.attrs)
+            assert f.attrs["reason"] in ("the rig process ended during the run",  # its lifeline or its socket first
+                                         "the rig process closed the stream's channel during the run")
+            assert f["raw/displacement"].shape[0] > 0
         _wait(lambda: _rig_process(d) != old, 60.0, "a new rig process")
         assert "the rig process ended" in d.log()
         _wait(lambda: _answers(f"http://127.0.0.1:{stop_port}/stop"), 30.0,
@@ -167,6 +184,17 @@ def test_a_killed_rig_process_leaves_the_crank_to_the_drives_watchdog_and_a_new_
         # the drive's fault is never cleared behind the operator's back
         assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
         assert emu.status()["fault_code"] == 0
-        rid = d.start_run(freqs=(10.0,), record_s=0.3)
-        assert d.wait_state(rid, ("identifying", "completed", "failed", "aborted"))["state"] in (
-            "identifying", "completed"), d.log()
+        # a later run works; its DAQ stream runs under the new rig process: the web process stopped
+        # for 2.3 s while it records (beyond the 2 s a silent stream fails a run: the stream in the web
+        # process failed it, "DAQ stream stalled") loses neither the run nor a sample
+        rid = d.start_run(freqs=(10.0,), record_s=3.0)
+        d.wait_state(rid, ("running",), step_state="recording")
+        assert d.proc is not None
+        os.kill(d.proc.pid, signal.SIGSTOP)
+        try:
+            time.sleep(2.3)
+        finally:
+            os.kill(d.proc.pid, signal.SIGCONT)
+        st = d.wait_state(rid, ("identifying", "completed", "failed", "aborted"))
+        assert st["state"] in ("identifying", "completed"), d.log()
+        assert st["lost_samples"] == 0, st
