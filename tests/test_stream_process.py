@@ -1,13 +1,18 @@
 """The stream process's answers (``station/rigproc/streamproc.py``), served in process over a socket
 pair to a DAQ emulator on a real pseudo-terminal: a recording made by questions alone holds every
 sample the bridge sent, in order; a lost rig process closes it as interrupted; what is malformed or
-out of order is refused without effect (``docs/safety.md``, *The DAQ stream under the rig process*)."""
+out of order is refused without effect; the process starts just below the rig's priority
+(``docs/safety.md``, *The DAQ stream under the rig process*)."""
 
 from __future__ import annotations
 
 import asyncio
 import json
+import os
 import socket
+import subprocess
+import sys
+import threading
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -21,6 +26,7 @@ from station.recording import ChannelSpec, RunMetadata
 from station.rigproc import channel
 from station.rigproc.streamproc import serve
 from station.run.steady import SteadyCriteria
+from station.service.priority import BELOW_NICE, BELOW_REALTIME_PRIORITY, lower_below_rig, raise_priority
 from tests.daq_support import emulator_on_pty
 
 FS = 20_000.0
@@ -148,3 +154,32 @@ def test_a_lost_rig_process_closes_the_recording_as_interrupted_and_bad_question
             assert f["raw/displacement"].shape[0] >= 2000
 
     asyncio.run(go())
+
+
+def test_the_stream_process_starts_just_below_the_rigs_priority() -> None:
+    """A thread at the rig's priority lowers itself (``lower_below_rig``) before it starts the stream
+    process: the child inherits that, below the keeper's, above the web side's."""
+    out: list[tuple[str, str, str]] = []
+
+    def launcher(wanted: str) -> None:
+        got = raise_priority("test", wanted)  # type: ignore[arg-type]
+        said = lower_below_rig()
+        child = subprocess.run([sys.executable, "-c", "import os; print(os.sched_getscheduler(0), "
+                                "os.sched_getparam(0).sched_priority, os.getpriority(os.PRIO_PROCESS, 0))"],
+                               capture_output=True, text=True, timeout=30).stdout.strip()
+        out.append((got, said, child))
+
+    for wanted in ("realtime", "raised"):
+        t = threading.Thread(target=launcher, args=(wanted,))
+        t.start()
+        t.join()
+    (rt_got, rt_said, rt_child), (nice_got, nice_said, nice_child) = out
+    if rt_got.startswith("real-time"):
+        assert rt_said == f"real-time (SCHED_FIFO {BELOW_REALTIME_PRIORITY})"
+        policy, prio, _ = rt_child.split()
+        assert (int(policy), int(prio)) == (os.SCHED_FIFO, BELOW_REALTIME_PRIORITY), rt_child
+    if nice_got.startswith("raised"):
+        assert nice_said == f"raised (nice {BELOW_NICE})"
+        assert nice_child.split() == [str(os.SCHED_OTHER), "0", str(BELOW_NICE)], nice_child
+    else:  # no privilege to raise: nothing to lower either
+        assert nice_said.startswith("normal")
