@@ -81,6 +81,7 @@ class RemoteStream:
         self._error: str | None = None  # the stream's error in this run (``stream`` events)
         self._lost_link: str | None = None  # the bridge or the stream process lost
         self._partial: Path | None = None
+        self._closed_as: tuple[str, str] | None = None
         self._restarts = supervisor.restarts  # a new rig process has a new stream process: connected anew
         self._loop = asyncio.get_running_loop()
         supervisor.on_stream = self._event
@@ -136,6 +137,10 @@ class RemoteStream:
         return self._lost
 
     @property
+    def closed_as(self) -> tuple[str, str] | None:
+        return self._closed_as
+
+    @property
     def partial_path(self) -> Path:
         if self._partial is None:
             raise RuntimeError("no recording is open")
@@ -153,7 +158,7 @@ class RemoteStream:
             for k in range(0, len(text or ""), TEXT_PART):
                 await self._ask("record_text", field=field, text=(text or "")[k:k + TEXT_PART])
         fields = {k: v for k, v in asdict(meta).items() if k not in ("config_yaml", "drive_profile_yaml")}
-        self._samples, self._lost, self._error, self._partial = 0, 0, None, None
+        self._samples, self._lost, self._error, self._partial, self._closed_as = 0, 0, None, None, None
         r = await self._ask("record_open", out_dir=str(out_dir), meta=fields,
                             channels=[asdict(c) for c in channels], min_free_bytes=min_free_bytes)
         self._partial = Path(r["partial"])
@@ -191,6 +196,7 @@ class RemoteStream:
         if r.get("closed_as"):  # closed before: a lost web process (the rig process's decision)
             log.error("the recording %s was closed as %s by the stream process (%s); not as %s", r["path"],
                       r["closed_as"], r.get("reason"), status)
+            self._closed_as = (str(r["closed_as"]), str(r.get("reason", "")))
         return Path(r["path"])
 
     async def abandon(self) -> None:

@@ -260,6 +260,8 @@ class Procedure:
                 if path == daq.partial_path:
                     await daq.abandon()
                     reason = "; ".join(filter(None, [reason, f"recording left partial: {exc}"]))
+            if daq.closed_as is not None:  # the stream closed it first (a lost web process): as the file says
+                status, reason = daq.closed_as
             await self._verify_stopped(status)
             # a run that ended early is not "done": its progress stays at the steps it recorded
             self._report(state=status, message=reason, step_state="done" if status == "completed" else status)

@@ -59,6 +59,11 @@ class RecordingStream(Protocol):
     def partial_path(self) -> Path:
         """The recording's file while it is open (``<run>.h5.partial``)."""
 
+    @property
+    def closed_as(self) -> tuple[str, str] | None:
+        """(exit status, reason) of this run's recording when it was closed without the procedure
+        asking (the stream under the rig process, on a lost web process); None otherwise."""
+
     async def configure(self, *, rate_hz: float, range_disp_V: float, range_force_V: float) -> DaqConfig: ...
 
     async def open(self, out_dir: Path, meta: RunMetadata, channels: tuple[ChannelSpec, ChannelSpec], *,
@@ -117,6 +122,10 @@ class LocalStream:
     @property
     def lost_samples(self) -> int:
         return sum(n for _, n in self._acq.lost) if self._acq is not None else 0
+
+    @property
+    def closed_as(self) -> tuple[str, str] | None:
+        return None  # only the procedure closes it here
 
     @property
     def ring(self) -> RingBuffer | None:
