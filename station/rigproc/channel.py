@@ -39,7 +39,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import struct
+from collections.abc import AsyncIterator
 from typing import Any
 
 VERSION = 3  # 2: ``keeper`` (the drive's watchdog refreshed by the rig process alone); 3: the DAQ stream
@@ -79,3 +81,17 @@ async def receive(reader: asyncio.StreamReader) -> dict[str, Any] | None:
         raise ChannelError(f"expected a message of protocol version {VERSION}, got "
                            f"{msg.get('v') if isinstance(msg, dict) else type(msg).__name__!r}")
     return msg
+
+
+async def messages(reader: asyncio.StreamReader, sender: str, log: logging.Logger) -> AsyncIterator[dict[str, Any]]:
+    """The messages from ``sender`` until the end of the stream or one not of this protocol (logged
+    as an error: the caller then closes the channel)."""
+    while True:
+        try:
+            msg = await receive(reader)
+        except ChannelError as exc:
+            log.error("%s sent %s: the channel is closed", sender, exc)
+            return
+        if msg is None:
+            return
+        yield msg

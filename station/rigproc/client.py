@@ -212,14 +212,7 @@ class RigSupervisor:
 
     # ------------------------------------------------------------------ the channel
     async def _read(self, reader: asyncio.StreamReader) -> None:
-        while True:
-            try:
-                msg = await channel.receive(reader)
-            except channel.ChannelError as exc:
-                log.error("the rig process sent %s", exc)
-                msg = None
-            if msg is None:
-                break
+        async for msg in channel.messages(reader, "the rig process", log):
             if msg.get("event") == "stream":
                 if self.on_stream is not None:
                     self.on_stream(msg)

@@ -238,14 +238,7 @@ class RigProcess:
             self.serving.add(me)
             me.add_done_callback(self.serving.discard)
         try:
-            while True:
-                try:
-                    msg = await channel.receive(reader)
-                except channel.ChannelError as exc:
-                    log.error("the web process sent %s: the channel is closed", exc)
-                    break
-                if msg is None:
-                    break
+            async for msg in channel.messages(reader, "the web process", log):
                 self.heard = time.monotonic()
                 task = asyncio.create_task(self.answer(writer, msg))
                 self.answering.add(task)
@@ -401,14 +394,7 @@ class StreamLink:
         writer.write(channel.encode(msg))
 
     async def read(self, reader: asyncio.StreamReader, proc: subprocess.Popen[bytes]) -> None:
-        while True:
-            try:
-                msg = await channel.receive(reader)
-            except channel.ChannelError as exc:
-                log.error("the stream process sent %s", exc)
-                msg = None
-            if msg is None:
-                break
+        async for msg in channel.messages(reader, "the stream process", log):
             if "event" not in msg:
                 if msg.get("id") not in self.pending:
                     continue  # the answer to the rig process's own question (record_interrupt)

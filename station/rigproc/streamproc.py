@@ -239,14 +239,7 @@ async def serve(sock: socket.socket, lifeline: bool = True) -> None:
             writer.write(channel.encode(reply))
 
     async def read() -> None:
-        while True:
-            try:
-                msg = await channel.receive(reader)
-            except channel.ChannelError as exc:
-                log.error("the rig process sent %s: the channel is closed", exc)
-                return
-            if msg is None:
-                return
+        async for msg in channel.messages(reader, "the rig process", log):
             task = asyncio.create_task(answer(msg))
             tasks.add(task)
             task.add_done_callback(tasks.discard)
