@@ -6,7 +6,8 @@ process of their own, against the emulators in a third process (their true state
   stopped with the crank turning, the rig process ramps the crank down on its own (3 s of silence);
 - the rig process killed (SIGKILL) during a run: the drive's own watchdog stops the crank, the
   daemon starts a new rig process, and after the acknowledgement a later run works, its DAQ stream
-  (under the rig process) losing no sample while the web process is stopped for 2.3 s.
+  (under the rig process) losing no sample while the web process is stopped for 2.3 s; the stream
+  process killed during a run fails that run, and the next one gets a new stream process.
 """
 
 from __future__ import annotations
@@ -202,3 +203,18 @@ def test_a_killed_rig_process_leaves_the_crank_to_the_drives_watchdog_and_a_new_
         st = d.wait_state(rid, ("identifying", "completed", "failed", "aborted"))
         assert st["state"] in ("identifying", "completed"), d.log()
         assert st["lost_samples"] == 0, st
+        # the stream process killed during a run: the run fails as for a lost DAQ link (its procedure
+        # stops the crank), the recording stays as flushed; the next run gets a new stream process
+        rid = d.start_run(freqs=(10.0,), record_s=60.0)
+        d.wait_state(rid, ("running",), step_state="recording")
+        rig = _rig_process(d)
+        os.kill(_stream_process(rig), signal.SIGKILL)
+        st = d.wait_state(rid)
+        assert st["state"] == "failed" and "the stream process ended" in st["reason"], st
+        _wait(lambda: emu.status()["speed_hz"] == 0.0, 10.0, "the run's procedure stops the crank")
+        assert (tmp_path / "recordings" / f"{rid}.h5.partial").exists()  # as flushed: recovered at a restart
+        assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
+        rid = d.start_run(freqs=(10.0,), record_s=0.3)
+        assert d.wait_state(rid, ("identifying", "completed", "failed", "aborted"))["state"] in (
+            "identifying", "completed"), d.log()
+        assert _rig_process(d) == rig and _stream_process(rig)  # the same rig process, a new stream process
