@@ -46,9 +46,19 @@ def _daemon(tmp_path: Path, emu: SimRigProcess, stop_port: int) -> Iterator[Daem
 
 
 def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (by their PPid: a task's ``children`` file loses a child
+    whose starting thread has ended)."""
     out: list[int] = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        out += [int(p) for p in (task / "children").read_text().split()]
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            status = (entry / "status").read_text()
+        except OSError:  # ended meanwhile
+            continue
+        ppid = next((line.split()[1] for line in status.splitlines() if line.startswith("PPid:")), None)
+        if ppid == str(pid):
+            out.append(int(entry.name))
     return out
 
 
@@ -146,6 +156,9 @@ def test_with_the_web_process_stopped_the_stop_port_stops_the_crank_and_reads_it
             _wait(lambda: emu.status()["speed_hz"] == 0.0, 15.0, "the rig process stops the crank")
             assert emu.wait_command("emergency_stop", t0, timeout_s=0.0) is None
             assert emu.status()["fault_code"] == 0  # ramped down, not stopped by the drive's watchdog
+            # and closes the run's recording, the web process still stopped
+            _wait(lambda: (tmp_path / "recordings" / f"{rid}.h5").exists(), 15.0,
+                  "the rig process closes the recording")
         finally:
             os.kill(d.proc.pid, signal.SIGCONT)
         # the rig process closed the run's recording too (a lost web process): the run is what the file says
