@@ -2,11 +2,12 @@
 
 The tests' daemon (``tests.station_support.Daemon``: ``station serve --sim``, the tests' short
 configuration) is started ``--starts`` times; for each start, every process of its tree (the web
-process, the rig process ``station.rigproc``, the emulators ``drivers.sim``, the identification and
-render workers) is read from /proc: user+system CPU seconds when ``/health`` first answers, and again
-after ``--idle-s`` seconds of idling.  Then, with ``--run``, one short run is made and identified, and
-the tree's CPU read again (the workers' start is in it).  Printed: per start and per process role the
-CPU (s) at ready and after the idle time, the sums, and the medians over the starts.
+process, the rig process ``station.rigproc`` and its stream process, the emulators ``drivers.sim``,
+the identification and render workers) is read from /proc: user+system CPU seconds when ``/health``
+first answers, and again after ``--idle-s`` seconds of idling.  Then, with ``--run``, one short run
+is made and identified, and the tree's CPU read again (the workers' start is in it).  Printed: per
+start and per process role the CPU (s) at ready and after the idle time, the sums, and the medians
+over the starts.
 
 CPU seconds, not wall time: on a loaded machine the wall time to ready varies, the CPU a start
 costs much less.
@@ -51,8 +52,8 @@ def _tree(pid: int) -> list[int]:
 def role(pid: int) -> str:
     """Which of the daemon's processes ``pid`` is, by its command line."""
     cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-    for word, name in (("station.rigproc", "rig"), ("drivers.sim", "emulator"), ("multiprocessing", "worker"),
-                       ("station.cli", "web")):
+    for word, name in (("station.rigproc.streamproc", "stream"), ("station.rigproc", "rig"),
+                       ("drivers.sim", "emulator"), ("multiprocessing", "worker"), ("station.cli", "web")):
         if word in cmd:
             return name
     return "other"  # the orphan guard (setpriv) before it execs the daemon

@@ -5,7 +5,9 @@ process of their own, against the emulators in a third process (their true state
   and the drive is read back at standstill; the daemon latches the stop when it runs again; left
   stopped with the crank turning, the rig process ramps the crank down on its own (3 s of silence);
 - the rig process killed (SIGKILL) during a run: the drive's own watchdog stops the crank, the
-  daemon starts a new rig process, and after the acknowledgement a later run works.
+  daemon starts a new rig process, and after the acknowledgement a later run works, its DAQ stream
+  (under the rig process) losing no sample while the web process is stopped for 2.3 s; the stream
+  process killed during a run fails that run, and the next one gets a new stream process.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import h5py
 import httpx
 import pytest
 
@@ -43,9 +46,19 @@ def _daemon(tmp_path: Path, emu: SimRigProcess, stop_port: int) -> Iterator[Daem
 
 
 def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (by their PPid: a task's ``children`` file loses a child
+    whose starting thread has ended)."""
     out: list[int] = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        out += [int(p) for p in (task / "children").read_text().split()]
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            status = (entry / "status").read_text()
+        except OSError:  # ended meanwhile
+            continue
+        ppid = next((line.split()[1] for line in status.splitlines() if line.startswith("PPid:")), None)
+        if ppid == str(pid):
+            out.append(int(entry.name))
     return out
 
 
@@ -53,6 +66,13 @@ def _rig_process(d: Daemon) -> int:
     assert d.proc is not None
     found = [p for p in _children(d.proc.pid)
              if b"station.rigproc" in Path(f"/proc/{p}/cmdline").read_bytes()]
+    assert len(found) == 1, found
+    return found[0]
+
+
+def _stream_process(rig: int) -> int:
+    """The stream process: the rig process's one child (the DAQ stream into the recording)."""
+    found = [p for p in _children(rig) if b"station.rigproc.streamproc" in Path(f"/proc/{p}/cmdline").read_bytes()]
     assert len(found) == 1, found
     return found[0]
 
@@ -136,9 +156,16 @@ def test_with_the_web_process_stopped_the_stop_port_stops_the_crank_and_reads_it
             _wait(lambda: emu.status()["speed_hz"] == 0.0, 15.0, "the rig process stops the crank")
             assert emu.wait_command("emergency_stop", t0, timeout_s=0.0) is None
             assert emu.status()["fault_code"] == 0  # ramped down, not stopped by the drive's watchdog
+            # and closes the run's recording, the web process still stopped
+            _wait(lambda: (tmp_path / "recordings" / f"{rid}.h5").exists(), 15.0,
+                  "the rig process closes the recording")
         finally:
             os.kill(d.proc.pid, signal.SIGCONT)
-        assert d.wait_state(rid)["state"] in ("aborted", "failed")
+        # the rig process closed the run's recording too (a lost web process): the run is what the file says
+        st = d.wait_state(rid)
+        assert st["state"] == "interrupted", st
+        with h5py.File(tmp_path / "recordings" / f"{rid}.h5", "r") as f:
+            assert f.attrs["exit_status"] == "interrupted" and "silent" in f.attrs["reason"], dict(f.attrs)
         _wait(lambda: _estop(c).get("source") == "link", 10.0, "the daemon latches the stop", d)
         assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
         rid = d.start_run(freqs=(10.0,), record_s=0.3)
@@ -155,11 +182,19 @@ def test_a_killed_rig_process_leaves_the_crank_to_the_drives_watchdog_and_a_new_
         d.wait_state(rid, ("running",), step_state="recording")
         assert emu.status()["speed_hz"] == pytest.approx(10.0)
         old = _rig_process(d)
+        stream = _stream_process(old)
         os.kill(old, signal.SIGKILL)
         # nobody refreshes the drive's watchdog now: the drive stops the crank on its own
         _wait(lambda: emu.status()["speed_hz"] == 0.0, 10.0, "the drive's watchdog stops the crank")
         assert emu.status()["fault_code"] != 0
         assert d.wait_state(rid)["state"] == "failed"
+        # the stream process saw its lifeline close: it closed the recording as interrupted and ended
+        _wait(lambda: not Path(f"/proc/{stream}").exists(), 10.0, "the stream process ends")
+        with h5py.File(tmp_path / "recordings" / f"{rid}.h5", "r") as f:
+            assert f.attrs["exit_status"] == "interrupted", dict(f.attrs)
+            assert f.attrs["reason"] in ("the rig process ended during the run",  # its lifeline or its socket first
+                                         "the rig process closed the stream's channel during the run")
+            assert f["raw/displacement"].shape[0] > 0
         _wait(lambda: _rig_process(d) != old, 60.0, "a new rig process")
         assert "the rig process ended" in d.log()
         _wait(lambda: _answers(f"http://127.0.0.1:{stop_port}/stop"), 30.0,
@@ -167,6 +202,32 @@ def test_a_killed_rig_process_leaves_the_crank_to_the_drives_watchdog_and_a_new_
         # the drive's fault is never cleared behind the operator's back
         assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
         assert emu.status()["fault_code"] == 0
+        # a later run works; its DAQ stream runs under the new rig process: the web process stopped
+        # for 2.3 s while it records (beyond the 2 s a silent stream fails a run: the stream in the web
+        # process failed it, "DAQ stream stalled") loses neither the run nor a sample
+        rid = d.start_run(freqs=(10.0,), record_s=3.0)
+        d.wait_state(rid, ("running",), step_state="recording")
+        assert d.proc is not None
+        os.kill(d.proc.pid, signal.SIGSTOP)
+        try:
+            time.sleep(2.3)
+        finally:
+            os.kill(d.proc.pid, signal.SIGCONT)
+        st = d.wait_state(rid, ("identifying", "completed", "failed", "aborted"))
+        assert st["state"] in ("identifying", "completed"), d.log()
+        assert st["lost_samples"] == 0, st
+        # the stream process killed during a run: the run fails as for a lost DAQ link (its procedure
+        # stops the crank), the recording stays as flushed; the next run gets a new stream process
+        rid = d.start_run(freqs=(10.0,), record_s=60.0)
+        d.wait_state(rid, ("running",), step_state="recording")
+        rig = _rig_process(d)
+        os.kill(_stream_process(rig), signal.SIGKILL)
+        st = d.wait_state(rid)
+        assert st["state"] == "failed" and "the stream process ended" in st["reason"], st
+        _wait(lambda: emu.status()["speed_hz"] == 0.0, 10.0, "the run's procedure stops the crank")
+        assert (tmp_path / "recordings" / f"{rid}.h5.partial").exists()  # as flushed: recovered at a restart
+        assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
         rid = d.start_run(freqs=(10.0,), record_s=0.3)
         assert d.wait_state(rid, ("identifying", "completed", "failed", "aborted"))["state"] in (
             "identifying", "completed"), d.log()
+        assert _rig_process(d) == rig and _stream_process(rig)  # the same rig process, a new stream process

@@ -14,8 +14,8 @@ from station.config import load_config
 from station.errors import LimitError
 from station.recording import ChannelSpec, RecordingWriter, RunMetadata, read_recording
 from station.run.acquisition import Acquisition, AcquisitionError, RingBuffer
-from station.run.procedure import SteadyCriteria, is_steady
 from station.run.request import RunRequest, StepSpec, default_request, plan_run
+from station.run.steady import SteadyCriteria, is_steady
 
 ROOT = Path(__file__).resolve().parent.parent
 CFG = load_config(ROOT / "config" / "sim-5kN.yaml")

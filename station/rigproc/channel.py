@@ -19,22 +19,32 @@ question (``op``)  fields                                          answer
                                                                    watchdog refreshes go through (the web
                                                                    process's keeper asks it instead of
                                                                    refreshing the drive a second time)
+``daq_*``,         as ``docs/safety.md`` (*The DAQ stream under     answered by the stream process (the rig
+``record_*``       the rig process*) tabulates them                process forwards them unchanged); a
+                                                                   failure as ``error`` (``kind`` ``daq``,
+                                                                   ``disk``, ``recording``, ``acquisition``,
+                                                                   ``stream``, ``bad``, ``exception``;
+                                                                   ``type``, ``detail``)
 =================  ==============================================  ==========================================
 
-Events: ``stopping`` (a stop the rig process is about to give, told before it commands the drive:
-``source``; the runs are aborted before any answer can show them the drive's emergency-stop fault)
-and ``stopped`` (the stop given: ``source``, ``detail``, ``commanded``, ``drive``, ``credentials`` of
-the request for the record).  A failure travels as ``error``: ``kind`` (``link``,
+Events: ``stream`` (the DAQ stream's ``samples``, ``lost``, ``error``: every 0.1 s while it streams;
+``samples`` null when the stream process ended), ``stopping`` (a stop the rig process is about to
+give, told before it commands the drive: ``source``; the runs are aborted before any answer can
+show them the drive's emergency-stop fault) and ``stopped`` (the stop given: ``source``,
+``detail``, ``commanded``, ``drive``, ``credentials`` of the request for the record).  A failure
+travels as ``error``: ``kind`` (``link``,
 ``timeout``, ``exception``, ``protocol``, ``refused``, ``bad``) and ``detail``."""
 
 from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import struct
+from collections.abc import AsyncIterator
 from typing import Any
 
-VERSION = 2  # 2: ``keeper`` (the drive's watchdog refreshed by the rig process alone)
+VERSION = 3  # 2: ``keeper`` (the drive's watchdog refreshed by the rig process alone); 3: the DAQ stream
 MAX_MESSAGE = 64 * 1024  # bytes of JSON; a register exchange is some 100
 _LEN = struct.Struct(">I")
 
@@ -71,3 +81,17 @@ async def receive(reader: asyncio.StreamReader) -> dict[str, Any] | None:
         raise ChannelError(f"expected a message of protocol version {VERSION}, got "
                            f"{msg.get('v') if isinstance(msg, dict) else type(msg).__name__!r}")
     return msg
+
+
+async def messages(reader: asyncio.StreamReader, sender: str, log: logging.Logger) -> AsyncIterator[dict[str, Any]]:
+    """The messages from ``sender`` until the end of the stream or one not of this protocol (logged
+    as an error: the caller then closes the channel)."""
+    while True:
+        try:
+            msg = await receive(reader)
+        except ChannelError as exc:
+            log.error("%s sent %s: the channel is closed", sender, exc)
+            return
+        if msg is None:
+            return
+        yield msg

@@ -25,7 +25,7 @@ from collections.abc import AsyncIterator, Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from drivers.daq.link import SerialLink
+from drivers.motor.controller import MotorController
 from drivers.motor.errors import (
     MotorExceptionReplyError,
     MotorLinkError,
@@ -33,11 +33,13 @@ from drivers.motor.errors import (
     MotorStateError,
     MotorTimeoutError,
 )
-from drivers.motor.profile import load_profile
+from drivers.motor.profile import DriveProfile, load_profile
 from station.config import StationConfig, to_rig_physics
 from station.rigproc import channel
+from station.rigproc.streamclient import RemoteStream
+from station.run.hardware import check_daq_hardware
 from station.run.procedure import FixedRadius, RadiusActuator
-from station.run.rig import ConnectedRig, connect_drivers
+from station.run.rig import ConnectedRig
 from station.service.settings import ServiceSettings
 
 log = logging.getLogger("station.rigproc")
@@ -72,6 +74,7 @@ class RigSupervisor:
         self.cfg = settings.config
         self.motor_url = motor_url or self.cfg.devices.motor_url
         self.on_event: Callable[[dict[str, Any]], None] | None = None  # events (a stop given there), rig loop
+        self.on_stream: Callable[[dict[str, Any]], None] | None = None  # the DAQ stream's events, rig loop
         self.page_port: int | None = None
         self.proc: subprocess.Popen[str] | None = None
         self.spare: subprocess.Popen[str] | None = None  # started ahead, not yet given its specification
@@ -209,14 +212,11 @@ class RigSupervisor:
 
     # ------------------------------------------------------------------ the channel
     async def _read(self, reader: asyncio.StreamReader) -> None:
-        while True:
-            try:
-                msg = await channel.receive(reader)
-            except channel.ChannelError as exc:
-                log.error("the rig process sent %s", exc)
-                msg = None
-            if msg is None:
-                break
+        async for msg in channel.messages(reader, "the rig process", log):
+            if msg.get("event") == "stream":
+                if self.on_stream is not None:
+                    self.on_stream(msg)
+                continue
             if "event" in msg:
                 self._event(msg)
                 continue
@@ -239,6 +239,14 @@ class RigSupervisor:
 
     async def ask(self, msg: dict[str, Any], timeout_s: float = ANSWER_TIMEOUT_S) -> dict[str, Any]:
         """The answer to ``msg``; the driver error it carries raised; MotorLinkError without a channel."""
+        reply = await self.exchange(msg, timeout_s)
+        if "error" in reply:
+            raise_error(reply["error"])
+        return reply
+
+    async def exchange(self, msg: dict[str, Any], timeout_s: float = ANSWER_TIMEOUT_S) -> dict[str, Any]:
+        """The answer to ``msg`` as it came (an ``error`` in it not raised); MotorLinkError without
+        a channel, MotorTimeoutError without an answer within ``timeout_s``."""
         writer = self._writer
         if writer is None or writer.is_closing():
             raise MotorLinkError(str(msg.get("what", msg.get("op"))), self.error or "no rig process")
@@ -252,8 +260,6 @@ class RigSupervisor:
             self._pending.pop(n, None)
             raise MotorTimeoutError(str(msg.get("what", msg.get("op"))),
                                     f"the rig process did not answer within {timeout_s:g} s") from None
-        if "error" in reply:
-            raise_error(reply["error"])
         return reply
 
     async def release(self) -> None:
@@ -344,7 +350,7 @@ class ChannelTransport:
 
 
 class RigProcessConnector:
-    """The daemon's rig: the drive through the rig process, the DAQ bridge in the web process.
+    """The daemon's rig: the drive and the DAQ stream into the recording through the rig process.
     Simulated (``sim``), the emulators are started once, in a process of their own."""
 
     def __init__(self, settings: ServiceSettings) -> None:
@@ -398,8 +404,7 @@ class RigProcessConnector:
         dev = cfg.devices
         emu = self.emulators
         daq_port = emu.addresses.daq if emu is not None else dev.daq_port
-        motor, daq = await connect_drivers(cfg, profile, ChannelTransport(sup),
-                                           lambda: SerialLink(daq_port, baudrate=dev.daq_baudrate, kind=dev.daq_link))
+        motor, daq = await self._connect(cfg, profile, sup, daq_port)
         try:
             if emu is not None:
                 actuator: RadiusActuator = emu.radius_actuator(cfg.plan.steps[0].crank_radius_m)
@@ -416,6 +421,25 @@ class RigProcessConnector:
                 await motor.close()
             with contextlib.suppress(Exception):
                 await asyncio.to_thread(daq.close)
+
+    @staticmethod
+    async def _connect(cfg: StationConfig, profile: DriveProfile, sup: RigSupervisor,
+                       daq_port: str) -> tuple[MotorController, RemoteStream]:
+        """The drive's driver and the DAQ stream, both through the rig process, and the configuration
+        checked against what the bridge reports (``run/hardware.py``); nothing is written to the drive."""
+        motor = MotorController(profile)
+        await motor.connect(ChannelTransport(sup))
+        daq = RemoteStream(sup, daq_port, cfg.devices.daq_baudrate, cfg.devices.daq_link)
+        try:
+            hw = await daq.connect()
+            check_daq_hardware(cfg, hw)
+        except BaseException:
+            await asyncio.to_thread(daq.close)
+            with contextlib.suppress(Exception):
+                await motor.close()
+            raise
+        log.info("DAQ bridge (via the rig process): %s; %s, %d bits", hw.identity, hw.adc, hw.adc_bits)
+        return motor, daq
 
     def close(self) -> None:
         """End the rig process, then the emulators (after the rig thread's loop ended)."""

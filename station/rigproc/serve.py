@@ -25,6 +25,8 @@ import contextlib
 import json
 import logging
 import os
+import socket
+import subprocess
 import sys
 import threading
 import time
@@ -47,7 +49,7 @@ from station.rigproc import channel
 from station.rigproc.stopport import StopPort
 from station.rigproc.turns import OneAtATime, Urgency, set_task_urgency, urgency
 from station.run.standstill import DriveCheck, read_back_standstill
-from station.service.priority import Priority, raise_priority
+from station.service.priority import Priority, lower_below_rig, raise_priority
 
 log = logging.getLogger("station.rigproc")
 
@@ -120,6 +122,7 @@ class RigProcess:
         self.done = asyncio.Event()
         self.keeper_error: str | None = None
         self.answering: set[asyncio.Task[None]] = set()
+        self.stream = StreamLink(self)  # the stream process: the DAQ stream into the recording
 
     # ------------------------------------------------------------------ the drive
     async def keeper(self) -> None:
@@ -187,6 +190,7 @@ class RigProcess:
             except Exception as exc:
                 log.error("the ramp-down was not taken (%s): the emergency stop", exc)
             check = await self.read_back("the rig process's stop on a lost link")
+        self.stream.interrupt(why)  # after the crank's stop: the recording is closed as interrupted
         if check is None or not check.standstill:
             await self.stop("link", why)
             return
@@ -234,14 +238,7 @@ class RigProcess:
             self.serving.add(me)
             me.add_done_callback(self.serving.discard)
         try:
-            while True:
-                try:
-                    msg = await channel.receive(reader)
-                except channel.ChannelError as exc:
-                    log.error("the web process sent %s: the channel is closed", exc)
-                    break
-                if msg is None:
-                    break
+            async for msg in channel.messages(reader, "the web process", log):
                 self.heard = time.monotonic()
                 task = asyncio.create_task(self.answer(writer, msg))
                 self.answering.add(task)
@@ -251,9 +248,13 @@ class RigProcess:
                 self.web = None
                 if self.turning:
                     await self.ramp_down("the daemon's web process closed the channel while the crank turns")
+                self.stream.interrupt("the daemon's web process closed the channel during the run")
             writer.close()
 
     async def answer(self, writer: asyncio.StreamWriter, msg: dict[str, Any]) -> None:
+        if str(msg.get("op", "")).startswith(STREAM_OPS):  # the stream process answers it
+            await self.stream.forward(msg)
+            return
         reply: dict[str, Any] = {"id": msg.get("id")}
         try:
             reply.update(await self.do(msg))
@@ -320,6 +321,112 @@ class RigProcess:
             if self.turning and silent > self.spec.link_timeout_s:
                 await self.ramp_down(f"the daemon's web process has been silent for {silent:.1f} s while the "
                                      "crank turns")
+            elif self.stream.recording and silent > self.spec.link_timeout_s:
+                self.stream.interrupt(f"the daemon's web process has been silent for {silent:.1f} s during "
+                                      "the recording")
+
+
+STREAM_OPS = ("daq_", "record_")  # the questions the stream process answers
+
+
+class StreamLink:
+    """The stream process (``streamproc.py``), started by the rig process: the ``daq_*`` and
+    ``record_*`` questions are forwarded to it as they came and its answers and ``stream`` events
+    written back to the web process unchanged; nothing on the stop's or the keeper's path waits for
+    it.  A stream process that ends fails the questions in flight (``error`` kind ``stream``) and is
+    told as a ``stream`` event with the error; the next question starts a new one."""
+
+    def __init__(self, rig: RigProcess) -> None:
+        self.rig = rig
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.writer: asyncio.StreamWriter | None = None
+        self.pending: set[Any] = set()  # ids of the questions forwarded and not yet answered
+        self.recording = False  # the web process opened a recording and has not closed it
+        self.starting: asyncio.Lock | None = None
+
+    async def ensure(self) -> asyncio.StreamWriter:
+        if self.starting is None:
+            self.starting = asyncio.Lock()
+        async with self.starting:
+            if self.writer is not None and not self.writer.is_closing():
+                return self.writer
+            ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+            try:
+                self.proc, got = await self.launch(theirs.fileno())
+            finally:
+                theirs.close()
+            reader, self.writer = await asyncio.open_unix_connection(sock=ours, limit=channel.MAX_MESSAGE + 8)
+            log.info("stream process %d started (%s)", self.proc.pid, got)
+            task = asyncio.create_task(self.read(reader, self.proc), name="stream-process")
+            self.rig.answering.add(task)
+            task.add_done_callback(self.rig.answering.discard)
+            return self.writer
+
+    @staticmethod
+    async def launch(fd: int) -> tuple[subprocess.Popen[bytes], str]:
+        """Start the stream process from a thread of its own lowered below the rig's priority
+        (``priority.lower_below_rig``): the child inherits that, never the keeper's."""
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[tuple[subprocess.Popen[bytes], str]] = loop.create_future()
+
+        def go() -> None:
+            try:
+                got = lower_below_rig()
+                proc = subprocess.Popen([sys.executable, "-m", "station.rigproc.streamproc", str(fd)],
+                                        stdin=subprocess.PIPE, pass_fds=(fd,))
+                loop.call_soon_threadsafe(fut.set_result, (proc, got))
+            except BaseException as exc:
+                loop.call_soon_threadsafe(fut.set_exception, exc)
+
+        threading.Thread(target=go, name="stream-launch", daemon=True).start()
+        return await fut
+
+    async def forward(self, msg: dict[str, Any]) -> None:
+        try:
+            writer = await self.ensure()
+        except OSError as exc:
+            self.rig.tell({"id": msg.get("id"), "error": {"kind": "stream", "detail":
+                                                          f"the stream process cannot be started: {exc}"}})
+            return
+        self.pending.add(msg.get("id"))
+        if msg.get("op") in ("record_open", "record_finish", "record_abandon"):
+            self.recording = msg["op"] == "record_open"
+        writer.write(channel.encode(msg))
+
+    async def read(self, reader: asyncio.StreamReader, proc: subprocess.Popen[bytes]) -> None:
+        async for msg in channel.messages(reader, "the stream process", log):
+            if "event" not in msg:
+                if msg.get("id") not in self.pending:
+                    continue  # the answer to the rig process's own question (record_interrupt)
+                self.pending.discard(msg.get("id"))
+            self.rig.tell(msg)
+        if self.proc is proc:
+            self.writer, self.recording = None, False
+        try:
+            code: int | str = await asyncio.wait_for(asyncio.to_thread(proc.wait), 10.0)
+        except TimeoutError:
+            proc.kill()
+            code = "killed: its channel closed and it did not end"
+        why = f"the stream process ended (exit code {code}): the DAQ stream and the recording stopped"
+        log.error("%s", why)
+        for n in self.pending:
+            self.rig.tell({"id": n, "error": {"kind": "stream", "detail": why}})
+        self.pending.clear()
+        self.rig.tell({"event": "stream", "samples": None, "lost": None, "error": why})
+
+    def interrupt(self, why: str) -> None:
+        """The web process is lost: an open recording is stopped and closed as interrupted."""
+        w = self.writer
+        self.recording = False
+        if w is not None and not w.is_closing():
+            w.write(channel.encode({"op": "record_interrupt", "id": None, "reason": why}))
+
+    def close(self) -> None:
+        """End the stream process (its lifeline closes: it closes an open recording first)."""
+        proc, self.proc = self.proc, None
+        if proc is not None and proc.stdin is not None:
+            with contextlib.suppress(OSError):
+                proc.stdin.close()
 
 
 class RigStops:
@@ -405,6 +512,7 @@ async def run(spec: Spec) -> int:
         rig.web.close()
     if rig.serving:
         await asyncio.wait(rig.serving, timeout=1.0)
+    rig.stream.close()
     with contextlib.suppress(Exception):
         await motor.close()
     with contextlib.suppress(FileNotFoundError):

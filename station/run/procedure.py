@@ -21,19 +21,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Protocol
 
-import numpy as np
-
 from drivers.clock import Clock
-from drivers.daq import DaqBridge
 from drivers.motor import MotorController, MotorStatus
 from station.config import config_to_yaml
 from station.environment import run_environment
-from station.ident.response.sinefit import fit3, fit4
-from station.recording import ChannelSpec, RecordingWriter, RunMetadata, new_run_id
+from station.recording import ChannelSpec, RunMetadata, new_run_id
 from station.recording.writer import DiskFullError, is_disk_full
-from station.run.acquisition import Acquisition, AcquisitionError
+from station.run.acquisition import AcquisitionError
 from station.run.request import Plan, PlannedStep
 from station.run.standstill import DriveCheck, read_back_standstill
+from station.run.steady import SteadyCriteria
+from station.run.stream import RecordingStream
 
 log = logging.getLogger(__name__)
 
@@ -102,45 +100,14 @@ class RunOutcome:
     lost_samples: int
 
 
-@dataclass(frozen=True)
-class SteadyCriteria:
-    """Steady state: amplitudes of both channels over consecutive windows agree within
-    ``amplitude_tol`` (relative), the fitted crank frequency is within ``frequency_tol_hz`` of the
-    setpoint (or 0.2 % of it, whichever is larger), for ``windows`` windows of ``window_s`` seconds."""
-
-    amplitude_tol: float = 0.005
-    frequency_tol_hz: float = 0.02
-    window_s: float = 0.25
-    windows: int = 3
-    timeout_s: float = 20.0
-
-
-def is_steady(disp: np.ndarray, force: np.ndarray, f_set: float, fs: float, crit: SteadyCriteria) -> bool:
-    """Apply ``crit`` to the newest samples (each channel: windows * window_s seconds)."""
-    n = int(crit.window_s * fs)
-    t = np.arange(n) / fs
-    amps_d, amps_f, freqs = [], [], []
-    for k in range(crit.windows):
-        sl = slice(k * n, (k + 1) * n)
-        fd = fit4(t, disp[sl].astype(float), f_set, max_iter=5)
-        ff = fit3(t, force[sl].astype(float), fd.frequency_hz)
-        amps_d.append(abs(fd.phasor))
-        amps_f.append(abs(ff.phasor))
-        freqs.append(fd.frequency_hz)
-    tol_f = max(crit.frequency_tol_hz, 0.002 * f_set)
-    if any(abs(f - f_set) > tol_f for f in freqs) or min(amps_d) <= 0 or min(amps_f) <= 0:
-        return False
-    return (max(amps_d) / min(amps_d) - 1 < crit.amplitude_tol
-            and max(amps_f) / min(amps_f) - 1 < crit.amplitude_tol)
-
-
 class RigDevices(Protocol):
-    """What the procedure drives: the motor and DAQ drivers and a radius actuator, and the clock
-    the rig keeps (real time; a virtual clock on the in-process simulated rig): every wait and
+    """What the procedure drives: the motor driver, the DAQ stream into the recording (in this
+    process or under the rig process: ``stream.RecordingStream``) and a radius actuator, and the
+    clock the rig keeps (real time; a virtual clock on the in-process simulated rig): every wait and
     time-out of the run is on it."""
 
     motor: MotorController
-    daq: DaqBridge
+    daq: RecordingStream
     radius: RadiusActuator
     clock: Clock
 
@@ -169,7 +136,7 @@ class Procedure:
         self.steady = steady or SteadyCriteria()
         self.abort_event = asyncio.Event()
         self.abort_reason = ""
-        self.acq: Acquisition | None = None
+        self.acq: RecordingStream | None = None  # the DAQ stream once it streams for this run
         self.reset_faults = reset_faults  # an operator acknowledged a latched controller fault
         self.motor_fault: tuple[int, str] | None = None  # a controller fault seen at the start or during the run
         self.drive_check: DriveCheck | None = None  # the drive read back after the run's stop
@@ -196,16 +163,15 @@ class Procedure:
             setattr(self.progress, k, v)
         if self.acq is not None:
             self.progress.samples = self.acq.samples
-            self.progress.lost_samples = sum(n for _, n in self.acq.lost)
+            self.progress.lost_samples = self.acq.lost_samples
         self._on_progress(self.progress)
 
     # ------------------------------------------------------------------------------ main
     async def execute(self) -> RunOutcome:
         cfg = self.plan.config
         motor, daq = self.rig.motor, self.rig.daq
-        daq_cfg = await asyncio.to_thread(daq.configure, rate_hz=cfg.daq.sample_rate_hz,
-                                          range_disp_V=cfg.daq.displacement_range_V,
-                                          range_force_V=cfg.daq.force_range_V)
+        daq_cfg = await daq.configure(rate_hz=cfg.daq.sample_rate_hz, range_disp_V=cfg.daq.displacement_range_V,
+                                      range_force_V=cfg.daq.force_range_V)
         # the quantisation step of the codes of the converter the bridge reports (connect refused a
         # configuration that disagrees with it); the configured resolution only for a bridge that reported none
         bits = daq.hardware.code_bits if daq.hardware is not None else cfg.daq.adc_bits
@@ -221,8 +187,8 @@ class Procedure:
             drive_profile_yaml=motor.profile.text or None, environment=run_environment(cfg))
         specs = channel_specs(cfg.displacement_sensor.gain_V_per_m, lsb * daq_cfg.range_disp_V,
                               lsb * daq_cfg.range_force_V)
-        writer = RecordingWriter(self.out_dir, meta, specs, plan=self.plan.to_dict(),
-                                 min_free_bytes=int(cfg.station.min_free_mb * 2**20))
+        await daq.open(self.out_dir, meta, specs, plan=self.plan.to_dict(),
+                       min_free_bytes=int(cfg.station.min_free_mb * 2**20))
         status, reason = "completed", ""
         error: BaseException | None = None
         try:
@@ -249,15 +215,11 @@ class Procedure:
             await motor.ensure_watchdog()  # the drive's communication watchdog on, at the profile's time-out
             await motor.start_watchdog(0.2)
             await motor.enable()
-            await asyncio.to_thread(daq.start)
-            self.acq = Acquisition(daq.get_event, writer, sample_rate_hz=daq_cfg.rate_hz,
-                                   rejected_frames=lambda: (daq.decoder.stats.crc_errors
-                                                            + daq.decoder.stats.framing_errors),
-                                   clock=self.clock)
-            self.acq.start()
+            await daq.start()
+            self.acq = daq
             self._report(state="running")
             for step in self.plan.steps:
-                await self._step(step, writer)
+                await self._step(step)
             self._report(step_state="stopping", message="all steps recorded; the crank ramps down to standstill")
             await self._ramp_to(0.0)
         except RunAborted as exc:
@@ -275,13 +237,10 @@ class Procedure:
             else:
                 await self._quiet(motor.stop())
             await self._quiet(motor.stop_watchdog())
-            await self._quiet(asyncio.to_thread(daq.stop))
-            if self.acq is not None:
-                await asyncio.to_thread(self.acq.stop)
-                if status == "completed" and self.acq.disk_error is not None:
-                    status, reason = "failed", f"recording cannot be written: {self.acq.disk_error}"
-            lost = sum(n for _, n in self.acq.lost) if self.acq else 0
-            disk_error = self.acq.disk_error if self.acq is not None else None
+            end = await daq.stop()
+            if status == "completed" and end.disk_error is not None:
+                status, reason = "failed", f"recording cannot be written: {end.disk_error}"
+            lost, disk_error = end.lost, end.disk_error
             if is_disk_full(error) or is_disk_full(disk_error):  # ENOSPC, not the writer's own reserve guard
                 status, reason = "failed", ("recording cannot be written: disk full (no space left on device "
                                             f"in {self.out_dir})")
@@ -289,25 +248,27 @@ class Procedure:
             if disk_full:  # room to close the file and note the end: the daemon's reserve goes first
                 self._release_reserve()
             try:
-                path = writer.finish(status, reason)
+                path = await daq.finish(status, reason)
             except Exception as exc:  # e.g. a full disk: the partial file keeps what was flushed
                 log.error("could not close the recording: %s", exc)
-                path = writer.partial_path
+                path = daq.partial_path
                 if is_disk_full(exc) and not disk_full and self._release_reserve():
                     try:
-                        path = writer.finish("failed", reason := f"{reason}; disk full while closing")
+                        path = await daq.finish("failed", reason := f"{reason}; disk full while closing")
                     except Exception as exc2:
                         exc = exc2
-                if path == writer.partial_path:
-                    writer.abandon()
+                if path == daq.partial_path:
+                    await daq.abandon()
                     reason = "; ".join(filter(None, [reason, f"recording left partial: {exc}"]))
+            if daq.closed_as is not None:  # the stream closed it first (a lost web process): as the file says
+                status, reason = daq.closed_as
             await self._verify_stopped(status)
             # a run that ended early is not "done": its progress stays at the steps it recorded
             self._report(state=status, message=reason, step_state="done" if status == "completed" else status)
         return RunOutcome(self.run_id, path, status, reason, lost)
 
     # ------------------------------------------------------------------------------ steps
-    async def _step(self, step: PlannedStep, writer: RecordingWriter) -> None:
+    async def _step(self, step: PlannedStep) -> None:
         cfg = self.plan.config
         fs = cfg.daq.sample_rate_hz
         assert self.acq is not None
@@ -322,13 +283,10 @@ class Procedure:
         self._report(step_state="settling", message=f"settling {step.settle_s:g} s")
         await self._wait_samples(self.acq.samples + int(step.settle_s * fs))
         deadline = self.clock.monotonic() + self.steady.timeout_s
-        need = int(self.steady.window_s * fs) * self.steady.windows
         while True:
             end = self.acq.samples
-            if end >= need:
-                d, f = self.acq.ring.get(end - need, end)
-                if await asyncio.to_thread(is_steady, d, f, step.crank_frequency_hz, fs, self.steady):
-                    break
+            if await self.acq.steady(step.crank_frequency_hz, fs, self.steady):
+                break
             if self.clock.monotonic() > deadline:
                 raise RunFailure(f"step {step.index} ({step.crank_frequency_hz:g} Hz): signals not steady "
                                  f"within {self.steady.timeout_s:g} s")
@@ -338,14 +296,14 @@ class Procedure:
         self._report(step_state="recording", message=f"recording {step.record_s:g} s")
         stop = start + round(step.record_s * fs)
         await self._wait_samples(stop)
-        lost = self.acq.lost_between(start, stop)
+        lost = await self.acq.lost_between(start, stop)
         if lost:
             log.warning("step %d: %d samples lost inside the record window", step.index, lost)
-        writer.add_step(crank_frequency_hz=step.crank_frequency_hz, crank_radius_m=step.crank_radius_m,
-                        start_sample=start, end_sample=stop, lost_in_window=lost,
-                        extra={"crank_angle_rad_at_start": st.crank_angle_rad,
-                               "actual_speed_hz_at_start": st.actual_speed_hz,
-                               "settle_s": step.settle_s, "record_s": step.record_s})
+        await self.acq.add_step(crank_frequency_hz=step.crank_frequency_hz, crank_radius_m=step.crank_radius_m,
+                                start_sample=start, end_sample=stop, lost_in_window=lost,
+                                extra={"crank_angle_rad_at_start": st.crank_angle_rad,
+                                       "actual_speed_hz_at_start": st.actual_speed_hz,
+                                       "settle_s": step.settle_s, "record_s": step.record_s})
         self._report(step_state="done", message=f"step {step.index + 1} of {len(self.plan.steps)} recorded")
 
     async def _wait_standstill(self, timeout_s: float = 30.0) -> MotorStatus:

@@ -27,6 +27,7 @@ from station.config import StationConfig, to_rig_physics
 from station.run.hardware import check_daq_hardware
 from station.run.procedure import FixedRadius, RadiusActuator
 from station.run.request import Plan
+from station.run.stream import LocalStream, RecordingStream
 
 if TYPE_CHECKING:
     from drivers.sim.rig import SimRig
@@ -47,7 +48,7 @@ class ConnectedRig:
     for tests' fault hooks (``rig.sim.motor.inject_fault(3)``); the station never reads it."""
 
     motor: MotorController
-    daq: DaqBridge
+    daq: RecordingStream  # the DAQ stream into the run's recording
     radius: RadiusActuator
     description: str = ""
     clock: Clock = REAL_CLOCK
@@ -69,14 +70,15 @@ class ConnectedRig:
         return {"motor": {"connected": bool(getattr(t, "connected", False)),
                           "watchdog_error": str(self.motor.watchdog_error or "") or None,
                           "link_error": getattr(t, "error", None)},  # e.g. the rig process's end
-                "daq": {"link_error": str(self.daq.link_error or "") or None},
+                "daq": {"link_error": self.daq.link_error},
                 "simulated": self.simulated}
 
 
 async def connect_drivers(cfg: StationConfig, profile: DriveProfile, motor_transport: RegisterTransport,
                            open_daq: Callable[[], ByteLink],
-                           clock: Clock = REAL_CLOCK) -> tuple[MotorController, DaqBridge]:
-    """Both drivers connected, and the configuration checked against what the DAQ bridge reports
+                           clock: Clock = REAL_CLOCK) -> tuple[MotorController, LocalStream]:
+    """Both drivers connected (the DAQ bridge's stream in this process, on ``clock``), and the
+    configuration checked against what the DAQ bridge reports
     (:func:`~station.run.hardware.check_daq_hardware`); nothing is written to the drive here."""
     motor = MotorController(profile, clock=clock)
     await motor.connect(motor_transport)
@@ -92,7 +94,7 @@ async def connect_drivers(cfg: StationConfig, profile: DriveProfile, motor_trans
         raise
     log.info("DAQ bridge: %s; %s, %d bits, channels %s, link %s", hw.identity, hw.adc, hw.adc_bits,
              ",".join(hw.channels), hw.link)
-    return motor, daq
+    return motor, LocalStream(daq, clock)
 
 
 @contextlib.asynccontextmanager

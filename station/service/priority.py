@@ -46,3 +46,25 @@ def raise_priority(name: str, wanted: Priority) -> str:
         if refused else "")
     (log.warning if refused else log.info)("%s thread: %s", name, got)
     return got
+
+
+BELOW_REALTIME_PRIORITY = 10  # SCHED_FIFO of what runs beside the rig and must yield to it (the DAQ stream)
+BELOW_NICE = -5
+
+
+def lower_below_rig() -> str:
+    """Lower the calling thread to just below what :func:`raise_priority` gives the rig (a thread
+    made for starting a child process that inherits it: the DAQ stream, which must preempt the web
+    side but never the watchdog keeper or the stop): ``SCHED_FIFO`` 10 under real-time 20, nice -5
+    under a raised nice, else as it is.  Lowering needs no privilege.  What it got, in words."""
+    tid = threading.get_native_id()
+    try:
+        if os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(BELOW_REALTIME_PRIORITY))
+            return f"real-time (SCHED_FIFO {os.sched_getparam(0).sched_priority})"
+        if os.getpriority(os.PRIO_PROCESS, tid) < BELOW_NICE:
+            os.setpriority(os.PRIO_PROCESS, tid, BELOW_NICE)
+        nice = os.getpriority(os.PRIO_PROCESS, tid)
+    except (OSError, AttributeError) as exc:
+        return f"as inherited ({exc})"
+    return f"raised (nice {nice})" if nice < 0 else f"normal (nice {nice})"
