@@ -3,6 +3,7 @@ streaming the counter source through the driver and checking that blocks and gap
 
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
 import subprocess
@@ -27,8 +28,11 @@ def build(target: str, *tools: str) -> Path:
         if os.environ.get("CI"):
             pytest.fail(f"{reason} (under CI it is required: .ci/run installs it)")
         pytest.skip(reason)
-    done = subprocess.run(["make", "-s", "-j2", "-C", str(FIRMWARE), f"CC={os.environ.get('CC', 'cc')}", target],
-                          capture_output=True, text=True, timeout=300)
+    # one make at a time: test workers building into the same folder at once link half-written objects
+    with open(FIRMWARE / ".build.lock", "a+b") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        done = subprocess.run(["make", "-s", "-j2", "-C", str(FIRMWARE), f"CC={os.environ.get('CC', 'cc')}",
+                               target], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, f"firmware build ({target}) failed:\n{done.stdout}\n{done.stderr}"
     return FIRMWARE / "build"
 

@@ -265,8 +265,8 @@ class AcceptGate:
             fd, (sock, opened) = next(iter(self.held.items()))
             if now - opened < limit:
                 break
+            self.bounds.count_timeout()  # counted before the FIN: whoever sees the close sees the count
             self._drop(fd, sock)
-            self.bounds.count_timeout()
 
     def _make_room(self) -> None:
         """Beyond the cap: the loop closes its idle connections first; for what they cannot make up,
@@ -290,8 +290,8 @@ class AcceptGate:
                 return
             if pending_bytes_of(sock) > 0:  # its first bytes are here: handed over on this turn
                 return
+            b.note_eviction()  # counted before the FIN
             self._drop(fd, sock)
-            b.note_eviction()
 
     def _loop_makes_room(self) -> None:
         self._room_asked = False
@@ -301,8 +301,8 @@ class AcceptGate:
         if not self.held:
             return False
         fd, (sock, _) = next(iter(self.held.items()))
+        self.bounds.note_eviction()  # counted before the FIN
         self._drop(fd, sock)
-        self.bounds.note_eviction()
         return True
 
     def _drop(self, fd: int, sock: socket.socket) -> None:
