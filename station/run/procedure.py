@@ -100,6 +100,20 @@ class RunOutcome:
     lost_samples: int
 
 
+class RunProcedure(Protocol):
+    """A run being carried out, as the daemon's run manager sees it: :class:`Procedure` in this
+    process, or its remote form carrying the same run out in the rig process
+    (``rigproc/remoterun.RemoteProcedure``); the same outcome either way."""
+
+    run_id: str
+    motor_fault: tuple[int, str] | None  # a controller fault seen at the start or during the run
+    drive_check: DriveCheck | None  # the drive read back after the run's stop
+
+    def abort(self, reason: str = "aborted by operator") -> None: ...
+
+    async def execute(self) -> RunOutcome: ...
+
+
 class RigDevices(Protocol):
     """What the procedure drives: the motor driver, the DAQ stream into the recording (in this
     process or under the rig process: ``stream.RecordingStream``) and a radius actuator, and the

@@ -24,7 +24,7 @@ from station.lab import audit, register
 from station.lab.integrity import sha256_file
 from station.lab.store import RunRow, Store
 from station.recording import new_run_id
-from station.run.procedure import Procedure, Progress, RunOutcome
+from station.run.procedure import Progress, RunOutcome, RunProcedure
 from station.run.request import Plan, RunRequest, plan_run
 from station.run.rig import ConnectedRig
 from station.service.changes import Changes
@@ -52,7 +52,7 @@ class LiveRun:
     row: RunRow
     plan: Plan
     rig: ConnectedRig  # checked healthy when the run was queued (``RigLink.for_run``, once per run)
-    proc: Procedure | None = None
+    proc: RunProcedure | None = None  # here, or its remote form in the rig process
     task: asyncio.Task[None] | None = None  # on the web loop: waits for the rig side
     rig_task: asyncio.Task[RunOutcome] | None = None  # on the rig loop: the procedure
     cancelled: bool = False
@@ -242,9 +242,9 @@ class Runs:
             raise asyncio.CancelledError
         plan, rig = live.plan, live.rig
         rig.load(plan)
-        proc = Procedure(plan, rig, self.recordings_dir, run_id=live.row.id,
-                         on_progress=lambda p: self._post(self._on_progress, live, dataclasses.replace(p)),
-                         on_disk_full=self.disk.release_reserve)
+        proc = rig.procedure(plan, self.recordings_dir, run_id=live.row.id,
+                             on_progress=lambda p: self._post(self._on_progress, live, dataclasses.replace(p)),
+                             on_disk_full=self.disk.release_reserve, disk_reserve=self.disk.path)
         live.proc = proc
         if live.abort_reason:
             proc.abort(live.abort_reason)
