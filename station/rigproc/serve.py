@@ -443,7 +443,9 @@ class StreamLink:
         for n in self.pending:
             self.rig.tell({"id": n, "error": {"kind": "stream", "detail": why}})
         self.pending.clear()
-        self.rig.tell({"event": "stream", "samples": None, "lost": None, "error": why})
+        ended = {"event": "stream", "samples": None, "lost": None, "error": why}
+        self.rig.runs.asker.take(ended)  # a run carried out here fails as on a lost DAQ link
+        self.rig.tell(ended)
 
     def interrupt(self, why: str) -> None:
         """The web process is lost: an open recording is stopped and closed as interrupted."""
