@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from drivers.clock import REAL_CLOCK, Clock
 from drivers.motor.controller import MotorController
@@ -34,7 +34,7 @@ from drivers.motor.errors import MotorLinkError, MotorStateError
 from station.rigproc import channel
 
 if TYPE_CHECKING:
-    from station.rigproc.serve import RigProcess
+    from drivers.motor.transport import RegisterTransport
     from station.run.procedure import Procedure, Progress, RadiusActuator, RunOutcome
     from station.run.stream import RecordingStream
 
@@ -44,6 +44,23 @@ PROGRESS_PERIOD_S = 0.25  # a run's progress told at most this often (a change o
 BACKLOG_BYTES = 256 * 1024  # progress and stream events not queued for a web process that reads nothing
 KEEP_OUTCOMES = 16  # the last runs' outcomes, for ``run_outcome``
 END_WAIT_S = 120.0  # an aborted run's stop, read-back and recording's close, at most
+
+
+class RigProcess(Protocol):
+    """What of the rig process (``serve.RigProcess``) a run carried out there uses."""
+
+    spec: Any  # ``serve.Spec``: its ``radius_control``
+    motor: MotorController
+    transport: RegisterTransport
+    latched: dict[str, Any] | None
+    keeper_error: str | None
+    run_id: str | None
+    drive: Any  # the drive's last read-back (``run/standstill.DriveCheck``)
+    stream: Any  # the stream process (``serve.StreamLink``): ``ensure()`` its channel
+
+    async def write(self, address: int, words: Sequence[int], what: str, retry: bool) -> dict[str, Any]: ...
+
+    def tell(self, event: dict[str, Any], droppable: bool = False) -> None: ...
 
 
 class DriveSide:
