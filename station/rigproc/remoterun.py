@@ -6,8 +6,8 @@ manager (``service/runs.py``), with the same outcome (``RunOutcome``, ``motor_fa
 It asks the rig process to carry out the plan (``run_start``: the plan, the run's id, the recordings
 folder, the DAQ bridge as the web process connected it, the crank radius now), follows the
 ``run_progress`` events into ``on_progress``, and returns the outcome the ``run_end`` event carries.
-An abort is a message (``run_abort``); a cancellation (the station stops) asks for the procedure's
-own cancellation there (it ends ``interrupted``) and waits for its outcome.
+An abort is a message (``run_abort``); a cancellation (the station stops) asks for the run to be
+interrupted there (it ends ``interrupted``, as a cancelled procedure does) and waits for its outcome.
 
 Everything here runs on the rig thread's loop (``service/rigthread.py``)."""
 

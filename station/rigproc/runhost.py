@@ -7,9 +7,10 @@ outcome, kept for ``run_outcome`` too); ``run_abort`` stops it.
 While a run is carried out here a silent web process (hung, stopped, flooded) no longer stops it:
 the run goes on to its end and its recording closes as the procedure decides.  The stop port, a lost
 drive link, the drive's watchdog and a fault stop it as they stop any run.  When the web process's
-connection closes (it died) or the daemon's lifeline ends, the run is aborted (ramp down, drive read
-back, the recording closed ``aborted`` with the reason): nobody is left to take its result; a later
-daemon reads how it ended in the recording (``service/recovery.py``).
+connection closes (it died) or the daemon's lifeline ends, the run is stopped (ramp down, drive read
+back, the recording closed ``interrupted`` with the reason, as the stream process closes a run the
+daemon's end cuts off): nobody is left to take its result; a later daemon reads how it ended in the
+recording (``service/recovery.py``).
 
 The procedure and what it imports (numpy, h5py for the stream's types) are loaded at the first run,
 in a thread (the keeper goes on meanwhile): the rig process starts without them."""
@@ -262,23 +263,25 @@ class RunHost:
                        "lost_samples": p.lost_samples, "message": p.message[:500]}, droppable=same)
 
     def abort(self, reason: str, run_id: str | None = None, *, interrupt: bool = False) -> str | None:
-        """Abort the run (``run_id``: only that one); ``interrupt``: as a station that ends (the
-        procedure's cancellation: it ends ``interrupted``).  The run aborted, or None."""
+        """Abort the run (``run_id``: only that one); ``interrupt``: as the station's end cuts it
+        off (it ends ``interrupted``).  The run aborted, or None."""
         hosted = self.current
         if hosted is None or (run_id is not None and run_id != hosted.run_id):
             return None
-        hosted.procedure.abort(reason[:500])
         if interrupt:
-            hosted.task.cancel()
+            hosted.procedure.interrupt(reason[:500])
+        else:
+            hosted.procedure.abort(reason[:500])
         return hosted.run_id
 
     async def end(self, reason: str) -> None:
-        """Abort the run, if one goes on, and wait until it ended (the web process or the daemon is gone)."""
+        """The web process or the daemon is gone: the run, if one goes on, is stopped and ends
+        ``interrupted`` (as a run the daemon's end cuts off); returns once it ended."""
         hosted = self.current
         if hosted is None:
             return
-        log.warning("run %s aborted: %s", hosted.run_id, reason)
-        self.abort(reason)
+        log.warning("run %s interrupted: %s", hosted.run_id, reason)
+        self.abort(reason, interrupt=True)
         await asyncio.wait({hosted.task}, timeout=END_WAIT_S)
 
     def outcome(self, run_id: str) -> dict[str, Any]:
