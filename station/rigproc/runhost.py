@@ -173,6 +173,7 @@ class RunHost:
         self.outcomes: collections.OrderedDict[str, dict[str, Any]] = collections.OrderedDict()
         self._last_progress = 0.0
         self._phase: tuple[Any, ...] = ()
+        self._starting = False  # a ``run_start`` loading the procedure's modules
 
     @property
     def active(self) -> bool:
@@ -181,29 +182,35 @@ class RunHost:
     async def start(self, msg: dict[str, Any]) -> dict[str, Any]:
         """``run_start``: the run accepted (it goes on in a task of its own) or refused (``error``)."""
         run_id = str(msg["run_id"])[:80]
-        if self.current is not None:
-            return {"error": {"kind": "refused", "register": "run",
-                              "detail": f"the rig process carries out run {self.current.run_id} already"}}
-        if self.rig.latched is not None:
-            return {"error": {"kind": "refused", "register": "run",
-                              "detail": f"the rig process holds a stop ({self.rig.latched['source']}: "
-                                        f"{self.rig.latched['detail']}); an operator acknowledges it first"}}
-        procedure_mod, stream_mod, config_mod, request_mod = await asyncio.to_thread(_load)
-        cfg = config_mod.parse_config(msg["config"], "the run's configuration")
-        plan = request_mod.Plan(cfg, tuple(request_mod.PlannedStep(**s) for s in msg["steps"]),
-                                dict(msg.get("provenance") or {}))
-        daq = stream_mod.RemoteStream(self.asker, "", 0, "")
-        daq.adopt(msg["hardware"])
-        radius = self.radius(procedure_mod, float(msg["radius_m"]))
-        reserve = msg.get("reserve_file")
-        motor = MotorController(self.rig.motor.profile)
-        await motor.connect(DriveSide(self.rig))
-        proc = procedure_mod.Procedure(
-            plan, Devices(motor, daq, radius), Path(str(msg["out_dir"])), run_id=run_id, on_progress=self.progress,
-            steady=_criteria(msg.get("steady")), reset_faults=bool(msg.get("reset_faults", False)),
-            on_disk_full=(lambda: _release(Path(reserve))) if reserve else None)
-        task = asyncio.create_task(self._carry_out(proc, daq), name=f"run-{run_id}")
-        self.current = HostedRun(run_id, proc, task, radius)
+        if self.current is not None or self._starting:
+            return _refused(f"the rig process carries out run {self.current.run_id if self.current else '?'} already")
+        self._starting = True
+        try:
+            procedure_mod, stream_mod, config_mod, request_mod = await asyncio.to_thread(_load)
+            if self.rig.latched is not None:  # also one given while the modules loaded
+                return _refused(f"the rig process holds a stop ({self.rig.latched['source']}: "
+                                f"{self.rig.latched['detail']}); an operator acknowledges it first")
+            try:
+                cfg = config_mod.parse_config(msg["config"], "the run's configuration")
+                plan = request_mod.Plan(cfg, tuple(request_mod.PlannedStep(**s) for s in msg["steps"]),
+                                        dict(msg.get("provenance") or {}))
+                daq = stream_mod.RemoteStream(self.asker, "", 0, "")
+                daq.adopt(msg["hardware"])
+                radius = self.radius(procedure_mod, float(msg["radius_m"]))
+                steady = _criteria(msg.get("steady"))
+            except Exception as exc:  # a plan that does not parse: refused, nothing moved
+                return {"error": {"kind": "bad", "detail": f"run_start: {type(exc).__name__}: {exc}"[:500]}}
+            reserve = msg.get("reserve_file")
+            motor = MotorController(self.rig.motor.profile)
+            await motor.connect(DriveSide(self.rig))
+            proc = procedure_mod.Procedure(
+                plan, Devices(motor, daq, radius), Path(str(msg["out_dir"])), run_id=run_id,
+                on_progress=self.progress, steady=steady, reset_faults=bool(msg.get("reset_faults", False)),
+                on_disk_full=(lambda: _release(Path(reserve))) if reserve else None)
+            task = asyncio.create_task(self._carry_out(proc, daq), name=f"run-{run_id}")
+            self.current = HostedRun(run_id, proc, task, radius)
+        finally:
+            self._starting = False
         self.rig.run_id = run_id
         self._phase, self._last_progress = (), 0.0
         log.info("run %s: carried out in the rig process (%d steps)", run_id, len(plan.steps))
@@ -294,6 +301,10 @@ def _load() -> tuple[Any, Any, Any, Any]:
     """The procedure's modules (numpy, h5py with them): imported at the first run, in a thread."""
     return tuple(importlib.import_module(m) for m in (  # type: ignore[return-value]
         "station.run.procedure", "station.rigproc.streamclient", "station.config", "station.run.request"))
+
+
+def _refused(detail: str) -> dict[str, Any]:
+    return {"error": {"kind": "refused", "register": "run", "detail": detail}}
 
 
 def _criteria(d: dict[str, Any] | None) -> Any:
