@@ -56,6 +56,7 @@ class RigProcess(Protocol):
     latched: dict[str, Any] | None
     keeper_error: str | None
     run_id: str | None
+    turning: bool  # a set-point other than 0 was set since the last stop
     drive: Any  # the drive's last read-back (``run/standstill.DriveCheck``)
     stream: Any  # the stream process (``serve.StreamLink``): ``ensure()`` its channel
 
@@ -247,6 +248,8 @@ class RunHost:
                     "radius_m": hosted.radius.radius_m if hosted is not None else None, "at": time.time()})
         if proc.drive_check is not None:
             self.rig.drive = proc.drive_check
+            if proc.drive_check.standstill:  # e.g. after its emergency stop, which sets no set-point of 0
+                self.rig.turning = False
         self.outcomes[run_id] = out
         while len(self.outcomes) > KEEP_OUTCOMES:
             self.outcomes.popitem(last=False)
