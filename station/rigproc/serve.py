@@ -6,9 +6,12 @@ It holds the drive's one connection and, on its own, without waiting for the web
   as the web process's set-points say; when it dies, the drive's own watchdog stops the crank);
 * serves the stop port (``commands/stopport.StopPort``): the emergency stop on the drive, then the
   drive read back to standstill, answered from here; the web process is told afterwards;
+* carries out the run's procedure the web process asks for (``runhost.py``): a silent web process
+  does not end it; its connection closing or the lifeline's end interrupts it;
 * stops the crank (ramp down, read back, the emergency stop if it still turns) when the web
-  process falls silent for ``link_timeout_s`` while the crank turns, or its connection closes while
-  the crank turns, or the daemon's end of the lifeline (stdin) closes; then it holds the stop;
+  process falls silent for ``link_timeout_s`` while the crank turns outside such a run, or its
+  connection closes while the crank turns, or the daemon's end of the lifeline (stdin) closes; then
+  it holds the stop;
 * while it holds a stop, refuses any set-point other than 0 the web process sends, until the
   operator's acknowledgement releases it (``release``);
 * forwards the web process's register reads and writes (``channel.py``) to the drive; its keeper

@@ -2,7 +2,8 @@
 time), carry it out with the Procedure, follow its progress, abort it, stop everything at once.
 
 The bookkeeping (``live``, the database, change notification) belongs to the web side's loop; the
-procedure runs on the rig thread's loop (``_carry_out``) and posts its progress back with
+procedure runs on the rig thread's loop (``_carry_out``), or is carried out in the rig process and
+followed from there (``ConnectedRig.procedure``: the daemon's rig), and posts its progress back with
 ``call_soon_threadsafe``.  Aborts and cancellations cross over the other way."""
 
 from __future__ import annotations
