@@ -14,6 +14,7 @@ process of their own, against the emulators in a third process (their true state
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import os
 import signal
@@ -27,6 +28,7 @@ import httpx
 import pytest
 
 from drivers.sim import SimRigProcess
+from drivers.sim.process import SocketCrankRadius
 from tests.station_support import Daemon, daemon_config, free_port
 
 pytestmark = pytest.mark.slow
@@ -179,6 +181,11 @@ def test_with_the_web_process_stopped_the_stop_port_stops_the_crank_and_reads_it
         assert emu.status()["speed_hz"] == 0.0 and emu.status()["fault_code"] == 0
         assert emu.wait_command("emergency_stop", t0, timeout_s=0.0) is None
         assert not _estop(c).get("latched")
+    # the simulated rig's crank radius, as the rig process changes it under --sim: on the emulators'
+    # control socket, at standstill
+    radius = SocketCrankRadius(str(emu.addresses.control), 0.001)
+    asyncio.run(radius.set_radius(0.002))
+    assert emu.status()["radius_m"] == 0.002 and radius.radius_m == 0.002
 
 
 def test_a_killed_rig_process_leaves_the_crank_to_the_drives_watchdog_and_a_new_one_serves(

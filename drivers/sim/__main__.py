@@ -4,7 +4,8 @@ Prints one line with the addresses (JSON with ``--json``) and then serves.  Line
 the emulators from another process (one JSON line answers each on stdout):
 
 - ``status``: the motor's true state, ``{"status": {"speed_hz", "enabled", "fault_code", "estop",
-  "watchdog_refreshes", "t_monotonic"}}`` (the refreshes the drive took since it started);
+  "watchdog_refreshes", "radius_m", "t_monotonic"}}`` (the refreshes the drive took since it
+  started; the crank radius the signals are synthesised with, m);
 - ``ignore-stops on`` / ``ignore-stops off``: the drive takes every command but keeps turning when
   told to stop (see ``MotorModel.ignore_stops``), ``{"ignore_stops": true}``;
 - ``radius R``: change the crank radius to R m as a motorised eccentric does (waits up to 3 s for
@@ -63,6 +64,7 @@ def _command(rig: SimRig, line: str) -> dict[str, Any]:
         s = rig.motor.snapshot()
         return {"status": {"speed_hz": s.speed_hz, "enabled": s.enabled, "fault_code": s.fault_code,
                            "estop": s.estop, "watchdog_refreshes": rig.motor.watchdog_refreshes,
+                           "radius_m": rig.source.crank_radius_m if isinstance(rig.source, RigSource) else None,
                            "t_monotonic": time.monotonic()}}
     if len(words) == 2 and words[0] == "ignore-stops" and words[1] in ("on", "off"):
         rig.motor.ignore_stops(words[1] == "on")

@@ -111,7 +111,8 @@ class SimRigProcess:
             return self._replies[n]
 
     def status(self) -> dict[str, Any]:
-        """The motor's true state: speed_hz, enabled, fault_code, estop, t_monotonic."""
+        """The motor's true state: speed_hz, enabled, fault_code, estop, watchdog_refreshes, radius_m
+        (the crank radius synthesised), t_monotonic."""
         return dict(self._ask("status")["status"])
 
     def ignore_stops(self, on: bool = True) -> None:
