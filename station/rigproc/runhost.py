@@ -183,8 +183,10 @@ class RunHost:
     async def start(self, msg: dict[str, Any]) -> dict[str, Any]:
         """``run_start``: the run accepted (it goes on in a task of its own) or refused (``error``)."""
         run_id = str(msg["run_id"])[:80]
-        if self.current is not None or self._starting:
-            return _refused(f"the rig process carries out run {self.current.run_id if self.current else '?'} already")
+        if self.current is not None:
+            return _refused(f"the rig process carries out run {self.current.run_id} already")
+        if self._starting:
+            return _refused("the rig process is starting another run")
         self._starting = True
         try:
             procedure_mod, stream_mod, config_mod, request_mod = await asyncio.to_thread(_load)
