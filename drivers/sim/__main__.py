@@ -4,7 +4,8 @@ Prints one line with the addresses (JSON with ``--json``) and then serves.  Line
 the emulators from another process (one JSON line answers each on stdout):
 
 - ``status``: the motor's true state, ``{"status": {"speed_hz", "enabled", "fault_code", "estop",
-  "watchdog_refreshes", "t_monotonic"}}`` (the refreshes the drive took since it started);
+  "watchdog_refreshes", "radius_m", "t_monotonic"}}`` (the refreshes the drive took since it
+  started; the crank radius the signals are synthesised with, m);
 - ``ignore-stops on`` / ``ignore-stops off``: the drive takes every command but keeps turning when
   told to stop (see ``MotorModel.ignore_stops``), ``{"ignore_stops": true}``;
 - ``radius R``: change the crank radius to R m as a motorised eccentric does (waits up to 3 s for
@@ -12,6 +13,10 @@ the emulators from another process (one JSON line answers each on stdout):
 - ``load B``: synthesise other physics from now on (B: a :class:`~drivers.rig.params.RigPhysics`
   pickled and base64-encoded, as :meth:`SimRigProcess.load_physics` sends it; the daemon that
   started this process is the only writer of its stdin), ``{"loaded": true}``.
+
+The same ``status`` and ``radius R`` lines (only those) are answered on a Unix socket too, one
+line each way per connection, whose path the addresses line gives as ``control``: the rig process,
+which the daemon starts apart from this one, changes the crank radius there during its runs.
 
 With ``--commands`` every command the motor controller takes (each register written, except the
 watchdog refreshes) is printed as ``{"command": name, "value": v, "t_monotonic": t}``, with
@@ -27,8 +32,11 @@ import base64
 import contextlib
 import json
 import logging
+import os
 import pickle
+import socket
 import sys
+import tempfile
 import threading
 import time
 from typing import Any
@@ -40,6 +48,8 @@ from drivers.sim.process import addresses_json
 from drivers.sim.rig import SimRig
 
 _out = threading.Lock()
+_commands = threading.Lock()  # one command at a time, from stdin or the control socket
+CONTROL_LINE = 200  # bytes of a control socket's line, at most
 
 
 def _say(obj: dict[str, Any] | str) -> None:
@@ -54,6 +64,7 @@ def _command(rig: SimRig, line: str) -> dict[str, Any]:
         s = rig.motor.snapshot()
         return {"status": {"speed_hz": s.speed_hz, "enabled": s.enabled, "fault_code": s.fault_code,
                            "estop": s.estop, "watchdog_refreshes": rig.motor.watchdog_refreshes,
+                           "radius_m": rig.source.crank_radius_m if isinstance(rig.source, RigSource) else None,
                            "t_monotonic": time.monotonic()}}
     if len(words) == 2 and words[0] == "ignore-stops" and words[1] in ("on", "off"):
         rig.motor.ignore_stops(words[1] == "on")
@@ -69,6 +80,30 @@ def _command(rig: SimRig, line: str) -> dict[str, Any]:
         return {"error": f"{words[0]}: {exc}"}
     return {"error": f"unknown command {line[:80]!r}; expected 'status', 'ignore-stops on|off', 'radius R' "
                      "or 'load B'"}
+
+
+def _serve_control(rig: SimRig, server: socket.socket) -> None:
+    """The control socket: ``status`` and ``radius R`` (never ``load``: no pickle from a socket)."""
+    while True:
+        try:
+            conn, _ = server.accept()
+        except OSError:
+            return
+        threading.Thread(target=_control_connection, args=(rig, conn), name="sim-control", daemon=True).start()
+
+
+def _control_connection(rig: SimRig, conn: socket.socket) -> None:
+    with conn, conn.makefile("rwb") as f:
+        line = f.readline(CONTROL_LINE).decode("ascii", "replace").strip()
+        words = line.split()
+        if words[:1] in (["status"], ["radius"]):
+            with _commands:
+                reply = _command(rig, line)
+        else:
+            reply = {"error": f"unknown command {line[:80]!r} on the control socket; expected 'status' or 'radius R'"}
+        with contextlib.suppress(OSError):
+            f.write((json.dumps(reply) + "\n").encode())
+            f.flush()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -99,11 +134,26 @@ def main(argv: list[str] | None = None) -> int:
             rig.image.observers.append(seen)
         if isinstance(rig.source, RigSource):
             rig.source.warm()  # numba's kernels before the addresses: the first CONF is answered at once
-        _say(addresses_json(rig.addresses))
-        with contextlib.suppress(KeyboardInterrupt):
-            for line in sys.stdin:  # ends at EOF
-                if line.strip():
-                    _say(_command(rig, line.strip()))
+        folder = tempfile.mkdtemp(prefix="sinecal-sim-")
+        control = os.path.join(folder, "control")
+        server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        server.bind(control)
+        os.chmod(control, 0o600)
+        server.listen(4)
+        threading.Thread(target=_serve_control, args=(rig, server), name="sim-control-accept", daemon=True).start()
+        _say(addresses_json(rig.addresses, control))
+        try:
+            with contextlib.suppress(KeyboardInterrupt):
+                for line in sys.stdin:  # ends at EOF
+                    if line.strip():
+                        with _commands:
+                            reply = _command(rig, line.strip())
+                        _say(reply)
+        finally:
+            server.close()
+            with contextlib.suppress(OSError):
+                os.unlink(control)
+                os.rmdir(folder)
     return 0
 
 

@@ -14,6 +14,7 @@ import contextlib
 import json
 import os
 import pickle
+import socket
 import subprocess
 import sys
 import threading
@@ -26,11 +27,13 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class SimRigAddresses:
-    """Where the emulators listen: Modbus TCP (host, port), Modbus RTU pty path, DAQ pty path."""
+    """Where the emulators listen: Modbus TCP (host, port), Modbus RTU pty path, DAQ pty path, and
+    the control socket (``status``, ``radius R``: :class:`SocketCrankRadius`; None when not served)."""
 
     modbus_tcp: tuple[str, int]
     modbus_rtu: str | None
     daq: str
+    control: str | None = None
 
     @property
     def modbus_tcp_url(self) -> str:
@@ -82,7 +85,7 @@ class SimRigProcess:
             rc = self._proc.wait()
             raise RuntimeError(f"sim rig subprocess exited with {rc} before printing addresses")
         d = json.loads(line)
-        self.addresses = SimRigAddresses(tuple(d["modbus_tcp"]), d["modbus_rtu"], d["daq"])
+        self.addresses = SimRigAddresses(tuple(d["modbus_tcp"]), d["modbus_rtu"], d["daq"], d.get("control"))
         threading.Thread(target=self._read, name="sim-rig-process-reader", daemon=True).start()
         return self
 
@@ -108,7 +111,8 @@ class SimRigProcess:
             return self._replies[n]
 
     def status(self) -> dict[str, Any]:
-        """The motor's true state: speed_hz, enabled, fault_code, estop, t_monotonic."""
+        """The motor's true state: speed_hz, enabled, fault_code, estop, watchdog_refreshes, radius_m
+        (the crank radius synthesised), t_monotonic."""
         return dict(self._ask("status")["status"])
 
     def ignore_stops(self, on: bool = True) -> None:
@@ -167,5 +171,35 @@ class ProcessCrankRadius:
         self.radius_m = radius_m
 
 
-def addresses_json(addr: SimRigAddresses) -> str:
-    return json.dumps(asdict(addr))
+class SocketCrankRadius:
+    """The motorised crank radius of a simulated rig reached on its control socket (``addresses.control``),
+    from a process that did not start the emulators (the rig process)."""
+
+    TIMEOUT_S = 10.0  # the emulator waits up to 3 s for standstill, then moves the eccentric
+
+    def __init__(self, control: str, radius_m: float) -> None:
+        self.control = control
+        self.radius_m = radius_m
+
+    async def set_radius(self, radius_m: float) -> None:
+        reply = await asyncio.to_thread(self._ask, f"radius {float(radius_m)!r}")
+        if "error" in reply:
+            raise RuntimeError(f"the simulated rig did not change the crank radius: {reply['error']}")
+        self.radius_m = radius_m
+
+    def _ask(self, line: str) -> dict[str, Any]:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+            s.settimeout(self.TIMEOUT_S)
+            s.connect(self.control)
+            s.sendall(line.encode("ascii") + b"\n")
+            with s.makefile("rb") as f:
+                answer = f.readline(4096)
+        if not answer:
+            return {"error": "the control socket closed without an answer"}
+        reply: dict[str, Any] = json.loads(answer)
+        return reply
+
+
+def addresses_json(addr: SimRigAddresses, control: str | None = None) -> str:
+    """The addresses line (``control``: the control socket's path, served by ``python -m drivers.sim``)."""
+    return json.dumps({**asdict(addr), "control": control or addr.control})

@@ -19,19 +19,33 @@ question (``op``)  fields                                          answer
                                                                    watchdog refreshes go through (the web
                                                                    process's keeper asks it instead of
                                                                    refreshing the drive a second time)
+``run_start``      ``run_id``, ``config``, ``steps``,              -- (the run goes on in the rig process,
+                   ``provenance``, ``out_dir``, ``hardware``,      ``runhost.py``); refused while it holds a
+                   ``radius_m``, ``reserve_file``, (``steady``,    stop or carries out another run
+                   ``reset_faults``)
+``run_abort``      ``run_id``, ``reason``, ``interrupt``           ``aborted``: the run aborted (null: none)
+``run_outcome``    ``run_id``                                      ``running``, ``outcome`` (as ``run_end``;
+                                                                   null while it goes on or if unknown)
 ``daq_*``,         as ``docs/safety.md`` (*The DAQ stream under     answered by the stream process (the rig
 ``record_*``       the rig process*) tabulates them                process forwards them unchanged); a
                                                                    failure as ``error`` (``kind`` ``daq``,
                                                                    ``disk``, ``recording``, ``acquisition``,
                                                                    ``stream``, ``bad``, ``exception``;
-                                                                   ``type``, ``detail``)
+                                                                   ``type``, ``detail``); refused (``busy``)
+                                                                   while a run is carried out there
 =================  ==============================================  ==========================================
 
 Events: ``stream`` (the DAQ stream's ``samples``, ``lost``, ``error``: every 0.1 s while it streams;
-``samples`` null when the stream process ended), ``stopping`` (a stop the rig process is about to
+``samples`` null when the stream process ended), ``run_progress`` (a run carried out in the rig
+process: ``run_id``, ``state``, ``step``, ``n_steps``, ``step_state``, ``samples``, ``lost_samples``,
+``message``; at most every 0.25 s, at once when the step or its state changes), ``run_end`` (its
+outcome: ``run_id``, ``status``, ``reason``, ``path``, ``lost_samples``, ``motor_fault``, ``drive``,
+``radius_m``), ``stopping`` (a stop the rig process is about to
 give, told before it commands the drive: ``source``; the runs are aborted before any answer can
 show them the drive's emergency-stop fault) and ``stopped`` (the stop given: ``source``,
-``detail``, ``commanded``, ``drive``, ``credentials`` of the request for the record).  A failure
+``detail``, ``commanded``, ``drive``, ``credentials`` of the request for the record).  The periodic
+events (``stream`` without an error, ``run_progress`` within a step's state) are not queued while
+the web process has not read 256 KiB told before (it is stopped or hangs).  A failure
 travels as ``error``: ``kind`` (``link``,
 ``timeout``, ``exception``, ``protocol``, ``refused``, ``bad``) and ``detail``."""
 
@@ -44,7 +58,8 @@ import struct
 from collections.abc import AsyncIterator
 from typing import Any
 
-VERSION = 3  # 2: ``keeper`` (the drive's watchdog refreshed by the rig process alone); 3: the DAQ stream
+VERSION = 4  # 2: ``keeper`` (the drive's watchdog refreshed by the rig process alone); 3: the DAQ stream;
+# 4: the run's procedure carried out in the rig process (``run_*``)
 MAX_MESSAGE = 64 * 1024  # bytes of JSON; a register exchange is some 100
 _LEN = struct.Struct(">I")
 

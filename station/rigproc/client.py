@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import itertools
 import json
 import logging
@@ -36,6 +37,7 @@ from drivers.motor.errors import (
 from drivers.motor.profile import DriveProfile, load_profile
 from station.config import StationConfig, to_rig_physics
 from station.rigproc import channel
+from station.rigproc.remoterun import RemoteProcedure
 from station.rigproc.streamclient import RemoteStream
 from station.run.hardware import check_daq_hardware
 from station.run.procedure import FixedRadius, RadiusActuator
@@ -69,8 +71,13 @@ def raise_error(err: dict[str, Any]) -> None:
 class RigSupervisor:
     """The rig process (and, simulated, the emulators' process) for the daemon's lifetime."""
 
-    def __init__(self, settings: ServiceSettings, motor_url: str | None = None) -> None:
+    def __init__(self, settings: ServiceSettings, motor_url: str | None = None,
+                 radius_control: str | None = None) -> None:
+        """``radius_control``: the simulated rig's control socket, where the rig process changes the
+        crank radius during the runs it carries out (None: a radius set by hand)."""
         self.settings = settings
+        self.radius_control = radius_control
+        self.run_events: dict[str, Callable[[dict[str, Any]], None]] = {}  # a run's events (remoterun), by id
         self.cfg = settings.config
         self.motor_url = motor_url or self.cfg.devices.motor_url
         self.on_event: Callable[[dict[str, Any]], None] | None = None  # events (a stop given there), rig loop
@@ -105,7 +112,7 @@ class RigSupervisor:
                 "stop_host": self.settings.host if self.settings.stop_port is not None else None,
                 "stop_port": self.settings.stop_port or 0, "names": sorted(station_names(self.settings)),
                 "page_port": self.page_port, "header_timeout_s": min(5.0, svc.header_timeout_s),
-                "priority": svc.rig_priority, "link_timeout_s": LINK_TIMEOUT_S}
+                "priority": svc.rig_priority, "link_timeout_s": LINK_TIMEOUT_S, "radius_control": self.radius_control}
 
     @staticmethod
     def popen() -> subprocess.Popen[str]:
@@ -209,6 +216,8 @@ class RigSupervisor:
             if not fut.done():
                 fut.set_exception(MotorLinkError("<rig process>", "the channel to the rig process closed"))
         self._pending.clear()
+        for handler in list(self.run_events.values()):  # a run carried out there is lost with it
+            handler({"event": "lost", "detail": self.error or "the channel to the rig process closed"})
 
     # ------------------------------------------------------------------ the channel
     async def _read(self, reader: asyncio.StreamReader) -> None:
@@ -216,6 +225,14 @@ class RigSupervisor:
             if msg.get("event") == "stream":
                 if self.on_stream is not None:
                     self.on_stream(msg)
+                continue
+            if msg.get("event") in ("run_progress", "run_end"):
+                handler = self.run_events.get(str(msg.get("run_id")))
+                if handler is not None:
+                    handler(msg)
+                elif msg["event"] == "run_end":
+                    log.warning("the rig process ended run %s (%s: %s); no run of this process waits for it",
+                                msg.get("run_id"), msg.get("status"), msg.get("reason"))
                 continue
             if "event" in msg:
                 self._event(msg)
@@ -261,6 +278,15 @@ class RigSupervisor:
             raise MotorTimeoutError(str(msg.get("what", msg.get("op"))),
                                     f"the rig process did not answer within {timeout_s:g} s") from None
         return reply
+
+    def send(self, msg: dict[str, Any]) -> bool:
+        """Send ``msg`` without waiting for its answer (an abort from a synchronous caller, in the
+        order of the channel); False without a channel."""
+        writer = self._writer
+        if writer is None or writer.is_closing():
+            return False
+        writer.write(channel.encode({**msg, "id": next(self._ids)}))
+        return True
 
     async def release(self) -> None:
         """The operator acknowledged: the rig process no longer holds its stop."""
@@ -388,7 +414,7 @@ class RigProcessConnector:
             url = emu.addresses.modbus_tcp_url
             log.info("simulated rig: the emulators in process %s (Modbus TCP %s, DAQ %s)", emu.pid,
                      url, emu.addresses.daq)
-        self.supervisor = RigSupervisor(self.settings, url)
+        self.supervisor = RigSupervisor(self.settings, url, self.emulators.addresses.control if sim else None)
         self.supervisor.spare, self.spare = self.spare, None
         self.supervisor.on_event = self._event
         return self.supervisor
@@ -410,12 +436,13 @@ class RigProcessConnector:
                 actuator: RadiusActuator = emu.radius_actuator(cfg.plan.steps[0].crank_radius_m)
                 yield ConnectedRig(motor, daq, actuator, f"simulated rig (emulators' process {emu.pid}; drive via the "
                                    f"rig process {sup.ready.get('pid')}, DAQ {daq_port})", simulated=True,
-                                   on_load=emu.load_physics, release=sup.release, on_run=sup.note_run)
+                                   on_load=emu.load_physics, release=sup.release, on_run=sup.note_run,
+                                   remote=functools.partial(RemoteProcedure, sup))
             else:
                 yield ConnectedRig(motor, daq, FixedRadius(dev.crank_radius_m),
                                    f"rig (motor {profile.name} at {dev.motor_url} via the rig process "
                                    f"{sup.ready.get('pid')}, DAQ {dev.daq_port})", release=sup.release,
-                                   on_run=sup.note_run)
+                                   on_run=sup.note_run, remote=functools.partial(RemoteProcedure, sup))
         finally:
             with contextlib.suppress(Exception):
                 await motor.close()

@@ -6,9 +6,12 @@ It holds the drive's one connection and, on its own, without waiting for the web
   as the web process's set-points say; when it dies, the drive's own watchdog stops the crank);
 * serves the stop port (``commands/stopport.StopPort``): the emergency stop on the drive, then the
   drive read back to standstill, answered from here; the web process is told afterwards;
+* carries out the run's procedure the web process asks for (``runhost.py``): a silent web process
+  does not end it; its connection closing or the lifeline's end interrupts it;
 * stops the crank (ramp down, read back, the emergency stop if it still turns) when the web
-  process falls silent for ``link_timeout_s`` while the crank turns, or its connection closes while
-  the crank turns, or the daemon's end of the lifeline (stdin) closes; then it holds the stop;
+  process falls silent for ``link_timeout_s`` while the crank turns outside such a run, or its
+  connection closes while the crank turns, or the daemon's end of the lifeline (stdin) closes; then
+  it holds the stop;
 * while it holds a stop, refuses any set-point other than 0 the web process sends, until the
   operator's acknowledgement releases it (``release``);
 * forwards the web process's register reads and writes (``channel.py``) to the drive; its keeper
@@ -46,6 +49,7 @@ from drivers.motor.errors import (
 from drivers.motor.profile import load_profile
 from drivers.motor.transport import RegisterTransport, transport_from_url
 from station.rigproc import channel
+from station.rigproc.runhost import BACKLOG_BYTES, RunHost
 from station.rigproc.stopport import StopPort
 from station.rigproc.turns import OneAtATime, Urgency, set_task_urgency, urgency
 from station.run.standstill import DriveCheck, read_back_standstill
@@ -72,13 +76,14 @@ class Spec:
     header_timeout_s: float
     priority: Priority
     link_timeout_s: float
+    radius_control: str | None = None  # the simulated rig's control socket (its crank radius); None: set by hand
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Spec:
         return cls(str(d["socket"]), str(d["motor_url"]), d.get("device_id"), d.get("profile"),
                    d.get("stop_host"), int(d.get("stop_port", 0)), tuple(d.get("names", ())), d.get("page_port"),
                    float(d.get("header_timeout_s", 5.0)), d.get("priority", "normal"),
-                   float(d.get("link_timeout_s", 3.0)))
+                   float(d.get("link_timeout_s", 3.0)), d.get("radius_control"))
 
 
 def error_of(exc: BaseException) -> dict[str, Any]:
@@ -123,6 +128,7 @@ class RigProcess:
         self.keeper_error: str | None = None
         self.answering: set[asyncio.Task[None]] = set()
         self.stream = StreamLink(self)  # the stream process: the DAQ stream into the recording
+        self.runs = RunHost(self)  # the run's procedure, carried out here
 
     # ------------------------------------------------------------------ the drive
     async def keeper(self) -> None:
@@ -160,6 +166,7 @@ class RigProcess:
 
     async def _stop(self, source: str, why: str, credentials: dict[str, str] | None) -> dict[str, Any]:
         stopped_run = self.run_id
+        self.runs.abort("emergency stop")  # a run carried out here ends aborted, not failed on the stop's fault
         self.hold(source, why)
         self.tell({"event": "stopping", "source": source})  # ahead of every answer that shows the stop
         try:
@@ -182,6 +189,7 @@ class RigProcess:
 
     async def ramp_down(self, why: str) -> None:
         """A lost web process: ramp the crank down, read it back, the emergency stop if it still turns."""
+        self.runs.abort(why)  # a run carried out here ends aborted with the reason, its recording closed by it
         log.error("%s: the crank is stopped", why)
         self.hold("link", why)
         with urgency(Urgency.STOP):
@@ -190,7 +198,8 @@ class RigProcess:
             except Exception as exc:
                 log.error("the ramp-down was not taken (%s): the emergency stop", exc)
             check = await self.read_back("the rig process's stop on a lost link")
-        self.stream.interrupt(why)  # after the crank's stop: the recording is closed as interrupted
+        if not self.runs.active:
+            self.stream.interrupt(why)  # after the crank's stop: the recording is closed as interrupted
         if check is None or not check.standstill:
             await self.stop("link", why)
             return
@@ -222,9 +231,13 @@ class RigProcess:
         """The run the crank turns for, as a message's ``run_id`` says (empty or None: no run)."""
         self.run_id = str(msg["run_id"])[:80] if msg.get("run_id") else None
 
-    def tell(self, event: dict[str, Any]) -> None:
+    def tell(self, event: dict[str, Any], droppable: bool = False) -> None:
+        """``droppable`` (a periodic count): not queued while the web process has not read
+        :data:`runhost.BACKLOG_BYTES` of what was told before (it is stopped or hangs)."""
         web = self.web
         if web is not None and not web.is_closing():
+            if droppable and web.transport.get_write_buffer_size() > BACKLOG_BYTES:
+                return
             web.write(channel.encode(event))  # buffered by the kernel while the web process sleeps
 
     async def serve_web(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -246,6 +259,8 @@ class RigProcess:
         finally:
             if self.web is writer:
                 self.web = None
+                if self.runs.active:  # nobody is left to take its result: aborted, its recording closed
+                    await self.runs.end("the daemon's web process closed the channel during the run")
                 if self.turning:
                     await self.ramp_down("the daemon's web process closed the channel while the crank turns")
                 self.stream.interrupt("the daemon's web process closed the channel during the run")
@@ -281,7 +296,15 @@ class RigProcess:
                 self.note_run(msg)
             return {"keeper_error": self.keeper_error}
         if op == "hello":
-            return {"profile": self.motor.profile.name, "latched": self.latched, "pid": os.getpid()}
+            return {"profile": self.motor.profile.name, "latched": self.latched, "pid": os.getpid(),
+                    "run": self.runs.current.run_id if self.runs.current is not None else None}
+        if op == "run_start":
+            return await self.runs.start(msg)
+        if op == "run_abort":
+            return {"aborted": self.runs.abort(str(msg.get("reason") or "aborted"), msg.get("run_id"),
+                                               interrupt=bool(msg.get("interrupt", False)))}
+        if op == "run_outcome":
+            return self.runs.outcome(str(msg["run_id"]))
         if op == "release":
             if self.latched is not None:
                 log.info("the stop held since %s released (acknowledged)", time.ctime(self.latched["since"]))
@@ -314,10 +337,13 @@ class RigProcess:
         return {}
 
     async def watch_link(self) -> None:
-        """A web process silent for ``link_timeout_s`` while the crank turns: the crank is stopped."""
+        """A web process silent for ``link_timeout_s`` while the crank turns: the crank is stopped
+        (not while a run is carried out here: it goes on to its end without the web process)."""
         while True:
             await asyncio.sleep(KEEPER_PERIOD_S)
             silent = time.monotonic() - self.heard
+            if self.runs.active:
+                continue
             if self.turning and silent > self.spec.link_timeout_s:
                 await self.ramp_down(f"the daemon's web process has been silent for {silent:.1f} s while the "
                                      "crank turns")
@@ -382,6 +408,11 @@ class StreamLink:
         return await fut
 
     async def forward(self, msg: dict[str, Any]) -> None:
+        if self.rig.runs.active:  # the run carried out here holds the bridge and the recording
+            self.rig.tell({"id": msg.get("id"), "error": {
+                "kind": "busy", "type": "question", "detail": f"{str(msg.get('op'))[:40]}: the rig process carries out "
+                f"run {self.rig.runs.current.run_id if self.rig.runs.current else '?'} on the DAQ stream"}})
+            return
         try:
             writer = await self.ensure()
         except OSError as exc:
@@ -395,11 +426,13 @@ class StreamLink:
 
     async def read(self, reader: asyncio.StreamReader, proc: subprocess.Popen[bytes]) -> None:
         async for msg in channel.messages(reader, "the stream process", log):
+            if self.rig.runs.asker.take(msg):
+                continue  # the answer to the procedure's question in the rig process
             if "event" not in msg:
                 if msg.get("id") not in self.pending:
                     continue  # the answer to the rig process's own question (record_interrupt)
                 self.pending.discard(msg.get("id"))
-            self.rig.tell(msg)
+            self.rig.tell(msg, droppable="event" in msg and not msg.get("error"))
         if self.proc is proc:
             self.writer, self.recording = None, False
         try:
@@ -409,10 +442,13 @@ class StreamLink:
             code = "killed: its channel closed and it did not end"
         why = f"the stream process ended (exit code {code}): the DAQ stream and the recording stopped"
         log.error("%s", why)
+        self.rig.runs.asker.lost(why)
         for n in self.pending:
             self.rig.tell({"id": n, "error": {"kind": "stream", "detail": why}})
         self.pending.clear()
-        self.rig.tell({"event": "stream", "samples": None, "lost": None, "error": why})
+        ended = {"event": "stream", "samples": None, "lost": None, "error": why}
+        self.rig.runs.asker.take(ended)  # a run carried out here fails as on a lost DAQ link
+        self.rig.tell(ended)
 
     def interrupt(self, why: str) -> None:
         """The web process is lost: an open recording is stopped and closed as interrupted."""
@@ -501,6 +537,7 @@ async def run(spec: Spec) -> int:
                     "drive": rig.drive.to_dict()}})
     await rig.done.wait()
     log.warning("the daemon ended: the crank is stopped and the rig process ends")
+    await rig.runs.end("the station daemon ended during the run")
     if rig.turning:
         await rig.ramp_down("the daemon ended while the crank turns")
     for task in tasks:

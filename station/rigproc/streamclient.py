@@ -114,9 +114,20 @@ class RemoteStream:
         hw = r.get("hardware")
         if not isinstance(hw, dict):
             raise DaqCommandError(f"the stream process reported no hardware: {r!r}"[:300])
-        self._hardware = DaqHardware(**{**hw, "channels": tuple(hw["channels"])})
-        self._lost_link = None
+        self.adopt(hw)
+        assert self._hardware is not None
         return self._hardware
+
+    def adopt(self, hardware: dict[str, Any]) -> None:
+        """The bridge connected already (by the web process, as ``hardware`` reports it): this
+        stream asks the stream process on (the procedure carried out in the rig process)."""
+        self._hardware = DaqHardware(**{**hardware, "channels": tuple(hardware["channels"])})
+        self._lost_link = None
+
+    def detach(self) -> None:
+        """Hear no more of the stream's events (the bridge stays connected: the web process's)."""
+        if self.supervisor.on_stream == self._event:
+            self.supervisor.on_stream = None
 
     @property
     def hardware(self) -> DaqHardware | None:
@@ -207,7 +218,6 @@ class RemoteStream:
 
     def close(self) -> None:
         """Let go of the bridge (from a thread other than the rig loop's; errors logged)."""
-        if self.supervisor.on_stream == self._event:
-            self.supervisor.on_stream = None
+        self.detach()
         with contextlib.suppress(Exception):
             asyncio.run_coroutine_threadsafe(self._ask("daq_close"), self._loop).result(5.0)

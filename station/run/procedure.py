@@ -100,6 +100,20 @@ class RunOutcome:
     lost_samples: int
 
 
+class RunProcedure(Protocol):
+    """A run being carried out, as the daemon's run manager sees it: :class:`Procedure` in this
+    process, or its remote form carrying the same run out in the rig process
+    (``rigproc/remoterun.RemoteProcedure``); the same outcome either way."""
+
+    run_id: str
+    motor_fault: tuple[int, str] | None  # a controller fault seen at the start or during the run
+    drive_check: DriveCheck | None  # the drive read back after the run's stop
+
+    def abort(self, reason: str = "aborted by operator") -> None: ...
+
+    async def execute(self) -> RunOutcome: ...
+
+
 class RigDevices(Protocol):
     """What the procedure drives: the motor driver, the DAQ stream into the recording (in this
     process or under the rig process: ``stream.RecordingStream``) and a radius actuator, and the
@@ -141,6 +155,7 @@ class Procedure:
         self.motor_fault: tuple[int, str] | None = None  # a controller fault seen at the start or during the run
         self.drive_check: DriveCheck | None = None  # the drive read back after the run's stop
         self._moving = False
+        self.interrupted = False  # stopped by :meth:`interrupt`: it ends ``interrupted``
         self._on_disk_full = on_disk_full  # frees reserved space (bytes) so the recording can be closed
 
     def _release_reserve(self) -> int:
@@ -157,6 +172,13 @@ class Procedure:
         if not self.abort_reason:
             self.abort_reason = reason
         self.abort_event.set()
+
+    def interrupt(self, reason: str) -> None:
+        """Stop the run as one the station's end cuts off: it ends ``interrupted`` (as a cancelled
+        procedure does, without cancelling its own stop), unless it was aborted before."""
+        if not self.abort_event.is_set():
+            self.interrupted = True
+        self.abort(reason)
 
     def _report(self, **kw: object) -> None:
         for k, v in kw.items():
@@ -223,7 +245,7 @@ class Procedure:
             self._report(step_state="stopping", message="all steps recorded; the crank ramps down to standstill")
             await self._ramp_to(0.0)
         except RunAborted as exc:
-            status, reason = "aborted", str(exc)
+            status, reason = "interrupted" if self.interrupted else "aborted", str(exc)
         except asyncio.CancelledError:
             status, reason = "interrupted", "the station was stopped during the run"
         except (RunFailure, AcquisitionError) as exc:

@@ -14,7 +14,8 @@ import contextlib
 import logging
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
 
 from drivers.clock import REAL_CLOCK, Clock
 from drivers.daq.bridge import DaqBridge
@@ -25,7 +26,7 @@ from drivers.motor.transport import ModbusTransport, RegisterTransport, transpor
 from drivers.rig.params import RigPhysics
 from station.config import StationConfig, to_rig_physics
 from station.run.hardware import check_daq_hardware
-from station.run.procedure import FixedRadius, RadiusActuator
+from station.run.procedure import FixedRadius, Procedure, Progress, RadiusActuator, RunProcedure
 from station.run.request import Plan
 from station.run.stream import LocalStream, RecordingStream
 
@@ -33,6 +34,13 @@ if TYPE_CHECKING:
     from drivers.sim.rig import SimRig
 
 log = logging.getLogger(__name__)
+
+
+class RemoteRuns(Protocol):
+    """Makes the remote form of a run's procedure (``rigproc/remoterun.RemoteProcedure``)."""
+
+    def __call__(self, plan: Plan, rig: ConnectedRig, out_dir: Path, *, run_id: str,
+                 on_progress: Callable[[Progress], None], disk_reserve: Path | None) -> RunProcedure: ...
 
 
 def _mounted(physics: RigPhysics) -> None:
@@ -57,6 +65,15 @@ class ConnectedRig:
     sim: SimRig | None = None
     release: Callable[[], Awaitable[None]] | None = None  # tells the rig process an acknowledged stop is over
     on_run: Callable[[str | None], Awaitable[None]] | None = None  # tells the rig process the run (its stop names it)
+    remote: RemoteRuns | None = None  # the run's procedure carried out in the rig process (``procedure``)
+
+    def procedure(self, plan: Plan, out_dir: Path, *, run_id: str, on_progress: Callable[[Progress], None],
+                  on_disk_full: Callable[[], int] | None = None, disk_reserve: Path | None = None) -> RunProcedure:
+        """The run's procedure on this rig: in this process, or its remote form in the rig process
+        (``disk_reserve``: the file it frees there when the disk is full, as ``on_disk_full`` does here)."""
+        if self.remote is not None:
+            return self.remote(plan, self, out_dir, run_id=run_id, on_progress=on_progress, disk_reserve=disk_reserve)
+        return Procedure(plan, self, out_dir, run_id=run_id, on_progress=on_progress, on_disk_full=on_disk_full)
 
     def load(self, plan: Plan) -> None:
         """Ready the rig for ``plan`` (before its procedure starts).  A real rig's configuration

@@ -2,8 +2,9 @@
 it (``runs``), the identification queue (``jobs``), the recordings and their renderings
 (``artifacts``), the start-up recovery (``recovery``) and the health (``health``).
 
-A run's Procedure runs on the rig thread's own event loop (``rigthread.py``), apart from the web
-side's; processing and identification go to the worker
+A run's Procedure is followed from the rig thread's own event loop (``rigthread.py``), apart from
+the web side's (the daemon's rig carries it out in the rig process; an in-process rig on that
+loop); processing and identification go to the worker
 processes (``worker.py``), queued in the database so that a restart resumes them.  Nothing here
 raises HTTP errors: the API layer maps the typed errors (``errors.py``, ``LimitError``) to statuses.
 """

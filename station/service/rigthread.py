@@ -1,7 +1,8 @@
 """The rig's own thread and event loop.
 
 Everything that talks to the rig (the connection, the motor driver's watchdog keeper, the run
-procedure; the acquisition has threads of its own) runs on this loop, never on the web side's: a
+procedure or, with the daemon's rig, the following of it in the rig process; the acquisition has
+threads of its own) runs on this loop, never on the web side's: a
 large or slow request body, a flood of requests or a handler that blocks cannot delay a watchdog
 refresh or a step of the procedure.  The web side hands work over with ``call``/``submit`` and
 receives progress through ``loop.call_soon_threadsafe`` on its own loop.

@@ -2,7 +2,8 @@
 time), carry it out with the Procedure, follow its progress, abort it, stop everything at once.
 
 The bookkeeping (``live``, the database, change notification) belongs to the web side's loop; the
-procedure runs on the rig thread's loop (``_carry_out``) and posts its progress back with
+procedure runs on the rig thread's loop (``_carry_out``), or is carried out in the rig process and
+followed from there (``ConnectedRig.procedure``: the daemon's rig), and posts its progress back with
 ``call_soon_threadsafe``.  Aborts and cancellations cross over the other way."""
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from station.lab import audit, register
 from station.lab.integrity import sha256_file
 from station.lab.store import RunRow, Store
 from station.recording import new_run_id
-from station.run.procedure import Procedure, Progress, RunOutcome
+from station.run.procedure import Progress, RunOutcome, RunProcedure
 from station.run.request import Plan, RunRequest, plan_run
 from station.run.rig import ConnectedRig
 from station.service.changes import Changes
@@ -52,7 +53,7 @@ class LiveRun:
     row: RunRow
     plan: Plan
     rig: ConnectedRig  # checked healthy when the run was queued (``RigLink.for_run``, once per run)
-    proc: Procedure | None = None
+    proc: RunProcedure | None = None  # here, or its remote form in the rig process
     task: asyncio.Task[None] | None = None  # on the web loop: waits for the rig side
     rig_task: asyncio.Task[RunOutcome] | None = None  # on the rig loop: the procedure
     cancelled: bool = False
@@ -242,9 +243,9 @@ class Runs:
             raise asyncio.CancelledError
         plan, rig = live.plan, live.rig
         rig.load(plan)
-        proc = Procedure(plan, rig, self.recordings_dir, run_id=live.row.id,
-                         on_progress=lambda p: self._post(self._on_progress, live, dataclasses.replace(p)),
-                         on_disk_full=self.disk.release_reserve)
+        proc = rig.procedure(plan, self.recordings_dir, run_id=live.row.id,
+                             on_progress=lambda p: self._post(self._on_progress, live, dataclasses.replace(p)),
+                             on_disk_full=self.disk.release_reserve, disk_reserve=self.disk.path)
         live.proc = proc
         if live.abort_reason:
             proc.abort(live.abort_reason)
