@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import asyncio
+import os
 import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -16,6 +18,7 @@ import pytest
 from drivers.daq import DaqBridge, SampleBlock, SerialLink
 from drivers.motor import LinkPolicy, ModbusTransport, MotorController
 from drivers.sim import SimRig, SimRigProcess
+from drivers.sim.__main__ import HARDWARE_NICE
 
 
 def samples(daq: DaqBridge, seconds: float) -> tuple[np.ndarray, np.ndarray]:
@@ -100,6 +103,25 @@ def test_subprocess_rig_serves_both_devices() -> None:
         daq.connect(SerialLink(proc.addresses.daq))
         assert daq.identify().startswith("SINECAL,DAQ-BRIDGE-EMU")
         daq.close()
+        # hardware of its own: every thread of the emulators at the raised priority, where the OS gives it
+        nices = {os.getpriority(os.PRIO_PROCESS, int(tid)) for tid in os.listdir(f"/proc/{proc.pid}/task")}
+        assert nices == ({HARDWARE_NICE} if _may_raise_priority() else {os.nice(0)}), nices
+
+
+def _may_raise_priority() -> bool:
+    """Whether this process may lower a nice value (root or CAP_SYS_NICE): tried on a thread of its own."""
+    got: list[bool] = []
+
+    def attempt() -> None:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, os.getpriority(os.PRIO_PROCESS, 0) - 1)
+            got.append(True)
+        except OSError:
+            got.append(False)
+    t = threading.Thread(target=attempt)
+    t.start()
+    t.join()
+    return got[0]
 
 
 @pytest.mark.slow
