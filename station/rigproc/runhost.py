@@ -12,8 +12,8 @@ back, the recording closed ``interrupted`` with the reason, as the stream proces
 daemon's end cuts off): nobody is left to take its result; a later daemon reads how it ended in the
 recording (``service/recovery.py``).
 
-The procedure and what it imports (numpy, h5py for the stream's types) are loaded at the first run,
-in a thread (the keeper goes on meanwhile): the rig process starts without them."""
+The procedure and what it imports (numpy, h5py for the stream's types) are loaded when the rig
+process starts, before it reads its specification and raises its priority (``preload_procedure``)."""
 
 from __future__ import annotations
 
@@ -189,7 +189,7 @@ class RunHost:
             return _refused("the rig process is starting another run")
         self._starting = True
         try:
-            procedure_mod, stream_mod, config_mod, request_mod = await asyncio.to_thread(_load)
+            procedure_mod, stream_mod, config_mod, request_mod = _load()
             if self.rig.latched is not None:  # also one given while the modules loaded
                 return _refused(f"the rig process holds a stop ({self.rig.latched['source']}: "
                                 f"{self.rig.latched['detail']}); an operator acknowledges it first")
@@ -302,10 +302,20 @@ class RunHost:
                 "outcome": self.outcomes.get(run_id)}
 
 
+PROCEDURE_MODULES = ("station.run.procedure", "station.rigproc.streamclient", "station.config", "station.run.request",
+                     "station.run.steady")
+
+
+def preload_procedure() -> None:
+    """Import the procedure's modules (numpy, h5py with them) now: the rig process does so before it
+    reads its specification, at normal priority, so that no run's start pays for it."""
+    for m in PROCEDURE_MODULES:
+        importlib.import_module(m)
+
+
 def _load() -> tuple[Any, Any, Any, Any]:
-    """The procedure's modules (numpy, h5py with them): imported at the first run, in a thread."""
-    return tuple(importlib.import_module(m) for m in (  # type: ignore[return-value]
-        "station.run.procedure", "station.rigproc.streamclient", "station.config", "station.run.request"))
+    """The procedure's modules (loaded at the rig process's start, ``preload_procedure``)."""
+    return tuple(importlib.import_module(m) for m in PROCEDURE_MODULES[:4])  # type: ignore[return-value]
 
 
 def _refused(detail: str) -> dict[str, Any]:

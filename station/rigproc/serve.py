@@ -49,7 +49,7 @@ from drivers.motor.errors import (
 from drivers.motor.profile import load_profile
 from drivers.motor.transport import RegisterTransport, transport_from_url
 from station.rigproc import channel
-from station.rigproc.runhost import BACKLOG_BYTES, RunHost
+from station.rigproc.runhost import BACKLOG_BYTES, RunHost, preload_procedure
 from station.rigproc.stopport import StopPort
 from station.rigproc.turns import OneAtATime, Urgency, set_task_urgency, urgency
 from station.run.standstill import DriveCheck, read_back_standstill
@@ -561,6 +561,12 @@ def main() -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s rig-process: %(message)s")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # the driver's own errors say what failed
+    # the procedure's modules (numpy, h5py with them) before the specification, at the priority the
+    # process was started with: a rig process started ahead (the daemon's ``launch``) loads them while
+    # the daemon starts.  Loaded at a run's start instead, at the rig's real-time priority, they took
+    # one core for a second beside the stream process's and starved the simulated rig (the drive's
+    # watchdog expired, the DAQ stalled) on a loaded machine
+    preload_procedure()
     line = sys.stdin.readline()
     try:
         spec = Spec.from_json(json.loads(line))
