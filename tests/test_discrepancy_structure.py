@@ -82,9 +82,13 @@ def spread_covered(rep: DiscrepancyResult) -> None:
 # -- the coupling (paper Eq. 8) and what else fits ------------------------------------------------
 
 @pytest.fixture(scope="module")
-def coupling_2kf(tmp_path_factory: pytest.TempPathFactory) -> tuple[StationConfig, DiscrepancyResult]:
-    cfg = plan_3_40({"coupling_compliance": {"k_c": 2.0 * KF, "b_c": 0.5 * BF}})
-    return cfg, analyse_recording(simulate_run(cfg, tmp_path_factory.mktemp("c2"), seed=2))
+def coupling_2kf(coupling_tie: tuple[StationConfig, Path, DiscrepancyResult]
+                 ) -> tuple[StationConfig, DiscrepancyResult]:
+    """k_c = 2 k_f, b_c = 0.5 b_f on the 3-40 Hz plan, seed 2 (``conftest.coupling_tie_config``: the run
+    tests/test_discrepancy_propose.py resolves on the rig path; one analysis for both)."""
+    cfg, _, rep = coupling_tie
+    assert cfg.model_dump() == plan_3_40({"coupling_compliance": {"k_c": 2.0 * KF, "b_c": 0.5 * BF}}).model_dump()
+    return cfg, rep
 
 
 @pytest.mark.slow
