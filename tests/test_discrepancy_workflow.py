@@ -98,10 +98,11 @@ def test_each_catalogue_effect_is_named_estimated_and_removed(name: str, seed: i
         assert rep.parameters_before["k_f"].value != pytest.approx(rep.parameters_after["k_f"].value, rel=1e-3)
 
 
-@pytest.mark.slow  # over 2 s of CPU per case (two full analyses)
-@pytest.mark.parametrize("seed", (3, 4))
-def test_no_effect_names_nothing(seed: int, tmp_path: Path) -> None:
-    rep = analyse_recording(simulate_scenario({}, tmp_path, seed=seed))
+@pytest.mark.slow  # over 2 s of CPU (a full analysis)
+def test_no_effect_names_nothing(tmp_path: Path) -> None:
+    """One seeded draw of the noise; the same holds on every run below whose force model has no
+    catalogue effect (the crank harmonics' two draws, the clipped step, the sidebands)."""
+    rep = analyse_recording(simulate_scenario({}, tmp_path, seed=3))
     assert rep.effects == ()
     assert rep.final_gap == rep.base_gap <= 1.5 * rep.noise_floor_V
     _transducer_ok(rep, coupling=False)
