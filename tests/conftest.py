@@ -148,6 +148,42 @@ def sim_recording_one_radius(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return simulate_run(parse_config(fast_dict(steps=ONE_RADIUS), "fast-1r"), out, seed=7)
 
 
+def coupling_tie_config() -> StationConfig:
+    """The 5 kN preset (``station.discrepancy.scenarios``) with a coupling k_c = 2 k_f, b_c = 0.5 b_f of
+    its true transducer and 6 steps at 3-40 Hz: a run whose model gap ties the coupling, a low-pass and
+    a (negative, so unphysical) delay."""
+    from station.discrepancy.scenarios import plan_steps, scenario_config
+
+    sim = scenario_config({}, seed=COUPLING_TIE_SEED).simulation
+    assert sim is not None
+    t = sim.truth
+    cfg = scenario_config({"coupling_compliance": {"k_c": 2.0 * t.k_f, "b_c": 0.5 * t.b_f}}, seed=COUPLING_TIE_SEED)
+    d = cfg.model_dump(exclude_none=True)
+    d["plan"]["steps"] = plan_steps(cfg, 6, 3.0, 40.0)
+    return parse_config(d)
+
+
+COUPLING_TIE_SEED = 2  # its noise seed too: a draw whose 3-40 Hz run ties coupling, low-pass and delay
+
+
+@pytest.fixture(scope="session")
+def coupling_tie_recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[StationConfig, Path]:
+    """(configuration, recording) of :func:`coupling_tie_config`, simulated once per session (read-only)."""
+    cfg = coupling_tie_config()
+    return cfg, simulate_run(cfg, tmp_path_factory.mktemp("tie"), seed=COUPLING_TIE_SEED)
+
+
+@pytest.fixture(scope="session")
+def coupling_tie(coupling_tie_recording: tuple[StationConfig, Path]) -> tuple[StationConfig, Path, Any]:
+    """(configuration, recording, its model-gap analysis) of the coupling tie run: one analysis per
+    worker shared by the tests that read it (mark them ``xdist_group("coupling_2kf")`` so that they
+    share one worker; the analysis is frozen)."""
+    from station.discrepancy import analyse_recording
+
+    cfg, rec = coupling_tie_recording
+    return cfg, rec, analyse_recording(rec)
+
+
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
     """Debian's headless Chromium driven by Playwright, one per test module (``tests/web_support.py``;

@@ -3,7 +3,7 @@ steps within the rig's limits under every tied model, and end to end over the ri
 compliance (k_c = 2 k_f) on a 3-40 Hz plan ties with a delay and a low-pass; running the proposed
 steps names the coupling and recovers k_f within 3 standard uncertainties.  The same scenario's tie,
 its proposal and the proposed run on the physics path (``station.simulate``, then sinecal-csv) are
-tests/test_discrepancy_structure.py's (one analysis shared by its tests)."""
+tests/test_discrepancy_structure.py's: both read the one analysis of ``conftest.coupling_tie``."""
 
 from __future__ import annotations
 
@@ -18,13 +18,14 @@ import pytest
 from drivers.rig.model import spring_force_per_acceleration
 from drivers.rig.params import CouplingCompliance, Transducer
 from drivers.sim.clock import VirtualClock
-from station.config import StationConfig, parse_config
+from station.config import StationConfig
 from station.discrepancy import analyse_recording
 from station.discrepancy.data import prepare
 from station.discrepancy.design import expected_chi2, planned_data, with_model
 from station.discrepancy.fit import fit_model
 from station.discrepancy.propose import candidate_steps
-from station.discrepancy.scenarios import plan_steps, scenario_config
+from station.discrepancy.result import DiscrepancyResult
+from station.discrepancy.scenarios import scenario_config
 from station.discrepancy.search import base_start
 from station.limits import check_steps, force_limit_N
 from station.recording import read_recording
@@ -36,19 +37,6 @@ from station.simulate import simulate_run
 def _step(f: float, r: float) -> StepSpec:
     """A step as asked, its values not yet checked (the limits check them)."""
     return StepSpec.model_construct(crank_frequency_hz=f, crank_radius_m=r)
-
-SEED = 2  # a draw whose 3-40 Hz run ties coupling, low-pass and a (negative) delay
-
-
-def tie_config(seed: int = SEED, steps: list[dict[str, float]] | None = None, **kw: Any) -> StationConfig:
-    """The 5 kN preset with a coupling k_c = 2 k_f, b_c = 0.5 b_f and 6 steps at 3-40 Hz."""
-    base = scenario_config({}, seed=seed)
-    assert base.simulation is not None
-    t = base.simulation.truth
-    cfg = scenario_config({"coupling_compliance": {"k_c": 2.0 * t.k_f, "b_c": 0.5 * t.b_f}}, seed=seed, **kw)
-    d = cfg.model_dump(exclude_none=True)
-    d["plan"]["steps"] = steps or plan_steps(cfg, 6, 3.0, 40.0)
-    return parse_config(d)
 
 
 def test_planned_step_weights_match_a_measured_decomposition(tmp_path: Path) -> None:
@@ -71,9 +59,10 @@ def test_planned_step_weights_match_a_measured_decomposition(tmp_path: Path) -> 
 
 
 @pytest.mark.slow
-def test_candidate_steps_stay_within_the_limits_under_every_model(tmp_path: Path) -> None:
-    cfg = tie_config()
-    rec = simulate_run(cfg, tmp_path, seed=SEED)
+def test_candidate_steps_stay_within_the_limits_under_every_model(
+        coupling_tie_recording: tuple[StationConfig, Path]) -> None:
+    """The coupling tie run (``conftest.coupling_tie_config``: k_c = 2 k_f, b_c = 0.5 b_f, 3-40 Hz)."""
+    cfg, rec = coupling_tie_recording
     data = prepare(read_recording(rec))
     stiff = fit_model(data, {}, base_start(data))
     soft = fit_model(data, {"coupling_compliance": 0}, {**stiff.values, "k_c": stiff.values["k_f"], "b_c": 0.0})
@@ -105,13 +94,14 @@ def _truth_ok(rep: Any, cfg: StationConfig) -> None:
 
 
 @pytest.mark.slow
-def test_the_proposed_run_resolves_the_tie_on_the_rig_path(tmp_path: Path) -> None:
+@pytest.mark.xdist_group("coupling_2kf")  # the tie run's analysis is test_discrepancy_structure's: one worker
+def test_the_proposed_run_resolves_the_tie_on_the_rig_path(
+        coupling_tie: tuple[StationConfig, Path, DiscrepancyResult], tmp_path: Path) -> None:
     """The same over the rig path of ``station calibrate --sim`` (emulated motor and DAQ bridge, the
     drivers, the procedure, the HDF5 recording, processing), in-process on the virtual clock; the
     wire itself is covered by the real-time layer (tests/test_calibrate_e2e.py, the page's one-click
     run in tests/test_web_proposal.py)."""
-    cfg = tie_config(record_s=1.0, settle_s=0.3)
-    rep = analyse_recording(simulate_run(cfg, tmp_path / "tie", seed=SEED))
+    cfg, _, rep = coupling_tie  # conftest.coupling_tie_config: k_c = 2 k_f, b_c = 0.5 b_f, 3-40 Hz, 1 s records
     assert rep.proposal is not None and "coupling_compliance" in rep.proposal.separates
     req = RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg,
                      steps=[StepSpec(crank_frequency_hz=f, crank_radius_m=r) for f, r in rep.proposal.run_steps])

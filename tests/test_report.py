@@ -82,14 +82,14 @@ def test_plots_differ_between_recordings(sim_recording: Path, sim_recording_one_
 
 
 @pytest.mark.slow
-def test_plots_reuse_the_loaded_recording(full_recording: Path) -> None:
+def test_plots_reuse_the_loaded_recording(sim_recording: Path) -> None:
     """The recording is read and fitted once for all plots (render times are measured in bench/,
     not asserted here)."""
     from station.report.data import cached_run_data
-    render_plot(full_recording, "bode")  # load and fit once (cached)
+    render_plot(sim_recording, "bode")  # load and fit once (cached)
     misses = cached_run_data.cache_info().misses
     for name in PLOT_NAMES:
-        render_plot(full_recording, name)
+        render_plot(sim_recording, name)
     assert cached_run_data.cache_info().misses == misses
     assert cached_run_data.cache_info().hits >= len(PLOT_NAMES)
 
