@@ -2,15 +2,17 @@
 
 Most tests run the daemon's app in-process (``tests/station_support.app_in_process``: the real rig
 thread on the simulated rig's in-process backends on a virtual clock, real SQLite and HDF5) over a
-store seeded with a finished, identified simulated run.  A real ``station serve --sim`` (Modbus TCP,
-a pty, real time) carries one whole run from POST to results with its live events, and the
-emergency stop acknowledged from the command line."""
+store seeded with a finished, identified simulated run; the tests that only read or are refused
+share one such app (``held``), those that change the store or the rig start their own.  A real
+``station serve --sim`` (Modbus TCP, a pty, real time) carries one whole run from POST to results
+with its live events, and the emergency stop acknowledged from the command line."""
 
 from __future__ import annotations
 
 import asyncio
 import io
 import json
+import shutil
 import time
 from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
@@ -28,6 +30,7 @@ from tests.station_support import (
     FINAL,
     TOKEN,
     Daemon,
+    HeldApp,
     Seed,
     app_in_process,
     daemon_config,
@@ -48,6 +51,21 @@ def seeded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     rec = tmp_path_factory.mktemp("api") / "recordings"
     [rid] = seed_runs(daemon_config(rec), [Seed()])
     return rec, rid
+
+
+@pytest.fixture(scope="module")
+def held(seeded: tuple[Path, str], tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[HeldApp, str]]:
+    """The app in-process over a copy of the seeded store (the tests that change it use the original),
+    held open for the module's tests that only read or are refused; its client, with the token, and
+    ``anon``, without."""
+    rec, rid = seeded
+    copy = tmp_path_factory.mktemp("api-held") / "recordings"
+    shutil.copytree(rec, copy)
+    app = HeldApp(copy)
+    try:
+        yield app, rid
+    finally:
+        app.close()
 
 
 def in_app(rec: Path, fn: Callable[[httpx.AsyncClient], Awaitable[T]], **kw: Any) -> T:
@@ -110,21 +128,15 @@ def test_health_reports_each_device_link(tmp_path: Path) -> None:
     assert [u["file"] for u in h["recordings"]["unreadable"]] == ["garbage.h5"]
 
 
-@pytest.mark.slow
-def test_station_shows_the_limits(tmp_path: Path) -> None:
-    async def go(c: httpx.AsyncClient) -> dict:
-        return (await c.get("/station")).json()
-    s = in_app(tmp_path, go, token=False)
+def test_station_shows_the_limits(held: tuple[HeldApp, str]) -> None:
+    s = held[0].get("/station", anon=True).json()
     assert s["transducer_id"] == "TX5K-0001" and s["simulated"]
     assert s["limits"]["crank_frequency_hz"] == {"min": 1.0, "max": 100.0}
     assert s["limits"]["peak_force_limit_N"] == pytest.approx(4000.0)
 
 
-@pytest.mark.slow
-def test_openapi_documents_every_endpoint(tmp_path: Path) -> None:
-    async def go(c: httpx.AsyncClient) -> dict:
-        return (await c.get("/openapi.json")).json()
-    spec = in_app(tmp_path, go, token=False)
+def test_openapi_documents_every_endpoint(held: tuple[HeldApp, str]) -> None:
+    spec = held[0].get("/openapi.json", anon=True).json()
     paths = spec["paths"]
     for p, method in [("/runs", "post"), ("/runs", "get"), ("/runs/{run_id}", "get"),
                       ("/runs/{run_id}/events", "get"), ("/runs/{run_id}/results", "get"),
@@ -139,11 +151,10 @@ def test_openapi_documents_every_endpoint(tmp_path: Path) -> None:
     assert "text/event-stream" in paths["/runs/{run_id}/events"]["get"]["responses"]["200"]["content"]
 
 
-@pytest.mark.slow
-def test_web_page_and_assets_are_served(tmp_path: Path) -> None:
+def test_web_page_and_assets_are_served(held: tuple[HeldApp, str]) -> None:
     async def go(c: httpx.AsyncClient) -> tuple[httpx.Response, httpx.Response, httpx.Response]:
         return await c.get("/"), await c.get("/static/app.js"), await c.get("/static/style.css")
-    page, js, css = in_app(tmp_path, go, token=False)
+    page, js, css = held[0].call(go, anon=True)
     assert page.status_code == 200 and "EMERGENCY STOP" in page.text and "/static/app.js" in page.text
     assert js.status_code == 200
     assert css.headers["content-type"].startswith("text/css")
@@ -182,9 +193,8 @@ def test_results_of_a_live_run(daemon: Daemon, completed: dict) -> None:
     assert [round(s["frequency_hz"]) for s in res["frequency_response"]] == [10, 20]
 
 
-@pytest.mark.slow
-def test_runs_list_and_state_filter(seeded: tuple[Path, str]) -> None:
-    rec, rid = seeded
+def test_runs_list_and_state_filter(held: tuple[HeldApp, str]) -> None:
+    app, rid = held
 
     async def go(c: httpx.AsyncClient) -> None:
         runs = (await c.get("/runs")).json()
@@ -194,16 +204,12 @@ def test_runs_list_and_state_filter(seeded: tuple[Path, str]) -> None:
         assert (await c.get("/runs", params={"state": "aborted", "limit": 1})).json()["count"] <= 1
         assert (await c.get("/runs", params={"state": "bogus"})).status_code == 422
         assert (await c.get("/runs", params={"limit": 0})).status_code == 422
-    in_app(rec, go, token=False)
+    app.call(go, anon=True)
 
 
-@pytest.mark.slow
-def test_results_have_parameters_with_uncertainties_and_frf(seeded: tuple[Path, str]) -> None:
-    rec, rid = seeded
-
-    async def go(c: httpx.AsyncClient) -> dict:
-        return (await c.get(f"/runs/{rid}/results")).json()
-    res = in_app(rec, go, token=False)
+def test_results_have_parameters_with_uncertainties_and_frf(held: tuple[HeldApp, str]) -> None:
+    app, rid = held
+    res = app.get(f"/runs/{rid}/results", anon=True).json()
     params = {p["name"]: p for p in res["parameters"]}
     assert set(params) >= {"S", "k_f", "b_f"}
     for p in params.values():
@@ -265,20 +271,19 @@ def test_plots_report_recording_and_discrepancy(seeded: tuple[Path, str]) -> Non
     in_app(rec_dir, go, token=False, render=True)
 
 
-@pytest.mark.slow
-def test_discrepancy_takes_zero_to_eight_effects_as_an_integer(seeded: tuple[Path, str]) -> None:
-    rec, rid = seeded
+def test_discrepancy_takes_zero_to_eight_effects_as_an_integer(held: tuple[HeldApp, str]) -> None:
+    app, rid = held
 
     async def go(c: httpx.AsyncClient) -> None:
         for bad in ("-1", "9", "true", "2.5"):
             r = await c.get(f"/runs/{rid}/discrepancy", params={"max_effects": bad})
             assert r.status_code == 422 and "max_effects" in r.text, (bad, r.status_code, r.text)
-    in_app(rec, go, token=False)
+    app.call(go, anon=True)
 
 
 # ---------------------------------------------------------------------------------------- errors
-def test_writes_need_the_token(seeded: tuple[Path, str]) -> None:
-    rec, rid = seeded
+def test_writes_need_the_token(held: tuple[HeldApp, str]) -> None:
+    app, rid = held
 
     async def go(c: httpx.AsyncClient) -> None:
         r = await c.post("/runs", json=run_body())
@@ -287,7 +292,7 @@ def test_writes_need_the_token(seeded: tuple[Path, str]) -> None:
                 ).status_code == 401
         assert (await c.post(f"/runs/{rid}/abort")).status_code == 401
         assert (await c.get(f"/runs/{rid}")).status_code == 200  # reading is open on loopback
-    in_app(rec, go, token=False)
+    app.call(go, anon=True)
 
 
 INVALID = [
@@ -306,37 +311,34 @@ INVALID = [
 ]
 
 
-def test_invalid_or_unsafe_requests_are_422_naming_the_field(tmp_path: Path) -> None:
+def test_invalid_or_unsafe_requests_are_422_naming_the_field(held: tuple[HeldApp, str]) -> None:
     async def go(c: httpx.AsyncClient) -> None:
         for body, loc in INVALID:
             r = await c.post("/runs", json=body)
             assert r.status_code == 422, (body, r.text)
             locs = [e["loc"] for e in r.json()["errors"]]
             assert loc in locs, (body, locs)
-    in_app(tmp_path, go)
+    held[0].call(go)
 
 
-def test_peak_force_message_says_the_limit(tmp_path: Path) -> None:
-    async def go(c: httpx.AsyncClient) -> httpx.Response:
-        return await c.post("/runs", json=run_body(freqs=(50.0,), radius=0.01))
-    r = in_app(tmp_path, go)
+def test_peak_force_message_says_the_limit(held: tuple[HeldApp, str]) -> None:
+    r = held[0].post("/runs", json=run_body(freqs=(50.0,), radius=0.01))
     err = r.json()["errors"][0]
     assert r.status_code == 422 and err["type"] == "limit_error"
     assert "peak force" in err["msg"] and "4000 N" in err["msg"] and err["input"] == 0.01
 
 
-def test_malformed_json_is_422_not_500(tmp_path: Path) -> None:
+def test_malformed_json_is_422_not_500(held: tuple[HeldApp, str]) -> None:
     async def go(c: httpx.AsyncClient) -> None:
         r = await c.post("/runs", content=b'{"transducer_id": ', headers={"Content-Type": "application/json"})
         assert r.status_code == 422
         r = await c.post("/runs", content=b'{"transducer_id":"TX5K-0001","top_mass_kg":NaN,"steps":[]}',
                          headers={"Content-Type": "application/json"})
         assert r.status_code == 422
-    in_app(tmp_path, go)
+    held[0].call(go)
 
 
-@pytest.mark.slow
-def test_unknown_runs_are_404_and_bad_ids_422(tmp_path: Path) -> None:
+def test_unknown_runs_are_404_and_bad_ids_422(held: tuple[HeldApp, str]) -> None:
     async def go(c: httpx.AsyncClient) -> None:
         for path in ("", "/events", "/results", "/plots/bode.png", "/report", "/recording", "/discrepancy",
                      "/proposal"):
@@ -349,7 +351,7 @@ def test_unknown_runs_are_404_and_bad_ids_422(tmp_path: Path) -> None:
         for evil in ("..%2F..%2Fetc%2Fpasswd", "..", "%2e%2e"):
             r = await c.get(f"/runs/{evil}/recording")
             assert r.status_code in (404, 422), (evil, r.status_code)
-    in_app(tmp_path, go)
+    held[0].call(go)
 
 
 @pytest.mark.slow
