@@ -119,16 +119,37 @@ def test_an_older_trail_is_chained_as_it_stands(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- the daemon
+@pytest.fixture(scope="module")
+def seeded_once(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """A recordings folder with one seeded, identified run (vouched for as the daemon vouches), made
+    once for the module: the tests attack files and rows, so each works on a copy (:func:`seeded`)."""
+    from tests.station_support import Seed, daemon_config, seed_runs
+
+    rec = tmp_path_factory.mktemp("records-seeded") / "recordings"
+    [rid] = seed_runs(daemon_config(rec), [Seed()])
+    return rec, rid
+
+
+def seeded(once: tuple[Path, str], tmp_path: Path) -> tuple[Path, str]:
+    """A copy of the module's seeded recordings folder in ``tmp_path`` (the run's id)."""
+    import shutil
+
+    rec = tmp_path / "recordings"
+    shutil.copytree(once[0], rec)
+    return rec, once[1]
+
+
 @pytest.mark.slow
-def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path) -> None:
+@pytest.mark.xdist_group("records_seeded")  # the module's seeded run made once for both
+def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path,
+                                                                  seeded_once: tuple[Path, str]) -> None:
     """A seeded, identified run (vouched for as the daemon vouches): its results file edited, its
     recording flipped with the runs table's SHA-256 rewritten to match, a results file added, the
     trail rewritten behind the triggers.  Every endpoint that reads the run refuses (409, the file
     named), /integrity names it, and all is served again once the files are restored."""
-    from tests.station_support import Seed, app_in_process, daemon_config, seed_runs
+    from tests.station_support import app_in_process
 
-    rec = tmp_path / "recordings"
-    [rid] = seed_runs(daemon_config(rec), [Seed()])
+    rec, rid = seeded(seeded_once, tmp_path)
     results = sorted((rec / f"{rid}.results").glob("results.*.h5"))
     assert results
     reads = [f"/runs/{rid}/results", f"/runs/{rid}/report", f"/runs/{rid}/report.pdf", f"/runs/{rid}/plots/bode.png",
@@ -267,7 +288,9 @@ def test_the_signing_key_is_the_owners_alone_and_rotation_keeps_the_old_one(tmp_
 
 
 @pytest.mark.slow
-def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Path) -> None:
+@pytest.mark.xdist_group("records_seeded")  # the module's seeded run made once for both
+def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Path,
+                                                                   seeded_once: tuple[Path, str]) -> None:
     """Free-text preparer, a technician, the operator approving, a second live certificate: each
     refused with one refusal entry; an issue names its number and the SHA-256 of its files; an
     issued file edited with its record's hashes recomputed is refused; a hand-made withdrawal
@@ -276,10 +299,9 @@ def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Pa
     import hashlib
     import json
 
-    from tests.station_support import PASSWORDS, Seed, app_in_process, daemon_config, login, seed_runs
+    from tests.station_support import PASSWORDS, app_in_process, login
 
-    rec = tmp_path / "recordings"
-    [rid] = seed_runs(daemon_config(rec), [Seed()])
+    rec, rid = seeded(seeded_once, tmp_path)
 
     async def go() -> None:
         async with app_in_process(rec) as (manager, c):
@@ -417,18 +439,6 @@ def test_an_import_refuses_fifos_loops_and_too_many_bytes(tmp_path: Path) -> Non
         f.truncate(MAX_RUN_BYTES // 4 + 1)
     assert f"the limit is {MAX_RUN_BYTES} bytes per run" in attempt(["big.csv"] * 4)
     assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())
-
-
-@pytest.mark.slow
-def test_an_out_of_range_audit_cursor_is_422(tmp_path: Path) -> None:
-    from tests.station_support import app_in_process
-
-    async def go() -> None:
-        async with app_in_process(tmp_path / "rec") as (_, c):
-            r = await c.get("/audit", params={"before_id": "99999999999999999999999"})
-            assert r.status_code == 422 and "before_id" in str(r.json())
-            assert (await c.get("/audit", params={"before_id": str(2**63 - 1)})).status_code == 200
-    asyncio.run(go())
 
 
 # ---------------------------------------------------------------------------------------------- logins
