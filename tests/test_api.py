@@ -155,6 +155,7 @@ class TestOneAppForReading:
         assert s["limits"]["crank_frequency_hz"] == {"min": 1.0, "max": 100.0}
         assert s["limits"]["peak_force_limit_N"] == pytest.approx(4000.0)
 
+    @pytest.mark.slow  # the document is built on its first request: about a second of CPU
     def test_openapi_documents_every_endpoint(self, held: tuple[HeldApp, str]) -> None:
         spec = held[0].get("/openapi.json", anon=True).json()
         paths = spec["paths"]

@@ -134,6 +134,7 @@ def test_run_batch_gives_the_identification_results_in_order(local_batch: tuple[
         run_batch(paths[:1], executor="ray://x")
 
 
+@pytest.mark.slow  # a worker process starts
 def test_run_batch_stores_results_when_asked(history: dict, tmp_path: Path) -> None:
     p = tmp_path / history["stable"][0].name
     shutil.copy(history["stable"][0], p)
