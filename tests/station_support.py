@@ -25,6 +25,7 @@ import socket
 import sqlite3
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass
@@ -50,6 +51,8 @@ T = TypeVar("T")
 PASSWORDS = {"tina": "tina-secret-pw", "anton": "anton-secret-pw", "ada": "ada-secret-pw1"}
 ROLES = {"tina": "technician", "anton": "approver", "ada": "admin"}
 FINAL = ("completed", "aborted", "failed", "interrupted")
+# the cap most API tests put on an in-process rig's virtual clock (x real time; see SpeedLimit)
+CAPPED_SPEEDUP = 20.0
 ON_RIG_DONE = (*FINAL, "identifying")
 
 
@@ -133,22 +136,64 @@ def seed_runs(config: dict[str, Any], seeds: Sequence[Seed]) -> list[str]:
 
 
 # ---------------------------------------------------------------------------------------- in process
+class SpeedLimit:
+    """Keeps a virtual clock at most ``speedup`` times faster than real time: a participant that
+    wakes every ``step_s`` of virtual time and, awake (time stands still while a participant is),
+    lets ``step_s / speedup`` of real time pass since its last wake before it waits again.
+
+    An in-process rig streams its DAQ through the clock even when idle, as fast as a core allows
+    (about 100 times real time), while a test waits on something else (a worker process, another
+    test of a module that holds the app); limited, it leaves that core to the work waited on.  A run
+    still takes its seconds of virtual time in a small part of them in real time."""
+
+    def __init__(self, clock: Any, speedup: float, step_s: float = 0.1) -> None:
+        self.clock = clock
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(step_s / speedup, step_s), daemon=True,
+                                        name="virtual-clock-speed-limit")
+        self._thread.start()
+
+    def _run(self, hold_s: float, step_s: float) -> None:
+        last = time.monotonic()
+        while not self._stop.is_set():
+            self.clock.wait_for(self._stop.is_set, step_s)
+            left = hold_s - (time.monotonic() - last)
+            if left > 0 and not self._stop.is_set():
+                time.sleep(left)  # awake: the clock waits
+            last = time.monotonic()
+
+    def close(self) -> None:
+        self._stop.set()
+        self.clock.notify()
+        self._thread.join(5.0)
+
+
 @contextlib.asynccontextmanager
 async def running_app(rec_dir: Path, *, config: dict[str, Any] | None = None, workers: int = 0,
-                      render: bool = False, min_free_mb: float | None = None, **service: Any) -> AsyncIterator[Any]:
+                      render: bool = False, min_free_mb: float | None = None, max_speedup: float | None = None,
+                      **service: Any) -> AsyncIterator[Any]:
     """The daemon's FastAPI app, started (its lifespan entered) in this process on the simulated rig
     (virtual clock, no wire).  ``config``: as parsed YAML (default :func:`daemon_config` with
     ``service``); ``workers``: identification processes (0: runs stop at ``identifying``);
     ``render``: start the render worker at once (plots, report, discrepancy); ``min_free_mb``: the
-    recordings disk's reserve."""
+    recordings disk's reserve; ``max_speedup``: the virtual clock at most this many times faster
+    than real time (:class:`SpeedLimit`; None: as fast as it goes)."""
     from drivers.sim.clock import VirtualClock
     from station.api import create_app
     from station.run.rig import connect
     from station.service.manager import RunManager
     from station.service.settings import ServiceSettings, build_settings
 
-    def virtual_rig(cfg: StationConfig, sim: bool) -> contextlib.AbstractAsyncContextManager[Any]:
-        return connect(cfg, sim=sim, sim_clock=VirtualClock())
+    @contextlib.asynccontextmanager
+    async def virtual_rig(cfg: StationConfig, sim: bool) -> AsyncIterator[Any]:
+        clock = VirtualClock()
+        limit = SpeedLimit(clock, max_speedup) if max_speedup is not None else None
+        try:
+            async with connect(cfg, sim=sim, sim_clock=clock) as rig:
+                yield rig
+        finally:
+            if limit is not None:
+                limit.close()
 
     class Manager(RunManager):
         def __init__(self, settings: ServiceSettings) -> None:

@@ -1,14 +1,16 @@
 """POST /campaigns on the daemon's app in-process over a store seeded with two finished runs of the
-simulated transducer with different top masses, identified jointly; the refusals and error statuses."""
+simulated transducer with different top masses, identified jointly (once, stored, for the tests
+that read the campaign); the refusals and error statuses."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from tests.station_support import HeldApp, Seed, daemon_config, seed_runs
+from tests.station_support import CAPPED_SPEEDUP, HeldApp, Seed, daemon_config, seed_runs
 
 # the campaign is computed in the render worker (a process start)
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("api_campaign")]
@@ -21,18 +23,24 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[HeldApp, li
     rec = tmp_path_factory.mktemp("campaign") / "recordings"
     ids = seed_runs(daemon_config(rec), [Seed((10.0, 80.0), 2e-4, top, seed=s)
                                          for s, top in ((1, 5.0), (2, 25.717))])
-    app = HeldApp(rec)
+    app = HeldApp(rec, max_speedup=CAPPED_SPEEDUP)
     try:
         yield app, ids
     finally:
         app.close()
 
 
-def test_two_runs_separate_the_end_mass(runs: Runs) -> None:
+@pytest.fixture(scope="module")
+def stored(runs: Runs) -> dict[str, Any]:
+    """The two runs' campaign, computed once and stored beside both recordings (the response)."""
     d, ids = runs
-    r = d.post("/campaigns", json={"runs": ids})
+    r = d.post("/campaigns", json={"runs": ids, "store": True})
     assert r.status_code == 200, r.text
-    out = r.json()
+    return dict(r.json())
+
+
+def test_two_runs_separate_the_end_mass(runs: Runs, stored: dict[str, Any]) -> None:
+    ids, out = runs[1], stored
     assert out["status"] == "separated" and out["runs"] == ids
     me = out["parameters"]["m_e"]
     assert abs(me["value"] - END_MASS) < 3 * me["std"]
@@ -57,11 +65,11 @@ def test_errors(runs: tuple[HeldApp, list[str]], tmp_path: Path) -> None:
     assert c.post("/campaigns", json={"runs": ["../etc"]}).status_code == 422
 
 
-def test_campaigns_need_the_token_and_the_runs_report_shows_the_stored_campaign(runs: Runs) -> None:
+def test_campaigns_need_the_token_and_the_runs_report_shows_the_stored_campaign(runs: Runs,
+                                                                               stored: dict[str, Any]) -> None:
     d, ids = runs
     assert d.post("/campaigns", json={"runs": ids}, anon=True).status_code == 401  # a computation: the token, always
     assert d.post("/campaigns", json={"runs": ids, "store": True}, anon=True).status_code == 401
-    r = d.post("/campaigns", json={"runs": ids, "store": True})
-    assert r.status_code == 200 and r.json()["stored_as"] == "<run>.results/results.campaign.h5"
+    assert stored["stored_as"] == "<run>.results/results.campaign.h5"
     html = d.get(f"/runs/{ids[0]}/report").text
     assert "Multi-mass campaign" in html and 'data-key="campaign.m_e"' in html

@@ -13,7 +13,7 @@ import pytest
 
 from station.api.problems import KINDS, MEDIA_TYPE, TYPE_PREFIX
 from station.api.schemas import Problem, ValidationProblem
-from tests.station_support import app_in_process, asgi_client, run_body
+from tests.station_support import CAPPED_SPEEDUP, app_in_process, asgi_client, run_body
 
 
 def _responses(doc: dict[str, Any]) -> list[tuple[str, str, str, dict[str, Any]]]:
@@ -34,7 +34,7 @@ def _check(r: httpx.Response, status: int, kind: str) -> dict[str, Any]:
 @pytest.mark.slow
 def test_every_error_response_of_the_openapi_document_is_problem_details(tmp_path: Path) -> None:
     async def go() -> dict[str, Any]:
-        async with app_in_process(tmp_path / "rec") as (_, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (_, c):
             return (await c.get("/openapi.json")).json()
     doc = asyncio.run(go())
     errors = [(p, m, code, resp) for p, m, code, resp in _responses(doc) if code.isdigit() and int(code) >= 400]
@@ -54,7 +54,7 @@ def test_every_error_response_of_the_openapi_document_is_problem_details(tmp_pat
 
 def test_refusals_of_every_kind_come_as_problem_details(tmp_path: Path) -> None:
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec") as (manager, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (manager, c):
             app = c._transport.app  # type: ignore[attr-defined]
             async with asgi_client(app, token=False) as anon:
                 # logged out: the body guard (with a body) and the dependency (without) say the same

@@ -21,7 +21,7 @@ from station.cli import main
 from station.lab.integrity import sha256_file
 from station.lab.issued import FOLDER, read_issued
 from station.recording import read_recording
-from tests.station_support import Seed, asgi_client, daemon_config, run_body, running_app, seed_runs
+from tests.station_support import CAPPED_SPEEDUP, Seed, asgi_client, daemon_config, run_body, running_app, seed_runs
 
 # a simulated, identified run seeded, one recorded on the virtual clock (~10 s)
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("backup")]
@@ -54,7 +54,9 @@ def backed_up(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Any
     dest = tmp / "backup"
 
     async def go() -> Any:
-        async with running_app(rec, config=cfg, workers=1) as app, asgi_client(app) as c:
+        # no identification worker: the run ends its acquisition (closes its recording) at "identifying";
+        # what a backup must leave untouched is the recording, not the identification that follows it
+        async with running_app(rec, config=cfg, workers=0, max_speedup=CAPPED_SPEEDUP) as app, asgi_client(app) as c:
             r = await c.post("/runs", json=run_body(record_s=5.0))
             assert r.status_code == 202, r.text
             run = r.json()["id"]
@@ -66,10 +68,11 @@ def backed_up(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Any
             assert st["state"] == "running", st
             report = await asyncio.to_thread(backup, rec, rec / "station.db", dest)
             for _ in range(4000):  # the run goes on, untouched by the backup
-                if (await c.get(f"/runs/{run}")).json()["state"] in ("completed", "failed", "aborted"):
+                if (await c.get(f"/runs/{run}")).json()["state"] in ("identifying", "failed", "aborted"):
                     break
                 await asyncio.sleep(0.01)
-            assert (await c.get(f"/runs/{run}")).json()["state"] == "completed"
+            done = (await c.get(f"/runs/{run}")).json()
+            assert done["state"] == "identifying" and done["step_state"] == "done", done
             return report
     return rec, dest, asyncio.run(go()), number
 

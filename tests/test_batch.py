@@ -99,15 +99,23 @@ def test_drift_rule_uses_the_history_scatter_when_it_exceeds_the_uncertainty() -
 
 # -- executors -------------------------------------------------------------------------------------
 
-@pytest.mark.slow
-def test_run_batch_gives_the_identification_results_in_order(history: dict, tmp_path: Path) -> None:
-    bad = tmp_path / "garbage.h5"
+@pytest.fixture(scope="module")
+def local_batch(history: dict, tmp_path_factory: pytest.TempPathFactory) -> tuple[list[Path], list[BatchItem]]:
+    """Four stable runs, a garbage file and the drifted run through the local pool (two processes),
+    once for the module: (the paths, the items)."""
+    bad = tmp_path_factory.mktemp("garbage") / "garbage.h5"
     bad.write_text("not an HDF5 file")
-    paths = [*history["stable"][:3], bad, history["drifted"]]
-    items = run_batch(paths, workers=2)
+    paths = [*history["stable"][:4], bad, history["drifted"]]
+    return paths, run_batch(paths, workers=2)
+
+
+@pytest.mark.slow
+def test_run_batch_gives_the_identification_results_in_order(local_batch: tuple[list[Path], list[BatchItem]]) -> None:
+    paths, items = local_batch
+    bad = paths[4]
     assert [it.path for it in items] == paths
-    assert [it.status for it in items] == ["ok", "ok", "ok", "failed", "ok"]
-    assert "not a readable HDF5 recording" in items[3].error
+    assert [it.status for it in items] == ["ok", "ok", "ok", "ok", "failed", "ok"]
+    assert "not a readable HDF5 recording" in items[4].error
     for it, p in zip(items, paths, strict=True):
         if p is bad:
             continue
@@ -126,6 +134,7 @@ def test_run_batch_gives_the_identification_results_in_order(history: dict, tmp_
         run_batch(paths[:1], executor="ray://x")
 
 
+@pytest.mark.slow  # a worker process starts
 def test_run_batch_stores_results_when_asked(history: dict, tmp_path: Path) -> None:
     p = tmp_path / history["stable"][0].name
     shutil.copy(history["stable"][0], p)
@@ -136,10 +145,10 @@ def test_run_batch_stores_results_when_asked(history: dict, tmp_path: Path) -> N
 
 
 @pytest.mark.slow
-def test_dask_local_cluster_gives_the_local_pool_results(history: dict) -> None:
+def test_dask_local_cluster_gives_the_local_pool_results(local_batch: tuple[list[Path], list[BatchItem]]) -> None:
     distributed = pytest.importorskip("distributed")
-    paths = [*history["stable"][:4], history["drifted"]]
-    local = run_batch(paths, workers=2)
+    paths = [p for p, it in zip(*local_batch, strict=True) if it.ok]  # the garbage file left out
+    local = [it for it in local_batch[1] if it.ok]
     # worker processes (about 2 s to start): the jobs are pickled to other processes and sinecal is
     # imported there, as on a real cluster; the client reaches the scheduler over TCP
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,

@@ -27,7 +27,16 @@ from station.lab import policy
 from station.lab.store import Store
 from station.trend.charts import first_alarm_probabilities
 from tests.conftest import fast_dict
-from tests.station_support import TOKEN, Seed, app_in_process, daemon_config, free_port, login, seed_runs
+from tests.station_support import (
+    CAPPED_SPEEDUP,
+    TOKEN,
+    Seed,
+    app_in_process,
+    daemon_config,
+    free_port,
+    login,
+    seed_runs,
+)
 
 TX = "TX5K-0001"
 RATE = 5e-5  # S drifts by 0.005 % a day (0.15 % a month) ...
@@ -145,7 +154,7 @@ def test_nightly_check_runs_chart_a_drifting_check_transducer_and_hold_the_certi
     config = parse_config(cfg)
 
     async def go() -> None:
-        async with app_in_process(rec, config=cfg, workers=1) as (m, admin):
+        async with app_in_process(rec, config=cfg, workers=1, max_speedup=CAPPED_SPEEDUP) as (m, admin):
             app = admin._transport.app  # type: ignore[attr-defined]
             transport = httpx.ASGITransport(app=app)
 

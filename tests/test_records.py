@@ -119,16 +119,37 @@ def test_an_older_trail_is_chained_as_it_stands(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- the daemon
+@pytest.fixture(scope="module")
+def seeded_once(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """A recordings folder with one seeded, identified run (vouched for as the daemon vouches), made
+    once for the module: the tests attack files and rows, so each works on a copy (:func:`seeded`)."""
+    from tests.station_support import Seed, daemon_config, seed_runs
+
+    rec = tmp_path_factory.mktemp("records-seeded") / "recordings"
+    [rid] = seed_runs(daemon_config(rec), [Seed()])
+    return rec, rid
+
+
+def seeded(once: tuple[Path, str], tmp_path: Path) -> tuple[Path, str]:
+    """A copy of the module's seeded recordings folder in ``tmp_path`` (the run's id)."""
+    import shutil
+
+    rec = tmp_path / "recordings"
+    shutil.copytree(once[0], rec)
+    return rec, once[1]
+
+
 @pytest.mark.slow
-def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path) -> None:
+@pytest.mark.xdist_group("records_seeded")  # the module's seeded run made once for both
+def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path,
+                                                                  seeded_once: tuple[Path, str]) -> None:
     """A seeded, identified run (vouched for as the daemon vouches): its results file edited, its
     recording flipped with the runs table's SHA-256 rewritten to match, a results file added, the
     trail rewritten behind the triggers.  Every endpoint that reads the run refuses (409, the file
     named), /integrity names it, and all is served again once the files are restored."""
-    from tests.station_support import Seed, app_in_process, daemon_config, seed_runs
+    from tests.station_support import CAPPED_SPEEDUP, app_in_process
 
-    rec = tmp_path / "recordings"
-    [rid] = seed_runs(daemon_config(rec), [Seed()])
+    rec, rid = seeded(seeded_once, tmp_path)
     results = sorted((rec / f"{rid}.results").glob("results.*.h5"))
     assert results
     reads = [f"/runs/{rid}/results", f"/runs/{rid}/report", f"/runs/{rid}/report.pdf", f"/runs/{rid}/plots/bode.png",
@@ -136,7 +157,7 @@ def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path
              f"/runs/{rid}/discrepancy", f"/runs/{rid}/integrity"]
 
     async def go() -> None:
-        async with app_in_process(rec) as (manager, c):
+        async with app_in_process(rec, max_speedup=CAPPED_SPEEDUP) as (manager, c):
             assert (await c.get(f"/runs/{rid}/results")).status_code == 200
             assert (await c.get("/integrity")).status_code == 200
             assert (await c.get("/health")).json()["audit_chain"]["ok"] is True
@@ -267,7 +288,9 @@ def test_the_signing_key_is_the_owners_alone_and_rotation_keeps_the_old_one(tmp_
 
 
 @pytest.mark.slow
-def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Path) -> None:
+@pytest.mark.xdist_group("records_seeded")  # the module's seeded run made once for both
+def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Path,
+                                                                   seeded_once: tuple[Path, str]) -> None:
     """Free-text preparer, a technician, the operator approving, a second live certificate: each
     refused with one refusal entry; an issue names its number and the SHA-256 of its files; an
     issued file edited with its record's hashes recomputed is refused; a hand-made withdrawal
@@ -276,13 +299,12 @@ def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Pa
     import hashlib
     import json
 
-    from tests.station_support import PASSWORDS, Seed, app_in_process, daemon_config, login, seed_runs
+    from tests.station_support import CAPPED_SPEEDUP, PASSWORDS, app_in_process, login
 
-    rec = tmp_path / "recordings"
-    [rid] = seed_runs(daemon_config(rec), [Seed()])
+    rec, rid = seeded(seeded_once, tmp_path)
 
     async def go() -> None:
-        async with app_in_process(rec) as (manager, c):
+        async with app_in_process(rec, max_speedup=CAPPED_SPEEDUP) as (manager, c):
             app = c._transport.app  # type: ignore[attr-defined]
             for name, role in (("tina", "technician"), ("anton", "approver")):
                 r = await c.put(f"/users/{name}", json={"role": role, "password": PASSWORDS[name]})
@@ -419,18 +441,6 @@ def test_an_import_refuses_fifos_loops_and_too_many_bytes(tmp_path: Path) -> Non
     assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())
 
 
-@pytest.mark.slow
-def test_an_out_of_range_audit_cursor_is_422(tmp_path: Path) -> None:
-    from tests.station_support import app_in_process
-
-    async def go() -> None:
-        async with app_in_process(tmp_path / "rec") as (_, c):
-            r = await c.get("/audit", params={"before_id": "99999999999999999999999"})
-            assert r.status_code == 422 and "before_id" in str(r.json())
-            assert (await c.get("/audit", params={"before_id": str(2**63 - 1)})).status_code == 200
-    asyncio.run(go())
-
-
 # ---------------------------------------------------------------------------------------------- logins
 def _count_scrypt(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     """hashlib.scrypt counted from now on: one 1 in the list per call."""
@@ -495,10 +505,10 @@ def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path
     password check as any other.  A password typed into the name field
     never reaches the trail; a new password ends the user's sessions; tokens are listed and revoked."""
     from station.service import logins
-    from tests.station_support import PASSWORDS, app_in_process, asgi_client, login
+    from tests.station_support import CAPPED_SPEEDUP, PASSWORDS, app_in_process, asgi_client, login
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec") as (manager, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (manager, c):
             app = c._transport.app  # type: ignore[attr-defined]
             r = await c.put("/users/tina", json={"role": "technician", "password": PASSWORDS["tina"]})
             assert r.status_code == 200
@@ -671,10 +681,10 @@ def test_a_lock_out_outlives_a_restart_and_its_doubling_goes_on(tmp_path: Path) 
 
 @pytest.mark.slow
 def test_each_user_lists_and_revokes_their_own_tokens_and_an_admin_all(tmp_path: Path) -> None:
-    from tests.station_support import PASSWORDS, app_in_process, login
+    from tests.station_support import CAPPED_SPEEDUP, PASSWORDS, app_in_process, login
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec") as (_, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (_, c):
             app = c._transport.app  # type: ignore[attr-defined]
             for name, role in (("tina", "technician"), ("anton", "approver")):
                 assert (await c.put(f"/users/{name}", json={"role": role, "password": PASSWORDS[name]})).status_code \

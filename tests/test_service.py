@@ -177,6 +177,10 @@ def _wait_gone(pids: list[int], timeout_s: float = 20.0) -> list[int]:
 
 @pytest.mark.slow
 def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume(tmp_path: Path) -> None:
+    """A daemon killed -9 mid-run: the next one closes the run as interrupted with a readable recording,
+    resumes the queued identification and takes new runs.  Killed -9 in turn, it leaves no orphaned
+    process: its workers, its rig process and the emulators' process end (the rig process and the
+    emulators on the end of their stdin, the workers on PR_SET_PDEATHSIG)."""
     data = tmp_path / "recordings"
     # first daemon without workers: the identification of run A (acquired, seeded) stays queued
     first = Daemon(tmp_path, workers=0, data_dir=data, name="first", seeds=[Seed(identified=False)]).start()
@@ -226,6 +230,14 @@ def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume
         # and the rig takes new runs
         n = second.start_run(freqs=(10.0,))
         assert second.wait_state(n, timeout_s=IDENTIFIED_WITHIN_S)["state"] == "completed"
+        # killed -9 with a worker process that has identified runs: nothing of it is left running
+        assert second.proc is not None
+        kids = _daemon_children(second.proc.pid)
+        assert all(kids.values()), kids  # workers, the rig process and the emulators' process
+        second.kill()
+    pids = [p for ps in kids.values() for p in ps]
+    assert not _wait_gone(pids), subprocess.run(
+        ["ps", "-o", "pid,ppid,stat,cmd", "-p", ",".join(map(str, pids))], capture_output=True, text=True).stdout
 
 
 @pytest.mark.slow
@@ -276,7 +288,7 @@ def test_a_second_shutdown_call_never_cuts_short_the_stop_and_the_closing_of_the
     from station.lab import audit
     from station.lab.integrity import sha256_file
     from station.run.procedure import Procedure
-    from tests.station_support import app_in_process, start, wait_state
+    from tests.station_support import CAPPED_SPEEDUP, app_in_process, start, wait_state
 
     stopping, second_call_made = threading.Event(), threading.Event()
     stop_motor = Procedure._stop_motor
@@ -289,7 +301,7 @@ def test_a_second_shutdown_call_never_cuts_short_the_stop_and_the_closing_of_the
     rec_dir = tmp_path / "rec"
 
     async def go() -> str:
-        async with app_in_process(rec_dir) as (m, c):
+        async with app_in_process(rec_dir, max_speedup=CAPPED_SPEEDUP) as (m, c):
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), step_state="recording")
             tasks = m.begin_shutdown()  # the signal handler
@@ -313,24 +325,6 @@ def test_a_second_shutdown_call_never_cuts_short_the_stop_and_the_closing_of_the
         assert ended.files == {path.name: sha256_file(path)} and row.recording_sha256 == sha256_file(path)
     finally:
         store.close()
-
-
-@pytest.mark.slow
-def test_worker_exits_when_the_daemon_is_killed(tmp_path: Path) -> None:
-    """No orphaned process after kill -9 of the daemon: its workers, its rig process and the emulators'
-    process end (the rig process and the emulators on the end of their stdin, the workers on
-    PR_SET_PDEATHSIG)."""
-    d = Daemon(tmp_path, seeds=[Seed(identified=False)]).start()
-    try:
-        d.wait_state(d.seeded[0], timeout_s=IDENTIFIED_WITHIN_S)  # identified by a worker process
-        assert d.proc is not None
-        kids = _daemon_children(d.proc.pid)
-        assert all(kids.values()), kids  # workers, the rig process and the emulators' process
-    finally:
-        d.kill()
-    pids = [p for ps in kids.values() for p in ps]
-    assert not _wait_gone(pids), subprocess.run(
-        ["ps", "-o", "pid,ppid,stat,cmd", "-p", ",".join(map(str, pids))], capture_output=True, text=True).stdout
 
 
 def test_serve_refuses_a_bad_configuration_at_start_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,

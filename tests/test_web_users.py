@@ -2,27 +2,48 @@
 adds a technician (a refused password shown at its field), issues them an API token (shown once),
 the technician logs in and sees what the role allows and no users section, lists his own API tokens
 (the administrator: everyone's) and revokes one, the administrator disables them and their next
-request is refused; the audit trail records each change, without secrets."""
+request is refused; the audit trail records each change, without secrets.
+
+And a transducer's history page: the control charts of each parameter with their limits, the
+out-of-control points of a stepped sensitivity in red, the as-found comparison and the recommended
+intervals (a recommendation, never a number made up).  One daemon for both, its store holding the
+transducer's history before it starts."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from pathlib import Path
 
 import httpx
 import pytest
 
+from station.lab import policy
+from station.lab.store import Store
+from tests.history_support import TX, add_runs, add_transducer
 from tests.station_support import Daemon
 from tests.web_support import log_in, open_page
 
-pytestmark = pytest.mark.slow  # a real daemon and a browser
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web_users")]  # a real daemon and a browser
 
 NEW_PASSWORD = "tomas-secret-pw"
 
 
-@pytest.fixture
-def daemon(tmp_path: Path) -> Iterator[Daemon]:
-    with Daemon(tmp_path) as d:
+@pytest.fixture(scope="module")
+def history(tmp_path_factory: pytest.TempPathFactory) -> tuple[Daemon, list[str]]:
+    """The daemon (not started) over a store with the check transducer's 16 completed runs, S
+    stepped by 4 u from the 11th, and its policy; the runs' ids."""
+    d = Daemon(tmp_path_factory.mktemp("web-users"))
+    d.data_dir.mkdir(parents=True)
+    store = Store(d.data_dir / "station.db")
+    add_transducer(store)
+    ids = add_runs(store, d.data_dir, 16, step_at=10, step_u=4.0)
+    policy.put_policy(store, policy.Policy(TX, {"S": 0.005}, 30.0, True), "admin")
+    store.close()
+    return d, ids
+
+
+@pytest.fixture(scope="module")
+def daemon(history: tuple[Daemon, list[str]]) -> Iterator[Daemon]:
+    with history[0] as d:
         yield d
 
 
@@ -136,3 +157,20 @@ def test_admin_adds_issues_token_and_disables_a_user(browser: object, daemon: Da
     assert trail[0]["details"]["password_changed"] is True and trail[-1]["details"]["password_changed"] is False
     for secret in (token, later, other, NEW_PASSWORD):
         assert secret not in str(trail) and not any(secret in line for line in console)
+
+
+def test_history_page_shows_the_charts_and_their_out_of_control_points(browser: object, daemon: Daemon,
+                                                                      history: tuple[Daemon, list[str]]) -> None:
+    ids = history[1]
+    with open_page(browser, daemon.url + f"/#/transducers/{TX}") as page:
+        page.wait_for_selector("#hist-trends svg", timeout=20_000)
+        text = page.inner_text("#hist-trends")
+        assert "check transducer" in text and "sensitivity S" in text and "natural frequency f_0" in text
+        assert "EWMA (λ 0.2, limits ±3 s)" in text and "as found in run015" in text
+        assert "recommended intervals (for a person to decide)" in text
+        # the stepped runs are red on the S charts, and no k_f point is
+        red = page.eval_on_selector_all("#hist-trends svg[aria-label='S control chart'] circle[fill='#c00'] title",
+                                        "els => els.map(e => e.textContent)")
+        assert red and all(t.split(":")[0] in ids[10:] for t in red)
+        assert page.eval_on_selector_all("#hist-trends svg[aria-label='k_f control chart'] circle[fill='#c00']",
+                                         "els => els.length") == 0
