@@ -85,6 +85,26 @@ def test_result_names_are_plain(rec: Path, name: str) -> None:
     assert not sidecar_dir(rec).exists()
 
 
+def test_an_identical_result_asked_to_be_kept_is_not_written_again(rec: Path) -> None:
+    doc = {"gap_V": 1.5e-4, "effects": ["mains"]}
+    q = write_result(rec, "discrepancy", doc, keep_identical=True)
+    before = q.stat().st_mtime_ns, os.stat(q).st_ino
+    time.sleep(0.01)  # a rewrite would show in the modification time (ns) and the inode (a new file renamed)
+    assert write_result(rec, "discrepancy", dict(doc), keep_identical=True) == q
+    assert (q.stat().st_mtime_ns, os.stat(q).st_ino) == before
+    # a different document, or one written without the option, replaces it
+    write_result(rec, "discrepancy", {**doc, "gap_V": 1.6e-4}, keep_identical=True)
+    assert os.stat(q).st_ino != before[1] and read_result(rec, "discrepancy") == {**doc, "gap_V": 1.6e-4}
+    ino = os.stat(q).st_ino
+    write_result(rec, "discrepancy", {**doc, "gap_V": 1.6e-4})
+    assert os.stat(q).st_ino != ino
+    # a result with arrays is always written again (the arrays are not compared)
+    a = write_result(rec, "fit", doc, {"x": np.arange(3.0)}, keep_identical=True)
+    ino = os.stat(a).st_ino
+    write_result(rec, "fit", doc, {"x": np.arange(3.0)}, keep_identical=True)
+    assert os.stat(a).st_ino != ino
+
+
 def test_results_only_for_complete_recordings(tmp_path: Path) -> None:
     w = RecordingWriter(tmp_path, run_metadata(), FLOAT_CHANNELS)
     w.abandon()

@@ -91,10 +91,15 @@ def fsync_dir(folder: Path) -> None:
 
 
 def write_result(recording: str | Path, name: str, payload: dict[str, Any],
-                 arrays: dict[str, np.ndarray] | None = None, *, group: str = "results") -> Path:
+                 arrays: dict[str, np.ndarray] | None = None, *, group: str = "results",
+                 keep_identical: bool = False) -> Path:
     """Store ``payload`` (JSON) and ``arrays`` as result ``name`` beside ``recording``, atomically,
     replacing an earlier result of that name.  The recording itself is not opened.  Returns the
-    result's file; raises ResultWriteError (nothing changed) when it cannot be written."""
+    result's file; raises ResultWriteError (nothing changed) when it cannot be written.
+
+    ``keep_identical`` (a result without arrays): an earlier result of the same document is kept
+    as it is, not written again, so that what depends on its version (the report, a draft
+    certificate) is not made again for nothing."""
     p = Path(recording)
     _check(p, name, group)
     if not p.is_file():
@@ -102,6 +107,8 @@ def write_result(recording: str | Path, name: str, payload: dict[str, Any],
     text = json.dumps(payload, default=jsonable)
     folder = sidecar_dir(p)
     final = folder / f"{group}.{name}.h5"
+    if keep_identical and not arrays and _holds(final, text):
+        return final
     tmp = folder / f".{final.name}{TMP_MARK}{os.getpid()}-{secrets.token_hex(3)}"
     try:
         if not folder.is_dir():
@@ -127,6 +134,19 @@ def write_result(recording: str | Path, name: str, payload: dict[str, Any],
         tmp.unlink(missing_ok=True)
         raise
     return final
+
+
+def _holds(final: Path, text: str) -> bool:
+    """Whether the result file ``final`` exists, is of this format and holds the document ``text``
+    and no arrays."""
+    if not final.is_file():
+        return False
+    try:
+        with h5py.File(final, "r") as f:
+            return (f.attrs.get("format") == RESULT_FORMAT and f.attrs.get("format_version") == RESULT_FORMAT_VERSION
+                    and f.attrs.get("json") == text and len(f) == 0)
+    except (OSError, ValueError):
+        return False
 
 
 def _from_group(g: Any, name: str, source: str) -> Stored | None:

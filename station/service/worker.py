@@ -188,7 +188,8 @@ def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
     from station.recording import write_result
 
     rep = analyse_recording(path, max_effects=max_effects)
-    write_result(path, "discrepancy", {**rep.to_dict(), "max_effects": max_effects})
+    # the analysis is a function of the recording: asked again, the same result is kept, not rewritten
+    write_result(path, "discrepancy", {**rep.to_dict(), "max_effects": max_effects}, keep_identical=True)
     return dict(rep.to_json())  # the contract (DiscrepancyJson) as the API's plain JSON
 
 
