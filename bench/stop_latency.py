@@ -313,6 +313,12 @@ def measure(name: str, d: Daemon, emu: SimRigProcess, repeats: int,
             "met": bool(lat) and len(lat) == repeats and max(lat) <= TARGET_MS, **extra}
 
 
+def nice_of(pid: int) -> str:
+    """The nice values of the threads of process ``pid``, in words."""
+    nices = sorted({os.getpriority(os.PRIO_PROCESS, int(t)) for t in os.listdir(f"/proc/{pid}/task")})
+    return "nice " + ", ".join(str(n) for n in nices)
+
+
 def renice(pid: int, nice: int) -> str:
     """Every thread of process ``pid`` at ``nice``; what was done, in words."""
     tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
@@ -342,7 +348,8 @@ def flood_busy(d: Daemon, emu: SimRigProcess, repeats: int, flood: int, via: str
     connections on the main port (``drive_nice``: the emulator's threads at this nice value once the
     run records)."""
     samples, failed_runs, not_ended = [], [], []
-    reniced = None
+    assert emu._proc is not None  # the emulator's process (a bench may look inside)
+    reniced = f"{nice_of(emu._proc.pid)} (its own: python -m drivers.sim)"
     for _ in range(repeats):
         rid = start_run(d)
         if drive_nice is not None:
@@ -367,7 +374,7 @@ def flood_busy(d: Daemon, emu: SimRigProcess, repeats: int, flood: int, via: str
     lat = [s["latency_ms"] for s in samples if s["latency_ms"] is not None]
     lost = sum(1 for s in samples if s["status"] != 200 or s["latency_ms"] is None)
     return {"case": "flood_busy", "via": via, "repeats": repeats, "flood_connections": flood,
-            "drive_emulator": reniced or "nice 0 (as everything else)", "spinning_processes": hogs,
+            "drive_emulator": reniced, "spinning_processes": hogs,
             "stops_lost": lost, "runs_failed_by_the_flood": len(failed_runs), "run_failures": failed_runs[:5],
             "runs_not_ended_30_s_after_the_stop": not_ended,
             "latency_ms_median": round(statistics.median(lat), 2) if lat else None,

@@ -89,7 +89,8 @@ def test_inprocess_daq_backend_streams_without_loss() -> None:
 
 
 @pytest.mark.slow
-def test_subprocess_rig_serves_both_devices() -> None:
+def test_subprocess_rig_serves_both_devices(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "2")  # numpy's import starts threads before the emulators' code runs
     with SimRigProcess(seed=2) as proc:
         async def read_max() -> float:
             motor = MotorController()

@@ -110,13 +110,16 @@ HARDWARE_NICE = -10  # the emulators' priority where the OS gives it (every thre
 
 
 def _as_hardware() -> None:
-    """Raise this process's priority (nice -10) before it starts a thread: a drive and a DAQ bridge
+    """Raise this process's priority (nice -10), every thread's, before it starts its own: a drive and a DAQ bridge
     are hardware of their own, answering in milliseconds whatever load the station's computer
     carries, and the emulators stand in for them.  At normal priority a loaded machine (tests in
     parallel, both cores busy) delays a reply beyond the drive's reply time-out, a failure no real
     drive would cause.  Refused (no privilege): said on stderr, and the emulators run as they are."""
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, HARDWARE_NICE)
+    try:  # every thread there is (numerical libraries start theirs at import), and what they start
+        tids = [int(t) for t in os.listdir("/proc/self/task")] if os.path.isdir("/proc/self/task") else [0]
+        for tid in tids:
+            with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+                os.setpriority(os.PRIO_PROCESS, tid, HARDWARE_NICE)
     except OSError as exc:
         logging.getLogger("drivers.sim").warning(
             "simulated rig: priority nice %d refused (%s); it runs at nice %d, and a loaded machine may "
