@@ -29,7 +29,7 @@ from station.run.standstill import DriveCheck
 
 log = logging.getLogger("station.rigproc")
 
-START_TIMEOUT_S = 60.0  # the first run loads the procedure's modules in the rig process (numpy, h5py)
+START_TIMEOUT_S = 60.0  # the plan parsed and the procedure's driver connected there (a loaded machine: slow)
 END_WAIT_S = 120.0  # a cancelled run's stop, read-back and recording's close in the rig process
 
 
@@ -74,7 +74,7 @@ class RemoteProcedure:
         if not self.abort_reason:
             self.abort_reason = reason
         if self._started:
-            self.channel.send({"op": "run_abort", "run_id": self.run_id, "reason": self.abort_reason})
+            self._abort_there(self.abort_reason)
 
     async def execute(self) -> RunOutcome:
         loop = asyncio.get_running_loop()
@@ -96,27 +96,28 @@ class RemoteProcedure:
                                     "reserve_file": str(self.disk_reserve) if self.disk_reserve else None},
                                    START_TIMEOUT_S)
         except asyncio.CancelledError:
-            self.channel.send({"op": "run_abort", "run_id": self.run_id, "reason": "the station was stopped",
-                               "interrupt": True})
+            self._abort_there("the station was stopped", interrupt=True)
             raise
         except MotorLinkError:  # no answer: a run started there after all is stopped
-            self.channel.send({"op": "run_abort", "run_id": self.run_id,
-                               "reason": "the daemon did not hear the rig process take the run"})
+            self._abort_there("the daemon did not hear the rig process take the run")
             raise
         self._started = True
         self.progress.state = "running"
         if self.abort_reason:
-            self.channel.send({"op": "run_abort", "run_id": self.run_id, "reason": self.abort_reason})
+            self._abort_there(self.abort_reason)
         try:
             end = await asyncio.shield(ended)
         except asyncio.CancelledError:  # the station stops: the procedure's own cancellation there
-            self.channel.send({"op": "run_abort", "run_id": self.run_id, "interrupt": True,
-                               "reason": self.abort_reason or "the station was stopped during the run"})
+            self._abort_there(self.abort_reason or "the station was stopped during the run", interrupt=True)
             await asyncio.wait({ended}, timeout=END_WAIT_S)
             if not ended.done() or ended.exception() is not None:
                 raise
             end = ended.result()
         return self._outcome(end)
+
+    def _abort_there(self, reason: str, *, interrupt: bool = False) -> None:
+        """``run_abort`` for this run (``interrupt``: it ends ``interrupted``, as the station's end cuts it off)."""
+        self.channel.send({"op": "run_abort", "run_id": self.run_id, "reason": reason, "interrupt": interrupt})
 
     def _outcome(self, end: dict[str, Any]) -> RunOutcome:
         if end.get("motor_fault"):

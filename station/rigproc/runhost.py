@@ -174,7 +174,7 @@ class RunHost:
         self.outcomes: collections.OrderedDict[str, dict[str, Any]] = collections.OrderedDict()
         self._last_progress = 0.0
         self._phase: tuple[Any, ...] = ()
-        self._starting = False  # a ``run_start`` loading the procedure's modules
+        self._starting = False  # a ``run_start`` connecting the procedure's driver to the drive
 
     @property
     def active(self) -> bool:
@@ -190,7 +190,7 @@ class RunHost:
         self._starting = True
         try:
             procedure_mod, stream_mod, config_mod, request_mod = _load()
-            if self.rig.latched is not None:  # also one given while the modules loaded
+            if self.rig.latched is not None:
                 return _refused(f"the rig process holds a stop ({self.rig.latched['source']}: "
                                 f"{self.rig.latched['detail']}); an operator acknowledges it first")
             try:
@@ -302,20 +302,16 @@ class RunHost:
                 "outcome": self.outcomes.get(run_id)}
 
 
-PROCEDURE_MODULES = ("station.run.procedure", "station.rigproc.streamclient", "station.config", "station.run.request",
-                     "station.run.steady")
-
-
 def preload_procedure() -> None:
     """Import the procedure's modules (numpy, h5py with them) now: the rig process does so before it
     reads its specification, at normal priority, so that no run's start pays for it."""
-    for m in PROCEDURE_MODULES:
-        importlib.import_module(m)
+    _load()
 
 
 def _load() -> tuple[Any, Any, Any, Any]:
-    """The procedure's modules (loaded at the rig process's start, ``preload_procedure``)."""
-    return tuple(importlib.import_module(m) for m in PROCEDURE_MODULES[:4])  # type: ignore[return-value]
+    """The procedure's modules: procedure, stream client, configuration, request."""
+    return tuple(importlib.import_module(m) for m in (  # type: ignore[return-value]
+        "station.run.procedure", "station.rigproc.streamclient", "station.config", "station.run.request"))
 
 
 def _refused(detail: str) -> dict[str, Any]:
@@ -332,10 +328,9 @@ def _criteria(d: dict[str, Any] | None) -> Any:
 
 def _release(path: Path) -> int:
     """The daemon's disk reserve freed so the recording can be closed (``service/disk.py``); bytes freed."""
-    try:
-        size = path.stat().st_size
-        path.unlink()
-    except FileNotFoundError:
-        return 0
-    log.error("recordings disk full: reserve file of %.0f MiB released to close the recording", size / 2**20)
+    from station.service.disk import release_file  # loaded with the recording's modules, not at import
+
+    size = release_file(path)
+    if size:
+        log.error("recordings disk full: reserve file of %.0f MiB released to close the recording", size / 2**20)
     return size

@@ -34,6 +34,16 @@ class DiskSpaceError(StationError):
     """The recordings disk has no room for a run (503)."""
 
 
+def release_file(path: Path) -> int:
+    """Delete the reserve file ``path`` (a recording hit a full disk); the bytes freed, 0 if it was not there."""
+    try:
+        size = path.stat().st_size
+        path.unlink()
+    except FileNotFoundError:
+        return 0
+    return size
+
+
 class RecordingsDisk:
     def __init__(self, directory: Path, min_free_bytes: int, reserve_file_bytes: int = RESERVE_FILE_BYTES) -> None:
         self.directory = directory
@@ -83,10 +93,8 @@ class RecordingsDisk:
     def release_reserve(self) -> int:
         """Free the reserve file (a recording hit a full disk); returns the bytes freed."""
         with self._lock:
-            try:
-                size = self.path.stat().st_size
-                self.path.unlink()
-            except FileNotFoundError:
+            size = release_file(self.path)
+            if not size:
                 return 0
             self.released += 1
             log.error("recordings disk full: reserve file of %.0f MiB released to close the recording "
