@@ -650,8 +650,8 @@ def load_config(path: str | Path) -> StationConfig:
 
 def config_to_yaml(cfg: StationConfig) -> str:
     """The configuration as YAML (the snapshot stored in every recording; never the API token)."""
-    return yaml.safe_dump(cfg.model_dump(mode="json", exclude_none=True, exclude={"service": {"token"}}),
-                          sort_keys=False)
+    return yaml.dump(cfg.model_dump(mode="json", exclude_none=True, exclude={"service": {"token"}}),
+                     Dumper=getattr(yaml, "CSafeDumper", yaml.SafeDumper), sort_keys=False)  # libyaml's: 3x faster
 
 
 def default_config_path() -> Path:

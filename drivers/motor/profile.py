@@ -13,6 +13,7 @@ come from any path.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
@@ -644,8 +645,9 @@ def shipped_profiles() -> list[str]:
     return sorted(p.stem for p in folder.glob("*.yaml"))
 
 
-class _UniqueKeys(yaml.SafeLoader):  # type: ignore[misc]  # PyYAML ships no annotations (types-PyYAML not installed)
-    """SafeLoader that refuses a key written twice in one mapping, naming both lines."""
+class _UniqueKeys(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]  # PyYAML ships no annotations (types-PyYAML not installed)
+    """Safe loader (libyaml's where PyYAML has it) that refuses a key written twice in one mapping, naming
+    both lines."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         lines: dict[Any, int] = {}
@@ -668,9 +670,17 @@ def load_profile(name_or_path: str | Path | None = None) -> DriveProfile:
                                f"({', '.join(shipped_profiles())}) or a .yaml path") from exc
     try:
         text = p.read_text(encoding="utf-8")
-        doc = yaml.load(text, Loader=_UniqueKeys)  # a SafeLoader that refuses a key written twice
-    except yaml.YAMLError as exc:
-        raise RegisterMapError(f"{p}: not valid YAML: {exc}") from exc
     except (OSError, UnicodeDecodeError) as exc:
         raise RegisterMapError(f"drive profile {p}: cannot read it ({exc})") from exc
-    return replace(parse_profile(doc, str(p)), text=text)
+    return _parsed_profile(text, str(p))
+
+
+@functools.lru_cache(maxsize=32)
+def _parsed_profile(text: str, path: str) -> DriveProfile:
+    """The profile ``text`` read from ``path``, parsed once per text and path (a station configuration
+    names its profile and is parsed at every recording read; the result is frozen, so it is shared)."""
+    try:
+        doc = yaml.load(text, Loader=_UniqueKeys)  # a SafeLoader that refuses a key written twice
+    except yaml.YAMLError as exc:
+        raise RegisterMapError(f"{path}: not valid YAML: {exc}") from exc
+    return replace(parse_profile(doc, path), text=text)
