@@ -201,15 +201,26 @@ def quantisation_cov(t: FloatArray, y: FloatArray, fit: SineFit, n_harmonics: in
     proj = np.linalg.inv(J.T @ J)[:2] @ J.T  # (2, N): coefficients A, B of the fundamental
     phases = np.random.default_rng(_QUANT_RNG_SEED).uniform(0.0, 2 * np.pi, QUANT_PHASES)
     x = abs(fit.phasor) * np.cos(w * tt[:, None] + phases[None, :]) + (fit.offset - origin)  # (N, P)
-    e1 = np.exp((2j * np.pi / q) * x)
-    ek, g = e1, np.zeros_like(x)
-    for kk, ak in zip(k, a, strict=True):  # k = 1, 2, ...: e^{j k theta} by products
-        ek = e1 if kk == 1 else ek * e1
-        g += ((-1.0) ** kk / kk * ak) * ek.imag
+    theta = (2 * np.pi / q) * x
+    g = _sine_series(theta, (-1.0) ** k / k * a)
     AB = np.einsum("in,np->ip", proj, g) * (q / np.pi)  # (2, P); a tall BLAS product spins its threads
     b = (AB[0] - 1j * AB[1]) * np.exp(-1j * phases) * np.exp(1j * np.angle(fit.phasor))  # X = A - jB
     return np.array([[np.mean(b.real**2), np.mean(b.real * b.imag)],
                      [np.mean(b.real * b.imag), np.mean(b.imag**2)]])
+
+
+def _sine_series(theta: FloatArray, c: FloatArray) -> FloatArray:
+    """sum_k c[k-1] sin(k theta) for k = 1..len(c), elementwise over theta (any shape), by Clenshaw's
+    recurrence (sin((k+1) theta) = 2 cos(theta) sin(k theta) - sin((k-1) theta)): one cosine and one
+    sine per element instead of a complex power per term."""
+    c2 = 2 * np.cos(theta)
+    b1, b2, t = np.zeros_like(theta), np.zeros_like(theta), np.empty_like(theta)
+    for ck in c[::-1]:  # b_k = c_k + 2 cos(theta) b_{k+1} - b_{k+2}, from the highest k down
+        np.multiply(c2, b1, out=t)
+        t -= b2
+        t += ck
+        b2, b1, t = b1, t, b2
+    return b1 * np.sin(theta)
 
 
 def with_quantisation(t: FloatArray, y: FloatArray, fit: SineFit, n_harmonics: int = 1) -> SineFit:
