@@ -128,11 +128,29 @@ class CoupledModel:
         return np.polyval(num, s) / np.polyval(den, s)
 
     def jacobian(self, theta: ArrayLike, f_hz: ArrayLike) -> ComplexArray:
-        """dH/dtheta, shape (n_f, 5), central differences with relative steps 1e-6 (k_c, b_c steps
-        at least 1e-9 k_f, 1e-9 b_f so that b_c = 0 still has a derivative)."""
-        th = np.asarray(theta, dtype=float)
-        typical = np.array([abs(th[0]), abs(th[1]), abs(th[2]), 1e-3 * abs(th[1]), 1e-3 * abs(th[2])])
-        return numeric_jacobian(self.response, th, f_hz, typical=typical)
+        """dH/dtheta, shape (n_f, 5), analytic: H = -S k_f N/D with N = s^2 + n1 s + n2 and
+        D = s^4 + d1 s^3 + d2 s^2 + d3 s + d4 (``coefficients``), so for p in (k_f, b_f, k_c, b_c)
+        dH/dp = -S (dk_f/dp N/D + k_f (dN/dp D - N dD/dp)/D^2), the coefficients' derivatives below."""
+        S, kf, bf, kc, bc = np.asarray(theta, dtype=float)
+        d1, d2, d3, d4, n1, n2 = self.coefficients(theta)
+        me, ml = self.m_e, self.m_l
+        iu, mm = (ml + me) / (ml * me), 1.0 / (me * ml)  # 1/u1, 1/(m_e m_l)
+        s = 2j * np.pi * np.asarray(f_hz, dtype=float)
+        s2 = s * s
+        N = s2 + n1 * s + n2
+        D = s2 * s2 + d1 * s2 * s + d2 * s2 + d3 * s + d4
+        ND = N / D
+        # (dd1, dd2, dd3, dd4, dn1, dn2) per parameter k_f, b_f, k_c, b_c
+        dc = ((0.0, 1.0 / me, bc * mm, kc * mm, 0.0, 0.0),
+              (1.0 / me, bc * mm, kc * mm, 0.0, 0.0, 0.0),
+              (0.0, iu, bf * mm, kf * mm, 0.0, iu),
+              (iu, bf * mm, kf * mm, 0.0, iu, 0.0))
+        cols = [-kf * ND]
+        for i, (e1, e2, e3, e4, m1, m2) in enumerate(dc):
+            dN = m1 * s + m2
+            dD = e1 * s2 * s + e2 * s2 + e3 * s + e4
+            cols.append(-S * ((1.0 if i == 0 else 0.0) * ND + kf * (dN - ND * dD) / D))
+        return np.column_stack(cols)
 
     def to_digital(self, theta: ArrayLike, T: float) -> DigitalTF:
         S, kf = float(np.asarray(theta)[0]), float(np.asarray(theta)[1])

@@ -23,6 +23,7 @@ H(f) by H_s; ``fd.budget.resonance_vectors`` give the budget's ``chain_resonance
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -102,8 +103,10 @@ class CouplingBound:
                          "plan's frequencies against the stated noise and chain floor"}
 
 
+@functools.lru_cache(maxsize=256)
 def _lambda_needed(dof: int, threshold: float) -> float:
-    """Non-centrality at which P(chi^2_{dof, lambda} > threshold) = DETECTION_POWER (bisection)."""
+    """Non-centrality at which P(chi^2_{dof, lambda} > threshold) = DETECTION_POWER (bisection; 60
+    evaluations of the non-central chi^2 tail, once per degrees of freedom and threshold)."""
     lo, hi = 0.0, 10.0 * threshold + 100.0
     for _ in range(60):
         mid = 0.5 * (lo + hi)

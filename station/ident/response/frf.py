@@ -127,15 +127,19 @@ class FrfFit:
 def whiteners(cov: FloatArray) -> FloatArray:
     """Whiteners of the per-frequency covariances cov (n, 2, 2) of (Re H, Im H): W_i with
     W_i C_i W_i^T = I (inverse Cholesky), shape (n, 2, 2); every weighted fit of H(f) uses them."""
-    return np.array([np.linalg.inv(np.linalg.cholesky(C)) for C in cov])
+    out: FloatArray = np.linalg.inv(np.linalg.cholesky(np.asarray(cov, float).reshape(-1, 2, 2)))
+    return out
 
 
 def whitened_jacobian(model: Model, theta: FloatArray, frf: FrequencyResponse,
-                      cov: FloatArray | None = None, scale: FloatArray | None = None) -> FloatArray:
+                      cov: FloatArray | None = None, scale: FloatArray | None = None,
+                      W: FloatArray | None = None) -> FloatArray:
     """d(whitened residual)/d(theta/scale), shape (2 n_f, n_theta); scale defaults to theta
     (then d/d(ln theta)).  A parameter near 0 needs a typical value as scale, or its column
-    vanishes and a covariance computed from it becomes conditional on it."""
-    W = whiteners(frf.cov if cov is None else cov)
+    vanishes and a covariance computed from it becomes conditional on it.  W: the whiteners of
+    cov (or of frf.cov), when the caller has them already (a fit evaluates this at every iteration)."""
+    if W is None:
+        W = whiteners(frf.cov if cov is None else cov)
     Jc = model.jacobian(theta, frf.f_hz) * (theta if scale is None else scale)[None, :]
     Jr = np.stack([Jc.real, Jc.imag], axis=1)  # (n_f, 2, n_theta)
     J: FloatArray = np.einsum("fij,fjk->fik", W, Jr).reshape(-1, theta.size)
@@ -176,7 +180,7 @@ def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
 
     def jac(p: FloatArray) -> FloatArray:
         history.extend(last)  # the cost at the point the iteration starts from
-        J = whitened_jacobian(model, theta_of(p), frf)[:, free]
+        J = whitened_jacobian(model, theta_of(p), frf, W=W)[:, free]
         J[:, np.abs(p) >= LOG_RANGE] = 0.0  # held at the end of its range: the residual no longer moves
         return J
 
@@ -196,5 +200,5 @@ def fit_frf(frf: FrequencyResponse, model: Model, theta0: FloatArray,
     cov = np.zeros((theta.size, theta.size))
     idx = np.nonzero(free)[0]
     cov[np.ix_(idx, idx)] = cov_rel * np.outer(theta[idx], theta[idx])
-    return FrfFit(theta, cov, chi2, dof, whitened_jacobian(model, theta, frf),
+    return FrfFit(theta, cov, chi2, dof, whitened_jacobian(model, theta, frf, W=W),
                   model.response(theta, frf.f_hz) - frf.H, inflated, (*history[:-1], chi2))
