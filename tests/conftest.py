@@ -7,6 +7,7 @@ Session-scoped recordings are shared: tests must not modify them (copy them into
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -39,8 +40,10 @@ def pytest_configure(config: pytest.Config) -> None:
     RigSource(paper_5kN_physics(), seed=0, crank_radius_m=1e-3).configure(20_000.0, 10.0, 10.0)
 
 
+@functools.cache
 def _shipped() -> dict[str, Any]:
-    data = yaml.safe_load(default_config_path().read_text(encoding="utf-8"))
+    """The shipped configuration as parsed YAML, read once per process (callers copy it)."""
+    data = yaml.load(default_config_path().read_text(encoding="utf-8"), Loader=yaml.CSafeLoader)
     assert isinstance(data, dict)
     return data
 
