@@ -40,6 +40,27 @@ def pytest_configure(config: pytest.Config) -> None:
     RigSource(paper_5kN_physics(), seed=0, crank_radius_m=1e-3).configure(20_000.0, 10.0, 10.0)
 
 
+def _module_rank(item: pytest.Item) -> int:
+    """0: the module keeps tests together on one worker (``xdist_group``: a daemon, a browser, a shared
+    analysis, 15-50 s each); 1: it has slow tests; 2: only fast ones."""
+    if item.get_closest_marker("xdist_group") is not None:
+        return 0
+    return 1 if item.get_closest_marker("slow") is not None else 2
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Longest work first: pytest-xdist hands out the tests in this order, and the alphabetical order put
+    the browser and daemon modules (the longest units, kept on one worker each) last, where a worker
+    still running one left the others idle.  Modules are ranked by their longest unit (``_module_rank``:
+    a module's rank is its best item's) and keep their place within a rank and their tests' order, so
+    module-scoped fixtures are built once per worker as before."""
+    rank: dict[str, int] = {}
+    for it in items:
+        key = it.nodeid.split("::", 1)[0]
+        rank[key] = min(rank.get(key, 2), _module_rank(it))
+    items.sort(key=lambda it: rank[it.nodeid.split("::", 1)[0]])  # stable: file and test order kept
+
+
 @functools.cache
 def _shipped() -> dict[str, Any]:
     """The shipped configuration as parsed YAML, read once per process (callers copy it)."""
