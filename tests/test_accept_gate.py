@@ -21,7 +21,7 @@ import pytest
 from station.api.routes.system import stop_on_arrival
 from station.commands.connections import ConnectionBounds
 from station.commands.gate import bind, stop_head
-from tests.station_support import app_in_process, served_on_a_socket, start, wait_state
+from tests.station_support import CAPPED_SPEEDUP, app_in_process, served_on_a_socket, start, wait_state
 
 BOUND_S = 10.0  # every wait below ends by this (never reached when the code is right)
 FLOOD = 1000
@@ -112,7 +112,7 @@ def test_a_stop_reaches_the_drive_past_a_thousand_silent_connections_while_the_w
     sees the stop's head and hands the stop to the rig; once the loop runs, the route answers with
     that very stop.  The silent connections never cost the loop a protocol object."""
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec") as (m, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c):
             app = c._transport.app  # type: ignore[attr-defined]
             bounds = ConnectionBounds(max_connections=2 * FLOOD, header_timeout_s=30.0)
             bounds.on_head = stop_on_arrival(app)

@@ -35,12 +35,16 @@ pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("attacks")]  # with --di
 OPERATOR = "tina"
 START_S = 300.0  # the daemon's start on a loaded machine (2 cores shared by many)
 TIMEOUT_S = 300.0  # an issue renders three forms in the render worker: slow on a loaded machine
+# one TLS context for the tests' many clients (each httpx client would load the CA bundle again:
+# some 40 ms of CPU; these speak plain HTTP on the loopback)
+TLS = httpx.create_ssl_context()
 
 
 @dataclass
 class Lab:
-    """The daemon, its three seeded runs (``a``: files attacked; ``b``: issue refusals; ``c``: an
-    issued certificate) and a client logged in per user."""
+    """The daemon, its seeded runs (``a``: files attacked; ``b``: issue refusals, the same run as
+    ``a``, whose files each attack puts back; ``c``: an issued certificate) and a client logged in
+    per user."""
 
     d: Daemon
     a: str
@@ -62,7 +66,7 @@ class Lab:
 
     def client(self, name: str | None = None) -> httpx.Client:
         """A new client (logged in as ``name`` when given) of the daemon."""
-        c = httpx.Client(base_url=self.d.url, timeout=TIMEOUT_S)
+        c = httpx.Client(base_url=self.d.url, timeout=TIMEOUT_S, verify=TLS)
         if name is not None:
             r = c.post("/login", json={"name": name, "password": PASSWORDS[name]})
             assert r.status_code == 200, r.text
@@ -84,8 +88,9 @@ def _sql(path: Path, *stmts: str, args: tuple[Any, ...] = ()) -> None:
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
-    d = Daemon(tmp_path_factory.mktemp("attacks"), seeds=[Seed(seed=1), Seed(seed=2), Seed(seed=3)])
-    a, b, c = d.seeded
+    d = Daemon(tmp_path_factory.mktemp("attacks"), seeds=[Seed(seed=1), Seed(seed=3)])
+    a, c = d.seeded
+    b = a  # refused issues write no file: run a serves them between the attacks on its files
     _sql(d.data_dir / "station.db", "UPDATE runs SET operator = ?", args=(OPERATOR,))
     d.start(timeout_s=START_S)
     try:
@@ -250,13 +255,11 @@ def test_deleted_certificate_files_never_give_their_number_again(lab: Lab) -> No
     try:
         r = lab.get("/integrity")
         assert r.status_code == 409 and f"certificates/{lab.number}.pdf: missing" in r.json()["detail"]
-        r = lab.users["anton"].post(f"/runs/{lab.c}/certificate", json={})  # still in force by the chain
+        # still in force by the chain (that the next issue then takes the next number of the
+        # database's sequence, never this one, tests/test_records.py shows in-process: an issue
+        # renders three forms)
+        r = lab.users["anton"].post(f"/runs/{lab.c}/certificate", json={})
         assert r.status_code == 409 and f"in force ({lab.number})" in r.json()["detail"], r.text
-        # the next issue (another run) takes the next number of the database's sequence, never this one
-        r = lab.users["anton"].post(f"/runs/{lab.b}/certificate", json={})
-        assert r.status_code == 201, r.text
-        seq = int(lab.number.rsplit("-", 1)[1])
-        assert r.json()["number"] == f"{lab.number.rsplit('-', 1)[0]}-{seq + 1:04d}"
     finally:
         for p, data in saved.items():
             p.write_bytes(data)
@@ -342,8 +345,13 @@ def test_an_out_of_range_audit_cursor_is_422(lab: Lab) -> None:
 
 # ---------------------------------------------------------------------------------------------- logins
 def _lift(lab: Lab) -> None:
+    """Lift every lock-out in force, and the loopback address's failure count even when its lock has
+    run out meanwhile (a loaded machine takes seconds between a case's failures and its end): a count
+    past the free failures would lock the next case's first failure out (``GET /logins/locks`` lists
+    the locks in force only)."""
     for x in lab.get("/logins/locks").json():
         assert lab.d.c().delete(f"/logins/locks/{x['key']}").status_code == 200
+    assert lab.d.c().delete("/logins/locks/client:127.0.0.1").status_code in (200, 404)  # 404: no count left
 
 
 def test_guessing_a_password_locks_the_name_out(lab: Lab) -> None:
@@ -402,7 +410,7 @@ def test_a_new_password_or_a_disable_ends_sessions_and_tokens_are_revoked(lab: L
     assert s.get("/me").status_code == 401
     assert lab.d.c().put("/users/tina", json={"role": "technician", "disabled": False}).status_code == 200
     text = lab.d.c().post("/users/tina/tokens", json={"label": "ci"}).json()["token"]
-    bot = httpx.Client(base_url=lab.d.url, headers={"Authorization": f"Bearer {text}"}, timeout=30)
+    bot = httpx.Client(base_url=lab.d.url, headers={"Authorization": f"Bearer {text}"}, timeout=30, verify=TLS)
     assert bot.get("/me").json()["user"]["name"] == "tina"
     [row] = [t for t in lab.get("/tokens", params={"user": "tina"}).json() if t["label"] == "ci"]
     assert text not in json.dumps(row)
@@ -420,7 +428,7 @@ def test_a_login_flood_never_fails_another_users_request(lab: Lab) -> None:
     lock = threading.Lock()
 
     def guess(i: int) -> None:
-        with httpx.Client(base_url=lab.d.url, timeout=60) as c:
+        with httpx.Client(base_url=lab.d.url, timeout=60, verify=TLS) as c:
             for _ in range(3):
                 r = c.post("/login", json={"name": f"user{i}", "password": "guess-guess-1"})
                 with lock:

@@ -456,6 +456,29 @@ def _count_scrypt(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     return calls
 
 
+@pytest.mark.slow  # ten password checks and 64 refusals written
+def test_a_flood_of_logins_leaves_the_database_to_everyone_else(tmp_path: Path) -> None:
+    """Twice as many logins at once as the database takes reads in flight: the logins beyond the
+    password check's own bound are refused at once, before they read anything, and the other users'
+    requests sent among them are all answered."""
+    from station.service.db import MAX_READS_IN_FLIGHT
+    from tests.station_support import CAPPED_SPEEDUP, app_in_process, asgi_client
+
+    async def go() -> None:
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (_, c):
+            anon = asgi_client(c._transport.app, token=False)  # type: ignore[attr-defined]
+            floods = [anon.post("/login", json={"name": f"user{i}", "password": "guess-guess-1"})
+                      for i in range(2 * MAX_READS_IN_FLIGHT)]
+            mine = [c.get("/runs") for _ in range(4)]
+            answers = await asyncio.gather(*floods, *mine)
+            await anon.aclose()
+        assert [r.status_code for r in answers[len(floods):]] == [200] * len(mine), answers[-1].text
+        statuses = {r.status_code for r in answers[:len(floods)]}
+        assert statuses <= {401, 429}, statuses
+        assert any("too many logins at once" in r.text for r in answers[:len(floods)])
+    asyncio.run(go())
+
+
 @pytest.mark.slow
 def test_every_kind_of_name_costs_one_password_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Unknown, known (wrong password), disabled and password-less names: one scrypt each, so no

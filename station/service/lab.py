@@ -102,11 +102,13 @@ class LabService:
         user_key = f"user:{name}" if re.match(NAME_PATTERN, name) else "user:?"
         keys = [user_key, f"client:{client}"]
         why = self.logins.refusal(keys)
-        candidate, stored = await self.db.read(lambda s: users.login_candidate(s, name))
-        # the scrypt check (~0.1 s) in the login pool: never in the read pool other requests need
-        ok = await self.passwords.run(users.check_password, password, stored)
-        if ok is None:
-            raise users.AuthError("too many logins at once: try again in a moment")
+        # admitted first: a login beyond the pool's bound reads nothing (the reads in flight are
+        # everybody's); the scrypt check (~0.1 s) in the login pool, never in the read pool
+        async with self.passwords.admitted() as admitted:
+            if not admitted:
+                raise users.AuthError("too many logins at once: try again in a moment")
+            candidate, stored = await self.db.read(lambda s: users.login_candidate(s, name))
+            ok = await self.passwords.check(users.check_password, password, stored)
         # locked out: the same work done (no lock-out told by its time), the answer unused
         user = candidate if ok and why is None else None
         if user is None:

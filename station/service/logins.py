@@ -14,17 +14,19 @@
   doubling again.  Counts below the first lock-out are not kept (a flood of names writes nothing).
 * **The password check's own pool** (:class:`PasswordPool`): the scrypt check (~0.1 s of CPU, 16 MiB)
   runs in ``WORKERS`` threads of its own with at most ``QUEUE`` logins waiting; a login beyond that
-  is refused at once ("too many logins at once").  The database's read pool, which every other
-  request needs, never runs a password check.
+  is refused at once ("too many logins at once"), before it reads anything: a flood of logins holds
+  at most ``WORKERS + QUEUE`` of the database's reads in flight, never the bound every other
+  request shares.  The database's read pool never runs a password check.
 """
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import AsyncIterator, Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -120,11 +122,23 @@ class PasswordPool:
     def full(self) -> bool:
         return self._slots.locked()
 
-    async def run(self, fn: Any, *args: Any) -> Any:
+    @contextlib.asynccontextmanager
+    async def admitted(self) -> AsyncIterator[bool]:
+        """A login's place (held for its look-up and its check), or False at once when all are taken."""
         if self._slots.locked():
-            return None
+            yield False
+            return
         async with self._slots:
-            return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
+            yield True
+
+    async def check(self, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` in the pool's threads, for a login :meth:`admitted`."""
+        return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
+
+    async def run(self, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` for a login admitted now; None when none can be."""
+        async with self.admitted() as ok:
+            return await self.check(fn, *args) if ok else None
 
     def close(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)
