@@ -124,13 +124,13 @@ def test_api_drafts_issues_lists_and_serves_certificates(tmp_path: Path) -> None
     register per transducer, the issued forms."""
     import asyncio
 
-    from tests.station_support import PASSWORDS, Seed, app_in_process, daemon_config, login, seed_runs
+    from tests.station_support import CAPPED_SPEEDUP, PASSWORDS, Seed, app_in_process, daemon_config, login, seed_runs
 
     rec = tmp_path / "recordings"
     [rid] = seed_runs(daemon_config(rec), [Seed()])
 
     async def go() -> None:
-        async with app_in_process(rec) as (_, c):
+        async with app_in_process(rec, max_speedup=CAPPED_SPEEDUP) as (_, c):
             r = await c.get(f"/runs/{rid}/certificate.html")
             assert r.status_code == 200 and "DRAFT" in r.text and r.headers["content-type"].startswith("text/html")
             x = await c.get(f"/runs/{rid}/certificate.xml")  # a draft DCC, marked as such

@@ -70,7 +70,9 @@ def test_plots_are_pngs_of_the_stated_size_and_deterministic(sim_recording: Path
         assert len(png) > 10_000, f"{name}: suspiciously small PNG"
     first = {n: render_plot(sim_recording, n) for n in PLOT_NAMES}
     from station.report import data as data_mod
+    from station.report import plots as plots_mod
     data_mod.cached_run_data.cache_clear()  # render again from the file: same bytes
+    plots_mod.cached_png.cache_clear()
     assert {n: render_plot(sim_recording, n) for n in PLOT_NAMES} == first
     assert len(set(first.values())) == len(PLOT_NAMES), "two plots gave the same image"
 
@@ -83,15 +85,19 @@ def test_plots_differ_between_recordings(sim_recording: Path, sim_recording_one_
 
 @pytest.mark.slow
 def test_plots_reuse_the_loaded_recording(sim_recording: Path) -> None:
-    """The recording is read and fitted once for all plots (render times are measured in bench/,
-    not asserted here)."""
+    """The recording is read and fitted once for all plots, and each plot drawn once while the
+    recording and its results are unchanged (render times are measured in bench/, not asserted here)."""
     from station.report.data import cached_run_data
-    render_plot(sim_recording, "bode")  # load and fit once (cached)
-    misses = cached_run_data.cache_info().misses
+    from station.report.plots import cached_png
+    cached_run_data.cache_clear()
+    cached_png.cache_clear()
     for name in PLOT_NAMES:
         render_plot(sim_recording, name)
-    assert cached_run_data.cache_info().misses == misses
-    assert cached_run_data.cache_info().hits >= len(PLOT_NAMES)
+    assert (cached_run_data.cache_info().misses, cached_run_data.cache_info().hits) == (1, len(PLOT_NAMES) - 1)
+    assert cached_png.cache_info().misses == len(PLOT_NAMES)
+    for name in PLOT_NAMES:  # asked again: the same PNGs, not drawn again
+        render_plot(sim_recording, name)
+    assert cached_png.cache_info().hits == len(PLOT_NAMES) and cached_run_data.cache_info().misses == 1
 
 
 def test_unknown_plot_and_unusable_recordings(sim_recording: Path, tmp_path: Path) -> None:
