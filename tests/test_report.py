@@ -260,6 +260,25 @@ def test_pdf_report_is_the_html_and_cuts_no_budget_line(sim_recording: Path) -> 
         assert f"page {i} of {n}" in flat and run_id in flat, i
 
 
+@pytest.mark.slow  # WeasyPrint
+def test_a_page_is_laid_out_once() -> None:
+    """The same HTML asked again is the PDF already made (a draft certificate served twice); another
+    page is laid out anew."""
+    import io
+
+    from pypdf import PdfReader
+
+    from station.report.render import cached_pdf, html_to_pdf
+
+    page = "<html><body><p>run 4711: S = 2.0 mV/N</p></body></html>"
+    first = html_to_pdf(page)
+    hits = cached_pdf.cache_info().hits
+    assert html_to_pdf(page) is first and cached_pdf.cache_info().hits == hits + 1
+    other = html_to_pdf(page.replace("4711", "4712"))
+    assert "run 4712" in PdfReader(io.BytesIO(other)).pages[0].extract_text()
+    assert "run 4711" in PdfReader(io.BytesIO(first)).pages[0].extract_text()
+
+
 @pytest.mark.slow
 def test_report_of_an_imported_run(sim_recording_one_radius: Path, tmp_path: Path) -> None:
     from station.interchange import export_run, import_run

@@ -25,12 +25,13 @@ def render_template(package: str, name: str, **values: Any) -> str:
 def html_to_pdf(html: str) -> bytes:
     """PDF bytes of an HTML page (WeasyPrint; A4 from the page's @page rule).  The PDFs of the last
     few pages are kept: the same page asked again (a draft certificate, a report served twice) is
-    the same bytes, not laid out again."""
-    return _pdf(html)
+    the same bytes, not laid out again (the pages are self-contained: images are data URIs)."""
+    return cached_pdf(html)
 
 
 @lru_cache(maxsize=8)
-def _pdf(html: str) -> bytes:
+def cached_pdf(html: str) -> bytes:
+    """The cache behind :func:`html_to_pdf` (``cached_pdf.cache_clear()`` drops the up to 8 kept PDFs)."""
     # one line per layout step otherwise (the import parses its own stylesheets)
     logging.getLogger("weasyprint.progress").setLevel(logging.WARNING)
     from weasyprint import HTML  # heavy: loaded on first use
