@@ -28,9 +28,12 @@ def test_schemathesis_finds_no_server_error(tmp_path: Path) -> None:
         [rid] = d.seeded
         assert d.c().get(f"/runs/{rid}").json()["state"] == "completed"
         cfg = tmp_path / "schemathesis.toml"
-        # max_effects pinned: each value is a fresh model-gap analysis of ~10 s in the render worker,
-        # which tests nothing new about the schema; its bounds are checked in tests/test_api.py
-        cfg.write_text(f'[parameters]\n"path.run_id" = "{rid}"\n"query.max_effects" = 2\n')
+        # max_effects pinned: each value is a fresh model-gap analysis in the render worker, which
+        # tests nothing new about the schema; its bounds are checked in tests/test_api.py.  Unique
+        # inputs: the coverage phase otherwise sends an operation whose parameters are all pinned the
+        # same request a dozen times (each a model-gap analysis or a render)
+        cfg.write_text(f'generation.unique-inputs = true\n[parameters]\n"path.run_id" = "{rid}"\n'
+                       '"query.max_effects" = 2\n')
         r = subprocess.run(
             [sys.executable, "-m", "schemathesis.cli", "--config-file", str(cfg), "run", f"{d.url}/openapi.json",
              "--checks", CHECKS, "-H", f"Authorization: Bearer {TOKEN}", "--max-examples", "10",

@@ -10,31 +10,38 @@ import json
 from pathlib import Path
 from typing import Any
 
+import httpx
 import openpyxl
 import pandas as pd
 import pytest
 
 from station.cli import main
-from tests.station_support import Seed, asgi_client, daemon_config, running_app, seed_runs
+from tests.station_support import CAPPED_SPEEDUP, Seed, asgi_client, daemon_config, running_app, seed_runs
 
 pytestmark = pytest.mark.slow  # a simulated, identified run and its report data (~15 s)
 
-Seeded = tuple[dict[str, Any], Path, str, dict[str, Any]]
+Seeded = tuple[dict[str, Any], Path, str, dict[str, Any], dict[str, httpx.Response]]
 
 
 @pytest.fixture(scope="module")
 def seeded(tmp_path_factory: pytest.TempPathFactory) -> Seeded:
-    """A completed run's configuration, recording, id and the API's results of it."""
+    """A completed run's configuration, recording, id, the API's results of it and the API's answers
+    to its exports (the three tables, an unknown one, the archive), from one start of the app."""
     tmp = tmp_path_factory.mktemp("export")
     cfg = daemon_config(tmp / "recordings")
     [rid] = seed_runs(cfg, [Seed(freqs=(10.0, 20.0, 40.0))])
 
-    async def results() -> dict[str, Any]:
-        async with running_app(tmp / "recordings", config=cfg) as app, asgi_client(app) as c:
+    async def go() -> tuple[dict[str, Any], dict[str, httpx.Response]]:
+        async with (running_app(tmp / "recordings", config=cfg, max_speedup=CAPPED_SPEEDUP) as app,
+                    asgi_client(app) as c):
             r = await c.get(f"/runs/{rid}/results")
             assert r.status_code == 200, r.text
-            return dict(r.json())
-    return cfg, tmp / "recordings" / f"{rid}.h5", rid, asyncio.run(results())
+            out = {n: await c.get(f"/runs/{rid}/export/{n}") for n in ("parameters.csv", "sdyn.csv", "results.xlsx")}
+            out["bad"] = await c.get(f"/runs/{rid}/export/results.ods")
+            out["zip"] = await c.get(f"/runs/{rid}/archive.zip")
+            return dict(r.json()), out
+    results, exports = asyncio.run(go())
+    return cfg, tmp / "recordings" / f"{rid}.h5", rid, results, exports
 
 
 def _check_tables(params: pd.DataFrame, sdyn: pd.DataFrame, cfg: dict[str, Any], results: dict[str, Any]) -> None:
@@ -59,7 +66,7 @@ def _check_tables(params: pd.DataFrame, sdyn: pd.DataFrame, cfg: dict[str, Any],
 
 def test_the_command_line_writes_csv_and_a_workbook(seeded: Seeded, tmp_path: Path,
                                                     capsys: pytest.CaptureFixture[str]) -> None:
-    cfg, recording, _, results = seeded
+    cfg, recording, _, results, _ = seeded
     assert main(["export", str(recording), "--results", "--out", str(tmp_path)]) == 0
     written = [Path(line) for line in capsys.readouterr().out.split()]
     assert sorted(p.name for p in written) == sorted(f"{recording.stem}.{n}" for n in
@@ -78,15 +85,7 @@ def test_the_command_line_writes_csv_and_a_workbook(seeded: Seeded, tmp_path: Pa
 
 
 def test_the_api_serves_the_exports_and_refuses_an_unknown_one(seeded: Seeded) -> None:
-    cfg, recording, rid, results = seeded
-
-    async def go() -> dict[str, Any]:
-        async with running_app(recording.parent, config=cfg) as app, asgi_client(app) as c:
-            out = {n: await c.get(f"/runs/{rid}/export/{n}") for n in ("parameters.csv", "sdyn.csv", "results.xlsx")}
-            out["bad"] = await c.get(f"/runs/{rid}/export/results.ods")
-            out["zip"] = await c.get(f"/runs/{rid}/archive.zip")
-            return out
-    r = asyncio.run(go())
+    cfg, recording, _, results, r = seeded
     assert r["parameters.csv"].headers["content-type"].startswith("text/csv")
     assert r["results.xlsx"].headers["content-type"].endswith("spreadsheetml.sheet")
     assert f'filename="{recording.stem}.results.xlsx"' in r["results.xlsx"].headers["content-disposition"]

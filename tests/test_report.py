@@ -70,7 +70,9 @@ def test_plots_are_pngs_of_the_stated_size_and_deterministic(sim_recording: Path
         assert len(png) > 10_000, f"{name}: suspiciously small PNG"
     first = {n: render_plot(sim_recording, n) for n in PLOT_NAMES}
     from station.report import data as data_mod
+    from station.report import plots as plots_mod
     data_mod.cached_run_data.cache_clear()  # render again from the file: same bytes
+    plots_mod.cached_png.cache_clear()
     assert {n: render_plot(sim_recording, n) for n in PLOT_NAMES} == first
     assert len(set(first.values())) == len(PLOT_NAMES), "two plots gave the same image"
 
@@ -83,15 +85,19 @@ def test_plots_differ_between_recordings(sim_recording: Path, sim_recording_one_
 
 @pytest.mark.slow
 def test_plots_reuse_the_loaded_recording(sim_recording: Path) -> None:
-    """The recording is read and fitted once for all plots (render times are measured in bench/,
-    not asserted here)."""
+    """The recording is read and fitted once for all plots, and each plot drawn once while the
+    recording and its results are unchanged (render times are measured in bench/, not asserted here)."""
     from station.report.data import cached_run_data
-    render_plot(sim_recording, "bode")  # load and fit once (cached)
-    misses = cached_run_data.cache_info().misses
+    from station.report.plots import cached_png
+    cached_run_data.cache_clear()
+    cached_png.cache_clear()
     for name in PLOT_NAMES:
         render_plot(sim_recording, name)
-    assert cached_run_data.cache_info().misses == misses
-    assert cached_run_data.cache_info().hits >= len(PLOT_NAMES)
+    assert (cached_run_data.cache_info().misses, cached_run_data.cache_info().hits) == (1, len(PLOT_NAMES) - 1)
+    assert cached_png.cache_info().misses == len(PLOT_NAMES)
+    for name in PLOT_NAMES:  # asked again: the same PNGs, not drawn again
+        render_plot(sim_recording, name)
+    assert cached_png.cache_info().hits == len(PLOT_NAMES) and cached_run_data.cache_info().misses == 1
 
 
 def test_unknown_plot_and_unusable_recordings(sim_recording: Path, tmp_path: Path) -> None:
@@ -252,6 +258,25 @@ def test_pdf_report_is_the_html_and_cuts_no_budget_line(sim_recording: Path) -> 
     for i, page in enumerate(reader.pages, 1):  # the run and "page i of n" on every page
         flat = " ".join(page.extract_text().split())
         assert f"page {i} of {n}" in flat and run_id in flat, i
+
+
+@pytest.mark.slow  # WeasyPrint
+def test_a_page_is_laid_out_once() -> None:
+    """The same HTML asked again is the PDF already made (a draft certificate served twice); another
+    page is laid out anew."""
+    import io
+
+    from pypdf import PdfReader
+
+    from station.report.render import cached_pdf, html_to_pdf
+
+    page = "<html><body><p>run 4711: S = 2.0 mV/N</p></body></html>"
+    first = html_to_pdf(page)
+    hits = cached_pdf.cache_info().hits
+    assert html_to_pdf(page) is first and cached_pdf.cache_info().hits == hits + 1
+    other = html_to_pdf(page.replace("4711", "4712"))
+    assert "run 4712" in PdfReader(io.BytesIO(other)).pages[0].extract_text()
+    assert "run 4711" in PdfReader(io.BytesIO(first)).pages[0].extract_text()
 
 
 @pytest.mark.slow

@@ -3,6 +3,8 @@ same HTML through ``station.report.render.html_to_pdf``."""
 
 from __future__ import annotations
 
+import json
+from functools import lru_cache
 from typing import Any
 
 from station.report.render import render_template
@@ -10,20 +12,28 @@ from station.report.render import render_template
 
 def bode_uri(content: dict[str, Any]) -> str:
     """The certificate's Bode plot (``validity.bode_svg``) as a data URI, "" without points."""
+    if not content.get("response"):
+        return ""
+    # a function of the points, the model's curve, the unit and k only: drawn once for the same ones
+    return _bode_uri(json.dumps([content["response"], content["response_unit"], content.get("bode_model"),
+                                 float(content["response_k"])], sort_keys=True))
+
+
+@lru_cache(maxsize=8)
+def _bode_uri(inputs: str) -> str:
     import base64
 
     import numpy as np
 
     from station.certificate.validity import bode_svg
 
-    if not content.get("response"):
-        return ""
-    m = content.get("bode_model")
+    points, unit, m, k = json.loads(inputs)
+
     def arr(key: str) -> Any:
         return None if m is None or m[key] is None else np.array(m[key])
 
     model = None if not m else (arr("f_hz"), arr("magnitude"), arr("u_magnitude"), arr("phase_rad"), arr("u_phase_rad"))
-    svg = bode_svg(content["response"], content["response_unit"], model, float(content["response_k"]))
+    svg = bode_svg(points, unit, model, k)
     return "data:image/svg+xml;base64," + base64.b64encode(svg.encode()).decode()
 
 

@@ -263,12 +263,22 @@ def cached_run_data(path_str: str, mtime_ns: int, size_bytes: int,
                    traces, disc.payload if disc else None)
 
 
-def load_run(path: str | Path) -> RunData:
-    """RunData of a recording (cached while the file is unchanged); RecordingFormatError when the
-    recording cannot be read or has no results and none can be computed."""
+RunKey = tuple[str, int, int, tuple[tuple[str, int], ...]]
+
+
+def run_key(path: str | Path) -> RunKey:
+    """What a recording's derived pages and plots are a function of: its resolved path, modification
+    time (ns), size (bytes) and stored results' versions (the arguments of :func:`cached_run_data`);
+    RecordingFormatError when there is no such file."""
     p = Path(path).resolve()
     try:
         st = p.stat()
     except OSError:
         raise RecordingFormatError(f"{path}: no such recording") from None
-    return cached_run_data(str(p), st.st_mtime_ns, st.st_size, results_version(p))
+    return str(p), st.st_mtime_ns, st.st_size, results_version(p)
+
+
+def load_run(path: str | Path) -> RunData:
+    """RunData of a recording (cached while the file is unchanged); RecordingFormatError when the
+    recording cannot be read or has no results and none can be computed."""
+    return cached_run_data(*run_key(path))

@@ -11,7 +11,9 @@
   else the stored fit's χ² per Levenberg–Marquardt iteration (``extra.cost_history``: fd stores
   it, from the linear start to the final χ²); else a figure saying that no iterative method was run.
 
-Every figure is FIG_SIZE_PX pixels, rendered deterministically (no timestamps in the PNG).
+Every figure is FIG_SIZE_PX pixels, rendered deterministically (no timestamps in the PNG).  The PNGs
+of the last few recordings are kept (keyed like ``data.load_run``: path, modification time, size, the
+stored results' versions), so the report page, its PDF and the page's plot requests draw each once.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from __future__ import annotations
 import io
 import logging
 from collections.abc import Callable
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +30,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from station.ident.names import SWARM_METHODS
-from station.report.data import RunData, StepTrace, load_run
+from station.report.data import RunData, RunKey, StepTrace, cached_run_data, run_key
 from station.report.names import PLOT_NAMES
 from station.report.quantities import COVERAGE_K, measured_sensitivity, model_sensitivity
 
@@ -229,4 +232,12 @@ def render_plot(recording_path: Path, name: str) -> bytes:
     RecordingFormatError when the recording is unreadable or has no results and none can be computed."""
     if name not in _RENDERERS:
         raise KeyError(f"unknown plot {name!r}; expected one of {', '.join(PLOT_NAMES)}")
-    return _png(make_figure(load_run(recording_path), name))
+    return cached_png(run_key(recording_path), name)
+
+
+@lru_cache(maxsize=4 * len(PLOT_NAMES))
+def cached_png(key: RunKey, name: str) -> bytes:
+    """The cache behind :func:`render_plot`: PNG of plot ``name`` of the run data ``key``
+    (``data.run_key``; the data from ``data.cached_run_data``).  ``cached_png.cache_clear()`` drops
+    the (up to 16) kept PNGs."""
+    return _png(make_figure(cached_run_data(*key), name))
