@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import pytest
 
 from tests.station_support import Daemon, daemon_config, run_body
-from tests.web_support import log_in, open_page
+from tests.web_support import POLL_MS, log_in, open_page
 
 # a real daemon, a real run and a real browser: the end-to-end layer
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web")]
@@ -37,7 +37,7 @@ def page(browser: object, daemon: Daemon) -> Iterator[object]:
 def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon: Daemon) -> None:
     pg = page
     # the limits are shown, the form is prefilled with the station's transducer and plan
-    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0", polling=POLL_MS)
     assert "1–100 Hz" in pg.inner_text("#hint-frequency")
     assert "0.1–50 mm" in pg.inner_text("#hint-radius")
     assert "4000 N" in pg.inner_text("#hint-force")
@@ -52,10 +52,12 @@ def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon:
     pg.wait_for_url(re.compile(r".*#/runs/.+"), timeout=10_000)
     run_id = pg.inner_text("#run-id")
     # live progress: the state moves through running while the page stays open
-    pg.wait_for_function("document.querySelector('#run-state').textContent === 'running'", timeout=15_000)
-    pg.wait_for_function("document.querySelector('#run-progress').value > 0", timeout=15_000)
+    pg.wait_for_function("document.querySelector('#run-state').textContent === 'running'", timeout=15_000,
+                         polling=POLL_MS)
+    pg.wait_for_function("document.querySelector('#run-progress').value > 0", timeout=15_000, polling=POLL_MS)
     assert pg.is_visible("#estop") and pg.is_visible("#abort")
-    pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000)
+    pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000,
+                         polling=POLL_MS)
     pg.wait_for_selector("#results:not([hidden])", timeout=15_000)
     # the parameters with their uncertainties
     for name in ("S", "k_f", "b_f"):
@@ -83,14 +85,14 @@ def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon:
     imgs = pg.locator("#plots img")
     if imgs.count():
         pg.wait_for_function("[...document.querySelectorAll('#plots img')]"
-                             ".every(i => i.complete && i.naturalWidth > 0)", timeout=60_000)
+                             ".every(i => i.complete && i.naturalWidth > 0)", timeout=60_000, polling=POLL_MS)
         assert {imgs.nth(i).get_attribute("data-plot") for i in range(imgs.count())} >= {"bode", "residuals"}
     else:
         assert "not available" in pg.inner_text("#plots")
     assert pg.get_attribute("#recording-link", "href") == f"/runs/{run_id}/recording"
     pg.wait_for_function("document.querySelector('#discrepancy').dataset.loaded === '1' || "
                          "document.querySelector('#discrepancy').textContent.startsWith('not available')",
-                         timeout=60_000)
+                         timeout=60_000, polling=POLL_MS)
     assert "residual" in pg.text_content("#discrepancy") or "not available" in pg.inner_text("#discrepancy")
     if pg.evaluate("document.querySelector('#discrepancy').dataset.loaded === '1'"):
         # the result's sentence and the model gap's go through the page's one rule for findings that agree
@@ -106,7 +108,7 @@ def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon:
 
 def test_unsafe_input_is_refused_with_the_field_named(page: object, daemon: Daemon) -> None:
     pg = page
-    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0", polling=POLL_MS)
     log_in(pg, daemon)
     pg.fill("#frequencies", "10, 60")
     pg.fill("#radius_mm", "10")
@@ -114,7 +116,8 @@ def test_unsafe_input_is_refused_with_the_field_named(page: object, daemon: Daem
     pg.click("#start")
     err = pg.locator(".err[data-for='crank_radius_m']")
     err.wait_for(timeout=10_000)
-    pg.wait_for_function("document.querySelector(\".err[data-for='crank_radius_m']\").textContent.length > 0")
+    pg.wait_for_function("document.querySelector(\".err[data-for='crank_radius_m']\").textContent.length > 0",
+                         polling=POLL_MS)
     text = err.inner_text()
     assert "step 2 crank_radius_m" in text and "peak force" in text  # steps counted from 1 for people
     assert "#/runs/" not in pg.url
@@ -122,11 +125,11 @@ def test_unsafe_input_is_refused_with_the_field_named(page: object, daemon: Daem
 
 def test_without_login_the_page_says_so_and_emergency_stop_works(page: object, daemon: Daemon) -> None:
     pg = page
-    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0", polling=POLL_MS)
     pg.fill("#frequencies", "10")
     pg.fill("#radius_mm", "1")
     pg.click("#start")
-    pg.wait_for_function("document.querySelector('#form-msg').textContent.includes('log in')")
+    pg.wait_for_function("document.querySelector('#form-msg').textContent.includes('log in')", polling=POLL_MS)
     # a run started elsewhere is stopped from the page
     rid = daemon.start_run(freqs=(10.0,), record_s=30.0)
     daemon.wait_state(rid, ("running",))

@@ -26,7 +26,7 @@ from lxml import etree
 from pypdf import PdfReader
 
 from tests.station_support import Daemon, daemon_config
-from tests.web_support import log_in, open_page
+from tests.web_support import POLL_MS, log_in, open_page
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web_readme")]  # a real daemon, a real run and a real browser
 
@@ -68,13 +68,13 @@ def test_the_readme_works_as_written(browser: object, station: Daemon) -> None:
     assert "simulated station: log in on" in log and "approver" in log
     password = _printed_password(log, user)
     with open_page(browser, d.url + "/") as pg:
-        pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+        pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0", polling=POLL_MS)
         assert user in pg.inner_text("#login-hint")  # the page says whom to log in as, too
         # logged out, starting a run answers in words a person understands
         pg.fill("#frequencies", "10, 20")
         pg.fill("#radius_mm", "1")
         pg.click("#start")
-        pg.wait_for_function("document.querySelector('#form-msg').textContent.length > 0")
+        pg.wait_for_function("document.querySelector('#form-msg').textContent.length > 0", polling=POLL_MS)
         msg = pg.inner_text("#form-msg")
         assert msg == "You are not logged in: log in at the top of the page to start a run.", msg
         assert not pg.is_visible("#abort")
@@ -87,7 +87,8 @@ def test_the_readme_works_as_written(browser: object, station: Daemon) -> None:
         # start a run, watch it, read the results
         pg.click("#start")
         pg.wait_for_url(re.compile(r".*#/runs/.+"), timeout=10_000)
-        pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000)
+        pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000,
+                             polling=POLL_MS)
         pg.wait_for_selector("#results:not([hidden])", timeout=15_000)
         for name in ("S", "k_f", "b_f"):
             assert "±" in pg.inner_text(f"#params tr[data-param='{name}'] td.value"), name
@@ -123,7 +124,7 @@ def test_a_phone_reads_plain_words_and_nothing_scrolls_sideways(browser: object,
     d = station
     password = _printed_password(d.log_path.read_text(errors="replace"), "technician")  # printed at start
     with open_page(browser, d.url + "/", **PHONE) as pg:
-        pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+        pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0", polling=POLL_MS)
         pg.fill("#login-name", "technician")
         pg.fill("#login-password", password)
         pg.click("#login")
@@ -133,7 +134,8 @@ def test_a_phone_reads_plain_words_and_nothing_scrolls_sideways(browser: object,
         pg.click("#start")
         pg.wait_for_url(re.compile(r".*#/runs/.+"), timeout=10_000)
         rid = pg.url.split("#/runs/")[1]
-        pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000)
+        pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000,
+                             polling=POLL_MS)
         pg.wait_for_selector("#results:not([hidden])", timeout=15_000)
         pg.wait_for_timeout(200)
         seen = pg.evaluate("window.watched")
@@ -197,7 +199,7 @@ def test_conditions_from_the_form_reach_the_issued_certificate(browser: object, 
         pg.fill("#relative_humidity_pct", "120")  # the API refuses it at its field
         pg.click("#start")
         slot = '#run-form .err[data-for="relative_humidity_pct"]'
-        pg.wait_for_function(f"document.querySelector('{slot}').textContent.includes('100')")
+        pg.wait_for_function(f"document.querySelector('{slot}').textContent.includes('100')", polling=POLL_MS)
         assert "environment.relative_humidity_pct" in pg.inner_text(slot)
         assert pg.inner_text('#run-form .err[data-for="temperature_c"]') == ""
         assert re.search(r"#/$|/$", pg.url)  # no run was started
@@ -221,7 +223,8 @@ def test_conditions_from_the_form_reach_the_issued_certificate(browser: object, 
         pg.goto(f"{daemon.url}/#/runs/{rid}")
         pg.wait_for_selector("#results:not([hidden])", timeout=30_000)
         pg.click("#cert-form button[type=submit]")
-        pg.wait_for_function("document.querySelector('#cert-msg').textContent.startsWith('issued ')", timeout=30_000)
+        pg.wait_for_function("document.querySelector('#cert-msg').textContent.startsWith('issued ')", timeout=30_000,
+                             polling=POLL_MS)
         number = pg.inner_text("#cert-msg").removeprefix("issued ").strip()
         # once issued, issuing is offered no more; the page says which certificate was issued
         assert not pg.is_visible("#cert-issue") and pg.inner_text("#cert-state") == f"issued: {number}"
