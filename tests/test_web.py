@@ -1,7 +1,13 @@
 """The technicians' page end to end in a real headless Chromium (Debian's, driven by Playwright):
-fill the form, watch a simulated run finish, read the results; refused input; the emergency stop.
+fill the form, watch a simulated run finish, read the results; refused input; the emergency stop; a
+drive that does not stop.
 
-Skipped only when /usr/bin/chromium is absent and CI is not set; under CI it must run.
+One daemon for the module, on the simulated rig's emulators run as a process of their own (the
+configuration's physics loaded into them) and reached as a real rig's devices, so that a test can
+make the drive fail to stop (``SimRigProcess.ignore_stops``); the tests run in the file's order, the
+drive's test last.
+
+Skipped only when no Chromium is installed and CI is not set; under CI it must run.
 """
 
 from __future__ import annotations
@@ -11,6 +17,8 @@ from collections.abc import Iterator
 
 import pytest
 
+from drivers.sim import SimRigProcess
+from station.config import parse_config, to_rig_physics
 from tests.station_support import Daemon, daemon_config, run_body
 from tests.web_support import POLL_MS, log_in, open_page
 
@@ -20,12 +28,26 @@ pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web")]
 
 
 @pytest.fixture(scope="module")
-def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+def rig_and_daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[SimRigProcess, Daemon]]:
+    """The emulators' process (the configuration's physics) and the daemon on it as its devices."""
     tmp = tmp_path_factory.mktemp("web")
     cfg = daemon_config(tmp / "recordings")
     cfg["plan"]["record_s"] = 1.4  # long enough for the paper's protocol: PSO+ gives its result beside fd's
-    with Daemon(tmp, config=cfg) as d:
-        yield d
+    physics = to_rig_physics(parse_config(cfg))
+    radius = cfg["plan"]["steps"][0]["crank_radius_m"]
+    with SimRigProcess(crank_radius_m=radius, seed=cfg["simulation"]["seed"]) as emu:
+        emu.load_physics(physics)
+        cfg.pop("simulation")
+        host, port = emu.addresses.modbus_tcp
+        cfg["devices"] = {"motor_url": f"modbus-tcp://{host}:{port}", "daq_port": emu.addresses.daq,
+                          "crank_radius_m": radius}
+        with Daemon(tmp, config=cfg) as d:
+            yield emu, d
+
+
+@pytest.fixture(scope="module")
+def daemon(rig_and_daemon: tuple[SimRigProcess, Daemon]) -> Daemon:
+    return rig_and_daemon[1]
 
 
 @pytest.fixture
@@ -152,30 +174,25 @@ def test_without_login_the_page_says_so_and_emergency_stop_works(page: object, d
     assert not h["estop"]["latched"] and h["estop"]["last_acknowledged_by"] == "tina"
 
 
-def test_a_drive_that_does_not_stop_is_shown_on_the_page(browser: object, tmp_path: pytest.TempPathFactory) -> None:
-    """The emulator as its own process plays a drive that takes the stop and keeps turning: the page's
-    stop says so at once, and its header shows the drive fault until the drive is repaired."""
-    from drivers.sim import SimRigProcess
-    from tests.station_support import daemon_config
-
-    with SimRigProcess(crank_radius_m=0.001) as emu:
-        cfg = daemon_config(tmp_path / "recordings")  # type: ignore[operator]
-        cfg.pop("simulation")
-        host, port = emu.addresses.modbus_tcp
-        cfg["devices"] = {"motor_url": f"modbus-tcp://{host}:{port}", "daq_port": emu.addresses.daq,
-                          "crank_radius_m": 0.001}
-        with Daemon(tmp_path, workers=0, config=cfg) as d:  # type: ignore[arg-type]
-            rid = d.start_run(freqs=(10.0,), record_s=60.0)
-            d.wait_state(rid, ("running",), step_state="recording")
-            emu.ignore_stops()
-            with open_page(browser, d.url + "/", no_errors=False) as pg:
-                pg.click("#estop")
-                pg.wait_for_selector("#banner:not([hidden])", timeout=15_000)
-                assert "THE CRANK STILL TURNS" in pg.inner_text("#banner")
-                pg.wait_for_selector("#drive-fault", timeout=15_000)
-                assert "DRIVE DOES NOT STOP" in pg.inner_text("#health") and pg.is_disabled("#start")
-                emu.ignore_stops(False)  # repaired: the page's acknowledgement is taken, the fault goes
-                log_in(pg, d)
-                pg.click("#ack")
-                pg.wait_for_selector("#drive-fault", state="detached", timeout=15_000)
-                assert "acknowledged by tina" in pg.inner_text("#banner")
+def test_a_drive_that_does_not_stop_is_shown_on_the_page(browser: object,
+                                                        rig_and_daemon: tuple[SimRigProcess, Daemon]) -> None:
+    """The emulator plays a drive that takes the stop and keeps turning: the page's stop says so at
+    once, and its header shows the drive fault until the drive is repaired."""
+    emu, d = rig_and_daemon
+    rid = d.start_run(freqs=(10.0,), record_s=60.0)
+    d.wait_state(rid, ("running",), step_state="recording")
+    emu.ignore_stops()
+    try:
+        with open_page(browser, d.url + "/", no_errors=False) as pg:
+            pg.click("#estop")
+            pg.wait_for_selector("#banner:not([hidden])", timeout=15_000)
+            assert "THE CRANK STILL TURNS" in pg.inner_text("#banner")
+            pg.wait_for_selector("#drive-fault", timeout=15_000)
+            assert "DRIVE DOES NOT STOP" in pg.inner_text("#health") and pg.is_disabled("#start")
+            emu.ignore_stops(False)  # repaired: the page's acknowledgement is taken, the fault goes
+            log_in(pg, d)
+            pg.click("#ack")
+            pg.wait_for_selector("#drive-fault", state="detached", timeout=15_000)
+            assert "acknowledged by tina" in pg.inner_text("#banner")
+    finally:
+        emu.ignore_stops(False)  # the daemon's end stops the crank
