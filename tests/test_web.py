@@ -1,7 +1,13 @@
 """The technicians' page end to end in a real headless Chromium (Debian's, driven by Playwright):
-fill the form, watch a simulated run finish, read the results; refused input; the emergency stop.
+fill the form, watch a simulated run finish, read the results; refused input; the emergency stop; a
+drive that does not stop.
 
-Skipped only when /usr/bin/chromium is absent and CI is not set; under CI it must run.
+One daemon for the module, on the simulated rig's emulators run as a process of their own (the
+configuration's physics loaded into them) and reached as a real rig's devices, so that a test can
+make the drive fail to stop (``SimRigProcess.ignore_stops``); the tests run in the file's order, the
+drive's test last.
+
+Skipped only when no Chromium is installed and CI is not set; under CI it must run.
 """
 
 from __future__ import annotations
@@ -11,8 +17,10 @@ from collections.abc import Iterator
 
 import pytest
 
+from drivers.sim import SimRigProcess
+from station.config import parse_config, to_rig_physics
 from tests.station_support import Daemon, daemon_config, run_body
-from tests.web_support import log_in, open_page
+from tests.web_support import POLL_MS, log_in, open_page
 
 # a real daemon, a real run and a real browser: the end-to-end layer
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web")]
@@ -20,12 +28,26 @@ pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web")]
 
 
 @pytest.fixture(scope="module")
-def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+def rig_and_daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[SimRigProcess, Daemon]]:
+    """The emulators' process (the configuration's physics) and the daemon on it as its devices."""
     tmp = tmp_path_factory.mktemp("web")
     cfg = daemon_config(tmp / "recordings")
     cfg["plan"]["record_s"] = 1.4  # long enough for the paper's protocol: PSO+ gives its result beside fd's
-    with Daemon(tmp, config=cfg) as d:
-        yield d
+    physics = to_rig_physics(parse_config(cfg))
+    radius = cfg["plan"]["steps"][0]["crank_radius_m"]
+    with SimRigProcess(crank_radius_m=radius, seed=cfg["simulation"]["seed"]) as emu:
+        emu.load_physics(physics)
+        cfg.pop("simulation")
+        host, port = emu.addresses.modbus_tcp
+        cfg["devices"] = {"motor_url": f"modbus-tcp://{host}:{port}", "daq_port": emu.addresses.daq,
+                          "crank_radius_m": radius}
+        with Daemon(tmp, config=cfg) as d:
+            yield emu, d
+
+
+@pytest.fixture(scope="module")
+def daemon(rig_and_daemon: tuple[SimRigProcess, Daemon]) -> Daemon:
+    return rig_and_daemon[1]
 
 
 @pytest.fixture
@@ -37,7 +59,7 @@ def page(browser: object, daemon: Daemon) -> Iterator[object]:
 def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon: Daemon) -> None:
     pg = page
     # the limits are shown, the form is prefilled with the station's transducer and plan
-    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0", polling=POLL_MS)
     assert "1–100 Hz" in pg.inner_text("#hint-frequency")
     assert "0.1–50 mm" in pg.inner_text("#hint-radius")
     assert "4000 N" in pg.inner_text("#hint-force")
@@ -52,10 +74,12 @@ def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon:
     pg.wait_for_url(re.compile(r".*#/runs/.+"), timeout=10_000)
     run_id = pg.inner_text("#run-id")
     # live progress: the state moves through running while the page stays open
-    pg.wait_for_function("document.querySelector('#run-state').textContent === 'running'", timeout=15_000)
-    pg.wait_for_function("document.querySelector('#run-progress').value > 0", timeout=15_000)
+    pg.wait_for_function("document.querySelector('#run-state').textContent === 'running'", timeout=15_000,
+                         polling=POLL_MS)
+    pg.wait_for_function("document.querySelector('#run-progress').value > 0", timeout=15_000, polling=POLL_MS)
     assert pg.is_visible("#estop") and pg.is_visible("#abort")
-    pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000)
+    pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000,
+                         polling=POLL_MS)
     pg.wait_for_selector("#results:not([hidden])", timeout=15_000)
     # the parameters with their uncertainties
     for name in ("S", "k_f", "b_f"):
@@ -83,14 +107,14 @@ def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon:
     imgs = pg.locator("#plots img")
     if imgs.count():
         pg.wait_for_function("[...document.querySelectorAll('#plots img')]"
-                             ".every(i => i.complete && i.naturalWidth > 0)", timeout=60_000)
+                             ".every(i => i.complete && i.naturalWidth > 0)", timeout=60_000, polling=POLL_MS)
         assert {imgs.nth(i).get_attribute("data-plot") for i in range(imgs.count())} >= {"bode", "residuals"}
     else:
         assert "not available" in pg.inner_text("#plots")
     assert pg.get_attribute("#recording-link", "href") == f"/runs/{run_id}/recording"
     pg.wait_for_function("document.querySelector('#discrepancy').dataset.loaded === '1' || "
                          "document.querySelector('#discrepancy').textContent.startsWith('not available')",
-                         timeout=60_000)
+                         timeout=60_000, polling=POLL_MS)
     assert "residual" in pg.text_content("#discrepancy") or "not available" in pg.inner_text("#discrepancy")
     if pg.evaluate("document.querySelector('#discrepancy').dataset.loaded === '1'"):
         # the result's sentence and the model gap's go through the page's one rule for findings that agree
@@ -106,7 +130,7 @@ def test_fill_the_form_watch_a_run_finish_read_the_results(page: object, daemon:
 
 def test_unsafe_input_is_refused_with_the_field_named(page: object, daemon: Daemon) -> None:
     pg = page
-    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0", polling=POLL_MS)
     log_in(pg, daemon)
     pg.fill("#frequencies", "10, 60")
     pg.fill("#radius_mm", "10")
@@ -114,7 +138,8 @@ def test_unsafe_input_is_refused_with_the_field_named(page: object, daemon: Daem
     pg.click("#start")
     err = pg.locator(".err[data-for='crank_radius_m']")
     err.wait_for(timeout=10_000)
-    pg.wait_for_function("document.querySelector(\".err[data-for='crank_radius_m']\").textContent.length > 0")
+    pg.wait_for_function("document.querySelector(\".err[data-for='crank_radius_m']\").textContent.length > 0",
+                         polling=POLL_MS)
     text = err.inner_text()
     assert "step 2 crank_radius_m" in text and "peak force" in text  # steps counted from 1 for people
     assert "#/runs/" not in pg.url
@@ -122,11 +147,11 @@ def test_unsafe_input_is_refused_with_the_field_named(page: object, daemon: Daem
 
 def test_without_login_the_page_says_so_and_emergency_stop_works(page: object, daemon: Daemon) -> None:
     pg = page
-    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+    pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0", polling=POLL_MS)
     pg.fill("#frequencies", "10")
     pg.fill("#radius_mm", "1")
     pg.click("#start")
-    pg.wait_for_function("document.querySelector('#form-msg').textContent.includes('log in')")
+    pg.wait_for_function("document.querySelector('#form-msg').textContent.includes('log in')", polling=POLL_MS)
     # a run started elsewhere is stopped from the page
     rid = daemon.start_run(freqs=(10.0,), record_s=30.0)
     daemon.wait_state(rid, ("running",))
@@ -149,30 +174,25 @@ def test_without_login_the_page_says_so_and_emergency_stop_works(page: object, d
     assert not h["estop"]["latched"] and h["estop"]["last_acknowledged_by"] == "tina"
 
 
-def test_a_drive_that_does_not_stop_is_shown_on_the_page(browser: object, tmp_path: pytest.TempPathFactory) -> None:
-    """The emulator as its own process plays a drive that takes the stop and keeps turning: the page's
-    stop says so at once, and its header shows the drive fault until the drive is repaired."""
-    from drivers.sim import SimRigProcess
-    from tests.station_support import daemon_config
-
-    with SimRigProcess(crank_radius_m=0.001) as emu:
-        cfg = daemon_config(tmp_path / "recordings")  # type: ignore[operator]
-        cfg.pop("simulation")
-        host, port = emu.addresses.modbus_tcp
-        cfg["devices"] = {"motor_url": f"modbus-tcp://{host}:{port}", "daq_port": emu.addresses.daq,
-                          "crank_radius_m": 0.001}
-        with Daemon(tmp_path, workers=0, config=cfg) as d:  # type: ignore[arg-type]
-            rid = d.start_run(freqs=(10.0,), record_s=60.0)
-            d.wait_state(rid, ("running",), step_state="recording")
-            emu.ignore_stops()
-            with open_page(browser, d.url + "/", no_errors=False) as pg:
-                pg.click("#estop")
-                pg.wait_for_selector("#banner:not([hidden])", timeout=15_000)
-                assert "THE CRANK STILL TURNS" in pg.inner_text("#banner")
-                pg.wait_for_selector("#drive-fault", timeout=15_000)
-                assert "DRIVE DOES NOT STOP" in pg.inner_text("#health") and pg.is_disabled("#start")
-                emu.ignore_stops(False)  # repaired: the page's acknowledgement is taken, the fault goes
-                log_in(pg, d)
-                pg.click("#ack")
-                pg.wait_for_selector("#drive-fault", state="detached", timeout=15_000)
-                assert "acknowledged by tina" in pg.inner_text("#banner")
+def test_a_drive_that_does_not_stop_is_shown_on_the_page(browser: object,
+                                                        rig_and_daemon: tuple[SimRigProcess, Daemon]) -> None:
+    """The emulator plays a drive that takes the stop and keeps turning: the page's stop says so at
+    once, and its header shows the drive fault until the drive is repaired."""
+    emu, d = rig_and_daemon
+    rid = d.start_run(freqs=(10.0,), record_s=60.0)
+    d.wait_state(rid, ("running",), step_state="recording")
+    emu.ignore_stops()
+    try:
+        with open_page(browser, d.url + "/", no_errors=False) as pg:
+            pg.click("#estop")
+            pg.wait_for_selector("#banner:not([hidden])", timeout=15_000)
+            assert "THE CRANK STILL TURNS" in pg.inner_text("#banner")
+            pg.wait_for_selector("#drive-fault", timeout=15_000)
+            assert "DRIVE DOES NOT STOP" in pg.inner_text("#health") and pg.is_disabled("#start")
+            emu.ignore_stops(False)  # repaired: the page's acknowledgement is taken, the fault goes
+            log_in(pg, d)
+            pg.click("#ack")
+            pg.wait_for_selector("#drive-fault", state="detached", timeout=15_000)
+            assert "acknowledged by tina" in pg.inner_text("#banner")
+    finally:
+        emu.ignore_stops(False)  # the daemon's end stops the crank

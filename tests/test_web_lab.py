@@ -1,7 +1,8 @@
 """The lab's page flows in a real headless Chromium: choose the transducer, run, review its history
 (runs, results, drift plot), approve as another user, read the audit trail; the technician cannot
-approve; and every page fits a phone's 390 px without horizontal scrolling.  Screenshots go to
-``$SCREENSHOTS_DIR`` (default: the test's temporary folder) for a person to look at.
+approve; and every page fits a phone's 390 px without horizontal scrolling.  With ``$SCREENSHOTS_DIR``
+set, screenshots of the views go there for a person to look at (none otherwise: each costs the
+browser a full-page render and encode that no assertion reads).
 
 And the run page's compensation section (on a third seeded run, 10 and 80 Hz): state the
 application, see the filter in plain words with its details and plot, download it, correct an
@@ -19,7 +20,7 @@ import numpy as np
 import pytest
 
 from tests.station_support import Daemon, Seed
-from tests.web_support import log_in, open_page
+from tests.web_support import POLL_MS, log_in, open_page
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web_lab")]  # a real daemon, runs and a browser
 
@@ -39,14 +40,15 @@ def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
         yield d
 
 
-def shots(tmp_path: Path) -> Path:
-    d = Path(os.environ.get("SCREENSHOTS_DIR") or tmp_path)
-    d.mkdir(parents=True, exist_ok=True)
-    return d
+def shot(page: object, name: str) -> None:
+    """A full-page screenshot ``name`` into ``$SCREENSHOTS_DIR`` when it is set."""
+    if os.environ.get("SCREENSHOTS_DIR"):
+        d = Path(os.environ["SCREENSHOTS_DIR"])
+        d.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(d / name), full_page=True)  # type: ignore[attr-defined]
 
 
-def test_choose_run_history_approve_audit(browser: object, daemon: Daemon, tmp_path: Path) -> None:
-    out = shots(tmp_path)
+def test_choose_run_history_approve_audit(browser: object, daemon: Daemon) -> None:
     with open_page(browser, daemon.url + "/", viewport=DESKTOP) as pg:
         log_in(pg, daemon, "tina")
         pg.wait_for_selector("#transducer_id option[value='TX5K-0002']", state="attached")
@@ -56,16 +58,19 @@ def test_choose_run_history_approve_audit(browser: object, daemon: Daemon, tmp_p
         pg.select_option("#transducer_id", "TX5K-0002")
         pg.click("#mount")
         pg.wait_for_function(
-            "document.querySelector('#banner').textContent.includes('TX5K-0002 is recorded as mounted')")
+            "document.querySelector('#banner').textContent.includes('TX5K-0002 is recorded as mounted')",
+                 polling=POLL_MS)
         pg.select_option("#transducer_id", "TX5K-0001")
-        pg.screenshot(path=str(out / "lab-form.png"), full_page=True)
+        shot(pg, "lab-form.png")
         pg.click("#start")
         pg.wait_for_url(re.compile(r".*#/runs/.+"), timeout=10_000)
         rid = pg.inner_text("#run-id")
-        pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=90_000)
+        pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=90_000,
+                             polling=POLL_MS)
         pg.wait_for_selector("#results:not([hidden])", timeout=30_000)
         assert "started by tina" in pg.inner_text("#run-who")
-        pg.wait_for_function("document.querySelector('#approvals').textContent.includes('not approved')")
+        pg.wait_for_function("document.querySelector('#approvals').textContent.includes('not approved')",
+                             polling=POLL_MS)
         assert pg.is_disabled("#approve")  # a technician cannot approve
         r = daemon.c().post(f"/runs/{rid}/approve", json={})  # nor can the admin token
         assert r.status_code == 403
@@ -73,7 +78,7 @@ def test_choose_run_history_approve_audit(browser: object, daemon: Daemon, tmp_p
         pg.click("#run-history")
         pg.wait_for_selector("#hist-runs tbody tr >> nth=2", timeout=30_000)
         assert rid in pg.inner_text("#hist-runs") and pg.locator("#hist-plot svg circle").count() >= 3
-        pg.screenshot(path=str(out / "lab-history.png"), full_page=True)
+        shot(pg, "lab-history.png")
 
     # a second person, an approver, approves it
     with open_page(browser, daemon.url + "/", viewport=DESKTOP) as pg:
@@ -82,8 +87,9 @@ def test_choose_run_history_approve_audit(browser: object, daemon: Daemon, tmp_p
         pg.wait_for_selector("#approve:not([disabled])", timeout=30_000)
         pg.fill("#approve-note", "checked against the budget")
         pg.click("#approve")
-        pg.wait_for_function("document.querySelector('#approvals').textContent.includes('approved by anton')")
-        pg.screenshot(path=str(out / "lab-run-approved.png"), full_page=True)
+        pg.wait_for_function("document.querySelector('#approvals').textContent.includes('approved by anton')",
+                             polling=POLL_MS)
+        shot(pg, "lab-run-approved.png")
         # the audit trail names who did each of these
         pg.goto(f"{daemon.url}/#/audit")
         pg.wait_for_selector("#audit tbody tr", timeout=10_000)
@@ -91,7 +97,7 @@ def test_choose_run_history_approve_audit(browser: object, daemon: Daemon, tmp_p
         for who, what in (("tina", "run.started"), ("tina", "register.mounted"), ("anton", "certificate.approved"),
                           ("admin", "register.changed"), ("system", "run.identified")):
             assert re.search(rf"{who}\s+{re.escape(what)}", text), (who, what)
-        pg.screenshot(path=str(out / "lab-audit.png"), full_page=True)
+        shot(pg, "lab-audit.png")
 
     # an administrator enters a reference standard on the page; it is there for the next run
     with open_page(browser, daemon.url + "/", viewport=DESKTOP) as pg:
@@ -105,24 +111,23 @@ def test_choose_run_history_approve_audit(browser: object, daemon: Daemon, tmp_p
         pg.click(f"{form} button")
         pg.wait_for_selector("#reg-standards td:has-text('LVDT-7')", timeout=10_000)
         assert "2027-06-30" in pg.inner_text("#reg-standards")
-        pg.screenshot(path=str(out / "lab-register.png"), full_page=True)
+        shot(pg, "lab-register.png")
     std = daemon.c().get("/register").json()["standards"]
     assert [(s["id"], s["due_date"], s["uncertainty"], s["updated_by"]) for s in std] == \
         [("LVDT-7", "2027-06-30", 2e-7, "ada")]
 
 
-def test_every_page_fits_a_phone(browser: object, daemon: Daemon, tmp_path: Path) -> None:
-    out = shots(tmp_path)
+def test_every_page_fits_a_phone(browser: object, daemon: Daemon) -> None:
     with open_page(browser, daemon.url + "/", no_errors=False, viewport={"width": 390, "height": 844},
                    device_scale_factor=1, is_mobile=True, has_touch=True) as pg:
         log_in(pg, daemon, "tina")
-        [rid, *_] = daemon.seeded
+        rid = daemon.seeded[COMPENSATION]  # the compensation test's run: its plots and analysis made once for both
         for i, page in enumerate((*PAGES, f"#/runs/{rid}")):
             pg.goto(f"{daemon.url}/{page}")
             pg.wait_for_timeout(1500)  # the view's data arrive
             width = pg.evaluate("document.documentElement.scrollWidth")
             assert width <= 390, (page, width)
-            pg.screenshot(path=str(out / f"lab-phone-{i}.png"), full_page=True)
+            shot(pg, f"lab-phone-{i}.png")
 
 
 def test_design_download_and_correct_a_signal_on_the_page(browser: object, daemon: Daemon, tmp_path: Path) -> None:
@@ -131,14 +136,15 @@ def test_design_download_and_correct_a_signal_on_the_page(browser: object, daemo
         pg.wait_for_selector("#results:not([hidden])", timeout=30_000)
         pg.fill("#comp-mass", "1")
         pg.click("#comp-design")  # the page's POSTs need its session
-        pg.wait_for_function("document.querySelector('#comp-msg').textContent.includes('not logged in')")
+        pg.wait_for_function("document.querySelector('#comp-msg').textContent.includes('not logged in')",
+                             polling=POLL_MS)
         log_in(pg, daemon)
         pg.wait_for_selector("#comp-form input#comp-mass:visible", timeout=30_000)
         pg.fill("#comp-mass", "1")
         pg.fill("#comp-band", "4000")
         pg.click("#comp-design")  # 4 kHz is beyond the calibrated 10 to 80 Hz: refused with the reason
         pg.wait_for_function("!['', 'designing…'].includes(document.querySelector('#comp-msg').textContent)",
-                             timeout=60_000)
+                             timeout=60_000, polling=POLL_MS)
         refused = pg.inner_text("#comp-msg")
         assert "refused (422)" in refused and "beyond the calibrated range" in refused, refused
         assert "tick “correct beyond the calibrated frequencies”" in refused
@@ -153,7 +159,7 @@ def test_design_download_and_correct_a_signal_on_the_page(browser: object, daemo
         pg.click("#comp-details summary")
         assert "taps (coefficients)" in pg.inner_text("#comp-table") and "64" in pg.inner_text("#comp-table")
         pg.wait_for_function("document.querySelector('#comp-bode').complete && "
-                             "document.querySelector('#comp-bode').naturalWidth > 0", timeout=60_000)
+                             "document.querySelector('#comp-bode').naturalWidth > 0", timeout=60_000, polling=POLL_MS)
         with pg.expect_download() as dl:
             pg.click("#comp-download")
         filt = json.loads(Path(dl.value.path()).read_text())
@@ -186,5 +192,6 @@ def test_design_download_and_correct_a_signal_on_the_page(browser: object, daemo
         bad.write_text("force_V\n0.1\nnan\n0.2\n")
         pg.set_input_files("#comp-file", str(bad))
         pg.click("#comp-apply")
-        pg.wait_for_function("document.querySelector('#comp-apply-msg').textContent.includes('line 3')")
+        pg.wait_for_function("document.querySelector('#comp-apply-msg').textContent.includes('line 3')",
+                             polling=POLL_MS)
         assert "not a finite number" in pg.inner_text("#comp-apply-msg")

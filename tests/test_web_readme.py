@@ -4,12 +4,12 @@ run from the form, watch it finish, read the results, open the report and the ce
 same on a phone's 390 px: no view scrolls sideways (the run as it records, its results, the main
 page, the certificate), the page speaks plainly first (the statistics behind a "details"
 disclosure), with SI typography, steps counted "step 2 of 5", the time left of a run, and times in
-the viewer's local time with its zone.  And the certificate part of the page: a technician enters the
-room conditions (an out-of-range one is refused at its input), runs, sees the stored conditions;
-the draft certificate states them; an approver issues it from the page; the issued PDF and DCC read
-back the conditions.  One daemon for the module's tests, each on runs of its own.
+the viewer's local time with its zone.  And, on that phone's run, the certificate part of the page: the
+technician enters the room conditions (an out-of-range one is refused at its input), runs, sees the
+stored conditions; the draft certificate states them; an approver issues it from the page; the issued
+PDF and DCC read back the conditions.  One daemon for the module's tests, each on a run of its own.
 
-Skipped only when /usr/bin/chromium is absent and CI is not set; under CI it must run.
+Skipped only when no Chromium is installed and CI is not set; under CI it must run.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from lxml import etree
 from pypdf import PdfReader
 
 from tests.station_support import Daemon, daemon_config
-from tests.web_support import log_in, open_page
+from tests.web_support import POLL_MS, log_in, open_page
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web_readme")]  # a real daemon, a real run and a real browser
 
@@ -68,13 +68,13 @@ def test_the_readme_works_as_written(browser: object, station: Daemon) -> None:
     assert "simulated station: log in on" in log and "approver" in log
     password = _printed_password(log, user)
     with open_page(browser, d.url + "/") as pg:
-        pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+        pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0", polling=POLL_MS)
         assert user in pg.inner_text("#login-hint")  # the page says whom to log in as, too
         # logged out, starting a run answers in words a person understands
         pg.fill("#frequencies", "10, 20")
         pg.fill("#radius_mm", "1")
         pg.click("#start")
-        pg.wait_for_function("document.querySelector('#form-msg').textContent.length > 0")
+        pg.wait_for_function("document.querySelector('#form-msg').textContent.length > 0", polling=POLL_MS)
         msg = pg.inner_text("#form-msg")
         assert msg == "You are not logged in: log in at the top of the page to start a run.", msg
         assert not pg.is_visible("#abort")
@@ -87,7 +87,8 @@ def test_the_readme_works_as_written(browser: object, station: Daemon) -> None:
         # start a run, watch it, read the results
         pg.click("#start")
         pg.wait_for_url(re.compile(r".*#/runs/.+"), timeout=10_000)
-        pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000)
+        pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000,
+                             polling=POLL_MS)
         pg.wait_for_selector("#results:not([hidden])", timeout=15_000)
         for name in ("S", "k_f", "b_f"):
             assert "±" in pg.inner_text(f"#params tr[data-param='{name}'] td.value"), name
@@ -120,20 +121,40 @@ WATCH = """() => { window.watched = {width: 0, steps: [], eta: []};
 
 
 def test_a_phone_reads_plain_words_and_nothing_scrolls_sideways(browser: object, station: Daemon) -> None:
+    """On a phone's 390 px, the technician enters the room conditions with the run (an out-of-range one
+    refused at its input), watches it and reads its results: nothing scrolls sideways, plain words
+    first, SI typography, local time; the stored conditions, stated by the draft certificate; an
+    approver issues it on the page and the issued PDF and DCC read back the conditions.  (One run for
+    the phone's and the conditions' checks.)"""
     d = station
     password = _printed_password(d.log_path.read_text(errors="replace"), "technician")  # printed at start
     with open_page(browser, d.url + "/", **PHONE) as pg:
-        pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0")
+        pg.wait_for_function("document.querySelector('#hint-frequency').textContent.length > 0", polling=POLL_MS)
         pg.fill("#login-name", "technician")
         pg.fill("#login-password", password)
         pg.click("#login")
         pg.wait_for_selector("#me:not([hidden])", timeout=10_000)
         assert pg.evaluate(WIDTH) <= 390
+        # the room conditions: the inputs carry the API's ranges; empty says what the run then states
+        env = d.c().get("/station").json()["environment"]
+        assert pg.get_attribute("#temperature_c", "min") == str(int(env["temperature_c"]["min"]))
+        assert pg.get_attribute("#relative_humidity_pct", "max") == str(int(env["relative_humidity_pct"]["max"]))
+        assert "simulated room sensor" in pg.inner_text("#hint-humidity")
+        pg.fill("#temperature_c", str(TEMPERATURE_C))
+        pg.fill("#relative_humidity_pct", "120")  # the API refuses it at its field
+        pg.click("#start")
+        slot = '#run-form .err[data-for="relative_humidity_pct"]'
+        pg.wait_for_function(f"document.querySelector('{slot}').textContent.includes('100')", polling=POLL_MS)
+        assert "environment.relative_humidity_pct" in pg.inner_text(slot)
+        assert pg.inner_text('#run-form .err[data-for="temperature_c"]') == ""
+        assert re.search(r"#/$|/$", pg.url)  # no run was started
+        pg.fill("#relative_humidity_pct", str(HUMIDITY_PCT))
         pg.evaluate(WATCH)
         pg.click("#start")
         pg.wait_for_url(re.compile(r".*#/runs/.+"), timeout=10_000)
         rid = pg.url.split("#/runs/")[1]
-        pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000)
+        pg.wait_for_function("document.querySelector('#run-state').textContent === 'completed'", timeout=60_000,
+                             polling=POLL_MS)
         pg.wait_for_selector("#results:not([hidden])", timeout=15_000)
         pg.wait_for_timeout(200)
         seen = pg.evaluate("window.watched")
@@ -142,6 +163,14 @@ def test_a_phone_reads_plain_words_and_nothing_scrolls_sideways(browser: object,
         n = len(d.c().get(f"/runs/{rid}").json()["steps"])
         assert any(re.fullmatch(rf"step [1-{n}] of {n} \(\d+ Hz\) \w+", s) for s in seen["steps"]), seen["steps"]
         assert any(re.fullmatch(r"about \d+ (s|min) left", e) for e in seen["eta"]), seen["eta"]
+        stored = pg.inner_text("#res-environment")
+        assert "21.3" in stored and "47.0" in stored and "entered with the run" in stored, stored
+        # the draft certificate (the page's link) states them
+        draft = pg.request.get(d.url + pg.get_attribute("#cert-html", "href"))
+        assert draft.ok
+        html = draft.text()
+        assert re.search(r'id="temperature">21\.3 °C', html) and re.search(r'id="humidity">47 %', html)
+        assert "entered with the run" in html
         # a plain sentence first; the model, the fit and the statistics behind a closed disclosure
         assert pg.inner_text("#res-summary").startswith("The run determined the sensitivity")
         shown = pg.inner_text("#results")
@@ -178,61 +207,25 @@ def test_a_phone_reads_plain_words_and_nothing_scrolls_sideways(browser: object,
                                 ".map((td) => td.getBoundingClientRect().width))")
         assert narrowest >= 100, narrowest
 
-
-def test_conditions_from_the_form_reach_the_issued_certificate(browser: object, station: Daemon) -> None:
-    """The run form's room conditions (an out-of-range one refused at its input) stored with the run,
-    stated by the draft certificate, and read back from the PDF and the DCC an approver issued on
-    the page (the README's station: its report and certificate render from its start)."""
-    daemon = station
-    with open_page(browser, daemon.url + "/") as pg:
-        log_in(pg, daemon, "tina")
-        env = daemon.c().get("/station").json()["environment"]
-        # the inputs carry the API's ranges; empty says what the run then states
-        assert pg.get_attribute("#temperature_c", "min") == str(int(env["temperature_c"]["min"]))
-        assert pg.get_attribute("#relative_humidity_pct", "max") == str(int(env["relative_humidity_pct"]["max"]))
-        assert "simulated room sensor" in pg.inner_text("#hint-humidity")
-        pg.fill("#frequencies", "10")
-        pg.fill("#radius_mm", "1")
-        pg.fill("#temperature_c", str(TEMPERATURE_C))
-        pg.fill("#relative_humidity_pct", "120")  # the API refuses it at its field
-        pg.click("#start")
-        slot = '#run-form .err[data-for="relative_humidity_pct"]'
-        pg.wait_for_function(f"document.querySelector('{slot}').textContent.includes('100')")
-        assert "environment.relative_humidity_pct" in pg.inner_text(slot)
-        assert pg.inner_text('#run-form .err[data-for="temperature_c"]') == ""
-        assert re.search(r"#/$|/$", pg.url)  # no run was started
-        pg.fill("#relative_humidity_pct", str(HUMIDITY_PCT))
-        pg.click("#start")
-        pg.wait_for_url(re.compile(r".*#/runs/.+"), timeout=10_000)
-        rid = pg.inner_text("#run-id")
-        pg.wait_for_selector("#results:not([hidden])", timeout=60_000)
-        stored = pg.inner_text("#res-environment")
-        assert "21.3" in stored and "47.0" in stored and "entered with the run" in stored, stored
-        # the draft certificate (the page's link) states them
-        draft = pg.request.get(daemon.url + pg.get_attribute("#cert-html", "href"))
-        assert draft.ok
-        html = draft.text()
-        assert re.search(r'id="temperature">21\.3 °C', html) and re.search(r'id="humidity">47 %', html)
-        assert "entered with the run" in html
-
     # a second person, an approver, issues it from the page
-    with open_page(browser, f"{daemon.url}/#/runs/{rid}") as pg:
-        log_in(pg, daemon, "anton")
-        pg.goto(f"{daemon.url}/#/runs/{rid}")
+    with open_page(browser, f"{d.url}/#/runs/{rid}") as pg:
+        log_in(pg, d, "anton")
+        pg.goto(f"{d.url}/#/runs/{rid}")
         pg.wait_for_selector("#results:not([hidden])", timeout=30_000)
         pg.click("#cert-form button[type=submit]")
-        pg.wait_for_function("document.querySelector('#cert-msg').textContent.startsWith('issued ')", timeout=30_000)
+        pg.wait_for_function("document.querySelector('#cert-msg').textContent.startsWith('issued ')", timeout=30_000,
+                             polling=POLL_MS)
         number = pg.inner_text("#cert-msg").removeprefix("issued ").strip()
         # once issued, issuing is offered no more; the page says which certificate was issued
         assert not pg.is_visible("#cert-issue") and pg.inner_text("#cert-state") == f"issued: {number}"
-        issued = daemon.c().get("/certificates").json()["certificates"]
+        issued = d.c().get("/certificates").json()["certificates"]
         assert [c["number"] for c in issued if c["run_id"] == rid] == [number]
         # the page's downloads now read back the issued certificate's conditions
-        pdf = pg.request.get(daemon.url + pg.get_attribute("#cert-pdf", "href"))
+        pdf = pg.request.get(d.url + pg.get_attribute("#cert-pdf", "href"))
         assert pdf.ok and pdf.headers["content-type"].startswith("application/pdf")
         text = "\n".join(p.extract_text() for p in PdfReader(io.BytesIO(pdf.body())).pages)
         assert number in text and "21.3 °C" in text and "47 %" in text, text
-        xml = pg.request.get(daemon.url + pg.get_attribute("#cert-xml", "href"))
+        xml = pg.request.get(d.url + pg.get_attribute("#cert-xml", "href"))
         assert xml.ok
         doc = etree.fromstring(xml.body())
         reals = doc.findall(".//dcc:influenceCondition//si:real", NS)

@@ -20,7 +20,7 @@ from station.lab import policy
 from station.lab.store import Store
 from tests.history_support import TX, add_runs, add_transducer
 from tests.station_support import Daemon
-from tests.web_support import log_in, open_page
+from tests.web_support import POLL_MS, log_in, open_page
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web_users")]  # a real daemon and a browser
 
@@ -64,7 +64,8 @@ def test_admin_adds_issues_token_and_disables_a_user(browser: object, daemon: Da
         admin.check("#user-roles input[value='technician']")
         admin.fill("#user-password", "short")
         admin.click("#user-save")
-        admin.wait_for_function("document.querySelector('#user-form .err[data-for=password]').textContent !== ''")
+        admin.wait_for_function("document.querySelector('#user-form .err[data-for=password]').textContent !== ''",
+                                polling=POLL_MS)
         assert "10 characters" in admin.inner_text("#user-form .err[data-for=password]")
         assert admin.input_value("#user-password") == ""  # the page keeps no password
         assert "tomas" not in [u["name"] for u in daemon.c().get("/users").json()]
@@ -141,7 +142,7 @@ def test_admin_adds_issues_token_and_disables_a_user(browser: object, daemon: Da
             assert admin.locator(f"{row} td").nth(2).inner_text() == "disabled"
             tech.reload()
             tech.wait_for_function("document.querySelector('#banner').textContent.includes('session was ended')",
-                                   timeout=10_000)
+                                   timeout=10_000, polling=POLL_MS)
             assert tech.is_visible("#login-form") and tech.is_hidden("#me")
         assert httpx.get(daemon.url + "/me", headers={"Authorization": f"Bearer {later}"},
                          timeout=10).status_code == 401  # a disabled user's token too
