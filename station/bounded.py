@@ -22,9 +22,6 @@ from station.errors import BadInputError
 QUOTE_CHARS = 200  # the most of an input an error message quotes
 MAX_YAML_NODES = 100_000  # a station configuration has ~300 nodes, a RUN.yaml of 100 steps ~1 000
 MAX_YAML_BYTES = 1 << 20  # 1 MiB
-# libyaml's parser where PyYAML was built with it (the wheels are): the same safe loader, nodes and marks,
-# about seven times faster than the pure-Python one (a recording's configuration is parsed at every read)
-SAFE_LOADER: type[yaml.SafeLoader] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
 def cut(text: str, limit: int = QUOTE_CHARS) -> str:
@@ -128,7 +125,8 @@ def load_yaml(text: str, source: str, error: type[BadInputError] = BadInputError
     """``yaml.safe_load(text)`` with the document's expanded size bounded (module docstring) and no key
     written twice in one mapping; a malformed document raises ``error`` naming ``source``, its message
     within a few hundred characters."""
-    loader = SAFE_LOADER(text)
+    loader = yaml.SafeLoader(text)  # not libyaml's: its composer recurses in C and a deeply nested document
+    # crashes the process instead of raising RecursionError
     try:
         try:
             node = loader.get_single_node()

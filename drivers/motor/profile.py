@@ -645,9 +645,9 @@ def shipped_profiles() -> list[str]:
     return sorted(p.stem for p in folder.glob("*.yaml"))
 
 
-class _UniqueKeys(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # type: ignore[misc]  # PyYAML ships no annotations (types-PyYAML not installed)
-    """Safe loader (libyaml's where PyYAML has it) that refuses a key written twice in one mapping, naming
-    both lines."""
+class _UniqueKeys(yaml.SafeLoader):  # type: ignore[misc]  # PyYAML ships no annotations (types-PyYAML not installed)
+    """SafeLoader that refuses a key written twice in one mapping, naming both lines (not libyaml's: a
+    deeply nested document would crash its composer, which recurses in C)."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         lines: dict[Any, int] = {}
