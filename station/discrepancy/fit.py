@@ -35,7 +35,7 @@ from scipy.optimize import least_squares
 from station.discrepancy.catalogue import BASE_PARAMS, NEUTRAL, Param, effect_params, scales
 from station.discrepancy.data import RigData
 from station.discrepancy.eiv import whitening
-from station.discrepancy.model import predict
+from station.discrepancy.model import predict, predict_many
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
@@ -209,10 +209,9 @@ class Problem:
         if self.additive:
             J[:, list(self.additive)] = self._additive_columns()
         lo, hi = self._lo, self._hi
-        additive = set(self.additive)
-        for j in range(x.size):
-            if j in additive:
-                continue
+        cols = [j for j in range(x.size) if j not in set(self.additive)]
+        points, steps = [], []
+        for j in cols:
             if step is None:
                 h = _REL_STEP * (1.0 if x[j] >= 0 else -1.0) * max(1.0, abs(x[j]))
                 if not lo[j] <= x[j] + h <= hi[j] and lo[j] <= x[j] - h <= hi[j]:
@@ -221,9 +220,17 @@ class Problem:
                 h = step
             du = x.copy()
             du[j] += h
-            h = du[j] - x[j]
-            J[:, j] = (self.residual(du) - r0) / h
+            points.append(du)
+            steps.append(du[j] - x[j])
+        if cols:
+            J[:, cols] = ((self.residuals(points) - r0) / np.array(steps)[:, None]).T
         return J
+
+    def residuals(self, us: Sequence[FloatArray]) -> FloatArray:
+        """``residual`` at several points at once, (P, n_rows): the same values, the model evaluated
+        for all of them together (``model.predict_many``)."""
+        m = predict_many(self.data, [self.values(u) for u in us], self.effects)
+        return (self.EWc[None] - np.einsum("sij,psj->psi", self.EW, m))[:, self.valid_f]
 
     def n_obs(self) -> int:
         return int(self.valid_f.sum() + self.valid_d.sum())
