@@ -3,9 +3,9 @@ range with several seeds, is switched on in a simulated recording that the base 
 workflow (5 kN and 12.5 kN transducers) must name it first, estimate its parameters within their
 stated uncertainty (|error| <= 4 standard uncertainties), shrink the gap to within 1.5x the noise floor
 and recover k_f (0.1 %) and b_f (2 %; with the coupling free: within their stated uncertainty).
-Also: nothing is named without an effect (the crank harmonics' runs), two effects are both found, structure outside the catalogue
-(sidebands, in an imported run; a clipped step) ends in ``unexplained``, and an imported run (either
-polarity) gives the station's own answer."""
+Also: nothing is named without an effect (the crank harmonics' runs), two effects are both found,
+structure outside the catalogue (sidebands, in an imported run; a clipped step) ends in
+``unexplained``, and an imported run (either polarity) gives the station's own answer."""
 
 from __future__ import annotations
 
