@@ -35,7 +35,7 @@ from scipy.optimize import least_squares
 from station.discrepancy.catalogue import BASE_PARAMS, NEUTRAL, Param, effect_params, scales
 from station.discrepancy.data import RigData
 from station.discrepancy.eiv import whitening
-from station.discrepancy.model import predict
+from station.discrepancy.model import predict, predict_many
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
@@ -86,21 +86,42 @@ class ModelFit:
         return max(1.0, self.chi2 / self.dof)
 
 
-_EIV: dict[int, tuple[RigData, FloatArray]] = {}
+@dataclass(frozen=True)
+class _Weights:
+    """What every model's residual on one data set shares: W_f = R_f / sigma_f (n, n_f, n_f), W_d
+    (n, n_d, n_d), the EIV whitening E (n, n_f, n_f), E W_f and E W_f c_f (n, n_f), the force rows
+    that hold data (n, n_f)."""
+
+    Wf: FloatArray
+    Wd: FloatArray
+    eiv: FloatArray
+    EW: FloatArray
+    EWc: FloatArray
+    valid_f: NDArray[np.bool_]
+
+
+_EIV: dict[int, tuple[RigData, _Weights]] = {}
 _REL_STEP = math.sqrt(np.finfo(float).eps)
 
 
-def _whitening(data: RigData, Wf: FloatArray) -> FloatArray:
-    """``eiv.whitening`` once per data set (a frozen ``RigData``; every model and start point of a
-    recording's analysis shares it; the few most recent are kept)."""
+def _weights(data: RigData) -> _Weights:
+    """``_Weights`` once per data set (a frozen ``RigData``; every model and start point of a
+    recording's analysis shares them, ``eiv.whitening`` included; the few most recent are kept)."""
     hit = _EIV.get(id(data))
     if hit is not None and hit[0] is data:
         return hit[1]
+    Wf = data.Rf / data.sigma_f[:, None, None]
     E = whitening(data, Wf)
+    # the residual E W_f (c_f - m) as E W_f c_f - (E W_f) m: one product per evaluation
+    EW = np.einsum("sij,sjk->sik", E, Wf)
+    w = _Weights(Wf=Wf, Wd=data.Rd / data.sigma_d[:, None, None], eiv=E, EW=EW,
+                 EWc=np.einsum("sij,sj->si", EW, data.cf), valid_f=np.any(data.Rf != 0, axis=1))
+    for a in (w.Wf, w.Wd, w.eiv, w.EW, w.EWc, w.valid_f):
+        a.flags.writeable = False
     if len(_EIV) >= 4:
         _EIV.clear()
-    _EIV[id(data)] = (data, E)
-    return E
+    _EIV[id(data)] = (data, w)
+    return w
 
 
 class Problem:
@@ -117,16 +138,12 @@ class Problem:
         sc = scales(dict(start), data)
         self.scale = {q.name: sc[q.name] for q in self.params}
         self.fixed = {**NEUTRAL, **{k: v for k, v in start.items() if k not in self.centre}}
-        self.Wf = data.Rf / data.sigma_f[:, None, None]
-        self.Wd = data.Rd / data.sigma_d[:, None, None]
-        self.valid_f = np.any(data.Rf != 0, axis=1)
+        w = _weights(data)
+        self.Wf, self.Wd, self.valid_f = w.Wf, w.Wd, w.valid_f
         # the measured motion is the model's input, not data it is fitted to: no displacement rows
         self.valid_d = np.zeros(data.Rd.shape[:2], dtype=bool)
         # its noise enters the force rows (errors in variables); the same weights for every model
-        self.eiv = _whitening(data, self.Wf)
-        # the residual E W_f (c_f - m) as E W_f c_f - (E W_f) m: one product per evaluation
-        self.EW = np.einsum("sij,sjk->sik", self.eiv, self.Wf)
-        self.EWc = np.einsum("sij,sj->si", self.EW, data.cf)
+        self.eiv, self.EW, self.EWc = w.eiv, w.EW, w.EWc
         self.additive = tuple(i for i, q in enumerate(self.params) if q.additive)
         self._lo, self._hi = self.bounds()
         self._columns: FloatArray | None = None
@@ -210,20 +227,29 @@ class Problem:
             J[:, list(self.additive)] = self._additive_columns()
         lo, hi = self._lo, self._hi
         additive = set(self.additive)
-        for j in range(x.size):
-            if j in additive:
-                continue
+        cols = [j for j in range(x.size) if j not in additive]
+        at = self.values(x)
+        points, steps = [], []
+        for j in cols:
             if step is None:
                 h = _REL_STEP * (1.0 if x[j] >= 0 else -1.0) * max(1.0, abs(x[j]))
                 if not lo[j] <= x[j] + h <= hi[j] and lo[j] <= x[j] - h <= hi[j]:
                     h = -h
             else:
                 h = step
-            du = x.copy()
-            du[j] += h
-            h = du[j] - x[j]
-            J[:, j] = (self.residual(du) - r0) / h
+            xj = x[j] + h
+            q = self.params[j]
+            points.append({**at, q.name: self.to_value(q, float(xj))})  # the values at x with u_j moved
+            steps.append(xj - x[j])
+        if cols:
+            J[:, cols] = ((self.residuals(points) - r0) / np.array(steps)[:, None]).T
         return J
+
+    def residuals(self, ps: Sequence[Mapping[str, float]]) -> FloatArray:
+        """``residual`` for several sets of physical parameters at once, (P, n_rows): the same values,
+        the model evaluated for all of them together (``model.predict_many``)."""
+        m = predict_many(self.data, ps, self.effects)
+        return (self.EWc[None] - np.einsum("sij,psj->psi", self.EW, m))[:, self.valid_f]
 
     def n_obs(self) -> int:
         return int(self.valid_f.sum() + self.valid_d.sum())

@@ -29,7 +29,7 @@ Output: model coefficients in the force slots (n, n_f) and displacement-harmonic
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TypeVar, cast
 
@@ -164,15 +164,11 @@ def _spring(data: RigData, dr: _Drive, p: Mapping[str, float], coupled: bool) ->
     return np.asarray(spring_force_per_acceleration(t, cpl, dr.f) * dr.s2, dtype=np.complex128)
 
 
-def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
-            ) -> tuple[FloatArray, FloatArray, ComplexArray]:
-    """Model coefficients (force (n, n_f), displacement harmonics (n, n_d)) and V_1/X_1 (n,).
-
-    p: physical parameters by name (S V/N, k_f N/m, b_f N s/m, offset_V V, and the effects' own);
-    effects: names of the effects switched on (value: the low-pass order, else ignored)."""
+def _output(data: RigData, dr: _Drive, p: Mapping[str, float], effects: Mapping[str, int]
+            ) -> tuple[FloatArray, ComplexArray]:
+    """The transducer output after the conditioner, V_0 (n,) V and V_k (n, K) (steps 1-5 of the
+    module; its stages are kept for the inputs they depend on, ``_stage``)."""
     n, K = data.n_steps, K_MAX
-    dr = _drive(data)
-    s = dr.s
     ident = tuple(effects.items())
     xkey = (p.get("delay_s"), p.get("clock_skew"), p.get("sensor_resonance_hz"), p.get("sensor_damping"))
     x = _stage(data, (*ident, "x", *xkey), lambda: _motion(data, dr, p, effects))
@@ -189,37 +185,71 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
         V0, Vk = np.full(n, p["S"] * F0), np.asarray(p["S"] * Fk, dtype=np.complex128)
     if "conditioner_lowpass" in effects:
         order = int(effects["conditioner_lowpass"])
-        Vk = Vk * _stage(data, (*ident, "B", order, p["cutoff_hz"]), lambda: butterworth(order, p["cutoff_hz"], s))
-    Vk = Vk * data.kmask
-    h1 = Vk[:, 0] / data.x1
+        Vk = Vk * _stage(data, (*ident, "B", order, p["cutoff_hz"]), lambda: butterworth(order, p["cutoff_hz"], dr.s))
+    return V0, Vk * data.kmask
+
+
+def _channel(data: RigData, ps: Sequence[Mapping[str, float]], effects: Mapping[str, int], V0: FloatArray,
+             Vk: ComplexArray) -> FloatArray:
+    """The force channel's coefficients (P, n, n_f) for P parameter sets ``ps`` from their outputs V0
+    (P, n) and V_k (P, n, K) (step 6 of the module, evaluated for all P at once: element by element
+    the same arithmetic as for one)."""
+    n, K, P = data.n_steps, K_MAX, len(ps)
+
+    def col(name: str) -> FloatArray:  # a parameter over the P sets, (P, 1)
+        return np.array([q[name] for q in ps])[:, None]
+
+    Vk = Vk.copy()
     nm = data.n_mains
-    W = np.zeros((n, nm), dtype=complex)
+    W = np.zeros((P, n, nm), dtype=complex)
     if "mains_interference" in effects and nm:
-        hh = np.arange(1, nm + 1)[None, :]
+        hh = np.arange(1, nm + 1)[None, None, :]
         if data.common_clock:
-            Q = np.array([complex(p[f"re_{h}"], p[f"im_{h}"]) for h in range(1, nm + 1)])[None, :]
-            W = Q * np.exp(1j * hh * 2 * np.pi * p["frequency_hz"] * data.t_mid_s[:, None])
+            Q = np.array([[complex(q[f"re_{h}"], q[f"im_{h}"]) for h in range(1, nm + 1)] for q in ps])[:, None, :]
+            W = Q * np.exp(1j * hh * 2 * np.pi * col("frequency_hz")[:, :, None] * data.t_mid_s[None, :, None])
         else:  # steps with their own time origins: a phasor per step and line
-            W = np.array([[complex(p.get(f"re_{h}_s{i}", 0.0), p.get(f"im_{h}_s{i}", 0.0)) for h in range(1, nm + 1)]
-                          for i in range(n)])  # (a planned step of a proposal: no line of its own yet)
+            W = np.array([[[complex(q.get(f"re_{h}_s{i}", 0.0), q.get(f"im_{h}_s{i}", 0.0))
+                            for h in range(1, nm + 1)] for i in range(n)]
+                          for q in ps])  # (a planned step of a proposal: no line of its own yet)
         for i, h in zip(*np.nonzero(data.merge), strict=True):
-            Vk[i, data.merge[i, h] - 1] += W[i, h]
-            W[i, h] = 0.0
-    m = np.zeros((n, 2 * K + 3 + 2 * nm))
-    m[:, 0 : 2 * K : 2], m[:, 1 : 2 * K : 2] = Vk.real, -Vk.imag
-    dc = V0 + p["offset_V"]
-    slope = np.zeros(n)
-    curv = np.zeros(n)
+            Vk[:, i, data.merge[i, h] - 1] += W[:, i, h]
+            W[:, i, h] = 0.0
+    m = np.zeros((P, n, 2 * K + 3 + 2 * nm))
+    m[:, :, 0 : 2 * K : 2], m[:, :, 1 : 2 * K : 2] = Vk.real, -Vk.imag
+    dc = V0 + col("offset_V")
+    slope: FloatArray = np.zeros(n)
+    curv: FloatArray = np.zeros(n)
     if "zero_drift" in effects and not data.common_clock:  # per step: offset (step 0: offset_V), slope, curvature
         # (a planned step of a proposal has no drift of its own yet: 0)
-        dc = dc + np.array([0.0] + [p.get(f"dc_s{i}", 0.0) for i in range(1, n)])
-        slope = np.array([p.get(f"slope_s{i}", 0.0) for i in range(n)])
-        curv = np.array([p.get(f"curv_s{i}", 0.0) for i in range(n)])
+        dc = dc + np.array([[0.0] + [q.get(f"dc_s{i}", 0.0) for i in range(1, n)] for q in ps])
+        slope = np.array([[q.get(f"slope_s{i}", 0.0) for i in range(n)] for q in ps])
+        curv = np.array([[q.get(f"curv_s{i}", 0.0) for i in range(n)] for q in ps])
     elif "zero_drift" in effects:
-        rho, beta, tm, h = p["rate_V_per_s"], p["quadratic_V_per_s2"], data.t_mid_s, data.half_s
+        rho, beta, tm, h = col("rate_V_per_s"), col("quadratic_V_per_s2"), data.t_mid_s, data.half_s
         dc = dc + rho * tm + beta * tm**2
         slope = (rho + 2 * beta * tm) * h
         curv = beta * h**2
-    m[:, 2 * K], m[:, 2 * K + 1], m[:, 2 * K + 2] = dc, slope, curv
-    m[:, 2 * K + 3 :: 2], m[:, 2 * K + 4 :: 2] = W.real, -W.imag
-    return m, dr.md, h1
+    m[:, :, 2 * K], m[:, :, 2 * K + 1], m[:, :, 2 * K + 2] = dc, slope, curv
+    m[:, :, 2 * K + 3 :: 2], m[:, :, 2 * K + 4 :: 2] = W.real, -W.imag
+    return m
+
+
+def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
+            ) -> tuple[FloatArray, FloatArray, ComplexArray]:
+    """Model coefficients (force (n, n_f), displacement harmonics (n, n_d)) and V_1/X_1 (n,).
+
+    p: physical parameters by name (S V/N, k_f N/m, b_f N s/m, offset_V V, and the effects' own);
+    effects: names of the effects switched on (value: the low-pass order, else ignored)."""
+    dr = _drive(data)
+    V0, Vk = _output(data, dr, p, effects)
+    m = _channel(data, (p,), effects, V0[None], Vk[None])[0]
+    return m, dr.md, Vk[:, 0] / data.x1
+
+
+def predict_many(data: RigData, ps: Sequence[Mapping[str, float]], effects: Mapping[str, int]) -> FloatArray:
+    """The force coefficients of ``predict`` for P parameter sets at once, (P, n, n_f): the same
+    values (a Jacobian's forward differences, each of which changes one parameter: most stages are
+    shared, ``_stage``, and the force channel is evaluated for all sets together)."""
+    dr = _drive(data)
+    outs = [_output(data, dr, p, effects) for p in ps]
+    return _channel(data, ps, effects, np.array([o[0] for o in outs]), np.array([o[1] for o in outs]))

@@ -18,6 +18,8 @@ and the bench).  Every draw is seeded; ranges are those of real rigs, not tuned 
 
 from __future__ import annotations
 
+import copy
+import functools
 import math
 from pathlib import Path
 from typing import Any
@@ -115,8 +117,7 @@ def scenario_config(effects: dict[str, dict[str, Any]], *, transducer: str = "5k
                     noise: bool = True) -> StationConfig:
     """A simulated-station configuration with the given effects and a short stepped-sine plan
     (``noise=False``: no sensor or conditioner noise, only the ADC's quantisation)."""
-    cfg = load_config(config_file(CONFIGS[transducer]))
-    d = cfg.model_dump(exclude_none=True)
+    d = _preset(transducer)
     d["rig"]["acceleration_hz_per_s"] = 100.0
     d["simulation"]["effects"] = effects
     with_effects = parse_config(d)
@@ -128,13 +129,22 @@ def scenario_config(effects: dict[str, dict[str, Any]], *, transducer: str = "5k
     return parse_config(d)
 
 
+@functools.cache
+def _preset_dump(transducer: str) -> dict[str, Any]:
+    """The shipped configuration of a transducer preset as a dict, read once per process."""
+    return load_config(config_file(CONFIGS[transducer])).model_dump(exclude_none=True)
+
+
+def _preset(transducer: str) -> dict[str, Any]:
+    """A copy of ``_preset_dump`` to edit."""
+    return copy.deepcopy(_preset_dump(transducer))
+
+
 def draw_scenario(names: list[str], seed: int, transducer: str = "5kN") -> dict[str, dict[str, Any]]:
     """Effects ``names`` with parameters drawn with ``seed``."""
-    cfg = scenario_config({}, transducer=transducer)
-    assert cfg.simulation is not None
-    t = cfg.simulation.truth
+    truth = _preset_dump(transducer)["simulation"]["truth"]
     rng = np.random.default_rng(seed)
-    return {n: draw_effect(n, rng, t.k_f, t.b_f) for n in names}
+    return {n: draw_effect(n, rng, float(truth["k_f"]), float(truth["b_f"])) for n in names}
 
 
 def simulate_scenario(effects: dict[str, dict[str, Any]], out_dir: str | Path, seed: int, **kw: Any) -> Path:
