@@ -506,14 +506,18 @@ def test_the_password_pool_refuses_at_once_when_full() -> None:
 
     from station.service.logins import PasswordPool
 
+    async def login(pool: PasswordPool, fn: object, *args: object) -> object:  # as the lab logs in
+        async with pool.admitted() as ok:
+            return await pool.check(fn, *args) if ok else None
+
     async def go() -> None:
         pool = PasswordPool(workers=1, queue=0)
         gate = threading.Event()
-        busy = asyncio.ensure_future(pool.run(gate.wait, 5.0))
+        busy = asyncio.ensure_future(login(pool, gate.wait, 5.0))
         await asyncio.sleep(0.05)
-        assert pool.full() and await pool.run(lambda: True) is None  # refused at once, not queued
+        assert pool.full() and await login(pool, lambda: True) is None  # refused at once, not queued
         gate.set()
-        assert await busy is True and await pool.run(lambda: True) is True
+        assert await busy is True and await login(pool, lambda: True) is True
         pool.close()
     asyncio.run(go())
 

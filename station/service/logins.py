@@ -135,10 +135,5 @@ class PasswordPool:
         """``fn(*args)`` in the pool's threads, for a login :meth:`admitted`."""
         return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
 
-    async def run(self, fn: Any, *args: Any) -> Any:
-        """``fn(*args)`` for a login admitted now; None when none can be."""
-        async with self.admitted() as ok:
-            return await self.check(fn, *args) if ok else None
-
     def close(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)
