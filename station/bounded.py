@@ -6,6 +6,11 @@ YAML's aliases let a few hundred bytes stand for a structure of billions of node
 anything that walks the result (validation, an error message quoting it) does the full expansion.
 ``load_yaml`` counts the nodes of the document as it would be expanded (each node once, linear in
 the text) and refuses a document above ``MAX_YAML_NODES`` before anything is constructed.
+
+Documents are parsed by libyaml (C, several times faster than PyYAML's pure-Python reader).  libyaml's
+parser keeps its nesting on a heap stack, but the composer that turns its events into nodes recurses
+in C, so a document nested 50 000 deep would crash the process: the events are walked first and a
+document nested deeper than ``MAX_YAML_DEPTH`` is refused before it is composed.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from station.errors import BadInputError
 QUOTE_CHARS = 200  # the most of an input an error message quotes
 MAX_YAML_NODES = 100_000  # a station configuration has ~300 nodes, a RUN.yaml of 100 steps ~1 000
 MAX_YAML_BYTES = 1 << 20  # 1 MiB
+MAX_YAML_DEPTH = 100  # a station configuration nests 5 deep, an interchange file 4
 
 
 def cut(text: str, limit: int = QUOTE_CHARS) -> str:
@@ -120,13 +126,38 @@ def duplicate_keys(root: yaml.Node) -> list[str]:
     return out
 
 
+_OPEN = (yaml.MappingStartEvent, yaml.SequenceStartEvent)
+_CLOSE = (yaml.MappingEndEvent, yaml.SequenceEndEvent)
+
+
+def _too_deep(text: str, limit: int = MAX_YAML_DEPTH) -> bool:
+    """Whether some collection of ``text`` is nested more than ``limit`` deep, from libyaml's events
+    (iterative: no recursion however deep the text; a syntax error is left to the loader to report)."""
+    parser = yaml.cyaml.CParser(text)
+    depth = 0
+    try:
+        while (event := parser.get_event()) is not None:
+            if isinstance(event, _OPEN):
+                depth += 1
+                if depth > limit:
+                    return True
+            elif isinstance(event, _CLOSE):
+                depth -= 1
+    except yaml.YAMLError:
+        return False
+    finally:
+        parser.dispose()
+    return False
+
+
 def load_yaml(text: str, source: str, error: type[BadInputError] = BadInputError,
               max_nodes: int = MAX_YAML_NODES) -> Any:
     """``yaml.safe_load(text)`` with the document's expanded size bounded (module docstring) and no key
     written twice in one mapping; a malformed document raises ``error`` naming ``source``, its message
     within a few hundred characters."""
-    loader = yaml.SafeLoader(text)  # not libyaml's: its composer recurses in C and a deeply nested document
-    # crashes the process instead of raising RecursionError
+    if _too_deep(text):
+        raise error(f"{source}: the YAML document is nested more than {MAX_YAML_DEPTH} deep; refused")
+    loader = yaml.CSafeLoader(text)  # composes recursively in C: only after the depth was checked
     try:
         try:
             node = loader.get_single_node()
