@@ -200,41 +200,41 @@ def quantisation_cov(t: FloatArray, y: FloatArray, fit: SineFit, n_harmonics: in
     J = _design(tt, w, n_harmonics)
     proj = np.linalg.inv(J.T @ J)[:2] @ J.T  # (2, N): coefficients A, B of the fundamental
     phases = np.random.default_rng(_QUANT_RNG_SEED).uniform(0.0, 2 * np.pi, QUANT_PHASES)
-    x = abs(fit.phasor) * np.cos(w * tt[:, None] + phases[None, :]) + (fit.offset - origin)  # (N, P)
-    g = _periodic_sine_series((2 * np.pi / q) * x, (-1.0) ** k / k * a)
+    wt = w * tt  # cos(w t + phase) = cos(w t) cos(phase) - sin(w t) sin(phase): 2 N cosines, not N P
+    x = np.outer(np.cos(wt), abs(fit.phasor) * np.cos(phases))  # (N, P), in units of q below
+    x -= np.outer(np.sin(wt), abs(fit.phasor) * np.sin(phases))
+    x += fit.offset - origin
+    x *= 1.0 / q
+    g = _periodic_sine_series(x, (-1.0) ** k / k * a)
     AB = np.einsum("in,np->ip", proj, g) * (q / np.pi)  # (2, P); a tall BLAS product spins its threads
     b = (AB[0] - 1j * AB[1]) * np.exp(-1j * phases) * np.exp(1j * np.angle(fit.phasor))  # X = A - jB
     return np.array([[np.mean(b.real**2), np.mean(b.real * b.imag)],
                      [np.mean(b.real * b.imag), np.mean(b.imag**2)]])
 
 
-def _sine_series(theta: FloatArray, c: FloatArray) -> FloatArray:
-    """sum_k c[k-1] sin(k theta) for k = 1..len(c), elementwise over theta (any shape), by Clenshaw's
-    recurrence (sin((k+1) theta) = 2 cos(theta) sin(k theta) - sin((k-1) theta)): one cosine and one
-    sine per element instead of a complex power per term."""
-    c2 = 2 * np.cos(theta)
-    b1, b2, t = np.zeros_like(theta), np.zeros_like(theta), np.empty_like(theta)
-    for ck in c[::-1]:  # b_k = c_k + 2 cos(theta) b_{k+1} - b_{k+2}, from the highest k down
-        np.multiply(c2, b1, out=t)
-        t -= b2
-        t += ck
-        b2, b1, t = b1, t, b2
-    return b1 * np.sin(theta)
-
-
 _SERIES_GRID = 1 << 15  # points per period of the tabulated series: linear interpolation within 1e-6 of it
 
 
-def _periodic_sine_series(theta: FloatArray, c: FloatArray) -> FloatArray:
-    """``_sine_series(theta, c)`` tabulated over one period and interpolated: at most 20 harmonics of
-    coefficients |c_k| <= 1/k on a grid of 2^15 points per period are within (2 pi/2^15)^2/8 sum k
-    (below 4e-7) of the series, for a few hundred thousand theta a fraction of its direct cost."""
-    table = _sine_series(np.linspace(0.0, 2 * np.pi, _SERIES_GRID + 1), c)
-    u = np.mod(theta, 2 * np.pi) * (_SERIES_GRID / (2 * np.pi))  # grid units, [0, _SERIES_GRID]
-    i = np.minimum(u.astype(np.intp), _SERIES_GRID - 1)
-    u -= i
-    lo = table[i]
-    out: FloatArray = lo + u * (table[i + 1] - lo)
+def _periodic_sine_series(cycles: FloatArray, c: FloatArray) -> FloatArray:
+    """sum_k c[k-1] sin(2 pi k cycles) for k = 1..len(c), elementwise, tabulated over one period and
+    interpolated linearly: at most 20 harmonics of coefficients |c_k| <= 1/k on a grid of 2^15 points
+    per period are within (2 pi/2^15)^2/8 sum k (below 4e-7) of the series, for a few hundred thousand
+    points a fraction of its direct cost.
+    The table is one inverse real FFT (its bin k holds -j c_k M/2); the grid cell of a point is its
+    integer part modulo 2^15 taken as bits, so the phase is never reduced by a floating modulo.
+    cycles is overwritten (any shape; the result has its shape)."""
+    m = _SERIES_GRID
+    spectrum = np.zeros(m // 2 + 1, dtype=complex)
+    spectrum[1:c.size + 1] = -0.5j * m * np.asarray(c, float)
+    table = np.fft.irfft(spectrum, m)  # table[i] = sum_k c_k sin(2 pi k i / m)
+    slope = np.roll(table, -1) - table  # per cell, the last wrapping to the first
+    u = np.multiply(cycles, m, out=cycles)  # grid units
+    cell = np.floor(u)
+    u -= cell  # the fraction of the cell
+    i = cell.astype(np.int64)
+    i &= m - 1  # modulo 2^15, also for negative cells (two's complement)
+    out: FloatArray = table[i]
+    out += u * slope[i]
     return out
 
 
