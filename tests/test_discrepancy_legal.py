@@ -46,7 +46,7 @@ def _honest(rep: DiscrepancyResult) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("seed", "keep"), [(1, None), (2, None), (4, [0, 5])])
+@pytest.mark.parametrize(("seed", "keep"), [(1, None), (4, [0, 5])])  # six steps; two steps
 def test_mains_without_common_clock(seed: int, keep: list[int] | None, tmp_path: Path) -> None:
     """Mains hum, every step with its own time origin (and with two steps only): no crash; the lines
     are fitted per step, their frequency and phases are not identifiable, the amplitudes are right."""

@@ -214,8 +214,9 @@ def test_clipped_step_is_left_out_and_reported_not_named(tmp_path: Path) -> None
     assert 5 not in rep.steps and rep.final_gap <= 1.5 * rep.noise_floor_V
 
 
-@pytest.mark.slow  # over 2 s of CPU per case (two full analyses)
-@pytest.mark.parametrize("seed", (101, 202))
+@pytest.mark.slow  # over 2 s of CPU (the analysis and identify's); another draw with a nonlinearity on top:
+# test_two_effects_are_both_found (rod length too), no effect named: the clipped step's and the sidebands' runs
+@pytest.mark.parametrize("seed", (101,))
 def test_crank_harmonics_are_a_check_of_the_drive(seed: int, tmp_path: Path) -> None:
     """A slider crank's displacement harmonics drive the force model as recorded: nothing is named,
     the gap is at the floor, k_f and b_f are right, and the drive check reports the rod length.
@@ -231,3 +232,38 @@ def test_crank_harmonics_are_a_check_of_the_drive(seed: int, tmp_path: Path) -> 
     true = eff["crank_harmonics"]["rod_length_m"]
     assert rod.identifiable and abs(rod.value - true) <= Z_MAX * rod.std, (rod, true)
     assert rep.drive.findings == () and any(n.startswith("drive: slider crank") for n in rep.notes)
+
+
+@pytest.mark.slow  # one analysis, two more from its kept decomposition
+def test_the_daemon_gives_a_stored_analysis_again_and_recomputes_a_stale_one(tmp_path: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """``worker.discrepancy_job`` (POST /runs/{id}/discrepancy): asked again for the same recording,
+    ``max_effects`` and software, the stored analysis is the answer (nothing computed, the file kept);
+    another ``max_effects`` or another software version is computed anew."""
+    import station.discrepancy as discrepancy
+    from station.recording import read_result, write_result
+    from station.service import worker
+
+    rec = simulate_scenario({}, tmp_path, seed=4, n_steps=3, record_s=0.3)
+    computed: list[int] = []
+    analyse = discrepancy.analyse_recording
+
+    def counted(path: Any, max_effects: int = 4, station: Any = None) -> DiscrepancyResult:
+        computed.append(max_effects)
+        return analyse(path, max_effects=max_effects, station=station)
+
+    monkeypatch.setattr(discrepancy, "analyse_recording", counted)
+    first = worker.discrepancy_job(str(rec), 1)
+    stored = next((rec.parent / f"{rec.stem}.results").glob("results.discrepancy*"))
+    inode = stored.stat().st_ino
+    again = worker.discrepancy_job(str(rec), 1)
+    assert computed == [1] and stored.stat().st_ino == inode
+    assert json.dumps(again, sort_keys=True) == json.dumps(first, sort_keys=True)
+    assert set(again) == set(worker.CONTRACT_KEYS)
+    worker.discrepancy_job(str(rec), 2)
+    assert computed == [1, 2]
+    doc = read_result(rec, "discrepancy")
+    assert doc is not None and doc["max_effects"] == 2
+    write_result(rec, "discrepancy", {**doc, "software_version": "0.0.1"})  # stored by an older station
+    worker.discrepancy_job(str(rec), 2)
+    assert computed == [1, 2, 2]

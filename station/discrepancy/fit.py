@@ -204,16 +204,12 @@ class Problem:
 
     def _additive_columns(self) -> FloatArray:
         """The constant Jacobian columns of the additive parameters, (n_rows, n_additive): the exact
-        difference of a unit step in each (m is affine in it)."""
+        difference of a unit step in each (m is affine in it), the steps evaluated together."""
         if self._columns is None:
-            u0 = np.zeros(len(self.params))
-            r0 = self.residual(u0)
-            cols = np.empty((r0.size, len(self.additive)))
-            for c, j in enumerate(self.additive):
-                du = u0.copy()
-                du[j] = 1.0
-                cols[:, c] = self.residual(du) - r0
-            self._columns = cols
+            r0 = self.residual(np.zeros(len(self.params)))
+            at = self.values(np.zeros(len(self.params)))
+            steps = [{**at, self.params[j].name: self.to_value(self.params[j], 1.0)} for j in self.additive]
+            self._columns = np.ascontiguousarray((self.residuals(steps) - r0).T)
         return self._columns
 
     def jacobian(self, u: Sequence[float] | FloatArray, step: float | None = None) -> FloatArray:

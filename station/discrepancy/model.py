@@ -144,6 +144,9 @@ def _stage(data: RigData, key: tuple[object, ...], make: Callable[[], _T]) -> _T
     return value
 
 
+_MOTION_EFFECTS = frozenset(("channel_delay", "clock_skew", "displacement_resonance"))
+
+
 def _motion(data: RigData, dr: _Drive, p: Mapping[str, float], effects: Mapping[str, int]) -> ComplexArray:
     """The frame motion at the force sample instants, x_k (n, K) m (steps 1-2 of the module)."""
     Om, x = dr.Om, dr.D
@@ -171,11 +174,13 @@ def _output(data: RigData, dr: _Drive, p: Mapping[str, float], effects: Mapping[
     n, K = data.n_steps, K_MAX
     ident = tuple(effects.items())
     xkey = (p.get("delay_s"), p.get("clock_skew"), p.get("sensor_resonance_hz"), p.get("sensor_damping"))
-    x = _stage(data, (*ident, "x", *xkey), lambda: _motion(data, dr, p, effects))
+    # the recorded motion itself when no effect changes it; a product is cheaper made than looked up
+    x = (_stage(data, (*ident, "x", *xkey), lambda: _motion(data, dr, p, effects))
+         if _MOTION_EFFECTS.intersection(effects) else dr.D)
     coupled = "coupling_compliance" in effects
     gkey = (p["k_f"], p["b_f"], p.get("k_c") if coupled else None, p.get("b_c") if coupled else None)
     Gk = _stage(data, (*ident, "G", *gkey), lambda: _spring(data, dr, p, coupled))
-    Fk = _stage(data, (*ident, "F", *xkey, *gkey), lambda: Gk * x)
+    Fk = Gk * x
     F0 = -data.total_mass_kg * G
     if "transducer_nonlinearity" in effects:
         V0, Vk = _stage(data, (*ident, "V", *xkey, *gkey, p["S"], p["quadratic"], p["cubic"]),

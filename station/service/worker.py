@@ -183,13 +183,23 @@ def issue_job(path: str, prepared_by: str, approver: str, roles: dict[str, str],
 def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
     """Compute the model-gap analysis of a recording and store it beside it as result ``discrepancy``
     (everything, ``to_dict``, with the ``max_effects`` used: where ``station discrepancy --save``
-    writes and the report reads); returns the JSON contract (``to_json``)."""
+    writes and the report reads); returns the JSON contract (``to_json``).  The analysis is a function
+    of the recording, ``max_effects`` and the software: one stored for the same three (the recording's
+    SHA-256, the version) is given again, not computed again."""
+    from station import __version__
     from station.discrepancy import analyse_recording
-    from station.recording import write_result
+    from station.lab.integrity import sha256_file
+    from station.recording import read_result, write_result
 
+    source = sha256_file(Path(path))
+    doc = read_result(path, "discrepancy")
+    if (doc is not None and doc.get("max_effects") == max_effects and doc.get("software_version") == __version__
+            and doc.get("recording_sha256") == source):
+        return {k: doc.get(k) for k in CONTRACT_KEYS}
     rep = analyse_recording(path, max_effects=max_effects)
-    # the analysis is a function of the recording: asked again, the same result is kept, not rewritten
-    write_result(path, "discrepancy", {**rep.to_dict(), "max_effects": max_effects}, keep_identical=True)
+    # a result identical to the one stored is kept, not rewritten
+    write_result(path, "discrepancy", {**rep.to_dict(), "max_effects": max_effects, "software_version": __version__,
+                                       "recording_sha256": source}, keep_identical=True)
     return dict(rep.to_json())  # the contract (DiscrepancyJson) as the API's plain JSON
 
 
