@@ -64,41 +64,33 @@ def _cell(page: str, key: str) -> tuple[str, float | None]:
 # -- plots -------------------------------------------------------------------------------------------
 
 @pytest.mark.slow
-def test_plots_are_pngs_of_the_stated_size_and_deterministic(sim_recording: Path) -> None:
+def test_plots_are_pngs_of_the_stated_size_deterministic_and_drawn_once(sim_recording: Path) -> None:
+    """Each plot a PNG of the stated size; drawn again from the file, the same bytes; the recording is
+    read and fitted once for all plots, and each plot drawn once while the recording and its results
+    are unchanged (render times are measured in bench/, not asserted here)."""
+    from station.report.data import cached_run_data
+    from station.report.plots import cached_png
+
     for name in PLOT_NAMES:
         png = render_plot(sim_recording, name)
         assert _png_size(png) == FIG_SIZE_PX, name
         assert len(png) > 10_000, f"{name}: suspiciously small PNG"
     first = {n: render_plot(sim_recording, n) for n in PLOT_NAMES}
-    from station.report import data as data_mod
-    from station.report import plots as plots_mod
-    data_mod.cached_run_data.cache_clear()  # render again from the file: same bytes
-    plots_mod.cached_png.cache_clear()
+    cached_run_data.cache_clear()  # render again from the file: same bytes, the file read once
+    cached_png.cache_clear()
     assert {n: render_plot(sim_recording, n) for n in PLOT_NAMES} == first
+    assert (cached_run_data.cache_info().misses, cached_run_data.cache_info().hits) == (1, len(PLOT_NAMES) - 1)
+    assert cached_png.cache_info().misses == len(PLOT_NAMES)
     assert len(set(first.values())) == len(PLOT_NAMES), "two plots gave the same image"
+    for name in PLOT_NAMES:  # asked again: the same PNGs, not drawn again
+        assert render_plot(sim_recording, name) == first[name]
+    assert cached_png.cache_info().hits == len(PLOT_NAMES) and cached_run_data.cache_info().misses == 1
 
 
 @pytest.mark.slow
 def test_plots_differ_between_recordings(sim_recording: Path, sim_recording_one_radius: Path) -> None:
     for name in ("bode", "timefit", "residuals"):
         assert render_plot(sim_recording, name) != render_plot(sim_recording_one_radius, name), name
-
-
-@pytest.mark.slow
-def test_plots_reuse_the_loaded_recording(sim_recording: Path) -> None:
-    """The recording is read and fitted once for all plots, and each plot drawn once while the
-    recording and its results are unchanged (render times are measured in bench/, not asserted here)."""
-    from station.report.data import cached_run_data
-    from station.report.plots import cached_png
-    cached_run_data.cache_clear()
-    cached_png.cache_clear()
-    for name in PLOT_NAMES:
-        render_plot(sim_recording, name)
-    assert (cached_run_data.cache_info().misses, cached_run_data.cache_info().hits) == (1, len(PLOT_NAMES) - 1)
-    assert cached_png.cache_info().misses == len(PLOT_NAMES)
-    for name in PLOT_NAMES:  # asked again: the same PNGs, not drawn again
-        render_plot(sim_recording, name)
-    assert cached_png.cache_info().hits == len(PLOT_NAMES) and cached_run_data.cache_info().misses == 1
 
 
 def test_unknown_plot_and_unusable_recordings(sim_recording: Path, tmp_path: Path) -> None:
