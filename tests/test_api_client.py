@@ -37,9 +37,14 @@ def openapi(tmp: Path) -> dict[str, Any]:
     return app.openapi()
 
 
+@pytest.fixture(scope="module")
+def spec(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The daemon's OpenAPI document, made once for the module (about a second of CPU; read only)."""
+    return openapi(tmp_path_factory.mktemp("openapi"))
+
+
 @pytest.mark.slow
-def test_closed_sets_are_enumerations_and_results_are_typed(tmp_path: Path) -> None:
-    spec = openapi(tmp_path)
+def test_closed_sets_are_enumerations_and_results_are_typed(spec: dict[str, Any]) -> None:
     schemas = spec["components"]["schemas"]
 
     def enum(schema: str, field: str) -> list[Any]:
@@ -80,9 +85,9 @@ def test_closed_sets_are_enumerations_and_results_are_typed(tmp_path: Path) -> N
 
 
 @pytest.mark.slow  # the generator, then a run identified in a worker process
-def test_a_generated_client_drives_a_run(tmp_path: Path) -> None:
+def test_a_generated_client_drives_a_run(spec: dict[str, Any], tmp_path: Path) -> None:
     spec_path = tmp_path / "openapi.json"
-    spec_path.write_text(json.dumps(openapi(tmp_path)))
+    spec_path.write_text(json.dumps(spec))
     out = tmp_path / "gen" / "sinecal_client"  # off the shelf: no configuration, no override
     r = subprocess.run([sys.executable, "-m", "openapi_python_client", "generate", "--path", str(spec_path),
                         "--output-path", str(out), "--meta", "none"],

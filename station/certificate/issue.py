@@ -200,9 +200,7 @@ def run_document(recording: Path, ext: str, register: dict[str, Any] | None = No
                                   if c["recording"] == recording.name and c["replaced_by"] is None]
     if mine:
         return issued_file(folder, str(mine[-1]["number"]), ext)
-    content, html = draft(recording, register=register)
-    if ext == "xml":
-        from station.certificate.dcc import build_dcc
-
-        return build_dcc(content)
+    if ext == "xml":  # the DCC is built from the content alone: no page (nor its Bode plot) drawn for it
+        return build_dcc(certificate_content(recording, Approval(), register))
+    _, html = draft(recording, register=register)
     return html.encode() if ext == "html" else html_to_pdf(html)

@@ -13,7 +13,7 @@
 
 Every figure is FIG_SIZE_PX pixels, rendered deterministically (no timestamps in the PNG).  The PNGs
 of the last few recordings are kept (keyed like ``data.load_run``: path, modification time, size, the
-stored results' versions), so the report page, its PDF and the page's plot requests draw each once.
+versions of the stored results a plot reads), so the report page, its PDF and the page's plot requests draw each once.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from station.ident.names import SWARM_METHODS
-from station.report.data import RunData, RunKey, StepTrace, cached_run_data, run_key
-from station.report.names import PLOT_NAMES
+from station.report.data import RunData, RunKey, StepTrace, load_run, run_key
+from station.report.names import PLOT_NAMES, plotted
 from station.report.quantities import COVERAGE_K, measured_sensitivity, model_sensitivity
 
 log = logging.getLogger(__name__)
@@ -232,12 +232,13 @@ def render_plot(recording_path: Path, name: str) -> bytes:
     RecordingFormatError when the recording is unreadable or has no results and none can be computed."""
     if name not in _RENDERERS:
         raise KeyError(f"unknown plot {name!r}; expected one of {', '.join(PLOT_NAMES)}")
-    return cached_png(run_key(recording_path), name)
+    path, mtime_ns, size, version = run_key(recording_path)
+    return cached_png((path, mtime_ns, size, plotted(version)), name)
 
 
 @lru_cache(maxsize=4 * len(PLOT_NAMES))
 def cached_png(key: RunKey, name: str) -> bytes:
-    """The cache behind :func:`render_plot`: PNG of plot ``name`` of the run data ``key``
-    (``data.run_key``; the data from ``data.cached_run_data``).  ``cached_png.cache_clear()`` drops
-    the (up to 16) kept PNGs."""
-    return _png(make_figure(cached_run_data(*key), name))
+    """The cache behind :func:`render_plot`: PNG of plot ``name`` of the recording ``key``
+    (``data.run_key`` without the results no plot reads, ``names.plotted``; the data from
+    ``data.load_run``).  ``cached_png.cache_clear()`` drops the (up to 16) kept PNGs."""
+    return _png(make_figure(load_run(key[0]), name))

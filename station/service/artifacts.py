@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import json
 from collections import OrderedDict
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
@@ -24,7 +25,7 @@ from station.lab.integrity import RecordingTamperedError, check_recording, sha25
 from station.lab.issued import CertificateNotFoundError
 from station.lab.store import RunRow, Store
 from station.recording.stored import results_version
-from station.report.names import PLOT_NAMES
+from station.report.names import PLOT_NAMES, plotted
 from station.service import worker
 from station.service.db import DbAccess
 from station.service.errors import ResultNotStoredError, RunStateError
@@ -204,7 +205,7 @@ class Artifacts:
         if name not in PLOT_NAMES:
             return None
         version = await asyncio.to_thread(results_version, path)  # a result stored later shows at once
-        return await self._cached((run_id, f"plot:{name}:{hash(version)}"),
+        return await self._cached((run_id, f"plot:{name}:{hash(plotted(version))}"),
                                   lambda: self._locked_job(run_id, worker.plot_job, str(path), name))
 
     async def verified(self, row: RunRow, *, required: bool = False) -> str:
@@ -229,8 +230,6 @@ class Artifacts:
 
     async def _register(self, run_id: str) -> dict[str, Any]:
         """The lab register's records as the run used them (transducer, standards)."""
-        import json
-
         row = await self._get_row(run_id)
         return {"transducer": json.loads(row.transducer_json or "{}"),
                 "standards": json.loads(row.standards_json or "[]")}
@@ -243,8 +242,13 @@ class Artifacts:
             live = await self.db.read(lambda s: certificates.live_of_run(s, run_id))
             if live is not None:
                 return await self.issued_certificate(live["number"], ext)
-        out: bytes = await self._locked_job(run_id, worker.certificate_job, str(path), ext,
-                                            await self._register(run_id))
+        register = await self._register(run_id)
+        version = await asyncio.to_thread(results_version, path)
+        # a draft is a function of the recording, its results and the register's records the run used
+        # (no date in it): kept like the report, drawn again when a result is stored
+        key = f"certificate.{ext}:{hash((version, json.dumps(register, sort_keys=True)))}"
+        out: bytes = await self._cached((run_id, key), lambda: self._locked_job(
+            run_id, worker.certificate_job, str(path), ext, register))
         return out
 
     async def issue_certificate(self, run_id: str, prepared_by: str, approver: str, roles: dict[str, str],

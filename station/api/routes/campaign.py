@@ -36,8 +36,6 @@ async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep, wh
     result is also stored beside every run's recording (`<run>.results/results.campaign.h5`), where
     the run's report shows it.  Top masses too alike to separate S from m_e give status
     `conditional` or `refused` with the named check `end_mass_separation`, not an error."""
-    from station.ident.campaign.identify import RESULT_NAME
-
     out = await manager.artifacts.campaign(list(body.runs))
     if "refused" in out:
         raise RequestValidationError([{"type": "campaign_refused", "loc": ["body", "runs"], "msg": out["refused"],
@@ -48,6 +46,10 @@ async def identify_campaign_route(body: CampaignRequest, manager: ManagerDep, wh
         r["path"] = Path(r["path"]).name  # never a server path
     stored = None
     if body.store:
+        # the result's name, imported only to store it: the identification (scipy) stays out of the web
+        # process for a refused or unknown run (it is computed in the worker)
+        from station.ident.campaign.identify import RESULT_NAME
+
         runs = list(body.runs)
         for run_id in runs:  # each written and vouched for in the audit trail under its recording's lock
             row = await manager.runs.get(run_id)
