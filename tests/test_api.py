@@ -284,7 +284,10 @@ def test_run_goes_through_its_states_live(completed: dict) -> None:
     assert states.index("running") < states.index("identifying") < states.index("completed")
     running = [d for d in status if d["state"] == "running"]
     assert {d["current_step"] for d in running} >= {0, 1}
-    assert {"ramping", "settling", "recording"} <= {d["step_state"] for d in running}
+    # status events are snapshots, at most a few per second: a loaded machine may coalesce the short
+    # ramp (about 0.2 s) with the settling that follows, never the step's way to its record altogether
+    seen = {d["step_state"] for d in running}
+    assert "recording" in seen and seen & {"ramping", "settling"}, seen
     fractions = [d["progress"] for d in running]
     assert fractions == sorted(fractions) and max(fractions) > 0.5
     st = completed["status"]
