@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from pypdf import PdfReader
 
 from station.certificate.content import certificate_content
 from station.certificate.issue import CertificateError, draft, issue, list_issued, read_issued
@@ -20,6 +19,14 @@ from station.certificate.render import certificate_html
 from station.ident.identify import identify_recording
 from station.recording import read_recording, write_result
 from tests.ident_support import sim
+
+
+def _pdf(pdf: bytes) -> Any:
+    """The PDF read back (pypdf, imported where a test reads one: 0.4 s of every worker's collection)."""
+    from pypdf import PdfReader
+
+    return PdfReader(io.BytesIO(pdf))
+
 
 TECH, APPROVER = "T. Technician", "A. Approver"
 
@@ -43,13 +50,13 @@ def _copy(rec: Path, tmp: Path) -> Path:
 
 
 def _pdf_text(pdf: bytes) -> str:
-    return "\n".join(p.extract_text() for p in PdfReader(io.BytesIO(pdf)).pages)
+    return "\n".join(p.extract_text() for p in _pdf(pdf).pages)
 
 
 def _pdf_says(pdf: bytes, text: str) -> bool:
     """Whether a page of the PDF holds ``text`` (read back page by page, up to the first that does:
     pypdf takes most of a second for a certificate's pages)."""
-    return any(text in p.extract_text() for p in PdfReader(io.BytesIO(pdf)).pages)
+    return any(text in p.extract_text() for p in _pdf(pdf).pages)
 
 
 @pytest.mark.slow

@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from pypdf import PdfReader
 
 from station.certificate.content import Approval, certificate_content
 from station.certificate.dcc import build_dcc
@@ -24,6 +23,14 @@ from station.ident.response.checked import checked_response
 from station.recording import read_recording, write_result
 from station.report.render import html_to_pdf
 from tests.ident_support import R, sim
+
+
+def _pdf(pdf: bytes) -> Any:
+    """The PDF read back (pypdf, imported where a test reads one: 0.4 s of every worker's collection)."""
+    from pypdf import PdfReader
+
+    return PdfReader(io.BytesIO(pdf))
+
 
 # its module fixture is built once: the module's tests on one worker
 pytestmark = pytest.mark.xdist_group("certificate_content")
@@ -59,7 +66,7 @@ def _row(c: dict[str, Any], name: str) -> dict[str, Any]:
 
 def _page_texts(pdf: bytes) -> list[str]:
     """Each page's text, read back once (pypdf: most of a second for a certificate)."""
-    return [p.extract_text() for p in PdfReader(io.BytesIO(pdf)).pages]
+    return [p.extract_text() for p in _pdf(pdf).pages]
 
 
 def _pdf_text(pdf: bytes | list[str]) -> str:

@@ -8,15 +8,16 @@ import asyncio
 import io
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import httpx
-import openpyxl
-import pandas as pd
 import pytest
 
 from station.cli import main
 from tests.station_support import CAPPED_SPEEDUP, Seed, asgi_client, daemon_config, running_app, seed_runs
+
+if TYPE_CHECKING:  # pandas and openpyxl (1.5 s of import) are loaded by the tests that read tables
+    import pandas as pd
 
 pytestmark = pytest.mark.slow  # a simulated, identified run and its report data (~15 s)
 
@@ -72,6 +73,9 @@ def test_the_command_line_writes_csv_and_a_workbook(seeded: Seeded, tmp_path: Pa
     assert sorted(p.name for p in written) == sorted(f"{recording.stem}.{n}" for n in
                                                      ("parameters.csv", "sdyn.csv", "results.xlsx"))
     by = {p.name.removeprefix(recording.stem + "."): p for p in written}
+    import openpyxl
+    import pandas as pd
+
     params = pd.read_csv(by["parameters.csv"], encoding="utf-8-sig")
     sdyn = pd.read_csv(by["sdyn.csv"], encoding="utf-8-sig")
     _check_tables(params, sdyn, cfg, results)
@@ -89,6 +93,8 @@ def test_the_api_serves_the_exports_and_refuses_an_unknown_one(seeded: Seeded) -
     assert r["parameters.csv"].headers["content-type"].startswith("text/csv")
     assert r["results.xlsx"].headers["content-type"].endswith("spreadsheetml.sheet")
     assert f'filename="{recording.stem}.results.xlsx"' in r["results.xlsx"].headers["content-disposition"]
+    import pandas as pd
+
     params = pd.read_csv(io.BytesIO(r["parameters.csv"].content), encoding="utf-8-sig")
     sdyn = pd.read_csv(io.BytesIO(r["sdyn.csv"].content), encoding="utf-8-sig")
     _check_tables(params, sdyn, cfg, results)
