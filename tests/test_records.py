@@ -363,9 +363,21 @@ def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Pa
             html.write_bytes(old_html)
             (folder / f"{number}.json").write_bytes(old_json)
             assert (await c.get(f"/certificates/{number}.html")).status_code == 200
-            # a hand-made withdrawal marker changes nothing; withdrawal is the station's, with a reason
+            # a hand-made withdrawal marker changes nothing (still in force); withdrawal is the station's,
+            # with a reason
             (folder / f"{number}.replaced").write_text(json.dumps({"replaced_by": "X", "reason": "forged"}))
             assert (await c.get("/certificates")).json()["certificates"][0]["withdrawn"] is None
+            await refused(anton, {}, 409, f"in force ({number})")
+            # the files of a certificate in force deleted: found missing, and it is still in force by the chain
+            saved = {p: p.read_bytes() for p in folder.glob(f"{number}.*")}
+            for p in saved:
+                p.unlink()
+            r = await c.get("/integrity")
+            assert r.status_code == 409 and f"certificates/{number}.pdf: missing" in r.json()["detail"]
+            await refused(anton, {}, 409, f"in force ({number})")
+            for p, data in saved.items():
+                p.write_bytes(data)
+            assert (await c.get("/integrity")).status_code == 200
             r = await tina.post(f"/certificates/{number}/withdraw", json={"reason": "the customer asked for it"})
             assert r.status_code == 403
             r = await anton.post(f"/certificates/{number}/withdraw", json={"reason": "the customer asked for it"})
