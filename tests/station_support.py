@@ -53,6 +53,9 @@ ROLES = {"tina": "technician", "anton": "approver", "ada": "admin"}
 FINAL = ("completed", "aborted", "failed", "interrupted")
 # the cap most API tests put on an in-process rig's virtual clock (x real time; see SpeedLimit)
 CAPPED_SPEEDUP = 20.0
+# ... and, where a test says so, the cap while no run is on the rig (its idle DAQ still streams: at
+# 20 times real time that is 40 % of a core while the test waits on a worker process, at 4 times 8 %)
+IDLE_SPEEDUP = 4.0
 ON_RIG_DONE = (*FINAL, "identifying")
 
 
@@ -146,17 +149,22 @@ class SpeedLimit:
     test of a module that holds the app); limited, it leaves that core to the work waited on.  A run
     still takes its seconds of virtual time in a small part of them in real time."""
 
-    def __init__(self, clock: Any, speedup: float, step_s: float = 0.1) -> None:
+    def __init__(self, clock: Any, speedup: float, step_s: float = 0.1, *,
+                 idle: tuple[Callable[[], bool], float] | None = None) -> None:
+        """``idle``: (is the rig idle?, the cap then): a lower cap while nothing waits on the rig."""
         self.clock = clock
+        self._idle = idle
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(step_s / speedup, step_s), daemon=True,
+        self._thread = threading.Thread(target=self._run, args=(speedup, step_s), daemon=True,
                                         name="virtual-clock-speed-limit")
         self._thread.start()
 
-    def _run(self, hold_s: float, step_s: float) -> None:
+    def _run(self, speedup: float, step_s: float) -> None:
         last = time.monotonic()
         while not self._stop.is_set():
             self.clock.wait_for(self._stop.is_set, step_s)
+            idle = self._idle is not None and self._idle[0]()
+            hold_s = step_s / (self._idle[1] if idle and self._idle is not None else speedup)
             left = hold_s - (time.monotonic() - last)
             if left > 0 and not self._stop.is_set():
                 time.sleep(left)  # awake: the clock waits
@@ -171,23 +179,30 @@ class SpeedLimit:
 @contextlib.asynccontextmanager
 async def running_app(rec_dir: Path, *, config: dict[str, Any] | None = None, workers: int = 0,
                       render: bool = False, min_free_mb: float | None = None, max_speedup: float | None = None,
-                      **service: Any) -> AsyncIterator[Any]:
+                      idle_speedup: float | None = None, **service: Any) -> AsyncIterator[Any]:
     """The daemon's FastAPI app, started (its lifespan entered) in this process on the simulated rig
     (virtual clock, no wire).  ``config``: as parsed YAML (default :func:`daemon_config` with
     ``service``); ``workers``: identification processes (0: runs stop at ``identifying``);
     ``render``: start the render worker at once (plots, report, discrepancy); ``min_free_mb``: the
     recordings disk's reserve; ``max_speedup``: the virtual clock at most this many times faster
-    than real time (:class:`SpeedLimit`; None: as fast as it goes)."""
+    than real time (:class:`SpeedLimit`; None: as fast as it goes); ``idle_speedup``: with
+    ``max_speedup``, the cap while no run is queued or on the rig (e.g. :data:`IDLE_SPEEDUP`)."""
     from drivers.sim.clock import VirtualClock
     from station.api import create_app
     from station.run.rig import connect
     from station.service.manager import RunManager
     from station.service.settings import ServiceSettings, build_settings
 
+    managers: list[RunManager] = []
+
+    def idle() -> bool:
+        return bool(managers) and not managers[0].runs.live
+
     @contextlib.asynccontextmanager
     async def virtual_rig(cfg: StationConfig, sim: bool) -> AsyncIterator[Any]:
         clock = VirtualClock()
-        limit = SpeedLimit(clock, max_speedup) if max_speedup is not None else None
+        limit = None if max_speedup is None else SpeedLimit(
+            clock, max_speedup, idle=None if idle_speedup is None else (idle, idle_speedup))
         try:
             async with connect(cfg, sim=sim, sim_clock=clock) as rig:
                 yield rig
@@ -198,6 +213,7 @@ async def running_app(rec_dir: Path, *, config: dict[str, Any] | None = None, wo
     class Manager(RunManager):
         def __init__(self, settings: ServiceSettings) -> None:
             super().__init__(settings, connector=virtual_rig)
+            managers.append(self)
 
     d = config if config is not None else daemon_config(rec_dir, **service)
     d.setdefault("service", {})["render_at_start"] = render

@@ -21,7 +21,16 @@ from station.cli import main
 from station.lab.integrity import sha256_file
 from station.lab.issued import FOLDER, read_issued
 from station.recording import read_recording
-from tests.station_support import CAPPED_SPEEDUP, Seed, asgi_client, daemon_config, run_body, running_app, seed_runs
+from tests.station_support import (
+    CAPPED_SPEEDUP,
+    IDLE_SPEEDUP,
+    Seed,
+    asgi_client,
+    daemon_config,
+    run_body,
+    running_app,
+    seed_runs,
+)
 
 # a simulated, identified run seeded, one recorded on the virtual clock (~10 s)
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("backup")]
@@ -56,7 +65,8 @@ def backed_up(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Any
     async def go() -> Any:
         # no identification worker: the run ends its acquisition (closes its recording) at "identifying";
         # what a backup must leave untouched is the recording, not the identification that follows it
-        async with running_app(rec, config=cfg, workers=0, max_speedup=CAPPED_SPEEDUP) as app, asgi_client(app) as c:
+        async with running_app(rec, config=cfg, workers=0, max_speedup=CAPPED_SPEEDUP,
+                               idle_speedup=IDLE_SPEEDUP) as app, asgi_client(app) as c:
             r = await c.post("/runs", json=run_body(record_s=5.0))
             assert r.status_code == 202, r.text
             run = r.json()["id"]

@@ -29,6 +29,7 @@ from station.trend.charts import first_alarm_probabilities
 from tests.conftest import fast_dict
 from tests.station_support import (
     CAPPED_SPEEDUP,
+    IDLE_SPEEDUP,
     TOKEN,
     Seed,
     app_in_process,
@@ -154,7 +155,8 @@ def test_nightly_check_runs_chart_a_drifting_check_transducer_and_hold_the_certi
     config = parse_config(cfg)
 
     async def go() -> None:
-        async with app_in_process(rec, config=cfg, workers=1, max_speedup=CAPPED_SPEEDUP) as (m, admin):
+        async with app_in_process(rec, config=cfg, workers=1, max_speedup=CAPPED_SPEEDUP,
+                                  idle_speedup=IDLE_SPEEDUP) as (m, admin):
             app = admin._transport.app  # type: ignore[attr-defined]
             transport = httpx.ASGITransport(app=app)
 

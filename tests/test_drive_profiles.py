@@ -531,13 +531,23 @@ def test_any_malformed_profile_is_a_register_map_error_never_a_crash() -> None:
 def test_the_daemon_latches_a_quick_stop_of_a_drive_that_gives_no_code(tmp_path: Path, name: str) -> None:
     """A CiA 402 or V20 quick stop is a state, not a fault code: the daemon still fails the run, latches
     the stop and clears it only when an operator acknowledges; the next run moves the crank."""
-    from tests.station_support import FINAL, app_in_process, daemon_config, run_body, start, wait_state
+    from tests.station_support import (
+        CAPPED_SPEEDUP,
+        FINAL,
+        IDLE_SPEEDUP,
+        app_in_process,
+        daemon_config,
+        run_body,
+        start,
+        wait_state,
+    )
 
     cfg = daemon_config(tmp_path / "rec")
     cfg["rig"].update(motor={"profile": name}, crank_frequency_hz={"min": 1.0, "max": 40.0})
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", config=cfg) as (m, c):
+        async with app_in_process(tmp_path / "rec", config=cfg, max_speedup=CAPPED_SPEEDUP,
+                                  idle_speedup=IDLE_SPEEDUP) as (m, c):
             assert m.link.rig is not None and m.link.rig.sim is not None and m.link.rig.motor.profile.name == name
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")

@@ -25,6 +25,7 @@ from station.service.instance import LOCK_NAME, InstanceLock
 from tests.disk_support import fill_disk, mounted_tmpfs
 from tests.station_support import (
     CAPPED_SPEEDUP,
+    IDLE_SPEEDUP,
     TOKEN,
     Daemon,
     app_in_process,
@@ -71,7 +72,7 @@ def test_every_bad_body_on_every_post_endpoint_is_a_clear_4xx(tmp_path: Path) ->
     `/campaigns` for every non-JSON content type (octet-stream, text/plain, form, multipart) |"""
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c):
             for path in POSTS:
                 for ctype, body in NOT_JSON.items():
                     r = await c.post(path, content=body, headers={"Content-Type": ctype})
@@ -102,7 +103,7 @@ def test_campaigns_need_the_token_even_on_loopback(tmp_path: Path) -> None:
     """| non-UTF-8 bodies | `/campaigns` needs no token and accepts cross-site text/plain |"""
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (_, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (_, c):
             anon = {"Authorization": "", "Content-Type": "text/plain", "Origin": "http://evil.example",
                     "Sec-Fetch-Site": "cross-site"}
             r = await c.post("/campaigns", content=json.dumps({"runs": ["x"]}).encode(), headers=anon)
@@ -124,7 +125,7 @@ def test_an_internal_error_is_a_short_json_500_and_the_traceback_goes_to_the_log
         raise RuntimeError("a bug deep inside")
 
     async def go() -> None:
-        async with running_app(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as app:
+        async with running_app(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as app:
             app.state.manager.runs.list_runs = broken
             t = httpx.ASGITransport(app=app, client=("127.0.0.1", 40000), raise_app_exceptions=False)
             async with httpx.AsyncClient(transport=t, base_url="http://127.0.0.1") as c:

@@ -31,6 +31,7 @@ from tests.station_support import (
     AUTH,
     CAPPED_SPEEDUP,
     FINAL,
+    IDLE_SPEEDUP,
     ON_RIG_DONE,
     TOKEN,
     Daemon,
@@ -50,7 +51,7 @@ def test_stop_latches_until_an_operator_acknowledges(tmp_path: Path, caplog: pyt
     fault itself (`reset_faults()` at every start) and moves the crank; nothing is logged |"""
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c):
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
             r = await c.post("/stop", headers={"X-Station-Client": "page"})
@@ -92,7 +93,7 @@ def test_controller_estop_fault_latches_and_a_fault_at_start_is_not_cleared(tmp_
     fault itself (`reset_faults()` at every start) and moves the crank; nothing is logged |"""
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c):
             assert m.link.rig is not None and m.link.rig.sim is not None
             sim_motor = m.link.rig.sim.motor
             # the controller's own e-stop during a run (its button, not the daemon's)
@@ -257,7 +258,8 @@ def test_a_real_full_disk_fails_the_run_with_its_cause_and_frees_the_rig(
 
     async def go() -> None:
         # no space kept in reserve by the writer's guard: the disk really fills (ENOSPC)
-        async with app_in_process(small_disk, min_free_mb=0.0, max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(small_disk, min_free_mb=0.0, max_speedup=CAPPED_SPEEDUP,
+                                  idle_speedup=IDLE_SPEEDUP) as (m, c):
             assert (await c.get("/health")).json()["disk"]["reserve_file"]
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
@@ -339,7 +341,7 @@ def test_a_finished_run_leaves_nothing_behind_without_waiting_for_the_garbage_co
     import weakref
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c):
             for _ in range(2):
                 rid = await start(c, freqs=(10.0,))
                 while (live := m.runs.live.get(rid)) is None or live.proc is None or live.proc.acq is None:
@@ -363,7 +365,7 @@ def test_a_body_that_is_not_utf8_is_refused_clearly(tmp_path: Path) -> None:
     """| a body that is not UTF-8 | 500, connection dropped |"""
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (_, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (_, c):
             for ctype in ("application/json", None):
                 headers = {"Content-Type": ctype} if ctype else {}
                 r = await c.post("/runs", content=b'{"transducer_id": "\xff\xfe"}', headers=headers)
@@ -384,7 +386,7 @@ def test_booleans_and_strings_are_not_numbers(tmp_path: Path) -> None:
     assert RunRequest.model_validate(as_int).steps[0].crank_frequency_hz == 10.0  # an integer is a number
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c):
             for field, value, loc in [("crank_frequency_hz", True, ["body", "steps", 0, "crank_frequency_hz"]),
                                       ("crank_frequency_hz", "10", ["body", "steps", 0, "crank_frequency_hz"]),
                                       ("crank_radius_m", "0.001", ["body", "steps", 0, "crank_radius_m"]),
@@ -407,7 +409,7 @@ def test_after_an_abort_progress_and_the_first_reason_stay(tmp_path: Path) -> No
     """| after an abort | progress 1.0 and "done"; a later abort overwrites the reason "emergency stop" |"""
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (_, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (_, c):
             rid = await start(c, freqs=(10.0, 20.0), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
             assert (await c.post("/stop")).status_code == 200
@@ -428,7 +430,7 @@ def test_a_cross_site_request_cannot_reach_stop(tmp_path: Path) -> None:
     """| any web page | can trigger `/stop` with a cross-site form post |"""
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c):
             anon = {"Authorization": ""}
             form = {"Content-Type": "application/x-www-form-urlencoded", **anon}
             for headers in ({"Origin": "http://evil.example", "Sec-Fetch-Site": "cross-site", **form},

@@ -117,13 +117,13 @@ def test_station_history_prints_the_charts_and_sets_the_policy(tmp_path: Path, c
 def test_the_api_sets_the_policy_records_an_adjustment_and_serves_the_trends(tmp_path: Path) -> None:
     import asyncio
 
-    from tests.station_support import CAPPED_SPEEDUP, app_in_process, login
+    from tests.station_support import CAPPED_SPEEDUP, IDLE_SPEEDUP, app_in_process, login
 
     rec = tmp_path / "rec"
     rec.mkdir()
 
     async def go() -> None:
-        async with app_in_process(rec, max_speedup=CAPPED_SPEEDUP) as (manager, admin):
+        async with app_in_process(rec, max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (manager, admin):
             def seed(s: Store) -> list[str]:
                 add_transducer(s)
                 return add_runs(s, rec, 16, step_at=10)

@@ -16,6 +16,7 @@ from station.lab import audit, users
 from station.lab.store import Store
 from tests.station_support import (
     CAPPED_SPEEDUP,
+    IDLE_SPEEDUP,
     ON_RIG_DONE,
     PASSWORDS,
     app_in_process,
@@ -55,7 +56,8 @@ def test_a_scripted_day_is_in_the_audit_trail(tmp_path: Path) -> None:
     rec = tmp_path / "rec"
 
     async def day() -> None:
-        async with app_in_process(rec, config=lab_config(rec), max_speedup=CAPPED_SPEEDUP) as (manager, admin):
+        async with app_in_process(rec, config=lab_config(rec), max_speedup=CAPPED_SPEEDUP,
+                                  idle_speedup=IDLE_SPEEDUP) as (manager, admin):
             app = admin._transport.app  # type: ignore[attr-defined]
             for name, role in (("tina", "technician"), ("anton", "approver")):
                 r = await admin.put(f"/users/{name}", json={"role": role, "password": PASSWORDS[name]})
@@ -126,7 +128,7 @@ def test_credentials_are_refused_with_the_reason(tmp_path: Path) -> None:
 
     async def go() -> None:
         async with app_in_process(rec, config=lab_config(rec, session_minutes=5),
-                                  max_speedup=CAPPED_SPEEDUP) as (manager, admin):
+                                  max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (manager, admin):
             app = admin._transport.app  # type: ignore[attr-defined]
             await admin.put("/users/tina", json={"role": "technician", "password": PASSWORDS["tina"]})
             anon = asgi_client(app, token=False)
@@ -163,7 +165,8 @@ def test_the_users_list_names_each_last_change_and_the_rules_are_published(tmp_p
     rec = tmp_path / "rec"
 
     async def go() -> None:
-        async with app_in_process(rec, config=lab_config(rec), max_speedup=CAPPED_SPEEDUP) as (manager, admin):
+        async with app_in_process(rec, config=lab_config(rec), max_speedup=CAPPED_SPEEDUP,
+                                  idle_speedup=IDLE_SPEEDUP) as (manager, admin):
             app = admin._transport.app  # type: ignore[attr-defined]
             pol = (await admin.get("/users/policy")).json()
             assert {r["name"]: r["permissions"] for r in pol["roles"]} == \
@@ -196,7 +199,7 @@ def test_a_standard_past_its_due_date_refuses_or_warns(tmp_path: Path, policy: s
     async def go() -> None:
         d = lab_config(rec, overdue_standards=policy)
         d["lab"]["standards"] = late
-        async with app_in_process(rec, config=d, max_speedup=CAPPED_SPEEDUP) as (manager, c):
+        async with app_in_process(rec, config=d, max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (manager, c):
             r = await c.post("/runs", json=run_body())
             if policy == "refuse":
                 assert r.status_code == 422
@@ -221,7 +224,8 @@ def test_a_tampered_recording_is_refused_naming_the_file(tmp_path: Path) -> None
     rec = tmp_path / "rec"
 
     async def go() -> None:
-        async with app_in_process(rec, config=lab_config(rec), max_speedup=CAPPED_SPEEDUP) as (manager, c):
+        async with app_in_process(rec, config=lab_config(rec), max_speedup=CAPPED_SPEEDUP,
+                                  idle_speedup=IDLE_SPEEDUP) as (manager, c):
             rid = (await c.post("/runs", json=run_body())).json()["id"]
             await wait_state(c, rid, ON_RIG_DONE)
             assert (await c.get(f"/runs/{rid}/integrity")).status_code == 200
@@ -264,7 +268,8 @@ def test_a_database_of_the_previous_release_is_upgraded_without_losing_runs(tmp_
     shutil.copy(Path(__file__).parent / "data" / "station-v2.db", rec / "station.db")
 
     async def go() -> None:
-        async with app_in_process(rec, config=lab_config(rec), max_speedup=CAPPED_SPEEDUP) as (manager, c):
+        async with app_in_process(rec, config=lab_config(rec), max_speedup=CAPPED_SPEEDUP,
+                                  idle_speedup=IDLE_SPEEDUP) as (manager, c):
             runs = (await c.get("/runs")).json()["runs"]
             assert sorted(r["state"] for r in runs) == ["aborted", "completed", "interrupted"]
             assert manager.store.jobs()[0].run_id == "20260101T000000-TX5K-0001-000000"

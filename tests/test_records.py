@@ -147,7 +147,7 @@ def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path
     recording flipped with the runs table's SHA-256 rewritten to match, a results file added, the
     trail rewritten behind the triggers.  Every endpoint that reads the run refuses (409, the file
     named), /integrity names it, and all is served again once the files are restored."""
-    from tests.station_support import CAPPED_SPEEDUP, app_in_process
+    from tests.station_support import CAPPED_SPEEDUP, IDLE_SPEEDUP, app_in_process
 
     rec, rid = seeded(seeded_once, tmp_path)
     results = sorted((rec / f"{rid}.results").glob("results.*.h5"))
@@ -157,7 +157,7 @@ def test_every_endpoint_refuses_files_changed_outside_the_station(tmp_path: Path
              f"/runs/{rid}/discrepancy", f"/runs/{rid}/integrity"]
 
     async def go() -> None:
-        async with app_in_process(rec, max_speedup=CAPPED_SPEEDUP) as (manager, c):
+        async with app_in_process(rec, max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (manager, c):
             assert (await c.get(f"/runs/{rid}/results")).status_code == 200
             assert (await c.get("/integrity")).status_code == 200
             assert (await c.get("/health")).json()["audit_chain"]["ok"] is True
@@ -299,12 +299,12 @@ def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Pa
     import hashlib
     import json
 
-    from tests.station_support import CAPPED_SPEEDUP, PASSWORDS, app_in_process, login
+    from tests.station_support import CAPPED_SPEEDUP, IDLE_SPEEDUP, PASSWORDS, app_in_process, login
 
     rec, rid = seeded(seeded_once, tmp_path)
 
     async def go() -> None:
-        async with app_in_process(rec, max_speedup=CAPPED_SPEEDUP) as (manager, c):
+        async with app_in_process(rec, max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (manager, c):
             app = c._transport.app  # type: ignore[attr-defined]
             for name, role in (("tina", "technician"), ("anton", "approver")):
                 r = await c.put(f"/users/{name}", json={"role": role, "password": PASSWORDS[name]})
@@ -363,9 +363,21 @@ def test_the_issuing_rules_hold_and_the_register_is_the_audit_trail(tmp_path: Pa
             html.write_bytes(old_html)
             (folder / f"{number}.json").write_bytes(old_json)
             assert (await c.get(f"/certificates/{number}.html")).status_code == 200
-            # a hand-made withdrawal marker changes nothing; withdrawal is the station's, with a reason
+            # a hand-made withdrawal marker changes nothing (still in force); withdrawal is the station's,
+            # with a reason
             (folder / f"{number}.replaced").write_text(json.dumps({"replaced_by": "X", "reason": "forged"}))
             assert (await c.get("/certificates")).json()["certificates"][0]["withdrawn"] is None
+            await refused(anton, {}, 409, f"in force ({number})")
+            # the files of a certificate in force deleted: found missing, and it is still in force by the chain
+            saved = {p: p.read_bytes() for p in folder.glob(f"{number}.*")}
+            for p in saved:
+                p.unlink()
+            r = await c.get("/integrity")
+            assert r.status_code == 409 and f"certificates/{number}.pdf: missing" in r.json()["detail"]
+            await refused(anton, {}, 409, f"in force ({number})")
+            for p, data in saved.items():
+                p.write_bytes(data)
+            assert (await c.get("/integrity")).status_code == 200
             r = await tina.post(f"/certificates/{number}/withdraw", json={"reason": "the customer asked for it"})
             assert r.status_code == 403
             r = await anton.post(f"/certificates/{number}/withdraw", json={"reason": "the customer asked for it"})
@@ -462,10 +474,10 @@ def test_a_flood_of_logins_leaves_the_database_to_everyone_else(tmp_path: Path) 
     password check's own bound are refused at once, before they read anything, and the other users'
     requests sent among them are all answered."""
     from station.service.db import MAX_READS_IN_FLIGHT
-    from tests.station_support import CAPPED_SPEEDUP, app_in_process, asgi_client
+    from tests.station_support import CAPPED_SPEEDUP, IDLE_SPEEDUP, app_in_process, asgi_client
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (_, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (_, c):
             anon = asgi_client(c._transport.app, token=False)  # type: ignore[attr-defined]
             floods = [anon.post("/login", json={"name": f"user{i}", "password": "guess-guess-1"})
                       for i in range(2 * MAX_READS_IN_FLIGHT)]
@@ -532,10 +544,11 @@ def test_guessing_locks_out_the_name_and_the_address_until_lifted(tmp_path: Path
     password check as any other.  A password typed into the name field
     never reaches the trail; a new password ends the user's sessions; tokens are listed and revoked."""
     from station.service import logins
-    from tests.station_support import CAPPED_SPEEDUP, PASSWORDS, app_in_process, asgi_client, login
+    from tests.station_support import CAPPED_SPEEDUP, IDLE_SPEEDUP, PASSWORDS, app_in_process, asgi_client, login
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (manager, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP,
+                                  idle_speedup=IDLE_SPEEDUP) as (manager, c):
             app = c._transport.app  # type: ignore[attr-defined]
             r = await c.put("/users/tina", json={"role": "technician", "password": PASSWORDS["tina"]})
             assert r.status_code == 200
@@ -708,10 +721,10 @@ def test_a_lock_out_outlives_a_restart_and_its_doubling_goes_on(tmp_path: Path) 
 
 @pytest.mark.slow
 def test_each_user_lists_and_revokes_their_own_tokens_and_an_admin_all(tmp_path: Path) -> None:
-    from tests.station_support import CAPPED_SPEEDUP, PASSWORDS, app_in_process, login
+    from tests.station_support import CAPPED_SPEEDUP, IDLE_SPEEDUP, PASSWORDS, app_in_process, login
 
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (_, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (_, c):
             app = c._transport.app  # type: ignore[attr-defined]
             for name, role in (("tina", "technician"), ("anton", "approver")):
                 assert (await c.put(f"/users/{name}", json={"role": role, "password": PASSWORDS[name]})).status_code \

@@ -288,7 +288,7 @@ def test_a_second_shutdown_call_never_cuts_short_the_stop_and_the_closing_of_the
     from station.lab import audit
     from station.lab.integrity import sha256_file
     from station.run.procedure import Procedure
-    from tests.station_support import CAPPED_SPEEDUP, app_in_process, start, wait_state
+    from tests.station_support import CAPPED_SPEEDUP, IDLE_SPEEDUP, app_in_process, start, wait_state
 
     stopping, second_call_made = threading.Event(), threading.Event()
     stop_motor = Procedure._stop_motor
@@ -301,7 +301,7 @@ def test_a_second_shutdown_call_never_cuts_short_the_stop_and_the_closing_of_the
     rec_dir = tmp_path / "rec"
 
     async def go() -> str:
-        async with app_in_process(rec_dir, max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(rec_dir, max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c):
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), step_state="recording")
             tasks = m.begin_shutdown()  # the signal handler

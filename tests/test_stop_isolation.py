@@ -31,6 +31,7 @@ from tests.disk_support import fill_disk, mounted_tmpfs
 from tests.station_support import (
     CAPPED_SPEEDUP,
     FINAL,
+    IDLE_SPEEDUP,
     Daemon,
     app_in_process,
     daemon_config,
@@ -143,7 +144,7 @@ def test_a_stop_from_another_thread_during_an_acknowledgement_stays_latched(tmp_
 @pytest.mark.slow
 def test_stop_reaches_the_drive_while_another_process_holds_the_database_write_lock(tmp_path: Path) -> None:
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c):
             rid = await start(c, freqs=(10.0,), record_s=120.0)
             await wait_state(c, rid, ("running",), "recording")
             lock = await asyncio.to_thread(WriteLock, m.settings.database)
@@ -191,7 +192,8 @@ def test_stop_reaches_the_drive_on_a_full_disk_and_its_record_follows(tmp_path: 
         filler = disk / "filler.bin"
 
         async def go() -> None:
-            async with app_in_process(disk, min_free_mb=0.0, max_speedup=CAPPED_SPEEDUP) as (m, c):
+            async with app_in_process(disk, min_free_mb=0.0, max_speedup=CAPPED_SPEEDUP,
+                                      idle_speedup=IDLE_SPEEDUP) as (m, c):
                 rid = await start(c, freqs=(10.0,), record_s=30.0)
                 await wait_state(c, rid, ("running",), "recording")
                 await asyncio.to_thread(fill_disk, filler)
@@ -214,7 +216,7 @@ def test_stop_is_served_past_hundreds_of_idle_connections_and_a_trickling_one(tm
     whose request head is arriving; the header timeout closes a connection that trickles a head."""
     async def go() -> None:
         bounds = ConnectionBounds(max_connections=64, header_timeout_s=1.0)
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c), \
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c), \
                 served_on_a_socket(c._transport.app, bounds) as port:  # type: ignore[attr-defined]
             idle = []
             url = f"http://127.0.0.1:{port}"
@@ -269,7 +271,7 @@ def test_a_stop_accepted_before_a_flood_is_answered_and_never_closed_for_it(tmp_
     flood of new connections: they make room among themselves, never by closing the stop's."""
     async def go() -> None:
         bounds = ConnectionBounds(max_connections=16, header_timeout_s=10.0, ceiling=32)
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c), \
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c), \
                 served_on_a_socket(c._transport.app, bounds) as port:  # type: ignore[attr-defined]
             flood: list[socket.socket] = []
             try:
@@ -302,7 +304,7 @@ def test_the_main_port_hands_a_stop_to_the_rig_as_its_head_arrives(tmp_path: Pat
 
     async def go() -> None:
         gate = asyncio.Event()
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c):
             app = c._transport.app  # type: ignore[attr-defined]
 
             async def held(scope: Any, receive: Any, send: Any) -> None:
@@ -438,7 +440,7 @@ def logging_record(msg: str) -> logging.LogRecord:
 @pytest.mark.slow  # ~3 s: the read-back waits the bound a healthy drive needs (on the rig's clock)
 def test_a_drive_that_ignores_the_stop_is_found_latched_shown_and_refused_until_resolved(tmp_path: Path) -> None:
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c):
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
             assert m.link.rig is not None and m.link.rig.sim is not None
@@ -477,7 +479,7 @@ def test_a_drive_that_ignores_the_stop_is_found_latched_shown_and_refused_until_
 def test_a_run_whose_drive_does_not_stop_at_its_end_latches(tmp_path: Path) -> None:
     """No emergency stop at all: the run's own stop (an abort) is read back too."""
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP) as (m, c):
+        async with app_in_process(tmp_path / "rec", max_speedup=CAPPED_SPEEDUP, idle_speedup=IDLE_SPEEDUP) as (m, c):
             rid = await start(c, freqs=(10.0,), record_s=30.0)
             await wait_state(c, rid, ("running",), "recording")
             assert m.link.rig is not None and m.link.rig.sim is not None

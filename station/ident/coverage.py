@@ -12,7 +12,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from scipy import special  # the quantiles alone: scipy.stats costs about a second to import
+from scipy.special import ndtri, stdtrit  # the quantiles scipy.stats computes, without its import (0.6 s)
 
 from station.ident.uncertainty import ParameterBudget
 from station.jsonvalue import JsonValue
@@ -43,7 +43,7 @@ class Coverage:
 def coverage_factor(nu_eff: float, p: float = COVERAGE_PROBABILITY) -> float:
     """k for coverage probability p at nu_eff degrees of freedom (t-distribution; normal when infinite)."""
     q = (1 + p) / 2
-    return float(special.ndtri(q) if math.isinf(nu_eff) else special.stdtrit(nu_eff, q))
+    return float(ndtri(q) if math.isinf(nu_eff) else stdtrit(nu_eff, q))  # norm.ppf(q), t.ppf(q, nu_eff)
 
 
 def effective_dof(contributions: Mapping[str, float | None], dof: Mapping[str, float] | None) -> float:
