@@ -11,7 +11,7 @@ from scipy import stats
 
 from station.ident.coverage import COVERAGE_PROBABILITY, coverage_factor
 from station.ident.fd.identify import COUPLING_P, coupling_shown
-from station.ident.structure import DETECTION_POWER, _lambda_needed
+from station.ident.structure import DETECTION_POWER, noncentrality_needed
 
 
 def test_the_coupling_threshold_is_the_chi2_quantile_of_two_degrees_of_freedom() -> None:
@@ -22,7 +22,7 @@ def test_the_coupling_threshold_is_the_chi2_quantile_of_two_degrees_of_freedom()
 
 @pytest.mark.parametrize(("dof", "threshold"), [(1, 3.84), (4, 9.49), (17, 27.6), (60, 80.0)])
 def test_the_non_centrality_needed_has_the_stated_detection_power(dof: int, threshold: float) -> None:
-    lam = _lambda_needed(dof, threshold)
+    lam = noncentrality_needed(dof, threshold)
     assert stats.ncx2.sf(threshold, dof, lam) == pytest.approx(DETECTION_POWER, abs=1e-9)
 
 

@@ -104,7 +104,7 @@ class CouplingBound:
 
 
 @functools.lru_cache(maxsize=256)
-def _lambda_needed(dof: int, threshold: float) -> float:
+def noncentrality_needed(dof: int, threshold: float) -> float:
     """Non-centrality at which P(chi^2_{dof, lambda} > threshold) = DETECTION_POWER (bisection; 60
     evaluations of the non-central chi^2 tail, once per degrees of freedom and threshold)."""
     lo, hi = 0.0, 10.0 * threshold + 100.0
@@ -131,7 +131,7 @@ def coupling_bound(frf: frfmod.FrequencyResponse, sdof: SdofModel, theta: FloatA
     if n_f < 2 or dof < 1 or not (k_s > 0 and b_s > 0):
         return None
     threshold = dof + 3.0 * np.sqrt(2.0 * dof)
-    need = _lambda_needed(dof, threshold)
+    need = noncentrality_needed(dof, threshold)
     # Eq. 8 needs an end mass; with none given (results conditional on 0 kg) a small one stands in:
     # the low-frequency signature of a coupling does not depend on it
     cm = make_model("coupled", max(sdof.m_e, 1e-3 * sdof.M), sdof.m_l - max(0.0, 1e-3 * sdof.M - sdof.m_e))
