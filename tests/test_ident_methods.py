@@ -23,7 +23,7 @@ from station.run.methods import STATUSES, agreement, identify_all, read_outcomes
 from station.run.request import RunRequest, plan_run
 from tests.conftest import station_dict
 from tests.ident_support import sim
-from tests.station_support import app_in_process, run_body, wait_state
+from tests.station_support import CAPPED_SPEEDUP, IDLE_SPEEDUP, app_in_process, run_body, wait_state
 
 K, B, S = 2.91e7, 17136.0, 2e-3
 
@@ -189,7 +189,10 @@ def test_the_daemon_runs_each_listed_method_and_shows_them_side_by_side(tmp_path
     methods = [{"method": "fd"}, {"method": "pso+", "model": "h2", "seed": 5}, {"method": "rls"}]
 
     async def go() -> tuple[list, dict]:
-        async with app_in_process(tmp_path, workers=1) as (_, c):
+        # capped (the run at 20x real time, idle at 4x): the idle rig would otherwise stream flat out on
+        # a core for as long as the worker process starts and identifies
+        async with app_in_process(tmp_path, workers=1, max_speedup=CAPPED_SPEEDUP,
+                                  idle_speedup=IDLE_SPEEDUP) as (_, c):
             body = {**run_body((10.0, 100.0), radius=1.5e-4, record_s=1.4), "methods": methods}
             rid = (await c.post("/runs", json=body)).json()["id"]
             events = await asyncio.wait_for(_events(c, rid), 120)
