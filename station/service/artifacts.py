@@ -188,13 +188,17 @@ class Artifacts:
         while len(self._cache) > CACHE_ENTRIES:
             self._cache.popitem(last=False)
 
-    async def _completed_path(self, run_id: str) -> Path:
+    async def _completed(self, run_id: str) -> tuple[Path, str]:
+        """The completed run's recording and its SHA-256, both checked against the chain (:meth:`guard`)."""
         row = await self._get_row(run_id)
         if row.state != "completed":
             raise RunStateError(f"run {run_id} is {row.state}: plots, report and analyses exist for "
                                 "completed runs only")
-        await self.guard(row)
-        return self.recording_path(row)
+        sha = await self.guard(row)
+        return self.recording_path(row), sha
+
+    async def _completed_path(self, run_id: str) -> Path:
+        return (await self._completed(run_id))[0]
 
     async def _locked_job(self, run_id: str, fn: Callable[..., Any], *args: Any) -> Any:
         async with self.file_lock(run_id):
@@ -304,10 +308,10 @@ class Artifacts:
     async def discrepancy(self, run_id: str, max_effects: int, who: str) -> dict[str, Any]:
         """Compute the model-gap analysis in the render worker and store it beside the recording
         (behind an authenticated POST only); the audit trail vouches for it at once."""
-        path = await self._completed_path(run_id)
+        path, sha = await self._completed(run_id)  # the SHA-256 the guard has just checked: not hashed again
         row = await self._get_row(run_id)
         async with self.file_lock(run_id):
-            out: dict[str, Any] = await self.render_pool.run(worker.discrepancy_job, str(path), max_effects)
+            out: dict[str, Any] = await self.render_pool.run(worker.discrepancy_job, str(path), max_effects, sha)
             await self.seal(row, who, audit.RESULT_STORED, {"kind": "discrepancy", "max_effects": max_effects})
         return out
 

@@ -180,18 +180,19 @@ def issue_job(path: str, prepared_by: str, approver: str, roles: dict[str, str],
 
 
 @worker_job
-def discrepancy_job(path: str, max_effects: int) -> dict[str, Any]:
+def discrepancy_job(path: str, max_effects: int, recording_sha256: str | None = None) -> dict[str, Any]:
     """Compute the model-gap analysis of a recording and store it beside it as result ``discrepancy``
     (everything, ``to_dict``, with the ``max_effects`` used: where ``station discrepancy --save``
     writes and the report reads); returns the JSON contract (``to_json``).  The analysis is a function
     of the recording, ``max_effects`` and the software: one stored for the same three (the recording's
-    SHA-256, the version) is given again, not computed again."""
+    SHA-256, the version) is given again, not computed again.  ``recording_sha256``: the recording's,
+    when the caller has checked it already (computed here otherwise)."""
     from station import __version__
     from station.discrepancy import analyse_recording
     from station.lab.integrity import sha256_file
     from station.recording import read_result, write_result
 
-    source = sha256_file(Path(path))
+    source = recording_sha256 or sha256_file(Path(path))
     doc = read_result(path, "discrepancy")
     if (doc is not None and doc.get("max_effects") == max_effects and doc.get("software_version") == __version__
             and doc.get("recording_sha256") == source):
