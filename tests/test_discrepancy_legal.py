@@ -64,7 +64,9 @@ def test_mains_without_common_clock(seed: int, keep: list[int] | None, tmp_path:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [1, 2])
+# seed 2: its offsets point to a negative rod length (1/L = -0.09 +- 0.13 1/m), the old wrong answer's
+# sign, so a rod length wrongly stated identifiable fails here (seed 1, 1/L = +0.09, went the same way)
+@pytest.mark.parametrize("seed", [2])
 def test_drift_without_common_clock_names_nothing_implausible(seed: int, tmp_path: Path) -> None:
     """A zero drift with own time origins: the per-step offsets it leaves are not explained by a
     nonlinearity or crank harmonics (the old answer: a rod length of -0.42 m); k_f and b_f right."""

@@ -11,7 +11,7 @@ import pytest
 from station.discrepancy.catalogue import CATALOGUE
 from station.discrepancy.data import prepare
 from station.discrepancy.decompose import fit_channel, harmonic_columns, robust_sigma
-from station.discrepancy.fit import Problem, fit_model
+from station.discrepancy.fit import Problem, fit_model, fit_unless_above
 from station.discrepancy.scenarios import draw_scenario, scenario_config, simulate_scenario
 from station.discrepancy.search import base_start, fit_candidate
 from station.recording import read_recording
@@ -117,3 +117,14 @@ def test_an_effect_the_data_do_not_hold_fits_back_to_its_absence(tmp_path) -> No
         assert fit.chi2 <= current.chi2 + 0.01, (name, fit.chi2, current.chi2)
         for k in ("k_f", "b_f"):
             assert abs(fit.values[k] - current.values[k]) <= 3 * fit.std[k], (name, k, fit.values[k])
+    # a grid start's fit that may be given up (``fit_unless_above``) is, when it goes on, the very fit
+    # ``fit_model`` makes (here with another budget, so computed anew: the check changes no iterate)
+    effects = {**current.effects, "conditioner_lowpass": 2}
+    start = {**current.values, "cutoff_hz": 20 * float(data.f_hz.max())}
+    kept = fit_unless_above(data, effects, start, math.inf, 1)
+    again = fit_model(data, effects, start, max_nfev=401)
+    assert kept is not None and kept.converged and again is not kept
+    assert kept.chi2 == again.chi2 and kept.values == again.values
+    # and one that cannot get below the given chi^2 is given up, then known to be
+    assert fit_unless_above(data, effects, {**start, "cutoff_hz": 3 * float(data.f_hz.max())}, 0.0, 1) is None
+    assert fit_unless_above(data, effects, {**start, "cutoff_hz": 3 * float(data.f_hz.max())}, 0.0, 1) is None

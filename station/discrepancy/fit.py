@@ -24,8 +24,9 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -259,36 +260,73 @@ def gap_of(data: RigData, wf: FloatArray, m: FloatArray) -> tuple[float, FloatAr
     return float(math.sqrt(e.sum() / data.n_samples.sum())), np.sqrt(e / data.n_samples)
 
 
-_FITS: dict[int, tuple[RigData, dict[tuple[object, ...], ModelFit]]] = {}
+_FITS: dict[int, tuple[RigData, dict[tuple[object, ...], ModelFit | None]]] = {}
+MAX_NFEV = 400
+
+
+def _kept(data: RigData) -> dict[tuple[object, ...], ModelFit | None]:
+    """The fits kept for ``data`` (a new, empty set replaces the oldest data set's beyond four)."""
+    hit = _FITS.get(id(data))
+    if hit is None or hit[0] is not data:
+        if len(_FITS) >= 4:
+            del _FITS[next(iter(_FITS))]  # the oldest data set
+        hit = _FITS[id(data)] = (data, {})
+    return hit[1]
 
 
 def fit_model(data: RigData, effects: Mapping[str, int], start: Mapping[str, float],
-              max_nfev: int = 400) -> ModelFit:
+              max_nfev: int = MAX_NFEV) -> ModelFit:
     """Levenberg-Marquardt (trust-region) fit of base + effects from ``start`` (physical values).
 
     The fit is a function of its arguments: one analysis asks for the same fit several times (the
     ties, the proposal and the swap test refit the same reduced model and its candidates), so the
     fits of the few most recent data sets are kept and given again (frozen, never modified)."""
+    kept = _kept(data)
     key = (tuple(effects.items()), tuple(sorted(start.items())), max_nfev)
-    hit = _FITS.get(id(data))
-    if hit is not None and hit[0] is data and key in hit[1]:
-        return hit[1][key]
-    fit = _fit_model(data, effects, start, max_nfev)
-    if hit is None or hit[0] is not data:
-        if len(_FITS) >= 4:
-            del _FITS[next(iter(_FITS))]  # the oldest data set
-        hit = _FITS[id(data)] = (data, {})
-    hit[1][key] = fit
+    fit = kept.get(key)
+    if fit is None:
+        fit = kept[key] = _fit_model(data, effects, start, max_nfev)
     return fit
 
 
+class _GivenUp(Exception):
+    """A fit halted by ``fit_unless_above``'s check."""
+
+
+def fit_unless_above(data: RigData, effects: Mapping[str, int], start: Mapping[str, float], chi2: float,
+                     after: int) -> ModelFit | None:
+    """``fit_model``, given up (None) if after ``after`` model evaluations its chi^2 is still at or
+    above ``chi2``.  A fit that is not given up is exactly ``fit_model``'s (the check looks at each
+    iterate and changes none) and is kept as ``fit_model``'s."""
+    kept = _kept(data)
+    key = (tuple(effects.items()), tuple(sorted(start.items())), MAX_NFEV)
+    if key in kept:
+        return kept[key]
+    mark = (*key, "given up above", chi2, after)
+    if mark in kept:
+        return None
+
+    def check(intermediate_result: Any) -> None:  # so named, scipy passes the iterate's state
+        if intermediate_result.nfev >= after and 2.0 * float(intermediate_result.cost) >= chi2:
+            raise StopIteration
+
+    try:
+        kept[key] = _fit_model(data, effects, start, MAX_NFEV, check)
+    except _GivenUp:
+        kept[mark] = None
+        return None
+    return kept[key]
+
+
 def _fit_model(data: RigData, effects: Mapping[str, int], start: Mapping[str, float],
-               max_nfev: int) -> ModelFit:
+               max_nfev: int, callback: Callable[[Any], None] | None = None) -> ModelFit:
     prob = Problem(data, effects, start)
     lo, hi = prob.bounds()
     u0 = np.clip(np.zeros(len(prob.params)), lo, hi)
     res = least_squares(prob.residual, u0, jac=prob.jacobian, bounds=(lo, hi), method="trf", x_scale=1.0,
-                        xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev)
+                        xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev, callback=callback)
+    if res.status == -2:  # halted by the callback
+        raise _GivenUp
     return finish(prob, res.x, res.jac, bool(res.success))
 
 

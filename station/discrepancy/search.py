@@ -13,7 +13,7 @@ import numpy as np
 from station.discrepancy.catalogue import LOWPASS_ORDERS, absent, start_grid
 from station.discrepancy.data import RigData
 from station.discrepancy.eiv import base_start
-from station.discrepancy.fit import ModelFit, Problem, fit_model, profiled_chi2
+from station.discrepancy.fit import ModelFit, Problem, fit_model, fit_unless_above, profiled_chi2
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +37,9 @@ FUNDAMENTAL_ONLY = ("coupling_compliance", "conditioner_lowpass", "channel_delay
 MULTI_START: dict[str, int] = {"coupling_compliance": 3, "displacement_resonance": 2}
 # the smallest chi^2 decrease any use of a candidate's fit looks at (``ties.undetectable``: Delta chi^2 / B >= 1)
 SMALLEST_DCHI2 = 1.0
+# a fit from a grid point of an effect whose absence is a bound is given up if after this many model
+# evaluations its chi^2 is not yet within ``SMALLEST_DCHI2`` of what the absence reached
+GRID_PATIENCE_NFEV = 100
 
 
 def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | None:
@@ -79,9 +82,19 @@ def fit_candidate(data: RigData, current: ModelFit, name: str) -> ModelFit | Non
     return best
 
 
-def _fit(data: RigData, effects: Mapping[str, int], start: dict[str, float]) -> list[ModelFit]:
-    """``fit_model`` as a list of none or one fit (a fit that fails is logged, not raised)."""
+def _fit(data: RigData, effects: Mapping[str, int], start: dict[str, float], below: float = math.inf
+         ) -> list[ModelFit]:
+    """``fit_model`` as a list of none or one fit (a fit that fails is logged, not raised).  With
+    ``below`` (the chi^2 the effect's absence reached) a fit still above ``below`` + ``SMALLEST_DCHI2``
+    after ``GRID_PATIENCE_NFEV`` evaluations is given up (``fit.fit_unless_above``): a start crawling
+    back towards the absence through the model's flat directions, which it would not beat."""
     try:
+        if math.isfinite(below):
+            fit = fit_unless_above(data, effects, start, below + SMALLEST_DCHI2, GRID_PATIENCE_NFEV)
+            if fit is None:
+                log.debug("candidate %s from %s given up: not below %.6g after %d evaluations", effects, start,
+                          below + SMALLEST_DCHI2, GRID_PATIENCE_NFEV)
+            return [] if fit is None else [fit]
         return [fit_model(data, effects, start)]
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
         log.info("candidate %s failed: %s", effects, exc)
@@ -110,7 +123,7 @@ def _fits(data: RigData, effects: Mapping[str, int], values: Mapping[str, float]
     if out and not min(scores) < reached - SMALLEST_DCHI2:
         return out
     for i in np.argsort(scores)[:n]:
-        out += _fit(data, effects, {**values, **grid[int(i)]})
+        out += _fit(data, effects, {**values, **grid[int(i)]}, reached)
     return out
 
 
