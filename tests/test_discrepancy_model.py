@@ -11,7 +11,7 @@ import pytest
 from station.discrepancy.catalogue import CATALOGUE
 from station.discrepancy.data import prepare
 from station.discrepancy.decompose import fit_channel, harmonic_columns, robust_sigma
-from station.discrepancy.fit import Problem, fit_model, fit_unless_above
+from station.discrepancy.fit import CAN_GIVE_UP, Problem, fit_model, fit_unless_above
 from station.discrepancy.scenarios import draw_scenario, scenario_config, simulate_scenario
 from station.discrepancy.search import base_start, fit_candidate
 from station.recording import read_recording
@@ -125,6 +125,11 @@ def test_an_effect_the_data_do_not_hold_fits_back_to_its_absence(tmp_path) -> No
     again = fit_model(data, effects, start, max_nfev=401)
     assert kept is not None and kept.converged and again is not kept
     assert kept.chi2 == again.chi2 and kept.values == again.values
-    # and one that cannot get below the given chi^2 is given up, then known to be
-    assert fit_unless_above(data, effects, {**start, "cutoff_hz": 3 * float(data.f_hz.max())}, 0.0, 1) is None
-    assert fit_unless_above(data, effects, {**start, "cutoff_hz": 3 * float(data.f_hz.max())}, 0.0, 1) is None
+    # and one that cannot get below the given chi^2 is given up, then known to be (with a SciPy before
+    # 1.16, whose least_squares takes no callback, none is given up: the fit is fit_model's)
+    low = {**start, "cutoff_hz": 3 * float(data.f_hz.max())}
+    if CAN_GIVE_UP:
+        assert fit_unless_above(data, effects, low, 0.0, 1) is None
+        assert fit_unless_above(data, effects, low, 0.0, 1) is None
+    else:
+        assert fit_unless_above(data, effects, low, 0.0, 1) is fit_model(data, effects, low)

@@ -22,6 +22,7 @@ larger uncertainties).
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -262,6 +263,9 @@ def gap_of(data: RigData, wf: FloatArray, m: FloatArray) -> tuple[float, FloatAr
 
 _FITS: dict[int, tuple[RigData, dict[tuple[object, ...], ModelFit | None]]] = {}
 MAX_NFEV = 400
+# least_squares takes a callback from SciPy 1.16 on; with an older SciPy (the floor is 1.11) no fit is
+# given up, and every fit runs as fit_model's: the same results, only the shortcut is lost
+CAN_GIVE_UP = "callback" in inspect.signature(least_squares).parameters
 
 
 def _kept(data: RigData) -> dict[tuple[object, ...], ModelFit | None]:
@@ -302,6 +306,8 @@ def fit_unless_above(data: RigData, effects: Mapping[str, int], start: Mapping[s
     key = (tuple(effects.items()), tuple(sorted(start.items())), MAX_NFEV)
     if key in kept:
         return kept[key]
+    if not CAN_GIVE_UP:
+        return fit_model(data, effects, start)
     mark = (*key, "given up above", chi2, after)
     if mark in kept:
         return None
@@ -323,8 +329,9 @@ def _fit_model(data: RigData, effects: Mapping[str, int], start: Mapping[str, fl
     prob = Problem(data, effects, start)
     lo, hi = prob.bounds()
     u0 = np.clip(np.zeros(len(prob.params)), lo, hi)
+    halt = {} if callback is None else {"callback": callback}
     res = least_squares(prob.residual, u0, jac=prob.jacobian, bounds=(lo, hi), method="trf", x_scale=1.0,
-                        xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev, callback=callback)
+                        xtol=1e-8, ftol=1e-10, gtol=1e-10, max_nfev=max_nfev, **halt)
     if res.status == -2:  # halted by the callback
         raise _GivenUp
     return finish(prob, res.x, res.jac, bool(res.success))
