@@ -1,8 +1,9 @@
 """The isolation fault matrix: one test per row of the station's isolation findings that concern
-its edges (bad bodies, imports, secrets, the database at start, a second daemon, orphaned workers,
-a full disk while identifying).  The row is quoted in each docstring.  The daemon's app runs
-in-process (``tests.test_fault_matrix_service.station``) wherever a process boundary is not what is
-tested; a second daemon and a killed daemon are real processes (marked slow)."""
+its edges (bad bodies, imports, secrets, the database at start, orphaned workers, a full disk while
+identifying).  The row is quoted in each docstring.  The daemon's app runs in-process
+(``tests/station_support.app_in_process``) wherever a process boundary is not what is tested; a
+killed daemon is a real process (marked slow).  A second daemon on a live daemon's folder is
+``tests/test_fault_matrix_service.py``'s (on that module's real daemon)."""
 
 from __future__ import annotations
 
@@ -27,7 +28,6 @@ from tests.station_support import (
     CAPPED_SPEEDUP,
     IDLE_SPEEDUP,
     TOKEN,
-    Daemon,
     app_in_process,
     daemon_config,
     run_body,
@@ -354,37 +354,6 @@ def test_the_motor_rtu_port_is_opened_exclusively(tmp_path: Path) -> None:
     finally:
         os.close(master)
         os.close(slave)
-
-
-@pytest.mark.slow
-def test_two_real_daemons_on_one_folder_the_live_run_is_untouched(tmp_path: Path) -> None:
-    """| a second daemon on the same recordings folder damages the running one | the newcomer marks the
-    live run `interrupted`, renames the live `.h5.partial`, opens the DAQ port and sends STOP |"""
-    with Daemon(tmp_path, workers=0) as d:
-        assert d.proc is not None
-        # a record far longer than the newcomer's start-up, however loaded the machine: the run is live
-        # throughout; it is ended by the operator afterwards
-        rid = d.start_run(freqs=(10.0,), record_s=120.0)
-        d.wait_state(rid, ("running",), step_state="recording")
-        partial = d.data_dir / f"{rid}.h5.partial"
-        assert partial.exists()
-        before = d.c().get(f"/runs/{rid}").json()["samples"]
-        p = subprocess.run([sys.executable, "-m", "station.cli", "serve", "--sim", "--config", str(d.cfg_path),
-                            "--port", "0"], capture_output=True, text=True, timeout=60,
-                           env={**os.environ, "STATION_TOKEN": TOKEN})
-        assert p.returncode == 1, p.stderr
-        assert f"PID {d.proc.pid}" in p.stderr and f"http://127.0.0.1:{d.port}/" in p.stderr, p.stderr
-        assert "Traceback" not in p.stderr
-        assert partial.exists() and not (d.data_dir / f"{rid}.h5").exists()  # not renamed under the live run
-        st = d.c().get(f"/runs/{rid}").json()
-        assert (st["state"], st["step_state"]) == ("running", "recording") and st["samples"] > before, st
-        assert d.c().post(f"/runs/{rid}/abort").status_code == 202
-        st = d.wait_state(rid)
-        # ended as the operator asked, nothing lost: the newcomer neither interrupted nor disturbed it
-        assert (st["state"], st["lost_samples"]) == ("aborted", 0) and st["reason"].startswith("aborted by"), st
-        assert (d.data_dir / f"{rid}.h5").exists() and not partial.exists()
-        health = d.c().get("/health").json()
-        assert health["status"] == "ok" and not health["estop"]["latched"], health
 
 
 # --------------------------------------------------------------------------------------- the database at start

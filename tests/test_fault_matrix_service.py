@@ -1,8 +1,8 @@
 """The rig boundary's fault matrix, on the simulated rig: one test per row of the service's share
 of the table (the row quoted in each docstring).  Most run the daemon's app in-process (real rig
 thread, real drivers on the simulated rig's in-process backends on a virtual clock, real SQLite and
-HDF5) through httpx's ASGI transport; the flood goes through a real ``station serve --sim`` over
-loopback in real time."""
+HDF5) through httpx's ASGI transport; the flood and a second daemon on the folder go to a real
+``station serve --sim`` over loopback in real time, one for the module (``daemon``)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ import json
 import os
 import socket
 import sqlite3
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -42,6 +44,17 @@ from tests.station_support import (
     start,
     wait_state,
 )
+
+# with --dist loadgroup: the tests on the module's real daemon on one worker, that daemon started once
+ON_THE_DAEMON = pytest.mark.xdist_group("fault_matrix_daemon")
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    """A real ``station serve --sim`` (no workers: a run ends at ``identifying``) for the module's tests
+    over loopback; each leaves the rig free and no stop latched."""
+    with Daemon(tmp_path_factory.mktemp("fault-matrix"), workers=0) as d:
+        yield d
 
 
 # ---------------------------------------------------------------------------------------- row 1
@@ -150,61 +163,62 @@ def _rss_kb(pid: int) -> int:
 
 
 @pytest.mark.slow
-def test_flood_during_a_run_loses_no_sample_and_big_bodies_are_refused_unread(tmp_path: Path) -> None:
+@ON_THE_DAEMON
+def test_flood_during_a_run_loses_no_sample_and_big_bodies_are_refused_unread(daemon: Daemon) -> None:
     """| a 20 MB JSON body to `POST /runs` without a token, during a run | answered 401 after 1.3 s, but
     the run fails: "motor fault 1 (watchdog_expired)"; the body is read and parsed before the token
     check, no size limit, 100 MB took 740 MB of memory |"""
-    with Daemon(tmp_path, workers=0) as d:
-        assert d.proc is not None
-        rid = d.start_run(freqs=(10.0, 20.0), record_s=1.5)
-        d.wait_state(rid, ("running",), step_state="recording")
-        rss0 = _rss_kb(d.proc.pid)
-        lat: dict[str, list[float]] = {"get": [], "big_unauth": [], "big_auth": [], "bad": []}
-        codes: dict[str, list[int]] = {k: [] for k in lat}
-        lock = threading.Lock()
+    d = daemon
+    assert d.proc is not None
+    rid = d.start_run(freqs=(10.0, 20.0), record_s=1.5)
+    d.wait_state(rid, ("running",), step_state="recording")
+    rss0 = _rss_kb(d.proc.pid)
+    lat: dict[str, list[float]] = {"get": [], "big_unauth": [], "big_auth": [], "bad": []}
+    codes: dict[str, list[int]] = {k: [] for k in lat}
+    lock = threading.Lock()
 
-        def note(kind: str, code: int, dt: float) -> None:
-            with lock:
-                lat[kind].append(dt)
-                codes[kind].append(code)
+    def note(kind: str, code: int, dt: float) -> None:
+        with lock:
+            lat[kind].append(dt)
+            codes[kind].append(code)
 
-        def getter(n: int) -> None:
-            with httpx.Client(base_url=d.url, timeout=30) as c:
-                for i in range(n):
-                    t0 = time.perf_counter()
-                    r = c.get(f"/runs/{rid}" if i % 2 else "/health")
-                    note("get", r.status_code, time.perf_counter() - t0)
+    def getter(n: int) -> None:
+        with httpx.Client(base_url=d.url, timeout=30) as c:
+            for i in range(n):
+                t0 = time.perf_counter()
+                r = c.get(f"/runs/{rid}" if i % 2 else "/health")
+                note("get", r.status_code, time.perf_counter() - t0)
 
-        def big_unauth(n: int) -> None:
-            for _ in range(n):  # 20 MB announced, 1 MB actually sent: answered before it is read
-                code, dt = _raw_post(d.port, "/runs", 20 * 2**20, 2**20)
-                note("big_unauth", code, dt)
+    def big_unauth(n: int) -> None:
+        for _ in range(n):  # 20 MB announced, 1 MB actually sent: answered before it is read
+            code, dt = _raw_post(d.port, "/runs", 20 * 2**20, 2**20)
+            note("big_unauth", code, dt)
 
-        def big_auth(n: int) -> None:
-            for _ in range(n):  # with the token: over the 1 MiB limit, 413 without reading it
-                code, dt = _raw_post(d.port, "/runs", 5 * 2**20, 2**18, f"Authorization: Bearer {TOKEN}\r\n")
-                note("big_auth", code, dt)
+    def big_auth(n: int) -> None:
+        for _ in range(n):  # with the token: over the 1 MiB limit, 413 without reading it
+            code, dt = _raw_post(d.port, "/runs", 5 * 2**20, 2**18, f"Authorization: Bearer {TOKEN}\r\n")
+            note("big_auth", code, dt)
 
-        def bad(n: int) -> None:
-            with httpx.Client(base_url=d.url, timeout=30, headers=AUTH) as c:
-                for i in range(n):
-                    t0 = time.perf_counter()
-                    body = b"\xff\xfe\x00{" if i % 2 else b'{"transducer_id": true}'
-                    r = c.post("/runs", content=body, headers={"Content-Type": "application/json"})
-                    note("bad", r.status_code, time.perf_counter() - t0)
+    def bad(n: int) -> None:
+        with httpx.Client(base_url=d.url, timeout=30, headers=AUTH) as c:
+            for i in range(n):
+                t0 = time.perf_counter()
+                body = b"\xff\xfe\x00{" if i % 2 else b'{"transducer_id": true}'
+                r = c.post("/runs", content=body, headers={"Content-Type": "application/json"})
+                note("bad", r.status_code, time.perf_counter() - t0)
 
-        threads = [threading.Thread(target=getter, args=(60,)) for _ in range(4)]
-        threads += [threading.Thread(target=big_unauth, args=(10,)) for _ in range(2)]
-        threads += [threading.Thread(target=big_auth, args=(10,)), threading.Thread(target=bad, args=(40,))]
-        t0 = time.monotonic()
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join(120)
-        flood_s = time.monotonic() - t0
-        rss1 = _rss_kb(d.proc.pid)
-        st = d.wait_state(rid, ON_RIG_DONE)
-        h = d.c().get("/health").json()
+    threads = [threading.Thread(target=getter, args=(60,)) for _ in range(4)]
+    threads += [threading.Thread(target=big_unauth, args=(10,)) for _ in range(2)]
+    threads += [threading.Thread(target=big_auth, args=(10,)), threading.Thread(target=bad, args=(40,))]
+    t0 = time.monotonic()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    flood_s = time.monotonic() - t0
+    rss1 = _rss_kb(d.proc.pid)
+    st = d.wait_state(rid, ON_RIG_DONE)
+    h = d.c().get("/health").json()
     n = sum(len(v) for v in lat.values())
     figures = {"requests": n, "flood_s": round(flood_s, 2), "rss_growth_MB": round((rss1 - rss0) / 1024, 1),
                "run_state": st["state"], "lost_samples": st["lost_samples"],
@@ -219,6 +233,38 @@ def test_flood_during_a_run_loses_no_sample_and_big_bodies_are_refused_unread(tm
     assert st["lost_samples"] == 0 and st["reason"] == ""
     assert h["rig"]["motor"]["watchdog_error"] is None
     assert rss1 - rss0 < 50 * 1024  # 20 MB bodies were never buffered (40 of them would be 800 MB)
+
+
+@pytest.mark.slow
+@ON_THE_DAEMON
+def test_two_real_daemons_on_one_folder_the_live_run_is_untouched(daemon: Daemon) -> None:
+    """| a second daemon on the same recordings folder damages the running one | the newcomer marks the
+    live run `interrupted`, renames the live `.h5.partial`, opens the DAQ port and sends STOP |"""
+    d = daemon
+    assert d.proc is not None
+    # a record far longer than the newcomer's start-up, however loaded the machine: the run is live
+    # throughout; it is ended by the operator afterwards
+    rid = d.start_run(freqs=(10.0,), record_s=120.0)
+    d.wait_state(rid, ("running",), step_state="recording")
+    partial = d.data_dir / f"{rid}.h5.partial"
+    assert partial.exists()
+    before = d.c().get(f"/runs/{rid}").json()["samples"]
+    p = subprocess.run([sys.executable, "-m", "station.cli", "serve", "--sim", "--config", str(d.cfg_path),
+                        "--port", "0"], capture_output=True, text=True, timeout=60,
+                       env={**os.environ, "STATION_TOKEN": TOKEN})
+    assert p.returncode == 1, p.stderr
+    assert f"PID {d.proc.pid}" in p.stderr and f"http://127.0.0.1:{d.port}/" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
+    assert partial.exists() and not (d.data_dir / f"{rid}.h5").exists()  # not renamed under the live run
+    st = d.c().get(f"/runs/{rid}").json()
+    assert (st["state"], st["step_state"]) == ("running", "recording") and st["samples"] > before, st
+    assert d.c().post(f"/runs/{rid}/abort").status_code == 202
+    st = d.wait_state(rid)
+    # ended as the operator asked, nothing lost: the newcomer neither interrupted nor disturbed it
+    assert (st["state"], st["lost_samples"]) == ("aborted", 0) and st["reason"].startswith("aborted by"), st
+    assert (d.data_dir / f"{rid}.h5").exists() and not partial.exists()
+    health = d.c().get("/health").json()
+    assert health["status"] == "ok" and not health["estop"]["latched"], health
 
 
 # ---------------------------------------------------------------------------------------- row 3

@@ -32,7 +32,18 @@ from station.run.hardware import check_daq_hardware
 from station.run.request import default_request, plan_run
 from station.run.rig import connect
 from tests.conftest import fast_dict, station_config
-from tests.station_support import Daemon, app_in_process, daemon_config, run_body, wait_state
+from tests.station_support import (
+    CAPPED_SPEEDUP,
+    IDLE_SPEEDUP,
+    Daemon,
+    app_in_process,
+    daemon_config,
+    run_body,
+    wait_state,
+)
+
+# the in-process rig's virtual clock capped (x real time; idle: while no run is on the rig)
+CAPPED = {"max_speedup": CAPPED_SPEEDUP, "idle_speedup": IDLE_SPEEDUP}
 
 
 def _ramp_case(profile: str, beyond: str) -> tuple[str, float, tuple[float, float]]:
@@ -73,7 +84,7 @@ def test_the_api_answers_422_at_the_configuration_field_and_writes_nothing_to_th
     d["rig"]["acceleration_hz_per_s"] = hi + 50.0
 
     async def go() -> None:
-        async with app_in_process(tmp_path, config=d) as (manager, c):
+        async with app_in_process(tmp_path, config=d, **CAPPED) as (manager, c):
             r = await c.post("/runs", json=run_body())
             assert r.status_code == 422, r.text
             (err,) = r.json()["errors"]
@@ -98,7 +109,7 @@ def test_at_the_drives_fastest_ramp_a_run_goes_through_and_the_drive_takes_it(tm
     d["rig"]["acceleration_hz_per_s"] = hi
 
     async def go() -> None:
-        async with app_in_process(tmp_path, config=d) as (manager, c):
+        async with app_in_process(tmp_path, config=d, **CAPPED) as (manager, c):
             r = await c.post("/runs", json=run_body(freqs=(10.0,)))
             assert r.status_code == 202, r.text
             st = await wait_state(c, r.json()["id"])

@@ -10,13 +10,16 @@ from pathlib import Path
 import pytest
 
 from station.cli import main
-from tests.station_support import app_in_process
+from tests.station_support import CAPPED_SPEEDUP, IDLE_SPEEDUP, app_in_process
+
+# the in-process rig's virtual clock capped (x real time; idle: while no run is on the rig)
+CAPPED = {"max_speedup": CAPPED_SPEEDUP, "idle_speedup": IDLE_SPEEDUP}
 
 
 @pytest.mark.slow
 def test_api_docs_load_nothing_from_another_host(tmp_path: Path) -> None:
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec") as (_, c):
+        async with app_in_process(tmp_path / "rec", **CAPPED) as (_, c):
             for page in ("/docs", "/redoc"):
                 html = (await c.get(page)).text
                 urls = re.findall(r"""(?:src|href)=["']([^"']+)["']|url:\\s*["']([^"']+)["']""", html)

@@ -176,11 +176,14 @@ def _wait_gone(pids: list[int], timeout_s: float = 20.0) -> list[int]:
 
 
 @pytest.mark.slow
-def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume(tmp_path: Path) -> None:
-    """A daemon killed -9 mid-run: the next one closes the run as interrupted with a readable recording,
-    resumes the queued identification and takes new runs.  Killed -9 in turn, it leaves no orphaned
-    process: its workers, its rig process and the emulators' process end (the rig process and the
-    emulators on the end of their stdin, the workers on PR_SET_PDEATHSIG)."""
+def test_kill_9_mid_run_then_restart_recovers_and_sigterm_mid_run_closes_the_run_and_every_process(
+        tmp_path: Path) -> None:
+    """A daemon killed -9 mid-run: its rig process and the emulators' process end with it (on the end
+    of their stdin); the next daemon closes the run as interrupted with a readable recording, resumes
+    the queued identification and takes new runs.  Sent SIGTERM in turn mid-run, with a worker process
+    that has identified runs, it stops the run, closes its recording and ends its rig process, the
+    emulators and its workers.  (Workers end with a daemon killed -9 on PR_SET_PDEATHSIG:
+    ``tests/test_fault_matrix_isolation.py::test_workers_die_with_their_daemon``.)"""
     data = tmp_path / "recordings"
     # first daemon without workers: the identification of run A (acquired, seeded) stays queued
     first = Daemon(tmp_path, workers=0, data_dir=data, name="first", seeds=[Seed(identified=False)]).start()
@@ -197,15 +200,22 @@ def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume
             time.sleep(0.1)
         time.sleep(1.5)
         assert (data / f"{b}.h5.partial").exists()
+        assert first.proc is not None
+        kids = _daemon_children(first.proc.pid)
+        assert kids["rig process"] and kids["emulators"], kids
     finally:
         first.kill()
     assert first.proc is not None and first.proc.returncode == -signal.SIGKILL
+    pids = [p for ps in kids.values() for p in ps]  # nothing of it is left running
+    assert not _wait_gone(pids), subprocess.run(
+        ["ps", "-o", "pid,ppid,stat,cmd", "-p", ",".join(map(str, pids))], capture_output=True, text=True).stdout
     db = sqlite3.connect(data / "station.db")
     assert dict(db.execute("SELECT id, state FROM runs").fetchall()) == {a: "identifying", b: "running"}
     assert db.execute("SELECT run_id, state FROM jobs").fetchall() == [(a, "queued")]
     db.close()
 
-    with Daemon(tmp_path, workers=1, data_dir=data, name="second") as second:
+    second = Daemon(tmp_path, workers=1, data_dir=data, name="second").start()
+    try:
         c = second.c()
         st = c.get(f"/runs/{b}").json()
         assert st["state"] == "interrupted" and "daemon stopped during the run" in st["reason"]
@@ -230,46 +240,33 @@ def test_kill_9_mid_run_then_restart_interrupted_readable_and_queued_jobs_resume
         # and the rig takes new runs
         n = second.start_run(freqs=(10.0,))
         assert second.wait_state(n, timeout_s=IDENTIFIED_WITHIN_S)["state"] == "completed"
-        # killed -9 with a worker process that has identified runs: nothing of it is left running
+        # SIGTERM mid-run, with a worker process that has identified runs
         assert second.proc is not None
         kids = _daemon_children(second.proc.pid)
         assert all(kids.values()), kids  # workers, the rig process and the emulators' process
-        second.kill()
-    pids = [p for ps in kids.values() for p in ps]
-    assert not _wait_gone(pids), subprocess.run(
-        ["ps", "-o", "pid,ppid,stat,cmd", "-p", ",".join(map(str, pids))], capture_output=True, text=True).stdout
-
-
-@pytest.mark.slow
-def test_sigterm_mid_run_stops_the_run_closes_the_recording_and_the_workers(tmp_path: Path) -> None:
-    d = Daemon(tmp_path, seeds=[Seed(identified=False)]).start()
-    try:
-        d.wait_state(d.seeded[0], timeout_s=IDENTIFIED_WITHIN_S)  # the identification worker process has started
-        assert d.proc is not None
-        kids = _daemon_children(d.proc.pid)
-        assert all(kids.values()), kids  # workers, the rig process and the emulators' process
-        rid = d.start_run(freqs=(10.0,), record_s=30.0)
-        d.wait_state(rid, ("running",), step_state="recording")
+        rid = second.start_run(freqs=(10.0,), record_s=30.0)
+        second.wait_state(rid, ("running",), step_state="recording")
         # uvicorn >= 0.29: killed by the signal, raised again once the daemon has shut down (within
         # ``Daemon.stop``'s bound)
-        assert d.stop(signal.SIGTERM) in (0, -signal.SIGTERM)
+        assert second.stop(signal.SIGTERM) in (0, -signal.SIGTERM)
     finally:
-        if d.proc is not None and d.proc.poll() is None:
-            d.kill()
-    log = d.log()
+        if second.proc is not None and second.proc.poll() is None:
+            second.kill()
+    log = second.log()
     assert "interrupted: the station was stopped during the run" in log
     assert "did not end within" not in log  # the run ended itself: no emergency stop after the shutdown's wait
     assert "Traceback" not in log  # the rig process's channel ends cleanly too
     # the daemon ended its rig process (which stops a turning crank) and then the emulators itself,
     # before it ended: none is left to end on its own once the daemon is gone
     assert _alive(kids["rig process"] + kids["emulators"]) == [], kids
-    path = d.data_dir / f"{rid}.h5"
-    assert path.exists() and not (d.data_dir / f"{rid}.h5.partial").exists()
-    rec = read_recording(path)  # closed properly by the procedure (it stops the motor first)
-    assert rec.complete and rec.exit_status == "interrupted"
-    db = sqlite3.connect(d.data_dir / "station.db")
+    path = data / f"{rid}.h5"
+    assert path.exists() and not (data / f"{rid}.h5.partial").exists()
+    rec_ = read_recording(path)  # closed properly by the procedure (it stops the motor first)
+    assert rec_.complete and rec_.exit_status == "interrupted"
+    db = sqlite3.connect(data / "station.db")
     state, reason, recording = db.execute("SELECT state, reason, recording FROM runs WHERE id = ?",
                                           (rid,)).fetchone()
+    db.close()
     assert state == "interrupted" and "shut down" in reason and recording == path.name
     assert _wait_gone([p for ps in kids.values() for p in ps]) == [], kids
     with h5py.File(io.BytesIO(path.read_bytes()), "r") as f:

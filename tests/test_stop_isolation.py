@@ -13,8 +13,6 @@ import contextlib
 import logging
 import socket
 import sqlite3
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -22,7 +20,6 @@ from typing import Any
 import httpx
 import pytest
 
-from drivers.sim import SimRigProcess
 from station.commands.connections import ConnectionBounds, RepeatFilter
 from station.lab.store import RunRow, Store
 from station.service.db import DbAccess
@@ -32,42 +29,15 @@ from tests.station_support import (
     CAPPED_SPEEDUP,
     FINAL,
     IDLE_SPEEDUP,
-    Daemon,
+    NOT_THE_BUSY_TIMEOUT_S,
+    WriteLock,
     app_in_process,
-    daemon_config,
     estops,
     run_body,
     served_on_a_socket,
     start,
     wait_state,
 )
-
-NOT_THE_BUSY_TIMEOUT_S = 5.0  # the database's busy timeout is 10 s: a stop faster than this did not wait for it
-
-_HOLDER = """
-import sqlite3, sys
-db = sqlite3.connect(sys.argv[1], isolation_level=None)
-db.execute("BEGIN IMMEDIATE")
-db.execute("CREATE TABLE IF NOT EXISTS lock_holder (x)")
-print("locked", flush=True)
-sys.stdin.read()
-db.execute("ROLLBACK")
-"""
-
-
-class WriteLock:
-    """Another process holding the database's write lock (``BEGIN IMMEDIATE``) until released."""
-
-    def __init__(self, path: Path) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-c", _HOLDER, str(path)], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True)
-        assert self.proc.stdout is not None and self.proc.stdout.readline().strip() == "locked"
-
-    def release(self) -> None:
-        if self.proc.poll() is None:
-            assert self.proc.stdin is not None
-            self.proc.stdin.close()
-            self.proc.wait(10)
 
 
 def _row(run_id: str) -> RunRow:
@@ -494,51 +464,6 @@ def test_a_run_whose_drive_does_not_stop_at_its_end_latches(tmp_path: Path) -> N
             assert r.status_code == 409
             m.link.rig.sim.motor.ignore_stops(False)
     asyncio.run(go())
-
-
-# -------------------------------------------------------------------------- the real daemon, the emulator apart
-@pytest.mark.slow  # ~15 s: a real daemon on the real drivers, the emulator as its own process
-def test_real_daemon_stop_with_the_database_locked_and_a_drive_that_ignores_it(tmp_path: Path) -> None:
-    """The motor's real state is the emulator process's: the stop command's arrival is read from its
-    log, the crank's speed from the emulator itself."""
-    with SimRigProcess(crank_radius_m=0.001, commands=True) as emu:
-        host, port = emu.addresses.modbus_tcp
-        cfg = daemon_config(tmp_path / "recordings")
-        cfg.pop("simulation")  # a rig of real devices: the emulator process
-        cfg["devices"] = {"motor_url": f"modbus-tcp://{host}:{port}", "daq_port": emu.addresses.daq,
-                          "crank_radius_m": 0.001}
-        with Daemon(tmp_path, workers=0, config=cfg) as d:
-            c = d.c()
-            # another process holds the database's write lock while a run records
-            rid = d.start_run(freqs=(10.0,), record_s=60.0)
-            d.wait_state(rid, ("running",), step_state="recording")
-            lock = WriteLock(d.data_dir / "station.db")
-            try:
-                t0 = time.monotonic()
-                r = c.post("/stop")
-                assert time.monotonic() - t0 < NOT_THE_BUSY_TIMEOUT_S
-                arrived = emu.wait_command("emergency_stop", t0)
-                assert arrived is not None and arrived - t0 < NOT_THE_BUSY_TIMEOUT_S
-                assert r.status_code == 200 and r.json()["motor_stopped"], r.text
-                assert emu.status()["speed_hz"] == 0.0
-            finally:
-                lock.release()
-            assert d.wait_state(rid)["state"] == "aborted"
-            assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
-            # a drive that takes the stop and keeps turning
-            rid = d.start_run(freqs=(10.0,), record_s=60.0)
-            d.wait_state(rid, ("running",), step_state="recording")
-            emu.ignore_stops()
-            body = c.post("/stop").json()
-            assert body["stop_commanded"] and not body["motor_stopped"], body
-            assert body["drive"]["speed_hz"] == pytest.approx(10.0) and emu.status()["speed_hz"] == pytest.approx(10.0)
-            h = c.get("/health").json()
-            assert h["status"] == "degraded" and h["drive"]["standstill"] is False and h["estop"]["source"] == "drive"
-            assert c.post("/runs", json=run_body(freqs=(10.0,), radius=0.001)).status_code == 409
-            assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 409
-            emu.ignore_stops(False)
-            assert c.post("/stop/acknowledge", json={"operator": "op"}).status_code == 200
-            assert c.get("/health").json()["drive"]["standstill"] is True
 
 
 class _IdleConnection:

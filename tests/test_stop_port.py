@@ -21,7 +21,18 @@ from station.commands import stop as stop_command
 from station.commands.connections import ConnectionBounds
 from station.commands.stopport import daemon_stop_port
 from station.rigproc.stopport import MAX_HEAD_BYTES, StopPort, host_refusal, parse_head, station_names
-from tests.station_support import app_in_process, run_body, served_on_a_socket, start, wait_state
+from tests.station_support import (
+    CAPPED_SPEEDUP,
+    IDLE_SPEEDUP,
+    app_in_process,
+    run_body,
+    served_on_a_socket,
+    start,
+    wait_state,
+)
+
+# the in-process rig's virtual clock capped (x real time; idle: while no run is on the rig)
+CAPPED = {"max_speedup": CAPPED_SPEEDUP, "idle_speedup": IDLE_SPEEDUP}
 
 PAGE_PORT = 8080  # the main port the stop port names as the station's page (not listened on in these tests)
 
@@ -93,7 +104,7 @@ def test_the_station_names_are_the_configured_ones_and_a_named_listen_address(tm
 @pytest.mark.slow
 def test_stop_port_stops_the_drive_and_refuses_bad_and_cross_site_requests_without_effect(tmp_path: Path) -> None:
     async def go() -> None:
-        async with app_in_process(tmp_path / "rec") as (m, c), stop_port(m) as sp:
+        async with app_in_process(tmp_path / "rec", **CAPPED) as (m, c), stop_port(m) as sp:
             p = sp.port
             refused = [
                 (b"GARBAGE\r\n\r\n", 400),
@@ -147,7 +158,7 @@ def test_stop_port_stops_the_drive_and_refuses_bad_and_cross_site_requests_witho
 def test_stop_port_stops_past_idle_connections_on_the_main_port_and_its_own(tmp_path: Path) -> None:
     async def go() -> None:
         bounds = ConnectionBounds(max_connections=64, header_timeout_s=10.0)
-        async with app_in_process(tmp_path / "rec") as (m, c), stop_port(m, max_connections=16) as sp, \
+        async with app_in_process(tmp_path / "rec", **CAPPED) as (m, c), stop_port(m, max_connections=16) as sp, \
                 served_on_a_socket(c._transport.app, bounds) as main_port:  # type: ignore[attr-defined]
             idle: list[socket.socket] = []
             try:
