@@ -263,20 +263,23 @@ def test_stated_uncertainties_survive_export_and_import(base: Path, tmp_path: Pa
 
 @pytest.mark.slow
 def test_budget_noise_term_matches_the_scatter_over_40_simulated_runs(tmp_path: Path) -> None:
-    """Independent truth: the simulator's (another integrator, ADC quantisation); 40 noise draws.
-    The budget's noise term is the scatter (the masses and chain are exact in the simulator, so the
-    combined uncertainty must cover the error and be larger than the scatter)."""
+    """Independent truth: the simulator's (another integrator, ADC quantisation); 40 noise draws of
+    0.25 s records (the noise term is stated for whatever record length: the shorter the record, the
+    larger the term and the scatter both). The budget's noise term is the scatter (the masses and chain
+    are exact in the simulator, so the combined uncertainty must cover the error and be larger than the
+    scatter)."""
     est, noise, comb = [], [], []
     for seed in range(40):
-        res = identify_recording(read_recording(sim(tmp_path / str(seed), seed=100 + seed, record_s=0.5)))
+        res = identify_recording(read_recording(sim(tmp_path / str(seed), seed=100 + seed, record_s=0.25)))
         est.append([res.parameter(n).value for n in ("S", "k_f", "b_f")])
         noise.append([res.budget[n].stds["noise"] for n in ("S", "k_f", "b_f")])
         comb.append([res.parameter(n).std for n in ("S", "k_f", "b_f")])
     est, noise, comb = np.array(est), np.array(noise), np.array(comb)
     ratio = noise.mean(axis=0) / est.std(axis=0, ddof=1)
     assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio  # 40 draws: a std is known to ~11 %
-    # the mean error against this simulator (k_f +4.4e-5, b_f +6.0e-5, the same before the budget
-    # existed) is small against the combined uncertainty (3e-4 relative), which covers every draw
+    # the mean error against this simulator (k_f +4.4e-5, b_f +6.0e-5 relative over 0.5 s records, the
+    # same before the budget existed; +4.5e-5 and +7.0e-5 over these) is small against the combined
+    # uncertainty (3e-4 relative), which covers every draw
     assert np.all(np.abs(est.mean(axis=0) - [S, K, B]) < 0.25 * comb.mean(axis=0))
     assert np.all(np.abs(est - [S, K, B]) < 3 * comb)
 
