@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,12 @@ from tests.ident_support import ME, ML, PLAN, B, K, R, S, sim, via_csv
 @pytest.fixture(scope="module")
 def base(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return sim(tmp_path_factory.mktemp("base"), record_s=0.5)
+
+
+@pytest.fixture(scope="module")
+def no_end_mass(base: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The base run as recorded elsewhere without its end mass (RUN.yaml lacks end_mass_kg); read-only."""
+    return via_csv(base, tmp_path_factory.mktemp("no_end_mass"), doc=lambda d: d.pop("end_mass_kg"))
 
 
 def each_step(n: int, fn: Callable[[np.ndarray], np.ndarray]) -> dict[int, Callable[[np.ndarray], np.ndarray]]:
@@ -55,9 +62,8 @@ def test_clean_run_no_findings_and_the_budget_adds_up(base: Path) -> None:
 
 
 @pytest.mark.slow
-def test_missing_end_mass_is_conditional_and_the_data_still_give_S_M_and_f0(base: Path, tmp_path: Path) -> None:
-    rec = via_csv(base, tmp_path, doc=lambda d: d.pop("end_mass_kg"))
-    res = identify_recording(read_recording(rec))
+def test_missing_end_mass_is_conditional_and_the_data_still_give_S_M_and_f0(no_end_mass: Path) -> None:
+    res = identify_recording(read_recording(no_end_mass))
     assert "end_mass_not_given" in names(res, "warning")
     assert res.assumptions.end_mass.to_dict() == {"value": 0.0, "std": None, "source": "assumed"}
     for name in ("S", "k_f", "b_f"):
@@ -232,12 +238,13 @@ def test_a_channel_delay_is_covered_by_the_correlated_delay_term(tmp_path: Path)
 
 
 @pytest.mark.slow
-def test_report_and_results_show_checks_assumptions_and_budget(base: Path, tmp_path: Path) -> None:
+def test_report_and_results_show_checks_assumptions_and_budget(no_end_mass: Path, tmp_path: Path) -> None:
     from station.ident.identify import store_result
     from station.report.html import render_report
     from station.service.results import load_results
 
-    rec = via_csv(base, tmp_path, doc=lambda d: d.pop("end_mass_kg"))
+    folder = shutil.copytree(no_end_mass.parent, tmp_path / "imported")  # a result is stored: a copy
+    rec = folder / no_end_mass.name
     res = identify_recording(read_recording(rec))
     store_result(rec, res)
     html = render_report(rec)
@@ -298,9 +305,9 @@ def test_the_papers_methods_pass_the_same_gate(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_an_end_mass_stated_on_the_command_line(base: Path, tmp_path: Path,
+def test_an_end_mass_stated_on_the_command_line(base: Path, no_end_mass: Path,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
-    rec = via_csv(base, tmp_path, doc=lambda d: d.pop("end_mass_kg"))
+    rec = no_end_mass  # --no-write: read only
     assert main(["identify", str(rec), "--json", "--no-write", "--end-mass", "0.12"]) == 0
     doc = json.loads(capsys.readouterr().out)  # assumed without uncertainty: conditional on it
     assert doc["assumptions"]["end_mass_kg"] == {"value": 0.12, "std": None, "source": "assumed"}
