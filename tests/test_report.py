@@ -111,9 +111,9 @@ def test_unknown_plot_and_unusable_recordings(sim_recording: Path, tmp_path: Pat
 def test_convergence_shows_a_stored_pso_history(full_recording: Path, tmp_path: Path) -> None:
     rec_path = _copy(full_recording, tmp_path)
     placeholder = render_plot(rec_path, "convergence")
-    # a swarm of 12 particles x 101 iterations (the paper's 200 x 1000 is what the shipped configuration
-    # runs; the plot shows whatever history is stored: here one of more than 100 iterations)
-    res = identify_recording(read_recording(rec_path), "pso+", seed=1, swarm=SwarmSize(12, 101))
+    # a swarm of 24 particles x 120 iterations (the paper's 200 x 1000 is what the shipped configuration
+    # runs; the plot shows whatever history is stored)
+    res = identify_recording(read_recording(rec_path), "pso+", seed=1, swarm=SwarmSize(24, 120))
     assert len(res.extra["mse_history"]) > 100
     write_result(rec_path, f"identify_{res.method}_{res.model}", res.to_dict())
     shown = render_plot(rec_path, "convergence")
