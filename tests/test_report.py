@@ -119,8 +119,10 @@ def test_convergence_shows_a_stored_pso_history(full_recording: Path, tmp_path: 
     shown = render_plot(rec_path, "convergence")
     assert _png_size(shown) == FIG_SIZE_PX
     assert shown != placeholder
-    page = render_report(rec_path)  # the only stored identification is the one shown
-    assert f"results/identify_pso+_{res.model}" in page and "No iterative method was run" not in page
+    page = render_report(rec_path)  # the only stored identification is the one shown, its history plotted
+    assert f"results/identify_pso+_{res.model}" in page
+    assert base64.b64encode(shown).decode("ascii") in page
+    assert base64.b64encode(placeholder).decode("ascii") not in page
 
 
 # -- HTML report -------------------------------------------------------------------------------------
