@@ -31,7 +31,7 @@ def _counts(tail: str) -> dict[str, int]:
     return {k: int(v) for v, k in re.findall(r"(\d+) (passed|failed|skipped|deselected|errors?|xfailed)", tail)}
 
 
-def run_suite(marker: str | None, repeat: int, workers: int = 3) -> dict[str, Any]:
+def run_suite(marker: str | None, repeat: int, workers: int = 4) -> dict[str, Any]:
     spread = ["-n", str(workers), "--dist", "loadgroup"] if workers else []
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *spread]
     if marker:
@@ -60,7 +60,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=1, help="runs per figure (median)")
     ap.add_argument("--fast-only", action="store_true", help="only the fast subset")
-    ap.add_argument("--workers", type=int, default=3, help="pytest-xdist workers, as the README (0: one)")
+    ap.add_argument("--workers", type=int, default=4, help="pytest-xdist workers, as the README (0: one)")
     args = ap.parse_args()
     out: dict[str, Any] = {"cpus": os.cpu_count(), "fast": run_suite("not slow", args.repeat, args.workers)}
     if not args.fast_only:
