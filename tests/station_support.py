@@ -56,6 +56,8 @@ CAPPED_SPEEDUP = 20.0
 # ... and, where a test says so, the cap while no run is on the rig (its idle DAQ still streams: at
 # 20 times real time that is 40 % of a core while the test waits on a worker process, at 4 times 8 %)
 IDLE_SPEEDUP = 4.0
+# both caps, as the in-process apps' keyword arguments (``app_in_process(rec, **CAPPED)``)
+CAPPED: dict[str, float] = {"max_speedup": CAPPED_SPEEDUP, "idle_speedup": IDLE_SPEEDUP}
 ON_RIG_DONE = (*FINAL, "identifying")
 
 

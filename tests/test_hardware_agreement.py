@@ -33,17 +33,13 @@ from station.run.request import default_request, plan_run
 from station.run.rig import connect
 from tests.conftest import fast_dict, station_config
 from tests.station_support import (
-    CAPPED_SPEEDUP,
-    IDLE_SPEEDUP,
+    CAPPED,
     Daemon,
     app_in_process,
     daemon_config,
     run_body,
     wait_state,
 )
-
-# the in-process rig's virtual clock capped (x real time; idle: while no run is on the rig)
-CAPPED = {"max_speedup": CAPPED_SPEEDUP, "idle_speedup": IDLE_SPEEDUP}
 
 
 def _ramp_case(profile: str, beyond: str) -> tuple[str, float, tuple[float, float]]:

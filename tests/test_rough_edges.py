@@ -10,10 +10,7 @@ from pathlib import Path
 import pytest
 
 from station.cli import main
-from tests.station_support import CAPPED_SPEEDUP, IDLE_SPEEDUP, app_in_process
-
-# the in-process rig's virtual clock capped (x real time; idle: while no run is on the rig)
-CAPPED = {"max_speedup": CAPPED_SPEEDUP, "idle_speedup": IDLE_SPEEDUP}
+from tests.station_support import CAPPED, app_in_process
 
 
 @pytest.mark.slow

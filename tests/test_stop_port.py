@@ -22,17 +22,13 @@ from station.commands.connections import ConnectionBounds
 from station.commands.stopport import daemon_stop_port
 from station.rigproc.stopport import MAX_HEAD_BYTES, StopPort, host_refusal, parse_head, station_names
 from tests.station_support import (
-    CAPPED_SPEEDUP,
-    IDLE_SPEEDUP,
+    CAPPED,
     app_in_process,
     run_body,
     served_on_a_socket,
     start,
     wait_state,
 )
-
-# the in-process rig's virtual clock capped (x real time; idle: while no run is on the rig)
-CAPPED = {"max_speedup": CAPPED_SPEEDUP, "idle_speedup": IDLE_SPEEDUP}
 
 PAGE_PORT = 8080  # the main port the stop port names as the station's page (not listened on in these tests)
 

@@ -278,6 +278,10 @@ def _kept(data: RigData) -> dict[tuple[object, ...], ModelFit | None]:
     return hit[1]
 
 
+def _fit_key(effects: Mapping[str, int], start: Mapping[str, float], max_nfev: int) -> tuple[object, ...]:
+    return tuple(effects.items()), tuple(sorted(start.items())), max_nfev
+
+
 def fit_model(data: RigData, effects: Mapping[str, int], start: Mapping[str, float],
               max_nfev: int = MAX_NFEV) -> ModelFit:
     """Levenberg-Marquardt (trust-region) fit of base + effects from ``start`` (physical values).
@@ -286,7 +290,7 @@ def fit_model(data: RigData, effects: Mapping[str, int], start: Mapping[str, flo
     ties, the proposal and the swap test refit the same reduced model and its candidates), so the
     fits of the few most recent data sets are kept and given again (frozen, never modified)."""
     kept = _kept(data)
-    key = (tuple(effects.items()), tuple(sorted(start.items())), max_nfev)
+    key = _fit_key(effects, start, max_nfev)
     fit = kept.get(key)
     if fit is None:
         fit = kept[key] = _fit_model(data, effects, start, max_nfev)
@@ -303,7 +307,7 @@ def fit_unless_above(data: RigData, effects: Mapping[str, int], start: Mapping[s
     above ``chi2``.  A fit that is not given up is exactly ``fit_model``'s (the check looks at each
     iterate and changes none) and is kept as ``fit_model``'s."""
     kept = _kept(data)
-    key = (tuple(effects.items()), tuple(sorted(start.items())), MAX_NFEV)
+    key = _fit_key(effects, start, MAX_NFEV)
     if key in kept:
         return kept[key]
     if not CAN_GIVE_UP:

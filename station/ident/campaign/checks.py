@@ -66,7 +66,7 @@ def _homogeneity(vals: FloatArray, sds: FloatArray) -> tuple[float, int, float]:
     mean = float(np.sum(w * vals) / np.sum(w))
     chi2 = float(np.sum(w * (vals - mean) ** 2))
     dof = vals.size - 1
-    return chi2, dof, float(chdtrc(dof, chi2))  # chi2.sf(chi2, dof) if dof else 1.0
+    return chi2, dof, float(chdtrc(dof, chi2)) if dof else 1.0  # chi2.sf(chi2, dof); one value: no spread
 
 
 def consistency(recs: list[Recording], own: list[FloatArray], policy: CampaignPolicy) -> Check | None:
