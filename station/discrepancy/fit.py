@@ -148,6 +148,9 @@ class Problem:
         self.eiv, self.EW, self.EWc = w.eiv, w.EW, w.EWc
         self.additive = tuple(i for i, q in enumerate(self.params) if q.additive)
         self._lo, self._hi = self.bounds()
+        # (name, 0 linear / 1 logarithm / 2 reciprocal, centre, scale): ``to_value`` of each, for ``values``
+        self._kinds = tuple((q.name, 2 if q.reciprocal else 1 if q.log else 0, self.centre[q.name],
+                             self.scale[q.name]) for q in self.params)
         self._columns: FloatArray | None = None
         self._last: tuple[bytes, FloatArray] | None = None
 
@@ -180,9 +183,15 @@ class Problem:
         return np.array(lo), np.array(hi)
 
     def values(self, u: Sequence[float] | FloatArray) -> dict[str, float]:
+        """The physical values at u by name (``to_value`` of each parameter, the fixed ones with them)."""
         out = dict(self.fixed)
-        for q, x in zip(self.params, u, strict=True):
-            out[q.name] = self.to_value(q, float(x))
+        for (name, kind, c, s), x in zip(self._kinds, np.asarray(u, dtype=float).tolist(), strict=True):
+            if kind == 0:
+                out[name] = c + s * x
+            elif kind == 1:
+                out[name] = c * math.exp(s * x)
+            else:
+                out[name] = 1.0 / (1.0 / c + s * x)
         return out
 
     def whitened(self, p: Mapping[str, float]) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:

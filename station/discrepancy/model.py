@@ -31,6 +31,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import lru_cache, partial
 from typing import TypeVar, cast
 
 import numpy as np
@@ -167,31 +168,60 @@ def _spring(data: RigData, dr: _Drive, p: Mapping[str, float], coupled: bool) ->
     return np.asarray(spring_force_per_acceleration(t, cpl, dr.f) * dr.s2, dtype=np.complex128)
 
 
-def _output(data: RigData, dr: _Drive, p: Mapping[str, float], effects: Mapping[str, int]
-            ) -> tuple[FloatArray, ComplexArray]:
-    """The transducer output after the conditioner, V_0 (n,) V and V_k (n, K) (steps 1-5 of the
-    module; its stages are kept for the inputs they depend on, ``_stage``)."""
-    n, K = data.n_steps, K_MAX
+def _outputs(data: RigData, dr: _Drive, ps: Sequence[Mapping[str, float]], effects: Mapping[str, int]
+             ) -> tuple[FloatArray, ComplexArray]:
+    """The transducer output after the conditioner for P parameter sets, V_0 (P, n) V and V_k (P, n, K)
+    (steps 1-5 of the module).  The stages that depend on the parameters are kept for the inputs they
+    depend on (``_stage``) and looked up per set; the products that join them are taken for all sets
+    together (element by element the same arithmetic as for one set)."""
+    n = data.n_steps
     ident = tuple(effects.items())
-    xkey = (p.get("delay_s"), p.get("clock_skew"), p.get("sensor_resonance_hz"), p.get("sensor_damping"))
-    # the recorded motion itself when no effect changes it; a product is cheaper made than looked up
-    x = (_stage(data, (*ident, "x", *xkey), lambda: _motion(data, dr, p, effects))
-         if _MOTION_EFFECTS.intersection(effects) else dr.D)
+    moved = bool(_MOTION_EFFECTS.intersection(effects))
     coupled = "coupling_compliance" in effects
-    gkey = (p["k_f"], p["b_f"], p.get("k_c") if coupled else None, p.get("b_c") if coupled else None)
-    Gk = _stage(data, (*ident, "G", *gkey), lambda: _spring(data, dr, p, coupled))
-    Fk = Gk * x
+    nonlinear = "transducer_nonlinearity" in effects
+    lowpass = "conditioner_lowpass" in effects
+    order = int(effects["conditioner_lowpass"]) if lowpass else 0
     F0 = -data.total_mass_kg * G
-    if "transducer_nonlinearity" in effects:
-        V0, Vk = _stage(data, (*ident, "V", *xkey, *gkey, p["S"], p["quadratic"], p["cubic"]),
-                        lambda: _nonlinear_output(F0, Fk, p["S"], p["quadratic"], p["cubic"],
-                                                  data.capacity_N, K))
+    xs, Gs, V0s, Vks, Bs = [], [], [], [], []
+    for p in ps:
+        xkey = (p.get("delay_s"), p.get("clock_skew"), p.get("sensor_resonance_hz"), p.get("sensor_damping"))
+        # the recorded motion itself when no effect changes it; a product is cheaper made than looked up
+        x = (_stage(data, (*ident, "x", *xkey), partial(_motion, data, dr, p, effects)) if moved else dr.D)
+        gkey = (p["k_f"], p["b_f"], p.get("k_c") if coupled else None, p.get("b_c") if coupled else None)
+        Gk = _stage(data, (*ident, "G", *gkey), partial(_spring, data, dr, p, coupled))
+        if nonlinear:
+            V0, Vk = _stage(data, (*ident, "V", *xkey, *gkey, p["S"], p["quadratic"], p["cubic"]),
+                            partial(_nonlinear_output, F0, Gk * x, p["S"], p["quadratic"], p["cubic"],
+                                    data.capacity_N, K_MAX))
+            V0s.append(V0)
+            Vks.append(Vk)
+        else:
+            xs.append(x)
+            Gs.append(Gk)
+        if lowpass:
+            Bs.append(_stage(data, (*ident, "B", order, p["cutoff_hz"]),
+                             partial(butterworth, order, p["cutoff_hz"], dr.s)))
+    if nonlinear:
+        V0a, Vka = np.array(V0s), np.array(Vks)
     else:
-        V0, Vk = np.full(n, p["S"] * F0), np.asarray(p["S"] * Fk, dtype=np.complex128)
-    if "conditioner_lowpass" in effects:
-        order = int(effects["conditioner_lowpass"])
-        Vk = Vk * _stage(data, (*ident, "B", order, p["cutoff_hz"]), lambda: butterworth(order, p["cutoff_hz"], dr.s))
-    return V0, Vk * data.kmask
+        S = np.array([p["S"] for p in ps])
+        V0a = np.repeat((S * F0)[:, None], n, axis=1)
+        Fk = np.array(Gs) * (np.array(xs) if moved else dr.D)
+        Vka = S[:, None, None] * Fk
+    if lowpass:
+        Vka = Vka * np.array(Bs)
+    return V0a, Vka * data.kmask
+
+
+@lru_cache(maxsize=16)
+def _step_names(n: int, nm: int) -> tuple[tuple[str, ...], ...]:
+    """The names of the per-step parameters of a recording without a common clock (``catalogue``):
+    the mains phasors' real and imaginary parts (step by step, line by line), the offsets of steps
+    1..n-1, the slopes and the curvatures."""
+    return (tuple(f"re_{h}_s{i}" for i in range(n) for h in range(1, nm + 1)),
+            tuple(f"im_{h}_s{i}" for i in range(n) for h in range(1, nm + 1)),
+            tuple(f"dc_s{i}" for i in range(1, n)), tuple(f"slope_s{i}" for i in range(n)),
+            tuple(f"curv_s{i}" for i in range(n)))
 
 
 def _channel(data: RigData, ps: Sequence[Mapping[str, float]], effects: Mapping[str, int], V0: FloatArray,
@@ -213,9 +243,10 @@ def _channel(data: RigData, ps: Sequence[Mapping[str, float]], effects: Mapping[
             Q = np.array([[complex(q[f"re_{h}"], q[f"im_{h}"]) for h in range(1, nm + 1)] for q in ps])[:, None, :]
             W = Q * np.exp(1j * hh * 2 * np.pi * col("frequency_hz")[:, :, None] * data.t_mid_s[None, :, None])
         else:  # steps with their own time origins: a phasor per step and line
-            W = np.array([[[complex(q.get(f"re_{h}_s{i}", 0.0), q.get(f"im_{h}_s{i}", 0.0))
-                            for h in range(1, nm + 1)] for i in range(n)]
-                          for q in ps])  # (a planned step of a proposal: no line of its own yet)
+            re, im = _step_names(n, nm)[:2]  # (a planned step of a proposal: no line of its own yet: 0)
+            W = np.empty((P, n, nm), dtype=complex)
+            W.real = np.array([[q.get(k, 0.0) for k in re] for q in ps]).reshape(P, n, nm)
+            W.imag = np.array([[q.get(k, 0.0) for k in im] for q in ps]).reshape(P, n, nm)
         for i, h in zip(*np.nonzero(data.merge), strict=True):
             Vk[:, i, data.merge[i, h] - 1] += W[:, i, h]
             W[:, i, h] = 0.0
@@ -226,9 +257,10 @@ def _channel(data: RigData, ps: Sequence[Mapping[str, float]], effects: Mapping[
     curv: FloatArray = np.zeros(n)
     if "zero_drift" in effects and not data.common_clock:  # per step: offset (step 0: offset_V), slope, curvature
         # (a planned step of a proposal has no drift of its own yet: 0)
-        dc = dc + np.array([[0.0] + [q.get(f"dc_s{i}", 0.0) for i in range(1, n)] for q in ps])
-        slope = np.array([[q.get(f"slope_s{i}", 0.0) for i in range(n)] for q in ps])
-        curv = np.array([[q.get(f"curv_s{i}", 0.0) for i in range(n)] for q in ps])
+        dcs, slopes, curvs = _step_names(n, nm)[2:]
+        dc = dc + np.array([[0.0] + [q.get(k, 0.0) for k in dcs] for q in ps])
+        slope = np.array([[q.get(k, 0.0) for k in slopes] for q in ps])
+        curv = np.array([[q.get(k, 0.0) for k in curvs] for q in ps])
     elif "zero_drift" in effects:
         rho, beta, tm, h = col("rate_V_per_s"), col("quadratic_V_per_s2"), data.t_mid_s, data.half_s
         dc = dc + rho * tm + beta * tm**2
@@ -246,9 +278,9 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     p: physical parameters by name (S V/N, k_f N/m, b_f N s/m, offset_V V, and the effects' own);
     effects: names of the effects switched on (value: the low-pass order, else ignored)."""
     dr = _drive(data)
-    V0, Vk = _output(data, dr, p, effects)
-    m = _channel(data, (p,), effects, V0[None], Vk[None])[0]
-    return m, dr.md, Vk[:, 0] / data.x1
+    V0, Vk = _outputs(data, dr, (p,), effects)
+    m = _channel(data, (p,), effects, V0, Vk)[0]
+    return m, dr.md, Vk[0, :, 0] / data.x1
 
 
 def predict_many(data: RigData, ps: Sequence[Mapping[str, float]], effects: Mapping[str, int]) -> FloatArray:
@@ -256,5 +288,4 @@ def predict_many(data: RigData, ps: Sequence[Mapping[str, float]], effects: Mapp
     values (a Jacobian's forward differences, each of which changes one parameter: most stages are
     shared, ``_stage``, and the force channel is evaluated for all sets together)."""
     dr = _drive(data)
-    outs = [_output(data, dr, p, effects) for p in ps]
-    return _channel(data, ps, effects, np.array([o[0] for o in outs]), np.array([o[1] for o in outs]))
+    return _channel(data, ps, effects, *_outputs(data, dr, ps, effects))
