@@ -114,6 +114,36 @@ def test_settings_refuse_a_real_rig_without_token(tmp_path: Path) -> None:
     assert s2.token == "from-the-config-file" and s2.config.service.token is None  # never copied into recordings
 
 
+def test_a_simulated_station_may_store_cheaper_passwords_a_real_one_never(tmp_path: Path) -> None:
+    """``simulation.password_cost_log2`` (the tests' daemons: 10) sets the scrypt cost of the passwords
+    a --sim station stores, its unknown names' check included; a real rig's station stores the
+    product's 2**14 whatever the file says; a hash is checked at the cost stored with it."""
+    from station.lab import users
+
+    cfg = parse_config(daemon_config(tmp_path))
+    assert build_settings(cfg, sim=False, env={"STATION_TOKEN": "long-enough-token"}).password_n == users.SCRYPT_N
+    assert build_settings(cfg, sim=True, env={}).password_n == 2**10
+    default = daemon_config(tmp_path)
+    del default["simulation"]["password_cost_log2"]
+    assert build_settings(parse_config(default), sim=True, env={}).password_n == users.SCRYPT_N == 2**14
+    for bad in (9, 15):
+        with pytest.raises(ConfigError, match="password_cost_log2"):
+            parse_config({**default, "simulation": {**default["simulation"], "password_cost_log2": bad}})
+    store = Store(tmp_path / "users.db")
+    try:
+        users.put_user(store, "tina", users.Role.TECHNICIAN, "admin", password="tina-secret-pw", n=2**10)
+        users.put_user(store, "anton", users.Role.APPROVER, "admin", password="anton-secret-pw")
+        stored = {r["name"]: r["password"] for r in store.query("SELECT name, password FROM users")}
+        assert stored["tina"].startswith("scrypt$1024$8$1$") and stored["anton"].startswith("scrypt$16384$8$1$")
+        for n in (2**10, 2**14):  # each hash checked at its own cost on a station of either
+            assert users.check_login(store, "tina", "tina-secret-pw", n) is not None
+            assert users.check_login(store, "anton", "anton-secret-pw", n) is not None
+            assert users.check_login(store, "tina", "anton-secret-pw", n) is None
+            assert users.login_candidate(store, "nobody", n)[1].startswith(f"scrypt${n}$")
+    finally:
+        store.close()
+
+
 def test_recording_paths_stay_inside_the_recordings_folder(tmp_path: Path) -> None:
     cfg = parse_config(daemon_config(tmp_path / "rec"))
     m = RunManager(build_settings(cfg, sim=True, env={}))
