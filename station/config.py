@@ -296,6 +296,10 @@ class SimulationConfig(_Model):
     room_temperature_c: float = Field(default=20.0, ge=-40, le=80, description="the simulated room "
                                       "sensor's mean reading")
     room_humidity_pct: float = Field(default=45.0, ge=0, le=100)
+    password_cost_log2: int = Field(default=14, ge=10, le=14, description="scrypt cost of the passwords the "
+                                    "simulated station stores (N = 2**this; a check uses the cost stored "
+                                    "with the hash): lower for demonstrations and tests, whose users are "
+                                    "made and logged in often; a real rig's station always stores 2**14")
 
 
 class DevicesConfig(_Model):

@@ -63,9 +63,14 @@ ON_RIG_DONE = (*FINAL, "identifying")
 
 def daemon_config(data_dir: Path, **service: Any) -> dict[str, Any]:
     """The daemon tests' configuration as parsed YAML (recordings and database in ``data_dir``; the
-    render worker starts on first use unless ``render_at_start=True``)."""
-    return fast_dict(steps=((10.0, 0.001), (20.0, 0.001)), acceleration_hz_per_s=50.0, recordings_dir=data_dir,
-                     service={"render_at_start": False, **service})
+    render worker starts on first use unless ``render_at_start=True``; passwords stored at the
+    simulated station's least scrypt cost)."""
+    d = fast_dict(steps=((10.0, 0.001), (20.0, 0.001)), acceleration_hz_per_s=50.0, recordings_dir=data_dir,
+                  service={"render_at_start": False, **service})
+    # the simulated station's least password cost (2**10, not 2**14: some 3 ms a hash or check, not
+    # 70 ms); the tests make and log in users often, what a cost changes is tested in test_service.py
+    d["simulation"]["password_cost_log2"] = 10
+    return d
 
 
 def run_body(freqs: tuple[float, ...] = (10.0, 20.0), radius: float = 0.001, **step: Any) -> dict[str, Any]:

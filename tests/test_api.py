@@ -27,7 +27,7 @@ from station.recording import read_recording, read_stored
 from tests.recording_support import killed_in_place_write, small_recording
 from tests.station_support import (
     AUTH,
-    CAPPED_SPEEDUP,
+    CAPPED,
     FINAL,
     TOKEN,
     Daemon,
@@ -62,7 +62,7 @@ def held(seeded: tuple[Path, str], tmp_path_factory: pytest.TempPathFactory) -> 
     rec, rid = seeded
     copy = tmp_path_factory.mktemp("api-held") / "recordings"
     shutil.copytree(rec, copy)
-    app = HeldApp(copy, max_speedup=CAPPED_SPEEDUP)
+    app = HeldApp(copy, **CAPPED)  # idle between the tests: the lower cap
     try:
         yield app, rid
     finally:
@@ -72,7 +72,7 @@ def held(seeded: tuple[Path, str], tmp_path_factory: pytest.TempPathFactory) -> 
 def in_app(rec: Path, fn: Callable[[httpx.AsyncClient], Awaitable[T]], **kw: Any) -> T:
     """``fn(client)`` against the app in-process on the recordings folder ``rec``."""
     async def go() -> T:
-        async with app_in_process(rec, max_speedup=CAPPED_SPEEDUP, **kw) as (_, c):
+        async with app_in_process(rec, **CAPPED, **kw) as (_, c):
             return await fn(c)
     return asyncio.run(go())
 

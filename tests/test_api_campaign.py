@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from tests.station_support import CAPPED_SPEEDUP, HeldApp, Seed, daemon_config, seed_runs
+from tests.station_support import CAPPED, HeldApp, Seed, daemon_config, seed_runs
 
 # the campaign is computed in the render worker (a process start)
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("api_campaign")]
@@ -23,7 +23,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[HeldApp, li
     rec = tmp_path_factory.mktemp("campaign") / "recordings"
     ids = seed_runs(daemon_config(rec), [Seed((10.0, 80.0), 2e-4, top, seed=s)
                                          for s, top in ((1, 5.0), (2, 25.717))])
-    app = HeldApp(rec, max_speedup=CAPPED_SPEEDUP)
+    app = HeldApp(rec, **CAPPED)  # idle while the render worker computes: the lower cap
     try:
         yield app, ids
     finally:

@@ -32,7 +32,7 @@ import httpx
 import pytest
 
 from tests.recording_support import flip_bit
-from tests.station_support import AUTH, PASSWORDS, ROLES, Daemon, Seed
+from tests.station_support import AUTH, PASSWORDS, ROLES, Daemon, Seed, daemon_config
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("attacks")]  # with --dist loadgroup: one worker, one daemon
 
@@ -89,7 +89,12 @@ def _sql(path: Path, *stmts: str, args: tuple[Any, ...] = ()) -> None:
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
-    d = Daemon(tmp_path_factory.mktemp("attacks"), seeds=[Seed(seed=1)])
+    tmp = tmp_path_factory.mktemp("attacks")
+    cfg = daemon_config(tmp / "recordings")
+    # the product's password cost, not the tests' cheaper one: the login flood is a flood of real
+    # scrypt checks (about 0.1 s of CPU each), the load it must not pass on to other users
+    cfg["simulation"]["password_cost_log2"] = 14
+    d = Daemon(tmp, seeds=[Seed(seed=1)], config=cfg)
     [a] = d.seeded
     b = a  # refused issues write no file: run a serves them between the attacks on its files
     _sql(d.data_dir / "station.db", "UPDATE runs SET operator = ?", args=(OPERATOR,))
@@ -99,6 +104,10 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
         for name, role in ROLES.items():
             r = d.c().put(f"/users/{name}", json={"role": role, "password": PASSWORDS[name]})
             assert r.status_code == 200, r.text
+        db = sqlite3.connect(d.data_dir / "station.db")
+        stored = [r[0] for r in db.execute("SELECT password FROM users WHERE password != ''")]
+        db.close()
+        assert stored and all(h.startswith("scrypt$16384$") for h in stored), stored  # the product's cost
         users: dict[str, httpx.Client] = {}
         lab = Lab(d, a, b, users)
         for name in ROLES:

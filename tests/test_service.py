@@ -114,6 +114,81 @@ def test_settings_refuse_a_real_rig_without_token(tmp_path: Path) -> None:
     assert s2.token == "from-the-config-file" and s2.config.service.token is None  # never copied into recordings
 
 
+def test_a_simulated_station_may_store_cheaper_passwords_a_real_one_never(tmp_path: Path) -> None:
+    """``simulation.password_cost_log2`` (the tests' daemons: 10) sets the scrypt cost of the passwords
+    a --sim station stores, its unknown names' check included; a real rig's station stores the
+    product's 2**14 whatever the file says; a hash is checked at the cost stored with it."""
+    from station.lab import users
+
+    cfg = parse_config(daemon_config(tmp_path))
+    assert build_settings(cfg, sim=False, env={"STATION_TOKEN": "long-enough-token"}).password_n == users.SCRYPT_N
+    assert build_settings(cfg, sim=True, env={}).password_n == 2**10
+    default = daemon_config(tmp_path)
+    del default["simulation"]["password_cost_log2"]
+    assert build_settings(parse_config(default), sim=True, env={}).password_n == users.SCRYPT_N == 2**14
+    for bad in (9, 15):
+        with pytest.raises(ConfigError, match="password_cost_log2"):
+            parse_config({**default, "simulation": {**default["simulation"], "password_cost_log2": bad}})
+    store = Store(tmp_path / "users.db")
+    try:
+        users.put_user(store, "tina", users.Role.TECHNICIAN, "admin", password="tina-secret-pw", n=2**10)
+        users.put_user(store, "anton", users.Role.APPROVER, "admin", password="anton-secret-pw")
+        stored = {r["name"]: r["password"] for r in store.query("SELECT name, password FROM users")}
+        assert stored["tina"].startswith("scrypt$1024$8$1$") and stored["anton"].startswith("scrypt$16384$8$1$")
+        for n in (2**10, 2**14):  # each hash checked at its own cost on a station of either
+            assert users.check_login(store, "tina", "tina-secret-pw", n) is not None
+            assert users.check_login(store, "anton", "anton-secret-pw", n) is not None
+            assert users.check_login(store, "tina", "anton-secret-pw", n) is None
+            assert users.login_candidate(store, "nobody", n)[1].startswith(f"scrypt${n}$")
+    finally:
+        store.close()
+
+
+def test_a_pdf_is_the_kept_html_page_through_the_engine_and_each_is_drawn_once(tmp_path: Path) -> None:
+    """The report's and a draft certificate's PDF: the page the render worker drew (kept, as the HTML
+    form is served) sent to its PDF job, in either order; each form drawn once until a result is
+    stored beside the recording (then again).  The render worker counted (its jobs recorded, not run)."""
+    from station.service.artifacts import Artifacts
+
+    jobs: list[tuple[str, tuple[object, ...]]] = []
+
+    class Pool:
+        async def run(self, fn: object, *args: object) -> object:
+            name = getattr(fn, "__name__", "")
+            jobs.append((name, args))
+            page = f"<html>{name} {len(jobs)}</html>"
+            return {"report_job": page, "pdf_job": b"%PDF " + str(args[0]).encode(),
+                    "certificate_job": page.encode()}[name]
+
+    (tmp_path / "r1.h5").write_bytes(b"a recording")
+    row = RunRow(id="r1", state="completed", transducer_id="TX", top_mass_kg=25.0, request_json="{}",
+                 plan_json="{}", created=0.0, n_steps=1, recording="r1.h5")
+
+    async def get_row(run_id: str) -> RunRow:
+        return row
+
+    art = Artifacts(tmp_path, Pool(), get_row)  # type: ignore[arg-type]
+
+    async def go() -> None:
+        page = await art.report("r1")
+        assert await art.report_pdf("r1") == b"%PDF " + page.encode()
+        assert [j[0] for j in jobs] == ["report_job", "pdf_job"] and jobs[1][1] == (page,)
+        cert_pdf = await art.certificate("r1", "pdf")  # the PDF first: its page drawn for it, then kept
+        cert = await art.certificate("r1", "html")
+        assert cert_pdf == b"%PDF " + cert and b"certificate_job" in cert
+        assert [j[0] for j in jobs[2:]] == ["certificate_job", "pdf_job"] and jobs[2][1][1] == "html"
+        for _ in range(2):  # kept: nothing drawn again
+            assert (await art.report_pdf("r1"), await art.certificate("r1", "pdf")) == (b"%PDF " + page.encode(),
+                                                                                      cert_pdf)
+        assert len(jobs) == 4
+        results = tmp_path / "r1.results"
+        results.mkdir()
+        (results / "results.discrepancy.h5").write_bytes(b"a result")  # stored later: drawn again
+        assert await art.report_pdf("r1") != b"%PDF " + page.encode()
+        assert [j[0] for j in jobs[4:]] == ["report_job", "pdf_job"]
+    asyncio.run(go())
+
+
 def test_recording_paths_stay_inside_the_recordings_folder(tmp_path: Path) -> None:
     cfg = parse_config(daemon_config(tmp_path / "rec"))
     m = RunManager(build_settings(cfg, sim=True, env={}))

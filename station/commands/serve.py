@@ -142,7 +142,7 @@ def _demo_users(settings: ServiceSettings) -> None:
 
     store = Store(settings.database)
     try:
-        made = demo_users(store)
+        made = demo_users(store, settings.password_n)
     finally:
         store.close()
     where = f"http://{settings.host}:{settings.port}/" if settings.port else "the page"

@@ -24,8 +24,9 @@ class DemoUser:
     password: str | None  # None: a user of this name exists that the simulation did not make
 
 
-def demo_users(store: Store) -> list[DemoUser]:
-    """Make (or give new passwords to) the demonstration users; their passwords, once."""
+def demo_users(store: Store, n: int = users.SCRYPT_N) -> list[DemoUser]:
+    """Make (or give new passwords to) the demonstration users (hashed at scrypt cost ``n``); their
+    passwords, once."""
     out = []
     for name, role in DEMO_USERS:
         rows = store.query("SELECT created_by FROM users WHERE name = ?", (name,))
@@ -33,6 +34,6 @@ def demo_users(store: Store) -> list[DemoUser]:
             out.append(DemoUser(name, role, None))
             continue
         password = "-".join(secrets.token_hex(3) for _ in range(3))  # 20 characters, easy to type
-        users.put_user(store, name, role, DEMO_BY, password=password)
+        users.put_user(store, name, role, DEMO_BY, password=password, n=n)
         out.append(DemoUser(name, role, password))
     return out

@@ -93,10 +93,13 @@ class Principal:
 
 
 # ---------------------------------------------------------------------------------------------- hashes
-def hash_password(password: str) -> str:
+def hash_password(password: str, n: int = SCRYPT_N) -> str:
+    """The stored form of ``password``: scrypt with a new salt at cost ``n`` (the product's SCRYPT_N;
+    a simulated station's may be lower: ``simulation.password_cost_log2``).  The cost is part of the hash:
+    a check uses the one stored."""
     salt = secrets.token_bytes(16)
-    h = hashlib.scrypt(password.encode(), salt=salt, n=SCRYPT_N, r=SCRYPT_R, p=SCRYPT_P, dklen=32)
-    return f"scrypt${SCRYPT_N}${SCRYPT_R}${SCRYPT_P}${salt.hex()}${h.hex()}"
+    h = hashlib.scrypt(password.encode(), salt=salt, n=n, r=SCRYPT_R, p=SCRYPT_P, dklen=32)
+    return f"scrypt${n}${SCRYPT_R}${SCRYPT_P}${salt.hex()}${h.hex()}"
 
 
 def check_password(password: str, stored: str) -> bool:
@@ -148,10 +151,10 @@ def _check_new(name: str, password: str | None) -> None:
 
 
 def put_user(store: Store, name: str, role: Role, by: str, *, password: str | None = None,
-             disabled: bool = False) -> User:
-    """Add a user or change one's role, password (when given) or disabled flag."""
+             disabled: bool = False, n: int = SCRYPT_N) -> User:
+    """Add a user or change one's role, password (when given, hashed at scrypt cost ``n``) or disabled flag."""
     _check_new(name, password)
-    hashed = hash_password(password) if password is not None else None
+    hashed = hash_password(password, n) if password is not None else None
     now = time.time()
     with store.transaction() as db:
         old = db.execute("SELECT role, disabled FROM users WHERE name = ?", (name,)).fetchone()
@@ -223,30 +226,32 @@ def user_of_token(store: Store, text: str) -> User | None:
 
 
 # ---------------------------------------------------------------------------------------------- sessions
-_DUMMY: list[str] = []  # a password hash nobody has: checked for unknown, disabled and password-less names
+# a password hash nobody has, per scrypt cost: checked for unknown, disabled and password-less names
+_DUMMY: dict[int, str] = {}
 
 
-def _dummy_hash() -> str:
-    if not _DUMMY:
-        _DUMMY.append(hash_password(secrets.token_urlsafe(16)))
-    return _DUMMY[0]
+def _dummy_hash(n: int = SCRYPT_N) -> str:
+    if n not in _DUMMY:
+        _DUMMY[n] = hash_password(secrets.token_urlsafe(16), n)
+    return _DUMMY[n]
 
 
-def login_candidate(store: Store, name: str) -> tuple[User | None, str]:
+def login_candidate(store: Store, name: str, n: int = SCRYPT_N) -> tuple[User | None, str]:
     """(the user who may log in with a password, the hash to check): for an unknown, disabled or
-    password-less name (None, a hash nobody has), so that the check costs the same one scrypt
-    whatever the name is (no name can be told from another by the time a refusal takes)."""
+    password-less name (None, a hash nobody has, at the cost ``n`` the station stores passwords
+    with), so that the check costs the same one scrypt whatever the name is (no name can be told
+    from another by the time a refusal takes)."""
     rows = store.query("SELECT * FROM users WHERE name = ?", (name,)) if re.match(NAME_PATTERN, name) else []
     if not rows or not rows[0]["password"] or rows[0]["disabled"]:
-        return None, _dummy_hash()
+        return None, _dummy_hash(n)
     return _user(rows[0]), str(rows[0]["password"])
 
 
-def check_login(store: Store, name: str, password: str) -> User | None:
+def check_login(store: Store, name: str, password: str, n: int = SCRYPT_N) -> User | None:
     """The user if the name and password are right; None for a wrong name or password alike (one
-    scrypt check in every case: :func:`login_candidate`).  The daemon splits it: the look-up in its
-    read pool, the scrypt check in the login pool (``service/logins.py``)."""
-    user, stored = login_candidate(store, name)
+    scrypt check in every case: :func:`login_candidate`, ``n`` its cost).  The daemon splits it: the
+    look-up in its read pool, the scrypt check in the login pool (``service/logins.py``)."""
+    user, stored = login_candidate(store, name, n)
     ok = check_password(password, stored)
     return user if ok and user is not None else None
 

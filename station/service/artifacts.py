@@ -218,18 +218,28 @@ class Artifacts:
         hashes were stored is refused too).  What a report or a certificate reads first."""
         return await self.guard(row, required=required)
 
+    async def _report_html(self, run_id: str, path: Path, version: Any) -> str:
+        out: str = await self._cached((run_id, f"report:{hash(version)}"),
+                                      lambda: self._locked_job(run_id, worker.report_job, str(path)))
+        return out
+
     async def report(self, run_id: str) -> str:
         path = await self._completed_path(run_id)
         version = await asyncio.to_thread(results_version, path)
-        return await self._cached((run_id, f"report:{hash(version)}"),
-                                  lambda: self._locked_job(run_id, worker.report_job, str(path)))
+        return await self._report_html(run_id, path, version)
+
+    async def _as_pdf(self, page: Callable[[], Awaitable[str]]) -> bytes:
+        """The PDF of an HTML page (``page``: the page, kept like any rendering) in the render worker:
+        a page asked for as HTML before is not drawn again for its PDF, nor the other way round."""
+        return await self.render_pool.run(worker.pdf_job, await page())
 
     async def report_pdf(self, run_id: str) -> bytes:
-        """The report's HTML page as PDF (rendered in the render worker, cached like the page)."""
+        """The report's HTML page as PDF (``station.report.pdf``: the page through the HTML-to-PDF
+        engine; the page and the PDF each rendered in the render worker, cached)."""
         path = await self._completed_path(run_id)
         version = await asyncio.to_thread(results_version, path)
         out: bytes = await self._cached((run_id, f"report.pdf:{hash(version)}"),
-                                        lambda: self._locked_job(run_id, worker.report_pdf_job, str(path)))
+                                        lambda: self._as_pdf(lambda: self._report_html(run_id, path, version)))
         return out
 
     async def _register(self, run_id: str) -> dict[str, Any]:
@@ -250,9 +260,17 @@ class Artifacts:
         version = await asyncio.to_thread(results_version, path)
         # a draft is a function of the recording, its results and the register's records the run used
         # (no date in it): kept like the report, drawn again when a result is stored
-        key = f"certificate.{ext}:{hash((version, json.dumps(register, sort_keys=True)))}"
-        out: bytes = await self._cached((run_id, key), lambda: self._locked_job(
-            run_id, worker.certificate_job, str(path), ext, register))
+        drawn = hash((version, json.dumps(register, sort_keys=True)))
+
+        def form(ext: str) -> Awaitable[bytes]:
+            return self._cached((run_id, f"certificate.{ext}:{drawn}"), lambda: self._locked_job(
+                run_id, worker.certificate_job, str(path), ext, register))
+
+        async def page() -> str:
+            return (await form("html")).decode()
+        # the draft's PDF is its HTML page through the HTML-to-PDF engine (``certificate.issue.run_document``)
+        out: bytes = await (self._cached((run_id, f"certificate.pdf:{drawn}"), lambda: self._as_pdf(page))
+                            if ext == "pdf" else form(ext))
         return out
 
     async def issue_certificate(self, run_id: str, prepared_by: str, approver: str, roles: dict[str, str],

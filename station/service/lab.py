@@ -83,8 +83,11 @@ class LabService:
     """The lab's use cases on the daemon's database, for its lifetime."""
 
     def __init__(self, db: DbAccess, logins: LoginThrottle, passwords: PasswordPool, session_minutes: float,
-                 overdue_policy: str, recordings_dir: Path, artifacts: Artifacts) -> None:
+                 overdue_policy: str, recordings_dir: Path, artifacts: Artifacts, *,
+                 password_n: int = users.SCRYPT_N) -> None:
+        """``password_n``: the scrypt cost of the passwords stored (ServiceSettings.password_n)."""
         self.db = db
+        self.password_n = password_n
         self.logins = logins
         self.passwords = passwords
         self.session_minutes = session_minutes
@@ -107,7 +110,7 @@ class LabService:
         async with self.passwords.admitted() as admitted:
             if not admitted:
                 raise users.AuthError("too many logins at once: try again in a moment")
-            candidate, stored = await self.db.read(lambda s: users.login_candidate(s, name))
+            candidate, stored = await self.db.read(lambda s: users.login_candidate(s, name, self.password_n))
             ok = await self.passwords.check(users.check_password, password, stored)
         # locked out: the same work done (no lock-out told by its time), the answer unused
         user = candidate if ok and why is None else None
@@ -136,7 +139,7 @@ class LabService:
     async def put_user(self, name: str, role: users.Role, by: Principal, *, password: str | None,
                        disabled: bool) -> User:
         return await self.db.call(lambda s: users.put_user(s, name, role, by.name, password=password,
-                                                           disabled=disabled))
+                                                           disabled=disabled, n=self.password_n))
 
     async def issue_token(self, name: str, label: str, by: Principal) -> str:
         """A new API token's text for user ``name`` (shown once; only its hash is kept)."""

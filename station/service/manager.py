@@ -103,7 +103,8 @@ class RunManager:
             lambda s: users.keep_lock(s, key, n, until)))
         self.password_pool = PasswordPool()
         self.lab = LabService(self.db, self.logins, self.password_pool, self.cfg.lab.session_minutes,
-                              self.cfg.lab.overdue_standards, settings.recordings_dir, self.artifacts)
+                              self.cfg.lab.overdue_standards, settings.recordings_dir, self.artifacts,
+                              password_n=settings.password_n)
 
     # ------------------------------------------------------------------ life cycle
     async def start(self) -> None:

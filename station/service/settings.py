@@ -39,6 +39,15 @@ class ServiceSettings:
         return is_loopback(self.host)
 
     @property
+    def password_n(self) -> int:
+        """The scrypt cost N of the passwords this station stores: ``simulation.password_cost_log2``
+        on the simulated station (--sim), else always the product's (station.lab.users.SCRYPT_N)."""
+        from station.lab.users import SCRYPT_N
+
+        sim = self.config.simulation
+        return 2**sim.password_cost_log2 if self.sim and sim is not None else SCRYPT_N
+
+    @property
     def stop_port(self) -> int | None:
         """The stop port to listen on: ``service.stop_port``; unset: ``port`` + 1 (none when the
         port is chosen by the system); 0: none."""

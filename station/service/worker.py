@@ -150,10 +150,12 @@ def report_job(path: str) -> str:
 
 
 @worker_job
-def report_pdf_job(path: str) -> bytes:
-    from station.report.pdf import render_report_pdf
+def pdf_job(html: str) -> bytes:
+    """PDF bytes of an HTML page (``station.report.render.html_to_pdf``: the report's and the
+    certificates' engine); the daemon sends the page it has rendered and kept."""
+    from station.report.render import html_to_pdf
 
-    return render_report_pdf(Path(path))
+    return html_to_pdf(html)
 
 
 @worker_job
