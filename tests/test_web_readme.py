@@ -18,9 +18,14 @@ compensation section (on a third seeded run, 10 and 80 Hz): state the applicatio
 plain words with its details and plot, download it, correct an uploaded signal file and download the
 result; a refusal says why.
 
+And last, the follow-up run: a 3-40 Hz run of a transducer on a soft coupling (k_c = 2 k_f) cannot
+tell the coupling from a delay or a low-pass; the page shows the proposed steps under the run's model
+gap; one click starts them (the run's own steps plus the added ones).
+
 One daemon and one browser for the module's tests (a daemon's and a browser's start each cost a few
-seconds of CPU), each test on a run of its own; its store holds the lab's three seeded runs and a
-second transducer before the README's steps begin.
+seconds of CPU), each test on a run of its own; its store holds the lab's three seeded runs, the soft
+coupling's 3-40 Hz run (simulated with that coupling and identified as the daemon would, so that no
+real-time run is needed to make it) and a second transducer before the README's steps begin.
 
 Skipped only when no Chromium is installed and CI is not set; under CI it must run.
 """
@@ -41,7 +46,7 @@ import pytest
 from lxml import etree
 from pypdf import PdfReader
 
-from tests.station_support import Daemon, Seed, daemon_config
+from tests.station_support import Daemon, Seed, daemon_config, seed_runs
 from tests.web_support import POLL_MS, log_in, open_page
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("web_readme")]  # a real daemon, real runs and a real browser
@@ -55,6 +60,8 @@ PAGES = {"#/": "#runs tbody tr", "#/register": "#reg-transducers tbody tr", "#/a
          "#/transducers/TX5K-0001": "#hist-runs tbody tr"}
 SEEDS = (Seed(seed=1), Seed(seed=2), Seed((10.0, 80.0), 2e-4, 25.717, seed=1))  # the lab's history
 COMPENSATION = 2  # the seeded run the compensation section works on (10 and 80 Hz, 0.2 mm)
+K_F, B_F = 2.91e7, 17136.0  # the truth of config/sim-5kN.yaml (N/m, N*s/m)
+TIE_STEPS = (3.0, 5.036, 8.455, 14.193, 23.827, 40.0)  # the soft coupling's run (Hz, at 1.25 mm)
 
 
 def _readme_user() -> str:
@@ -75,12 +82,18 @@ def _printed_password(log: str, name: str) -> str:
 @pytest.fixture(scope="module")
 def station(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
     """The simulated station as the README starts it (one for the module's tests), with the lab's
-    seeded runs (``SEEDS``) and a second transducer in its register."""
+    seeded runs (``SEEDS``), the soft coupling's run (``tie_run``) and a second transducer in its
+    register."""
     tmp = tmp_path_factory.mktemp("readme")
     # the report and the certificate PDF render while the run runs, not after a worker's start
     cfg = daemon_config(tmp / "recordings", render_at_start=True)
     cfg["identification"]["methods"] = [{"method": "fd", "model": "auto"}]  # the primary; others: test_web.py
+    coupled = daemon_config(tmp / "recordings")
+    coupled["simulation"]["effects"] = {"coupling_compliance": {"k_c": 2 * K_F, "b_c": 0.5 * B_F}}
+    coupled["rig"]["acceleration_hz_per_s"] = 100.0
+    tie = seed_runs(coupled, [Seed(TIE_STEPS, 0.00125)])
     with Daemon(tmp, config=cfg, seeds=SEEDS) as d:
+        d.seeded = [*d.seeded, *tie]  # the lab's runs, then the soft coupling's
         r = d.c().put("/register/transducers/TX5K-0002", json={
             "type": "HBM U9C", "serial": "SN-42", "capacity_N": 5000.0, "sensitivity_V_per_N": 2e-6,
             "end_mass_kg": 0.1, "owner": "ACME Weighing"})
@@ -423,3 +436,41 @@ def test_design_download_and_correct_a_signal_on_the_page(browser: object, daemo
         pg.wait_for_function("document.querySelector('#comp-apply-msg').textContent.includes('line 3')",
                              polling=POLL_MS)
         assert "not a finite number" in pg.inner_text("#comp-apply-msg")
+
+
+# ------------------------------------------------------------------- the follow-up run, last
+def test_proposal_of_an_unknown_run_is_404(daemon: Daemon) -> None:
+    r = daemon.c().get("/runs/no-such-run/proposal")
+    assert r.status_code == 404 and "detail" in r.json()
+
+
+def test_run_the_proposed_steps_with_one_click(browser: object, daemon: Daemon) -> None:
+    rid = daemon.seeded[len(SEEDS)]  # the soft coupling's 3-40 Hz run
+    assert daemon.c().get(f"/runs/{rid}").json()["state"] == "completed"
+    assert daemon.c().get(f"/runs/{rid}/proposal").status_code == 404  # not analysed yet: a GET computes nothing
+    assert daemon.c().post(f"/runs/{rid}/discrepancy", timeout=180).status_code == 200  # the analysis itself
+    api = daemon.c().get(f"/runs/{rid}/proposal").json()
+    prop = api["proposal"]
+    assert prop is not None and prop["steps"], api
+    assert "coupling_compliance" in prop["separates"] or prop["separates"] == ["k_f"], prop
+    want = [(s["crank_frequency_hz"], s["crank_radius_m"]) for s in prop["run_steps"]]
+    assert want[: len(TIE_STEPS)] == [(f, 0.00125) for f in TIE_STEPS]
+    assert [(s["crank_frequency_hz"], s["crank_radius_m"]) for s in api["request"]["steps"]] == want
+    # the page shows the proposal under the analysis and runs it with one click
+    with open_page(browser, daemon.url + "/") as pg:  # and no JavaScript error on the page
+        log_in(pg, daemon)
+        pg.goto(f"{daemon.url}/#/runs/{rid}")
+        pg.wait_for_selector("#run-proposal", timeout=90_000)
+        rows = pg.locator("#proposal tbody tr")
+        assert rows.count() == len(prop["steps"])
+        assert f"{prop['steps'][0]['crank_frequency_hz']:g}" in rows.nth(0).inner_text()
+        pg.click("#run-proposal")
+        pg.wait_for_url(re.compile(r".*#/runs/(?!" + re.escape(rid) + r"$).+"), timeout=15_000)
+        new = pg.inner_text("#run-id")
+    assert new != rid
+    st = daemon.c().get(f"/runs/{new}").json()
+    assert [(s["crank_frequency_hz"], s["crank_radius_m"]) for s in st["steps"]] == want
+    # that the proposed run settles the tie is shown end to end in test_discrepancy_propose.py; here
+    # the run is stopped to keep the suite short
+    assert daemon.c().post(f"/runs/{new}/abort").status_code == 202
+    assert daemon.wait_state(new)["state"] in ("aborted", "completed")
