@@ -82,13 +82,14 @@ def _printed_password(log: str, name: str) -> str:
 @pytest.fixture(scope="module")
 def station(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
     """The simulated station as the README starts it (one for the module's tests), with the lab's
-    seeded runs (``SEEDS``), the soft coupling's run (``tie_run``) and a second transducer in its
-    register."""
+    seeded runs (``SEEDS``), the soft coupling's run (``TIE_STEPS``; simulated with that coupling,
+    identified as this station would) and a second transducer in its register."""
     tmp = tmp_path_factory.mktemp("readme")
     # the report and the certificate PDF render while the run runs, not after a worker's start
     cfg = daemon_config(tmp / "recordings", render_at_start=True)
     cfg["identification"]["methods"] = [{"method": "fd", "model": "auto"}]  # the primary; others: test_web.py
     coupled = daemon_config(tmp / "recordings")
+    coupled["identification"] = cfg["identification"]
     coupled["simulation"]["effects"] = {"coupling_compliance": {"k_c": 2 * K_F, "b_c": 0.5 * B_F}}
     coupled["rig"]["acceleration_hz_per_s"] = 100.0
     tie = seed_runs(coupled, [Seed(TIE_STEPS, 0.00125)])
