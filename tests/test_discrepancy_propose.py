@@ -100,7 +100,7 @@ def test_the_proposed_run_resolves_the_tie_on_the_rig_path(
     """The same over the rig path of ``station calibrate --sim`` (emulated motor and DAQ bridge, the
     drivers, the procedure, the HDF5 recording, processing), in-process on the virtual clock; the
     wire itself is covered by the real-time layer (tests/test_calibrate_e2e.py, the page's one-click
-    run in tests/test_web_proposal.py)."""
+    run in tests/test_web_readme.py)."""
     cfg, _, rep = coupling_tie  # conftest.coupling_tie_config: k_c = 2 k_f, b_c = 0.5 b_f, 3-40 Hz, 1 s records
     assert rep.proposal is not None and "coupling_compliance" in rep.proposal.separates
     req = RunRequest(transducer_id=cfg.transducer.id, top_mass_kg=cfg.rig.top_mass_kg,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import weakref
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -72,11 +73,19 @@ def open_page(browser: Any, url: str, *, no_errors: bool = True, **context: Any)
     assert not no_errors or errors == [], errors
 
 
+# the users each daemon was given by ``log_in`` (a module's tests log in as the same person again and
+# again: the station's password hash, scrypt, is made once per user and daemon, not once per login)
+_MADE: weakref.WeakKeyDictionary[Any, set[str]] = weakref.WeakKeyDictionary()
+
+
 def log_in(page: object, daemon: object, name: str = "tina") -> None:
-    """Make user ``name`` (technician tina, approver anton, administrator ada) with the daemon's admin token, then log
-    in on the page as a person would (the session cookie is the page's only credential)."""
-    r = daemon.c().put(f"/users/{name}", json={"role": ROLES[name], "password": PASSWORDS[name]})  # type: ignore[attr-defined]
-    assert r.status_code == 200, r.text
+    """Make user ``name`` (technician tina, approver anton, administrator ada) with the daemon's admin token (once
+    per daemon), then log in on the page as a person would (the session cookie is the page's only credential)."""
+    made = _MADE.setdefault(daemon, set())
+    if name not in made:
+        r = daemon.c().put(f"/users/{name}", json={"role": ROLES[name], "password": PASSWORDS[name]})  # type: ignore[attr-defined]
+        assert r.status_code == 200, r.text
+        made.add(name)
     page.fill("#login-name", name)  # type: ignore[attr-defined]
     page.fill("#login-password", PASSWORDS[name])  # type: ignore[attr-defined]
     page.click("#login")  # type: ignore[attr-defined]
