@@ -13,10 +13,7 @@ above 1 the covariance is inflated by chi^2/dof (Birge ratio) and a note says so
 
 from __future__ import annotations
 
-import hashlib
 import logging
-import threading
-from collections import OrderedDict
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -24,6 +21,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from station.ident.models import Model, SdofModel
+from station.ident.response.kept import Kept, content_key
 from station.ident.response.sinefit import SineFit, estimate_frequency, fit_channels, with_quantisation
 
 FloatArray = NDArray[np.float64]
@@ -55,28 +53,16 @@ def ratio_cov(U: complex, Cu: FloatArray, A: complex, Ca: FloatArray) -> tuple[c
     return H, Ju @ Cu @ Ju.T + Ja @ Ca @ Ja.T
 
 
-STEP_CACHE_SIZE = 256  # steps whose H is kept (a few kB each): a run is identified once per distinct step
-_step_cache: OrderedDict[bytes, StepItem] = OrderedDict()
-_step_cache_lock = threading.Lock()
-
-
-def _step_key(t: FloatArray, x_m: FloatArray, u_V: FloatArray, f_nominal_hz: float, n_harmonics: int,
-              fit_frequency: bool) -> bytes:
-    """Digest of everything ``step_response`` is a function of: the three arrays (bytes, dtype, shape)
-    and the settings."""
-    h = hashlib.blake2b(digest_size=20)
-    for a in (t, x_m, u_V):
-        a = np.ascontiguousarray(a)
-        h.update(f"{a.dtype.str}{a.shape}".encode())
-        h.update(a.data)
-    h.update(repr((float(f_nominal_hz), int(n_harmonics), bool(fit_frequency))).encode())
-    return h.digest()
+STEP_CACHE_SIZE = 256  # steps whose H is kept (a few kB each)
 
 
 def _fresh(item: StepItem) -> StepItem:
     """A copy of a step's item whose arrays the caller may change without changing the kept one."""
     H, C, fx, fu = item
     return (H, C.copy(), replace(fx, phasor_cov=fx.phasor_cov.copy()), replace(fu, phasor_cov=fu.phasor_cov.copy()))
+
+
+_steps: Kept[StepItem] = Kept(STEP_CACHE_SIZE, _fresh)
 
 
 def step_response(t: FloatArray, x_m: FloatArray, u_V: FloatArray, f_nominal_hz: float,
@@ -86,29 +72,19 @@ def step_response(t: FloatArray, x_m: FloatArray, u_V: FloatArray, f_nominal_hz:
     error that its noise does not dither is in its phasor's covariance (``sinefit.quantisation_cov``).
     Returns (H, cov, fx, fu).
 
-    A function of its arguments only: the last ``STEP_CACHE_SIZE`` steps' items are kept by the digest
-    of their samples and settings, so the same data identified again (the report after the
-    identification, a recording copied or re-imported, an edited run whose other steps are unchanged)
-    is not fitted again (``step_cache_clear()`` drops them)."""
-    key = _step_key(t, x_m, u_V, f_nominal_hz, n_harmonics, fit_frequency)
-    with _step_cache_lock:
-        kept = _step_cache.get(key)
-        if kept is not None:
-            _step_cache.move_to_end(key)
-    if kept is not None:
-        return _fresh(kept)
-    item = _step_response(t, x_m, u_V, f_nominal_hz, n_harmonics, fit_frequency)
-    with _step_cache_lock:
-        _step_cache[key] = _fresh(item)
-        while len(_step_cache) > STEP_CACHE_SIZE:
-            _step_cache.popitem(last=False)
-    return item
+    A function of its arguments only: the last ``STEP_CACHE_SIZE`` steps' items are kept by the
+    content of their samples and settings (``kept``), so the same data is not fitted twice in a process
+    (``step_cache_clear()`` drops them)."""
+    key = content_key(t, x_m, u_V, settings=(float(f_nominal_hz), int(n_harmonics), bool(fit_frequency)))
+    return _steps.get(key, lambda: _step_response(t, x_m, u_V, f_nominal_hz, n_harmonics, fit_frequency))
 
 
 def step_cache_clear() -> None:
-    """Drop the kept step items (``step_response``)."""
-    with _step_cache_lock:
-        _step_cache.clear()
+    """Drop the kept step items (``step_response``) and force frequencies (``redundancy.clock_check``)."""
+    from station.ident.response.redundancy import clock_cache_clear
+
+    _steps.clear()
+    clock_cache_clear()
 
 
 def _step_response(t: FloatArray, x_m: FloatArray, u_V: FloatArray, f_nominal_hz: float, n_harmonics: int,
