@@ -99,3 +99,39 @@ def test_oe_reported_uncertainty_matches_monte_carlo() -> None:
     ratio = np.mean(rep, axis=0) / est.std(axis=0, ddof=1)
     assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio
     assert abs(est[:, 1].mean() / TH5[1] - 1) < 1e-3
+
+
+def test_a_step_is_fitted_once_and_anything_it_depends_on_fits_it_again(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``step_response`` keeps a step's fits by content: the same samples and settings give the kept
+    item (equal to the one computed, not fitted again, its arrays the caller's own); a changed sample,
+    dtype, frequency start, harmonic count or fixed frequency is fitted anew."""
+    import station.ident.response.frf as frf
+
+    s = stepped_sine(M5, TH5, F[:1], R[:1], fs_hz=FS, duration_s=DUR, sigma_x_m=SX, sigma_u_V=SU, seed=5)[0]
+    frf.step_cache_clear()
+    fitted: list[float] = []
+    computed = frf._step_response
+    monkeypatch.setattr(frf, "_step_response", lambda *a: fitted.append(a[3]) or computed(*a))
+    first = frf.step_response(s.t, s.x, s.u, s.f_hz)
+    first[1][0, 0] = np.nan  # the caller's copy: the kept item is not changed through it
+    first[2].phasor_cov[0, 0] = np.nan
+    again = frf.step_response(s.t.copy(), s.x.copy(), s.u.copy(), s.f_hz)
+    assert len(fitted) == 1
+    fresh = computed(s.t, s.x, s.u, s.f_hz, 3, True)
+    assert again[0] == fresh[0] and np.array_equal(again[1], fresh[1])
+    for kept, fit in zip(again[2:], fresh[2:], strict=True):  # the sine fits, field by field
+        assert np.array_equal(kept.phasor_cov, fit.phasor_cov)
+        assert (kept.frequency_hz, kept.frequency_std_hz, kept.phasor, kept.offset, kept.residual_rms,
+                kept.harmonics) == (fit.frequency_hz, fit.frequency_std_hz, fit.phasor, fit.offset,
+                                    fit.residual_rms, fit.harmonics)
+    x = s.x.copy()
+    x[7] += 1e-9
+    frf.step_response(s.t, x, s.u, s.f_hz)
+    frf.step_response(s.t, s.x.astype(np.float32), s.u, s.f_hz)
+    frf.step_response(s.t, s.x, s.u, s.f_hz * 1.001)
+    frf.step_response(s.t, s.x, s.u, s.f_hz, n_harmonics=2)
+    frf.step_response(s.t, s.x, s.u, s.f_hz, fit_frequency=False)
+    assert len(fitted) == 6
+    frf.step_cache_clear()
+    frf.step_response(s.t, s.x, s.u, s.f_hz)
+    assert len(fitted) == 7

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from station.ident.models import Model, SdofModel
+from station.ident.response.kept import Kept, content_key
 from station.ident.response.sinefit import SineFit, estimate_frequency, fit_channels, with_quantisation
 
 FloatArray = NDArray[np.float64]
@@ -52,12 +53,43 @@ def ratio_cov(U: complex, Cu: FloatArray, A: complex, Ca: FloatArray) -> tuple[c
     return H, Ju @ Cu @ Ju.T + Ja @ Ca @ Ja.T
 
 
+STEP_CACHE_SIZE = 256  # steps whose H is kept (a few kB each)
+
+
+def _fresh(item: StepItem) -> StepItem:
+    """A copy of a step's item whose arrays the caller may change without changing the kept one."""
+    H, C, fx, fu = item
+    return (H, C.copy(), replace(fx, phasor_cov=fx.phasor_cov.copy()), replace(fu, phasor_cov=fu.phasor_cov.copy()))
+
+
+_steps: Kept[StepItem] = Kept(STEP_CACHE_SIZE, _fresh)
+
+
 def step_response(t: FloatArray, x_m: FloatArray, u_V: FloatArray, f_nominal_hz: float,
                   *, n_harmonics: int = 3, fit_frequency: bool = True) -> StepItem:
     """H at one step: 4-parameter fit of the displacement (frequency), 3-parameter fit of the force
     at that frequency, both with harmonics up to n_harmonics as nuisance; a channel's quantisation
     error that its noise does not dither is in its phasor's covariance (``sinefit.quantisation_cov``).
-    Returns (H, cov, fx, fu)."""
+    Returns (H, cov, fx, fu).
+
+    A function of its arguments only: the last ``STEP_CACHE_SIZE`` steps' items are kept by the
+    content of their samples and settings (``kept``), so the same data is not fitted twice in a process
+    (``step_cache_clear()`` drops them)."""
+    key = content_key(t, x_m, u_V, settings=(float(f_nominal_hz), int(n_harmonics), bool(fit_frequency)))
+    return _steps.get(key, lambda: _step_response(t, x_m, u_V, f_nominal_hz, n_harmonics, fit_frequency))
+
+
+def step_cache_clear() -> None:
+    """Drop the kept step items (``step_response``) and force frequencies (``redundancy.clock_check``)."""
+    from station.ident.response.redundancy import clock_cache_clear
+
+    _steps.clear()
+    clock_cache_clear()
+
+
+def _step_response(t: FloatArray, x_m: FloatArray, u_V: FloatArray, f_nominal_hz: float, n_harmonics: int,
+                   fit_frequency: bool) -> StepItem:
+    """``step_response`` computed."""
     if fit_frequency:
         f, f_std, tc = estimate_frequency(t, x_m, f_nominal_hz, n_harmonics=n_harmonics)
     else:

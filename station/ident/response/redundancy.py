@@ -34,6 +34,7 @@ from dataclasses import replace
 import numpy as np
 
 from station.ident.inputs import IdentInputs
+from station.ident.response.kept import Kept, content_key
 from station.ident.response.sinefit import SineFit, estimate_frequency
 from station.ident.result import Check, Estimate
 from station.vocabulary import Severity
@@ -133,6 +134,21 @@ def beside_clock_skew(checks: list[Check]) -> list[Check]:
             if c.name in ("coupling_suspected", "coupling_not_excluded", "model_misfit") else c for c in checks]
 
 
+_force_frequencies: Kept[tuple[float, float]] = Kept(256, lambda v: v)
+
+
+def _force_frequency(t: np.ndarray, force: np.ndarray, f0_hz: float, n_harmonics: int) -> tuple[float, float]:
+    """(f, f_std) of the force samples (``sinefit.estimate_frequency`` from f0_hz), kept by the
+    content of the samples and settings (``kept``): the same step checked again is not fitted again."""
+    key = content_key(t, force, settings=(float(f0_hz), int(n_harmonics)))
+    return _force_frequencies.get(key, lambda: estimate_frequency(t, force, f0_hz, n_harmonics=n_harmonics)[:2])
+
+
+def clock_cache_clear() -> None:
+    """Drop the kept force frequencies."""
+    _force_frequencies.clear()
+
+
 def clock_check(steps: dict[int, tuple[np.ndarray, np.ndarray, SineFit]], n_harmonics: int) -> Check | None:
     """Both channels' frequencies per step (``steps``: index -> (t s, force V, displacement fit));
     a warning when the force's differs from the displacement's beyond ``Z_CLOCK`` over the steps."""
@@ -140,7 +156,7 @@ def clock_check(steps: dict[int, tuple[np.ndarray, np.ndarray, SineFit]], n_harm
     for t, force, fx in steps.values():
         k = max(1, t.size // CLOCK_SAMPLES)  # a subsample: its frequency is precise enough for a few ppm
         try:
-            fu, fu_std, _ = estimate_frequency(t[::k], force[::k], fx.frequency_hz, n_harmonics=n_harmonics)
+            fu, fu_std = _force_frequency(t[::k], force[::k], fx.frequency_hz, n_harmonics)
         except (np.linalg.LinAlgError, ValueError, FloatingPointError):
             continue
         s2 = (fu_std**2 + fx.frequency_std_hz**2) / fx.frequency_hz**2
