@@ -12,7 +12,7 @@
    fitness) per particle, evaluation and sample; ``ratio`` = that over the reference's.
 2. The expert estimator (sine fits + weighted LM, ``identify_fd``) against PSO+ on the same data:
    a simulated 5 kN stepped-sine run (config/sim-5kN.yaml).  ``expert_s`` with the sine fits computed
-   each time; ``expert_same_data_again_s`` with them kept (``ident/response/kept``: the same
+   each time; ``expert_same_data_again_s`` with them kept (``station/kept``: the same
    recording identified again in a process).  PSO+ gets every step (resampled to
    2 kHz, 200 points per step, Eq. 15 summed over steps, Eq. 11 mapped to k_f, b_f with the masses).
 

@@ -9,11 +9,9 @@ the time-domain residual energy the model can change (the LS residual energy ``s
 
 from __future__ import annotations
 
-import hashlib
 import itertools
 import logging
 import math
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +30,7 @@ from station.discrepancy.decompose import (
 )
 from station.discrepancy.spectrum import MainsDetection, detect_mains, significant_lines
 from station.errors import StationError
+from station.kept import Kept, content_key
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -194,22 +193,17 @@ def _too_short(window_s: float, f_hz: float) -> str:
     return ""
 
 
-_PREPARED: OrderedDict[bytes, RigData] = OrderedDict()
+_PREPARED: Kept[RigData] = Kept(4, lambda data: data)  # the same frozen RigData given again (``prepare``)
 
 
 def _content_key(rec: Recording) -> bytes:
     """A digest of everything ``prepare`` reads of a recording: the channels, the steps, the step
     documents' time origins, the rate, the masses, the capacity, the sensitivity and the path (its
     messages name it)."""
-    h = hashlib.blake2b(digest_size=32)
-    for a in (rec.displacement_m, rec.force_V):
-        arr = np.ascontiguousarray(a)
-        h.update(repr((arr.dtype.str, arr.shape)).encode())
-        h.update(arr.tobytes())
     t0 = [(d.get("index"), d.get("t0_s")) for d in rec.documents if d.get("kind") == "step"]
-    h.update(repr((str(rec.path), rec.sample_rate_hz, rec.steps, t0, rec.load_mass_kg, rec.end_mass_kg,
-                   rec.capacity_N, rec.sensitivity_V_per_N)).encode())
-    return h.digest()
+    return content_key(rec.displacement_m, rec.force_V, settings=(
+        str(rec.path), rec.sample_rate_hz, rec.steps, t0, rec.load_mass_kg, rec.end_mass_kg, rec.capacity_N,
+        rec.sensitivity_V_per_N))
 
 
 def prepare(rec: Recording) -> RigData:
@@ -218,16 +212,7 @@ def prepare(rec: Recording) -> RigData:
     A function of the recording's content: the same content asked again (the text and the JSON of one
     recording, the daemon's analysis after the command's) gives the same frozen ``RigData`` again, so
     that the fits kept for it (``fit.fit_model``) are given again too (the few most recent are kept)."""
-    key = _content_key(rec)
-    hit = _PREPARED.get(key)
-    if hit is not None:
-        _PREPARED.move_to_end(key)
-        return hit
-    data = _prepare(rec)
-    _PREPARED[key] = data
-    if len(_PREPARED) > 4:
-        _PREPARED.popitem(last=False)
-    return data
+    return _PREPARED.get(_content_key(rec), lambda: _prepare(rec))
 
 
 def _prepare(rec: Recording) -> RigData:

@@ -126,6 +126,15 @@ def _weights(data: RigData) -> _Weights:
     return w
 
 
+def _to_value(conversion: tuple[int, float, float], u: float) -> float:
+    """A parameter's physical value at its fit coordinate ``u``: ``conversion`` = (0 linear / 1 logarithm /
+    2 reciprocal, centre, scale), ``Problem._conversion``."""
+    kind, c, s = conversion
+    if kind == 2:
+        return 1.0 / (1.0 / c + s * u)
+    return c * math.exp(s * u) if kind == 1 else c + s * u
+
+
 class Problem:
     """The residual function of one model on one data set (internal variables u, see catalogue)."""
 
@@ -139,6 +148,9 @@ class Problem:
                        for q in self.params}
         sc = scales(dict(start), data)
         self.scale = {q.name: sc[q.name] for q in self.params}
+        # each parameter's (0 linear / 1 logarithm / 2 reciprocal, centre, scale), made once: ``to_value``
+        self._conversion = {q.name: (2 if q.reciprocal else 1 if q.log else 0, self.centre[q.name],
+                                     self.scale[q.name]) for q in self.params}
         self.fixed = {**NEUTRAL, **{k: v for k, v in start.items() if k not in self.centre}}
         w = _weights(data)
         self.Wf, self.Wd, self.valid_f = w.Wf, w.Wd, w.valid_f
@@ -148,17 +160,11 @@ class Problem:
         self.eiv, self.EW, self.EWc = w.eiv, w.EW, w.EWc
         self.additive = tuple(i for i, q in enumerate(self.params) if q.additive)
         self._lo, self._hi = self.bounds()
-        # (name, 0 linear / 1 logarithm / 2 reciprocal, centre, scale): ``to_value`` of each, for ``values``
-        self._kinds = tuple((q.name, 2 if q.reciprocal else 1 if q.log else 0, self.centre[q.name],
-                             self.scale[q.name]) for q in self.params)
         self._columns: FloatArray | None = None
         self._last: tuple[bytes, FloatArray] | None = None
 
     def to_value(self, q: Param, u: float) -> float:
-        c, s = self.centre[q.name], self.scale[q.name]
-        if q.reciprocal:
-            return 1.0 / (1.0 / c + s * u)
-        return c * math.exp(s * u) if q.log else c + s * u
+        return _to_value(self._conversion[q.name], u)
 
     def dvalue(self, q: Param, u: float) -> float:
         if q.reciprocal:
@@ -185,13 +191,8 @@ class Problem:
     def values(self, u: Sequence[float] | FloatArray) -> dict[str, float]:
         """The physical values at u by name (``to_value`` of each parameter, the fixed ones with them)."""
         out = dict(self.fixed)
-        for (name, kind, c, s), x in zip(self._kinds, np.asarray(u, dtype=float).tolist(), strict=True):
-            if kind == 0:
-                out[name] = c + s * x
-            elif kind == 1:
-                out[name] = c * math.exp(s * x)
-            else:
-                out[name] = 1.0 / (1.0 / c + s * x)
+        for (name, conversion), x in zip(self._conversion.items(), np.asarray(u, dtype=float).tolist(), strict=True):
+            out[name] = _to_value(conversion, x)
         return out
 
     def whitened(self, p: Mapping[str, float]) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:

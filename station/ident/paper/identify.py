@@ -25,8 +25,6 @@ as published; the value reported is the caller's seed's.
 
 from __future__ import annotations
 
-import hashlib
-from collections import OrderedDict
 from dataclasses import replace
 
 import numpy as np
@@ -51,28 +49,22 @@ from station.ident.result import (
 )
 from station.ident.structure import MIN_PLAUSIBLE_COUPLING_RATIO, plausible_coupling
 from station.ident.uncertainty import ParameterBudget, UncertaintyBudget
+from station.kept import Kept, content_key
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
 DEFAULT_POLICY = Policy()
 DEFAULT_PROTOCOL = PaperProtocol()
 STABILITY_SEEDS = (0, 1, 2)
-_SwarmKey = tuple[str, PsoSettings, int, float, str]  # form, settings, seed, T, a digest of the data
-
-
 # the last few swarm runs, (b, a, result) of identify_digital: the stability seeds are shared
-_SWARMS: OrderedDict[_SwarmKey, tuple[FloatArray, FloatArray, PsoResult]] = OrderedDict()
+_SWARMS: Kept[tuple[FloatArray, FloatArray, PsoResult]] = Kept(16, lambda run: run)
 
 
 def _swarm(form: str, data: PaperData, settings: PsoSettings,
            seed: int) -> tuple[FloatArray, FloatArray, PsoResult]:
     """identify_digital, remembered for the last 16 (form, settings, seed, data) in this process."""
-    key = (form, settings, seed, data.T, hashlib.sha1(data.x_id.tobytes() + data.y_id.tobytes()).hexdigest())
-    if key not in _SWARMS:
-        _SWARMS[key] = identify_digital(form, data.x_id, data.y_id, settings, seed)
-        while len(_SWARMS) > 16:
-            _SWARMS.popitem(last=False)
-    return _SWARMS[key]
+    key = content_key(data.x_id, data.y_id, settings=(form, settings, seed, data.T))
+    return _SWARMS.get(key, lambda: identify_digital(form, data.x_id, data.y_id, settings, seed))
 
 
 def _physical(form: str, theta: FloatArray) -> str:

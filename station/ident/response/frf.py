@@ -21,8 +21,8 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from station.ident.models import Model, SdofModel
-from station.ident.response.kept import Kept, content_key
 from station.ident.response.sinefit import SineFit, estimate_frequency, fit_channels, with_quantisation
+from station.kept import Kept, content_key
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]

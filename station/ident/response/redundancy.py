@@ -34,9 +34,9 @@ from dataclasses import replace
 import numpy as np
 
 from station.ident.inputs import IdentInputs
-from station.ident.response.kept import Kept, content_key
 from station.ident.response.sinefit import SineFit, estimate_frequency
 from station.ident.result import Check, Estimate
+from station.kept import Kept, content_key
 from station.vocabulary import Severity
 
 Z_FINDING = 3.0  # combined standard uncertainties beyond which a disagreement is a finding

@@ -1,8 +1,9 @@
-"""Results kept by the content of their inputs: the sine fits of a step are a function of its samples
-and settings only, so the same data identified again in a process (the report after the
-identification, a recording copied or re-imported, an edited run whose other steps are unchanged) is
-not fitted again.  A key is the SHA-256 of the arrays (dtype, shape, bytes) and of the settings' repr;
-a store keeps its last ``size`` results (least recently used dropped first)."""
+"""Results kept by the content of their inputs, the station's one such store: a computation that is a
+function of arrays and settings only is not done again in a process for the same content (a step's
+sine fits, ``ident/response``; the model gap's decomposition of a recording, ``discrepancy/data``; the
+paper's swarm runs, ``ident/paper/identify``).  A key is the SHA-256 of the arrays (dtype, shape,
+bytes) and of the settings' repr; a store keeps its last ``size`` results (least recently used dropped
+first)."""
 
 from __future__ import annotations
 
