@@ -42,8 +42,10 @@ def pytest_configure(config: pytest.Config) -> None:
 
 def _module_rank(item: pytest.Item) -> int:
     """0: the module keeps tests together on one worker (``xdist_group``: a daemon, a browser, a shared
-    analysis, 15-50 s each); 1: it has slow tests; 2: only fast ones."""
-    if item.get_closest_marker("xdist_group") is not None:
+    analysis, 15-50 s each) or has a test that mostly waits (``waits``: a kill and restart, a run over
+    the wire, 5-20 s of wall time, so that its waits overlap other tests' work instead of being the last
+    thing a worker does); 1: it has slow tests; 2: only fast ones."""
+    if item.get_closest_marker("xdist_group") is not None or item.get_closest_marker("waits") is not None:
         return 0
     return 1 if item.get_closest_marker("slow") is not None else 2
 

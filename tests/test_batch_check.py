@@ -137,6 +137,7 @@ def _S_points(h: dict[str, Any]) -> dict[str, Any]:
 
 
 @pytest.mark.slow
+@pytest.mark.waits  # runs on the app in-process at a capped clock: about 15 s
 def test_nightly_check_runs_chart_a_drifting_check_transducer_and_hold_the_certificates(tmp_path: Path) -> None:
     """Eight earlier calibrations of the check transducer (simulated from the same physics, not by
     the rig) give the charts their reference; then each night the batch's check run is made on the

@@ -70,6 +70,7 @@ def test_calibration_on_the_virtual_clock_identifies_the_truth(tmp_path: Path) -
 
 
 @pytest.mark.slow
+@pytest.mark.waits  # a run over the wire in real time: about 10 s
 def test_station_calibrate_sim_over_the_wire(tmp_path: Path) -> None:
     """What an operator types, in real time over Modbus TCP and a pty: two steps, every stage
     (the identification against the truth is the in-process test's job, on the same code)."""

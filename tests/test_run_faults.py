@@ -196,6 +196,7 @@ async def _motor_state(addresses: object) -> tuple[float, int]:
 
 
 @pytest.mark.slow
+@pytest.mark.waits  # a run over the wire, killed, and the drive's watchdog: about 7 s
 def test_kill_9_leaves_a_readable_interrupted_file_and_the_watchdog_stops_the_motor(tmp_path: Path) -> None:
     with SimRigProcess(seed=3) as sim:
         cfg = _external_config(tmp_path, sim.addresses, 0.002)

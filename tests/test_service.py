@@ -251,6 +251,7 @@ def _wait_gone(pids: list[int], timeout_s: float = 20.0) -> list[int]:
 
 
 @pytest.mark.slow
+@pytest.mark.waits  # two daemon starts, a kill and a restart: about 20 s, mostly waiting
 def test_kill_9_mid_run_then_restart_recovers_and_sigterm_mid_run_closes_the_run_and_every_process(
         tmp_path: Path) -> None:
     """A daemon killed -9 mid-run: its rig process and the emulators' process end with it (on the end
