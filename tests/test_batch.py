@@ -110,6 +110,7 @@ def local_batch(history: dict, tmp_path_factory: pytest.TempPathFactory) -> tupl
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("local_batch")  # the two tests of the local pool's batch on one worker: it is run once
 def test_run_batch_gives_the_identification_results_in_order(local_batch: tuple[list[Path], list[BatchItem]]) -> None:
     paths, items = local_batch
     bad = paths[4]
@@ -145,6 +146,7 @@ def test_run_batch_stores_results_when_asked(history: dict, tmp_path: Path) -> N
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("local_batch")
 def test_dask_local_cluster_gives_the_local_pool_results(local_batch: tuple[list[Path], list[BatchItem]]) -> None:
     distributed = pytest.importorskip("distributed")
     ok = [(p, it) for p, it in zip(*local_batch, strict=True) if it.ok]  # the garbage file left out
