@@ -24,6 +24,8 @@ from drivers.sim.daq_source import RigSource
 from drivers.sim.pty import open_pty
 from tests.daq_support import emulator_on_pty
 
+pytestmark = pytest.mark.waits  # 20 kHz streamed in real time through a pty: about 9 s of wall time, under 1 s of CPU
+
 
 @pytest.fixture
 def rig_pty(request: pytest.FixtureRequest) -> Iterator[tuple[DaqEmulator, DaqBridge]]:

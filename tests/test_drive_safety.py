@@ -29,6 +29,8 @@ from drivers.sim.motor_inprocess import InProcessTransport
 from drivers.sim.motor_model import MotorModel
 from tests.drive_support import drive as factory_drive  # the emulated drive, as it leaves the factory
 
+pytestmark = pytest.mark.waits  # the drives' watchdogs and time-outs in real time: about 5 s of wall time
+
 REAL = ["toshiba-vf-s11", "automationdirect-gs2", "siemens-sinamics-v20", "cia402-modbus"]
 
 def written(image: MotorRegisterImage) -> list[tuple[str, float, float]]:

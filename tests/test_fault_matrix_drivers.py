@@ -36,6 +36,8 @@ from drivers.sim import SimRig
 from drivers.sim.daq_emulator import DaqEmulator
 from tests.daq_support import emulator_on_pty
 
+pytestmark = pytest.mark.waits  # protocol time-outs in real time: about 6 s of wall time, under 1 s of CPU
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 

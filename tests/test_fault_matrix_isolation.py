@@ -34,6 +34,8 @@ from tests.station_support import (
     running_app,
 )
 
+pytestmark = pytest.mark.waits  # real processes killed and time-outs: about 9 s of wall time, 2 s of CPU
+
 # --------------------------------------------------------------------------------------- bad bodies
 POSTS = ("/runs", "/runs/no-such-run/abort", "/runs/no-such-run/discrepancy", "/stop/acknowledge", "/campaigns")
 NOT_JSON = {  # content type: body

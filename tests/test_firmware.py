@@ -35,6 +35,8 @@ from drivers.sim.daq_emulator import DaqEmulator
 from drivers.sim.pty import open_pty
 from tests.firmware_support import build, check_counter_tiling, stream
 
+pytestmark = pytest.mark.waits  # the bridge firmware streaming in real time: about 6 s of wall time, under 1 s of CPU
+
 CONFIG_KEYS = ("rate", "rate_exact", "frame", "range_disp", "range_force", "channels")
 
 

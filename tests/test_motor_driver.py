@@ -27,6 +27,8 @@ from drivers.motor import (
 from drivers.sim import SimRig
 from drivers.sim.clock import VirtualClock
 
+pytestmark = pytest.mark.waits  # reply time-outs over a pty and TCP: about 9 s of wall time, under 1 s of CPU
+
 # the reply timeout leaves room for a loaded machine: the emulator runs in this test's process, and with
 # four pytest workers on two cores a reply over the pty once took more than 0.3 s (a write is not repeated)
 FAST = LinkPolicy(timeout_s=1.0, retries=1, backoff_initial_s=0.05, reconnect_attempts=3)

@@ -39,6 +39,8 @@ from tests.station_support import (
     wait_state,
 )
 
+pytestmark = pytest.mark.waits  # real processes and time-outs: about 12 s of wall time, 4 s of CPU
+
 
 def _row(run_id: str) -> RunRow:
     return RunRow(id=run_id, state="queued", transducer_id="T", top_mass_kg=1.0, request_json="{}",
