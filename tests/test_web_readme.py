@@ -1,34 +1,32 @@
-"""The README's first steps, word for word, in a real headless Chromium: start the simulated station,
-open the page, log in as the README says with the password the station printed at its start, start a
-run from the form, watch it finish, read the results (the page and the audit trail name who started
-the run), open the report and the certificate.  Then the
-same on a phone's 390 px: no view scrolls sideways (the run as it records, its results, the main
-page, the certificate), the page speaks plainly first (the statistics behind a "details"
-disclosure), with SI typography, steps counted "step 2 of 5", the time left of a run, and times in
-the viewer's local time with its zone.  And, on that phone's run, the certificate part of the page: the
-technician enters the room conditions (an out-of-range one is refused at its input), runs, sees the
-stored conditions; the draft certificate states them; an approver issues it from the page; the issued
-PDF and DCC read back the conditions.
+"""The README's first steps, word for word, in a real headless Chromium: start the simulated station, open
+the page, log in as the README says with the password the station printed at its start, start a run from
+the form, watch it finish, read the results (the page and the audit trail name who started the run),
+open the report and the certificate.  Then the same on a phone's 390 px: no view scrolls sideways (the
+run as it records, its results, the main page, the certificate), the page speaks plainly first (the
+statistics behind a "details" disclosure), with SI typography, steps counted "step 2 of 5", the time
+left of a run, and times in the viewer's local time with its zone.  And, on that phone's run, the
+certificate part of the page: the technician enters the room conditions (an out-of-range one is refused
+at its input), runs, sees the stored conditions; the draft certificate states them; an approver issues
+it from the page; the issued PDF and DCC read back the conditions.
 
 And, on the same daemon after the README's steps, the lab's page flows: choose and mount a transducer,
 open a completed run (the third seeded one: the runs started from the form are the README's and the
-phone's), review its transducer's history (runs, results, drift plot), approve as another user, read
-the audit trail; the technician cannot approve; and every page fits a phone's 390 px without
-horizontal scrolling.  With
-``$SCREENSHOTS_DIR`` set, screenshots of the views go there for a person to look at (none otherwise:
-each costs the browser a full-page render and encode that no assertion reads).  And the run page's
-compensation section (on a third seeded run, 10 and 80 Hz): state the application, see the filter in
-plain words with its details and plot, download it, correct an uploaded signal file and download the
-result; a refusal says why.
+phone's), review its transducer's history (runs, results, drift plot), approve as another user, read the
+audit trail; the technician cannot approve; and every page fits a phone's 390 px without horizontal
+scrolling.  With ``$SCREENSHOTS_DIR`` set, screenshots of the views go there for a person to look at
+(none otherwise: each costs the browser a full-page render and encode that no assertion reads).  And the
+run page's compensation section (on a third seeded run, 10 and 80 Hz): state the application, see the
+filter in plain words with its details and plot, download it, correct an uploaded signal file and
+download the result; a refusal says why.
 
-And last, the follow-up run: a 3-40 Hz run of a transducer on a soft coupling (k_c = 2 k_f) cannot
-tell the coupling from a delay or a low-pass; the page shows the proposed steps under the run's model
-gap; one click starts them (the run's own steps plus the added ones).
+And last, the follow-up run: a 3-40 Hz run of a transducer on a soft coupling (k_c = 2 k_f) cannot tell
+the coupling from a delay or a low-pass; the page shows the proposed steps under the run's model gap;
+one click starts them (the run's own steps plus the added ones).
 
 One daemon and one browser for the module's tests (a daemon's and a browser's start each cost a few
-seconds of CPU); its store holds the lab's three seeded runs, the soft
-coupling's 3-40 Hz run (simulated with that coupling and identified as the daemon would, so that no
-real-time run is needed to make it) and a second transducer before the README's steps begin.
+seconds of CPU); its store holds the lab's three seeded runs, the soft coupling's 3-40 Hz run (simulated
+with that coupling and identified as the daemon would, so that no real-time run is needed to make it)
+and a second transducer before the README's steps begin.
 
 Skipped only when no Chromium is installed and CI is not set; under CI it must run.
 """
@@ -367,7 +365,7 @@ def test_every_page_fits_a_phone(browser: object, daemon: Daemon) -> None:
     with open_page(browser, daemon.url + "/", no_errors=False, viewport={"width": 390, "height": 844},
                    device_scale_factor=1, is_mobile=True, has_touch=True) as pg:
         log_in(pg, daemon, "tina")
-        rid = daemon.seeded[COMPENSATION]  # the lab.s and compensation tests. run: its plots and analysis made once
+        rid = daemon.seeded[COMPENSATION]  # the lab's and compensation tests' run: its plots and model gap made once
         for i, (page, ready) in enumerate((*PAGES.items(), (f"#/runs/{rid}", "#results:not([hidden])"))):
             pg.goto(f"{daemon.url}/{page}")
             pg.wait_for_selector(ready, timeout=30_000)  # the view's data have arrived and are shown
