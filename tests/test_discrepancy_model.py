@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from station.discrepancy.catalogue import CATALOGUE
+from station.discrepancy.catalogue import CATALOGUE, absent
 from station.discrepancy.data import prepare
 from station.discrepancy.decompose import fit_channel, harmonic_columns, robust_sigma
 from station.discrepancy.fit import CAN_GIVE_UP, Problem, fit_model, fit_unless_above
@@ -109,8 +109,16 @@ def test_an_effect_the_data_do_not_hold_fits_back_to_its_absence(tmp_path) -> No
     the nested model's chi^2), and converges; k_f and b_f stay within their uncertainty."""
     eff = draw_scenario(["coupling_compliance"], seed=1003)
     data = prepare(read_recording(simulate_scenario(eff, tmp_path, seed=1003)))
-    current = fit_candidate(data, fit_model(data, {}, base_start(data)), "coupling_compliance")
+    base = fit_model(data, {}, base_start(data))
+    current = fit_candidate(data, base, "coupling_compliance")
     assert current is not None and current.converged
+    # the search's first coupling fit, from its absence (kept, not refitted), is not stopped at its start
+    # as converged (chi^2 ~3e6 there; an ftol of 1e-8 relative to that did, ``fit.STOPPING_RULE``): it
+    # reaches the coupling's best fit
+    none = absent("coupling_compliance", data)
+    assert none is not None
+    absence = fit_model(data, current.effects, {**base.values, **none})
+    assert absence.chi2 <= current.chi2 + 1.0 < 1e-4 * base.chi2, (absence.chi2, current.chi2, base.chi2)
     for name in ("conditioner_lowpass", "displacement_resonance"):
         fit = fit_candidate(data, current, name)
         assert fit is not None and fit.converged, name
