@@ -6,6 +6,7 @@ m_l 26.167 kg)."""
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -31,10 +32,28 @@ def sim(folder: Path, steps: tuple[tuple[float, float], ...] = PLAN, *, seed: in
     return simulate_run(parse_config(data), folder, seed=seed)
 
 
+_EXPORTS: dict[tuple[str, int, int], Path] = {}  # recording -> the folder of its untouched export
+
+
+def _exported(rec: Path, out_dir: Path) -> Path:
+    """``export_run(rec, out_dir)``, the folder copied from an earlier export of the same recording."""
+    st = rec.stat()
+    key = (str(rec.resolve()), st.st_mtime_ns, st.st_size)
+    src = _EXPORTS.get(key)
+    if src is None or not src.is_dir():
+        src = export_run(rec, out_dir.with_name(out_dir.name + "-untouched")).parent
+        _EXPORTS[key] = src
+    dst = out_dir / src.name
+    shutil.copytree(src, dst)
+    return dst / "RUN.yaml"
+
+
 def via_csv(rec: Path, folder: Path, *, doc: Callable[[dict[str, Any]], None] | None = None,
             step: dict[int, Callable[[np.ndarray], np.ndarray]] | None = None) -> Path:
-    """Export a simulated recording as sinecal-csv, edit RUN.yaml and step files, import it back."""
-    run = export_run(rec, folder / "csv")
+    """Export a simulated recording as sinecal-csv, edit RUN.yaml and step files, import it back.  A
+    recording exported before (same path, modification time and size) is copied from that export's
+    untouched folder instead of being written again (the same bytes)."""
+    run = _exported(rec, folder / "csv")
     d = yaml.safe_load(run.read_text(encoding="utf-8"))
     if doc:
         doc(d)
