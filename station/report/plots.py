@@ -28,6 +28,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from PIL import Image
 
 from station.ident.names import SWARM_METHODS
 from station.report.data import RunData, RunKey, StepTrace, load_run, run_key
@@ -47,8 +48,17 @@ def _figure() -> Figure:
 
 
 def _png(fig: Figure) -> bytes:
+    """The figure drawn on its Agg canvas as an RGB PNG (DPI stated, no text chunks).  The figure is
+    opaque (white face), so the canvas' alpha is 255 everywhere and is left out: the same picture as
+    ``savefig``'s RGBA PNG, a quarter fewer bytes to compress, and a PDF engine need not split off an
+    alpha mask (WeasyPrint re-encodes an RGBA image as two)."""
+    canvas = fig.canvas
+    assert isinstance(canvas, FigureCanvasAgg)
+    canvas.draw()
+    rgba = np.asarray(canvas.buffer_rgba())
+    opaque = bool(np.all(rgba[..., 3] == 255))
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
+    Image.fromarray(rgba[..., :3] if opaque else rgba).save(buf, format="png", dpi=(DPI, DPI))
     return buf.getvalue()
 
 
