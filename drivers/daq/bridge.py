@@ -50,6 +50,9 @@ from drivers.daq.protocol import (
 
 log = logging.getLogger(__name__)
 
+# the longest the reader waits for the next byte while no stream runs (a reply wakes it at once), s
+IDLE_READ_S = 0.1
+
 
 class DaqCommandError(RuntimeError):
     """The bridge answered ``ERR ...`` or something unexpected to a command."""
@@ -236,7 +239,7 @@ class DaqBridge:
         stalled = False
         while self._running:
             try:
-                data = self._link.read(1 << 20, self.read_interval_s)
+                data = self._read()
             except DaqLinkError as exc:
                 if self._running:
                     log.error("DAQ link lost: %s", exc)
@@ -263,6 +266,16 @@ class DaqBridge:
                                 ev.kind, ev.stream_offset, ev.next_sample_index, ev.detail)
                 else:
                     self._events.put(ev)
+
+    def _read(self) -> bytes:
+        """The next bytes: while streaming, what arrives within ``read_interval_s`` (batched); else,
+        on a link that can return at the first byte (``SerialLink.read_first``), as soon as anything
+        arrives, waiting at most ``IDLE_READ_S`` (an idle stream process woke 50 times a second)."""
+        assert self._link is not None
+        read_first = None if self._streaming else getattr(self._link, "read_first", None)
+        if read_first is not None:
+            return bytes(read_first(1 << 20, max(self.read_interval_s, IDLE_READ_S)))
+        return self._link.read(1 << 20, self.read_interval_s)
 
     # ------------------------------------------------------------------ commands
     def command(self, text: str, *, timeout_s: float | None = None) -> str:

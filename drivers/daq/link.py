@@ -56,6 +56,18 @@ class SerialLink:
         except (serial.SerialException, OSError, TypeError) as exc:
             raise DaqLinkError(f"{self.description}: read failed: {exc}") from exc
 
+    def read_first(self, max_bytes: int, timeout_s: float) -> bytes:
+        """What arrived, returned as soon as anything did (b"" after ``timeout_s``): the bridge's
+        reader while no stream runs wakes at once for a reply and otherwise seldom."""
+        try:
+            if self._ser.timeout != timeout_s:
+                self._ser.timeout = timeout_s
+            first: bytes = self._ser.read(1)
+            waiting = self._ser.in_waiting if first else 0
+            return first + self._ser.read(min(waiting, max_bytes - 1)) if waiting else first
+        except (serial.SerialException, OSError, TypeError) as exc:
+            raise DaqLinkError(f"{self.description}: read failed: {exc}") from exc
+
     def write(self, data: bytes) -> None:
         try:
             self._ser.write(data)
