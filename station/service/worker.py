@@ -160,8 +160,8 @@ def pdf_job(html: str) -> bytes:
 
 @worker_job
 def certificate_job(path: str, ext: str, register: dict[str, Any]) -> bytes:
-    """The run's draft certificate as html, pdf or DCC bytes (the daemon serves an issued one from its
-    files, checked against the audit trail)."""
+    """The run's draft certificate as html or DCC bytes (its PDF is that html page through ``pdf_job``;
+    the daemon serves an issued one from its files, checked against the audit trail)."""
     from station.certificate.issue import run_document
 
     return run_document(Path(path), ext, register, draft_only=True)
