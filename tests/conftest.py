@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import gc
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,17 @@ def pytest_configure(config: pytest.Config) -> None:
     from drivers.sim.daq_source import RigSource
 
     RigSource(paper_5kN_physics(), seed=0, crank_radius_m=1e-3).configure(20_000.0, 10.0, 10.0)
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """In each test process, once its modules are imported and its tests collected: the objects made so far
+    (the modules of numpy, SciPy, matplotlib, FastAPI and the station, a few hundred thousand) are moved out
+    of the cyclic garbage collector's reach (``gc.freeze``), and the collector runs after 50 000 new
+    container objects instead of 700.  Every full collection walked all of them again: 4 % of a test
+    process's CPU (2.8 s of 65 s over five test files), 1.2 % with these.  Garbage is still collected; a
+    test that needs it collected at once calls ``gc.collect()``."""
+    gc.freeze()
+    gc.set_threshold(50_000, 20, 10)
 
 
 def _module_rank(item: pytest.Item) -> int:
