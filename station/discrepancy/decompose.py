@@ -140,17 +140,22 @@ def harmonic_columns(tau: FloatArray, freqs_hz: list[float]) -> FloatArray:
     return out
 
 
-def _harmonics_of(tau: FloatArray, f_hz: float, K: int) -> FloatArray:
+def _harmonics_of(tau: FloatArray, f_hz: float, K: int, out: FloatArray | None = None) -> FloatArray:
     """Columns cos, sin (N, 2 K) of k f, k = 1..K, by powers of exp(j 2 pi f tau) (one complex
-    exponential instead of K; rounding grows as k eps)."""
+    exponential instead of K; rounding grows as k eps).  ``out``: an (N, >= 2 K) array whose first
+    2 K columns receive them (and are returned), else a new array.  The powers are taken on whole
+    contiguous rows of a (K, N) array, then written out in one transposing copy (the cos, sin pairs
+    are the complex numbers' own layout)."""
     z1 = np.exp(2j * np.pi * f_hz * tau)
-    out = np.empty((tau.size, 2 * K))
-    z = z1
-    for k in range(K):
-        if k:
-            z = z * z1
-        out[:, 2 * k], out[:, 2 * k + 1] = z.real, z.imag
-    return out
+    Z = np.empty((K, tau.size), dtype=np.complex128)
+    Z[0] = z1
+    for k in range(1, K):
+        np.multiply(Z[k - 1], z1, out=Z[k])
+    if out is None:
+        return np.ascontiguousarray(Z.T).view(np.float64)
+    cols = out[:, : 2 * K]
+    cols.view(np.complex128)[...] = Z.T
+    return cols
 
 
 def coarse_frequency(x: FloatArray, fs: float, f_nominal: float) -> float:
@@ -176,17 +181,23 @@ def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: Floa
     ``extra`` columns (N, m) (mains lines) as nuisance: returns (f, std f) in Hz, Gauss-Newton from f0."""
     f, std = f0, 0.0
     h = max(float(np.max(np.abs(tau))), 1e-12)
-    poly = np.column_stack([np.ones_like(tau), tau / h, (tau / h) ** 2])
+    n_x = 0 if extra is None else extra.shape[1]
+    # J = [harmonics (2 K), 1, tau/h, (tau/h)^2, extra, d/df]: the nuisance columns written once, the
+    # harmonics and the derivative again at each frequency; B (the basis) is J without its last column
+    J = np.empty((tau.size, 2 * K + 3 + n_x + 1))
+    J[:, 2 * K] = 1.0
+    J[:, 2 * K + 1] = tau / h
+    J[:, 2 * K + 2] = (tau / h) ** 2
     if extra is not None:
-        poly = np.hstack([poly, extra])
+        J[:, 2 * K + 3 : -1] = extra
+    B = J[:, :-1]
     a = b = None
     for _ in range(iterations):
-        B = np.hstack([_harmonics_of(tau, f, K), poly])
+        _harmonics_of(tau, f, K, out=J)
         if a is None or b is None:
             c = np.linalg.solve(B.T @ B, B.T @ x)
             a, b = c[0], c[1]
-        dcol = tau * (-a * B[:, 1] + b * B[:, 0]) * 2 * np.pi
-        J = np.column_stack([B, dcol])
+        J[:, -1] = tau * (-a * J[:, 1] + b * J[:, 0]) * 2 * np.pi
         JtJ = J.T @ J
         p = np.linalg.solve(JtJ, J.T @ x)
         r = x - J @ p
