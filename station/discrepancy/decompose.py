@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from station.discrepancy.spectrum import frequencies, hann
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -106,9 +107,9 @@ def robust_sigma(residual: FloatArray) -> float:
     n = residual.size
     if n < 32:
         return float(np.std(residual))
-    w = np.hanning(n)
+    w, ww, _ = hann(n)
     spec = np.abs(np.fft.rfft(residual * w))[2:-1] ** 2
-    return float(math.sqrt(np.median(spec) / (float(w @ w) * math.log(2.0))))
+    return float(math.sqrt(np.median(spec) / (ww * math.log(2.0))))
 
 
 def windows_of(rec: Recording) -> list[StepWindow]:
@@ -162,8 +163,8 @@ def coarse_frequency(x: FloatArray, fs: float, f_nominal: float) -> float:
     """Peak of the Hann-windowed, 8x zero-padded spectrum of x within +-20 % of f_nominal (Hz), refined
     by parabolic interpolation; f_nominal if the window holds too few periods to tell."""
     n = x.size
-    spec = np.abs(np.fft.rfft((x - x.mean()) * np.hanning(n), 8 * n))
-    fr = np.fft.rfftfreq(8 * n, 1.0 / fs)
+    spec = np.abs(np.fft.rfft((x - x.mean()) * hann(n)[0], 8 * n))
+    fr = frequencies(8 * n, fs)
     band = np.nonzero((fr >= 0.8 * f_nominal) & (fr <= 1.2 * f_nominal))[0]
     if band.size < 3:
         return f_nominal
@@ -262,11 +263,24 @@ def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int
     fu, su = fit_frequency(tau, w.force_V, fd, K, nuisance, it)
     wd, wu = 1 / max(sd, 1e-300) ** 2, 1 / max(su, 1e-300) ** 2
     f, f_std = (wd * fd + wu * fu) / (wd + wu), 1 / math.sqrt(wd + wu)
-    poly = np.column_stack([np.ones(n), tau / half, (tau / half) ** 2])
-    harm = _harmonics_of(tau, f, K)
-    force = fit_channel(np.hstack([extra, harm, poly, mains]), w.force_V)
+    # force basis [extra, harmonics, 1, tau/h, (tau/h)^2, mains]; displacement basis [fundamental,
+    # 1, tau/h, (tau/h)^2, mains, harmonics 2..K], each written column block by column block
+    ne, nm = extra.shape[1], mains.shape[1]
+    Bf = np.empty((n, ne + 2 * K + 3 + nm))
+    Bf[:, :ne] = extra
+    harm = _harmonics_of(tau, f, K, out=Bf[:, ne:])
+    p0 = ne + 2 * K
+    Bf[:, p0] = 1.0
+    Bf[:, p0 + 1] = tau / half
+    Bf[:, p0 + 2] = (tau / half) ** 2
+    Bf[:, p0 + 3 :] = mains
+    Bd = np.empty((n, 2 * K + 3 + nm))
+    Bd[:, :2] = harm[:, :2]
+    Bd[:, 2 : 5 + nm] = Bf[:, p0:]
+    Bd[:, 5 + nm :] = harm[:, 2:]
+    force = fit_channel(Bf, w.force_V)
     amp = tuple(float(np.hypot(force.coef[2 * j], force.coef[2 * j + 1])) for j in range(len(extra_hz)))
-    disp = fit_channel(np.hstack([harm[:, :2], poly, mains, harm[:, 2:]]), w.displacement_m)
+    disp = fit_channel(Bd, w.displacement_m)
     Rinv = np.linalg.inv(disp.R)
     cov = disp.sigma**2 * (Rinv @ Rinv.T)[:2, :2]
     T = np.array([[1.0, 0.0], [0.0, -1.0]])  # (a, b) -> (Re, Im) of a - j b

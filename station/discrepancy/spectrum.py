@@ -9,6 +9,7 @@ amplitude A gives |sum w r e| = A sum(w) / 2, i.e. A = 2 sqrt(P sigma^2 sum w^2)
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -30,18 +31,37 @@ class Line:
     power: float
 
 
-def normalised_periodogram(r: FloatArray, sigma: float, fs: float) -> tuple[FloatArray, FloatArray]:
-    """(frequencies in Hz, P) of residual r with zero padding; P has mean 1 for white noise."""
-    n = r.size
+@functools.lru_cache(maxsize=16)
+def hann(n: int) -> tuple[FloatArray, float, float]:
+    """The Hann window of n samples (``np.hanning``; read-only, shape (n,)), its energy w @ w and its
+    sum w.sum(), kept per length: a recording's windows have one or a few lengths and every residual's
+    periodogram and line amplitude uses them."""
     w = np.hanning(n)
-    spec = np.abs(np.fft.rfft(r * w, PAD * n)) ** 2 / (float(w @ w) * max(sigma, 1e-300) ** 2)
-    return np.asarray(np.fft.rfftfreq(PAD * n, 1.0 / fs), dtype=np.float64), spec
+    w.flags.writeable = False
+    return w, float(w @ w), float(w.sum())
+
+
+@functools.lru_cache(maxsize=16)
+def frequencies(m: int, fs: float) -> FloatArray:
+    """``np.fft.rfftfreq(m, 1 / fs)`` (Hz, shape (m // 2 + 1,)), read-only, kept per (m, fs)."""
+    fr = np.asarray(np.fft.rfftfreq(m, 1.0 / fs), dtype=np.float64)
+    fr.flags.writeable = False
+    return fr
+
+
+def normalised_periodogram(r: FloatArray, sigma: float, fs: float) -> tuple[FloatArray, FloatArray]:
+    """(frequencies in Hz, P) of residual r with zero padding; P has mean 1 for white noise.  The
+    frequencies (shape (PAD N / 2 + 1,)) are shared between calls: read-only."""
+    n = r.size
+    w, ww, _ = hann(n)
+    spec = np.abs(np.fft.rfft(r * w, PAD * n)) ** 2 / (ww * max(sigma, 1e-300) ** 2)
+    return frequencies(PAD * n, fs), spec
 
 
 def line_amplitude(P: float, sigma: float, n: int) -> float:
     """Amplitude of a sinusoid whose normalised Hann periodogram value is P (channel unit)."""
-    w = np.hanning(n)
-    return float(2.0 * math.sqrt(P * sigma**2 * float(w @ w)) / float(w.sum()))
+    _, ww, wsum = hann(n)
+    return float(2.0 * math.sqrt(P * sigma**2 * ww) / wsum)
 
 
 def mains_statistic(residuals: list[FloatArray], sigmas: list[float], fs: float,
