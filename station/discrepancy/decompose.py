@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.discrepancy.spectrum import frequencies, hann
+from station.ident.response.sinefit import unit_circle
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -143,13 +144,13 @@ def harmonic_columns(tau: FloatArray, freqs_hz: list[float]) -> FloatArray:
 
 def _harmonics_of(tau: FloatArray, f_hz: float, K: int, out: FloatArray | None = None) -> FloatArray:
     """Columns cos, sin (N, 2 K) of k f, k = 1..K, by powers of exp(j 2 pi f tau) (one complex
-    exponential instead of K; rounding grows as k eps).  ``out``: an (N, >= 2 K) array whose first
-    2 K columns receive them (and are returned), else a new array.  The powers are taken on whole
-    contiguous rows of a (K, N) array, then written out in one transposing copy (the cos, sin pairs
-    are the complex numbers' own layout)."""
-    z1 = np.exp(2j * np.pi * f_hz * tau)
+    exponential instead of K, itself a cosine and a sine: ``unit_circle``; rounding grows as k eps).
+    ``out``: an (N, >= 2 K) array whose first 2 K columns receive them (and are returned), else a new
+    array.  The powers are taken on whole contiguous rows of a (K, N) array, then written out in one
+    transposing copy (the cos, sin pairs are the complex numbers' own layout)."""
     Z = np.empty((K, tau.size), dtype=np.complex128)
-    Z[0] = z1
+    z1 = Z[0]
+    unit_circle(2 * np.pi * f_hz * tau, out=z1)
     for k in range(1, K):
         np.multiply(Z[k - 1], z1, out=Z[k])
     if out is None:

@@ -56,13 +56,23 @@ class SineFit:
     harmonics: tuple[complex, ...] = ()
 
 
+def unit_circle(phase: FloatArray, out: NDArray[np.complex128] | None = None) -> NDArray[np.complex128]:
+    """exp(j phase) for real phases (rad, shape (N,)) as cos(phase) + j sin(phase), written into ``out``
+    (complex, (N,)) when given: the numbers of ``np.exp(1j * phase)`` (whose real part is 0 here, so it
+    is the cosine and the sine of the imaginary part) at a third of its cost."""
+    z = np.empty(phase.shape, dtype=np.complex128) if out is None else out
+    np.cos(phase, out=z.real)
+    np.sin(phase, out=z.imag)
+    return z
+
+
 def _design(t: FloatArray, w: float, n_harmonics: int, extra: int = 0) -> FloatArray:
     """Columns cos(w t), sin(w t), 1, then cos/sin of the harmonics 2..n_h; shape (N, 1 + 2 n_h)
     (``extra`` more columns after them, left for the caller to fill).  The harmonics' powers of
     exp(j w t) are taken on contiguous rows and written as complex numbers (a cos, sin pair is a
     complex number's layout)."""
     J = np.empty((t.size, 1 + 2 * n_harmonics + extra))
-    e = np.exp(1j * w * t)
+    e = unit_circle(w * t)
     J[:, 0:2].view(np.complex128)[:, 0] = e
     J[:, 2] = 1.0
     if n_harmonics > 1:
