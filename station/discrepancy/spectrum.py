@@ -95,18 +95,21 @@ class MainsDetection:
 
 
 def detect_mains(residuals: list[FloatArray], sigmas: list[float], fs: float,
-                 f_range: tuple[float, float], h_max: int, alpha: float = 1e-6) -> MainsDetection:
+                 f_range: tuple[float, float], h_max: int, alpha: float = 1e-6,
+                 spectra: list[tuple[FloatArray, FloatArray]] | None = None) -> MainsDetection:
     """Find a line common to the steps in ``f_range`` (with harmonics); it must stand out in the
     sum over steps (Gamma test at ``alpha`` after the number of grid cells searched) *and* in at least
     half of the steps (a line of one step only is not mains).  Mains is at a mains frequency: only
     ``MAINS_TOL`` around 50 and 60 Hz is searched, and the line's own fundamental must be significant
     (alpha 1e-4): a line that is only a "harmonic" of a grid frequency (the transducer's own free
     oscillation, say) is not mains.  Harmonics up to ``h_max`` are kept when each is significant
-    (alpha 1e-4) in the summed single-harmonic power."""
+    (alpha 1e-4) in the summed single-harmonic power.  ``spectra``: the residuals'
+    ``normalised_periodogram`` when the caller has them already."""
     n = len(residuals)
     if n == 0:
         return MainsDetection(None, 0, "no steps")
-    spectra = [normalised_periodogram(r, s, fs) for r, s in zip(residuals, sigmas, strict=True)]
+    if spectra is None:
+        spectra = [normalised_periodogram(r, s, fs) for r, s in zip(residuals, sigmas, strict=True)]
     grid, total, per = mains_statistic(residuals, sigmas, fs, f_range, spectra=spectra)
     at_mains = np.zeros(grid.size, bool)
     for f0 in MAINS_NOMINAL_HZ:
@@ -143,10 +146,12 @@ def detect_mains(residuals: list[FloatArray], sigmas: list[float], fs: float,
 
 
 def significant_lines(r: FloatArray, sigma: float, fs: float, step: int, alpha: float = 1e-4,
-                      f_max: float | None = None) -> list[Line]:
+                      f_max: float | None = None, *, spectrum: tuple[FloatArray, FloatArray] | None = None
+                      ) -> list[Line]:
     """Local maxima of the normalised periodogram above -ln(alpha / n_bins) (bins of 1/T), i.e. lines
-    the basis does not hold.  Returns them sorted by power, strongest first (at most 20)."""
-    fr, P = normalised_periodogram(r, sigma, fs)
+    the basis does not hold.  Returns them sorted by power, strongest first (at most 20).
+    ``spectrum``: ``normalised_periodogram(r, sigma, fs)`` when the caller has it already."""
+    fr, P = normalised_periodogram(r, sigma, fs) if spectrum is None else spectrum
     n_bins = r.size / 2
     thr = -math.log(alpha / n_bins)
     top = f_max if f_max is not None else 0.45 * fs
