@@ -222,9 +222,10 @@ def quantisation_cov(t: FloatArray, y: FloatArray, fit: SineFit, n_harmonics: in
     J = _design(tt, w, n_harmonics)
     proj = np.linalg.inv(J.T @ J)[:2] @ J.T  # (2, N): coefficients A, B of the fundamental
     phases = np.random.default_rng(_QUANT_RNG_SEED).uniform(0.0, 2 * np.pi, QUANT_PHASES)
-    wt = w * tt  # cos(w t + phase) = cos(w t) cos(phase) - sin(w t) sin(phase): 2 N cosines, not N P
-    x = np.outer(np.cos(wt), abs(fit.phasor) * np.cos(phases))  # (N, P), in units of q below
-    x -= np.outer(np.sin(wt), abs(fit.phasor) * np.sin(phases))
+    # cos(w t + phase) = cos(w t) cos(phase) - sin(w t) sin(phase): 2 N cosines (the design's first two
+    # columns, cos(w t) and sin(w t)), not N P
+    x = np.outer(J[:, 0], abs(fit.phasor) * np.cos(phases))  # (N, P), in units of q below
+    x -= np.outer(J[:, 1], abs(fit.phasor) * np.sin(phases))
     x += fit.offset - origin
     x *= 1.0 / q
     g = _periodic_sine_series(x, (-1.0) ** k / k * a)
