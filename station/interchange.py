@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import logging
 import os
+import re
 import shutil
 import stat
 from collections.abc import Iterator
@@ -132,6 +133,23 @@ def _nonblank(text: str) -> Iterator[tuple[int, str]]:
             yield i, ln.rstrip("\r\n")
 
 
+_PLAIN_ROWS = re.compile(r"[0-9eE+\-.,\n]*")  # digits, signs, points, exponents, commas, newlines only
+
+
+def _plain_body(text: str) -> str | None:
+    """The data lines of a step file as one text when nothing in them needs ``_nonblank``: the header
+    is the first line and the rest holds no blank line, no carriage return and no other characters
+    than numbers, commas and newlines (the parser then reads it as it reads the lines one by one);
+    else None."""
+    end = text.find("\n")
+    if end < 0:
+        return None
+    body = text[end + 1 :]
+    if body.startswith("\n") or "\n\n" in body or _PLAIN_ROWS.fullmatch(body) is None:
+        return None
+    return body
+
+
 def _first_bad_line(path: Path, lines: Iterator[tuple[int, str]]) -> str:
     """Locate the first malformed data line among ``lines`` (the data lines, ``_nonblank``)."""
     for i, line in lines:
@@ -167,9 +185,10 @@ def read_step_csv(path: Path, sample_rate_hz: float) -> tuple[np.ndarray, np.nda
         next(lines)  # the header
         return lines
 
+    plain = _plain_body(text) if header[0] == 1 else None
     try:
-        data = np.loadtxt((ln for _, ln in data_lines()), delimiter=",", dtype=np.float64, ndmin=2,
-                          comments=None)
+        data = np.loadtxt(io.StringIO(plain) if plain is not None else (ln for _, ln in data_lines()),
+                          delimiter=",", dtype=np.float64, ndmin=2, comments=None)
     except ValueError:
         raise RecordingFormatError(_first_bad_line(path, data_lines())) from None
     if data.shape[0] < 2:

@@ -7,7 +7,7 @@ from station.ident.crb import crb_stepped_sine
 from station.ident.identifiability import correlations
 from station.ident.models import SdofModel
 from station.ident.response.frf import fit_frf, linear_start_sdof
-from station.ident.response.sinefit import fit3, fit4
+from station.ident.response.sinefit import _design, fit3, fit4, unit_circle
 from station.ident.synthetic import stepped_sine
 
 M5 = SdofModel(0.12, 26.167)
@@ -78,6 +78,27 @@ def test_four_parameter_fit_finds_the_frequency() -> None:
     assert f4.frequency_hz == pytest.approx(12.013, abs=5 * f4.frequency_std_hz)
     assert 0 < f4.frequency_std_hz < 1e-3
     assert abs(f4.phasor) == pytest.approx(2.0, rel=1e-3)
+
+
+def test_the_sine_fits_design_holds_the_complex_exponentials_numbers() -> None:
+    """The design of the sine fits (and the model gap's harmonics) is built from cosines and sines
+    written as complex pairs; its columns must be exactly the numbers of exp(j w t) and of its powers
+    taken as successive complex products, bit for bit (what the fits' results rest on)."""
+    t = (np.arange(4001) - 2000.0) / 20_000.0
+    for w in (2 * np.pi * 4.0, 2 * np.pi * 97.31, 2 * np.pi * 1234.5):
+        e = np.exp(1j * w * t)
+        z = unit_circle(w * t)
+        assert np.array_equal(z.real, e.real) and np.array_equal(z.imag, e.imag)
+        for n_h in (1, 3, 5):
+            J = _design(t, w, n_h)
+            want = [e.real, e.imag, np.ones_like(t)]
+            eh = e
+            for _ in range(2, n_h + 1):
+                eh = eh * e
+                want += [eh.real, eh.imag]
+            assert J.shape == (t.size, 1 + 2 * n_h)
+            for col, ref in enumerate(want):
+                assert np.array_equal(J[:, col], ref), (w, n_h, col)
 
 
 @pytest.mark.slow

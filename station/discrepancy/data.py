@@ -28,7 +28,7 @@ from station.discrepancy.decompose import (
     decompose_step,
     windows_of,
 )
-from station.discrepancy.spectrum import MainsDetection, detect_mains, significant_lines
+from station.discrepancy.spectrum import MainsDetection, detect_mains, normalised_periodogram, significant_lines
 from station.errors import StationError
 from station.kept import Kept, content_key
 from station.recording import Recording
@@ -166,13 +166,14 @@ def _common_clock(steps: list[StepDecomposition]) -> bool:
     return all(b.t_mid_s - b.half_s >= a.t_mid_s + a.half_s - 1e-9 for a, b in itertools.pairwise(steps))
 
 
-def _outside_lines(s: StepDecomposition, f_mains: float | None, fs: float, max_lines: int = 12
-                   ) -> tuple[float, ...]:
+def _outside_lines(s: StepDecomposition, f_mains: float | None, fs: float, max_lines: int = 12,
+                   spectrum: tuple[FloatArray, FloatArray] | None = None) -> tuple[float, ...]:
     """Significant lines (alpha 1e-4 over the bins) of the force residual that are not basis
-    frequencies (further than 1.5 bins from them and from DC)."""
+    frequencies (further than 1.5 bins from them and from DC); ``spectrum``: the residual's
+    periodogram when already computed."""
     res = fs / s.n_samples
     held = [*basis_frequencies(s, f_mains), 0.0]
-    found = significant_lines(s.force.residual, s.force.sigma, fs, s.index, 1e-4)
+    found = significant_lines(s.force.residual, s.force.sigma, fs, s.index, 1e-4, spectrum=spectrum)
     keep = [ln.frequency_hz for ln in found if min(abs(ln.frequency_hz - f) for f in held) > 1.5 * res]
     return tuple(keep[:max_lines])
 
@@ -243,13 +244,16 @@ def _prepare(rec: Recording) -> RigData:
         for i, why in excluded:
             if "clipped" in why:
                 log.warning("step %d: %s", i, why)
+    spectra = [normalised_periodogram(s.force.residual, s.force.sigma, fs) for s in first]
     det = detect_mains([s.force.residual for s in first], [s.force.sigma for s in first], fs,
-                       MAINS_RANGE_HZ, MAINS_H_MAX)
+                       MAINS_RANGE_HZ, MAINS_H_MAX, spectra=spectra)
     log.info("mains search: %s", det.evidence)
     second = first if det.frequency_hz is None else [
         decompose_step(w, fs, det.frequency_hz, det.harmonics, f_start=s.f_hz)
         for w, s in zip(wins, first, strict=True)]
-    extra = [_outside_lines(s, det.frequency_hz, fs) for s in second]
+    # without mains lines the residuals are the first pass's: their periodograms are at hand
+    extra = [_outside_lines(s, det.frequency_hz, fs, spectrum=sp if second is first else None)
+             for s, sp in zip(second, spectra, strict=True)]
     steps = [decompose_step(w, fs, det.frequency_hz, det.harmonics, x, f_start=s.f_hz) if x else s
              for w, s, x in zip(wins, second, extra, strict=True)]
     st = _stack(steps, det.harmonics)

@@ -30,6 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from station.discrepancy.spectrum import frequencies, hann
+from station.ident.response.sinefit import unit_circle
 from station.recording import Recording
 
 FloatArray = NDArray[np.float64]
@@ -106,9 +108,9 @@ def robust_sigma(residual: FloatArray) -> float:
     n = residual.size
     if n < 32:
         return float(np.std(residual))
-    w = np.hanning(n)
+    w, ww, _ = hann(n)
     spec = np.abs(np.fft.rfft(residual * w))[2:-1] ** 2
-    return float(math.sqrt(np.median(spec) / (float(w @ w) * math.log(2.0))))
+    return float(math.sqrt(np.median(spec) / (ww * math.log(2.0))))
 
 
 def windows_of(rec: Recording) -> list[StepWindow]:
@@ -140,25 +142,30 @@ def harmonic_columns(tau: FloatArray, freqs_hz: list[float]) -> FloatArray:
     return out
 
 
-def _harmonics_of(tau: FloatArray, f_hz: float, K: int) -> FloatArray:
+def _harmonics_of(tau: FloatArray, f_hz: float, K: int, out: FloatArray | None = None) -> FloatArray:
     """Columns cos, sin (N, 2 K) of k f, k = 1..K, by powers of exp(j 2 pi f tau) (one complex
-    exponential instead of K; rounding grows as k eps)."""
-    z1 = np.exp(2j * np.pi * f_hz * tau)
-    out = np.empty((tau.size, 2 * K))
-    z = z1
-    for k in range(K):
-        if k:
-            z = z * z1
-        out[:, 2 * k], out[:, 2 * k + 1] = z.real, z.imag
-    return out
+    exponential instead of K, itself a cosine and a sine: ``unit_circle``; rounding grows as k eps).
+    ``out``: an (N, >= 2 K) array whose first 2 K columns receive them (and are returned), else a new
+    array.  The powers are taken on whole contiguous rows of a (K, N) array, then written out in one
+    transposing copy (the cos, sin pairs are the complex numbers' own layout)."""
+    Z = np.empty((K, tau.size), dtype=np.complex128)
+    z1 = Z[0]
+    unit_circle(2 * np.pi * f_hz * tau, out=z1)
+    for k in range(1, K):
+        np.multiply(Z[k - 1], z1, out=Z[k])
+    if out is None:
+        return np.ascontiguousarray(Z.T).view(np.float64)
+    cols = out[:, : 2 * K]
+    cols.view(np.complex128)[...] = Z.T
+    return cols
 
 
 def coarse_frequency(x: FloatArray, fs: float, f_nominal: float) -> float:
     """Peak of the Hann-windowed, 8x zero-padded spectrum of x within +-20 % of f_nominal (Hz), refined
     by parabolic interpolation; f_nominal if the window holds too few periods to tell."""
     n = x.size
-    spec = np.abs(np.fft.rfft((x - x.mean()) * np.hanning(n), 8 * n))
-    fr = np.fft.rfftfreq(8 * n, 1.0 / fs)
+    spec = np.abs(np.fft.rfft((x - x.mean()) * hann(n)[0], 8 * n))
+    fr = frequencies(8 * n, fs)
     band = np.nonzero((fr >= 0.8 * f_nominal) & (fr <= 1.2 * f_nominal))[0]
     if band.size < 3:
         return f_nominal
@@ -176,17 +183,23 @@ def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: Floa
     ``extra`` columns (N, m) (mains lines) as nuisance: returns (f, std f) in Hz, Gauss-Newton from f0."""
     f, std = f0, 0.0
     h = max(float(np.max(np.abs(tau))), 1e-12)
-    poly = np.column_stack([np.ones_like(tau), tau / h, (tau / h) ** 2])
+    n_x = 0 if extra is None else extra.shape[1]
+    # J = [harmonics (2 K), 1, tau/h, (tau/h)^2, extra, d/df]: the nuisance columns written once, the
+    # harmonics and the derivative again at each frequency; B (the basis) is J without its last column
+    J = np.empty((tau.size, 2 * K + 3 + n_x + 1))
+    J[:, 2 * K] = 1.0
+    J[:, 2 * K + 1] = tau / h
+    J[:, 2 * K + 2] = (tau / h) ** 2
     if extra is not None:
-        poly = np.hstack([poly, extra])
+        J[:, 2 * K + 3 : -1] = extra
+    B = J[:, :-1]
     a = b = None
     for _ in range(iterations):
-        B = np.hstack([_harmonics_of(tau, f, K), poly])
+        _harmonics_of(tau, f, K, out=J)
         if a is None or b is None:
             c = np.linalg.solve(B.T @ B, B.T @ x)
             a, b = c[0], c[1]
-        dcol = tau * (-a * B[:, 1] + b * B[:, 0]) * 2 * np.pi
-        J = np.column_stack([B, dcol])
+        J[:, -1] = tau * (-a * J[:, 1] + b * J[:, 0]) * 2 * np.pi
         JtJ = J.T @ J
         p = np.linalg.solve(JtJ, J.T @ x)
         r = x - J @ p
@@ -251,11 +264,24 @@ def decompose_step(w: StepWindow, fs: float, f_mains: float | None, n_mains: int
     fu, su = fit_frequency(tau, w.force_V, fd, K, nuisance, it)
     wd, wu = 1 / max(sd, 1e-300) ** 2, 1 / max(su, 1e-300) ** 2
     f, f_std = (wd * fd + wu * fu) / (wd + wu), 1 / math.sqrt(wd + wu)
-    poly = np.column_stack([np.ones(n), tau / half, (tau / half) ** 2])
-    harm = _harmonics_of(tau, f, K)
-    force = fit_channel(np.hstack([extra, harm, poly, mains]), w.force_V)
+    # force basis [extra, harmonics, 1, tau/h, (tau/h)^2, mains]; displacement basis [fundamental,
+    # 1, tau/h, (tau/h)^2, mains, harmonics 2..K], each written column block by column block
+    ne, nm = extra.shape[1], mains.shape[1]
+    Bf = np.empty((n, ne + 2 * K + 3 + nm))
+    Bf[:, :ne] = extra
+    harm = _harmonics_of(tau, f, K, out=Bf[:, ne:])
+    p0 = ne + 2 * K
+    Bf[:, p0] = 1.0
+    Bf[:, p0 + 1] = tau / half
+    Bf[:, p0 + 2] = (tau / half) ** 2
+    Bf[:, p0 + 3 :] = mains
+    Bd = np.empty((n, 2 * K + 3 + nm))
+    Bd[:, :2] = harm[:, :2]
+    Bd[:, 2 : 5 + nm] = Bf[:, p0:]
+    Bd[:, 5 + nm :] = harm[:, 2:]
+    force = fit_channel(Bf, w.force_V)
     amp = tuple(float(np.hypot(force.coef[2 * j], force.coef[2 * j + 1])) for j in range(len(extra_hz)))
-    disp = fit_channel(np.hstack([harm[:, :2], poly, mains, harm[:, 2:]]), w.displacement_m)
+    disp = fit_channel(Bd, w.displacement_m)
     Rinv = np.linalg.inv(disp.R)
     cov = disp.sigma**2 * (Rinv @ Rinv.T)[:2, :2]
     T = np.array([[1.0, 0.0], [0.0, -1.0]])  # (a, b) -> (Re, Im) of a - j b

@@ -9,6 +9,7 @@ amplitude A gives |sum w r e| = A sum(w) / 2, i.e. A = 2 sqrt(P sigma^2 sum w^2)
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -30,18 +31,37 @@ class Line:
     power: float
 
 
-def normalised_periodogram(r: FloatArray, sigma: float, fs: float) -> tuple[FloatArray, FloatArray]:
-    """(frequencies in Hz, P) of residual r with zero padding; P has mean 1 for white noise."""
-    n = r.size
+@functools.lru_cache(maxsize=16)
+def hann(n: int) -> tuple[FloatArray, float, float]:
+    """The Hann window of n samples (``np.hanning``; read-only, shape (n,)), its energy w @ w and its
+    sum w.sum(), kept per length: a recording's windows have one or a few lengths and every residual's
+    periodogram and line amplitude uses them."""
     w = np.hanning(n)
-    spec = np.abs(np.fft.rfft(r * w, PAD * n)) ** 2 / (float(w @ w) * max(sigma, 1e-300) ** 2)
-    return np.asarray(np.fft.rfftfreq(PAD * n, 1.0 / fs), dtype=np.float64), spec
+    w.flags.writeable = False
+    return w, float(w @ w), float(w.sum())
+
+
+@functools.lru_cache(maxsize=16)
+def frequencies(m: int, fs: float) -> FloatArray:
+    """``np.fft.rfftfreq(m, 1 / fs)`` (Hz, shape (m // 2 + 1,)), read-only, kept per (m, fs)."""
+    fr = np.asarray(np.fft.rfftfreq(m, 1.0 / fs), dtype=np.float64)
+    fr.flags.writeable = False
+    return fr
+
+
+def normalised_periodogram(r: FloatArray, sigma: float, fs: float) -> tuple[FloatArray, FloatArray]:
+    """(frequencies in Hz, P) of residual r with zero padding; P has mean 1 for white noise.  The
+    frequencies (shape (PAD N / 2 + 1,)) are shared between calls: read-only."""
+    n = r.size
+    w, ww, _ = hann(n)
+    spec = np.abs(np.fft.rfft(r * w, PAD * n)) ** 2 / (ww * max(sigma, 1e-300) ** 2)
+    return frequencies(PAD * n, fs), spec
 
 
 def line_amplitude(P: float, sigma: float, n: int) -> float:
     """Amplitude of a sinusoid whose normalised Hann periodogram value is P (channel unit)."""
-    w = np.hanning(n)
-    return float(2.0 * math.sqrt(P * sigma**2 * float(w @ w)) / float(w.sum()))
+    _, ww, wsum = hann(n)
+    return float(2.0 * math.sqrt(P * sigma**2 * ww) / wsum)
 
 
 def mains_statistic(residuals: list[FloatArray], sigmas: list[float], fs: float,
@@ -75,18 +95,21 @@ class MainsDetection:
 
 
 def detect_mains(residuals: list[FloatArray], sigmas: list[float], fs: float,
-                 f_range: tuple[float, float], h_max: int, alpha: float = 1e-6) -> MainsDetection:
+                 f_range: tuple[float, float], h_max: int, alpha: float = 1e-6,
+                 spectra: list[tuple[FloatArray, FloatArray]] | None = None) -> MainsDetection:
     """Find a line common to the steps in ``f_range`` (with harmonics); it must stand out in the
     sum over steps (Gamma test at ``alpha`` after the number of grid cells searched) *and* in at least
     half of the steps (a line of one step only is not mains).  Mains is at a mains frequency: only
     ``MAINS_TOL`` around 50 and 60 Hz is searched, and the line's own fundamental must be significant
     (alpha 1e-4): a line that is only a "harmonic" of a grid frequency (the transducer's own free
     oscillation, say) is not mains.  Harmonics up to ``h_max`` are kept when each is significant
-    (alpha 1e-4) in the summed single-harmonic power."""
+    (alpha 1e-4) in the summed single-harmonic power.  ``spectra``: the residuals'
+    ``normalised_periodogram`` when the caller has them already."""
     n = len(residuals)
     if n == 0:
         return MainsDetection(None, 0, "no steps")
-    spectra = [normalised_periodogram(r, s, fs) for r, s in zip(residuals, sigmas, strict=True)]
+    if spectra is None:
+        spectra = [normalised_periodogram(r, s, fs) for r, s in zip(residuals, sigmas, strict=True)]
     grid, total, per = mains_statistic(residuals, sigmas, fs, f_range, spectra=spectra)
     at_mains = np.zeros(grid.size, bool)
     for f0 in MAINS_NOMINAL_HZ:
@@ -123,10 +146,12 @@ def detect_mains(residuals: list[FloatArray], sigmas: list[float], fs: float,
 
 
 def significant_lines(r: FloatArray, sigma: float, fs: float, step: int, alpha: float = 1e-4,
-                      f_max: float | None = None) -> list[Line]:
+                      f_max: float | None = None, *, spectrum: tuple[FloatArray, FloatArray] | None = None
+                      ) -> list[Line]:
     """Local maxima of the normalised periodogram above -ln(alpha / n_bins) (bins of 1/T), i.e. lines
-    the basis does not hold.  Returns them sorted by power, strongest first (at most 20)."""
-    fr, P = normalised_periodogram(r, sigma, fs)
+    the basis does not hold.  Returns them sorted by power, strongest first (at most 20).
+    ``spectrum``: ``normalised_periodogram(r, sigma, fs)`` when the caller has it already."""
+    fr, P = normalised_periodogram(r, sigma, fs) if spectrum is None else spectrum
     n_bins = r.size / 2
     thr = -math.log(alpha / n_bins)
     top = f_max if f_max is not None else 0.45 * fs

@@ -56,15 +56,31 @@ class SineFit:
     harmonics: tuple[complex, ...] = ()
 
 
-def _design(t: FloatArray, w: float, n_harmonics: int) -> FloatArray:
-    """Columns cos(w t), sin(w t), 1, then cos/sin of the harmonics 2..n_h; shape (N, 1 + 2 n_h)."""
-    J = np.empty((t.size, 1 + 2 * n_harmonics))
-    e = np.exp(1j * w * t)
-    J[:, 0], J[:, 1], J[:, 2] = e.real, e.imag, 1.0
-    eh = e
-    for h in range(2, n_harmonics + 1):
-        eh = eh * e
-        J[:, 2 * h - 1], J[:, 2 * h] = eh.real, eh.imag
+def unit_circle(phase: FloatArray, out: NDArray[np.complex128] | None = None) -> NDArray[np.complex128]:
+    """exp(j phase) for real phases (rad, shape (N,)) as cos(phase) + j sin(phase), written into ``out``
+    (complex, (N,)) when given: the numbers of ``np.exp(1j * phase)`` (whose real part is 0 here, so it
+    is the cosine and the sine of the imaginary part) at a third of its cost."""
+    z = np.empty(phase.shape, dtype=np.complex128) if out is None else out
+    np.cos(phase, out=z.real)
+    np.sin(phase, out=z.imag)
+    return z
+
+
+def _design(t: FloatArray, w: float, n_harmonics: int, extra: int = 0) -> FloatArray:
+    """Columns cos(w t), sin(w t), 1, then cos/sin of the harmonics 2..n_h; shape (N, 1 + 2 n_h)
+    (``extra`` more columns after them, left for the caller to fill).  The harmonics' powers of
+    exp(j w t) are taken on contiguous rows and written as complex numbers (a cos, sin pair is a
+    complex number's layout)."""
+    J = np.empty((t.size, 1 + 2 * n_harmonics + extra))
+    e = unit_circle(w * t)
+    J[:, 0:2].view(np.complex128)[:, 0] = e
+    J[:, 2] = 1.0
+    if n_harmonics > 1:
+        E = np.empty((n_harmonics - 1, t.size), dtype=np.complex128)
+        np.multiply(e, e, out=E[0])
+        for h in range(1, n_harmonics - 1):
+            np.multiply(E[h - 1], e, out=E[h])
+        J[:, 3 : 1 + 2 * n_harmonics].view(np.complex128)[...] = E.T
     return J
 
 
@@ -102,12 +118,17 @@ def fit3(t: FloatArray, y: FloatArray, f_hz: float, *, t_center_s: float | None 
     return _finish(y, J, p, f_hz, 0.0, tc, n_harmonics=n_harmonics)
 
 
-def _dw(t: FloatArray, J0: FloatArray, p: FloatArray, n_harmonics: int) -> FloatArray:
-    """d(model)/dw for the design J0 and coefficients p (A cos + B sin per harmonic h)."""
+def _dw(t: FloatArray, J0: FloatArray, p: FloatArray, n_harmonics: int, out: FloatArray | None = None
+        ) -> FloatArray:
+    """d(model)/dw for the design J0 and coefficients p (A cos + B sin per harmonic h); written into
+    ``out`` (N,) when given."""
     d: FloatArray = t * (-p[0] * J0[:, 1] + p[1] * J0[:, 0])
     for h in range(2, n_harmonics + 1):
         a, b = p[2 * h - 1], p[2 * h]
         d += h * t * (-a * J0[:, 2 * h] + b * J0[:, 2 * h - 1])
+    if out is not None:
+        out[...] = d
+        return out
     return d
 
 
@@ -127,8 +148,9 @@ def estimate_frequency(t: FloatArray, y: FloatArray, f0_hz: float, *, t_center_s
     for sl, n_it in ((slice(None, None, stride), max_iter), (slice(None), 1)):
         ts, ys = tt[sl], y[sl]
         for _ in range(n_it):
-            J0 = _design(ts, w, n_harmonics)
-            J = np.column_stack([J0, _dw(ts, J0, p, n_harmonics)])
+            J = _design(ts, w, n_harmonics, extra=1)  # [J0, d/dw]
+            J0 = J[:, :-1]
+            _dw(ts, J0, p, n_harmonics, out=J[:, -1])
             JtJ = J.T @ J
             r = ys - J0 @ p
             step = np.linalg.solve(JtJ, J.T @ r)
@@ -200,9 +222,10 @@ def quantisation_cov(t: FloatArray, y: FloatArray, fit: SineFit, n_harmonics: in
     J = _design(tt, w, n_harmonics)
     proj = np.linalg.inv(J.T @ J)[:2] @ J.T  # (2, N): coefficients A, B of the fundamental
     phases = np.random.default_rng(_QUANT_RNG_SEED).uniform(0.0, 2 * np.pi, QUANT_PHASES)
-    wt = w * tt  # cos(w t + phase) = cos(w t) cos(phase) - sin(w t) sin(phase): 2 N cosines, not N P
-    x = np.outer(np.cos(wt), abs(fit.phasor) * np.cos(phases))  # (N, P), in units of q below
-    x -= np.outer(np.sin(wt), abs(fit.phasor) * np.sin(phases))
+    # cos(w t + phase) = cos(w t) cos(phase) - sin(w t) sin(phase): 2 N cosines (the design's first two
+    # columns, cos(w t) and sin(w t)), not N P
+    x = np.outer(J[:, 0], abs(fit.phasor) * np.cos(phases))  # (N, P), in units of q below
+    x -= np.outer(J[:, 1], abs(fit.phasor) * np.sin(phases))
     x += fit.offset - origin
     x *= 1.0 / q
     g = _periodic_sine_series(x, (-1.0) ** k / k * a)
