@@ -7,18 +7,18 @@ import asyncio
 from pathlib import Path
 from typing import Any
 
-from fastapi import APIRouter
 from fastapi.exceptions import RequestValidationError
 
 from station.api.campaign_schemas import CampaignOut, CampaignRequest
 from station.api.deps import ManagerDep, Operator
+from station.api.routes import api_router
 from station.api.routes.runs import BODY_ERRORS, E403
 from station.api.schemas import ErrorOut, ValidationErrorOut
 from station.lab import audit
 from station.recording import write_result
 from station.service.results import finite
 
-router = APIRouter(prefix="/campaigns", tags=["campaigns"])
+router = api_router(prefix="/campaigns", tags=["campaigns"])
 
 
 @router.post("", response_model=CampaignOut,

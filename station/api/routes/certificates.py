@@ -5,9 +5,10 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Path, Query, Response
+from fastapi import Path, Query, Response
 
 from station.api.deps import Approver, ArtifactsDep, ManagerDep, Reader, RunDep
+from station.api.routes import api_router
 from station.api.routes.runs import BINARY, BODY_ERRORS, E401, E403, E404, E409, E422, E503, NON_JSON_ERRORS
 from station.api.schemas import (
     CertificateIssueIn,
@@ -19,7 +20,7 @@ from station.api.schemas import (
 )
 from station.lab.issued import MEDIA
 
-router = APIRouter(tags=["certificates"])
+router = api_router(tags=["certificates"])
 Ext = Literal["html", "pdf", "xml"]
 DOCS: dict[int | str, dict[str, Any]] = {200: {"content": {m.split(";")[0]: {"schema": BINARY if "pdf" in m
                                                                     else {"type": "string"}}

@@ -9,15 +9,16 @@ import asyncio
 from pathlib import Path
 from typing import Any
 
-from fastapi import APIRouter, Response
+from fastapi import Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from station.api.deps import ArtifactsDep, Reader, RunDep
 from station.api.problems import Refusal
+from station.api.routes import api_router
 from station.api.routes.runs import BINARY, BODY_ERRORS, E401, E404, E422, E503
 from station.errors import BadInputError
 
-router = APIRouter(tags=["compensation"])
+router = api_router(tags=["compensation"])
 MAX_API_SAMPLES = 200_000
 MAX_API_TAPS = 256
 

@@ -7,14 +7,15 @@ from __future__ import annotations
 from pathlib import Path as PathLib
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Path, Response
+from fastapi import Path, Response
 
 from station.api.deps import ArtifactsDep, Reader, RunDep
+from station.api.routes import api_router
 from station.api.routes.runs import BINARY, NON_JSON_ERRORS, ended_recording
 from station.report.names import EXPORT_MEDIA_TYPES
 from station.service.manager import RunStateError
 
-router = APIRouter(prefix="/runs", tags=["runs"])
+router = api_router(prefix="/runs", tags=["runs"])
 
 ExportName = Literal["parameters.csv", "sdyn.csv", "results.xlsx"]
 

@@ -7,7 +7,7 @@ import logging
 from dataclasses import asdict
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Query, Request, Response
+from fastapi import Depends, Path, Query, Request, Response
 
 from station.api.deps import (
     SESSION_COOKIE,
@@ -52,6 +52,7 @@ from station.api.lab_schemas import (
     UserRowOut,
     UsersPolicyOut,
 )
+from station.api.routes import api_router
 from station.api.routes.runs import BODY_ERRORS, E401, E403, E404, E409, E422
 from station.api.schemas import ErrorOut
 from station.lab import chain, register, users
@@ -59,7 +60,7 @@ from station.lab.users import NAME_PATTERN, Principal
 from station.service.errors import RunStateError
 
 log = logging.getLogger(__name__)
-router = APIRouter(tags=["lab"])
+router = api_router(tags=["lab"])
 EntryId = Annotated[str, Path(pattern=ID_PATTERN)]
 UserName = Annotated[str, Path(pattern=NAME_PATTERN)]
 SignedIn = Annotated[Principal, Depends(require(users.Permission.RUN))]  # any user of the lab (every role runs)

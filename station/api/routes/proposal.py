@@ -5,15 +5,15 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter
 from pydantic import BaseModel, ConfigDict, Field
 
 from station.api.deps import ArtifactsDep, Reader, RunDep
+from station.api.routes import api_router
 from station.api.routes.runs import E401, E404, E409, E422, E503
 from station.run.request import RunRequest, StepSpec
 from station.service.results import finite
 
-router = APIRouter(prefix="/runs", tags=["runs"])
+router = api_router(prefix="/runs", tags=["runs"])
 MAX_EFFECTS = 4  # the analysis the page and GET /runs/{id}/discrepancy show by default
 
 

@@ -7,13 +7,14 @@ from collections.abc import AsyncIterable
 from pathlib import Path as PathLib
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path, Query, Request, Response, status
+from fastapi import Path, Query, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, StreamingResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 
 from station.api.deps import ArtifactsDep, ManagerDep, Operator, Reader, RunDep, RunsDep
 from station.api.problems import MEDIA_TYPE, Refusal
+from station.api.routes import api_router
 from station.api.schemas import (
     AbortOut,
     DiscrepancyOut,
@@ -41,7 +42,7 @@ from station.service.results import load_results
 
 BINARY = {"type": "string", "format": "binary"}  # a file's bytes, as OpenAPI declares them
 
-router = APIRouter(prefix="/runs", tags=["runs"])
+router = api_router(prefix="/runs", tags=["runs"])
 Responses = dict[int | str, dict[str, Any]]  # a route's documented responses, by status
 
 E401: Responses = {401: {"model": ErrorOut, "description": "bearer token missing or wrong"}}

@@ -8,10 +8,11 @@ from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Depends, FastAPI, Request, status
+from fastapi import Body, Depends, FastAPI, Request, status
 
 from station.api.deps import ManagerDep, Operator, Reader, RunsDep, SettingsDep, credentials_of, token_lookup
 from station.api.problems import Refusal
+from station.api.routes import api_router
 from station.api.routes.runs import BODY_ERRORS
 from station.api.schemas import (
     AcknowledgeIn,
@@ -35,7 +36,7 @@ from station.rigproc.stopport import cross_site_refusal
 from station.service.runs import StopReport
 from station.service.settings import ServiceSettings
 
-router = APIRouter(tags=["station"])
+router = api_router(tags=["station"])
 
 
 async def not_cross_site(request: Request) -> None:
