@@ -23,6 +23,7 @@ from station.discrepancy.decompose import (
     K_MAX,
     MAINS_H_MAX,
     MAINS_RANGE_HZ,
+    FrequencyNotDetermined,
     StepDecomposition,
     basis_frequencies,
     decompose_step,
@@ -223,7 +224,16 @@ def _prepare(rec: Recording) -> RigData:
     fs = rec.sample_rate_hz
     short = [(w.index, _too_short(w.force_V.size / fs, w.f_nominal_hz)) for w in wins]
     wins = [w for w, (_, why) in zip(wins, short, strict=True) if not why]
-    first = [decompose_step(w, fs, None, 0) for w in wins]
+    first, kept = [], []
+    for w in wins:
+        try:
+            first.append(decompose_step(w, fs, None, 0))
+            kept.append(w)
+        except FrequencyNotDetermined as e:  # about one cycle: the fit cannot tell the frequency
+            window_s = w.force_V.size / fs
+            short.append((w.index, f"step left out: its record window ({window_s:.3g} s) holds "
+                                   f"{window_s * w.f_nominal_hz:.2g} cycles of {w.f_nominal_hz:.4g} Hz and {e}"))
+    wins = kept
     bad = [_too_short(s.n_samples / fs, s.f_hz) for s in first]  # the fitted frequency, too
     short += [(s.index, why) for s, why in zip(first, bad, strict=True) if why]
     wins = [w for w, why in zip(wins, bad, strict=True) if not why]

@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.discrepancy.spectrum import frequencies, hann
+from station.errors import StationError
 from station.ident.response.sinefit import unit_circle
 from station.recording import Recording
 
@@ -41,6 +42,12 @@ K_MAX = 6  # crank harmonics per step (fundamental included)
 MAINS_RANGE_HZ = (45.0, 65.0)
 MAINS_H_MAX = 10
 FLAT_TOP = 20  # samples: a run this long at the window extreme means a clipped channel
+
+
+class FrequencyNotDetermined(StationError):
+    """A window's sine fit cannot tell its frequency: the Gauss-Newton step's covariance gives the
+    frequency no positive variance (the fundamental, its harmonics and the window's quadratic trend are
+    not separable, as in a window of about one crank cycle)."""
 
 
 @dataclass(frozen=True)
@@ -180,7 +187,8 @@ def coarse_frequency(x: FloatArray, fs: float, f_nominal: float) -> float:
 def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: FloatArray | None = None,
                   iterations: int = 4) -> tuple[float, float]:
     """Four-parameter sine fit (IEEE 1057) of one channel with harmonics 2..K, a quadratic and the
-    ``extra`` columns (N, m) (mains lines) as nuisance: returns (f, std f) in Hz, Gauss-Newton from f0."""
+    ``extra`` columns (N, m) (mains lines) as nuisance: returns (f, std f) in Hz, Gauss-Newton from f0.
+    Raises ``FrequencyNotDetermined`` when the fit gives the frequency no positive variance."""
     f, std = f0, 0.0
     h = max(float(np.max(np.abs(tau))), 1e-12)
     n_x = 0 if extra is None else extra.shape[1]
@@ -205,7 +213,13 @@ def fit_frequency(tau: FloatArray, x: FloatArray, f0: float, K: int, extra: Floa
         r = x - J @ p
         s2 = float(r @ r) / max(x.size - J.shape[1], 1)
         cov = s2 * np.linalg.inv(JtJ)
-        f, std = f + float(p[-1]), float(math.sqrt(cov[-1, -1]))
+        var = float(cov[-1, -1])
+        if not var > 0.0:  # negative or NaN: JtJ is singular to working precision
+            raise FrequencyNotDetermined(
+                f"the sine fit cannot tell the frequency from the window's {x.size} samples "
+                f"(its variance came out {var:.3g} Hz^2: the fundamental, {K - 1} harmonics and the trend are "
+                "not separable)")
+        f, std = f + float(p[-1]), math.sqrt(var)
         a, b = p[0], p[1]
         if abs(p[-1]) < 1e-2 * std:
             break
