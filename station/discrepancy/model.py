@@ -47,6 +47,7 @@ ComplexArray = NDArray[np.complex128]
 N_GRID = 64
 _T = TypeVar("_T")
 _K = TypeVar("_K")
+_A = TypeVar("_A", bound=np.ndarray)
 
 
 def crank_displacement_harmonics(x1: ComplexArray, kappa: float, K: int) -> ComplexArray:
@@ -201,11 +202,9 @@ def _laplace(data: RigData, coupled: bool) -> Laplace:
     return out
 
 
-def _keep(kept: dict[_K, _T], key: _K, value: _T) -> _T:
-    """Keep a stage's ``value`` (read-only) under ``key``, dropping the oldest beyond ``_KEEP``."""
-    for a in value if isinstance(value, tuple) else (value,):
-        if isinstance(a, np.ndarray):
-            a.flags.writeable = False
+def _keep(kept: dict[_K, _A], key: _K, value: _A) -> _A:
+    """Keep a stage's ``value`` (made read-only) under ``key``, dropping the oldest beyond ``_KEEP``."""
+    value.flags.writeable = False
     if len(kept) >= _KEEP:
         del kept[next(iter(kept))]
     kept[key] = value
@@ -256,8 +255,11 @@ def _outputs(pl: _Plan, ps: Sequence[Mapping[str, float]]) -> tuple[FloatArray, 
             vkey = (xkey, gkey, p["S"], p["quadratic"], p["cubic"])
             V = kept_V.get(vkey)
             if V is None:
-                V = _keep(kept_V, vkey, _nonlinear_output(pl.F0, Gk * x, p["S"], p["quadratic"], p["cubic"],
-                                                          data.capacity_N, K_MAX))
+                V = _nonlinear_output(pl.F0, Gk * x, p["S"], p["quadratic"], p["cubic"], data.capacity_N, K_MAX)
+                V[0].flags.writeable = V[1].flags.writeable = False
+                if len(kept_V) >= _KEEP:
+                    del kept_V[next(iter(kept_V))]
+                kept_V[vkey] = V
             V0s.append(V[0])
             Vks.append(V[1])
         else:
