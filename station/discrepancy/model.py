@@ -150,6 +150,7 @@ class _Plan:
     merges: tuple[tuple[int, int, int], ...]  # (step, mains line, crank harmonic index - 1) of merged lines
     F0: float
     lp: Laplace
+    kmask: ComplexArray  # the data set's harmonics mask as 1 + 0j / 0 (what a product with it casts it to)
     x: dict[tuple[object, ...], ComplexArray] = field(default_factory=dict)
     G: dict[tuple[float, ...], ComplexArray] = field(default_factory=dict)
     V: dict[tuple[object, ...], tuple[FloatArray, ComplexArray]] = field(default_factory=dict)
@@ -176,7 +177,7 @@ def plan(data: RigData, effects: Mapping[str, int]) -> _Plan:
                mains="mains_interference" in effects and data.n_mains > 0, drift="zero_drift" in effects,
                merges=tuple((int(i), int(h), int(data.merge[i, h]) - 1)
                             for i, h in zip(*np.nonzero(data.merge), strict=True)),
-               F0=-data.total_mass_kg * G, lp=_laplace(data, coupled))
+               F0=-data.total_mass_kg * G, lp=_laplace(data, coupled), kmask=_complex_mask(data))
     if len(_PLANS) >= 64:
         del _PLANS[next(iter(_PLANS))]  # the oldest
     _PLANS[key] = pl
@@ -199,6 +200,22 @@ def _laplace(data: RigData, coupled: bool) -> Laplace:
     if len(_LAPLACE) >= 8:
         _LAPLACE.clear()
     _LAPLACE[(id(data), coupled)] = (data, out)
+    return out
+
+
+_MASKS: dict[int, tuple[RigData, ComplexArray]] = {}
+
+
+def _complex_mask(data: RigData) -> ComplexArray:
+    """``data.kmask`` (n, K) as complex numbers, once per data set."""
+    hit = _MASKS.get(id(data))
+    if hit is not None and hit[0] is data:
+        return hit[1]
+    out = data.kmask.astype(np.complex128)
+    out.flags.writeable = False
+    if len(_MASKS) >= 8:
+        _MASKS.clear()
+    _MASKS[id(data)] = (data, out)
     return out
 
 
@@ -268,16 +285,17 @@ def _outputs(pl: _Plan, ps: Sequence[Mapping[str, float]]) -> tuple[FloatArray, 
             fc = p["cutoff_hz"]
             B = kept_B.get(fc)
             Bs.append(_keep(kept_B, fc, butterworth(pl.order, fc, dr.s)) if B is None else B)
+    one = len(ps) == 1  # a single set: its arrays as views (P = 1) rather than stacked copies
     if pl.nonlinear:
-        V0a, Vka = np.array(V0s), np.array(Vks)
+        V0a, Vka = (V0s[0][None], Vks[0][None]) if one else (np.array(V0s), np.array(Vks))
     else:
         S = np.array([p["S"] for p in ps])
         V0a = np.repeat((S * pl.F0)[:, None], data.n_steps, axis=1)
-        Fk = np.array(Gs) * (np.array(xs) if pl.moved else dr.D)
+        Fk = (Gs[0][None] if one else np.array(Gs)) * ((xs[0][None] if one else np.array(xs)) if pl.moved else dr.D)
         Vka = S[:, None, None] * Fk
     if pl.lowpass:
-        Vka = Vka * np.array(Bs)
-    return V0a, Vka * data.kmask
+        Vka = Vka * (Bs[0][None] if one else np.array(Bs))
+    return V0a, Vka * pl.kmask
 
 
 @lru_cache(maxsize=16)
