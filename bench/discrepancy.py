@@ -3,7 +3,7 @@
 wall_s_8_steps / cpu_s_8_steps: median wall / CPU time (s) of ``analyse_recording`` (reading included)
 on an 8-step recording (2 s per step, 5-95 Hz, with mains interference and transducer nonlinearity
 switched on), 3 repeats; model_evaluations_8_steps: the model fits' evaluations of the rig model
-(``fit.predict``, and each parameter set of ``fit.predict_many``) in one such analysis;
+(``fit.predict``, and each parameter set of ``fit.forces``, ``model.predict_many``'s) in one such analysis;
 load_average_1min: the machine's load when it finished (wall time depends on it).  One BLAS thread, as
 the station's processes run the analysis (``station.cli``, ``station.blas_env``; a value the user set is
 kept): with OpenBLAS's pool on a loaded 2-core machine its
@@ -57,26 +57,26 @@ def wall_8_steps(tmp: Path, repeats: int) -> tuple[float, float, int]:
     the rig-model evaluations of the fits in the first repeat."""
     eff = draw_scenario(["mains_interference", "transducer_nonlinearity"], seed=8)
     path = simulate_scenario(eff, tmp / "wall", seed=8, n_steps=8, record_s=2.0)
-    predict, predict_many = fit_module.predict, fit_module.predict_many
+    predict, forces = fit_module.predict, fit_module.forces
     calls = [0]
 
     def counted(*args: Any, **kw: Any) -> Any:
         calls[0] += 1
         return predict(*args, **kw)
 
-    def counted_many(data: Any, ps: Any, effects: Any) -> Any:
+    def counted_forces(plan: Any, ps: Any) -> Any:
         calls[0] += len(ps)  # one evaluation per parameter set, as when they were evaluated one by one
-        return predict_many(data, ps, effects)
+        return forces(plan, ps)
 
     times, cpu, evaluations = [], [], 0
     for i in range(repeats):
-        fit_module.predict, fit_module.predict_many = counted, counted_many
+        fit_module.predict, fit_module.forces = counted, counted_forces
         data_module._PREPARED.clear()  # each repeat from the recording, as a fresh process would run it
         t0, c0 = time.perf_counter(), time.process_time()
         try:
             analyse_recording(path)
         finally:
-            fit_module.predict, fit_module.predict_many = predict, predict_many
+            fit_module.predict, fit_module.forces = predict, forces
         times.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
         evaluations = evaluations if i else calls[0]

@@ -81,18 +81,47 @@ def sensor_resonance_state_space(res: DisplacementResonance) -> StateSpace:
 def spring_force_per_acceleration(t: Transducer, coupling: CouplingCompliance | None,
                                   f_hz: np.ndarray) -> np.ndarray:
     """Analytic k_f*Z2/(s^2 X_b) in N/(m/s^2) at f_hz (paper Eq. 8, or Eq. 9 when coupling is None)."""
-    s = 2j * np.pi * np.asarray(f_hz, dtype=float)
+    return spring_response(Laplace.at(f_hz, coupling is not None), t.k_f, t.b_f, t.m_e, t.m_l,
+                           None if coupling is None else (coupling.k_c, coupling.b_c))
+
+
+@dataclass(frozen=True)
+class Laplace:
+    """s = j 2 pi f (rad/s) at frequencies f (any shape) and its powers s^2, s^3, s^4 (s^3 and s^4 only
+    for the coupled model, else None): what ``spring_response`` needs of the frequencies, made once for
+    a model evaluated at the same frequencies many times."""
+
+    s: np.ndarray
+    s2: np.ndarray
+    s3: np.ndarray | None
+    s4: np.ndarray | None
+
+    @classmethod
+    def at(cls, f_hz: np.ndarray, coupled: bool) -> Laplace:
+        s = 2j * np.pi * np.asarray(f_hz, dtype=float)
+        return cls(s, s**2, s**3 if coupled else None, s**4 if coupled else None)
+
+
+def spring_response(lp: Laplace, k_f: float, b_f: float, m_e: float, m_l: float,
+                    coupling: tuple[float, float] | None) -> np.ndarray:
+    """``spring_force_per_acceleration`` (N/(m/s^2), the shape of the frequencies) from the stiffness
+    k_f (N/m), damping b_f (N*s/m), end and load masses m_e, m_l (kg) and the coupling's (k_c N/m,
+    b_c N*s/m) or None (stiff), at the frequencies of ``lp`` (its s^3 and s^4 are needed with a coupling)."""
+    s = lp.s
     if coupling is None:
-        d1, d2 = t.b_f / t.total_mass_kg, t.k_f / t.total_mass_kg
-        return -t.k_f / (s**2 + d1 * s + d2)
-    me, ml, kf, bf, kc, bc = t.m_e, t.m_l, t.k_f, t.b_f, coupling.k_c, coupling.b_c
+        M = m_e + m_l
+        d1, d2 = b_f / M, k_f / M
+        return -k_f / (lp.s2 + d1 * s + d2)
+    if lp.s3 is None or lp.s4 is None:
+        raise ValueError("the coupled model needs s^3 and s^4 (Laplace.at(f_hz, coupled=True))")
+    me, ml, kf, bf, (kc, bc) = m_e, m_l, k_f, b_f, coupling
     u1 = ml * me / (ml + me)
     d1 = bc / u1 + bf / me
     d2 = kc / u1 + kf / me + bf * bc / (me * ml)
     d3 = (kf * bc + kc * bf) / (me * ml)
     d4 = kf * kc / (me * ml)
     n1, n2 = bc / u1, kc / u1
-    return -kf * (s**2 + n1 * s + n2) / (s**4 + d1 * s**3 + d2 * s**2 + d3 * s + d4)
+    return -kf * (lp.s2 + n1 * s + n2) / (lp.s4 + d1 * lp.s3 + d2 * lp.s2 + d3 * s + d4)
 
 
 def force_signal_per_displacement(physics: RigPhysics, f_hz: np.ndarray) -> np.ndarray:

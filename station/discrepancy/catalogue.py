@@ -95,13 +95,36 @@ NEUTRAL: dict[str, float] = {
 KC_TOP, CUTOFF_TOP, RESONANCE_TOP = 3000.0, 300.0, 300.0
 
 
+_DATA_SCALES: dict[int, tuple[RigData, tuple[float, float, float, dict[str, float]]]] = {}
+
+
+def _data_scales(data: RigData) -> tuple[float, float, float, dict[str, float]]:
+    """What ``scales`` takes of a data set alone, once per data set (the few most recent are kept):
+    the median noise sigma (V), the record's duration (s), the highest crank frequency (Hz) and the
+    per-step parameters' scales (10 sigma, in ``scales``' order)."""
+    hit = _DATA_SCALES.get(id(data))
+    if hit is not None and hit[0] is data:
+        return hit[1]
+    sig = float(np.median(data.sigma_f))
+    per_step: dict[str, float] = {}
+    for i in range(data.n_steps):
+        per_step[f"dc_s{i}"] = per_step[f"slope_s{i}"] = per_step[f"curv_s{i}"] = 10 * sig
+    for h in range(1, data.n_mains + 1):
+        per_step[f"re_{h}"] = per_step[f"im_{h}"] = 10 * sig
+        for i in range(data.n_steps):
+            per_step[f"re_{h}_s{i}"] = per_step[f"im_{h}_s{i}"] = 10 * sig
+    out = (sig, float(data.t_mid_s.max() + data.half_s.max()), float(data.f_hz.max()), per_step)
+    if len(_DATA_SCALES) >= 4:
+        _DATA_SCALES.clear()
+    _DATA_SCALES[id(data)] = (data, out)
+    return out
+
+
 def scales(p: dict[str, float], data: RigData) -> dict[str, float]:
     """Typical size of one fit step per parameter (linear: absolute, log: relative, reciprocal: of
     1 / value, a tenth of 1 / value at the start, or of the top of its start grid where the start is
     beyond that top (a start in the rigid limit still moves in a few steps))."""
-    sig = float(np.median(data.sigma_f))
-    T = float(data.t_mid_s.max() + data.half_s.max())
-    fmax = float(data.f_hz.max())
+    sig, T, fmax, per_step = _data_scales(data)
 
     def recip(name: str, top: float) -> float:
         return 0.1 / min(abs(p.get(name, np.inf)), top)
@@ -113,12 +136,7 @@ def scales(p: dict[str, float], data: RigData) -> dict[str, float]:
            "sensor_resonance_hz": recip("sensor_resonance_hz", RESONANCE_TOP * fmax), "sensor_damping": 0.05,
            "rate_V_per_s": 10 * sig / T,
            "quadratic_V_per_s2": 10 * sig / T**2, "clock_skew": 1e-6}
-    for i in range(data.n_steps):
-        out[f"dc_s{i}"] = out[f"slope_s{i}"] = out[f"curv_s{i}"] = 10 * sig
-    for h in range(1, data.n_mains + 1):
-        out[f"re_{h}"] = out[f"im_{h}"] = 10 * sig
-        for i in range(data.n_steps):
-            out[f"re_{h}_s{i}"] = out[f"im_{h}_s{i}"] = 10 * sig
+    out.update(per_step)
     return out
 
 

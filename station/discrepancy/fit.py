@@ -37,7 +37,7 @@ from scipy.optimize import least_squares
 from station.discrepancy.catalogue import BASE_PARAMS, NEUTRAL, Param, effect_params, scales
 from station.discrepancy.data import RigData
 from station.discrepancy.eiv import whitening
-from station.discrepancy.model import predict, predict_many
+from station.discrepancy.model import forces, plan, predict
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
@@ -151,6 +151,7 @@ class Problem:
         # each parameter's (0 linear / 1 logarithm / 2 reciprocal, centre, scale), made once: ``to_value``
         self._conversion = {q.name: (2 if q.reciprocal else 1 if q.log else 0, self.centre[q.name],
                                      self.scale[q.name]) for q in self.params}
+        self._named = tuple((name, *c) for name, c in self._conversion.items())  # (name, kind, centre, scale)
         self.fixed = {**NEUTRAL, **{k: v for k, v in start.items() if k not in self.centre}}
         w = _weights(data)
         self.Wf, self.Wd, self.valid_f = w.Wf, w.Wd, w.valid_f
@@ -159,6 +160,8 @@ class Problem:
         # its noise enters the force rows (errors in variables); the same weights for every model
         self.eiv, self.EW, self.EWc = w.eiv, w.EW, w.EWc
         self.additive = tuple(i for i, q in enumerate(self.params) if q.additive)
+        self._moved = tuple(i for i, q in enumerate(self.params) if not q.additive)  # forward differences
+        self._plan = plan(data, self.effects)  # the model's evaluation on this data set (``model.plan``)
         self._lo, self._hi = self.bounds()
         self._columns: FloatArray | None = None
         self._last: tuple[bytes, FloatArray] | None = None
@@ -191,8 +194,9 @@ class Problem:
     def values(self, u: Sequence[float] | FloatArray) -> dict[str, float]:
         """The physical values at u by name (``to_value`` of each parameter, the fixed ones with them)."""
         out = dict(self.fixed)
-        for (name, conversion), x in zip(self._conversion.items(), np.asarray(u, dtype=float).tolist(), strict=True):
-            out[name] = _to_value(conversion, x)
+        for (name, kind, c, s), x in zip(self._named, np.asarray(u, dtype=float).tolist(), strict=True):
+            # ``_to_value`` written out (the same arithmetic): a call per parameter costs as much again
+            out[name] = c + s * x if kind == 0 else c * math.exp(s * x) if kind == 1 else 1.0 / (1.0 / c + s * x)
         return out
 
     def whitened(self, p: Mapping[str, float]) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
@@ -208,7 +212,7 @@ class Problem:
         key = np.asarray(u, dtype=float).tobytes()
         if self._last is not None and self._last[0] == key:
             return self._last[1]
-        m, _, _ = predict(self.data, self.values(u), self.effects)
+        m = forces(self._plan, (self.values(u),))[0]  # ``model.predict``'s force coefficients
         r = (self.EWc - np.einsum("sij,sj->si", self.EW, m))[self.valid_f]
         r.flags.writeable = False
         self._last = (key, r)
@@ -233,22 +237,24 @@ class Problem:
         J = np.empty((r0.size, x.size))
         if self.additive:
             J[:, list(self.additive)] = self._additive_columns()
-        lo, hi = self._lo, self._hi
-        additive = set(self.additive)
-        cols = [j for j in range(x.size) if j not in additive]
+        lo, hi = self._lo.tolist(), self._hi.tolist()
+        cols = list(self._moved)
         at = self.values(x)
+        xs = x.tolist()  # the same doubles as Python floats (the same arithmetic, less overhead)
         points, steps = [], []
         for j in cols:
+            xj0 = xs[j]
             if step is None:
-                h = _REL_STEP * (1.0 if x[j] >= 0 else -1.0) * max(1.0, abs(x[j]))
-                if not lo[j] <= x[j] + h <= hi[j] and lo[j] <= x[j] - h <= hi[j]:
+                h = _REL_STEP * (1.0 if xj0 >= 0 else -1.0) * max(1.0, abs(xj0))
+                if not lo[j] <= xj0 + h <= hi[j] and lo[j] <= xj0 - h <= hi[j]:
                     h = -h
             else:
                 h = step
-            xj = x[j] + h
-            q = self.params[j]
-            points.append({**at, q.name: self.to_value(q, float(xj))})  # the values at x with u_j moved
-            steps.append(xj - x[j])
+            xj = xj0 + h
+            name, kind, c, s = self._named[j]
+            v = c + s * xj if kind == 0 else c * math.exp(s * xj) if kind == 1 else 1.0 / (1.0 / c + s * xj)
+            points.append({**at, name: v})  # the values at x with u_j moved (``_to_value``)
+            steps.append(xj - xj0)
         if cols:
             J[:, cols] = ((self.residuals(points) - r0) / np.array(steps)[:, None]).T
         return J
@@ -256,7 +262,7 @@ class Problem:
     def residuals(self, ps: Sequence[Mapping[str, float]]) -> FloatArray:
         """``residual`` for several sets of physical parameters at once, (P, n_rows): the same values,
         the model evaluated for all of them together (``model.predict_many``)."""
-        m = predict_many(self.data, ps, self.effects)
+        m = forces(self._plan, ps)  # ``model.predict_many``
         return (self.EWc[None] - np.einsum("sij,psj->psi", self.EW, m))[:, self.valid_f]
 
     def n_obs(self) -> int:

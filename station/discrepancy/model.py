@@ -28,17 +28,16 @@ Output: model coefficients in the force slots (n, n_f) and displacement-harmonic
 
 from __future__ import annotations
 
-from collections import OrderedDict
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
-from functools import lru_cache, partial
-from typing import TypeVar, cast
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.rig.model import spring_force_per_acceleration
-from drivers.rig.params import CouplingCompliance, DisplacementResonance, Transducer
+from drivers.rig.model import Laplace, spring_response
+from drivers.rig.params import DisplacementResonance
 from station.discrepancy.data import G, RigData
 from station.discrepancy.decompose import K_MAX
 from station.discrepancy.eiv import measured_motion
@@ -47,6 +46,8 @@ FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
 N_GRID = 64
 _T = TypeVar("_T")
+_K = TypeVar("_K")
+_A = TypeVar("_A", bound=np.ndarray)
 
 
 def crank_displacement_harmonics(x1: ComplexArray, kappa: float, K: int) -> ComplexArray:
@@ -122,30 +123,109 @@ def _drive(data: RigData) -> _Drive:
     return out
 
 
-_STAGES: OrderedDict[tuple[object, ...], tuple[RigData, object]] = OrderedDict()
-
-
-def _stage(data: RigData, key: tuple[object, ...], make: Callable[[], _T]) -> _T:
-    """A stage of ``predict`` for ``data`` given again for the same inputs ``key``: a Jacobian's
-    forward differences change one parameter at a time, so most stages of each evaluation are those
-    of the point it is taken at (the values are exactly those computed anew, read-only; the most
-    recently used are kept)."""
-    k = (id(data), *key)
-    hit = _STAGES.get(k)
-    if hit is not None and hit[0] is data:
-        _STAGES.move_to_end(k)
-        return cast(_T, hit[1])
-    value = make()
-    for a in value if isinstance(value, tuple) else (value,):
-        if isinstance(a, np.ndarray):
-            a.flags.writeable = False
-    _STAGES[k] = (data, value)
-    if len(_STAGES) > 48:
-        _STAGES.popitem(last=False)
-    return value
-
-
 _MOTION_EFFECTS = frozenset(("channel_delay", "clock_skew", "displacement_resonance"))
+_KEEP = 32  # stage values kept per stage and model (the oldest are dropped first)
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """What ``predict`` needs of one model (``effects``) on one data set that no parameter changes,
+    and the stages of its evaluations that depend on a few parameters, kept for those parameters'
+    values: a Jacobian's forward differences change one parameter at a time, so most stages of each
+    of its points are those of the point it is taken at (a kept value is exactly the one computed
+    anew, read-only).  x: motion (n, K) by (delay, skew, resonance, damping); G: G s^2 (n, K) by
+    (k_f, b_f[, k_c, b_c]); V: the nonlinear output (V_0 (n,), V_k (n, K)) by (x key, G key, S,
+    quadratic, cubic); B: the low-pass (n, K) by cut-off."""
+
+    data: RigData
+    dr: _Drive
+    effects: dict[str, int]
+    moved: bool
+    coupled: bool
+    nonlinear: bool
+    lowpass: bool
+    order: int
+    mains: bool
+    drift: bool
+    merges: tuple[tuple[int, int, int], ...]  # (step, mains line, crank harmonic index - 1) of merged lines
+    F0: float
+    lp: Laplace
+    kmask: ComplexArray  # the data set's harmonics mask as 1 + 0j / 0 (what a product with it casts it to)
+    x: dict[tuple[object, ...], ComplexArray] = field(default_factory=dict)
+    G: dict[tuple[float, ...], ComplexArray] = field(default_factory=dict)
+    V: dict[tuple[object, ...], tuple[FloatArray, ComplexArray]] = field(default_factory=dict)
+    B: dict[float, ComplexArray] = field(default_factory=dict)
+
+
+_PLANS: dict[tuple[int, tuple[tuple[str, int], ...]], _Plan] = {}
+
+
+def plan(data: RigData, effects: Mapping[str, int]) -> _Plan:
+    """``_Plan`` of the model ``effects`` on ``data``, made once (the most recent 64 are kept; a
+    ``fit.Problem`` holds its own)."""
+    ident = tuple(effects.items())
+    key = (id(data), ident)
+    hit = _PLANS.get(key)
+    if hit is not None and hit.data is data:
+        return hit
+    coupled = "coupling_compliance" in effects
+    lowpass = "conditioner_lowpass" in effects
+    pl = _Plan(data=data, dr=_drive(data), effects=dict(effects),
+               moved=bool(_MOTION_EFFECTS.intersection(effects)), coupled=coupled,
+               nonlinear="transducer_nonlinearity" in effects, lowpass=lowpass,
+               order=int(effects["conditioner_lowpass"]) if lowpass else 0,
+               mains="mains_interference" in effects and data.n_mains > 0, drift="zero_drift" in effects,
+               merges=tuple((int(i), int(h), int(data.merge[i, h]) - 1)
+                            for i, h in zip(*np.nonzero(data.merge), strict=True)),
+               F0=-data.total_mass_kg * G, lp=_laplace(data, coupled), kmask=_complex_mask(data))
+    if len(_PLANS) >= 64:
+        del _PLANS[next(iter(_PLANS))]  # the oldest
+    _PLANS[key] = pl
+    return pl
+
+
+_LAPLACE: dict[tuple[int, bool], tuple[RigData, Laplace]] = {}
+
+
+def _laplace(data: RigData, coupled: bool) -> Laplace:
+    """s = j 2 pi f_k and its powers at the harmonic frequencies of ``data`` (``spring_response``),
+    once per data set."""
+    hit = _LAPLACE.get((id(data), coupled))
+    if hit is not None and hit[0] is data:
+        return hit[1]
+    out = Laplace.at(_drive(data).f, coupled)
+    for a in (out.s, out.s2, out.s3, out.s4):
+        if a is not None:
+            a.flags.writeable = False
+    if len(_LAPLACE) >= 8:
+        _LAPLACE.clear()
+    _LAPLACE[(id(data), coupled)] = (data, out)
+    return out
+
+
+_MASKS: dict[int, tuple[RigData, ComplexArray]] = {}
+
+
+def _complex_mask(data: RigData) -> ComplexArray:
+    """``data.kmask`` (n, K) as complex numbers, once per data set."""
+    hit = _MASKS.get(id(data))
+    if hit is not None and hit[0] is data:
+        return hit[1]
+    out = data.kmask.astype(np.complex128)
+    out.flags.writeable = False
+    if len(_MASKS) >= 8:
+        _MASKS.clear()
+    _MASKS[id(data)] = (data, out)
+    return out
+
+
+def _keep(kept: dict[_K, _A], key: _K, value: _A) -> _A:
+    """Keep a stage's ``value`` (made read-only) under ``key``, dropping the oldest beyond ``_KEEP``."""
+    value.flags.writeable = False
+    if len(kept) >= _KEEP:
+        del kept[next(iter(kept))]
+    kept[key] = value
+    return value
 
 
 def _motion(data: RigData, dr: _Drive, p: Mapping[str, float], effects: Mapping[str, int]) -> ComplexArray:
@@ -160,57 +240,62 @@ def _motion(data: RigData, dr: _Drive, p: Mapping[str, float], effects: Mapping[
     return x
 
 
-def _spring(data: RigData, dr: _Drive, p: Mapping[str, float], coupled: bool) -> ComplexArray:
+def _spring(pl: _Plan, p: Mapping[str, float]) -> ComplexArray:
     """G(Omega_k) s^2 (n, K) N/m (step 3), S not involved."""
-    t = Transducer(k_f=p["k_f"], b_f=p["b_f"], m_e=data.end_mass_kg, m_l=data.load_mass_kg,
-                   sensitivity_V_per_N=1.0, capacity_N=data.capacity_N)
-    cpl = CouplingCompliance(p["k_c"], p["b_c"]) if coupled else None
-    return np.asarray(spring_force_per_acceleration(t, cpl, dr.f) * dr.s2, dtype=np.complex128)
+    data = pl.data
+    G_k = spring_response(pl.lp, p["k_f"], p["b_f"], data.end_mass_kg, data.load_mass_kg,
+                          (p["k_c"], p["b_c"]) if pl.coupled else None)
+    return np.asarray(G_k * pl.dr.s2, dtype=np.complex128)
 
 
-def _outputs(data: RigData, dr: _Drive, ps: Sequence[Mapping[str, float]], effects: Mapping[str, int]
-             ) -> tuple[FloatArray, ComplexArray]:
+def _outputs(pl: _Plan, ps: Sequence[Mapping[str, float]]) -> tuple[FloatArray, ComplexArray]:
     """The transducer output after the conditioner for P parameter sets, V_0 (P, n) V and V_k (P, n, K)
     (steps 1-5 of the module).  The stages that depend on the parameters are kept for the inputs they
-    depend on (``_stage``) and looked up per set; the products that join them are taken for all sets
+    depend on (``_Plan``) and looked up per set; the products that join them are taken for all sets
     together (element by element the same arithmetic as for one set)."""
-    n = data.n_steps
-    ident = tuple(effects.items())
-    moved = bool(_MOTION_EFFECTS.intersection(effects))
-    coupled = "coupling_compliance" in effects
-    nonlinear = "transducer_nonlinearity" in effects
-    lowpass = "conditioner_lowpass" in effects
-    order = int(effects["conditioner_lowpass"]) if lowpass else 0
-    F0 = -data.total_mass_kg * G
+    data, dr = pl.data, pl.dr
     xs, Gs, V0s, Vks, Bs = [], [], [], [], []
+    kept_x, kept_G, kept_V, kept_B = pl.x, pl.G, pl.V, pl.B
+    xkey: tuple[object, ...] = ()
+    x = dr.D  # the recorded motion itself when no effect changes it
     for p in ps:
-        xkey = (p.get("delay_s"), p.get("clock_skew"), p.get("sensor_resonance_hz"), p.get("sensor_damping"))
-        # the recorded motion itself when no effect changes it; a product is cheaper made than looked up
-        x = (_stage(data, (*ident, "x", *xkey), partial(_motion, data, dr, p, effects)) if moved else dr.D)
-        gkey = (p["k_f"], p["b_f"], p.get("k_c") if coupled else None, p.get("b_c") if coupled else None)
-        Gk = _stage(data, (*ident, "G", *gkey), partial(_spring, data, dr, p, coupled))
-        if nonlinear:
-            V0, Vk = _stage(data, (*ident, "V", *xkey, *gkey, p["S"], p["quadratic"], p["cubic"]),
-                            partial(_nonlinear_output, F0, Gk * x, p["S"], p["quadratic"], p["cubic"],
-                                    data.capacity_N, K_MAX))
-            V0s.append(V0)
-            Vks.append(Vk)
-        else:
+        if pl.moved:
+            xkey = (p.get("delay_s"), p.get("clock_skew"), p.get("sensor_resonance_hz"), p.get("sensor_damping"))
+            hit = kept_x.get(xkey)
+            x = _keep(kept_x, xkey, _motion(data, dr, p, pl.effects)) if hit is None else hit
             xs.append(x)
+        gkey = (p["k_f"], p["b_f"], p["k_c"], p["b_c"]) if pl.coupled else (p["k_f"], p["b_f"])
+        Gk = kept_G.get(gkey)
+        if Gk is None:
+            Gk = _keep(kept_G, gkey, _spring(pl, p))
+        if pl.nonlinear:
+            vkey = (xkey, gkey, p["S"], p["quadratic"], p["cubic"])
+            V = kept_V.get(vkey)
+            if V is None:
+                V = _nonlinear_output(pl.F0, Gk * x, p["S"], p["quadratic"], p["cubic"], data.capacity_N, K_MAX)
+                V[0].flags.writeable = V[1].flags.writeable = False
+                if len(kept_V) >= _KEEP:
+                    del kept_V[next(iter(kept_V))]
+                kept_V[vkey] = V
+            V0s.append(V[0])
+            Vks.append(V[1])
+        else:
             Gs.append(Gk)
-        if lowpass:
-            Bs.append(_stage(data, (*ident, "B", order, p["cutoff_hz"]),
-                             partial(butterworth, order, p["cutoff_hz"], dr.s)))
-    if nonlinear:
-        V0a, Vka = np.array(V0s), np.array(Vks)
+        if pl.lowpass:
+            fc = p["cutoff_hz"]
+            B = kept_B.get(fc)
+            Bs.append(_keep(kept_B, fc, butterworth(pl.order, fc, dr.s)) if B is None else B)
+    one = len(ps) == 1  # a single set: its arrays as views (P = 1) rather than stacked copies
+    if pl.nonlinear:
+        V0a, Vka = (V0s[0][None], Vks[0][None]) if one else (np.array(V0s), np.array(Vks))
     else:
         S = np.array([p["S"] for p in ps])
-        V0a = np.repeat((S * F0)[:, None], n, axis=1)
-        Fk = np.array(Gs) * (np.array(xs) if moved else dr.D)
+        V0a = np.repeat((S * pl.F0)[:, None], data.n_steps, axis=1)
+        Fk = (Gs[0][None] if one else np.array(Gs)) * ((xs[0][None] if one else np.array(xs)) if pl.moved else dr.D)
         Vka = S[:, None, None] * Fk
-    if lowpass:
-        Vka = Vka * np.array(Bs)
-    return V0a, Vka * data.kmask
+    if pl.lowpass:
+        Vka = Vka * (Bs[0][None] if one else np.array(Bs))
+    return V0a, Vka * pl.kmask
 
 
 @lru_cache(maxsize=16)
@@ -224,20 +309,19 @@ def _step_names(n: int, nm: int) -> tuple[tuple[str, ...], ...]:
             tuple(f"curv_s{i}" for i in range(n)))
 
 
-def _channel(data: RigData, ps: Sequence[Mapping[str, float]], effects: Mapping[str, int], V0: FloatArray,
-             Vk: ComplexArray) -> FloatArray:
+def _channel(pl: _Plan, ps: Sequence[Mapping[str, float]], V0: FloatArray, Vk: ComplexArray) -> FloatArray:
     """The force channel's coefficients (P, n, n_f) for P parameter sets ``ps`` from their outputs V0
     (P, n) and V_k (P, n, K) (step 6 of the module, evaluated for all P at once: element by element
-    the same arithmetic as for one)."""
+    the same arithmetic as for one; ``Vk`` is not changed)."""
+    data = pl.data
     n, K, P = data.n_steps, K_MAX, len(ps)
 
     def col(name: str) -> FloatArray:  # a parameter over the P sets, (P, 1)
         return np.array([q[name] for q in ps])[:, None]
 
-    Vk = Vk.copy()
     nm = data.n_mains
-    W = np.zeros((P, n, nm), dtype=complex)
-    if "mains_interference" in effects and nm:
+    m = np.zeros((P, n, 2 * K + 3 + 2 * nm))
+    if pl.mains:
         hh = np.arange(1, nm + 1)[None, None, :]
         if data.common_clock:
             Q = np.array([[complex(q[f"re_{h}"], q[f"im_{h}"]) for h in range(1, nm + 1)] for q in ps])[:, None, :]
@@ -247,27 +331,28 @@ def _channel(data: RigData, ps: Sequence[Mapping[str, float]], effects: Mapping[
             W = np.empty((P, n, nm), dtype=complex)
             W.real = np.array([[q.get(k, 0.0) for k in re] for q in ps]).reshape(P, n, nm)
             W.imag = np.array([[q.get(k, 0.0) for k in im] for q in ps]).reshape(P, n, nm)
-        for i, h in zip(*np.nonzero(data.merge), strict=True):
-            Vk[:, i, data.merge[i, h] - 1] += W[:, i, h]
-            W[:, i, h] = 0.0
-    m = np.zeros((P, n, 2 * K + 3 + 2 * nm))
+        if pl.merges:
+            Vk = Vk.copy()
+        for i, line, k in pl.merges:
+            Vk[:, i, k] += W[:, i, line]
+            W[:, i, line] = 0.0
+        m[:, :, 2 * K + 3 :: 2], m[:, :, 2 * K + 4 :: 2] = W.real, -W.imag
+    else:  # no lines: -0.0 in the imaginary parts' slots, as -Im of a zero phasor
+        m[:, :, 2 * K + 4 :: 2] = -0.0
     m[:, :, 0 : 2 * K : 2], m[:, :, 1 : 2 * K : 2] = Vk.real, -Vk.imag
     dc = V0 + col("offset_V")
-    slope: FloatArray = np.zeros(n)
-    curv: FloatArray = np.zeros(n)
-    if "zero_drift" in effects and not data.common_clock:  # per step: offset (step 0: offset_V), slope, curvature
+    if pl.drift and not data.common_clock:  # per step: offset (step 0: offset_V), slope, curvature
         # (a planned step of a proposal has no drift of its own yet: 0)
         dcs, slopes, curvs = _step_names(n, nm)[2:]
         dc = dc + np.array([[0.0] + [q.get(k, 0.0) for k in dcs] for q in ps])
-        slope = np.array([[q.get(k, 0.0) for k in slopes] for q in ps])
-        curv = np.array([[q.get(k, 0.0) for k in curvs] for q in ps])
-    elif "zero_drift" in effects:
+        m[:, :, 2 * K + 1] = np.array([[q.get(k, 0.0) for k in slopes] for q in ps])
+        m[:, :, 2 * K + 2] = np.array([[q.get(k, 0.0) for k in curvs] for q in ps])
+    elif pl.drift:
         rho, beta, tm, h = col("rate_V_per_s"), col("quadratic_V_per_s2"), data.t_mid_s, data.half_s
         dc = dc + rho * tm + beta * tm**2
-        slope = (rho + 2 * beta * tm) * h
-        curv = beta * h**2
-    m[:, :, 2 * K], m[:, :, 2 * K + 1], m[:, :, 2 * K + 2] = dc, slope, curv
-    m[:, :, 2 * K + 3 :: 2], m[:, :, 2 * K + 4 :: 2] = W.real, -W.imag
+        m[:, :, 2 * K + 1] = (rho + 2 * beta * tm) * h
+        m[:, :, 2 * K + 2] = beta * h**2
+    m[:, :, 2 * K] = dc  # (without drift the slope and curvature slots stay 0)
     return m
 
 
@@ -277,15 +362,19 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
 
     p: physical parameters by name (S V/N, k_f N/m, b_f N s/m, offset_V V, and the effects' own);
     effects: names of the effects switched on (value: the low-pass order, else ignored)."""
-    dr = _drive(data)
-    V0, Vk = _outputs(data, dr, (p,), effects)
-    m = _channel(data, (p,), effects, V0, Vk)[0]
-    return m, dr.md, Vk[0, :, 0] / data.x1
+    pl = plan(data, effects)
+    V0, Vk = _outputs(pl, (p,))
+    m = _channel(pl, (p,), V0, Vk)[0]
+    return m, pl.dr.md, Vk[0, :, 0] / data.x1
 
 
 def predict_many(data: RigData, ps: Sequence[Mapping[str, float]], effects: Mapping[str, int]) -> FloatArray:
     """The force coefficients of ``predict`` for P parameter sets at once, (P, n, n_f): the same
     values (a Jacobian's forward differences, each of which changes one parameter: most stages are
-    shared, ``_stage``, and the force channel is evaluated for all sets together)."""
-    dr = _drive(data)
-    return _channel(data, ps, effects, *_outputs(data, dr, ps, effects))
+    shared, ``_Plan``, and the force channel is evaluated for all sets together)."""
+    return forces(plan(data, effects), ps)
+
+
+def forces(pl: _Plan, ps: Sequence[Mapping[str, float]]) -> FloatArray:
+    """``predict_many`` of the model and data set of ``pl`` (``plan``), (P, n, n_f)."""
+    return _channel(pl, ps, *_outputs(pl, ps))
