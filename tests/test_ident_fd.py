@@ -7,7 +7,7 @@ from station.ident.crb import crb_stepped_sine
 from station.ident.identifiability import correlations
 from station.ident.models import SdofModel
 from station.ident.response.frf import fit_frf, linear_start_sdof
-from station.ident.response.sinefit import _design, fit3, fit4, unit_circle
+from station.ident.response.sinefit import design, fit3, fit4, unit_circle
 from station.ident.synthetic import stepped_sine
 
 M5 = SdofModel(0.12, 26.167)
@@ -90,7 +90,7 @@ def test_the_sine_fits_design_holds_the_complex_exponentials_numbers() -> None:
         z = unit_circle(w * t)
         assert np.array_equal(z.real, e.real) and np.array_equal(z.imag, e.imag)
         for n_h in (1, 3, 5):
-            J = _design(t, w, n_h)
+            J = design(t, w, n_h)
             want = [e.real, e.imag, np.ones_like(t)]
             eh = e
             for _ in range(2, n_h + 1):

@@ -66,7 +66,7 @@ def unit_circle(phase: FloatArray, out: NDArray[np.complex128] | None = None) ->
     return z
 
 
-def _design(t: FloatArray, w: float, n_harmonics: int, extra: int = 0) -> FloatArray:
+def design(t: FloatArray, w: float, n_harmonics: int, extra: int = 0) -> FloatArray:
     """Columns cos(w t), sin(w t), 1, then cos/sin of the harmonics 2..n_h; shape (N, 1 + 2 n_h)
     (``extra`` more columns after them, left for the caller to fill).  The harmonics' powers of
     exp(j w t) are taken on contiguous rows and written as complex numbers (a cos, sin pair is a
@@ -113,7 +113,7 @@ def fit3(t: FloatArray, y: FloatArray, f_hz: float, *, t_center_s: float | None 
     t = np.asarray(t, float)
     y = np.asarray(y, float)
     tc = float(np.mean(t)) if t_center_s is None else t_center_s
-    J = _design(t - tc, 2 * np.pi * f_hz, n_harmonics)
+    J = design(t - tc, 2 * np.pi * f_hz, n_harmonics)
     p = _solve(J, y)
     return _finish(y, J, p, f_hz, 0.0, tc, n_harmonics=n_harmonics)
 
@@ -143,12 +143,12 @@ def estimate_frequency(t: FloatArray, y: FloatArray, f0_hz: float, *, t_center_s
     tt = t - tc
     w = 2 * np.pi * f0_hz
     stride = max(1, tt.size // 2000)
-    p = _solve(_design(tt[::stride], w, n_harmonics), y[::stride])
+    p = _solve(design(tt[::stride], w, n_harmonics), y[::stride])
     f_std = 0.0
     for sl, n_it in ((slice(None, None, stride), max_iter), (slice(None), 1)):
         ts, ys = tt[sl], y[sl]
         for _ in range(n_it):
-            J = _design(ts, w, n_harmonics, extra=1)  # [J0, d/dw]
+            J = design(ts, w, n_harmonics, extra=1)  # [J0, d/dw]
             J0 = J[:, :-1]
             _dw(ts, J0, p, n_harmonics, out=J[:, -1])
             JtJ = J.T @ J
@@ -168,7 +168,7 @@ def fit_channels(t: FloatArray, Y: FloatArray, f_hz: float, *, t_center_s: float
     """Three-parameter fits of several channels (columns of Y, shape (N, n_ch)) at one frequency
     and time origin, sharing the design matrix."""
     t = np.asarray(t, float)
-    J = _design(t - t_center_s, 2 * np.pi * f_hz, n_harmonics)
+    J = design(t - t_center_s, 2 * np.pi * f_hz, n_harmonics)
     JtJ = J.T @ J
     P = np.asarray(np.linalg.solve(JtJ, J.T @ Y), dtype=np.float64)
     Ji = np.asarray(np.linalg.inv(JtJ), dtype=np.float64)
@@ -219,7 +219,7 @@ def quantisation_cov(t: FloatArray, y: FloatArray, fit: SineFit, n_harmonics: in
         per = 2 * np.pi / (w * float(np.median(np.diff(tt[:100]))))  # samples per period
         tt = tt[:min(tt.size, int(np.ceil(np.ceil(QUANT_SAMPLES / per) * per)))]
     tt = tt - float(np.mean(tt))
-    J = _design(tt, w, n_harmonics)
+    J = design(tt, w, n_harmonics)
     proj = np.linalg.inv(J.T @ J)[:2] @ J.T  # (2, N): coefficients A, B of the fundamental
     phases = np.random.default_rng(_QUANT_RNG_SEED).uniform(0.0, 2 * np.pi, QUANT_PHASES)
     # cos(w t + phase) = cos(w t) cos(phase) - sin(w t) sin(phase): 2 N cosines (the design's first two
