@@ -55,24 +55,58 @@ def pytest_collection_finish(session: pytest.Session) -> None:
 def _module_rank(item: pytest.Item) -> int:
     """0: the module keeps tests together on one worker (``xdist_group``: a daemon, a browser, a shared
     analysis, 15-50 s each) or has a test that mostly waits (``waits``: a kill and restart, a run over
-    the wire, 5-20 s of wall time, so that its waits overlap other tests' work instead of being the last
-    thing a worker does); 1: it has slow tests; 2: only fast ones."""
+    the wire, 5-20 s of wall time); 1: it has slow tests; 2: only fast ones."""
     if item.get_closest_marker("xdist_group") is not None or item.get_closest_marker("waits") is not None:
         return 0
     return 1 if item.get_closest_marker("slow") is not None else 2
 
 
+def _weight(item: pytest.Item) -> float:
+    """A test's rough length for spreading the waits: a slow test takes seconds, the others a tenth or so."""
+    return 10.0 if item.get_closest_marker("slow") is not None else 1.0
+
+
+WAITS_SPREAD = 0.75  # the waits are spread over this leading share of the other tests of slow modules
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Longest work first: pytest-xdist hands out the tests in this order, and the alphabetical order put
-    the browser and daemon modules (the longest units, kept on one worker each) last, where a worker
-    still running one left the others idle.  Modules are ranked by their longest unit (``_module_rank``:
-    a module's rank is its best item's) and keep their place within a rank and their tests' order, so
-    module-scoped fixtures are built once per worker as before."""
+    """The order in which pytest-xdist hands out the tests that are not kept together (``--dist
+    loadgroup`` hands out every ``xdist_group`` first, the largest first, then each other test on its
+    own in this order): longest work first, and the waits spread among the CPU's work.
+
+    - Modules are ranked by their longest unit (``_module_rank``: a module's rank is its best item's)
+      and keep their place within a rank and their tests' order (a stable sort).  The alphabetical
+      order put the browser and daemon modules last, where a worker still running one left the
+      others idle.
+    - A test that mostly waits in real time (``waits``, on it or its module) is spread evenly, by
+      rough length (``_weight``), over the first ``WAITS_SPREAD`` of the other tests of the modules
+      with slow tests.  Handed out together, as they were, the four workers all waited at once: in
+      one run 12.5 of the run's 24 core-seconds of idle time fell in the 20 s they took.  Spread, one
+      or two wait at a time while the others compute; none is left for the end, where the fast
+      tests even out the workers' finishing times."""
     rank: dict[str, int] = {}
     for it in items:
         key = it.nodeid.split("::", 1)[0]
         rank[key] = min(rank.get(key, 2), _module_rank(it))
     items.sort(key=lambda it: rank[it.nodeid.split("::", 1)[0]])  # stable: file and test order kept
+    grouped = [it for it in items if it.get_closest_marker("xdist_group") is not None]
+    single = [it for it in items if it.get_closest_marker("xdist_group") is None]
+    waits = [it for it in single if it.get_closest_marker("waits") is not None]
+    work = [it for it in single if it.get_closest_marker("waits") is None and rank[it.nodeid.split("::", 1)[0]] < 2]
+    fast = [it for it in single if it.get_closest_marker("waits") is None and rank[it.nodeid.split("::", 1)[0]] == 2]
+    # spread by a rough length (``_weight``): many of the waits are protocol checks of a tenth of a second,
+    # and spread by count they bunched the long ones together as before
+    due = sum(map(_weight, waits)) / max(WAITS_SPREAD * sum(map(_weight, work)), 1e-9)  # waits per unit of work
+    spread: list[pytest.Item] = []
+    k, done, placed = 0, 0.0, 0.0  # waits placed, work handed out, waits handed out (in _weight)
+    for it in work:
+        spread.append(it)
+        done += _weight(it)
+        while k < len(waits) and placed <= done * due:
+            spread.append(waits[k])
+            placed += _weight(waits[k])
+            k += 1
+    items[:] = grouped + spread + waits[k:] + fast
 
 
 @functools.cache

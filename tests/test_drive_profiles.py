@@ -200,6 +200,7 @@ def test_simulated_calibration_on_every_profile(tmp_path: Path, name: str) -> No
 
 
 @pytest.mark.slow
+@pytest.mark.waits  # a run over Modbus TCP in real time: about 4.5 s of wall time, 0.5 s of CPU
 @pytest.mark.parametrize("name", ["toshiba-vf-s11", "siemens-sinamics-v20"])
 def test_simulated_calibration_over_modbus_tcp(tmp_path: Path, name: str) -> None:
     """Over the wire in real time: one register per read (VF-S11), Modicon numbering and a normalised

@@ -419,6 +419,7 @@ def _expected_disp(n: int) -> np.ndarray:
 
 
 @pytest.mark.slow
+@pytest.mark.waits  # a writer process killed mid-run: about 4 s of wall time, 0.6 s of CPU
 def test_kill_9_leaves_a_readable_interrupted_file(tmp_path: Path) -> None:
     proc = subprocess.Popen([sys.executable, "-c", KILL_WRITER, str(tmp_path)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, cwd=tmp_path)

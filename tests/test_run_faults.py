@@ -40,7 +40,8 @@ def recording_after(outcome: object) -> object:
     return rec
 
 
-@pytest.mark.parametrize("wire", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["virtual", "wire"])
+@pytest.mark.parametrize("wire", [False, pytest.param(True, marks=(pytest.mark.slow, pytest.mark.waits))],
+                         ids=["virtual", "wire"])  # over the wire: about 7 s of wall time, 1 s of CPU
 @pytest.mark.slow
 def test_completed_run_records_every_step(tmp_path: Path, wire: bool) -> None:
     outcome, _, motor = run_with(tmp_path, None, lambda r, p: None, wire=wire)
