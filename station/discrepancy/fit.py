@@ -126,10 +126,9 @@ def _weights(data: RigData) -> _Weights:
     return w
 
 
-def _to_value(conversion: tuple[int, float, float], u: float) -> float:
-    """A parameter's physical value at its fit coordinate ``u``: ``conversion`` = (0 linear / 1 logarithm /
-    2 reciprocal, centre, scale), ``Problem._conversion``."""
-    kind, c, s = conversion
+def _to_value(kind: int, c: float, s: float, u: float) -> float:
+    """A parameter's physical value at its fit coordinate ``u``: ``kind`` 0 linear / 1 logarithm /
+    2 reciprocal, centre ``c`` and scale ``s`` (``Problem._conversion``)."""
     if kind == 2:
         return 1.0 / (1.0 / c + s * u)
     return c * math.exp(s * u) if kind == 1 else c + s * u
@@ -167,7 +166,7 @@ class Problem:
         self._last: tuple[bytes, FloatArray] | None = None
 
     def to_value(self, q: Param, u: float) -> float:
-        return _to_value(self._conversion[q.name], u)
+        return _to_value(*self._conversion[q.name], u)
 
     def dvalue(self, q: Param, u: float) -> float:
         if q.reciprocal:
@@ -195,8 +194,7 @@ class Problem:
         """The physical values at u by name (``to_value`` of each parameter, the fixed ones with them)."""
         out = dict(self.fixed)
         for (name, kind, c, s), x in zip(self._named, np.asarray(u, dtype=float).tolist(), strict=True):
-            # ``_to_value`` written out (the same arithmetic): a call per parameter costs as much again
-            out[name] = c + s * x if kind == 0 else c * math.exp(s * x) if kind == 1 else 1.0 / (1.0 / c + s * x)
+            out[name] = _to_value(kind, c, s, x)
         return out
 
     def whitened(self, p: Mapping[str, float]) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
@@ -252,8 +250,7 @@ class Problem:
                 h = step
             xj = xj0 + h
             name, kind, c, s = self._named[j]
-            v = c + s * xj if kind == 0 else c * math.exp(s * xj) if kind == 1 else 1.0 / (1.0 / c + s * xj)
-            points.append({**at, name: v})  # the values at x with u_j moved (``_to_value``)
+            points.append({**at, name: _to_value(kind, c, s, xj)})  # the values at x with u_j moved
             steps.append(xj - xj0)
         if cols:
             J[:, cols] = ((self.residuals(points) - r0) / np.array(steps)[:, None]).T
