@@ -3,7 +3,7 @@
 wall_s_8_steps / cpu_s_8_steps: median wall / CPU time (s) of ``analyse_recording`` (reading included)
 on an 8-step recording (2 s per step, 5-95 Hz, with mains interference and transducer nonlinearity
 switched on), 3 repeats; model_evaluations_8_steps: the model fits' evaluations of the rig model
-(``fit.predict``, and each parameter set of ``fit.forces``, ``model.predict_many``'s) in one such analysis;
+(``fit.predict``, and each parameter set of ``fit.forces``) in one such analysis;
 load_average_1min: the machine's load when it finished (wall time depends on it).  One BLAS thread, as
 the station's processes run the analysis (``station.cli``, ``station.blas_env``; a value the user set is
 kept): with OpenBLAS's pool on a loaded 2-core machine its

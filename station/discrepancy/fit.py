@@ -258,8 +258,8 @@ class Problem:
 
     def residuals(self, ps: Sequence[Mapping[str, float]]) -> FloatArray:
         """``residual`` for several sets of physical parameters at once, (P, n_rows): the same values,
-        the model evaluated for all of them together (``model.predict_many``)."""
-        m = forces(self._plan, ps)  # ``model.predict_many``
+        the model evaluated for all of them together (``model.forces``)."""
+        m = forces(self._plan, ps)
         return (self.EWc[None] - np.einsum("sij,psj->psi", self.EW, m))[:, self.valid_f]
 
     def n_obs(self) -> int:

@@ -45,9 +45,8 @@ from station.discrepancy.eiv import measured_motion
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
 N_GRID = 64
-_T = TypeVar("_T")
 _K = TypeVar("_K")
-_A = TypeVar("_A", bound=np.ndarray)
+_V = TypeVar("_V")  # a kept stage: an array or a tuple of arrays
 
 
 def crank_displacement_harmonics(x1: ComplexArray, kappa: float, K: int) -> ComplexArray:
@@ -219,9 +218,12 @@ def _complex_mask(data: RigData) -> ComplexArray:
     return out
 
 
-def _keep(kept: dict[_K, _A], key: _K, value: _A) -> _A:
-    """Keep a stage's ``value`` (made read-only) under ``key``, dropping the oldest beyond ``_KEEP``."""
-    value.flags.writeable = False
+def _keep(kept: dict[_K, _V], key: _K, value: _V) -> _V:
+    """Keep a stage's ``value`` (an array or a tuple of arrays, made read-only) under ``key``, dropping
+    the oldest beyond ``_KEEP``."""
+    for a in value if isinstance(value, tuple) else (value,):
+        if isinstance(a, np.ndarray):
+            a.flags.writeable = False
     if len(kept) >= _KEEP:
         del kept[next(iter(kept))]
     kept[key] = value
@@ -272,11 +274,8 @@ def _outputs(pl: _Plan, ps: Sequence[Mapping[str, float]]) -> tuple[FloatArray, 
             vkey = (xkey, gkey, p["S"], p["quadratic"], p["cubic"])
             V = kept_V.get(vkey)
             if V is None:
-                V = _nonlinear_output(pl.F0, Gk * x, p["S"], p["quadratic"], p["cubic"], data.capacity_N, K_MAX)
-                V[0].flags.writeable = V[1].flags.writeable = False
-                if len(kept_V) >= _KEEP:
-                    del kept_V[next(iter(kept_V))]
-                kept_V[vkey] = V
+                V = _keep(kept_V, vkey, _nonlinear_output(pl.F0, Gk * x, p["S"], p["quadratic"], p["cubic"],
+                                                          data.capacity_N, K_MAX))
             V0s.append(V[0])
             Vks.append(V[1])
         else:
@@ -368,13 +367,9 @@ def predict(data: RigData, p: Mapping[str, float], effects: Mapping[str, int]
     return m, pl.dr.md, Vk[0, :, 0] / data.x1
 
 
-def predict_many(data: RigData, ps: Sequence[Mapping[str, float]], effects: Mapping[str, int]) -> FloatArray:
-    """The force coefficients of ``predict`` for P parameter sets at once, (P, n, n_f): the same
-    values (a Jacobian's forward differences, each of which changes one parameter: most stages are
-    shared, ``_Plan``, and the force channel is evaluated for all sets together)."""
-    return forces(plan(data, effects), ps)
-
-
 def forces(pl: _Plan, ps: Sequence[Mapping[str, float]]) -> FloatArray:
-    """``predict_many`` of the model and data set of ``pl`` (``plan``), (P, n, n_f)."""
+    """The force coefficients of ``predict`` for P parameter sets at once on the model and data set of
+    ``pl`` (``plan``), (P, n, n_f): the same values (a Jacobian's forward differences, each of which
+    changes one parameter: most stages are shared, ``_Plan``, and the force channel is evaluated for
+    all sets together)."""
     return _channel(pl, ps, *_outputs(pl, ps))
