@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.rig.params import EFFECT_NAMES
-from station.discrepancy.data import RigData
+from station.discrepancy.data import RigData, per_data_set
 
 # the effects the force model can name; the crank harmonics are not among them: the model takes the
 # frame motion as recorded, and ``drive`` checks it against the slider crank; nor is the transducer's
@@ -95,16 +95,11 @@ NEUTRAL: dict[str, float] = {
 KC_TOP, CUTOFF_TOP, RESONANCE_TOP = 3000.0, 300.0, 300.0
 
 
-_DATA_SCALES: dict[int, tuple[RigData, tuple[float, float, float, dict[str, float]]]] = {}
-
-
+@per_data_set(4)
 def _data_scales(data: RigData) -> tuple[float, float, float, dict[str, float]]:
-    """What ``scales`` takes of a data set alone, once per data set (the few most recent are kept):
-    the median noise sigma (V), the record's duration (s), the highest crank frequency (Hz) and the
-    per-step parameters' scales (10 sigma, in ``scales``' order)."""
-    hit = _DATA_SCALES.get(id(data))
-    if hit is not None and hit[0] is data:
-        return hit[1]
+    """What ``scales`` takes of a data set alone, once per data set: the median noise sigma (V), the
+    record's duration (s), the highest crank frequency (Hz) and the per-step parameters' scales
+    (10 sigma, in ``scales``' order)."""
     sig = float(np.median(data.sigma_f))
     per_step: dict[str, float] = {}
     for i in range(data.n_steps):
@@ -113,11 +108,7 @@ def _data_scales(data: RigData) -> tuple[float, float, float, dict[str, float]]:
         per_step[f"re_{h}"] = per_step[f"im_{h}"] = 10 * sig
         for i in range(data.n_steps):
             per_step[f"re_{h}_s{i}"] = per_step[f"im_{h}_s{i}"] = 10 * sig
-    out = (sig, float(data.t_mid_s.max() + data.half_s.max()), float(data.f_hz.max()), per_step)
-    if len(_DATA_SCALES) >= 4:
-        _DATA_SCALES.clear()
-    _DATA_SCALES[id(data)] = (data, out)
-    return out
+    return sig, float(data.t_mid_s.max() + data.half_s.max()), float(data.f_hz.max()), per_step
 
 
 def scales(p: dict[str, float], data: RigData) -> dict[str, float]:

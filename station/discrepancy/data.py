@@ -9,10 +9,13 @@ the time-domain residual energy the model can change (the LS residual energy ``s
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -193,6 +196,34 @@ def _too_short(window_s: float, f_hz: float) -> str:
         return (f"step left out: its record window ({window_s:.3g} s) holds {window_s * f_hz:.2g} cycles of "
                 f"{f_hz:.4g} Hz; the model-gap analysis needs at least {MIN_CYCLES:g}")
     return ""
+
+
+_T = TypeVar("_T")
+
+
+def per_data_set(size: int) -> Callable[[Callable[[RigData], _T]], Callable[[RigData], _T]]:
+    """A function of a data set made once per data set: its value for the ``size`` most recent
+    ``RigData`` objects (a frozen one: the thousands of model evaluations of one analysis share what
+    depends on the data alone), by identity (the data set is kept with it, so an id is never mistaken
+    for a later object's)."""
+
+    def keep(fn: Callable[[RigData], _T]) -> Callable[[RigData], _T]:
+        kept: dict[int, tuple[RigData, _T]] = {}
+
+        @functools.wraps(fn)
+        def once(data: RigData) -> _T:
+            hit = kept.get(id(data))
+            if hit is not None and hit[0] is data:
+                return hit[1]
+            value = fn(data)
+            if len(kept) >= size:
+                del kept[next(iter(kept))]  # the oldest
+            kept[id(data)] = (data, value)
+            return value
+
+        return once
+
+    return keep
 
 
 _PREPARED: Kept[RigData] = Kept(4, lambda data: data)  # the same frozen RigData given again (``prepare``)

@@ -35,7 +35,7 @@ from scipy import stats
 from scipy.optimize import least_squares
 
 from station.discrepancy.catalogue import BASE_PARAMS, NEUTRAL, Param, effect_params, scales
-from station.discrepancy.data import RigData
+from station.discrepancy.data import RigData, per_data_set
 from station.discrepancy.eiv import whitening
 from station.discrepancy.model import forces, plan, predict
 
@@ -102,16 +102,13 @@ class _Weights:
     valid_f: NDArray[np.bool_]
 
 
-_EIV: dict[int, tuple[RigData, _Weights]] = {}
 _REL_STEP = math.sqrt(np.finfo(float).eps)
 
 
+@per_data_set(4)
 def _weights(data: RigData) -> _Weights:
-    """``_Weights`` once per data set (a frozen ``RigData``; every model and start point of a
-    recording's analysis shares them, ``eiv.whitening`` included; the few most recent are kept)."""
-    hit = _EIV.get(id(data))
-    if hit is not None and hit[0] is data:
-        return hit[1]
+    """``_Weights`` once per data set (every model and start point of a recording's analysis shares
+    them, ``eiv.whitening`` included)."""
     Wf = data.Rf / data.sigma_f[:, None, None]
     E = whitening(data, Wf)
     # the residual E W_f (c_f - m) as E W_f c_f - (E W_f) m: one product per evaluation
@@ -120,9 +117,6 @@ def _weights(data: RigData) -> _Weights:
                  EWc=np.einsum("sij,sj->si", EW, data.cf), valid_f=np.any(data.Rf != 0, axis=1))
     for a in (w.Wf, w.Wd, w.eiv, w.EW, w.EWc, w.valid_f):
         a.flags.writeable = False
-    if len(_EIV) >= 4:
-        _EIV.clear()
-    _EIV[id(data)] = (data, w)
     return w
 
 

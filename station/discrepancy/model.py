@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from drivers.rig.model import Laplace, spring_response
 from drivers.rig.params import DisplacementResonance
-from station.discrepancy.data import G, RigData
+from station.discrepancy.data import G, RigData, per_data_set
 from station.discrepancy.decompose import K_MAX
 from station.discrepancy.eiv import measured_motion
 
@@ -99,15 +99,9 @@ class _Drive:
     md: FloatArray
 
 
-_DRIVE: dict[int, tuple[RigData, _Drive]] = {}
-
-
+@per_data_set(4)
 def _drive(data: RigData) -> _Drive:
-    """``_Drive`` once per data set (a frozen ``RigData``: the thousands of model evaluations of one
-    analysis share it; the few most recent are kept)."""
-    hit = _DRIVE.get(id(data))
-    if hit is not None and hit[0] is data:
-        return hit[1]
+    """``_Drive`` once per data set."""
     Om = 2 * np.pi * data.f_hz[:, None] * np.arange(1, K_MAX + 1)[None, :]
     s = np.asarray(1j * Om, dtype=np.complex128)
     D = measured_motion(data)  # the frame motion as recorded drives the model (``eiv``)
@@ -116,9 +110,6 @@ def _drive(data: RigData) -> _Drive:
     out = _Drive(Om / (2 * np.pi), Om, s, s * s, D, md)
     for a in (out.f, out.Om, out.s, out.s2, out.D, out.md):
         a.flags.writeable = False
-    if len(_DRIVE) >= 4:
-        _DRIVE.clear()
-    _DRIVE[id(data)] = (data, out)
     return out
 
 
@@ -176,45 +167,29 @@ def plan(data: RigData, effects: Mapping[str, int]) -> _Plan:
                mains="mains_interference" in effects and data.n_mains > 0, drift="zero_drift" in effects,
                merges=tuple((int(i), int(h), int(data.merge[i, h]) - 1)
                             for i, h in zip(*np.nonzero(data.merge), strict=True)),
-               F0=-data.total_mass_kg * G, lp=_laplace(data, coupled), kmask=_complex_mask(data))
+               F0=-data.total_mass_kg * G, lp=_laplace(data), kmask=_complex_mask(data))
     if len(_PLANS) >= 64:
         del _PLANS[next(iter(_PLANS))]  # the oldest
     _PLANS[key] = pl
     return pl
 
 
-_LAPLACE: dict[tuple[int, bool], tuple[RigData, Laplace]] = {}
-
-
-def _laplace(data: RigData, coupled: bool) -> Laplace:
-    """s = j 2 pi f_k and its powers at the harmonic frequencies of ``data`` (``spring_response``),
-    once per data set."""
-    hit = _LAPLACE.get((id(data), coupled))
-    if hit is not None and hit[0] is data:
-        return hit[1]
-    out = Laplace.at(_drive(data).f, coupled)
+@per_data_set(4)
+def _laplace(data: RigData) -> Laplace:
+    """s = j 2 pi f_k and its powers up to s^4 at the harmonic frequencies of ``data``
+    (``spring_response``; the stiff model uses s and s^2 of them), once per data set."""
+    out = Laplace.at(_drive(data).f, coupled=True)
     for a in (out.s, out.s2, out.s3, out.s4):
         if a is not None:
             a.flags.writeable = False
-    if len(_LAPLACE) >= 8:
-        _LAPLACE.clear()
-    _LAPLACE[(id(data), coupled)] = (data, out)
     return out
 
 
-_MASKS: dict[int, tuple[RigData, ComplexArray]] = {}
-
-
+@per_data_set(4)
 def _complex_mask(data: RigData) -> ComplexArray:
     """``data.kmask`` (n, K) as complex numbers, once per data set."""
-    hit = _MASKS.get(id(data))
-    if hit is not None and hit[0] is data:
-        return hit[1]
     out = data.kmask.astype(np.complex128)
     out.flags.writeable = False
-    if len(_MASKS) >= 8:
-        _MASKS.clear()
-    _MASKS[id(data)] = (data, out)
     return out
 
 
