@@ -24,7 +24,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy import stats
+
+from station.trend.tails import norm_cdf, norm_sf, t_ppf
 
 Values = Sequence[float] | np.ndarray
 
@@ -104,7 +105,7 @@ def shewhart(values: Values, *, uncertainties: Values | None = None,
     """Shewhart chart of individual values with t-limits (see the module)."""
     x = _finite(values)
     centre, s, n = reference_statistics(x, uncertainties, reference)
-    k = float(stats.t.ppf(0.5 + probability / 2, n - 1))
+    k = float(t_ppf(0.5 + probability / 2, n - 1))
     lo, hi = centre - k * s, centre + k * s
     points = tuple(ChartPoint(i, float(v), float(v), lo, hi, bool(v < lo or v > hi)) for i, v in enumerate(x))
     return Chart("shewhart", centre, s, n, {"k": k, "probability": probability, "dof": n - 1}, points,
@@ -140,7 +141,7 @@ def ewma(values: Values, *, target: float | None = None, s: float | None = None,
 
 def shewhart_arl(shift: float, *, k: float = 3.0) -> float:
     """Average run length of a Shewhart chart with limits ±k (in s) for a mean shifted by ``shift`` s."""
-    p = stats.norm.sf(k - shift) + stats.norm.cdf(-k - shift)
+    p = norm_sf(k - shift) + norm_cdf(-k - shift)
     return float(1.0 / p)
 
 
@@ -157,7 +158,7 @@ def _ewma_transitions(edges: np.ndarray, mids: np.ndarray, lam: float, shift: fl
     """P[i, j]: from cell i (z = mids[i]) to cell j, λx + (1-λ)z in cell j, x ~ N(shift, 1)."""
     lo = (edges[None, :-1] - (1 - lam) * mids[:, None]) / lam
     hi = (edges[None, 1:] - (1 - lam) * mids[:, None]) / lam
-    return np.asarray(stats.norm.cdf(hi - shift) - stats.norm.cdf(lo - shift))
+    return np.asarray(norm_cdf(hi - shift) - norm_cdf(lo - shift))
 
 
 @lru_cache(maxsize=64)
@@ -178,7 +179,7 @@ def first_alarm_probabilities(shifts: Sequence[float], *, kind: str = "ewma", la
     of no alarm within the n points."""
     d = np.asarray(shifts, dtype=float)
     if kind == "shewhart":
-        p = stats.norm.sf(L - d) + stats.norm.cdf(-L - d)
+        p = norm_sf(L - d) + norm_cdf(-L - d)
         survive = np.concatenate([[1.0], np.cumprod(1 - p)[:-1]])
         return np.asarray(p * survive)
     if kind != "ewma":

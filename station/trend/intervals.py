@@ -9,6 +9,10 @@
   by least squares with its covariance; the interval is where the prediction's confidence bound
   reaches a tolerance limit (reliability target) or where its uncertainty reaches a target.
 Times are in days unless the caller uses another unit consistently.
+
+``scipy.optimize`` and ``scipy.stats`` (the binomial and beta functions of A3) are imported where a
+method needs them: the daemon computes a history's intervals in its own process, and most histories
+need neither (``station.trend.tails`` gives the normal and t functions).
 """
 
 from __future__ import annotations
@@ -18,7 +22,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize, stats
+
+from station.trend.tails import norm_cdf, norm_sf, t_ppf
 
 
 @dataclass(frozen=True)
@@ -50,6 +55,8 @@ def a3(in_tolerance: int, n: int, interval: float, *, target: float = 0.95, max_
         raise ValueError(f"method A3 needs 0 <= in-tolerance <= n and n >= 1 (got {in_tolerance} of {n})")
     if not 0 < target < 1 or not interval > 0 or not max_change >= 1:
         raise ValueError("method A3 needs 0 < target < 1, an interval > 0 and a maximum change >= 1")
+    from scipy import stats  # here: a history without calibrations at the assigned interval needs none of it
+
     r0 = in_tolerance / n
     if in_tolerance in (0, n):
         q = 1 - stats.binom.pmf(in_tolerance, n, target)
@@ -103,6 +110,8 @@ def s2(times: Sequence[float], reliabilities: Sequence[float], counts: Sequence[
         raise ValueError("method S2 needs times, reliabilities and counts of one length >= 2")
     if np.any(t <= 0) or np.any((ri < 0) | (ri > 1)) or np.any(ni <= 0) or not 0 < target < 1:
         raise ValueError("method S2 needs times > 0, reliabilities in [0, 1], counts > 0, 0 < target < 1")
+
+    from scipy import optimize  # here: the daemon's histories mostly have too few calibrations for S2
 
     def neg_exp(p: np.ndarray) -> float:
         return -_loglik(np.exp(-math.exp(p[0]) * t), ni, ri)
@@ -184,6 +193,8 @@ def _first_crossing(f: Callable[[float], float], t_max: float) -> float:
     idx = np.flatnonzero(vals >= 0)
     if idx.size == 0:
         return math.nan
+    from scipy import optimize  # here: only where a crossing is found
+
     i = int(idx[0])
     return float(optimize.brentq(f, grid[i - 1], grid[i], xtol=1e-10))
 
@@ -205,7 +216,7 @@ def variables(times: Sequence[float], deviations: Sequence[float], *, u0: float,
     if limits is not None and (limits[0] is not None or limits[1] is not None):
         lo, hi = limits
         two_sided = lo is not None and hi is not None
-        tq = float(stats.t.ppf((1 + confidence) / 2 if two_sided else confidence, fit.dof))
+        tq = float(t_ppf((1 + confidence) / 2 if two_sided else confidence, fit.dof))
 
         def excess(t: float) -> float:
             y, u = y0 + fit.predict(t), _u_total(fit, u0, t)
@@ -254,5 +265,5 @@ def drift_risk(days: Sequence[float], values: Sequence[float], uncertainties: Se
     cov = cov * max(chi2, 1.0)
     g = np.array([1.0, due_day - t0])
     pred, u_pred = float(g @ beta), float(math.sqrt(g @ cov @ g))
-    p = stats.norm.cdf((nominal - tolerance - pred) / u_pred) + stats.norm.sf((nominal + tolerance - pred) / u_pred)
+    p = norm_cdf((nominal - tolerance - pred) / u_pred) + norm_sf((nominal + tolerance - pred) / u_pred)
     return DriftRisk(float(beta[1]), float(math.sqrt(cov[1, 1])), pred, u_pred, float(p))
