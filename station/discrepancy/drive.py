@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from typing import TypedDict
 
 import numpy as np
-from scipy import stats
 from scipy.optimize import minimize_scalar
+from scipy.special import chdtrc
 
 from station.discrepancy.data import RigData
 from station.discrepancy.decompose import K_MAX
@@ -100,12 +100,12 @@ def check_drive(data: RigData) -> DriveCheck:
     else:
         rod = Estimate(1 / kap, sk / kap**2, "m")
     findings: list[str] = []
-    if stats.chi2.sf(c2, dof) < ALPHA or (not rod.identifiable and kap < 0 and abs(kap) > 3 * sk):
+    if chdtrc(dof, c2) < ALPHA or (not rod.identifiable and kap < 0 and abs(kap) > 3 * sk):
         e = _resid(data, kap if kap > 0 else 0.0)
         idx = [s.index for s in data.steps]
         for k in range(2, K_MAX + 1):
             c2k = np.sum(e[:, 2 * k - 4 : 2 * k - 2] ** 2, axis=1)
-            sig = [i for i in range(data.n_steps) if data.kmask[i, k - 1] and stats.chi2.sf(c2k[i], 2) < 1e-3]
+            sig = [i for i in range(data.n_steps) if data.kmask[i, k - 1] and chdtrc(2, c2k[i]) < 1e-3]
             if not sig:
                 continue
             amp = max(abs(complex(data.cd[i, 2 * k - 4], data.cd[i, 2 * k - 3])) for i in sig)

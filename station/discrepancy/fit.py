@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
 from scipy.optimize import least_squares
+from scipy.special import chdtrc
 
 from station.discrepancy.catalogue import BASE_PARAMS, NEUTRAL, Param, effect_params, scales
 from station.discrepancy.data import RigData, per_data_set
@@ -372,7 +372,7 @@ def finish(prob: Problem, u: FloatArray, jac: FloatArray, converged: bool) -> Mo
     n_par = len(prob.params) + (1 if "conditioner_lowpass" in prob.effects else 0)
     dof = max(n_obs - n_par, 1)
     # inflate only when the misfit is significant (p < 1 %), not for chance chi^2/dof slightly above 1
-    birge = chi2 / dof if stats.chi2.sf(chi2, dof) < 0.01 else 1.0
+    birge = chi2 / dof if chdtrc(dof, chi2) < 0.01 else 1.0
     cov = birge * (D[:, None] * cov_u * D[None, :])
     std = {q.name: float(math.sqrt(max(cov[i, i], 0.0))) for i, q in enumerate(prob.params)}
     wf, wd, m, md = prob.whitened(vals)

@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+from scipy.special import chdtrc
 
 from station.discrepancy.data import RigData
 from station.discrepancy.decompose import FLAT_TOP, K_MAX
@@ -101,9 +101,9 @@ def _report(out: list[Finding], channel: str, comp: str, cols: list[int], unit: 
         return
     dof = len(cols)
     total = float(c2[valid].sum())
-    if stats.chi2.sf(total, dof * int(valid.sum())) >= ALPHA:
+    if chdtrc(dof * int(valid.sum()), max(total, 0.0)) >= ALPHA:  # chi2.sf: 1 at total <= 0
         return
-    sig = valid & (stats.chi2.sf(c2, dof) < 1e-3)
+    sig = valid & (chdtrc(dof, c2) < 1e-3)
     steps = tuple(idx[i] for i in np.nonzero(sig)[0]) or tuple(idx[i] for i in np.nonzero(valid)[0])
     if comp == "offset and drift":
         mags = np.abs(resid[:, cols[0]]) + np.abs(resid[:, cols[1]]) + np.abs(resid[:, cols[2]])

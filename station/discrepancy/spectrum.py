@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+from scipy.special import gammainccinv  # scipy.stats.gamma.isf without importing scipy.stats
 
 FloatArray = NDArray[np.float64]
 PAD = 8
@@ -120,8 +120,8 @@ def detect_mains(residuals: list[FloatArray], sigmas: list[float], fs: float,
     j = int(np.argmax(total))
     width = float(np.count_nonzero(at_mains)) * float(grid[1] - grid[0] if grid.size > 1 else 0.01)
     trials = width * max(r.size for r in residuals) / fs  # independent cells
-    thresh = stats.gamma.isf(alpha / max(trials, 1.0), 3 * n)
-    per_step = stats.gamma.isf(1e-3, 3)
+    thresh = gammainccinv(3 * n, alpha / max(trials, 1.0))
+    per_step = gammainccinv(3, 1e-3)
     steps_with = int(np.count_nonzero(per[:, j] > per_step))
     if total[j] < thresh or steps_with < math.ceil(n / 2):
         return MainsDetection(None, 0, f"no line common to the steps in {f_range[0]:g}-{f_range[1]:g} Hz "
@@ -129,11 +129,11 @@ def detect_mains(residuals: list[FloatArray], sigmas: list[float], fs: float,
                                        f"{thresh:.3g}, in {steps_with}/{n} steps)")
     f_m = float(grid[j])
     p1 = sum(float(np.interp(f_m, fr, P)) for fr, P in spectra)
-    if p1 < stats.gamma.isf(1e-4, n):
+    if p1 < gammainccinv(n, 1e-4):
         return MainsDetection(None, 0, f"lines at harmonics of {f_m:.2f} Hz but none at {f_m:.2f} Hz itself: "
                                        "not mains (e.g. the transducer's own free oscillation)")
     keep = 1
-    t1 = stats.gamma.isf(1e-4, n)
+    t1 = gammainccinv(n, 1e-4)
     for h in range(2, h_max + 1):
         p = 0.0
         for fr, P in spectra:

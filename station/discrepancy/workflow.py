@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy import stats
+from scipy.special import chdtrc
 
 from station.discrepancy.catalogue import CATALOGUE
 from station.discrepancy.data import RigData, prepare
@@ -59,7 +59,7 @@ MIN_SHARE = 0.25
 def _candidate(current: ModelFit, fit: ModelFit, name: str, birge: float) -> Candidate:
     k = fit.n_par - current.n_par
     d = max(current.chi2 - fit.chi2, 0.0) / birge
-    return Candidate(name=name, delta_chi2=d, added_params=k, p_value=float(stats.chi2.sf(d, k)),
+    return Candidate(name=name, delta_chi2=d, added_params=k, p_value=float(chdtrc(k, d)) if k > 0 else math.nan,
                      delta_bic=d - k * math.log(fit.n_obs), gap_V=fit.gap_V)
 
 
