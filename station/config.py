@@ -18,8 +18,6 @@ from pydantic_core import ErrorDetails
 from sinecal_config import config_file
 
 from drivers.daq.protocol import link_budget
-from drivers.motor.errors import RegisterMapError
-from drivers.motor.profile import load_profile
 from drivers.rig import params as rp
 from station.bounded import MAX_YAML_BYTES, load_yaml, quote, read_text_limited
 from station.errors import ConfigError
@@ -564,6 +562,11 @@ class StationConfig(_Model):
     def _drive_profile(self) -> StationConfig:
         """rig.motor.profile must load (drivers.motor.profile); the run checks its steps against the
         drive's frequency range before anything moves (the ranges here also serve the simulator)."""
+        # here: the drive's driver (its Modbus client) loads with the first configuration checked, not
+        # with every process that reads a configuration's types (an identification worker)
+        from drivers.motor.errors import RegisterMapError
+        from drivers.motor.profile import load_profile
+
         try:
             load_profile(self.rig.motor.profile)
         except RegisterMapError as exc:

@@ -10,7 +10,6 @@ still starting is noticed as the worker starts (the PID it was given is no longe
 
 from __future__ import annotations
 
-import asyncio
 import concurrent.futures
 import contextlib
 import ctypes
@@ -266,6 +265,8 @@ class WorkerPool:
         return [p.pid for p in procs.values() if p.pid is not None]
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        import asyncio  # here: the daemon's side; a worker process has no event loop
+
         ex = self._get()
         try:
             return await asyncio.get_running_loop().run_in_executor(ex, fn, *args)
