@@ -9,8 +9,6 @@ import argparse
 import json
 import os
 import sys
-import urllib.error
-import urllib.request
 
 from station.errors import BadInputError, StationError
 
@@ -25,6 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import urllib.error  # here: every other command's start goes without urllib's HTTP client
+    import urllib.request
+
     token = os.environ.get("STATION_TOKEN", "").strip()
     if not token:
         raise BadInputError("set STATION_TOKEN to the daemon's token: acknowledging needs it")

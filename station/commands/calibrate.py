@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import sys
 import time
@@ -64,6 +63,8 @@ class _Bar:
 
 
 def run(args: argparse.Namespace) -> int:
+    import asyncio  # here: every other command's start goes without asyncio (registering imports this module)
+
     from drivers.daq.link import DaqLinkError
     from drivers.motor.errors import MotorCommunicationError
     from station.commands.identify import format_text

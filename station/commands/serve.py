@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import logging
 import signal
 from pathlib import Path
@@ -61,6 +60,8 @@ def _serve(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLo
 
 def _serve_on(args: argparse.Namespace, settings: ServiceSettings, lock: InstanceLock,
               rig: RigProcessConnector, stopped_by: list[int]) -> int:
+    import asyncio  # here, as the rest: registering ``serve`` costs the other commands' starts nothing
+
     import uvicorn
 
     from station.api import create_app

@@ -10,8 +10,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import urllib.error
-import urllib.request
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -27,6 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _post(url: str) -> dict[str, Any]:
+    import urllib.request  # here: every other command's start goes without urllib's HTTP client
+
     req = urllib.request.Request(url, data=b"", method="POST")
     with urllib.request.urlopen(req, timeout=30) as r:  # the answer waits for the drive's read-back
         out: dict[str, Any] = json.loads(r.read())
@@ -34,6 +34,8 @@ def _post(url: str) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    import urllib.error
+
     base = args.url.rstrip("/")
     parts = urlsplit(base)
     port = args.stop_port if args.stop_port is not None else (parts.port or 80) + 1
