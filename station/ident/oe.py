@@ -21,7 +21,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from station.ident.fd.core import start_values
 from station.ident.fd.identify import identify_fd
@@ -86,6 +85,8 @@ def fit_oe(steps: list[StepSignal], model: Model, theta0: FloatArray,
             blk[:, nf + i] = 1.0
             rows.append(blk)
         return np.vstack(rows)
+
+    from scipy.optimize import least_squares  # here: importing the module (a report does) fits nothing
 
     p0 = np.concatenate([np.zeros(nf), [float(np.mean(st.u)) for st in steps]])
     sol = least_squares(resid, p0, jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)

@@ -29,7 +29,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 from scipy.special import chndtr  # the non-central chi^2 without scipy.stats (0.6 s of CPU per worker start)
 
 from drivers.rig.params import DisplacementResonance
@@ -359,6 +358,8 @@ def resonance_suspected(frf: frfmod.FrequencyResponse, sdof: SdofModel, theta: F
     dof = 2 * frf.f_hz.size - 5
     if dof < 1 or sdof_dof < 1:
         return None
+    from scipy.optimize import least_squares  # here: a report reads the structure without this fit
+
     W = frfmod.whiteners(frf.cov)
     f_max = float(np.max(frf.f_hz))
 
