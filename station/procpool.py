@@ -5,9 +5,9 @@ Every worker runs single-threaded BLAS (``blas_env``: the pool is the parallelis
 pool's own initializer.  Two start methods, one choice each:
 
 * ``fork_server=True`` (the batch): processes come from the multiprocessing *fork server*, started
-  once per parent process with ``PRELOAD`` imported (``blas_env`` first, then numpy, scipy, h5py and
-  the identification), so every worker is a fork of a process that has them imported: no per-worker
-  import time.  A fork server, unlike a plain fork, is safe from a multi-threaded parent.
+  once per parent process with ``PRELOAD`` imported (``blas_env`` first, then numpy, scipy, h5py,
+  the identification and its least-squares fitter), so every worker is a fork of a process that has
+  them imported: no per-worker import time.  A fork server, unlike a plain fork, is safe from a multi-threaded parent.
 * ``fork_server=False`` (the daemon): spawned processes, children of the daemon itself, so that they
   see it die (``kill -9``) and exit; a fork server and its resource tracker outlive a killed parent.
 """
@@ -20,7 +20,9 @@ from concurrent.futures import ProcessPoolExecutor
 from multiprocessing.context import BaseContext
 from typing import Any
 
-PRELOAD = ["station.blas_env", "station.batch.worker"]
+# scipy.optimize by name: the identification imports it where it fits (a report reads without it),
+# and every batch worker fits
+PRELOAD = ["station.blas_env", "station.batch.worker", "scipy.optimize"]
 
 
 def _context(fork_server: bool) -> BaseContext:
