@@ -12,7 +12,7 @@
   it, from the linear start to the final χ²); else a figure saying that no iterative method was run.
 
 Every figure is FIG_SIZE_PX pixels, rendered deterministically (no timestamps in the PNG).  The PNGs
-of the last few recordings are kept (keyed like ``data.load_run``: path, modification time, size, the
+of the last 16 recordings are kept (keyed like ``data.load_run``: path, modification time, size, the
 versions of the stored results a plot reads), so the report page, its PDF and the page's plot requests draw each once.
 """
 
@@ -270,9 +270,9 @@ def render_plot(recording_path: Path, name: str) -> bytes:
     return cached_png((path, mtime_ns, size, plotted(version)), name)
 
 
-@lru_cache(maxsize=4 * len(PLOT_NAMES))
+@lru_cache(maxsize=16 * len(PLOT_NAMES))  # PNGs of 60-90 kB: at most about 6 MB
 def cached_png(key: RunKey, name: str) -> bytes:
     """The cache behind :func:`render_plot`: PNG of plot ``name`` of the recording ``key``
     (``data.run_key`` without the results no plot reads, ``names.plotted``; the data from
-    ``data.load_run``).  ``cached_png.cache_clear()`` drops the (up to 16) kept PNGs."""
+    ``data.load_run``).  ``cached_png.cache_clear()`` drops the (up to 64) kept PNGs."""
     return _png(make_figure(load_run(key[0]), name))
