@@ -82,6 +82,15 @@ def test_plots_are_pngs_of_the_stated_size_deterministic_and_drawn_once(sim_reco
     assert (cached_run_data.cache_info().misses, cached_run_data.cache_info().hits) == (1, len(PLOT_NAMES) - 1)
     assert cached_png.cache_info().misses == len(PLOT_NAMES)
     assert len(set(first.values())) == len(PLOT_NAMES), "two plots gave the same image"
+    # drawn on a canvas of its own (a new renderer, nothing measured before): the same bytes as with the
+    # renderer the thread's plots share
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from station.report.plots import _png, make_figure
+
+    fig = make_figure(load_run(sim_recording), "residuals")
+    FigureCanvasAgg(fig)
+    assert _png(fig) == first["residuals"]
     for name in PLOT_NAMES:  # asked again: the same PNGs, not drawn again
         assert render_plot(sim_recording, name) == first[name]
     assert cached_png.cache_info().hits == len(PLOT_NAMES) and cached_run_data.cache_info().misses == 1
