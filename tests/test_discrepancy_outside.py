@@ -26,6 +26,7 @@ from station.discrepancy import analyse_recording
 from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import scenario_config, simulate_scenario
 from station.interchange import export_run, import_run
+from tests.discrepancy_support import write_step_csv
 
 _cfg = scenario_config({})
 assert _cfg.simulation is not None
@@ -90,6 +91,20 @@ def test_synthesised_force_agrees_with_ode_integration() -> None:
     assert np.max(np.abs(a - b)) <= 1e-6 * np.max(np.abs(a))
 
 
+def test_step_csv_helper_writes_the_bytes_of_savetxt(tmp_path: Path) -> None:
+    """``write_step_csv`` (the edited runs' step files, here and in the other model-gap tests) writes
+    what ``np.savetxt(..., fmt="%.17g")`` writes, byte for byte: negative, tiny, huge and integral
+    values alike."""
+    rng = np.random.default_rng(3)
+    d = np.column_stack([np.arange(50) / 20_000 + 0.85, rng.normal(scale=1e-4, size=50),
+                         rng.normal(scale=1e3, size=50) * 10.0 ** rng.integers(-12, 12, 50)])
+    d[0] = (0.0, -0.0, 1.0)
+    ours, theirs = tmp_path / "ours.csv", tmp_path / "savetxt.csv"
+    write_step_csv(ours, d)
+    np.savetxt(theirs, d, delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
+    assert ours.read_bytes() == theirs.read_bytes()
+
+
 def _synthesise(tmp_path: Path, seed: int, motion: Motion,
                 output: Callable[[np.ndarray, np.ndarray, float, float], np.ndarray]) -> DiscrepancyResult:
     """A run with the station's plan (6 steps, 5-95 Hz), its signals replaced by the synthesised
@@ -107,7 +122,7 @@ def _synthesise(tmp_path: Path, seed: int, motion: Motion,
         F = _force(t, w, r, M, motion)
         d[:, 1] = motion(t, w, r)[0] + rng.normal(scale=SIGMA_X, size=t.size)
         d[:, 2] = output(F, t, w, C) + rng.normal(scale=SIGMA_F, size=t.size)
-        np.savetxt(f, d, delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
+        write_step_csv(f, d)
     return analyse_recording(import_run(run, tmp_path / "imp"))
 
 

@@ -26,6 +26,7 @@ from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import draw_scenario, scenario_config, simulate_scenario
 from station.interchange import export_run, import_run
 from station.simulate import simulate_run
+from tests.discrepancy_support import write_step_csv
 
 Z_MAX = 4.0
 CASES = ((101, "5kN"), (202, "12k5N"))  # (seed, transducer preset of config/)
@@ -128,7 +129,7 @@ def _add_sidebands(run_yaml: Path, steps: range, ratio: float, amp_V: float, see
         w = 2 * np.pi * st["crank_frequency_hz"]
         ph = rng.uniform(-np.pi, np.pi, 2)
         d[:, 2] += amp_V * (np.cos((1 + ratio) * w * d[:, 0] + ph[0]) + np.cos((1 - ratio) * w * d[:, 0] + ph[1]))
-        np.savetxt(f, d, delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
+        write_step_csv(f, d)
 
 
 @pytest.mark.slow
@@ -187,7 +188,7 @@ def test_an_imported_run_of_inverted_polarity_gives_the_same_answer(tmp_path: Pa
         f = run.parent / st["file"]
         d = np.loadtxt(f, delimiter=",", skiprows=1)
         d[:, 2] *= -1
-        np.savetxt(f, d, delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
+        write_step_csv(f, d)
     inv = analyse_recording(import_run(run, tmp_path / "inv"))
     names = sorted(eff)
     for rep in (ref, inv):
