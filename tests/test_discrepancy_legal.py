@@ -15,6 +15,7 @@ from station.discrepancy import analyse_recording
 from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import draw_scenario, scenario_config, simulate_scenario
 from station.interchange import export_run, import_run
+from tests.discrepancy_support import write_step_csv
 
 _cfg = scenario_config({})
 assert _cfg.simulation is not None
@@ -30,12 +31,11 @@ def _imported(tmp_path: Path, effects: dict, seed: int, keep: list[int] | None =
     if keep is not None:
         doc["steps"] = [doc["steps"][i] for i in keep]
         run.write_text(yaml.safe_dump(doc))
-    for st in doc["steps"]:
+    for st in doc["steps"] if own_origins else ():
         f = run.parent / st["file"]
         d = np.loadtxt(f, delimiter=",", skiprows=1)
-        if own_origins:
-            d[:, 0] -= d[0, 0]
-        np.savetxt(f, d, delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
+        d[:, 0] -= d[0, 0]
+        write_step_csv(f, d)
     return import_run(run, tmp_path / "imp")
 
 

@@ -30,6 +30,7 @@ from station.interchange import export_run, import_run
 from station.limits import check_steps
 from station.recording import read_recording
 from station.simulate import simulate_run
+from tests.discrepancy_support import write_step_csv
 from tests.ident_support import sim
 
 
@@ -200,7 +201,7 @@ def _export_edit(rec: Path, folder: Path, own_origins: bool = False, drop_rig: b
             f = run.parent / st["file"]
             d = np.loadtxt(f, delimiter=",", skiprows=1)
             d[:, 0] -= d[0, 0]
-            np.savetxt(f, d, delimiter=",", fmt="%.17g", header="t_s,displacement_m,force_V", comments="")
+            write_step_csv(f, d)
     return import_run(run, folder / "imp")
 
 
