@@ -86,11 +86,11 @@ def test_plots_are_pngs_of_the_stated_size_deterministic_and_drawn_once(sim_reco
     # renderer the thread's plots share
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    from station.report.plots import _png, make_figure
+    from station.report.plots import make_figure, png
 
     fig = make_figure(load_run(sim_recording), "residuals")
     FigureCanvasAgg(fig)
-    assert _png(fig) == first["residuals"]
+    assert png(fig) == first["residuals"]
     for name in PLOT_NAMES:  # asked again: the same PNGs, not drawn again
         assert render_plot(sim_recording, name) == first[name]
     assert cached_png.cache_info().hits == len(PLOT_NAMES) and cached_run_data.cache_info().misses == 1

@@ -50,7 +50,7 @@ class _Canvas(FigureCanvasAgg):
     per figure: matplotlib keeps text extents and parsed mathtext (the log axes' tick labels) per
     renderer, so the plots after the first reuse them rather than measuring and parsing the same
     labels again.  The renderer is cleared before each draw (``FigureCanvasAgg.draw``): the same
-    pixels as a renderer of its own.  The picture is read (``_png``) before the thread draws another."""
+    pixels as a renderer of its own.  The picture is read (``png``) before the thread draws another."""
 
     def get_renderer(self) -> RendererAgg:
         w, h = self.get_width_height(physical=True)
@@ -69,7 +69,7 @@ def _figure() -> Figure:
     return fig
 
 
-def _png(fig: Figure) -> bytes:
+def png(fig: Figure) -> bytes:
     """The figure drawn on its Agg canvas as an RGB PNG (DPI stated, no text chunks).  The figure is
     opaque (white face), so the canvas' alpha is 255 everywhere and is left out: the same picture as
     ``savefig``'s RGBA PNG, a quarter fewer bytes to compress, and a PDF engine need not split off an
@@ -275,4 +275,4 @@ def cached_png(key: RunKey, name: str) -> bytes:
     """The cache behind :func:`render_plot`: PNG of plot ``name`` of the recording ``key``
     (``data.run_key`` without the results no plot reads, ``names.plotted``; the data from
     ``data.load_run``).  ``cached_png.cache_clear()`` drops the (up to 64) kept PNGs."""
-    return _png(make_figure(load_run(key[0]), name))
+    return png(make_figure(load_run(key[0]), name))
