@@ -1,6 +1,6 @@
 """The normal and Student-t functions of the control charts and the interval methods, from
 ``scipy.special``: the numbers ``scipy.stats`` gives (its ``norm.cdf``, ``norm.sf`` and ``t.ppf`` are
-these special functions behind argument checks, reproduced here; ``tests/test_trend.py`` compares them
+these special functions behind argument checks, reproduced here; ``tests/test_special_functions.py`` compares them
 bit for bit over a grid), without importing ``scipy.stats``: about 0.6 s of CPU that the daemon's
 first history (``station.lab.history``), which needs only these, would pay otherwise.
 """
