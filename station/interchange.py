@@ -295,7 +295,7 @@ def _rig_limits(cfg: dict) -> dict | None:
             "peak_force_fraction": limits.peak_force_fraction}
 
 
-def _write_step_csv(path: Path, columns: np.ndarray, rows_per_write: int = 20_000) -> None:
+def write_step_csv(path: Path, columns: np.ndarray, rows_per_write: int = 20_000) -> None:
     """A step file: the header line, then one line per row of ``columns`` (shape (n, 3): t_s,
     displacement_m, force_V), each value as ``%.17g`` (exact round trip), comma-separated: the bytes
     ``np.savetxt(path, columns, delimiter=",", fmt="%.17g", header=HEADER, comments="")`` writes,
@@ -331,7 +331,7 @@ def export_run(recording: str | Path, out_dir: str | Path) -> Path:
             name = f"step{s.index:02d}.csv"
             n = np.arange(s.start_sample, s.end_sample)
             d, fv = rec.step_signals(s)
-            _write_step_csv(tmp / name, np.column_stack([n / fs, d, fv]))
+            write_step_csv(tmp / name, np.column_stack([n / fs, d, fv]))
             entries.append({"file": name, "crank_frequency_hz": s.crank_frequency_hz,
                             "crank_radius_m": s.crank_radius_m})
         rig = _rig_limits(rec.config)

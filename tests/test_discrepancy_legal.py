@@ -14,8 +14,7 @@ import yaml
 from station.discrepancy import analyse_recording
 from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import draw_scenario, scenario_config, simulate_scenario
-from station.interchange import export_run, import_run
-from tests.discrepancy_support import write_step_csv
+from station.interchange import export_run, import_run, write_step_csv
 
 _cfg = scenario_config({})
 assert _cfg.simulation is not None

@@ -26,8 +26,7 @@ from scipy.integrate import solve_ivp
 from station.discrepancy import analyse_recording
 from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import scenario_config, simulate_scenario
-from station.interchange import export_run, import_run
-from tests.discrepancy_support import write_step_csv
+from station.interchange import export_run, import_run, write_step_csv
 
 _cfg = scenario_config({})
 assert _cfg.simulation is not None
@@ -93,9 +92,9 @@ def test_synthesised_force_agrees_with_ode_integration() -> None:
 
 
 def test_step_csv_helper_writes_the_bytes_of_savetxt(tmp_path: Path) -> None:
-    """``write_step_csv`` (the edited runs' step files, here and in the other model-gap tests) writes
-    what ``np.savetxt(..., fmt="%.17g")`` writes, byte for byte: negative, tiny, huge and integral
-    values alike."""
+    """``interchange.write_step_csv`` (the export's step files; the edited runs' here and in the other
+    model-gap tests) writes what ``np.savetxt(..., fmt="%.17g")`` writes, byte for byte: negative, tiny,
+    huge and integral values alike."""
     rng = np.random.default_rng(3)
     d = np.column_stack([np.arange(50) / 20_000 + 0.85, rng.normal(scale=1e-4, size=50),
                          rng.normal(scale=1e3, size=50) * 10.0 ** rng.integers(-12, 12, 50)])

@@ -26,11 +26,10 @@ from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import plan_steps, scenario_config
 from station.ident.identify import identify_recording
 from station.ident.response.gate import screen_step
-from station.interchange import export_run, import_run
+from station.interchange import export_run, import_run, write_step_csv
 from station.limits import check_steps
 from station.recording import read_recording
 from station.simulate import simulate_run
-from tests.discrepancy_support import write_step_csv
 from tests.ident_support import sim
 
 

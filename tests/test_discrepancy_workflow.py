@@ -24,9 +24,8 @@ from station.discrepancy import analyse_recording
 from station.discrepancy.catalogue import CATALOGUE
 from station.discrepancy.result import DiscrepancyResult
 from station.discrepancy.scenarios import draw_scenario, scenario_config, simulate_scenario
-from station.interchange import export_run, import_run
+from station.interchange import export_run, import_run, write_step_csv
 from station.simulate import simulate_run
-from tests.discrepancy_support import write_step_csv
 
 Z_MAX = 4.0
 CASES = ((101, "5kN"), (202, "12k5N"))  # (seed, transducer preset of config/)
